@@ -1,0 +1,491 @@
+"""Cell configuration: TOML files loaded once into frozen, validated values.
+
+A config is data. It is read and checked at start-up, before any device is
+opened; a bad file is refused with a :class:`~celld.errors.ConfigError` that
+names the file, the dotted key and the reason. Unknown keys are refused too, so
+a typo never silently falls back to a default.
+
+Sections (one frozen dataclass each) are split by axis, as in
+``configs/``: the cell, the robot, motion limits, the scanner, the calibration,
+the tactile sensor, the bus and the recording. Lengths are metres, angles
+radians, times seconds, unless the key carries a unit suffix (``_mm``,
+``_deg``, ``_hz``, ``_ms``), which is converted here, once.
+
+A file may ``include = ["robots/ur10e.toml", ...]`` other files (paths relative
+to it); later values override earlier ones, table by table.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Callable, Sequence, TypeVar
+
+import numpy as np
+
+from celld.errors import ConfigError
+
+T = TypeVar("T")
+
+
+class TableReader:
+    """Reads typed values out of one TOML table and tracks which keys were used.
+
+    Every getter checks the type and range and raises ConfigError with the file
+    and the dotted key. :meth:`done` refuses any key that no getter asked for.
+    """
+
+    def __init__(self, table: dict[str, Any], source: str, prefix: str = "") -> None:
+        if not isinstance(table, dict):
+            raise ConfigError(source, prefix, f"expected a table, got {type(table).__name__}")
+        self._table = table
+        self.source = source
+        self.prefix = prefix
+        self._used: set[str] = set()
+
+    def key(self, name: str) -> str:
+        return f"{self.prefix}.{name}" if self.prefix else name
+
+    def error(self, name: str, reason: str) -> ConfigError:
+        return ConfigError(self.source, self.key(name), reason)
+
+    def has(self, name: str) -> bool:
+        return name in self._table
+
+    def _get(self, name: str, default: Any) -> Any:
+        self._used.add(name)
+        if name in self._table:
+            return self._table[name]
+        if default is _REQUIRED:
+            raise self.error(name, "required key is missing")
+        return default
+
+    def str(self, name: str, default: Any = None, choices: Sequence[str] | None = None) -> str:
+        value = self._get(name, _REQUIRED if default is None else default)
+        if not isinstance(value, str):
+            raise self.error(name, f"expected a string, got {value!r}")
+        if choices is not None and value not in choices:
+            raise self.error(name, f"expected one of {', '.join(choices)}, got {value!r}")
+        return value
+
+    def bool(self, name: str, default: Any = None) -> bool:
+        value = self._get(name, _REQUIRED if default is None else default)
+        if not isinstance(value, bool):
+            raise self.error(name, f"expected true or false, got {value!r}")
+        return value
+
+    def int(self, name: str, default: Any = None, lo: float = -math.inf, hi: float = math.inf) -> int:
+        value = self._get(name, _REQUIRED if default is None else default)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.error(name, f"expected an integer, got {value!r}")
+        if not lo <= value <= hi:
+            raise self.error(name, f"expected {lo} <= value <= {hi}, got {value}")
+        return value
+
+    def float(
+        self,
+        name: str,
+        default: Any = None,
+        lo: float = -math.inf,
+        hi: float = math.inf,
+        scale: float = 1.0,
+        open_lo: bool = False,
+    ) -> float:
+        """A finite number in [lo, hi] (bounds in the file's units), times ``scale``."""
+        value = self._get(name, _REQUIRED if default is None else default)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.error(name, f"expected a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise self.error(name, f"expected a finite number, got {value}")
+        if value < lo or value > hi or (open_lo and value <= lo):
+            op = "<" if open_lo else "<="
+            raise self.error(name, f"expected {lo} {op} value <= {hi}, got {value}")
+        return value * scale
+
+    def vector(self, name: str, length: int, default: Any = None, scale: float = 1.0) -> tuple[float, ...]:
+        value = self._get(name, _REQUIRED if default is None else default)
+        if not isinstance(value, (list, tuple)) or len(value) != length:
+            raise self.error(name, f"expected a list of {length} numbers, got {value!r}")
+        out = []
+        for v in value:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+                raise self.error(name, f"expected finite numbers, got {v!r}")
+            out.append(float(v) * scale)
+        return tuple(out)
+
+    def matrix4(self, name: str, default: Any = None) -> tuple[tuple[float, ...], ...]:
+        """A (4, 4) rigid transform given as 4 rows of 4 numbers (metres)."""
+        from celld.errors import InputError
+        from celld.se3 import check_transform
+
+        value = self._get(name, _REQUIRED if default is None else default)
+        try:
+            T = check_transform(value, self.key(name))
+        except (InputError, ValueError, TypeError) as exc:
+            raise self.error(name, f"expected a 4x4 rigid transform: {exc}") from exc
+        return tuple(tuple(float(x) for x in row) for row in T)
+
+    def table(self, name: str, required: bool = False) -> "TableReader":
+        value = self._get(name, _REQUIRED if required else {})
+        return TableReader(value, self.source, self.key(name))
+
+    def done(self) -> None:
+        """Refuse keys that no getter asked for (typos, stale options)."""
+        unknown = sorted(set(self._table) - self._used)
+        if unknown:
+            raise ConfigError(self.source, self.key(unknown[0]), f"unknown key (known here: {', '.join(sorted(self._used)) or 'none'})")
+
+
+_REQUIRED = object()
+
+
+# -- sections -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    """Identity of the cell and where it keeps its state."""
+
+    name: str = "cell"
+    state_dir: str = "/var/lib/celld"
+
+    @classmethod
+    def read(cls, r: TableReader) -> "CellConfig":
+        name = r.str("name", "cell")
+        if not name or not all(c.isalnum() or c in "-_" for c in name):
+            raise r.error("name", f"expected letters, digits, '-' or '_' (it is a zenoh key part), got {name!r}")
+        return cls(name=name, state_dir=r.str("state_dir", "/var/lib/celld"))
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """The robot link: where the controller is and what the cell allows it."""
+
+    model: str = "ur10e"
+    host: str = "127.0.0.1"
+    frequency_hz: float = 500.0
+    connect_timeout: float = 10.0
+    # Workspace box of the TCP in the base frame, metres.
+    workspace_min: tuple[float, float, float] = (-1.2, -1.2, -0.05)
+    workspace_max: tuple[float, float, float] = (1.2, 1.2, 1.4)
+    # Pose of the TCP in the flange frame, UR pose [x, y, z, rx, ry, rz].
+    tcp_offset: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    home_q: tuple[float, ...] = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
+
+    @classmethod
+    def read(cls, r: TableReader) -> "RobotConfig":
+        wmin = r.vector("workspace_min", 3, list(cls.workspace_min))
+        wmax = r.vector("workspace_max", 3, list(cls.workspace_max))
+        if not all(a < b for a, b in zip(wmin, wmax)):
+            raise r.error("workspace_max", f"expected every value above workspace_min {wmin}, got {wmax}")
+        return cls(
+            model=r.str("model", "ur10e", choices=("ur10e", "ur5e", "ur5")),
+            host=r.str("host", "127.0.0.1"),
+            frequency_hz=r.float("frequency_hz", 500.0, lo=1.0, hi=500.0),
+            connect_timeout=r.float("connect_timeout", 10.0, lo=0.1, hi=120.0),
+            workspace_min=wmin,  # type: ignore[arg-type]
+            workspace_max=wmax,  # type: ignore[arg-type]
+            tcp_offset=r.vector("tcp_offset", 6, list(cls.tcp_offset)),
+            home_q=r.vector("home_q", 6, list(cls.home_q)),
+        )
+
+
+@dataclass(frozen=True)
+class MotionLimits:
+    """Cartesian limits every command obeys in every cycle (SI)."""
+
+    max_linear_speed: float = 0.25  # m/s
+    max_linear_accel: float = 1.0  # m/s^2
+    max_linear_jerk: float = 10.0  # m/s^3
+    max_angular_speed: float = 1.0  # rad/s
+    max_angular_accel: float = 4.0  # rad/s^2
+    max_angular_jerk: float = 40.0  # rad/s^3
+    # A tactile sample older than this stops a servo, seconds.
+    tactile_stale: float = 0.1
+    # Robot state older than this many cycles stops the loop.
+    state_stale_cycles: int = 3
+
+    @classmethod
+    def read(cls, r: TableReader) -> "MotionLimits":
+        return cls(
+            max_linear_speed=r.float("max_linear_speed", cls.max_linear_speed, lo=0.0, hi=1.0, open_lo=True),
+            max_linear_accel=r.float("max_linear_accel", cls.max_linear_accel, lo=0.0, hi=10.0, open_lo=True),
+            max_linear_jerk=r.float("max_linear_jerk", cls.max_linear_jerk, lo=0.0, hi=1000.0, open_lo=True),
+            max_angular_speed=r.float("max_angular_speed", cls.max_angular_speed, lo=0.0, hi=3.14, open_lo=True),
+            max_angular_accel=r.float("max_angular_accel", cls.max_angular_accel, lo=0.0, hi=40.0, open_lo=True),
+            max_angular_jerk=r.float("max_angular_jerk", cls.max_angular_jerk, lo=0.0, hi=4000.0, open_lo=True),
+            tactile_stale=r.float("tactile_stale_ms", cls.tactile_stale * 1e3, lo=1.0, hi=5000.0, scale=1e-3),
+            state_stale_cycles=r.int("state_stale_cycles", cls.state_stale_cycles, lo=1, hi=50),
+        )
+
+
+SCANNER_KINDS = ("sim", "replay", "phoxi", "azure-kinect", "realsense")
+SCANNER_MODELS = ("phoxi-s", "phoxi-m", "azure-kinect")
+
+
+@dataclass(frozen=True)
+class ScannerConfig:
+    """The 3D scanner above the table."""
+
+    kind: str = "sim"
+    model: str = "phoxi-m"
+    # Nominal pose of the camera in the base frame. For the simulated scanner it
+    # is the truth the simulator renders with; celld never reads it as an
+    # estimate: calibration starts without it.
+    T_base_cam: tuple[tuple[float, ...], ...] = (
+        (0.0, -1.0, 0.0, 0.6),
+        (-1.0, 0.0, 0.0, -0.0125),
+        (0.0, 0.0, -1.0, 1.0),
+        (0.0, 0.0, 0.0, 1.0),
+    )
+    replay_dir: str = ""
+    device: str = ""
+    seed: int = 0
+
+    @classmethod
+    def read(cls, r: TableReader) -> "ScannerConfig":
+        return cls(
+            kind=r.str("kind", "sim", choices=SCANNER_KINDS),
+            model=r.str("model", "phoxi-m", choices=SCANNER_MODELS),
+            T_base_cam=r.matrix4("T_base_cam", [list(row) for row in cls.T_base_cam]),
+            replay_dir=r.str("replay_dir", ""),
+            device=r.str("device", ""),
+            seed=r.int("seed", 0, lo=0),
+        )
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Flange-based hand-eye calibration (Algorithm 1)."""
+
+    flange: str = "ur10e"
+    e_required: float = 0.0005  # m, cost target of Algorithm 1
+    k_max: int = 30
+    n_poses: int = 20
+    cost: str = "translation"  # or "se3" (the 6-vector with the work radius)
+    work_radius: float = 0.5  # m, r of the se3 cost
+    settle: float = 0.3  # s after a move before capture
+    auto_accept: bool = False
+    # Pose generation box around the verification pose, metres, and max tilt.
+    pose_box: tuple[float, float, float] = (0.3, 0.3, 0.2)
+    max_tilt: float = 0.3  # rad
+    verification_pose: tuple[float, ...] = (0.6, 0.0, 0.45, 0.0, 0.0, 0.0)
+
+    @classmethod
+    def read(cls, r: TableReader) -> "CalibrationConfig":
+        return cls(
+            flange=r.str("flange", cls.flange),
+            e_required=r.float("e_required_mm", cls.e_required * 1e3, lo=0.0, hi=100.0, scale=1e-3),
+            k_max=r.int("k_max", cls.k_max, lo=1, hi=10_000),
+            n_poses=r.int("n_poses", cls.n_poses, lo=4, hi=1000),
+            cost=r.str("cost", cls.cost, choices=("translation", "se3")),
+            work_radius=r.float("work_radius", cls.work_radius, lo=0.0, hi=10.0, open_lo=True),
+            settle=r.float("settle", cls.settle, lo=0.0, hi=10.0),
+            auto_accept=r.bool("auto_accept", False),
+            pose_box=r.vector("pose_box", 3, list(cls.pose_box)),  # type: ignore[arg-type]
+            max_tilt=r.float("max_tilt_deg", math.degrees(cls.max_tilt), lo=0.0, hi=60.0, scale=math.pi / 180),
+            verification_pose=r.vector("verification_pose", 6, list(cls.verification_pose)),
+        )
+
+
+@dataclass(frozen=True)
+class TactileConfig:
+    """The SRM finger camera and the deformation servo (Algorithm 2)."""
+
+    kind: str = "sim"  # sim | opencv
+    device: str = "0"
+    width_px: int = 640
+    height_px: int = 480
+    fps: float = 60.0
+    tag_id: int = 7
+    tag_dictionary: str = "DICT_4X4_50"
+    tag_size: float = 0.008  # m
+    # Camera intrinsics: fx, fy, cx, cy in pixels, and distortion k1 k2 p1 p2 k3.
+    intrinsics_px: tuple[float, float, float, float] = (600.0, 600.0, 320.0, 240.0)
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    delta_d: float = 0.0015  # m, desired normal deformation
+    k_p: float = 2.0  # 1/s, normal gain of Eq. 16
+    v_const: float = 0.010  # m/s, tangential speed
+    torch_offset: float = 0.03  # m, |d| of Eq. 14
+    contact_threshold: float = 0.0003  # m
+    overload: float = 0.004  # m
+    search_distance: float = 0.005  # m, travel after contact loss before a stop
+
+    @classmethod
+    def read(cls, r: TableReader) -> "TactileConfig":
+        return cls(
+            kind=r.str("kind", cls.kind, choices=("sim", "opencv")),
+            device=r.str("device", cls.device),
+            width_px=r.int("width_px", cls.width_px, lo=16, hi=8192),
+            height_px=r.int("height_px", cls.height_px, lo=16, hi=8192),
+            fps=r.float("fps", cls.fps, lo=1.0, hi=1000.0),
+            tag_id=r.int("tag_id", cls.tag_id, lo=0, hi=999),
+            tag_dictionary=r.str("tag_dictionary", cls.tag_dictionary),
+            tag_size=r.float("tag_size_mm", cls.tag_size * 1e3, lo=0.5, hi=200.0, scale=1e-3),
+            intrinsics_px=r.vector("intrinsics_px", 4, list(cls.intrinsics_px)),  # type: ignore[arg-type]
+            distortion=r.vector("distortion", 5, list(cls.distortion)),
+            delta_d=r.float("delta_d_mm", cls.delta_d * 1e3, lo=0.0, hi=20.0, scale=1e-3),
+            k_p=r.float("k_p", cls.k_p, lo=0.0, hi=1000.0),
+            v_const=r.float("v_const_mm_s", cls.v_const * 1e3, lo=0.0, hi=500.0, scale=1e-3),
+            torch_offset=r.float("torch_offset_mm", cls.torch_offset * 1e3, lo=0.0, hi=500.0, scale=1e-3),
+            contact_threshold=r.float("contact_threshold_mm", cls.contact_threshold * 1e3, lo=0.0, hi=20.0, scale=1e-3),
+            overload=r.float("overload_mm", cls.overload * 1e3, lo=0.0, hi=50.0, scale=1e-3),
+            search_distance=r.float("search_distance_mm", cls.search_distance * 1e3, lo=0.0, hi=500.0, scale=1e-3),
+        )
+
+
+@dataclass(frozen=True)
+class BusUser:
+    name: str
+    password: str
+    role: str  # operator | viewer
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """The zenoh bus: mode, endpoints and access control."""
+
+    mode: str = "peer"  # peer | client | router
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:0",)
+    connect: tuple[str, ...] = ()
+    prefix: str = "celld"
+    state_rate_hz: float = 20.0
+    users: tuple[BusUser, ...] = ()
+    # The credentials this process presents when it connects as a client.
+    user: str = ""
+    password: str = ""
+
+    @classmethod
+    def read(cls, r: TableReader) -> "BusConfig":
+        listen = r._get("listen", list(cls.listen))
+        connect = r._get("connect", list(cls.connect))
+        for key, value in (("listen", listen), ("connect", connect)):
+            if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+                raise r.error(key, f"expected a list of zenoh endpoints (strings), got {value!r}")
+        users_raw = r._get("users", [])
+        if not isinstance(users_raw, list):
+            raise r.error("users", "expected an array of tables [[bus.users]]")
+        users = []
+        for i, u in enumerate(users_raw):
+            ur = TableReader(u, r.source, r.key(f"users[{i}]"))
+            users.append(BusUser(ur.str("name"), ur.str("password"), ur.str("role", choices=("operator", "viewer"))))
+            ur.done()
+        return cls(
+            mode=r.str("mode", cls.mode, choices=("peer", "client", "router")),
+            listen=tuple(listen),
+            connect=tuple(connect),
+            prefix=r.str("prefix", cls.prefix),
+            state_rate_hz=r.float("state_rate_hz", cls.state_rate_hz, lo=0.1, hi=500.0),
+            users=tuple(users),
+            user=r.str("user", ""),
+            password=r.str("password", ""),
+        )
+
+
+@dataclass(frozen=True)
+class RecordingConfig:
+    """rerun recordings: one .rrd per job, and optional live viewing."""
+
+    enabled: bool = True
+    serve_grpc_port: int = 0  # 0: no live server
+    connect_url: str = ""  # a viewer to stream to, e.g. rerun+http://127.0.0.1:9876/proxy
+
+    @classmethod
+    def read(cls, r: TableReader) -> "RecordingConfig":
+        return cls(
+            enabled=r.bool("enabled", True),
+            serve_grpc_port=r.int("serve_grpc_port", 0, lo=0, hi=65535),
+            connect_url=r.str("connect_url", ""),
+        )
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole cell configuration; every section validated."""
+
+    source: str = "<defaults>"
+    cell: CellConfig = field(default_factory=CellConfig)
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    motion: MotionLimits = field(default_factory=MotionLimits)
+    scanner: ScannerConfig = field(default_factory=ScannerConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    tactile: TactileConfig = field(default_factory=TactileConfig)
+    bus: BusConfig = field(default_factory=BusConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+
+    def T_base_cam_nominal(self) -> np.ndarray:
+        return np.array(self.scanner.T_base_cam, dtype=np.float64)
+
+
+_SECTIONS: dict[str, Callable[[TableReader], Any]] = {
+    "cell": CellConfig.read,
+    "robot": RobotConfig.read,
+    "motion": MotionLimits.read,
+    "scanner": ScannerConfig.read,
+    "calibration": CalibrationConfig.read,
+    "tactile": TactileConfig.read,
+    "bus": BusConfig.read,
+    "recording": RecordingConfig.read,
+}
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def _read_toml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    source = str(path)
+    if path in seen:
+        raise ConfigError(source, "include", "include cycle: " + " -> ".join(str(p) for p in seen + (path,)))
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise ConfigError(source, "", "file not found") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(source, "", f"cannot read: {exc}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(source, "", f"not valid TOML: {exc}") from exc
+    includes = data.pop("include", [])
+    if not isinstance(includes, list) or not all(isinstance(i, str) for i in includes):
+        raise ConfigError(source, "include", f"expected a list of file paths, got {includes!r}")
+    merged: dict[str, Any] = {}
+    for inc in includes:
+        merged = _merge(merged, _read_toml((path.parent / inc).resolve(), seen + (path,)))
+    return _merge(merged, data)
+
+
+def parse(data: dict[str, Any], source: str = "<dict>") -> Config:
+    """Validate a TOML-shaped dict into a :class:`Config`."""
+    top = TableReader(data, source)
+    values: dict[str, Any] = {"source": source}
+    for name, reader in _SECTIONS.items():
+        sub = top.table(name)
+        values[name] = reader(sub)
+        sub.done()
+    top.done()
+    return Config(**values)
+
+
+def load(path: str | Path) -> Config:
+    """Load and validate a config file (and its includes).
+
+    Raises
+    ------
+    ConfigError
+        The file, the dotted key and the reason of the first problem found.
+    """
+    path = Path(path).resolve()
+    return parse(_read_toml(path), str(path))
+
+
+def section_names() -> list[str]:
+    return [f.name for f in fields(Config) if f.name != "source"]

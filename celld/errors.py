@@ -1,0 +1,113 @@
+"""The one error tree of celld.
+
+Every error celld raises derives from :class:`CelldError`. Third-party errors
+are translated where they enter (``raise CalibrationError(...) from exc``), so a
+caller never has to know which library failed::
+
+    CelldError
+    ├── ConfigError            a config file or value is refused (file, key, reason)
+    ├── InputError             data from outside is malformed (shape, units, NaN, ...)
+    │   └── JobError           a job message is refused (field, reason)
+    ├── CalibrationError       a calibration cannot be solved or is degenerate
+    │   └── DetectionError     the flange was not found in a cloud
+    ├── SeamError              a seam cannot be found or fails its quality gate
+    ├── TactileError           the SRM camera or tag detection failed
+    ├── DeviceError            a device (scanner, camera) failed or is absent
+    │   └── DriverUnavailable  the SDK or hardware of a real driver is absent
+    ├── RobotError             the robot link failed or the robot refused
+    │   ├── LinkLost           the RTDE link dropped or went stale
+    │   └── SafetyStop         a protective stop, e-stop or limit breach
+    ├── MotionError            the motion process failed or refused a command
+    └── BusError               the zenoh bus failed or refused a request
+
+In the 500 Hz loop nothing raises: controllers return status values instead.
+"""
+
+from __future__ import annotations
+
+
+class CelldError(Exception):
+    """Base of every error celld raises."""
+
+
+class ConfigError(CelldError):
+    """A configuration file or value was refused.
+
+    Parameters
+    ----------
+    source : str
+        The file (or other source) the value came from.
+    key : str
+        The dotted key path of the offending value, ``""`` for the whole file.
+    reason : str
+        What was expected and what came.
+    """
+
+    def __init__(self, source: str, key: str, reason: str) -> None:
+        self.source = source
+        self.key = key
+        self.reason = reason
+        where = f"{source}: {key}" if key else source
+        super().__init__(f"{where}: {reason}")
+
+
+class InputError(CelldError):
+    """Data from outside (a cloud, an image, a file, a message) is malformed."""
+
+
+class JobError(InputError):
+    """A job message was refused; ``field`` names the offending field."""
+
+    def __init__(self, field: str, reason: str) -> None:
+        self.field = field
+        self.reason = reason
+        super().__init__(f"{field}: {reason}" if field else reason)
+
+
+class CalibrationError(CelldError):
+    """A calibration could not be solved, or its input is degenerate."""
+
+
+class DetectionError(CalibrationError):
+    """The flange was not found in a cloud; ``stage`` says where it failed."""
+
+    def __init__(self, stage: str, reason: str) -> None:
+        self.stage = stage
+        self.reason = reason
+        super().__init__(f"flange detection failed at {stage}: {reason}")
+
+
+class SeamError(CelldError):
+    """A seam could not be found or failed its quality gate."""
+
+
+class TactileError(CelldError):
+    """The SRM camera or the tag detection failed."""
+
+
+class DeviceError(CelldError):
+    """A device (scanner, camera) failed or is absent."""
+
+
+class DriverUnavailable(DeviceError):
+    """The SDK or the hardware that a real driver needs is absent."""
+
+
+class RobotError(CelldError):
+    """The robot link failed or the robot refused a command."""
+
+
+class LinkLost(RobotError):
+    """The RTDE link dropped or its data went stale."""
+
+
+class SafetyStop(RobotError):
+    """A protective stop, an e-stop or a limit breach stopped the robot."""
+
+
+class MotionError(CelldError):
+    """The motion process failed, or refused a command."""
+
+
+class BusError(CelldError):
+    """The zenoh bus failed or refused a request."""

@@ -1,0 +1,80 @@
+#!/bin/sh
+# celld's two entry points for a new machine; each sets itself up first.
+#   ./run.sh demo   the main job on the simulated cell
+#   ./run.sh test   the test suite (what CI runs)
+# Set-up: libusb-1.0 (open3d needs it on Debian), a virtual environment in
+# .venv/ and the package with its dependencies. Re-running is cheap: the
+# install is redone only when pyproject.toml changes.
+set -eu
+cd "$(dirname "$0")"
+
+need_root() {
+    echo "celld set-up: $1 is missing. Run as root, or install it first with:" >&2
+    echo "    sudo apt-get update && sudo apt-get install -y $2" >&2
+    exit 1
+}
+
+apt_install() {
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+        echo "celld set-up: installing $*" >&2
+        apt-get update -qq >&2
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >&2
+    else
+        need_root "$1" "$*"
+    fi
+}
+
+pick_python() {
+    for py in "${PYTHON:-}" python3.11 python3; do
+        [ -n "$py" ] || continue
+        if command -v "$py" >/dev/null 2>&1 &&
+            "$py" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
+            echo "$py"; return 0
+        fi
+    done
+    echo "celld set-up: Python 3.11 is required (python3.11 not found on PATH)" >&2
+    exit 1
+}
+
+ensure_libusb() {
+    if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so'; then return 0; fi
+    for d in /lib /usr/lib /lib64 /usr/lib64 /usr/lib/x86_64-linux-gnu /lib/x86_64-linux-gnu; do
+        ls "$d"/libusb-1.0.so* >/dev/null 2>&1 && return 0
+    done
+    apt_install libusb-1.0-0
+}
+
+ensure_venv() {
+    stamp=.venv/.celld-installed
+    if [ -x .venv/bin/python ] && [ -f "$stamp" ] && [ "$stamp" -nt pyproject.toml ]; then
+        return 0
+    fi
+    py=$(pick_python)
+    if [ ! -x .venv/bin/python ]; then
+        if ! "$py" -m venv .venv >/dev/null 2>&1; then
+            rm -rf .venv
+            apt_install python3.11-venv
+            "$py" -m venv .venv
+        fi
+    fi
+    echo "celld set-up: installing celld and its dependencies into .venv/ (first run takes a few minutes)" >&2
+    .venv/bin/python -m pip install -q --upgrade pip >&2
+    .venv/bin/python -m pip install -q -e '.[test]' >&2
+    touch "$stamp"
+}
+
+cmd=${1:-}
+[ $# -gt 0 ] && shift
+case "$cmd" in
+    demo)
+        ensure_libusb; ensure_venv
+        exec .venv/bin/celld demo "$@" ;;
+    test)
+        ensure_libusb; ensure_venv
+        exec .venv/bin/python -m pytest -m "not hardware" "$@" ;;
+    setup)
+        ensure_libusb; ensure_venv ;;
+    *)
+        echo "usage: ./run.sh demo|test|setup [args...]" >&2
+        exit 2 ;;
+esac

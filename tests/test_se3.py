@@ -1,0 +1,59 @@
+"""SE(3) helpers against hand-computed cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from celld import se3
+from celld.errors import InputError
+
+
+def test_ur_pose_round_trip_and_known_value() -> None:
+    T = se3.from_ur_pose([0.1, 0.2, 0.3, 0.0, 0.0, math.pi / 2])
+    np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(se3.apply(T, [[1.0, 0.0, 0.0]]), [[0.1, 1.2, 0.3]], atol=1e-12)
+    np.testing.assert_allclose(se3.to_ur_pose(T), [0.1, 0.2, 0.3, 0.0, 0.0, math.pi / 2], atol=1e-12)
+
+
+def test_invert_composes_to_identity(rng: np.random.Generator) -> None:
+    T = se3.from_xyz_rpy(rng.normal(size=3), rng.uniform(-3, 3, size=3))
+    np.testing.assert_allclose(T @ se3.invert(T), np.eye(4), atol=1e-12)
+
+
+def test_error_of_a_known_offset() -> None:
+    T = se3.from_xyz_rpy([0.6, -0.0125, 1.0], [math.pi, 0, -math.pi / 2])
+    T2 = T @ se3.from_xyz_rpy([0.001, 0, 0], [0, 0, math.radians(0.5)])
+    dt, dr = se3.error(T2, T)
+    assert dt == pytest.approx(0.001)
+    assert dr == pytest.approx(math.radians(0.5))
+
+
+def test_quaternion_order_is_wxyz() -> None:
+    T = se3.from_xyz_quat_wxyz([0, 0, 0], [math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)])
+    np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [(np.eye(3), "shape"), (np.full((4, 4), np.nan), "NaN"), (np.diag([2.0, 1, 1, 1]), "rotation")],
+)
+def test_check_transform_refuses_bad_input(value: np.ndarray, message: str) -> None:
+    with pytest.raises(InputError, match=message):
+        se3.check_transform(value)
+
+
+def test_check_points_names_shape_and_nan() -> None:
+    with pytest.raises(InputError, match=r"\(n, 3\)"):
+        se3.check_points(np.zeros((4, 2)))
+    with pytest.raises(InputError, match="1 of 2 points"):
+        se3.check_points([[0, 0, 0], [np.nan, 0, 0]])
+
+
+def test_frame_from_z_is_right_handed() -> None:
+    T = se3.frame_from_z([1, 2, 3], [0, 0, -1], x_hint=[1, 0, 0])
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
+    np.testing.assert_allclose(T[:3, 2], [0, 0, -1])
+    np.testing.assert_allclose(T[:3, 0], [1, 0, 0])
