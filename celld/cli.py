@@ -22,6 +22,9 @@ from celld.log import configure
 _COMMAND_MODULES = (
     "celld.config_cli",
     "celld.calib.cli",
+    "celld.seam.cli",
+    "celld.sim.cli",
+    "celld.motion.cli",
     "celld.demo",
 )
 
