@@ -1,0 +1,81 @@
+"""Values exchanged by the motion loop and its controllers.
+
+A controller is stepped once per cycle as ``step(input) -> (output, status)``
+and never raises in the loop: it reports a :class:`ControlStatus` instead.
+Twists are ``[vx, vy, vz, wx, wy, wz]`` in the base frame, m/s and rad/s.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+from typing import NamedTuple, Protocol
+
+import numpy as np
+
+from celld.tactile.sample import TactileSample
+
+
+class ControlStatus(IntEnum):
+    """What a controller (or the loop) reports each cycle."""
+
+    OK = 0  # running normally
+    DONE = 1  # reached its goal (end of a move, end of the path)
+    HOLD = 2  # holding still on purpose (e.g. a singularity guard in hold mode)
+    STOPPING = 3  # a jerk-limited stop is under way
+    STOPPED = 4  # stopped after a stop request or a fault
+    # Faults: each ends in a jerk-limited stop.
+    WORKSPACE = 10  # the TCP would leave the workspace box
+    LIMIT = 11  # a speed, acceleration or jerk limit would be exceeded
+    STALE_STATE = 12  # robot state older than the configured number of cycles
+    STALE_TACTILE = 13  # tactile sample older than its bound, or invalid too long
+    SAFETY = 14  # protective stop or e-stop reported by the robot
+    CONTACT_LOST = 15  # the finger lost the seam for longer than the search distance
+    OVERLOAD = 16  # the finger deformed beyond its maximum
+    LINK_LOST = 17  # the RTDE link dropped
+    BAD_COMMAND = 18  # a command could not be decoded or was refused
+    FAULT = 19  # any other failure
+
+
+class RobotState(NamedTuple):
+    """The robot as read at one cycle.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        Time the state was read, ``time.monotonic_ns()``.
+    q, qd : np.ndarray, shape (6,)
+        Joint positions (rad) and speeds (rad/s).
+    T_base_tcp : np.ndarray, shape (4, 4)
+        TCP pose in the base frame.
+    v_tcp : np.ndarray, shape (6,)
+        TCP twist in the base frame (m/s, rad/s).
+    """
+
+    stamp_ns: int
+    q: np.ndarray
+    qd: np.ndarray
+    T_base_tcp: np.ndarray
+    v_tcp: np.ndarray
+
+
+class ServoInput(NamedTuple):
+    """What a servo law sees each cycle."""
+
+    state: RobotState
+    tactile: TactileSample | None  # the latest good sample, None before the first
+    tactile_age: float  # seconds since the sample's capture
+
+
+class ServoLaw(Protocol):
+    """A seam-tracking law stepped in the motion loop's servo slot."""
+
+    def start(self, state: RobotState) -> None:
+        """Called once, in the loop, when the servo takes over."""
+
+    def step(self, inp: ServoInput) -> tuple[np.ndarray, ControlStatus]:
+        """Return the desired twist (6,) in the base frame and a status.
+
+        The loop shapes the twist with its jerk-limited velocity limiter and
+        applies its own safety checks; the law must not raise.
+        """
+        ...
