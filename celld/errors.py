@@ -11,6 +11,10 @@ caller never has to know which library failed::
     ├── CalibrationError       a calibration cannot be solved or is degenerate
     │   └── DetectionError     the flange was not found in a cloud
     ├── SeamError              a seam cannot be found or fails its quality gate
+    │   ├── WorkpieceError     the part model or its seam file is unusable
+    │   ├── ScanError          the scan is empty, partial, or in the wrong units
+    │   ├── RegistrationError  the model does not fit the scan on any seed
+    │   └── GrooveError        the joint walls contradict the model or are not measurable
     ├── TactileError           the SRM camera or tag detection failed
     ├── DeviceError            a device (scanner, camera) failed or is absent
     │   └── DriverUnavailable  the SDK or hardware of a real driver is absent
@@ -78,7 +82,32 @@ class DetectionError(CalibrationError):
 
 
 class SeamError(CelldError):
-    """A seam could not be found or failed its quality gate."""
+    """A seam could not be found or failed its quality gate.
+
+    ``reason`` says what was expected and what came; ``figures`` holds the
+    quality figures measured before the refusal (SI units), for reports.
+    """
+
+    def __init__(self, reason: str, figures: dict[str, float] | None = None) -> None:
+        self.reason = reason
+        self.figures = dict(figures or {})
+        super().__init__(reason)
+
+
+class WorkpieceError(SeamError):
+    """The part model (mesh, seam polyline, seam file) is unusable."""
+
+
+class ScanError(SeamError):
+    """The scan is empty, covers too little of the seam, or has the wrong units."""
+
+
+class RegistrationError(SeamError):
+    """The part model does not fit the scan: gate failed on every seed."""
+
+
+class GrooveError(SeamError):
+    """The joint walls in the scan contradict the model, or cannot be measured."""
 
 
 class TactileError(CelldError):
