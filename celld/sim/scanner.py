@@ -1,0 +1,331 @@
+"""Simulated 3D scanners: Open3D ray casting with a noise model per scanner kind.
+
+:class:`SimScanner` casts one ray per pixel of a pinhole camera (OpenCV
+convention: x right, y down, z along the optical axis) at the meshes of a
+scene and returns an :class:`OrganizedCloud` at the scanner's resolution:
+(H, W, 3) float32 points in the camera frame, metres, NaN where there is no
+return. It is generic: any :class:`~celld.sim.scene.SceneObject` meshes, the
+robot-cell scene of :func:`~celld.sim.scene.robot_scene` or a workpiece.
+
+Noise models (:class:`ScannerModel`), applied in this order:
+
+- range: no return outside ``[min_range, max_range]``;
+- grazing angles: no return beyond ``max_incidence`` between the ray and the
+  surface normal, a return dropped with a probability rising linearly from
+  ``dropout_incidence`` up to it;
+- structured light (PhoXi S / M): the projector sits ``baseline`` along +x of
+  the camera; a point the projector cannot see (shadow) has no return, and
+  the projector's own incidence counts for the grazing test;
+- depth noise along the ray, Gaussian, ``sigma`` at ``sigma_range`` growing
+  as ``(range / sigma_range) ** sigma_exponent`` (2 for triangulation),
+  times ``metal_sigma_scale`` on metal;
+- time of flight (Azure Kinect DK): a range bias ``metal_bias`` on metal
+  (multipath makes bright machined metal read long), and flying pixels: a
+  pixel next to a depth step larger than ``flying_jump`` takes, with
+  probability ``flying_probability``, a depth between its own and its
+  neighbour's.
+
+Figures: PhoXi M 2064 x 1544, 0.458-1.118 m, about 0.29 mm point spacing at
+0.65 m, sigma 0.1 mm; PhoXi S 0.384-0.520 m, 0.16 mm spacing at 0.442 m,
+sigma 0.05 mm (the 0.05-0.1 mm of the paper, section 3.2.1). Azure Kinect DK
+NFOV unbinned 640 x 576, 75 x 65 degrees, 0.5-3.86 m, a few mm of noise and a
+cm-level bias on metal (``research/handeye_anchors.md`` section 4). Values
+not on a datasheet (bias, dropout angles, flying-pixel rate) are plausible
+choices, named in each model.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+from typing import Callable, Sequence
+
+import numpy as np
+import open3d as o3d
+
+from celld import se3
+from celld.errors import InputError
+from celld.sim.scene import SceneObject, robot_scene
+
+__all__ = ["SCANNER_MODELS", "OrganizedCloud", "ScannerModel", "SceneObject", "SimScanner", "robot_scene", "scanner_model"]
+
+# Projector shadow rays stop this far (fraction of the projector-point distance)
+# before the point, so a surface does not shadow itself.
+_SHADOW_EPS = 1e-4
+
+
+@dataclass(frozen=True)
+class ScannerModel:
+    """Intrinsics, range and noise of one scanner kind (SI units, pixels with _px)."""
+
+    name: str
+    kind: str  # "structured-light" | "time-of-flight"
+    width_px: int
+    height_px: int
+    fx: float  # px
+    fy: float  # px
+    cx: float  # px
+    cy: float  # px
+    min_range: float  # m, along the optical axis
+    max_range: float  # m
+    sigma: float  # m, depth noise (1 sigma, along the ray) at sigma_range
+    sigma_range: float  # m
+    sigma_exponent: float  # growth of sigma with range
+    max_incidence: float  # rad, no return beyond
+    dropout_incidence: float  # rad, returns start to drop out beyond
+    baseline: float = 0.0  # m, projector offset along +x (structured light); 0: no shadows
+    metal_sigma_scale: float = 1.0
+    metal_bias: float = 0.0  # m, added to the range on metal
+    flying_jump: float = math.inf  # m, depth step that makes flying pixels
+    flying_probability: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("structured-light", "time-of-flight"):
+            raise InputError(f"scanner {self.name!r}: kind must be structured-light or time-of-flight, got {self.kind!r}")
+        if self.width_px < 1 or self.height_px < 1 or self.fx <= 0 or self.fy <= 0:
+            raise InputError(f"scanner {self.name!r}: expected a positive size and focal lengths")
+        if not 0 < self.min_range < self.max_range:
+            raise InputError(f"scanner {self.name!r}: expected 0 < min_range < max_range")
+        if not 0 <= self.dropout_incidence <= self.max_incidence <= math.pi / 2:
+            raise InputError(f"scanner {self.name!r}: expected 0 <= dropout_incidence <= max_incidence <= pi/2")
+        if self.sigma < 0 or not 0 <= self.flying_probability <= 1:
+            raise InputError(f"scanner {self.name!r}: sigma must be >= 0 and flying_probability in [0, 1]")
+
+    def scaled(self, scale: float) -> ScannerModel:
+        """The same scanner with its image scaled by ``scale`` (fewer, wider pixels)."""
+        if not (math.isfinite(scale) and 0.01 <= scale <= 1.0):
+            raise InputError(f"resolution_scale must be in [0.01, 1], got {scale!r}")
+        if scale == 1.0:
+            return self
+        return replace(
+            self,
+            width_px=max(1, round(self.width_px * scale)),
+            height_px=max(1, round(self.height_px * scale)),
+            fx=self.fx * scale,
+            fy=self.fy * scale,
+            cx=(self.cx + 0.5) * scale - 0.5,
+            cy=(self.cy + 0.5) * scale - 0.5,
+        )
+
+
+SCANNER_MODELS: dict[str, ScannerModel] = {
+    "phoxi-m": ScannerModel(
+        name="phoxi-m",
+        kind="structured-light",
+        width_px=2064,
+        height_px=1544,
+        fx=2270.0,  # 0.29 mm spacing at the 0.65 m sweet spot
+        fy=2270.0,
+        cx=1031.5,
+        cy=771.5,
+        min_range=0.458,
+        max_range=1.118,
+        sigma=0.0001,
+        sigma_range=0.65,
+        sigma_exponent=2.0,
+        max_incidence=math.radians(80.0),  # plausible, not a datasheet value
+        dropout_incidence=math.radians(65.0),
+        baseline=0.350,
+    ),
+    "phoxi-s": ScannerModel(
+        name="phoxi-s",
+        kind="structured-light",
+        width_px=2064,
+        height_px=1544,
+        fx=2760.0,  # 0.16 mm spacing at the 0.442 m sweet spot
+        fy=2760.0,
+        cx=1031.5,
+        cy=771.5,
+        min_range=0.384,
+        max_range=0.520,
+        sigma=0.00005,
+        sigma_range=0.442,
+        sigma_exponent=2.0,
+        max_incidence=math.radians(80.0),
+        dropout_incidence=math.radians(65.0),
+        baseline=0.230,
+    ),
+    "azure-kinect": ScannerModel(
+        name="azure-kinect",
+        kind="time-of-flight",
+        width_px=640,  # NFOV unbinned
+        height_px=576,
+        fx=504.0,
+        fy=504.0,
+        cx=319.5,
+        cy=287.5,
+        min_range=0.5,
+        max_range=3.86,
+        sigma=0.0015,  # typical on diffuse targets at 1 m; the spec bound is 17 mm
+        sigma_range=1.0,
+        sigma_exponent=1.0,
+        max_incidence=math.radians(75.0),
+        dropout_incidence=math.radians(55.0),
+        metal_sigma_scale=2.0,
+        metal_bias=0.008,  # cm-level, reads long on machined metal (users report 8-15 mm)
+        flying_jump=0.01,
+        flying_probability=0.5,
+    ),
+}
+
+
+def scanner_model(name: str) -> ScannerModel:
+    """Return the scanner model called ``name``, or raise InputError listing the known ones."""
+    try:
+        return SCANNER_MODELS[name]
+    except KeyError:
+        raise InputError(f"unknown scanner model {name!r}; known: {', '.join(SCANNER_MODELS)}") from None
+
+
+@dataclass(frozen=True, eq=False)
+class OrganizedCloud:
+    """One capture: an organized cloud in the camera frame.
+
+    Attributes
+    ----------
+    points : numpy.ndarray
+        (H, W, 3) float32, camera frame, metres; NaN where there is no return.
+    stamp_ns : int
+        ``time.monotonic_ns()`` of the capture.
+    labels : numpy.ndarray or None
+        (H, W) int16 index of the scene object each pixel's ray hit first, -1
+        for none. Simulation truth for tests and benchmarks; nothing in the
+        calibration reads it.
+    """
+
+    points: np.ndarray
+    stamp_ns: int
+    labels: np.ndarray | None = None
+
+    def valid(self) -> np.ndarray:
+        """The (n, 3) finite points, row-major pixel order."""
+        P = self.points.reshape(-1, 3)
+        return P[np.isfinite(P[:, 2])]
+
+
+class SimScanner:
+    """A scanner fixed at ``T_base_cam`` that ray casts scenes.
+
+    Parameters
+    ----------
+    model : ScannerModel or str
+        The scanner, or a key of :data:`SCANNER_MODELS`.
+    T_base_cam : numpy.ndarray
+        (4, 4) pose of the camera (optical frame) in the base frame.
+    seed : int
+        Seed of the noise; captures are a deterministic sequence per seed.
+    resolution_scale : float
+        Image scale in (0, 1]; 0.25 gives a 516 x 386 PhoXi for fast tests.
+    clock : callable
+        Source of the capture stamps, ``time.monotonic_ns`` by default.
+    """
+
+    def __init__(
+        self,
+        model: ScannerModel | str,
+        T_base_cam: np.ndarray,
+        seed: int = 0,
+        resolution_scale: float = 1.0,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        base = scanner_model(model) if isinstance(model, str) else model
+        self.model = base.scaled(resolution_scale)
+        self.T_base_cam = se3.check_transform(T_base_cam, "T_base_cam")
+        self._T_cam_base = se3.invert(self.T_base_cam)
+        self._rng = np.random.default_rng(seed)
+        self._clock = clock
+        m = self.model
+        u = (np.arange(m.width_px, dtype=np.float32) - np.float32(m.cx)) / np.float32(m.fx)
+        v = (np.arange(m.height_px, dtype=np.float32) - np.float32(m.cy)) / np.float32(m.fy)
+        # Ray directions with unit z: a hit at parameter t has depth t.
+        D = np.empty((m.height_px, m.width_px, 3), dtype=np.float32)
+        D[..., 0] = u[None, :]
+        D[..., 1] = v[:, None]
+        D[..., 2] = 1.0
+        self._dirs = D.reshape(-1, 3)
+        self._dir_norm = np.linalg.norm(self._dirs, axis=1)
+        self._rays = o3d.core.Tensor(np.hstack([np.zeros_like(self._dirs), self._dirs]))
+
+    def capture(self, objects: Sequence[SceneObject]) -> OrganizedCloud:
+        """Ray cast ``objects`` and return the noisy organized cloud."""
+        m = self.model
+        scene = o3d.t.geometry.RaycastingScene()
+        metal = []
+        for obj in objects:
+            if not isinstance(obj, SceneObject):
+                raise InputError(f"capture: expected SceneObject values, got {type(obj).__name__}")
+            V = se3.apply(self._T_cam_base @ obj.T_base_obj, np.asarray(obj.mesh.vertices))
+            F = np.asarray(obj.mesh.triangles, dtype=np.uint32)
+            scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F))
+            metal.append(obj.material == "metal")
+        stamp = self._clock()
+        hit = scene.cast_rays(self._rays)
+        t = hit["t_hit"].numpy()
+        gid = hit["geometry_ids"].numpy().astype(np.int64)
+        n_hit = len(objects)
+        hit_mask = np.isfinite(t) & (gid < n_hit)
+        labels = np.where(hit_mask, gid, -1).astype(np.int16)
+
+        idx = np.flatnonzero(hit_mask & (t >= m.min_range) & (t <= m.max_range))
+        d = self._dirs[idx]
+        dn = self._dir_norm[idx]
+        tt = t[idx]
+        N = hit["primitive_normals"].numpy()[idx]
+        cos_cam = np.abs(np.einsum("ij,ij->i", N, d)) / dn
+        keep = self._incidence_keep(cos_cam)
+        if m.baseline > 0.0:
+            keep &= self._projector_keep(scene, tt[:, None] * d, N)
+        idx, d, dn, tt = idx[keep], d[keep], dn[keep], tt[keep]
+        on_metal = np.asarray(metal, dtype=bool)[gid[idx]]
+
+        # Range noise (and bias) along the ray; t is depth, so divide by |d|.
+        rng_ = tt * dn
+        sigma = m.sigma * (rng_ / m.sigma_range) ** m.sigma_exponent
+        sigma = np.where(on_metal, sigma * m.metal_sigma_scale, sigma)
+        dr = sigma * self._rng.standard_normal(len(idx), dtype=np.float32)
+        if m.metal_bias:
+            dr = dr + np.where(on_metal, np.float32(m.metal_bias), np.float32(0.0))
+        depth = np.full(m.width_px * m.height_px, np.nan, dtype=np.float32)
+        depth[idx] = tt + dr / dn
+        depth = depth.reshape(m.height_px, m.width_px)
+        if m.flying_probability > 0.0:
+            depth = self._flying_pixels(depth)
+        points = depth[..., None] * self._dirs.reshape(m.height_px, m.width_px, 3)
+        return OrganizedCloud(points=points, stamp_ns=int(stamp), labels=labels.reshape(m.height_px, m.width_px))
+
+    def _incidence_keep(self, cos_inc: np.ndarray) -> np.ndarray:
+        """Grazing-angle returns: lost beyond max_incidence, thinned beyond dropout_incidence."""
+        m = self.model
+        inc = np.arccos(np.clip(cos_inc, 0.0, 1.0))
+        span = max(m.max_incidence - m.dropout_incidence, 1e-9)
+        p_drop = np.clip((inc - m.dropout_incidence) / span, 0.0, 1.0)
+        return (inc <= m.max_incidence) & (self._rng.random(len(inc)) >= p_drop)
+
+    def _projector_keep(self, scene: o3d.t.geometry.RaycastingScene, P: np.ndarray, N: np.ndarray) -> np.ndarray:
+        """Structured light: points the projector lights, at an angle it can be decoded."""
+        origin = np.array([self.model.baseline, 0.0, 0.0], dtype=np.float32)
+        to_point = P - origin
+        rays = o3d.core.Tensor(np.hstack([np.broadcast_to(origin, P.shape), to_point]).astype(np.float32))
+        shadowed = scene.test_occlusions(rays, tnear=0.0, tfar=1.0 - _SHADOW_EPS).numpy().astype(bool)
+        cos_proj = np.abs(np.einsum("ij,ij->i", N, to_point)) / np.linalg.norm(to_point, axis=1)
+        return ~shadowed & self._incidence_keep(cos_proj)
+
+    def _flying_pixels(self, depth: np.ndarray) -> np.ndarray:
+        """Time of flight: mix depths across steps larger than flying_jump."""
+        m = self.model
+        padded = np.pad(depth, 1, constant_values=np.nan)
+        H, W = depth.shape
+        neighbours = np.stack(
+            [padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]]
+        )  # up, down, left, right
+        step = np.abs(neighbours - depth[None])
+        step = np.where(np.isfinite(step), step, -1.0)
+        which = np.argmax(step, axis=0)
+        biggest = np.take_along_axis(step, which[None], axis=0)[0]
+        fly = (biggest > m.flying_jump) & (self._rng.random((H, W)) < m.flying_probability)
+        other = np.take_along_axis(neighbours, which[None], axis=0)[0]
+        mix = self._rng.random((H, W), dtype=np.float32)
+        out = depth.copy()
+        out[fly] = depth[fly] + mix[fly] * (other[fly] - depth[fly])
+        return out

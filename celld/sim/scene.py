@@ -1,0 +1,160 @@
+"""What the simulated scanner sees: scene objects and the robot-cell scene.
+
+A :class:`SceneObject` is any triangle mesh in its own frame, placed in the
+base frame by ``T_base_obj``, with a material that the scanner's noise model
+reads (``"metal"`` or ``"matte"``). :func:`robot_scene` builds the calibration
+scene: the flange on the wrist, the other robot links as simple solids behind
+it, the table and, on request, random clutter on the table.
+
+The link solids are stand-ins with UR10e-like sizes (wrist Ø90, d6 = 116 mm,
+forearm Ø90): they occlude, cast shadows and offer false planes and edges to
+the detector, which is all the calibration needs of them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from celld import se3
+from celld.calib.flange import FlangeModel
+from celld.errors import InputError
+
+# Materials the scanner noise models know.
+MATERIALS = ("metal", "matte")
+# UR10e-like link sizes of the stand-in arm, metres.
+_WRIST_TO_WRIST2 = 0.1155  # d6: flange face to the wrist-2 axis
+_LINK_RADIUS = 0.045
+_FOREARM_LENGTH = 0.57
+_BASE_RADIUS = 0.095
+_BASE_HEIGHT = 0.18
+# The table top is the plane z = 0 of the base frame; its extent, metres.
+_TABLE_MIN = (-0.3, -0.8)
+_TABLE_MAX = (1.5, 0.8)
+_TABLE_THICKNESS = 0.03
+# Clutter is dropped in this box on the table (base frame x, y), metres.
+_CLUTTER_MIN = (0.25, -0.35)
+_CLUTTER_MAX = (0.95, 0.35)
+
+
+@dataclass(frozen=True, eq=False)
+class SceneObject:
+    """One rigid object of a simulated scene.
+
+    Attributes
+    ----------
+    name : str
+        Label (``"flange"``, ``"table"``, ...); the scanner reports per-pixel labels by index.
+    mesh : open3d.geometry.TriangleMesh
+        The surface in the object frame, metres. The scanner never modifies it.
+    T_base_obj : numpy.ndarray
+        (4, 4) pose of the object frame in the base frame.
+    material : str
+        ``"metal"`` or ``"matte"``; selects the scanner's material effects.
+    """
+
+    name: str
+    mesh: o3d.geometry.TriangleMesh
+    T_base_obj: np.ndarray
+    material: str = "matte"
+
+    def __post_init__(self) -> None:
+        if self.material not in MATERIALS:
+            raise InputError(f"scene object {self.name!r}: material must be one of {MATERIALS}, got {self.material!r}")
+        T = se3.check_transform(self.T_base_obj, f"scene object {self.name!r}: T_base_obj")
+        T.setflags(write=False)
+        object.__setattr__(self, "T_base_obj", T)
+        if len(self.mesh.triangles) == 0:
+            raise InputError(f"scene object {self.name!r}: the mesh has no triangles")
+
+
+def cylinder(radius: float, length: float, resolution: int = 64) -> o3d.geometry.TriangleMesh:
+    """Closed cylinder along z from z = 0 to z = -length (its top cap at the origin)."""
+    mesh = o3d.geometry.TriangleMesh.create_cylinder(radius=radius, height=length, resolution=resolution, split=1)
+    mesh.translate([0.0, 0.0, -length / 2])
+    return mesh
+
+
+def box(size: tuple[float, float, float]) -> o3d.geometry.TriangleMesh:
+    """Closed box of ``size`` (x, y, z) centred on the origin."""
+    mesh = o3d.geometry.TriangleMesh.create_box(*size)
+    mesh.translate([-size[0] / 2, -size[1] / 2, -size[2] / 2])
+    return mesh
+
+
+def _arm_links(T_base_flange: np.ndarray, flange: FlangeModel) -> list[SceneObject]:
+    """Wrist 3, wrist 2 and the forearm as cylinders behind the flange, plus the base column."""
+    r_w = flange.wrist_diameter / 2
+    stub = flange.thickness + flange.wrist_depth  # length the flange model already covers
+    wrist3_len = max(_WRIST_TO_WRIST2 - r_w - stub, 0.005)
+    T_w3 = T_base_flange @ se3.transform_from(np.eye(3), [0.0, 0.0, -stub])
+    # Wrist 2: axis along the flange y axis, centred on the point d6 behind the face.
+    R_y = se3.from_xyz_rpy([0.0, 0.0, 0.0], [math.pi / 2, 0.0, 0.0])[:3, :3]
+    T_w2 = T_base_flange @ se3.transform_from(R_y, [0.0, -1.1 * r_w, -_WRIST_TO_WRIST2])
+    # Forearm: from the wrist-2 centre, horizontally toward the base axis.
+    p_w2 = (T_base_flange @ np.array([0.0, 0.0, -_WRIST_TO_WRIST2, 1.0]))[:3]
+    toward = -np.array([p_w2[0], p_w2[1], 0.0])
+    toward = toward / np.linalg.norm(toward) if np.linalg.norm(toward) > 1e-6 else np.array([-1.0, 0.0, 0.0])
+    T_fa = se3.frame_from_z(p_w2 - 0.02 * toward, -toward)
+    objects = [
+        SceneObject("wrist3", cylinder(r_w, wrist3_len), T_w3, "matte"),
+        SceneObject("wrist2", cylinder(_LINK_RADIUS, 2.2 * r_w), T_w2, "matte"),
+        SceneObject("forearm", cylinder(_LINK_RADIUS, _FOREARM_LENGTH), T_fa, "matte"),
+        SceneObject("base", cylinder(_BASE_RADIUS, _BASE_HEIGHT), se3.transform_from(np.eye(3), [0, 0, _BASE_HEIGHT]), "matte"),
+    ]
+    return objects
+
+
+def _clutter(seed: int) -> list[SceneObject]:
+    """Three to six boxes and cylinders standing on the table at seeded places."""
+    rng = np.random.default_rng(seed)
+    objects = []
+    for i in range(int(rng.integers(3, 7))):
+        xy = rng.uniform(_CLUTTER_MIN, _CLUTTER_MAX)
+        yaw = rng.uniform(-math.pi, math.pi)
+        height = rng.uniform(0.02, 0.15)
+        material = "metal" if rng.random() < 0.5 else "matte"
+        if rng.random() < 0.5:
+            size = (rng.uniform(0.03, 0.2), rng.uniform(0.03, 0.2), height)
+            mesh, z = box(size), height / 2
+        else:
+            mesh, z = cylinder(rng.uniform(0.01, 0.06), height), height
+        T = se3.from_xyz_rpy([xy[0], xy[1], z], [0.0, 0.0, yaw])
+        objects.append(SceneObject(f"clutter{i}", mesh, T, material))
+    return objects
+
+
+def robot_scene(
+    T_base_flange: np.ndarray, flange: FlangeModel, table: bool = True, clutter_seed: int | None = None
+) -> list[SceneObject]:
+    """The calibration scene: flange on the wrist, robot links, table, optional clutter.
+
+    Parameters
+    ----------
+    T_base_flange : numpy.ndarray
+        (4, 4) pose of the flange frame (face centre, +z out of the face) in the base frame.
+    flange : FlangeModel
+        The flange to place; its mesh is the ``"flange"`` object (metal).
+    table : bool
+        Add the table, its top at base z = 0.
+    clutter_seed : int or None
+        Seed of the random clutter on the table; ``None`` for none.
+
+    Returns
+    -------
+    list of SceneObject
+        The flange first.
+    """
+    T_base_flange = se3.check_transform(T_base_flange, "T_base_flange")
+    objects = [SceneObject("flange", flange.mesh(), T_base_flange, "metal")]
+    objects += _arm_links(T_base_flange, flange)
+    if table:
+        size = (_TABLE_MAX[0] - _TABLE_MIN[0], _TABLE_MAX[1] - _TABLE_MIN[1], _TABLE_THICKNESS)
+        centre = [(_TABLE_MAX[0] + _TABLE_MIN[0]) / 2, (_TABLE_MAX[1] + _TABLE_MIN[1]) / 2, -_TABLE_THICKNESS / 2]
+        objects.append(SceneObject("table", box(size), se3.transform_from(np.eye(3), centre), "matte"))
+    if clutter_seed is not None:
+        objects += _clutter(clutter_seed)
+    return objects
