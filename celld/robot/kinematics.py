@@ -1,0 +1,338 @@
+"""UR10e kinematics: DH forward and analytic inverse kinematics, Jacobian, joint limits.
+
+Pure maths: joint vectors and transforms in, joint vectors and transforms out.
+The frames are the controller's own: ``base`` is the frame the UR controller
+reports poses in (its DH frame 0), ``flange`` is the tool flange (DH frame 6),
+``tcp`` is the flange moved by the configured TCP offset ``T_flange_tcp``.
+
+Two layers share one implementation:
+
+- plain-float functions (:func:`forward_rows`, :func:`inverse_rows`) that a
+  500 Hz loop can call without numpy's per-call overhead;
+- numpy wrappers (:func:`forward`, :func:`inverse_all`, :func:`inverse`,
+  :func:`jacobian`) for everything else.
+
+The inverse is the closed form for the UR geometry (three parallel middle
+axes, spherical-like wrist offsets): up to eight solutions, each joint in
+(-pi, pi]; :func:`inverse` picks the one nearest a seed, shifted by 2 pi where
+the joint range allows it.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import NamedTuple, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from celld.errors import InputError
+
+Array = NDArray[np.float64]
+
+# Arguments of acos/asin within this much beyond +-1 are rounding, not "no solution".
+_TRIG_SLACK = 1e-9
+# |sin(q5)| below this is the wrist singularity: q6 is then taken from the seed.
+_WRIST_SINGULAR = 1e-9
+
+
+class DH(NamedTuple):
+    """Standard Denavit-Hartenberg parameters of a 6-axis UR arm (m, rad).
+
+    ``T_{i-1,i} = Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``.
+    """
+
+    d: tuple[float, float, float, float, float, float]
+    a: tuple[float, float, float, float, float, float]
+    alpha: tuple[float, float, float, float, float, float]
+
+
+class JointLimits(NamedTuple):
+    """Joint position range (rad) and maximum speed (rad/s) of each joint."""
+
+    q_min: tuple[float, float, float, float, float, float]
+    q_max: tuple[float, float, float, float, float, float]
+    qd_max: tuple[float, float, float, float, float, float]
+
+
+_HALF_PI = math.pi / 2
+
+# UR10e, from Universal Robots' published DH table.
+UR10E = DH(
+    d=(0.1807, 0.0, 0.0, 0.17415, 0.11985, 0.11655),
+    a=(0.0, -0.6127, -0.57155, 0.0, 0.0, 0.0),
+    alpha=(_HALF_PI, 0.0, 0.0, _HALF_PI, -_HALF_PI, 0.0),
+)
+
+# UR10e joint ranges (+-360 deg) and speeds (base and shoulder 120 deg/s, the rest 180 deg/s).
+UR10E_LIMITS = JointLimits(
+    q_min=(-2 * math.pi,) * 6,  # type: ignore[arg-type]
+    q_max=(2 * math.pi,) * 6,  # type: ignore[arg-type]
+    qd_max=(math.radians(120.0),) * 2 + (math.radians(180.0),) * 4,  # type: ignore[arg-type]
+)
+
+# A 3x4 row-major rigid transform as 12 floats: R00 R01 R02 t0 R10 ... t2.
+Rows = list[float]
+
+
+def _exact_trig(angle: float) -> tuple[float, float]:
+    """cos and sin, exact for the multiples of pi/2 that DH twists use."""
+    for k, (c, s) in enumerate(((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))):
+        if abs(angle - k * _HALF_PI) < 1e-12 or abs(angle - (k - 4) * _HALF_PI) < 1e-12:
+            return c, s
+    return math.cos(angle), math.sin(angle)
+
+
+def _link(q: float, d: float, a: float, ca: float, sa: float) -> Rows:
+    ct, st = math.cos(q), math.sin(q)
+    return [ct, -st * ca, st * sa, a * ct, st, ct * ca, -ct * sa, a * st, 0.0, sa, ca, d]
+
+
+def _mul(A: Rows, B: Rows) -> Rows:
+    """Product of two 3x4 rigid transforms."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11 = A
+    b0, b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11 = B
+    return [
+        a0 * b0 + a1 * b4 + a2 * b8,
+        a0 * b1 + a1 * b5 + a2 * b9,
+        a0 * b2 + a1 * b6 + a2 * b10,
+        a0 * b3 + a1 * b7 + a2 * b11 + a3,
+        a4 * b0 + a5 * b4 + a6 * b8,
+        a4 * b1 + a5 * b5 + a6 * b9,
+        a4 * b2 + a5 * b6 + a6 * b10,
+        a4 * b3 + a5 * b7 + a6 * b11 + a7,
+        a8 * b0 + a9 * b4 + a10 * b8,
+        a8 * b1 + a9 * b5 + a10 * b9,
+        a8 * b2 + a9 * b6 + a10 * b10,
+        a8 * b3 + a9 * b7 + a10 * b11 + a11,
+    ]
+
+
+def _inv(A: Rows) -> Rows:
+    """Inverse of a 3x4 rigid transform."""
+    r0, r1, r2, t0, r3, r4, r5, t1, r6, r7, r8, t2 = A
+    return [
+        r0, r3, r6, -(r0 * t0 + r3 * t1 + r6 * t2),
+        r1, r4, r7, -(r1 * t0 + r4 * t1 + r7 * t2),
+        r2, r5, r8, -(r2 * t0 + r5 * t1 + r8 * t2),
+    ]  # fmt: skip
+
+
+def rows_from_matrix(T: ArrayLike) -> Rows:
+    """The 12 floats of the top 3x4 block of a (4, 4) transform."""
+    return [float(v) for v in np.asarray(T, dtype=np.float64)[:3, :4].ravel()]
+
+
+def matrix_from_rows(A: Sequence[float]) -> Array:
+    """The (4, 4) transform of 12 row-major floats."""
+    T = np.eye(4)
+    T[:3, :4] = np.asarray(A, dtype=np.float64).reshape(3, 4)
+    return T
+
+
+def compose_rows(A: Rows, B: Rows) -> Rows:
+    """``A @ B`` for two 3x4 rigid transforms."""
+    return _mul(A, B)
+
+
+def invert_rows(A: Rows) -> Rows:
+    """The inverse of a 3x4 rigid transform."""
+    return _inv(A)
+
+
+@functools.lru_cache(maxsize=8)
+def _twists(dh: DH) -> tuple[tuple[float, float], ...]:
+    """(cos, sin) of each DH twist, exact for multiples of pi/2."""
+    return tuple(_exact_trig(alpha) for alpha in dh.alpha)
+
+
+def forward_rows(q: Sequence[float], dh: DH = UR10E) -> Rows:
+    """``T_base_flange`` of joint vector ``q`` (6,) as 12 row-major floats (plain Python)."""
+    return forward_all_rows(q, dh)[-1]
+
+
+def forward_all_rows(q: Sequence[float], dh: DH = UR10E) -> list[Rows]:
+    """``T_base_i`` for i = 1..6 (the frame after each joint), plain Python."""
+    tw = _twists(dh)
+    T = _link(q[0], dh.d[0], dh.a[0], *tw[0])
+    out = [T]
+    for i in range(1, 6):
+        T = _mul(T, _link(q[i], dh.d[i], dh.a[i], *tw[i]))
+        out.append(T)
+    return out
+
+
+def _clamp_trig(x: float) -> float | None:
+    """``x`` clipped to [-1, 1] if it is within rounding of it, else None."""
+    if x > 1.0:
+        return 1.0 if x < 1.0 + _TRIG_SLACK else None
+    if x < -1.0:
+        return -1.0 if x > -1.0 - _TRIG_SLACK else None
+    return x
+
+
+def _wrap(angle: float) -> float:
+    """``angle`` wrapped to (-pi, pi]."""
+    a = math.fmod(angle + math.pi, 2 * math.pi)
+    if a <= 0.0:
+        a += 2 * math.pi
+    return a - math.pi
+
+
+def inverse_rows(T_base_flange: Rows, dh: DH = UR10E, q6_seed: float = 0.0) -> list[list[float]]:
+    """Every joint solution of ``T_base_flange`` (12 row-major floats), plain Python.
+
+    Returns up to eight solutions, each joint wrapped to (-pi, pi]. At the wrist
+    singularity (q5 = 0 or pi) q6 is not determined; ``q6_seed`` is used. An
+    empty list means the pose is out of reach (or on the shoulder singularity).
+    """
+    d1, _, _, d4, d5, d6 = dh.d
+    _, a2, a3, _, _, _ = dh.a
+    tw = _twists(dh)
+    T06 = list(T_base_flange)
+    r00, r01, r02, px, r10, r11, r12, py, _, _, _, _ = T06
+    # Origin of frame 5: back along the flange z axis by d6.
+    p5x = px - d6 * r02
+    p5y = py - d6 * r12
+    rho = math.hypot(p5x, p5y)
+    if rho < d4:
+        return []  # the wrist centre is inside the cylinder the shoulder offset cannot reach
+    phi = math.atan2(p5y, p5x)
+    psi = math.acos(d4 / rho)
+    solutions: list[list[float]] = []
+    for q1 in (phi + psi + _HALF_PI, phi - psi + _HALF_PI):
+        s1, c1 = math.sin(q1), math.cos(q1)
+        c5 = _clamp_trig((px * s1 - py * c1 - d4) / d6)
+        if c5 is None:
+            continue
+        # The flange axes seen from frame 1 give s5*sin(q6) and s5*cos(q6); their norm
+        # is |s5|, which stays precise near the wrist singularity where acos(c5) does not.
+        ys6 = -r01 * s1 + r11 * c1
+        yc6 = r00 * s1 - r10 * c1
+        abs_s5 = math.hypot(ys6, yc6)
+        for sign in (1.0, -1.0):
+            q5 = math.atan2(sign * abs_s5, c5)
+            if abs_s5 < _WRIST_SINGULAR:
+                q6 = q6_seed
+            else:
+                q6 = math.atan2(sign * ys6, sign * yc6)
+            # T_1_4 = T_0_1^-1 T_0_6 T_5_6^-1 T_4_5^-1: a planar 3R problem for q2, q3, q4.
+            T01 = _link(q1, d1, 0.0, *tw[0])
+            T46 = _mul(_link(q5, d5, 0.0, *tw[4]), _link(q6, d6, 0.0, *tw[5]))
+            T14 = _mul(_mul(_inv(T01), T06), _inv(T46))
+            x14, y14 = T14[3], T14[7]
+            # With alpha_1 = pi/2 the planar arm lies in frame 1's x-y plane.
+            n2 = x14 * x14 + y14 * y14
+            c3 = _clamp_trig((n2 - a2 * a2 - a3 * a3) / (2.0 * a2 * a3))
+            if c3 is None:
+                continue
+            for q3 in (math.acos(c3), -math.acos(c3)):
+                q2 = math.atan2(y14, x14) - math.atan2(a3 * math.sin(q3), a2 + a3 * math.cos(q3))
+                q234 = math.atan2(T14[4], T14[0])
+                q4 = q234 - q2 - q3
+                solutions.append([_wrap(q1), _wrap(q2), _wrap(q3), _wrap(q4), _wrap(q5), _wrap(q6)])
+    return solutions
+
+
+def nearest_solution(
+    solutions: Sequence[Sequence[float]],
+    q_near: Sequence[float],
+    limits: JointLimits = UR10E_LIMITS,
+) -> list[float] | None:
+    """The solution (each joint shifted by whole turns) nearest ``q_near`` within ``limits``.
+
+    Distance is the largest joint difference, the move a joint-space motion
+    would take longest for. Returns None when no solution fits the limits.
+    """
+    best: list[float] | None = None
+    best_cost = math.inf
+    two_pi = 2 * math.pi
+    for sol in solutions:
+        q: list[float] = []
+        cost = 0.0
+        for j in range(6):
+            # The turn of sol[j] closest to q_near[j], kept inside the joint range.
+            v = sol[j] + two_pi * round((q_near[j] - sol[j]) / two_pi)
+            if v > limits.q_max[j]:
+                v -= two_pi
+            elif v < limits.q_min[j]:
+                v += two_pi
+            if v > limits.q_max[j] or v < limits.q_min[j]:
+                break
+            q.append(v)
+            cost = max(cost, abs(v - q_near[j]))
+        else:
+            if cost < best_cost:
+                best, best_cost = q, cost
+    return best
+
+
+# --- numpy API ----------------------------------------------------------------
+
+
+def check_q(q: ArrayLike, name: str = "q") -> Array:
+    """Return ``q`` as a finite float64 (6,) joint vector, or raise InputError."""
+    arr = np.asarray(q, dtype=np.float64)
+    if arr.shape != (6,):
+        raise InputError(f"{name}: expected 6 joint angles (rad), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name}: contains NaN or infinite values: {arr.tolist()}")
+    return arr
+
+
+def forward(q: ArrayLike, dh: DH = UR10E, T_flange_tcp: ArrayLike | None = None) -> Array:
+    """``T_base_flange`` (4, 4) of joint vector ``q`` (6,), rad; ``T_base_tcp`` with a TCP offset."""
+    q = check_q(q)
+    T = matrix_from_rows(forward_rows(q.tolist(), dh))
+    if T_flange_tcp is not None:
+        T = T @ np.asarray(T_flange_tcp, dtype=np.float64)
+    return T
+
+
+def inverse_all(T_base_flange: ArrayLike, dh: DH = UR10E, q6_seed: float = 0.0) -> Array:
+    """All (n, 6) joint solutions of ``T_base_flange`` (4, 4), each joint in (-pi, pi]."""
+    T = np.asarray(T_base_flange, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputError(f"T_base_flange: expected a finite (4, 4) transform, got shape {T.shape}")
+    sols = inverse_rows(rows_from_matrix(T), dh, q6_seed)
+    return np.asarray(sols, dtype=np.float64).reshape(-1, 6)
+
+
+def inverse(
+    T_base_flange: ArrayLike,
+    q_near: ArrayLike,
+    dh: DH = UR10E,
+    limits: JointLimits = UR10E_LIMITS,
+) -> Array | None:
+    """The joint solution of ``T_base_flange`` (4, 4) nearest ``q_near`` (6,), or None if unreachable."""
+    q_near = check_q(q_near, "q_near")
+    sols = inverse_rows(rows_from_matrix(T_base_flange), dh, float(q_near[5]))
+    q = nearest_solution(sols, q_near.tolist(), limits)
+    return None if q is None else np.asarray(q)
+
+
+def jacobian(q: ArrayLike, dh: DH = UR10E, T_flange_tcp: ArrayLike | None = None) -> Array:
+    """Geometric Jacobian (6, 6) of the flange (or TCP) in the base frame.
+
+    Rows 0-2 map joint speeds (rad/s) to the linear velocity of the point (m/s),
+    rows 3-5 to the angular velocity (rad/s), both in the base frame.
+    """
+    q = check_q(q)
+    frames = [matrix_from_rows(r) for r in forward_all_rows(q.tolist(), dh)]
+    p_end = frames[-1][:3, 3]
+    if T_flange_tcp is not None:
+        p_end = (frames[-1] @ np.asarray(T_flange_tcp, dtype=np.float64))[:3, 3]
+    J = np.zeros((6, 6))
+    z_prev, p_prev = np.array([0.0, 0.0, 1.0]), np.zeros(3)
+    for i in range(6):
+        J[:3, i] = np.cross(z_prev, p_end - p_prev)
+        J[3:, i] = z_prev
+        z_prev, p_prev = frames[i][:3, 2], frames[i][:3, 3]
+    return J
+
+
+def within_limits(q: ArrayLike, limits: JointLimits = UR10E_LIMITS) -> bool:
+    """True when every joint of ``q`` (6,) lies inside its range."""
+    q = check_q(q)
+    return bool(np.all(q >= np.asarray(limits.q_min)) and np.all(q <= np.asarray(limits.q_max)))
