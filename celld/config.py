@@ -293,60 +293,152 @@ class CalibrationConfig:
 
 @dataclass(frozen=True)
 class TactileConfig:
-    """The SRM finger camera and the deformation servo (Algorithm 2)."""
+    """The SRM finger camera, its tool geometry and the deformation servo (Algorithm 2).
+
+    The tool frame, the SRM tip and the torch are described in
+    :mod:`celld.tactile.tool`: the tool frame sits at the undeformed SRM tip
+    (the paper's P_r), x along t_d (from the torch to the tip), z along the
+    finger towards the flange (the welding-plane normal), y = n_d.
+    """
 
     kind: str = "sim"  # sim | opencv
     device: str = "0"
     width_px: int = 640
     height_px: int = 480
     fps: float = 60.0
+    # Time from the start of exposure to the return of a grab (real camera), s.
+    capture_latency: float = 0.008
     tag_id: int = 7
     tag_dictionary: str = "DICT_4X4_50"
-    tag_size: float = 0.008  # m
+    tag_size: float = 0.008  # m, side of the tag's black square
     # Camera intrinsics: fx, fy, cx, cy in pixels, and distortion k1 k2 p1 p2 k3.
     intrinsics_px: tuple[float, float, float, float] = (600.0, 600.0, 320.0, 240.0)
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    # -- tool geometry (celld.tactile.tool) --
+    # Tool axes in the TCP frame: x = t_d (torch -> tip), z = finger axis up.
+    tool_x_tcp: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    tool_z_tcp: tuple[float, float, float] = (0.0, 0.0, -1.0)
+    # Undeformed SRM tip centre in the TCP frame, m.
+    tip_tcp: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    tip_radius: float = 0.001  # m, radius of the SRM tip
+    # Pose of the finger camera in the tool frame (camera up the finger, looking at the tag).
+    T_tool_cam: tuple[tuple[float, ...], ...] = (
+        (1.0, 0.0, 0.0, 0.0),
+        (0.0, -1.0, 0.0, 0.0),
+        (0.0, 0.0, -1.0, 0.04),
+        (0.0, 0.0, 0.0, 1.0),
+    )
+    # Which side of the tool the seam wall is on: "left" (+n_d) or "right" (-n_d).
+    wall_side: str = "left"
+    # -- detection quality gates --
+    min_sharpness: float = 0.16  # edge slope / contrast (1/px) below which a frame is blurred (~ sigma 2.5 px)
+    max_reprojection_px: float = 0.5  # RMS corner reprojection error above which a pose is refused
+    tare_frames: int = 30
+    tare_max_spread: float = 2e-5  # m, RMS spread of the rest pose allowed during a tare
+    # -- Algorithm 2 --
     delta_d: float = 0.0015  # m, desired normal deformation
-    k_p: float = 2.0  # 1/s, normal gain of Eq. 16
+    k_p: float = 5.0  # 1/s, normal gain of Eq. 16
     v_const: float = 0.010  # m/s, tangential speed
     torch_offset: float = 0.03  # m, |d| of Eq. 14
+    k_torch: float = 1.0  # 1/s, torch lateral gain added to Eq. 18 (0: the paper's law)
+    max_correction_speed: float = 0.01  # m/s, bound of the normal correction of Eq. 16
+    omega_max: float = 0.5  # rad/s, bound of line 13
+    guard_cos: float = 0.25  # |n_d . n_t| below which line 13 is damped
+    plan_smoothing: float = 0.006  # m, window of the planned path's smoothing
+    refine_window: float = 0.002  # m, chord of the refined path's tangent
     contact_threshold: float = 0.0003  # m
     overload: float = 0.004  # m
+    contact_loss_samples: int = 3  # consecutive no-contact samples that mean contact is lost
     search_distance: float = 0.005  # m, travel after contact loss before a stop
+    touch_speed: float = 0.003  # m/s, approach speed towards the wall
+    touch_distance: float = 0.012  # m, approach travel without contact before a stop
+
+    def R_tool_cam(self) -> np.ndarray:
+        return np.array(self.T_tool_cam, dtype=np.float64)[:3, :3]
 
     @classmethod
     def read(cls, r: TableReader) -> "TactileConfig":
+        def unit(name: str, default: tuple[float, float, float]) -> tuple[float, float, float]:
+            v = np.array(r.vector(name, 3, list(default)))
+            if np.linalg.norm(v) < 1e-9:
+                raise r.error(name, f"expected a non-zero direction, got {v.tolist()}")
+            return tuple(float(x) for x in v / np.linalg.norm(v))  # type: ignore[return-value]
+
+        tool_x = unit("tool_x_tcp", cls.tool_x_tcp)
+        tool_z = unit("tool_z_tcp", cls.tool_z_tcp)
+        if abs(float(np.dot(tool_x, tool_z))) > 1e-6:
+            raise r.error("tool_z_tcp", f"expected a direction perpendicular to tool_x_tcp {tool_x}, got {tool_z}")
+        delta_d = r.float("delta_d_mm", cls.delta_d * 1e3, lo=0.0, hi=20.0, scale=1e-3, open_lo=True)
+        contact = r.float("contact_threshold_mm", cls.contact_threshold * 1e3, lo=0.0, hi=20.0, scale=1e-3)
+        overload = r.float("overload_mm", cls.overload * 1e3, lo=0.0, hi=50.0, scale=1e-3)
+        if not contact < delta_d < overload:
+            raise r.error(
+                "delta_d_mm",
+                f"expected contact_threshold < delta_d < overload, got {contact * 1e3} / {delta_d * 1e3} / {overload * 1e3} mm",
+            )
         return cls(
             kind=r.str("kind", cls.kind, choices=("sim", "opencv")),
             device=r.str("device", cls.device),
             width_px=r.int("width_px", cls.width_px, lo=16, hi=8192),
             height_px=r.int("height_px", cls.height_px, lo=16, hi=8192),
             fps=r.float("fps", cls.fps, lo=1.0, hi=1000.0),
+            capture_latency=r.float("capture_latency_ms", cls.capture_latency * 1e3, lo=0.0, hi=500.0, scale=1e-3),
             tag_id=r.int("tag_id", cls.tag_id, lo=0, hi=999),
             tag_dictionary=r.str("tag_dictionary", cls.tag_dictionary),
             tag_size=r.float("tag_size_mm", cls.tag_size * 1e3, lo=0.5, hi=200.0, scale=1e-3),
             intrinsics_px=r.vector("intrinsics_px", 4, list(cls.intrinsics_px)),  # type: ignore[arg-type]
             distortion=r.vector("distortion", 5, list(cls.distortion)),
-            delta_d=r.float("delta_d_mm", cls.delta_d * 1e3, lo=0.0, hi=20.0, scale=1e-3),
-            k_p=r.float("k_p", cls.k_p, lo=0.0, hi=1000.0),
+            tool_x_tcp=tool_x,
+            tool_z_tcp=tool_z,
+            tip_tcp=r.vector("tip_tcp_mm", 3, [x * 1e3 for x in cls.tip_tcp], scale=1e-3),  # type: ignore[arg-type]
+            tip_radius=r.float("tip_radius_mm", cls.tip_radius * 1e3, lo=0.0, hi=20.0, scale=1e-3),
+            T_tool_cam=r.matrix4("T_tool_cam", [list(row) for row in cls.T_tool_cam]),
+            wall_side=r.str("wall_side", cls.wall_side, choices=("left", "right")),
+            min_sharpness=r.float("min_sharpness", cls.min_sharpness, lo=0.0, hi=1.0),
+            max_reprojection_px=r.float("max_reprojection_px", cls.max_reprojection_px, lo=0.0, hi=20.0, open_lo=True),
+            tare_frames=r.int("tare_frames", cls.tare_frames, lo=1, hi=10_000),
+            tare_max_spread=r.float("tare_max_spread_mm", cls.tare_max_spread * 1e3, lo=0.0, hi=5.0, scale=1e-3, open_lo=True),
+            delta_d=delta_d,
+            k_p=r.float("k_p", cls.k_p, lo=0.0, hi=1000.0, open_lo=True),
             v_const=r.float("v_const_mm_s", cls.v_const * 1e3, lo=0.0, hi=500.0, scale=1e-3),
-            torch_offset=r.float("torch_offset_mm", cls.torch_offset * 1e3, lo=0.0, hi=500.0, scale=1e-3),
-            contact_threshold=r.float("contact_threshold_mm", cls.contact_threshold * 1e3, lo=0.0, hi=20.0, scale=1e-3),
-            overload=r.float("overload_mm", cls.overload * 1e3, lo=0.0, hi=50.0, scale=1e-3),
+            torch_offset=r.float("torch_offset_mm", cls.torch_offset * 1e3, lo=0.0, hi=500.0, scale=1e-3, open_lo=True),
+            k_torch=r.float("k_torch", cls.k_torch, lo=0.0, hi=100.0),
+            max_correction_speed=r.float(
+                "max_correction_speed_mm_s", cls.max_correction_speed * 1e3, lo=0.0, hi=500.0, scale=1e-3, open_lo=True
+            ),
+            omega_max=r.float("omega_max", cls.omega_max, lo=0.0, hi=3.14, open_lo=True),
+            guard_cos=r.float("guard_cos", cls.guard_cos, lo=0.0, hi=0.9, open_lo=True),
+            plan_smoothing=r.float("plan_smoothing_mm", cls.plan_smoothing * 1e3, lo=0.0, hi=200.0, scale=1e-3),
+            refine_window=r.float("refine_window_mm", cls.refine_window * 1e3, lo=0.0, hi=50.0, scale=1e-3, open_lo=True),
+            contact_threshold=contact,
+            overload=overload,
+            contact_loss_samples=r.int("contact_loss_samples", cls.contact_loss_samples, lo=1, hi=1000),
             search_distance=r.float("search_distance_mm", cls.search_distance * 1e3, lo=0.0, hi=500.0, scale=1e-3),
+            touch_speed=r.float("touch_speed_mm_s", cls.touch_speed * 1e3, lo=0.0, hi=100.0, scale=1e-3, open_lo=True),
+            touch_distance=r.float("touch_distance_mm", cls.touch_distance * 1e3, lo=0.0, hi=500.0, scale=1e-3, open_lo=True),
         )
 
 
 @dataclass(frozen=True)
 class BusUser:
+    """A user the bus accepts (zenoh user/password authentication) and its role."""
+
     name: str
     password: str
-    role: str  # operator | viewer
+    role: str  # operator: may submit, cancel and accept, and read | viewer: may only read
+
+
+BUS_ROLES = ("operator", "viewer")
 
 
 @dataclass(frozen=True)
 class BusConfig:
-    """The zenoh bus: mode, endpoints and access control."""
+    """The zenoh bus: mode, endpoints and access control (see :mod:`celld.bus.session`).
+
+    With no ``users`` the bus is open (loopback development and the simulated
+    cell). With users, every link must authenticate with one of them and
+    zenoh's access control gives each its role's rights.
+    """
 
     mode: str = "peer"  # peer | client | router
     listen: tuple[str, ...] = ("tcp/127.0.0.1:0",)

@@ -4,9 +4,13 @@ A sample travels from the camera process to the motion process through a
 :class:`celld.shm.SeqlockSlot` of :data:`TACTILE_DTYPE`. The deformation is in
 the tool frame, metres: ``delta_tool = [tangential, normal, out_of_plane]``,
 the first two in the welding plane (the paper's delta^{t_s}, delta^{n_s}).
+The sign is that of Eq. 15, ``P_r = P_s + delta``: the undeformed tip position
+minus the deformed one, so pressing a wall on the tool's +y side reads as a
+positive normal deformation (frames in :mod:`celld.tactile.tool`).
 
-A failed detection is a sample with ``valid = False``; its deformation is NaN,
-never zero, so no consumer can mistake "no tag" for "no deformation".
+A failed detection is a sample with ``valid = False`` and a
+:class:`TactileStatus` that says why; its deformation is NaN, never zero, so
+no consumer can mistake "no tag" for "no deformation".
 """
 
 from __future__ import annotations
@@ -23,6 +27,18 @@ class ContactState(IntEnum):
     NONE = 0
     CONTACT = 1
     OVERLOAD = 2
+
+
+class TactileStatus(IntEnum):
+    """Why a sample is (not) valid."""
+
+    OK = 0
+    NO_TAG = 1  # no tag in the frame
+    WRONG_ID = 2  # tags in the frame, none with the configured id
+    BLURRED = 3  # the tag's edges are too soft to trust its corners
+    BAD_POSE = 4  # the pose fit was refused (reprojection error, degenerate corners)
+    CAMERA_LOST = 5  # the camera gave no frame (unplugged, driver failure)
+    NOT_TARED = 6  # no rest pose yet
 
 
 class TactileSample(NamedTuple):
@@ -44,6 +60,8 @@ class TactileSample(NamedTuple):
         False when the tag was not detected (or was the wrong id).
     detect_ns : int
         Time the detection took, nanoseconds.
+    status : TactileStatus
+        ``OK`` for a valid sample, otherwise why it is not.
     """
 
     stamp_ns: int
@@ -53,6 +71,7 @@ class TactileSample(NamedTuple):
     confidence: float
     valid: bool
     detect_ns: int
+    status: TactileStatus = TactileStatus.OK
 
 
 # The shared-memory layout of a TactileSample.
@@ -66,6 +85,7 @@ TACTILE_DTYPE = np.dtype(
         ("confidence", np.float32),
         ("detect_ns", np.int64),
         ("publish_ns", np.int64),
+        ("status", np.int8),
     ]
 )
 
@@ -81,6 +101,7 @@ def to_record(sample: TactileSample, publish_ns: int = 0) -> np.ndarray:
     rec["confidence"] = sample.confidence
     rec["detect_ns"] = sample.detect_ns
     rec["publish_ns"] = publish_ns
+    rec["status"] = int(sample.status)
     return rec
 
 
@@ -95,4 +116,5 @@ def from_record(rec: np.ndarray | np.void) -> TactileSample:
         confidence=float(r["confidence"]),
         valid=bool(r["valid"]),
         detect_ns=int(r["detect_ns"]),
+        status=TactileStatus(int(r["status"])),
     )

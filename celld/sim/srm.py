@@ -1,0 +1,297 @@
+"""Simulated SRM finger: contact with the seam wall and the in-finger camera image.
+
+Three parts, each usable alone:
+
+- :func:`finger_contact` (pure): the finger tip against the wall of a
+  simulated seam. The wall is a polyline in the welding plane; the tip is a
+  sphere of ``tip_radius`` whose undeformed centre is the tool origin P_r. A
+  tip that would enter the wall is pushed back onto it (normal stiffness; the
+  finger bottoms out at ``max_deformation``) and dragged back along the wall by
+  friction (``friction * k_normal / k_tangential`` of the normal deflection).
+- :class:`TagRenderer`: renders the ArUco tag at a pose in the camera frame as
+  an 8-bit grey image with perspective, lens blur, sensor noise and lighting
+  changes. The tag is rendered supersampled in a window around it, then
+  area-averaged, so edges land at sub-pixel positions.
+- :class:`SimSrmCamera`: a frame source (same protocol as the real camera in
+  :mod:`celld.tactile.camera`) driven by the true TCP pose at each frame's
+  capture time; it also keeps the true deformation of each frame, which the
+  benchmark compares the estimate against (the estimator never sees it).
+
+The simulated lens is a pinhole without distortion; the detector still applies
+the configured distortion coefficients, which are zero for the simulated cell.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, NamedTuple
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from celld.config import TactileConfig
+from celld.errors import InputError
+from celld.se3 import invert, transform_from
+
+Array = np.ndarray
+
+# Pixels per tag cell in the texture; the tag spans about 20 px per cell on
+# the default camera, so the texture is sampled below its resolution.
+_TEXTURE_PX_PER_CELL = 40
+# Supersampling of the rendered window: beyond 4 the read-back corner error
+# no longer changes (it is the detector's).
+_SUPERSAMPLE = 4
+# White margin around the tag's black square, in cells (the tag's quiet zone).
+_QUIET_CELLS = 1
+# Grey levels of the tag's ink and paper under nominal light (paper is not a
+# perfect white: a brighter light does not clip it at once).
+_INK, _PAPER = 20.0, 205.0
+# Pre-drawn sensor-noise frames, cropped at random offsets per frame.
+_NOISE_BANK = 8
+_NOISE_PAD = 32
+
+
+# -- contact model -------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ContactParams:
+    """Mechanics of the finger against the wall (SI units).
+
+    ``k_normal`` and ``k_tangential`` are the finger's stiffness (N/m); only
+    their ratio matters to the quasi-static deflection, the normal one also
+    gives the contact force.
+    """
+
+    k_normal: float = 400.0  # N/m
+    k_tangential: float = 400.0  # N/m
+    friction: float = 0.3  # Coulomb coefficient tip/wall
+    max_deformation: float = 0.005  # m, the finger bottoms out here
+    slip_speed: float = 0.0005  # m/s, speed over which the friction force builds up
+    finger_length: float = 0.04  # m, bending length: the tag tilts by 1.5 * deflection / length
+
+
+class Wall(NamedTuple):
+    """A seam wall: a polyline in the welding plane and the side it faces.
+
+    ``P`` (n, 2) are points of the wall line (plane coordinates, m); ``free``
+    is +1 when the free side (where the tip is) is left of the direction of
+    the points, -1 when right.
+    """
+
+    P: Array
+    free: float
+
+
+class FingerContact(NamedTuple):
+    """The finger's state against the wall.
+
+    ``tip_shift_plane`` (2,) is the deformed tip centre minus the undeformed one
+    (m, plane coordinates, P_s - P_r); ``force`` the normal force (N);
+    ``in_contact`` whether the tip touches the wall; ``bottomed`` whether the
+    finger reached its maximum deformation.
+    """
+
+    tip_shift_plane: Array
+    force: float
+    in_contact: bool
+    bottomed: bool
+
+
+def _nearest_on_polyline(P: Array, q: Array) -> tuple[Array, Array, float, bool]:
+    """Nearest point of polyline ``P`` (n, 2) to ``q``: point, unit tangent, arc position, inside."""
+    a = P[:-1]
+    ab = P[1:] - a
+    L2 = np.einsum("ij,ij->i", ab, ab)
+    u = np.clip(np.einsum("ij,ij->i", q - a, ab) / L2, 0.0, 1.0)
+    X = a + u[:, None] * ab
+    d2 = np.einsum("ij,ij->i", X - q, X - q)
+    i = int(np.argmin(d2))
+    t = ab[i] / math.sqrt(L2[i])
+    inside = not ((i == 0 and u[i] <= 0.0) or (i == len(ab) - 1 and u[i] >= 1.0))
+    return X[i], t, float(i + u[i]), inside
+
+
+def finger_contact(p_rest: Array, v_rest: Array, wall: Wall, tip_radius: float, params: ContactParams) -> FingerContact:
+    """Deflection of the finger tip against the wall.
+
+    Parameters
+    ----------
+    p_rest : (2,)
+        Undeformed tip centre P_r in plane coordinates, m.
+    v_rest : (2,)
+        Its velocity in the plane, m/s (sets the direction of friction).
+    wall : Wall
+    tip_radius : float
+        m.
+    params : ContactParams
+
+    Returns
+    -------
+    FingerContact
+        No contact beyond the ends of the wall: the wall stops there.
+    """
+    X, t, _, inside = _nearest_on_polyline(wall.P, p_rest)
+    n_free = wall.free * np.array([-t[1], t[0]])
+    if not inside:
+        return FingerContact(np.zeros(2), 0.0, False, False)
+    clearance = float(np.dot(p_rest - X, n_free))
+    penetration = tip_radius - clearance
+    if penetration <= 0.0:
+        return FingerContact(np.zeros(2), 0.0, False, False)
+    normal = min(penetration, params.max_deformation)
+    force = params.k_normal * normal
+    # Friction drags the tip back against its sliding direction along the wall.
+    v_slide = float(np.dot(v_rest, t))
+    drag = params.friction * force / params.k_tangential * math.tanh(v_slide / params.slip_speed)
+    shift = normal * n_free - drag * t
+    return FingerContact(shift, force, True, penetration >= params.max_deformation)
+
+
+def tag_pose_tool(tip_shift_tool: Array, finger_length: float) -> Array:
+    """Pose of the tag in the tool frame for a tip shift (3,), (4, 4).
+
+    The tag sits at the tip facing the camera (its z along the tool z); the
+    finger bends as a cantilever, so the tag tilts by 1.5 * shift / length.
+    """
+    shift = np.asarray(tip_shift_tool, dtype=np.float64)
+    tilt = -1.5 / finger_length * np.cross([0.0, 0.0, 1.0], shift)
+    return transform_from(Rotation.from_rotvec(tilt).as_matrix(), shift)
+
+
+# -- image rendering -------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Imaging:
+    """Image conditions of one frame.
+
+    ``blur`` is the sigma of the lens blur in pixels; ``gain`` and ``offset``
+    map the scene's grey levels (0-255) to the sensor's; ``gradient`` is the
+    relative brightness change across the frame along ``gradient_angle``
+    (rad); ``noise`` the sensor noise sigma in grey levels.
+    """
+
+    blur: float = 0.8
+    gain: float = 1.0
+    offset: float = 0.0
+    gradient: float = 0.0
+    gradient_angle: float = 0.0
+    noise: float = 2.0
+
+
+class TagRenderer:
+    """Renders one ArUco tag seen by a pinhole camera.
+
+    Parameters
+    ----------
+    dictionary : str
+        OpenCV name, e.g. ``"DICT_4X4_50"``.
+    tag_id : int
+        The id drawn (tests draw a wrong one on purpose).
+    tag_size : float
+        Side of the black square, m.
+    intrinsics_px : (fx, fy, cx, cy)
+    size_px : (width, height)
+    seed : int
+        Seeds the background texture and the sensor noise.
+    """
+
+    def __init__(
+        self,
+        dictionary: str,
+        tag_id: int,
+        tag_size: float,
+        intrinsics_px: tuple[float, float, float, float],
+        size_px: tuple[int, int],
+        seed: int = 0,
+    ) -> None:
+        try:
+            aruco_dict = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+            marker = cv2.aruco.generateImageMarker(aruco_dict, tag_id, (aruco_dict.markerSize + 2) * _TEXTURE_PX_PER_CELL)
+        except (AttributeError, cv2.error) as exc:
+            raise InputError(f"tag renderer: cannot draw id {tag_id} of {dictionary!r}: {exc}") from exc
+        cells = aruco_dict.markerSize + 2
+        q = _QUIET_CELLS * _TEXTURE_PX_PER_CELL
+        texture = np.full((marker.shape[0] + 2 * q,) * 2, 255, np.uint8)
+        texture[q:-q, q:-q] = marker
+        self._texture = (_INK + (_PAPER - _INK) / 255.0 * texture).astype(np.float32)
+        # Side of the textured square (tag plus quiet zone) in metres.
+        self._side = tag_size * (cells + 2 * _QUIET_CELLS) / cells
+        fx, fy, cx, cy = intrinsics_px
+        self._K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        self._w, self._h = size_px
+        rng = np.random.default_rng(seed)
+        # The inside of the finger: dark, softly textured.
+        bg = rng.normal(0.0, 1.0, (self._h // 8 + 1, self._w // 8 + 1)).astype(np.float32)
+        bg = cv2.resize(cv2.GaussianBlur(bg, (0, 0), 1.5), (self._w, self._h), interpolation=cv2.INTER_CUBIC)
+        self._background = np.clip(55.0 + 25.0 * bg, 0, 255).astype(np.float32)
+        self._noise = rng.standard_normal((_NOISE_BANK, self._h + _NOISE_PAD, self._w + _NOISE_PAD), dtype=np.float32)
+        self._rng = rng
+        yy, xx = np.mgrid[0 : self._h, 0 : self._w].astype(np.float32)
+        self._xn = (xx - self._w / 2) / self._w
+        self._yn = (yy - self._h / 2) / self._h
+
+    @property
+    def K(self) -> Array:
+        return self._K.copy()
+
+    def project_corners(self, T_cam_tag: Array, tag_size: float) -> Array:
+        """Image positions (4, 2) of the tag's black-square corners, ArUco order."""
+        h = tag_size / 2
+        P = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+        return self._project(T_cam_tag, P)
+
+    def _project(self, T_cam_tag: Array, P_tag: Array) -> Array:
+        P_cam = P_tag @ T_cam_tag[:3, :3].T + T_cam_tag[:3, 3]
+        uvw = P_cam @ self._K.T
+        return uvw[:, :2] / uvw[:, 2:3]
+
+    def render(self, T_cam_tag: Array | None, imaging: Imaging = Imaging()) -> Array:
+        """Return the (height, width) uint8 image of the tag at ``T_cam_tag``.
+
+        ``None`` renders the finger without a tag (an occluded or lost tag).
+        """
+        img = self._background.copy()
+        if T_cam_tag is not None:
+            self._draw_tag(img, np.asarray(T_cam_tag, dtype=np.float64))
+        if imaging.gradient != 0.0:
+            ramp = self._xn * math.cos(imaging.gradient_angle) + self._yn * math.sin(imaging.gradient_angle)
+            img *= 1.0 + imaging.gradient * ramp
+        if imaging.blur > 0.0:
+            img = cv2.GaussianBlur(img, (0, 0), imaging.blur)
+        if imaging.noise > 0.0:
+            k = int(self._rng.integers(_NOISE_BANK))
+            dy, dx = (int(v) for v in self._rng.integers(_NOISE_PAD, size=2))
+            img += imaging.noise * self._noise[k, dy : dy + self._h, dx : dx + self._w]
+        return cv2.convertScaleAbs(img, alpha=imaging.gain, beta=imaging.offset)
+
+    def _draw_tag(self, img: Array, T_cam_tag: Array) -> None:
+        if T_cam_tag[2, 3] <= 0.0:
+            return
+        n = self._texture.shape[0]
+        s = self._side
+        # Texture pixel i covers [i - 0.5, i + 0.5]; its outer edges map to the square's edges.
+        uv = np.array([[-0.5, -0.5], [n - 0.5, -0.5], [n - 0.5, n - 0.5], [-0.5, n - 0.5]])
+        P = np.column_stack([(uv[:, 0] + 0.5) / n * s - s / 2, s / 2 - (uv[:, 1] + 0.5) / n * s, np.zeros(4)])
+        img_pts = self._project(T_cam_tag, P)
+        x0 = max(int(math.floor(img_pts[:, 0].min())) - 2, 0)
+        y0 = max(int(math.floor(img_pts[:, 1].min())) - 2, 0)
+        x1 = min(int(math.ceil(img_pts[:, 0].max())) + 3, self._w)
+        y1 = min(int(math.ceil(img_pts[:, 1].max())) + 3, self._h)
+        if x1 <= x0 or y1 <= y0:
+            return
+        ss = _SUPERSAMPLE
+        roi = img[y0:y1, x0:x1]
+        hi = cv2.resize(roi, ((x1 - x0) * ss, (y1 - y0) * ss), interpolation=cv2.INTER_LINEAR)
+        # Low-res pixel u (centre at u) covers hi-res [ss*(u - x0), ss*(u - x0 + 1)).
+        dst = ss * (img_pts - [x0, y0] + 0.5) - 0.5
+        H = cv2.getPerspectiveTransform(uv.astype(np.float32), dst.astype(np.float32))
+        cv2.warpPerspective(
+            self._texture, H, (hi.shape[1], hi.shape[0]), dst=hi,
+            flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_TRANSPARENT,
+        )
+        roi[:] = cv2.resize(hi, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)

@@ -1,0 +1,53 @@
+"""The simulated SRM: the finger against the seam wall, and the tag image."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from celld.sim.srm import ContactParams, Wall, finger_contact, tag_pose_tool
+
+# A straight wall along +x at y = 0; the free side (the tip's) is y < 0, right
+# of the wall's direction.
+WALL = Wall(np.array([[0.0, 0.0], [0.1, 0.0]]), free=-1.0)
+PARAMS = ContactParams(friction=0.3, k_normal=400.0, k_tangential=400.0, max_deformation=0.005)
+R_TIP = 0.001
+
+
+def test_no_contact_while_the_tip_clears_the_wall() -> None:
+    c = finger_contact(np.array([0.05, -0.0012]), np.array([0.01, 0.0]), WALL, R_TIP, PARAMS)
+    assert not c.in_contact
+    np.testing.assert_array_equal(c.tip_shift_plane, [0.0, 0.0])
+
+
+def test_tip_is_pushed_back_onto_the_wall_and_dragged_by_friction() -> None:
+    # The undeformed tip centre is 1.5 mm into the wall (tip surface 1.5 mm past it).
+    c = finger_contact(np.array([0.05, 0.0005]), np.array([0.01, 0.0]), WALL, R_TIP, PARAMS)
+    assert c.in_contact and not c.bottomed
+    assert c.tip_shift_plane[1] == pytest.approx(-0.0015)
+    # Drag = mu * k_n / k_t * normal deflection, against the motion (tanh saturated).
+    assert c.tip_shift_plane[0] == pytest.approx(-0.3 * 0.0015, rel=1e-3)
+    assert c.force == pytest.approx(400.0 * 0.0015)
+    back = finger_contact(np.array([0.05, 0.0005]), np.array([-0.01, 0.0]), WALL, R_TIP, PARAMS)
+    assert back.tip_shift_plane[0] == pytest.approx(+0.3 * 0.0015, rel=1e-3)
+
+
+def test_the_finger_bottoms_out_at_its_maximum_deformation() -> None:
+    c = finger_contact(np.array([0.05, 0.007]), np.zeros(2), WALL, R_TIP, PARAMS)
+    assert c.bottomed
+    assert c.tip_shift_plane[1] == pytest.approx(-0.005)
+
+
+def test_there_is_no_wall_past_its_ends() -> None:
+    c = finger_contact(np.array([0.102, 0.0005]), np.array([0.01, 0.0]), WALL, R_TIP, PARAMS)
+    assert not c.in_contact
+
+
+def test_tag_tilts_like_a_bent_cantilever() -> None:
+    T = tag_pose_tool(np.array([0.0, -0.0015, 0.0]), 0.04)
+    np.testing.assert_allclose(T[:3, 3], [0.0, -0.0015, 0.0])
+    # The tag faces back along the bent finger: its normal leans against the
+    # shift by atan(1.5 * shift / length).
+    z = T[:3, 2]
+    assert np.arctan2(z[1], z[2]) == pytest.approx(1.5 * 0.0015 / 0.04, rel=1e-6)
+    assert z[0] == pytest.approx(0.0)
