@@ -25,6 +25,7 @@ _COMMAND_MODULES = (
     "celld.seam.cli",
     "celld.sim.cli",
     "celld.motion.cli",
+    "celld.bus.cli",
     "celld.demo",
 )
 

@@ -446,34 +446,61 @@ class BusConfig:
     prefix: str = "celld"
     state_rate_hz: float = 20.0
     users: tuple[BusUser, ...] = ()
-    # The credentials this process presents when it connects as a client.
+    # The credentials this process presents when it connects (clients, the CLI,
+    # a daemon in client mode or linking to peers that require authentication).
     user: str = ""
     password: str = ""
+    # Multicast and gossip scouting: off keeps a loopback bus to the configured endpoints.
+    multicast_scouting: bool = False
+    # How long a client waits for a link to the cell, and for a reply, s.
+    connect_timeout: float = 3.0
+    query_timeout: float = 5.0
 
     @classmethod
     def read(cls, r: TableReader) -> "BusConfig":
+        from celld.bus.keys import check_prefix
+        from celld.errors import BusError
+
         listen = r._get("listen", list(cls.listen))
         connect = r._get("connect", list(cls.connect))
         for key, value in (("listen", listen), ("connect", connect)):
-            if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-                raise r.error(key, f"expected a list of zenoh endpoints (strings), got {value!r}")
+            if not isinstance(value, list) or not all(isinstance(v, str) and "/" in v for v in value):
+                raise r.error(key, f"expected a list of zenoh endpoints such as \"tcp/127.0.0.1:7447\", got {value!r}")
         users_raw = r._get("users", [])
         if not isinstance(users_raw, list):
             raise r.error("users", "expected an array of tables [[bus.users]]")
-        users = []
+        users: list[BusUser] = []
         for i, u in enumerate(users_raw):
             ur = TableReader(u, r.source, r.key(f"users[{i}]"))
-            users.append(BusUser(ur.str("name"), ur.str("password"), ur.str("role", choices=("operator", "viewer"))))
+            user = BusUser(ur.str("name"), ur.str("password"), ur.str("role", choices=BUS_ROLES))
+            if not user.name or any(c in user.name for c in ": \t\r\n"):
+                raise ur.error("name", f"expected a name without ':' or white space, got {user.name!r}")
+            if not user.password or any(c in user.password for c in "\r\n"):
+                raise ur.error("password", "expected a non-empty password on one line")
+            if any(u.name == user.name for u in users):
+                raise ur.error("name", f"user {user.name!r} is given twice")
             ur.done()
+            users.append(user)
+        prefix = r.str("prefix", cls.prefix)
+        try:
+            check_prefix(prefix)
+        except BusError as exc:
+            raise r.error("prefix", str(exc)) from exc
+        user, password = r.str("user", ""), r.str("password", "")
+        if bool(user) != bool(password):
+            raise r.error("password" if user else "user", "expected user and password together, or neither")
         return cls(
             mode=r.str("mode", cls.mode, choices=("peer", "client", "router")),
             listen=tuple(listen),
             connect=tuple(connect),
-            prefix=r.str("prefix", cls.prefix),
+            prefix=prefix,
             state_rate_hz=r.float("state_rate_hz", cls.state_rate_hz, lo=0.1, hi=500.0),
             users=tuple(users),
-            user=r.str("user", ""),
-            password=r.str("password", ""),
+            user=user,
+            password=password,
+            multicast_scouting=r.bool("multicast_scouting", False),
+            connect_timeout=r.float("connect_timeout", cls.connect_timeout, lo=0.05, hi=120.0),
+            query_timeout=r.float("query_timeout", cls.query_timeout, lo=0.05, hi=600.0),
         )
 
 

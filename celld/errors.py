@@ -22,7 +22,8 @@ caller never has to know which library failed::
     │   ├── LinkLost           the RTDE link dropped or went stale
     │   └── SafetyStop         a protective stop, e-stop or limit breach
     ├── MotionError            the motion process failed or refused a command
-    └── BusError               the zenoh bus failed or refused a request
+    ├── BusError               the zenoh bus failed or refused a request
+    └── JournalError           the job journal refused a change or is damaged
 
 In the 500 Hz loop nothing raises: controllers return status values instead.
 """
@@ -140,3 +141,7 @@ class MotionError(CelldError):
 
 class BusError(CelldError):
     """The zenoh bus failed or refused a request."""
+
+
+class JournalError(CelldError):
+    """The job journal refused a change (an illegal transition, an unknown job) or is damaged."""

@@ -1,0 +1,760 @@
+"""The bus messages: JSON Schemas as data, and the validator that turns bytes into jobs.
+
+Every message on the bus is a UTF-8 JSON object. Its schema (JSON Schema draft
+2020-12) lives here as a plain dict in :data:`SCHEMAS`, is exported for other
+languages by ``celld bus schema --out DIR`` (:func:`export_schemas`), and
+drives the checker of :mod:`celld.bus.checker`, so the exported contract and
+the enforced one are the same object.
+
+Requests (what a client sends, keyed by the queryable's name):
+
+========================  ============================================  ===========================
+queryable                 payload                                       parsed into
+========================  ============================================  ===========================
+``submit``                ``{"kind": "calibrate" | "weld" | "move" |    :data:`Job`
+                          "health", ...}``
+``status``                ``{}`` or ``{"job": ID}``                     :class:`StatusRequest`
+``cancel``                ``{"job": ID}``                               :class:`CancelRequest`
+``list``                  ``{"limit": N, "state": S, "kind": K}``       :class:`ListRequest`
+``accept``                ``{"job": ID}`` (a calibrate job)             :class:`AcceptRequest`
+``calibration``           ``{}``                                        :class:`CalibrationRequest`
+========================  ============================================  ===========================
+
+An empty payload counts as ``{}``. Replies are ``{"ok": true, ...}`` or
+``{"ok": false, "error": {"field": PATH, "reason": TEXT}}``; publications are
+progress events per job and the robot and tactile state. Their schemas are in
+:data:`SCHEMAS` too (``*-reply``, ``progress``, ``state-robot``,
+``state-tactile``); :func:`check_message` validates one.
+
+Units: messages use the units of the config file (``e_required_mm``,
+``delta_d_mm``, ``v_const_mm_s``); poses are UR poses ``[x, y, z, rx, ry, rz]``
+in metres and a rotation vector in radians, in the robot base frame; joint
+positions are radians. The job dataclasses hold SI values (metres, m/s).
+
+Hostile input is refused before it is interpreted (:func:`load_json`): more
+than :data:`MAX_PAYLOAD_BYTES`, not UTF-8, not JSON, NaN or infinities,
+duplicate keys, integers of more than 20 digits, nesting deeper than
+:data:`MAX_DEPTH`, lone surrogates in strings. Every refusal is a
+:class:`~celld.errors.JobError` with the JSON path of the field (``$`` for the
+whole message) and the reason.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, ClassVar, Mapping, Union
+
+import numpy as np
+
+from celld import fsutil
+from celld.bus.checker import check_schema, describe, validate
+from celld.errors import JobError
+
+# Largest request payload accepted, bytes (1000 calibration poses fit in ~130 KiB).
+MAX_PAYLOAD_BYTES = 256 * 1024
+# Deepest nesting of arrays and objects in a request (a pose list is 3).
+MAX_DEPTH = 6
+# Longest integer literal accepted, digits (an int64 has 19).
+MAX_INT_DIGITS = 20
+# Most calibration poses one job may give.
+MAX_POSES = 1000
+# Job ids are one zenoh key chunk: letters, digits, '-' and '_'.
+JOB_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
+# Free text: printable, no control characters.
+TEXT_PATTERN = r"^[^\u0000-\u001f\u007f]*$"
+# Dialect of every exported schema.
+DIALECT = "https://json-schema.org/draft/2020-12/schema"
+
+JOB_KINDS = ("calibrate", "weld", "move", "health")
+JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
+TERMINAL_STATES = ("succeeded", "failed", "cancelled", "interrupted")
+HEALTH_CHECKS = ("all", "robot", "scanner", "tactile")
+
+Pose6 = tuple[float, float, float, float, float, float]
+
+
+# -- schema building blocks ---------------------------------------------------------
+
+
+def _number(desc: str, lo: float | None = None, hi: float | None = None, *, open_lo: bool = False) -> dict[str, Any]:
+    s: dict[str, Any] = {"type": "number", "description": desc}
+    if lo is not None:
+        s["exclusiveMinimum" if open_lo else "minimum"] = lo
+    if hi is not None:
+        s["maximum"] = hi
+    return s
+
+
+def _integer(desc: str, lo: int | None = None, hi: int | None = None) -> dict[str, Any]:
+    s: dict[str, Any] = {"type": "integer", "description": desc}
+    if lo is not None:
+        s["minimum"] = lo
+    if hi is not None:
+        s["maximum"] = hi
+    return s
+
+
+def _text(desc: str, max_length: int = 200) -> dict[str, Any]:
+    return {"type": "string", "maxLength": max_length, "pattern": TEXT_PATTERN, "description": desc}
+
+
+def _vector(desc: str, n: int, lo: float | None = None, hi: float | None = None) -> dict[str, Any]:
+    items: dict[str, Any] = {"type": "number"}
+    if lo is not None:
+        items["minimum"] = lo
+    if hi is not None:
+        items["maximum"] = hi
+    return {"type": "array", "items": items, "minItems": n, "maxItems": n, "description": desc}
+
+
+def _object(desc: str, properties: dict[str, Any], required: tuple[str, ...] = ()) -> dict[str, Any]:
+    return {
+        "type": "object",
+        "description": desc,
+        "properties": properties,
+        "required": list(required),
+        "additionalProperties": False,
+    }
+
+
+def _pose(desc: str) -> dict[str, Any]:
+    """A UR pose: metres in a 2.5 m box around the base, then a rotation vector."""
+    metres = {"type": "number", "minimum": -2.5, "maximum": 2.5}
+    radians = {"type": "number", "minimum": -2 * math.pi, "maximum": 2 * math.pi}
+    return {
+        "type": "array",
+        "prefixItems": [metres, metres, metres, radians, radians, radians],
+        "minItems": 6,
+        "maxItems": 6,
+        "description": desc + " UR pose [x, y, z, rx, ry, rz]: metres and a rotation vector (rad), base frame.",
+    }
+
+
+_JOB_ID = {"type": "string", "pattern": JOB_ID_PATTERN, "description": "A job id, as returned by submit."}
+_REF = _text("The client's own reference for the job (an order number); echoed in status.", 128)
+_NULLABLE_TEXT = {"type": ["string", "null"]}
+_JOINTS = _vector("Joint positions, rad.", 6, -2 * math.pi, 2 * math.pi)
+
+
+def _submit_branch(kind: str, desc: str, properties: dict[str, Any], required: tuple[str, ...] = ()) -> dict[str, Any]:
+    props = {"kind": {"const": kind, "description": "The job kind."}, **properties, "ref": _REF}
+    return _object(desc, props, ("kind",) + required)
+
+
+_CALIBRATE = _submit_branch(
+    "calibrate",
+    "Eye-on-base calibration of the scanner from the robot's flange (Algorithm 1): the "
+    "verification pose first, then calibration poses, a progress event per pair, an early "
+    "stop at e_required. The result becomes current only on an accept request or when the "
+    "config says so. Give either poses or n_poses, not both.",
+    {
+        "n_poses": _integer("How many calibration poses to generate (default: calibration.n_poses).", 4, MAX_POSES),
+        "e_required_mm": _number("Cost at which Algorithm 1 stops, mm (default: calibration.e_required_mm).", 0.0, 100.0),
+        "k_max": _integer("Most iterations of Algorithm 1 (default: calibration.k_max).", 1, 10_000),
+        "poses": {
+            "type": "array",
+            "items": _pose("A calibration pose."),
+            "minItems": 4,
+            "maxItems": MAX_POSES,
+            "description": "Calibration poses to visit instead of generated ones.",
+        },
+        "verification_pose": _pose("Where the verification cloud is taken (default: calibration.verification_pose)."),
+        "compensate": {"type": "boolean", "default": False, "description": "Apply the error compensation of Eq. 21."},
+        "seed": _integer("Seed of the pose generator (default: a fresh one).", 0, 2**32 - 1),
+    },
+)
+
+_WELD = _submit_branch(
+    "weld",
+    "Scan, find the seam, move it to the base frame with the current calibration, approach, "
+    "touch until delta_d, track it with Algorithm 2 (arc on and off by digital output), retract. "
+    "Results: the refined path and the torch path.",
+    {
+        "workpiece": {
+            "type": "string",
+            "pattern": r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$",
+            "description": "A workpiece model known to the cell; absent: extract the groove from the scan.",
+        },
+        "delta_d_mm": _number("Desired normal deformation of the SRM, mm (default: tactile.delta_d_mm).", 0.0, 20.0, open_lo=True),
+        "k_p": _number("Normal gain of Eq. 16, 1/s (default: tactile.k_p).", 0.0, 1000.0),
+        "v_const_mm_s": _number("Tangential speed V_const, mm/s (default: tactile.v_const_mm_s).", 0.0, 500.0, open_lo=True),
+        "torch_offset_mm": _number("|d| of Eq. 14, mm (default: tactile.torch_offset_mm).", 0.0, 500.0),
+        "arc": {"type": "boolean", "default": True, "description": "Switch the arc on while tracking; false: a dry run."},
+    },
+)
+
+_MOVE_TARGET = {
+    "type": "object",
+    "description": "Where to move: joint positions, or a TCP pose in the base frame.",
+    "oneOf": [
+        _object("A joint target.", {"space": {"const": "joint"}, "q": _JOINTS}, ("space", "q")),
+        _object("A Cartesian target of the TCP.", {"space": {"const": "cartesian"}, "pose": _pose("The TCP pose.")}, ("space", "pose")),
+    ],
+}
+
+_MOVE = _submit_branch(
+    "move",
+    "A jerk-limited move to a joint or Cartesian target (checked against the cell's workspace).",
+    {
+        "target": _MOVE_TARGET,
+        "speed_scale": _number("Fraction of the configured speed limits.", 0.0, 1.0, open_lo=True),
+    },
+    ("target",),
+)
+
+_HEALTH = _submit_branch(
+    "health",
+    "Health check of the scanner, the robot link or the tactile camera.",
+    {"check": {"enum": list(HEALTH_CHECKS), "default": "all", "description": "What to check."}},
+)
+
+_SUBMIT = {
+    "type": "object",
+    "description": "A job for the cell. The reply is submit-reply or error-reply.",
+    "oneOf": [_CALIBRATE, _WELD, _MOVE, _HEALTH],
+}
+
+_ERROR = _object(
+    "Why a request was refused.",
+    {
+        "field": {"type": "string", "description": "JSON path of the offending field ($ for the whole message, empty when no field is at fault)."},
+        "reason": {"type": "string", "description": "What was expected and what came."},
+    },
+    ("field", "reason"),
+)
+
+
+def _reply(desc: str, properties: dict[str, Any], required: tuple[str, ...] = ()) -> dict[str, Any]:
+    ok = {"ok": {"const": True}}
+    return _object(desc, {**ok, **properties}, ("ok",) + required)
+
+
+_JOB_RECORD = _object(
+    "One job as the journal keeps it. Times are UTC wall clock, ISO 8601.",
+    {
+        "id": _JOB_ID,
+        "kind": {"enum": list(JOB_KINDS)},
+        "state": {"enum": list(JOB_STATES)},
+        "reason": {"type": "string", "description": "Why the job failed, was cancelled or interrupted."},
+        "ref": {"type": "string"},
+        "params": {"type": "object", "description": "The job as submitted (the submit message)."},
+        "created": {"type": "string"},
+        "started": _NULLABLE_TEXT,
+        "ended": _NULLABLE_TEXT,
+        "result": {"type": ["string", "null"], "description": "Path of the result, in the cell's state directory."},
+    },
+    ("id", "kind", "state", "reason", "params", "created", "started", "ended", "result"),
+)
+
+_CALIBRATION = _object(
+    "A calibration of the scanner: T_base_cam, the pose of the camera in the robot base frame.",
+    {
+        "job": _JOB_ID,
+        "T_base_cam": {
+            "type": "array",
+            "items": _vector("A row.", 4),
+            "minItems": 4,
+            "maxItems": 4,
+            "description": "4x4 homogeneous transform, rows, metres.",
+        },
+        "cost_mm": {"type": ["number", "null"], "description": "Final cost of Algorithm 1, mm."},
+        "pairs": {"type": "integer", "minimum": 0, "description": "Pairs in the final pool."},
+        "accepted": {"type": "string", "description": "When it became current, UTC ISO 8601."},
+        "dataset": {"type": "string", "description": "Path of the saved dataset."},
+    },
+    ("job", "T_base_cam", "accepted"),
+)
+
+_PROGRESS = _object(
+    "Progress of one job, published on progress/<job>. seq counts from 0 without gaps at "
+    "the sender; a gap at the receiver means dropped events (ask status).",
+    {
+        "job": _JOB_ID,
+        "kind": {"enum": list(JOB_KINDS)},
+        "seq": {"type": "integer", "minimum": 0},
+        "state": {"enum": list(JOB_STATES)},
+        "stage": {"type": "string", "description": "What the job is doing: verify, pair, solve, scan, seam, approach, touch, track, retract, ..."},
+        "fraction": {"type": ["number", "null"], "minimum": 0.0, "maximum": 1.0, "description": "Done so far, 0..1, if known."},
+        "message": {"type": "string"},
+        "data": {"type": "object", "description": "Stage figures, e.g. {\"pair\": 3, \"cost_mm\": 0.41}."},
+    },
+    ("job", "seq", "state", "stage"),
+)
+
+_STATE_ROBOT = _object(
+    "The robot state, decimated to bus.state_rate_hz.",
+    {
+        "t_ns": {"type": "integer", "minimum": 0, "description": "Sample time, monotonic clock of the cell, ns."},
+        "link": {"enum": ["up", "down"]},
+        "q": _vector("Joint positions, rad.", 6),
+        "qd": _vector("Joint speeds, rad/s.", 6),
+        "tcp_pose": _vector("TCP pose in the base frame [x, y, z, rx, ry, rz], m and rad.", 6),
+        "tcp_speed": _vector("TCP twist in the base frame, m/s and rad/s.", 6),
+        "mode": {"type": "string", "description": "Robot mode as the controller reports it."},
+        "safety": {"type": "string", "description": "Safety mode as the controller reports it."},
+    },
+    ("t_ns", "link"),
+)
+
+_STATE_TACTILE = _object(
+    "The SRM deformation, decimated to bus.state_rate_hz.",
+    {
+        "t_ns": {"type": "integer", "minimum": 0, "description": "Sample time, monotonic clock of the cell, ns."},
+        "valid": {"type": "boolean", "description": "The tag was found in the frame."},
+        "contact": {"type": "boolean"},
+        "delta": _vector("Deformation of the SRM tip in the tool frame, m.", 3),
+    },
+    ("t_ns", "valid"),
+)
+
+_BODIES: dict[str, dict[str, Any]] = {
+    # requests
+    "submit": _SUBMIT,
+    "status": _object("Cell status, or one job's record when job is given.", {"job": _JOB_ID}),
+    "cancel": _object("Cancel a queued or running job; the robot stops first.", {"job": _JOB_ID, "reason": _text("Why.")}, ("job",)),
+    "list": _object(
+        "Jobs in the journal, newest first.",
+        {
+            "limit": _integer("How many.", 1, 1000),
+            "state": {"enum": list(JOB_STATES)},
+            "kind": {"enum": list(JOB_KINDS)},
+        },
+    ),
+    "accept": _object("Make a finished calibrate job's result the current calibration.", {"job": _JOB_ID}, ("job",)),
+    "calibration": _object("The current calibration.", {}),
+    # replies
+    "error-reply": _object("A refused request.", {"ok": {"const": False}, "error": _ERROR}, ("ok", "error")),
+    "submit-reply": _reply(
+        "A job was taken: it runs now (position 0) or waits in the queue.",
+        {"job": _JOB_ID, "state": {"enum": ["running", "queued"]}, "position": {"type": "integer", "minimum": 0}},
+        ("job", "state", "position"),
+    ),
+    "status-reply": _reply(
+        "The state of the cell.",
+        {
+            "cell": {"type": "string"},
+            "state": {"enum": ["starting", "idle", "running", "fault", "stopping"]},
+            "running": {"type": ["string", "null"], "description": "Id of the running job."},
+            "queued": {"type": "array", "items": _JOB_ID, "description": "Ids of waiting jobs, next first."},
+            "robot_link": {"enum": ["up", "down", "unknown"]},
+            "calibration": {"type": ["string", "null"], "description": "Job id of the current calibration."},
+            "uptime_s": {"type": "number", "minimum": 0},
+            "version": {"type": "string"},
+            "message": {"type": "string"},
+        },
+        ("cell", "state", "running", "queued"),
+    ),
+    "job-reply": _reply("One job's record (status with a job id).", {"record": _JOB_RECORD}, ("record",)),
+    "cancel-reply": _reply("The job's state after the request.", {"job": _JOB_ID, "state": {"enum": list(JOB_STATES)}}, ("job", "state")),
+    "list-reply": _reply("Jobs, newest first.", {"jobs": {"type": "array", "items": _JOB_RECORD}}, ("jobs",)),
+    "accept-reply": _reply("The new current calibration.", {"job": _JOB_ID, "calibration": _CALIBRATION}, ("job", "calibration")),
+    "calibration-reply": _reply(
+        "The current calibration, null if there is none.",
+        {"calibration": {"type": ["object", "null"], **{k: v for k, v in _CALIBRATION.items() if k != "type"}}},
+        ("calibration",),
+    ),
+    # publications
+    "progress": _PROGRESS,
+    "state-robot": _STATE_ROBOT,
+    "state-tactile": _STATE_TACTILE,
+}
+
+
+def _exported(name: str, body: dict[str, Any]) -> dict[str, Any]:
+    return {"$schema": DIALECT, "$id": f"urn:celld:bus:{name}", "title": f"celld {name}", **body}
+
+
+SCHEMAS: Mapping[str, dict[str, Any]] = {name: _exported(name, body) for name, body in _BODIES.items()}
+# The checker enforces exactly what is exported: refuse a keyword it would skip.
+for _name, _schema in SCHEMAS.items():
+    check_schema(_schema, f"{_name}#")
+
+# Requests, by queryable name.
+REQUESTS = ("submit", "status", "cancel", "list", "accept", "calibration")
+
+
+# -- values ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CalibrateJob:
+    """Eye-on-base calibration. ``None`` means "the cell config's value"."""
+
+    n_poses: int | None = None
+    e_required: float | None = None  # m
+    k_max: int | None = None
+    poses: tuple[Pose6, ...] = ()  # UR poses, base frame
+    verification_pose: Pose6 | None = None
+    compensate: bool = False
+    seed: int | None = None
+    ref: str = ""
+    kind: ClassVar[str] = "calibrate"
+
+
+@dataclass(frozen=True)
+class WeldJob:
+    """Scan, find, touch and track one seam. ``None`` means "the cell config's value"."""
+
+    workpiece: str = ""  # "" extracts the groove from the scan
+    delta_d: float | None = None  # m
+    k_p: float | None = None  # 1/s
+    v_const: float | None = None  # m/s
+    torch_offset: float | None = None  # m
+    arc: bool = True
+    ref: str = ""
+    kind: ClassVar[str] = "weld"
+
+
+@dataclass(frozen=True)
+class MoveJob:
+    """A move to joint positions (``space="joint"``, rad) or a TCP pose (``"cartesian"``)."""
+
+    space: str
+    target: Pose6
+    speed_scale: float = 0.5
+    ref: str = ""
+    kind: ClassVar[str] = "move"
+
+
+@dataclass(frozen=True)
+class HealthJob:
+    """Health check of ``check``: all, robot, scanner or tactile."""
+
+    check: str = "all"
+    ref: str = ""
+    kind: ClassVar[str] = "health"
+
+
+Job = Union[CalibrateJob, WeldJob, MoveJob, HealthJob]
+
+
+@dataclass(frozen=True)
+class StatusRequest:
+    job: str | None = None
+
+
+@dataclass(frozen=True)
+class CancelRequest:
+    job: str
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class ListRequest:
+    limit: int = 50
+    state: str | None = None
+    kind: str | None = None
+
+
+@dataclass(frozen=True)
+class AcceptRequest:
+    job: str
+
+
+@dataclass(frozen=True)
+class CalibrationRequest:
+    pass
+
+
+Request = Union[Job, StatusRequest, CancelRequest, ListRequest, AcceptRequest, CalibrationRequest]
+
+
+# -- decoding ------------------------------------------------------------------------
+
+
+def _refuse_constant(name: str) -> Any:
+    raise JobError("$", f"expected finite numbers, got {name} (not JSON)")
+
+
+def _parse_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise JobError("$", f"expected finite numbers, got {describe(text)} (overflows a double)")
+    return value
+
+
+def _parse_int(text: str) -> int:
+    if len(text.lstrip("-")) > MAX_INT_DIGITS:
+        raise JobError("$", f"expected integers of at most {MAX_INT_DIGITS} digits, got one of {len(text)}")
+    return int(text)
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise JobError("$", f"duplicate field {ascii(key)}")
+        out[key] = value
+    return out
+
+
+def _check_tree(value: Any) -> None:
+    """Refuse nesting deeper than MAX_DEPTH and strings that are not valid Unicode."""
+    stack: list[tuple[Any, int]] = [(value, 0)]
+    while stack:
+        node, depth = stack.pop()
+        if isinstance(node, (dict, list)):
+            if depth >= MAX_DEPTH:
+                raise JobError("$", f"expected at most {MAX_DEPTH} levels of nesting, got more")
+            if isinstance(node, dict):
+                for k, v in node.items():
+                    _check_unicode(k)
+                    stack.append((v, depth + 1))
+            else:
+                stack.extend((v, depth + 1) for v in node)
+        elif isinstance(node, str):
+            _check_unicode(node)
+
+
+def _check_unicode(text: str) -> None:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError as exc:
+        raise JobError("$", f"expected valid Unicode text, got a lone surrogate in {describe(text)}") from exc
+
+
+def load_json(raw: bytes | bytearray | memoryview) -> Any:
+    """Decode one request payload into JSON values, refusing hostile input.
+
+    An empty payload is ``{}``.
+
+    Raises
+    ------
+    JobError
+        ``field`` is ``"$"``; the reason names the problem (too large, not
+        UTF-8, not JSON, NaN, duplicate key, too deep, ...).
+    """
+    if not isinstance(raw, (bytes, bytearray, memoryview)):
+        raise JobError("$", f"expected bytes, got {type(raw).__name__}")
+    size = len(raw)
+    if size > MAX_PAYLOAD_BYTES:
+        raise JobError("$", f"expected at most {MAX_PAYLOAD_BYTES} bytes, got {size}")
+    if size == 0:
+        return {}
+    try:
+        text = bytes(raw).decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise JobError("$", f"expected UTF-8 text, got byte 0x{exc.object[exc.start]:02x} at offset {exc.start}") from exc
+    try:
+        value = json.loads(
+            text,
+            parse_constant=_refuse_constant,
+            parse_float=_parse_float,
+            parse_int=_parse_int,
+            object_pairs_hook=_no_duplicates,
+        )
+    except json.JSONDecodeError as exc:
+        raise JobError("$", f"expected JSON, got an error at line {exc.lineno} column {exc.colno}: {exc.msg}") from exc
+    except RecursionError as exc:
+        raise JobError("$", f"expected at most {MAX_DEPTH} levels of nesting, got far more") from exc
+    except ValueError as exc:  # e.g. a number the int parser refuses
+        raise JobError("$", f"expected JSON numbers, got {describe(str(exc))}") from exc
+    _check_tree(value)
+    return value
+
+
+# -- building values from checked messages --------------------------------------------
+
+
+def _mm(value: float | None) -> float | None:
+    return None if value is None else float(value) * 1e-3
+
+
+def _int_or_none(value: Any) -> int | None:
+    return None if value is None else int(value)
+
+
+def _pose6(values: Any) -> Pose6:
+    return tuple(float(v) for v in values)  # type: ignore[return-value]
+
+
+def _build_calibrate(m: Mapping[str, Any]) -> CalibrateJob:
+    if "poses" in m and "n_poses" in m:
+        raise JobError("$.n_poses", "give either poses or n_poses, not both")
+    return CalibrateJob(
+        n_poses=_int_or_none(m.get("n_poses")),
+        e_required=_mm(m.get("e_required_mm")),
+        k_max=_int_or_none(m.get("k_max")),
+        poses=tuple(_pose6(p) for p in m.get("poses", ())),
+        verification_pose=_pose6(m["verification_pose"]) if "verification_pose" in m else None,
+        compensate=bool(m.get("compensate", False)),
+        seed=_int_or_none(m.get("seed")),
+        ref=m.get("ref", ""),
+    )
+
+
+def _build_weld(m: Mapping[str, Any]) -> WeldJob:
+    k_p = m.get("k_p")
+    return WeldJob(
+        workpiece=m.get("workpiece", ""),
+        delta_d=_mm(m.get("delta_d_mm")),
+        k_p=None if k_p is None else float(k_p),
+        v_const=_mm(m.get("v_const_mm_s")),
+        torch_offset=_mm(m.get("torch_offset_mm")),
+        arc=bool(m.get("arc", True)),
+        ref=m.get("ref", ""),
+    )
+
+
+def _build_move(m: Mapping[str, Any]) -> MoveJob:
+    target = m["target"]
+    values = target["q"] if target["space"] == "joint" else target["pose"]
+    return MoveJob(
+        space=target["space"],
+        target=_pose6(values),
+        speed_scale=float(m.get("speed_scale", 0.5)),
+        ref=m.get("ref", ""),
+    )
+
+
+def _build_health(m: Mapping[str, Any]) -> HealthJob:
+    return HealthJob(check=m.get("check", "all"), ref=m.get("ref", ""))
+
+
+_JOB_BUILDERS: dict[str, Callable[[Mapping[str, Any]], Job]] = {
+    "calibrate": _build_calibrate,
+    "weld": _build_weld,
+    "move": _build_move,
+    "health": _build_health,
+}
+
+
+def _build_submit(m: Mapping[str, Any]) -> Job:
+    return _JOB_BUILDERS[m["kind"]](m)
+
+
+_BUILDERS: dict[str, Callable[[Mapping[str, Any]], Any]] = {
+    "submit": _build_submit,
+    "status": lambda m: StatusRequest(job=m.get("job")),
+    "cancel": lambda m: CancelRequest(job=m["job"], reason=m.get("reason", "")),
+    "list": lambda m: ListRequest(limit=int(m.get("limit", 50)), state=m.get("state"), kind=m.get("kind")),
+    "accept": lambda m: AcceptRequest(job=m["job"]),
+    "calibration": lambda m: CalibrationRequest(),
+}
+
+
+def parse(request: str, raw: bytes | bytearray | memoryview) -> Any:
+    """Validate the payload of one request and build its value.
+
+    Parameters
+    ----------
+    request : str
+        The queryable's name, one of :data:`REQUESTS`.
+    raw : bytes
+        The payload as it came off the bus.
+
+    Returns
+    -------
+    Job or StatusRequest or CancelRequest or ListRequest or AcceptRequest or CalibrationRequest
+
+    Raises
+    ------
+    JobError
+        With the JSON path of the offending field and the reason.
+    KeyError
+        ``request`` is not a request name (a programming error, not input).
+    """
+    build = _BUILDERS[request]
+    value = load_json(raw)
+    validate(SCHEMAS[request], value)
+    return build(value)
+
+
+def parse_submit(raw: bytes | bytearray | memoryview) -> Job:
+    """:func:`parse` for ``submit``: bytes in, a frozen job value out."""
+    job: Job = parse("submit", raw)
+    return job
+
+
+def check_message(name: str, value: Any) -> None:
+    """Validate a decoded message (a reply, an event) against ``SCHEMAS[name]``.
+
+    Raises
+    ------
+    JobError
+        With the JSON path of the offending field and the reason.
+    """
+    validate(SCHEMAS[name], value)
+
+
+# -- encoding ------------------------------------------------------------------------
+
+
+def _to_mm(value: float) -> float:
+    # Round away the float noise of m -> mm (0.0003 * 1e3 = 0.30000000000000004).
+    return round(value * 1e3, 9)
+
+
+def job_to_message(job: Job) -> dict[str, Any]:
+    """The submit message of ``job``, in message units; ``parse_submit`` of it gives ``job`` back."""
+    m: dict[str, Any] = {"kind": job.kind}
+    if isinstance(job, CalibrateJob):
+        if job.n_poses is not None:
+            m["n_poses"] = job.n_poses
+        if job.e_required is not None:
+            m["e_required_mm"] = _to_mm(job.e_required)
+        if job.k_max is not None:
+            m["k_max"] = job.k_max
+        if job.poses:
+            m["poses"] = [list(p) for p in job.poses]
+        if job.verification_pose is not None:
+            m["verification_pose"] = list(job.verification_pose)
+        if job.compensate:
+            m["compensate"] = True
+        if job.seed is not None:
+            m["seed"] = job.seed
+    elif isinstance(job, WeldJob):
+        if job.workpiece:
+            m["workpiece"] = job.workpiece
+        for key, value in (("delta_d_mm", job.delta_d), ("v_const_mm_s", job.v_const), ("torch_offset_mm", job.torch_offset)):
+            if value is not None:
+                m[key] = _to_mm(value)
+        if job.k_p is not None:
+            m["k_p"] = job.k_p
+        if not job.arc:
+            m["arc"] = False
+    elif isinstance(job, MoveJob):
+        key = "q" if job.space == "joint" else "pose"
+        m["target"] = {"space": job.space, key: list(job.target)}
+        m["speed_scale"] = job.speed_scale
+    elif isinstance(job, HealthJob):
+        m["check"] = job.check
+    if job.ref:
+        m["ref"] = job.ref
+    return m
+
+
+def _numpy_to_json(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def encode(message: Mapping[str, Any]) -> bytes:
+    """A message as compact UTF-8 JSON; numpy arrays and scalars become lists and numbers.
+
+    Raises
+    ------
+    ValueError
+        NaN or an infinity (they are not JSON).
+    TypeError
+        A value JSON cannot represent.
+    """
+    return json.dumps(message, separators=(",", ":"), allow_nan=False, default=_numpy_to_json).encode("utf-8")
+
+
+def error_reply(field: str, reason: str) -> dict[str, Any]:
+    """The reply to a refused request."""
+    return {"ok": False, "error": {"field": field, "reason": reason}}
+
+
+def export_schemas(directory: str | Path) -> list[Path]:
+    """Write every schema as ``<name>.schema.json`` into ``directory`` (created); returns the paths."""
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    return [fsutil.write_json(out / f"{name}.schema.json", schema) for name, schema in SCHEMAS.items()]

@@ -1,0 +1,403 @@
+"""The cell's side of the bus: queryables that answer every request, and publications.
+
+:class:`BusServer` declares the queryables of one cell (``submit``, ``status``,
+``cancel``, ``list``, ``accept``, ``calibration``), its liveliness token, and
+publishes progress events and decimated robot and tactile state. It owns no
+job logic: the daemon gives it an object with one coroutine per request.
+
+Handler interface (:class:`CellHandlers`; the daemon's job manager implements it)::
+
+    async def on_submit(self, job: Job) -> dict            # -> submit-reply body
+    async def on_status(self, req: StatusRequest) -> dict  # -> status-reply or job-reply body
+    async def on_cancel(self, req: CancelRequest) -> dict  # -> cancel-reply body
+    async def on_list(self, req: ListRequest) -> dict      # -> list-reply body
+    async def on_accept(self, req: AcceptRequest) -> dict  # -> accept-reply body
+    async def on_calibration(self, req: CalibrationRequest) -> dict  # -> calibration-reply body
+
+- A handler receives a request already validated and built into a frozen value
+  (:mod:`celld.bus.schema`); it never sees raw bytes.
+- It returns the reply body without ``ok``; the server sends
+  ``{"ok": true, **body}``. The bodies' schemas are ``SCHEMAS["<name>-reply"]``
+  (:func:`celld.bus.schema.check_message` checks one in tests). Values may be
+  numpy scalars or arrays; they are sent as JSON numbers and lists.
+- To refuse, it raises :class:`~celld.errors.JobError` ``(field, reason)``
+  (e.g. ``JobError("$.job", "no such job")``; a full queue is
+  ``JobError("$", "refused: a job is running and the queue is full (8)")``);
+  any other :class:`~celld.errors.CelldError` becomes an error with an empty
+  field; anything else is logged with its traceback and answered as an
+  internal error. Either way the client gets ``{"ok": false, "error":
+  {"field": ..., "reason": ...}}`` and the server stays up.
+- Handlers run on the daemon's asyncio loop, one task per request; they must
+  not block it. A handler slower than ``reply_timeout`` is answered with an
+  error saying that the request may still take effect, and is left to finish.
+
+Threads: zenoh calls the queryable callbacks on its own threads. The callback
+only copies the payload and hops to the loop with ``call_soon_threadsafe``;
+parsing, the handler and the reply happen on the loop. More than
+``max_pending`` requests in flight are answered "busy" from the zenoh thread
+without touching the loop, so a flood cannot grow memory or starve the loop.
+Publishing never blocks: state and progress use zenoh's drop-on-congestion, so
+a receiver may miss an event; progress events carry a per-job ``seq`` so a gap
+is visible (the client then asks ``status``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Awaitable, Callable, Mapping, Protocol
+
+import zenoh
+
+from celld.bus import schema
+from celld.bus.keys import QUERYABLES, CellKeys
+from celld.bus.schema import (
+    TERMINAL_STATES,
+    AcceptRequest,
+    CalibrationRequest,
+    CancelRequest,
+    Job,
+    ListRequest,
+    StatusRequest,
+)
+from celld.errors import BusError, CelldError, JobError
+from celld.log import get_logger
+
+log = get_logger(__name__)
+
+# Replies are JSON.
+_JSON = zenoh.Encoding.APPLICATION_JSON
+# Default: longest a handler may take before the client is told, s.
+REPLY_TIMEOUT = 10.0
+# Default: most requests in flight before new ones are answered "busy".
+MAX_PENDING = 256
+
+
+class CellHandlers(Protocol):
+    """What the daemon provides to answer the bus (see the module docstring)."""
+
+    async def on_submit(self, job: Job) -> Mapping[str, Any]: ...
+    async def on_status(self, req: StatusRequest) -> Mapping[str, Any]: ...
+    async def on_cancel(self, req: CancelRequest) -> Mapping[str, Any]: ...
+    async def on_list(self, req: ListRequest) -> Mapping[str, Any]: ...
+    async def on_accept(self, req: AcceptRequest) -> Mapping[str, Any]: ...
+    async def on_calibration(self, req: CalibrationRequest) -> Mapping[str, Any]: ...
+
+
+@dataclass
+class ServerStats:
+    """Counters of one server, for logs, status and benchmarks."""
+
+    requests: int = 0  # queries received
+    refused: int = 0  # answered with an error (validation, handler refusal, busy, ...)
+    busy: int = 0  # answered "busy" without reaching the loop
+    internal_errors: int = 0  # handler raised something outside the error tree
+    timeouts: int = 0  # handler slower than reply_timeout
+    reply_failures: int = 0  # zenoh could not send a reply (client gone)
+    published: int = 0  # progress and state samples sent
+    decimated: int = 0  # state samples skipped by the rate limit
+
+
+class _Decimator:
+    """Lets one sample through per period; thread-safe."""
+
+    def __init__(self, rate_hz: float) -> None:
+        self.period_ns = int(1e9 / rate_hz)
+        self._next_ns = 0
+        self._lock = threading.Lock()
+
+    def admit(self, now_ns: int) -> bool:
+        with self._lock:
+            if now_ns < self._next_ns:
+                return False
+            self._next_ns = now_ns + self.period_ns
+            return True
+
+
+def _log_late_failure(task: "asyncio.Future[Any]") -> None:
+    # A handler that outlived reply_timeout still has its failure logged.
+    if not task.cancelled() and task.exception() is not None:
+        log.error("bus handler failed after its reply", error=repr(task.exception()))
+
+
+class BusServer:
+    """Answers one cell's queryables and publishes its progress and state.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+        An open session (:func:`celld.bus.session.open_server`).
+    cell : CellKeys
+        The keys of this cell.
+    handlers : CellHandlers
+        The daemon's request handlers.
+    state_rate_hz : float
+        Most robot and tactile state samples published per second, each.
+    reply_timeout : float
+        Longest a handler may take before the client gets an error, s.
+    max_pending : int
+        Most requests in flight; more are answered "busy".
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        cell: CellKeys,
+        handlers: CellHandlers,
+        *,
+        state_rate_hz: float = 20.0,
+        reply_timeout: float = REPLY_TIMEOUT,
+        max_pending: int = MAX_PENDING,
+    ) -> None:
+        if state_rate_hz <= 0 or reply_timeout <= 0 or max_pending < 1:
+            raise BusError(
+                f"expected state_rate_hz > 0, reply_timeout > 0, max_pending >= 1; "
+                f"got {state_rate_hz}, {reply_timeout}, {max_pending}"
+            )
+        self.session = session
+        self.keys = cell
+        self.handlers = handlers
+        self.reply_timeout = reply_timeout
+        self.max_pending = max_pending
+        self.stats = ServerStats()
+        self._handlers: dict[str, Callable[[Any], Awaitable[Mapping[str, Any]]]] = {
+            "submit": handlers.on_submit,
+            "status": handlers.on_status,
+            "cancel": handlers.on_cancel,
+            "list": handlers.on_list,
+            "accept": handlers.on_accept,
+            "calibration": handlers.on_calibration,
+        }
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._lock = threading.Lock()
+        self._pending = 0
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._queryables: list[Any] = []
+        self._token: Any = None
+        self._publishers: dict[str, Any] = {}
+        self._decimators = {"robot": _Decimator(state_rate_hz), "tactile": _Decimator(state_rate_hz)}
+        self._seq: dict[str, int] = {}
+        self._closing = False
+
+    # -- life cycle --------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Declare queryables, publishers and the liveliness token (call on the daemon's loop)."""
+        if self._loop is not None:
+            raise BusError("the bus server is already started")
+        self._loop = asyncio.get_running_loop()
+        try:
+            for name in QUERYABLES:
+                callback = self._callback(name)
+                self._queryables.append(self.session.declare_queryable(self.keys.query(name), callback))
+            for stream, key in (("robot", self.keys.state_robot), ("tactile", self.keys.state_tactile)):
+                self._publishers[stream] = self.session.declare_publisher(
+                    key, encoding=_JSON, congestion_control=zenoh.CongestionControl.DROP
+                )
+            self._token = self.session.liveliness().declare_token(self.keys.alive)
+        except zenoh.ZError as exc:
+            await self.close()
+            raise BusError(f"cannot declare the bus entities of {self.keys.base}: {exc}") from exc
+        log.info("bus server up", cell=self.keys.cell, base=self.keys.base)
+
+    async def close(self) -> None:
+        """Stop answering, withdraw the token, and answer what is in flight with an error."""
+        self._closing = True
+        for q in self._queryables:
+            self._undeclare(q)
+        self._queryables.clear()
+        if self._token is not None:
+            self._undeclare(self._token)
+            self._token = None
+        for p in self._publishers.values():
+            self._undeclare(p)
+        self._publishers.clear()
+        tasks = list(self._tasks)
+        for t in tasks:
+            t.cancel()
+        if tasks:
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+    @staticmethod
+    def _undeclare(entity: Any) -> None:
+        try:
+            entity.undeclare()
+        except zenoh.ZError as exc:  # the session may already be closed
+            log.debug("undeclare failed", error=str(exc))
+
+    async def __aenter__(self) -> "BusServer":
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # -- requests ----------------------------------------------------------------
+
+    def _callback(self, name: str) -> Callable[[zenoh.Query], None]:
+        def on_query(query: zenoh.Query) -> None:  # on a zenoh thread
+            try:
+                self._enqueue(name, query)
+            except Exception as exc:  # nothing a client sends may kill zenoh's thread
+                log.error("bus callback failed", request=name, error=repr(exc))
+
+        return on_query
+
+    def _enqueue(self, name: str, query: zenoh.Query) -> None:
+        with self._lock:
+            self.stats.requests += 1
+        payload = query.payload
+        if payload is not None and len(payload) > schema.MAX_PAYLOAD_BYTES:
+            self._reply_now(query, schema.error_reply("$", f"expected at most {schema.MAX_PAYLOAD_BYTES} bytes, got {len(payload)}"))
+            return
+        raw = payload.to_bytes() if payload is not None else b""
+        with self._lock:
+            busy = self._pending >= self.max_pending or self._closing
+            if not busy:
+                self._pending += 1
+        if busy:
+            self.stats.busy += 1
+            reason = "the cell is shutting down" if self._closing else f"busy: {self.max_pending} requests in flight, try again"
+            self._reply_now(query, schema.error_reply("", reason))
+            return
+        loop = self._loop
+        try:
+            if loop is None:
+                raise RuntimeError("not started")
+            loop.call_soon_threadsafe(self._spawn, name, query, raw)
+        except RuntimeError:  # the loop is closed
+            self._release()
+            self._reply_now(query, schema.error_reply("", "the cell is shutting down"))
+
+    def _spawn(self, name: str, query: zenoh.Query, raw: bytes) -> None:
+        task = asyncio.get_running_loop().create_task(self._answer(name, query, raw))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _release(self) -> None:
+        with self._lock:
+            self._pending -= 1
+
+    async def _answer(self, name: str, query: zenoh.Query, raw: bytes) -> None:
+        reply: Mapping[str, Any]
+        try:
+            reply = await self._handle(name, raw)
+        except asyncio.CancelledError:
+            self._reply_now(query, schema.error_reply("", "the cell is shutting down"))
+            self._release()
+            raise
+        self._release()
+        self._reply_now(query, reply)
+
+    async def _handle(self, name: str, raw: bytes) -> Mapping[str, Any]:
+        try:
+            request = schema.parse(name, raw)
+            task = asyncio.ensure_future(self._handlers[name](request))
+            try:
+                # shield: a slow handler is reported, not torn in half.
+                body = await asyncio.wait_for(asyncio.shield(task), self.reply_timeout)
+            except asyncio.TimeoutError:
+                task.add_done_callback(_log_late_failure)
+                raise
+            if not isinstance(body, Mapping):
+                raise TypeError(f"handler on_{name} returned {type(body).__name__}, expected a mapping")
+            return {"ok": True, **body}
+        except JobError as exc:
+            return schema.error_reply(exc.field, exc.reason)
+        except CelldError as exc:
+            return schema.error_reply("", str(exc))
+        except asyncio.TimeoutError:
+            self.stats.timeouts += 1
+            return schema.error_reply("", f"no answer within {self.reply_timeout:g} s; the request may still take effect (ask status)")
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            self.stats.internal_errors += 1
+            log.exception("bus handler failed", request=name)
+            return schema.error_reply("", f"internal error while handling {name}")
+
+    def _reply_now(self, query: zenoh.Query, reply: Mapping[str, Any]) -> None:
+        if reply.get("ok") is not True:
+            self.stats.refused += 1
+        try:
+            payload = schema.encode(reply)
+        except (TypeError, ValueError) as exc:
+            self.stats.internal_errors += 1
+            log.error("bus reply not encodable", error=str(exc))
+            payload = schema.encode(schema.error_reply("", "internal error: the reply was not valid JSON"))
+        try:
+            query.reply(query.key_expr, payload, encoding=_JSON)
+        except zenoh.ZError as exc:
+            self.stats.reply_failures += 1
+            log.debug("bus reply failed", error=str(exc))
+        finally:
+            query.drop()  # sends the final message: the client stops waiting
+
+    # -- publications ------------------------------------------------------------
+
+    def publish_progress(
+        self,
+        job: str,
+        kind: str,
+        state: str,
+        stage: str,
+        *,
+        fraction: float | None = None,
+        message: str = "",
+        data: Mapping[str, Any] | None = None,
+    ) -> bool:
+        """Publish one progress event of ``job`` on ``progress/<job>``; returns whether it was sent.
+
+        The server numbers the events of each job (``seq`` from 0); an event
+        with a terminal state ends the numbering of that job.
+        """
+        with self._lock:
+            seq = self._seq.get(job, 0)
+            if state in TERMINAL_STATES:
+                self._seq.pop(job, None)
+            else:
+                self._seq[job] = seq + 1
+        event: dict[str, Any] = {"job": job, "kind": kind, "seq": seq, "state": state, "stage": stage}
+        if fraction is not None:
+            event["fraction"] = fraction
+        if message:
+            event["message"] = message
+        if data:
+            event["data"] = dict(data)
+        return self._put(self.keys.progress(job), event)
+
+    def publish_robot_state(self, state: Mapping[str, Any], now_ns: int | None = None) -> bool:
+        """Publish a robot state sample (``state-robot``) unless the rate limit drops it."""
+        return self._publish_state("robot", state, now_ns)
+
+    def publish_tactile_state(self, state: Mapping[str, Any], now_ns: int | None = None) -> bool:
+        """Publish a tactile state sample (``state-tactile``) unless the rate limit drops it."""
+        return self._publish_state("tactile", state, now_ns)
+
+    def _publish_state(self, stream: str, state: Mapping[str, Any], now_ns: int | None) -> bool:
+        if not self._decimators[stream].admit(time.monotonic_ns() if now_ns is None else now_ns):
+            self.stats.decimated += 1
+            return False
+        publisher = self._publishers.get(stream)
+        if publisher is None:
+            return False
+        try:
+            publisher.put(schema.encode(state))
+        except (TypeError, ValueError, zenoh.ZError) as exc:
+            log.warning("state not published", stream=stream, error=str(exc))
+            return False
+        self.stats.published += 1
+        return True
+
+    def _put(self, key: str, message: Mapping[str, Any]) -> bool:
+        if self._closing:
+            return False
+        try:
+            self.session.put(key, schema.encode(message), encoding=_JSON, congestion_control=zenoh.CongestionControl.DROP)
+        except (TypeError, ValueError, zenoh.ZError) as exc:
+            log.warning("event not published", key=key, error=str(exc))
+            return False
+        self.stats.published += 1
+        return True

@@ -1,0 +1,337 @@
+"""The job journal: one SQLite database (WAL) in the state directory, one row per job.
+
+Every job the cell takes is a row, and every change of its state is its own
+committed transaction (``synchronous=FULL``: on disk when the call returns),
+so after a crash, a ``kill -9`` or a power cut the journal says what the cell
+was doing. States and the transitions allowed between them::
+
+    queued ──> running ──> succeeded | failed | cancelled | interrupted
+       └─────────────────> failed | cancelled | interrupted
+
+When a journal is opened, jobs that a previous process left ``running`` (or
+``queued``: the queue lived in that process) become ``interrupted`` with a
+reason; :attr:`Journal.recovered` lists them. One process at a time may hold
+a journal (an exclusive lock on ``<file>.lock``); a second one is refused
+instead of marking the first one's running job interrupted.
+
+Times are UTC wall clock, ISO 8601 with milliseconds (``2025-03-01T12:00:00.123Z``).
+Job ids are ``<UTC yyyymmdd-HHMMSS>-<6 hex>``: sortable, and one zenoh key chunk.
+Calls are thread-safe; each is a few milliseconds of blocking I/O (an fsync),
+so the asyncio daemon may call them directly for job transitions (rare) or
+through ``asyncio.to_thread``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import secrets
+import sqlite3
+import threading
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping
+
+from celld.errors import JournalError
+
+# States, and which states each may move to.
+STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
+TERMINAL = frozenset({"succeeded", "failed", "cancelled", "interrupted"})
+_NEXT: dict[str, frozenset[str]] = {
+    "queued": frozenset({"running", "failed", "cancelled", "interrupted"}),
+    "running": frozenset({"succeeded", "failed", "cancelled", "interrupted"}),
+}
+# Version of the table layout, kept in PRAGMA user_version.
+_SCHEMA_VERSION = 1
+# How long a statement waits for a lock held by a reader, ms.
+_BUSY_TIMEOUT_MS = 5000
+# Reasons written when a journal is opened after its process died.
+_REASON_RUNNING = "interrupted: the daemon stopped while the job was running"
+_REASON_QUEUED = "interrupted: the daemon stopped before the job started"
+
+_CREATE = f"""
+CREATE TABLE IF NOT EXISTS jobs (
+    seq     INTEGER PRIMARY KEY AUTOINCREMENT,
+    id      TEXT NOT NULL UNIQUE,
+    kind    TEXT NOT NULL,
+    params  TEXT NOT NULL,
+    ref     TEXT NOT NULL DEFAULT '',
+    state   TEXT NOT NULL CHECK (state IN ({", ".join(repr(s) for s in STATES)})),
+    reason  TEXT NOT NULL DEFAULT '',
+    created TEXT NOT NULL,
+    started TEXT,
+    ended   TEXT,
+    result  TEXT
+);
+CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state);
+"""
+_COLUMNS = "id, kind, params, ref, state, reason, created, started, ended, result"
+
+
+def utc_now() -> str:
+    """The wall clock in the journal's format."""
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def new_job_id() -> str:
+    """A fresh job id: ``<UTC yyyymmdd-HHMMSS>-<6 hex>``."""
+    return f"{datetime.now(timezone.utc):%Y%m%d-%H%M%S}-{secrets.token_hex(3)}"
+
+
+@dataclass(frozen=True)
+class JobRecord:
+    """One job as the journal keeps it. ``params_json`` is the job message as submitted."""
+
+    id: str
+    kind: str
+    params_json: str
+    ref: str
+    state: str
+    reason: str
+    created: str
+    started: str | None
+    ended: str | None
+    result: str | None
+
+    @property
+    def params(self) -> dict[str, Any]:
+        value: dict[str, Any] = json.loads(self.params_json)
+        return value
+
+    @property
+    def terminal(self) -> bool:
+        return self.state in TERMINAL
+
+    def to_message(self) -> dict[str, Any]:
+        """The record as the bus sends it (the ``job-reply`` record)."""
+        return {
+            "id": self.id,
+            "kind": self.kind,
+            "state": self.state,
+            "reason": self.reason,
+            "ref": self.ref,
+            "params": self.params,
+            "created": self.created,
+            "started": self.started,
+            "ended": self.ended,
+            "result": self.result,
+        }
+
+
+class Journal:
+    """The job journal of one cell (see the module docstring).
+
+    Parameters
+    ----------
+    path : str or Path
+        The database file; its directory is created if needed.
+    clock : callable
+        Wall-clock source, for tests.
+
+    Raises
+    ------
+    JournalError
+        The file is not a journal, is damaged, is newer than this code, or
+        another process holds it.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], clock: Callable[[], str] = utc_now) -> None:
+        self.path = Path(path)
+        self._clock = clock
+        self._lock = threading.Lock()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._lock_fd = self._take_lock()
+        try:
+            self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=_BUSY_TIMEOUT_MS / 1e3)
+            self._setup()
+            self.recovered: tuple[JobRecord, ...] = self._recover()
+        except sqlite3.DatabaseError as exc:
+            self._release_lock()
+            raise JournalError(f"{self.path}: not a usable job journal: {exc}") from exc
+        except BaseException:
+            self._release_lock()
+            raise
+
+    def _take_lock(self) -> int:
+        lock_path = self.path.with_name(self.path.name + ".lock")
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError as exc:
+            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
+            os.close(fd)
+            raise JournalError(f"{self.path}: the journal is held by another process (pid {holder})") from exc
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        return fd
+
+    def _release_lock(self) -> None:
+        if self._lock_fd >= 0:
+            os.close(self._lock_fd)  # closing the descriptor drops the flock
+            self._lock_fd = -1
+
+    def _setup(self) -> None:
+        db = self._db
+        db.execute(f"PRAGMA busy_timeout = {_BUSY_TIMEOUT_MS}")
+        mode = db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+        if str(mode).lower() != "wal":
+            raise JournalError(f"{self.path}: SQLite refused WAL mode (got {mode})")
+        db.execute("PRAGMA synchronous = FULL")
+        version = db.execute("PRAGMA user_version").fetchone()[0]
+        if version > _SCHEMA_VERSION:
+            raise JournalError(f"{self.path}: journal layout {version} is newer than this celld ({_SCHEMA_VERSION})")
+        with self._transaction():
+            for statement in _CREATE.strip().split(";"):
+                if statement.strip():
+                    db.execute(statement)
+            db.execute(f"PRAGMA user_version = {_SCHEMA_VERSION}")
+
+    @contextlib.contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Connection]:
+        """One committed transaction, under the thread lock."""
+        with self._lock:
+            if self._lock_fd < 0:
+                raise JournalError(f"{self.path}: the journal is closed")
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._db
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+
+    def _recover(self) -> tuple[JobRecord, ...]:
+        now = self._clock()
+        with self._transaction() as db:
+            ids = [r[0] for r in db.execute("SELECT id FROM jobs WHERE state IN ('running', 'queued') ORDER BY seq")]
+            db.execute("UPDATE jobs SET state = 'interrupted', reason = ?, ended = ? WHERE state = 'running'", (_REASON_RUNNING, now))
+            db.execute("UPDATE jobs SET state = 'interrupted', reason = ?, ended = ? WHERE state = 'queued'", (_REASON_QUEUED, now))
+        return tuple(r for r in (self.get(i) for i in ids) if r is not None)
+
+    def close(self) -> None:
+        """Close the database and drop the lock (idempotent)."""
+        with self._lock:
+            if self._lock_fd < 0:
+                return
+            self._db.close()
+            self._release_lock()
+
+    def __enter__(self) -> "Journal":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- changes ------------------------------------------------------------------------
+
+    def create(self, kind: str, params: Mapping[str, Any], ref: str = "") -> JobRecord:
+        """Record a new job as ``queued``; returns its record (with a fresh id).
+
+        Raises
+        ------
+        JournalError
+            ``params`` is not JSON-serialisable (NaN, infinities, objects).
+        """
+        try:
+            params_json = json.dumps(dict(params), allow_nan=False, separators=(",", ":"))
+        except (TypeError, ValueError) as exc:
+            raise JournalError(f"job parameters are not JSON: {exc}") from exc
+        now = self._clock()
+        for _ in range(8):
+            job_id = new_job_id()
+            try:
+                with self._transaction() as db:
+                    db.execute(
+                        "INSERT INTO jobs (id, kind, params, ref, state, created) VALUES (?, ?, ?, ?, 'queued', ?)",
+                        (job_id, kind, params_json, ref, now),
+                    )
+            except sqlite3.IntegrityError:
+                continue  # the same id in the same second: draw again
+            return self._get_required(job_id)
+        raise JournalError("could not draw a unique job id")
+
+    def start(self, job_id: str) -> JobRecord:
+        """``queued`` -> ``running``; stamps ``started``."""
+        return self._move(job_id, "running", "", None)
+
+    def finish(self, job_id: str, state: str, reason: str = "", result: str | None = None) -> JobRecord:
+        """Move a job to a terminal ``state`` with a ``reason`` and an optional result path; stamps ``ended``."""
+        if state not in TERMINAL:
+            raise JournalError(f"expected a terminal state ({', '.join(sorted(TERMINAL))}), got {state!r}")
+        return self._move(job_id, state, reason, result)
+
+    def _move(self, job_id: str, state: str, reason: str, result: str | None) -> JobRecord:
+        allowed_from = sorted(s for s, nxt in _NEXT.items() if state in nxt)
+        now = self._clock()
+        stamp = "started" if state == "running" else "ended"
+        marks = ", ".join("?" for _ in allowed_from)
+        with self._transaction() as db:
+            cur = db.execute(
+                f"UPDATE jobs SET state = ?, reason = ?, {stamp} = ?, result = COALESCE(?, result) "
+                f"WHERE id = ? AND state IN ({marks})",
+                (state, reason, now, result, job_id, *allowed_from),
+            )
+            if cur.rowcount != 1:
+                row = db.execute("SELECT state FROM jobs WHERE id = ?", (job_id,)).fetchone()
+                if row is None:
+                    raise JournalError(f"no job {job_id!r} in the journal")
+                raise JournalError(f"job {job_id} is {row[0]}; it cannot become {state}")
+        return self._get_required(job_id)
+
+    # -- queries --------------------------------------------------------------------
+
+    def _rows(self, sql: str, args: tuple[Any, ...] = ()) -> list[JobRecord]:
+        with self._lock:
+            if self._lock_fd < 0:
+                raise JournalError(f"{self.path}: the journal is closed")
+            return [JobRecord(*row) for row in self._db.execute(sql, args)]
+
+    def get(self, job_id: str) -> JobRecord | None:
+        rows = self._rows(f"SELECT {_COLUMNS} FROM jobs WHERE id = ?", (job_id,))
+        return rows[0] if rows else None
+
+    def _get_required(self, job_id: str) -> JobRecord:
+        record = self.get(job_id)
+        if record is None:
+            raise JournalError(f"no job {job_id!r} in the journal")
+        return record
+
+    def jobs(self, limit: int = 50, state: str | None = None, kind: str | None = None) -> list[JobRecord]:
+        """Jobs, newest first, optionally of one state and one kind."""
+        where, args = [], []
+        if state is not None:
+            where.append("state = ?")
+            args.append(state)
+        if kind is not None:
+            where.append("kind = ?")
+            args.append(kind)
+        clause = f"WHERE {' AND '.join(where)}" if where else ""
+        return self._rows(f"SELECT {_COLUMNS} FROM jobs {clause} ORDER BY seq DESC LIMIT ?", (*args, int(limit)))
+
+    def active(self) -> list[JobRecord]:
+        """Queued and running jobs, oldest first."""
+        return self._rows(f"SELECT {_COLUMNS} FROM jobs WHERE state IN ('queued', 'running') ORDER BY seq")
+
+    def check(self) -> list[str]:
+        """Problems found in the journal; empty when it is intact.
+
+        Runs SQLite's ``integrity_check`` and checks what the journal promises:
+        at most one running job, times stamped where the state says so.
+        """
+        with self._lock:
+            if self._lock_fd < 0:
+                raise JournalError(f"{self.path}: the journal is closed")
+            db = self._db
+            problems = [r[0] for r in db.execute("PRAGMA integrity_check") if r[0] != "ok"]
+            running = db.execute("SELECT count(*) FROM jobs WHERE state = 'running'").fetchone()[0]
+            if running > 1:
+                problems.append(f"{running} jobs are running; at most one may be")
+            for job_id, state in db.execute("SELECT id, state FROM jobs WHERE state = 'running' AND started IS NULL"):
+                problems.append(f"job {job_id} is {state} but has no start time")
+            terminal = ", ".join(repr(s) for s in sorted(TERMINAL))
+            for (job_id,) in db.execute(f"SELECT id FROM jobs WHERE state IN ({terminal}) AND ended IS NULL"):
+                problems.append(f"job {job_id} ended but has no end time")
+        return problems

@@ -1,0 +1,224 @@
+"""Job and message schemas: valid messages become jobs in SI, bad ones name the field and reason."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from celld.bus import schema
+from celld.bus.schema import CalibrateJob, HealthJob, MoveJob, WeldJob, parse, parse_submit
+from celld.errors import JobError
+
+
+def submit(message: object) -> schema.Job:
+    return parse_submit(json.dumps(message).encode())
+
+
+def refusal(message: object | bytes, request: str = "submit") -> JobError:
+    raw = message if isinstance(message, bytes) else json.dumps(message).encode()
+    with pytest.raises(JobError) as err:
+        parse(request, raw)
+    return err.value
+
+
+def test_calibrate_converts_millimetres_and_keeps_config_defaults_open() -> None:
+    job = submit({"kind": "calibrate", "n_poses": 12, "e_required_mm": 0.3, "compensate": True, "ref": "order-7"})
+    assert isinstance(job, CalibrateJob)
+    assert job.n_poses == 12 and job.e_required == pytest.approx(0.3e-3) and job.compensate
+    assert (job.k_max, job.seed, job.verification_pose, job.poses) == (None, None, None, ())
+    assert job.ref == "order-7"
+
+
+def test_calibrate_with_given_poses() -> None:
+    poses = [[0.5 + 0.01 * i, 0.0, 0.4, 0.0, math.pi, 0.0] for i in range(5)]
+    job = submit({"kind": "calibrate", "poses": poses, "verification_pose": poses[0]})
+    assert job.poses == tuple(tuple(p) for p in poses) and job.verification_pose == tuple(poses[0])
+
+
+def test_weld_move_health() -> None:
+    weld = submit({"kind": "weld", "workpiece": "t-joint-300", "delta_d_mm": 1.5, "v_const_mm_s": 10, "k_p": 4, "arc": False})
+    assert weld == WeldJob(workpiece="t-joint-300", delta_d=pytest.approx(1.5e-3), k_p=4.0, v_const=pytest.approx(0.01), arc=False)
+    move = submit({"kind": "move", "target": {"space": "joint", "q": [0, -1.57, 1.57, -1.57, -1.57, 0]}, "speed_scale": 0.2})
+    assert move == MoveJob(space="joint", target=(0.0, -1.57, 1.57, -1.57, -1.57, 0.0), speed_scale=0.2)
+    pose = submit({"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0, 0.4, 0, 3.14, 0]}})
+    assert pose.space == "cartesian" and pose.speed_scale == 0.5
+    assert submit({"kind": "health"}) == HealthJob(check="all")
+
+
+def test_integral_floats_count_as_integers() -> None:
+    assert submit({"kind": "calibrate", "n_poses": 12.0}).n_poses == 12
+
+
+@pytest.mark.parametrize(
+    ("message", "field", "reason"),
+    [
+        ({}, "$.kind", "required field is missing"),
+        ({"kind": "paint"}, "$.kind", 'expected one of "calibrate", "weld", "move", "health"'),
+        ({"kind": "calibrate", "n_poses": "12"}, "$.n_poses", "expected an integer, got string '12'"),
+        ({"kind": "calibrate", "n_poses": True}, "$.n_poses", "expected an integer, got true"),
+        ({"kind": "calibrate", "n_poses": 12.5}, "$.n_poses", "expected an integer, got 12.5"),
+        ({"kind": "calibrate", "n_poses": 3}, "$.n_poses", "expected a value >= 4, got 3"),
+        ({"kind": "calibrate", "n_poses": 10**6}, "$.n_poses", "expected a value <= 1000"),
+        ({"kind": "calibrate", "e_required_mm": -0.1}, "$.e_required_mm", "expected a value >= 0.0"),
+        ({"kind": "calibrate", "poses": [[0, 0, 0, 0, 0, 0]] * 3}, "$.poses", "expected at least 4 items, got 3"),
+        ({"kind": "calibrate", "poses": [[0, 0, 0, 0, 0, 0]] * 3 + [[0, 0, 0, 0, 0]]}, "$.poses[3]", "expected exactly 6 items, got 5"),
+        ({"kind": "calibrate", "poses": [[0, 0, 0, 0, 0, 0]] * 3 + [[0, 0, 9, 0, 0, 0]]}, "$.poses[3][2]", "expected a value <= 2.5, got 9"),
+        ({"kind": "calibrate", "poses": [[0, 0, 0, 0, 0, 0]] * 4, "n_poses": 4}, "$.n_poses", "either poses or n_poses"),
+        ({"kind": "calibrate", "colour": "red"}, "$.colour", "unknown field"),
+        ({"kind": "weld", "delta_d_mm": 0}, "$.delta_d_mm", "expected a value > 0.0, got 0"),
+        ({"kind": "weld", "workpiece": "../etc/passwd"}, "$.workpiece", "expected a string matching"),
+        ({"kind": "weld", "arc": "yes"}, "$.arc", "expected true or false"),
+        ({"kind": "move"}, "$.target", "required field is missing"),
+        ({"kind": "move", "target": {"space": "polar"}}, "$.target.space", 'expected one of "joint", "cartesian"'),
+        ({"kind": "move", "target": {"space": "joint", "pose": [0] * 6}}, "$.target.pose", "unknown field"),
+        ({"kind": "move", "target": {"space": "joint", "q": [0, 0, 0, 0, 0, 7]}}, "$.target.q[5]", "expected a value <= 6.28"),
+        ({"kind": "move", "target": {"space": "joint", "q": [0] * 6}, "speed_scale": 0}, "$.speed_scale", "expected a value > 0.0"),
+        ({"kind": "health", "check": "all", "ref": "a\nb"}, "$.ref", "expected a string matching"),
+        ({"kind": "health", "ref": "x" * 129}, "$.ref", "expected at most 128 characters, got 129"),
+        ({"kind": "health", "bad key": 1}, "$['bad key']", "unknown field"),
+        ([{"kind": "health"}], "$", "expected an object, got an array of 1"),
+        ("health", "$", "expected an object, got string 'health'"),
+    ],
+)
+def test_bad_submits_name_the_field_and_the_reason(message: object, field: str, reason: str) -> None:
+    err = refusal(message)
+    assert err.field == field
+    assert reason in err.reason, err.reason
+
+
+@pytest.mark.parametrize(
+    ("raw", "reason"),
+    [
+        (b"\xff\xfe", "expected UTF-8 text, got byte 0xff at offset 0"),
+        (b'{"kind": "health"', "expected JSON, got an error at line 1"),
+        (b'{"kind": "calibrate", "n_poses": NaN}', "got NaN"),
+        (b'{"kind": "calibrate", "e_required_mm": Infinity}', "got Infinity"),
+        (b'{"kind": "calibrate", "e_required_mm": 1e400}', "overflows a double"),
+        (b'{"kind": "calibrate", "seed": 1' + b"0" * 40 + b"}", "at most 20 digits"),
+        (b'{"kind": "health", "kind": "weld"}', "duplicate field 'kind'"),
+        (b'{"kind": "health", "ref": "\\udc00"}', "lone surrogate"),
+        (b"[" * 7 + b"]" * 7, "at most 6 levels of nesting"),
+        (b"[" * 100_000, "levels of nesting"),
+        (b" " * (schema.MAX_PAYLOAD_BYTES + 1), f"expected at most {schema.MAX_PAYLOAD_BYTES} bytes"),
+    ],
+)
+def test_hostile_bytes_are_refused_before_interpretation(raw: bytes, reason: str) -> None:
+    err = refusal(raw)
+    assert err.field == "$"
+    assert reason in err.reason, err.reason
+    assert err.reason.isascii() and len(err.reason) < 200
+
+
+def test_empty_payload_is_an_empty_object() -> None:
+    assert parse("status", b"") == schema.StatusRequest()
+    assert parse("list", b"") == schema.ListRequest(limit=50)
+    assert parse("calibration", b"") == schema.CalibrationRequest()
+    assert refusal(b"", "cancel").field == "$.job"
+
+
+def test_other_requests() -> None:
+    assert parse("status", b'{"job": "20250101-120000-abcdef"}').job == "20250101-120000-abcdef"
+    assert parse("cancel", b'{"job": "j1", "reason": "wrong part"}') == schema.CancelRequest("j1", "wrong part")
+    assert parse("list", b'{"limit": 5, "state": "failed", "kind": "weld"}') == schema.ListRequest(5, "failed", "weld")
+    assert parse("accept", b'{"job": "j1"}') == schema.AcceptRequest("j1")
+    assert refusal({"job": "a/b"}, "cancel").field == "$.job"  # not one key chunk
+    assert refusal({"job": "*"}, "status").field == "$.job"
+    assert refusal({"limit": 0}, "list").field == "$.limit"
+
+
+# -- round trip and fuzz ------------------------------------------------------------
+
+finite = st.floats(allow_nan=False, allow_infinity=False)
+poses = st.lists(
+    st.tuples(*[st.floats(-2.5, 2.5)] * 3, *[st.floats(-6.28, 6.28)] * 3).map(list), min_size=4, max_size=8
+)
+jobs = st.one_of(
+    st.builds(
+        lambda n, e, k, c, s: {"kind": "calibrate", "n_poses": n, "e_required_mm": e, "k_max": k, "compensate": c, "seed": s},
+        st.integers(4, 1000), st.floats(0, 100), st.integers(1, 10_000), st.booleans(), st.integers(0, 2**32 - 1),
+    ),
+    st.builds(lambda p: {"kind": "calibrate", "poses": p}, poses),
+    st.builds(
+        lambda d, v, k, a: {"kind": "weld", "delta_d_mm": d, "v_const_mm_s": v, "k_p": k, "arc": a},
+        st.floats(0.01, 20), st.floats(0.01, 500), st.floats(0.01, 1000), st.booleans(),
+    ),
+    st.builds(
+        lambda q, s: {"kind": "move", "target": {"space": "joint", "q": q}, "speed_scale": s},
+        st.lists(st.floats(-6.28, 6.28), min_size=6, max_size=6), st.floats(0.01, 1.0),
+    ),
+    st.builds(lambda c: {"kind": "health", "check": c}, st.sampled_from(schema.HEALTH_CHECKS)),
+)
+
+
+@settings(max_examples=100, deadline=None)
+@given(jobs)
+def test_job_to_message_round_trips(message: dict) -> None:
+    job = submit(message)
+    again = submit(schema.job_to_message(job))
+    assert type(again) is type(job)
+    for a, b in zip(json.loads(json.dumps(schema.job_to_message(job))).values(), schema.job_to_message(again).values()):
+        assert a == pytest.approx(b, rel=1e-9, abs=1e-12) if isinstance(a, float) else a == b
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | finite | st.text(max_size=30),
+    lambda children: st.lists(children, max_size=6) | st.dictionaries(st.text(max_size=12), children, max_size=6),
+    max_leaves=30,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=300))
+def test_random_bytes_give_a_job_or_a_job_error(raw: bytes) -> None:
+    try:
+        parse_submit(raw)
+    except JobError as exc:
+        assert exc.field.startswith("$") and exc.reason.isascii()
+
+
+@settings(max_examples=150, deadline=None)
+@given(jobs, st.sampled_from(["n_poses", "poses", "target", "arc", "check", "k_p", "ref", "kind", "extra"]), json_values)
+def test_a_valid_job_with_one_field_replaced_gives_a_job_or_names_a_field(message: dict, key: str, value: object) -> None:
+    message = {**message, key: value}
+    try:
+        parse_submit(json.dumps(message).encode())
+    except JobError as exc:
+        assert exc.field.startswith("$") and exc.reason.isascii()
+
+
+# -- the exported schemas are the enforced ones -------------------------------------
+
+
+def test_every_schema_is_draft_2020_12_and_exported(tmp_path) -> None:
+    paths = schema.export_schemas(tmp_path / "schemas")
+    assert {p.name for p in paths} == {f"{n}.schema.json" for n in schema.SCHEMAS}
+    for p in paths:
+        data = json.loads(p.read_text())
+        assert data["$schema"] == "https://json-schema.org/draft/2020-12/schema"
+        assert data == schema.SCHEMAS[p.name.removesuffix(".schema.json")]
+
+
+@pytest.mark.parametrize("name", sorted(schema.SCHEMAS))
+def test_schemas_are_valid_json_schema(name: str) -> None:
+    jsonschema = pytest.importorskip("jsonschema", reason="the reference validator is only a test aid")
+    jsonschema.Draft202012Validator.check_schema(schema.SCHEMAS[name])
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.one_of(jobs, st.builds(lambda m, k, v: {**m, k: v}, jobs, st.sampled_from(["n_poses", "poses", "target", "arc", "zz"]), json_values)))
+def test_checker_agrees_with_the_reference_validator(message: dict) -> None:
+    """Same verdict as jsonschema on the same schema (cross-field checks aside)."""
+    jsonschema = pytest.importorskip("jsonschema", reason="the reference validator is only a test aid")
+    reference = jsonschema.Draft202012Validator(schema.SCHEMAS["submit"]).is_valid(message)
+    try:
+        parse_submit(json.dumps(message).encode())
+        ours = True
+    except JobError as exc:
+        ours = False
+        if exc.reason.startswith("give either"):
+            return  # the one rule outside the schema
+    assert ours == reference

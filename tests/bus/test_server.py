@@ -1,0 +1,292 @@
+"""BusServer and CellClient over real zenoh (peer mode, loopback): every request is answered."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from typing import Any, Mapping
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from celld.bus import schema
+from celld.bus.client import CellClient
+from celld.errors import BusError, JobError
+
+CALIBRATE = {"kind": "calibrate", "n_poses": 6, "e_required_mm": 0.3}
+
+
+@pytest.fixture
+def cell(serve_cell):
+    return serve_cell()
+
+
+@pytest.fixture
+def client(cell):
+    with CellClient(cell.client_bus(), cell.keys.cell) as c:
+        yield c
+
+
+def test_submit_returns_a_job_id_and_the_job_runs_to_success(cell, client) -> None:
+    reply = client.submit(CALIBRATE)
+    schema.check_message("submit-reply", reply)
+    assert reply["state"] == "running" and reply["position"] == 0
+    record = client.watch().wait(reply["job"], timeout=5.0)
+    assert record["state"] == "succeeded"
+    assert record["params"] == CALIBRATE
+    assert cell.journal.get(reply["job"]).state == "succeeded"
+
+
+def test_second_job_queues_and_reply_says_so(serve_cell) -> None:
+    cell = serve_cell(job_duration=1.0)
+    with CellClient(cell.client_bus(), cell.keys.cell) as client:
+        first = client.submit({"kind": "health"})
+        second = client.submit({"kind": "health", "check": "robot"})
+        assert (first["state"], second["state"], second["position"]) == ("running", "queued", 1)
+        status = client.status()
+        schema.check_message("status-reply", status)
+        assert status["running"] == first["job"] and status["queued"] == [second["job"]]
+        assert client.cancel(second["job"])["state"] == "cancelled"
+        assert client.cancel(first["job"])["state"] == "cancelled"
+        assert [r["state"] for r in client.list(limit=2)] == ["cancelled", "cancelled"]
+
+
+def test_full_queue_refuses_with_a_reason(serve_cell) -> None:
+    cell = serve_cell(job_duration=5.0)
+    cell.cell.max_queue = 1
+    with CellClient(cell.client_bus(), cell.keys.cell) as client:
+        client.submit({"kind": "health"})
+        client.submit({"kind": "health"})
+        with pytest.raises(JobError) as err:
+            client.submit({"kind": "health"})
+        assert err.value.field == "$" and "refused" in err.value.reason
+        assert len(cell.journal.jobs()) == 2
+
+
+def test_progress_events_are_numbered_and_end_terminal(cell, client) -> None:
+    events: list[dict[str, Any]] = []
+    with client.watch() as watch:
+        reply = client.submit({"kind": "health"})
+        watch.wait(reply["job"], events.append, timeout=5.0)
+    for e in events:
+        schema.check_message("progress", e)
+    assert [e["seq"] for e in events] == list(range(len(events)))
+    assert events[-1]["state"] == "succeeded" and len(events) == cell.cell.steps + 1
+
+
+def test_status_list_accept_calibration_replies_match_their_schemas(cell, client) -> None:
+    assert client.calibration() is None
+    reply = client.submit(CALIBRATE)
+    client.watch().wait(reply["job"], timeout=5.0)
+    record = client.status(reply["job"])
+    schema.check_message("job-reply", {"ok": True, "record": record})
+    schema.check_message("list-reply", {"ok": True, "jobs": client.list()})
+    accepted = client.accept(reply["job"])
+    schema.check_message("accept-reply", accepted)
+    current = client.calibration()
+    schema.check_message("calibration-reply", {"ok": True, "calibration": current})
+    assert current["job"] == reply["job"]
+
+
+def test_unknown_job_is_refused_with_the_field(client) -> None:
+    with pytest.raises(JobError) as err:
+        client.status("20250101-000000-abcdef")
+    assert err.value.field == "$.job" and "no job" in err.value.reason
+
+
+HOSTILE = [
+    b"\xff\xfe\x00garbage",
+    b"[1, 2, 3]",
+    b'"a string"',
+    b"null",
+    b'{"kind": "calibrate", "n_poses": NaN}',
+    b'{"kind": "calibrate", "e_required_mm": 1e999}',
+    b'{"kind": "weld", "kind": "move"}',
+    b'{"kind": "move"}',
+    b'{"kind": "move", "target": {"space": "joint", "q": [0, 0, 0, 0, 0]}}',
+    b'{"kind": "calibrate", "poses": [[0, 0, 0, 0, 0, 0]]}',
+    b'{"kind": "health", "check": "everything"}',
+    b'{"kind": "health", "extra": {}}',
+    b'{"kind": "calibrate", "seed": 123456789012345678901234567890}',
+    b"[" * 50_000 + b"]" * 50_000,
+    b'{"kind": "health", "ref": "' + b"x" * 300_000 + b'"}',
+    b'{"kind": "health", "ref": "\\ud800"}',
+]
+
+
+def test_hostile_payloads_each_get_an_error_reply_and_the_server_stays_up(cell, client) -> None:
+    for payload in HOSTILE:
+        reply = client.request_raw("submit", payload)
+        schema.check_message("error-reply", reply)
+        assert reply["error"]["reason"], payload[:40]
+    assert client.status()["state"] == "idle"
+    assert cell.journal.jobs() == [] and cell.journal.check() == []
+
+
+def test_requests_of_every_queryable_with_garbage_get_errors(client) -> None:
+    for name in ("status", "cancel", "list", "accept", "calibration"):
+        reply = client.request_raw(name, b'{"bogus": 1}')
+        assert reply["ok"] is False and reply["error"]["field"] == "$.bogus", (name, reply)
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False, allow_infinity=False) | st.text(max_size=20),
+    lambda children: st.lists(children, max_size=5) | st.dictionaries(st.text(max_size=10), children, max_size=5),
+    max_leaves=20,
+)
+kinds = st.sampled_from(["calibrate", "weld", "move", "health", "Weld", "", "x"])
+
+
+@st.composite
+def hostile_jobs(draw: st.DrawFn) -> bytes:
+    """Job-shaped messages with a wrong field, and raw garbage."""
+    choice = draw(st.integers(0, 3))
+    if choice == 0:
+        return draw(st.binary(max_size=200))
+    if choice == 1:
+        return json.dumps(draw(json_values)).encode()
+    message = {"kind": draw(kinds), draw(st.sampled_from(["n_poses", "poses", "target", "arc", "check", "ref", "zz"])): draw(json_values)}
+    if choice == 3:
+        message["extra_" + draw(st.text(max_size=5))] = draw(json_values)
+    return json.dumps(message).encode()
+
+
+def _is_valid_submit(payload: bytes) -> bool:
+    try:
+        schema.parse_submit(payload)
+    except JobError:
+        return False
+    return True
+
+
+@pytest.mark.slow
+def test_fuzzed_submits_are_all_answered_and_the_journal_stays_intact(serve_cell) -> None:
+    cell = serve_cell(job_duration=0.0)
+    cell.cell.max_queue = 1000
+    answered = {"ok": 0, "refused": 0}
+    with CellClient(cell.client_bus(), cell.keys.cell) as client:
+
+        @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
+        @given(hostile_jobs())
+        def one(payload: bytes) -> None:
+            reply = client.request_raw("submit", payload)
+            schema.check_message("submit-reply" if reply["ok"] else "error-reply", reply)
+            assert reply["ok"] == _is_valid_submit(payload)
+            answered["ok" if reply["ok"] else "refused"] += 1
+
+        one()
+        assert client.status()["cell"] == cell.keys.cell
+    assert sum(answered.values()) >= 200 and answered["refused"] > 150
+    assert cell.journal.check() == []
+    assert len(cell.journal.jobs(limit=1000)) == answered["ok"]
+
+
+class _Faulty:
+    """Handlers that fail in the ways a daemon bug could."""
+
+    def __init__(self) -> None:
+        self.slow_done = asyncio.Event()
+
+    async def on_submit(self, job: Any) -> Mapping[str, Any]:
+        raise RuntimeError("a bug")
+
+    async def on_status(self, req: Any) -> Mapping[str, Any]:
+        await asyncio.sleep(0.5)
+        self.slow_done.set()
+        return {"cell": "x", "state": "idle", "running": None, "queued": []}
+
+    async def on_cancel(self, req: Any) -> Any:
+        return ["not", "a", "mapping"]
+
+    async def on_list(self, req: Any) -> Mapping[str, Any]:
+        return {"jobs": [float("nan")]}
+
+    async def on_accept(self, req: Any) -> Mapping[str, Any]:
+        raise BusError("link down")
+
+    async def on_calibration(self, req: Any) -> Mapping[str, Any]:
+        return {"calibration": None}
+
+
+def test_handler_failures_become_error_replies(serve_cell) -> None:
+    faulty = _Faulty()
+    cell = serve_cell(handlers=faulty, reply_timeout=0.1)
+    with CellClient(cell.client_bus(), cell.keys.cell) as client:
+        replies = {
+            "submit": client.request_raw("submit", b'{"kind": "health"}'),
+            "status": client.request_raw("status", None),
+            "cancel": client.request_raw("cancel", b'{"job": "abc"}'),
+            "list": client.request_raw("list", None),
+            "accept": client.request_raw("accept", b'{"job": "abc"}'),
+        }
+        assert all(r["ok"] is False for r in replies.values()), replies
+        assert "internal error" in replies["submit"]["error"]["reason"]
+        assert "may still take effect" in replies["status"]["error"]["reason"]
+        assert "internal error" in replies["cancel"]["error"]["reason"]
+        assert "not valid JSON" in replies["list"]["error"]["reason"]
+        assert replies["accept"]["error"] == {"field": "", "reason": "link down"}
+        assert client.calibration() is None
+    assert cell.server.stats.internal_errors == 3 and cell.server.stats.timeouts == 1
+
+
+def test_busy_server_answers_busy_without_queueing(serve_cell) -> None:
+    faulty = _Faulty()
+    cell = serve_cell(handlers=faulty, max_pending=1)
+    bus = cell.client_bus()
+    with CellClient(bus, cell.keys.cell) as client:
+        # The first status holds the only slot for 0.5 s; a second one meanwhile is busy.
+        pending = client.session.get(cell.keys.query("status"), timeout=3.0)
+        time.sleep(0.1)
+        reply = client.request_raw("status", None)
+        assert reply["ok"] is False and reply["error"]["reason"].startswith("busy")
+        first = [json.loads(r.ok.payload.to_bytes()) for r in pending if r.ok is not None]
+        assert first and first[0]["ok"] is True
+    assert cell.server.stats.busy == 1
+
+
+def test_state_publications_are_decimated(cell) -> None:
+    received: list[dict[str, Any]] = []
+    with CellClient(cell.client_bus(), cell.keys.cell) as client:
+        sub = client.subscribe_state("robot", received.append)
+        time.sleep(0.1)
+        period_ns = int(1e9 / 20.0)
+        t0 = time.monotonic_ns()
+        sent = [cell.server.publish_robot_state({"t_ns": t0 + i * period_ns // 10, "link": "up"}, now_ns=t0 + i * period_ns // 10) for i in range(50)]
+        time.sleep(0.2)
+        sub.undeclare()
+    assert sum(sent) == 5  # 50 samples over 2.5 periods at 10x the rate
+    assert len(received) == 5 and all(schema.check_message("state-robot", r) is None for r in received)
+
+
+def test_no_cell_no_reply_is_a_bus_error(cell) -> None:
+    bus = cell.client_bus()
+    with CellClient(bus, "other-cell", timeout=0.5) as client:
+        with pytest.raises(BusError, match="no reply"):
+            client.status()
+
+
+def test_client_without_a_listening_cell_fails_to_connect(loopback_host) -> None:
+    from celld.config import BusConfig
+
+    bus = BusConfig(listen=(f"tcp/{loopback_host}:9",), connect_timeout=0.3)
+    t0 = time.monotonic()
+    with pytest.raises(BusError, match="no link"):
+        CellClient(bus, "cell-a")
+    assert time.monotonic() - t0 < 2.0
+
+
+def test_close_answers_in_flight_requests_and_withdraws_the_token(serve_cell) -> None:
+    faulty = _Faulty()
+    cell = serve_cell(handlers=faulty)
+    with CellClient(cell.client_bus(), cell.keys.cell) as client:
+        alive = [str(r.ok.key_expr) for r in client.session.liveliness().get(cell.keys.alive, timeout=1.0) if r.ok]
+        assert alive == [cell.keys.alive]
+        pending = client.session.get(cell.keys.query("status"), timeout=3.0)
+        time.sleep(0.1)
+        cell.loop.run(cell.server.close())
+        replies = [json.loads(r.ok.payload.to_bytes()) for r in pending if r.ok is not None]
+        assert replies == [{"ok": False, "error": {"field": "", "reason": "the cell is shutting down"}}]
+        time.sleep(0.1)
+        assert [r for r in client.session.liveliness().get(cell.keys.alive, timeout=0.5) if r.ok] == []
