@@ -17,6 +17,7 @@ to it); later values override earlier ones, table by table.
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import tomllib
 from dataclasses import dataclass, field, fields
@@ -242,18 +243,52 @@ class ScannerConfig:
         (0.0, 0.0, 0.0, 1.0),
     )
     replay_dir: str = ""
+    # Length unit of the replayed files ("m" or "mm"); converted once when read.
+    replay_units: str = "m"
+    # Start again at the first file after the last one (else the replay ends with an error).
+    replay_loop: bool = False
+    # Serial number (Photoneo), device index (Azure Kinect) or serial (RealSense); "" for the first.
     device: str = ""
     seed: int = 0
+    # Image resolution of the simulated scanner relative to the model's (0.01 to 1).
+    resolution_scale: float = 1.0
+    # GenTL producer (.cti) for the Photoneo driver; "" searches GENICAM_GENTL64_PATH.
+    gentl_producer: str = ""
+    # Longest wait for one frame from a real scanner, s.
+    capture_timeout: float = 10.0
+    # Depth-camera intrinsics fx, fy, cx, cy (pixels) where the SDK does not report
+    # them (Azure Kinect through Open3D); () when not given.
+    depth_intrinsics_px: tuple[float, ...] = ()
+    # Depth kept by depth cameras, m: nearer or farther returns become NaN.
+    depth_min: float = 0.1
+    depth_max: float = 6.0
 
     @classmethod
     def read(cls, r: TableReader) -> "ScannerConfig":
+        depth_min = r.float("depth_min_mm", cls.depth_min * 1e3, lo=0.0, hi=20_000.0, scale=1e-3)
+        depth_max = r.float("depth_max_mm", cls.depth_max * 1e3, lo=0.0, hi=20_000.0, scale=1e-3, open_lo=True)
+        if not depth_min < depth_max:
+            raise r.error("depth_max_mm", f"expected more than depth_min_mm ({depth_min * 1e3}), got {depth_max * 1e3}")
+        intrinsics: tuple[float, ...] = ()
+        if r.has("depth_intrinsics_px"):
+            intrinsics = r.vector("depth_intrinsics_px", 4)
+            if intrinsics[0] <= 0.0 or intrinsics[1] <= 0.0:
+                raise r.error("depth_intrinsics_px", f"expected positive focal lengths fx, fy, got {intrinsics[:2]}")
         return cls(
             kind=r.str("kind", "sim", choices=SCANNER_KINDS),
             model=r.str("model", "phoxi-m", choices=SCANNER_MODELS),
             T_base_cam=r.matrix4("T_base_cam", [list(row) for row in cls.T_base_cam]),
             replay_dir=r.str("replay_dir", ""),
+            replay_units=r.str("replay_units", cls.replay_units, choices=("m", "mm")),
+            replay_loop=r.bool("replay_loop", cls.replay_loop),
             device=r.str("device", ""),
             seed=r.int("seed", 0, lo=0),
+            resolution_scale=r.float("resolution_scale", cls.resolution_scale, lo=0.01, hi=1.0),
+            gentl_producer=r.str("gentl_producer", ""),
+            capture_timeout=r.float("capture_timeout", cls.capture_timeout, lo=0.1, hi=600.0),
+            depth_intrinsics_px=intrinsics,
+            depth_min=depth_min,
+            depth_max=depth_max,
         )
 
 
@@ -510,14 +545,32 @@ class RecordingConfig:
 
     enabled: bool = True
     serve_grpc_port: int = 0  # 0: no live server
+    # Address the live server binds; loopback unless viewers elsewhere must reach it.
+    serve_grpc_host: str = "127.0.0.1"
     connect_url: str = ""  # a viewer to stream to, e.g. rerun+http://127.0.0.1:9876/proxy
+    # Clouds are thinned to this many points when logged (0: all); the full
+    # clouds belong in the job's dataset, not in the recording.
+    max_cloud_points: int = 200_000
+    # JPEG quality of logged SRM camera frames (0: raw pixels).
+    image_jpeg_quality: int = 85
 
     @classmethod
     def read(cls, r: TableReader) -> "RecordingConfig":
+        host = r.str("serve_grpc_host", cls.serve_grpc_host)
+        try:
+            ipaddress.ip_address(host)
+        except ValueError as exc:
+            raise r.error("serve_grpc_host", f"expected an IP address such as 127.0.0.1, got {host!r}") from exc
+        url = r.str("connect_url", "")
+        if url and not (url.startswith(("rerun://", "rerun+http://", "rerun+https://")) and url.endswith("/proxy")):
+            raise r.error("connect_url", f"expected rerun+http://<host>:<port>/proxy (or rerun://, rerun+https://), got {url!r}")
         return cls(
             enabled=r.bool("enabled", True),
             serve_grpc_port=r.int("serve_grpc_port", 0, lo=0, hi=65535),
-            connect_url=r.str("connect_url", ""),
+            serve_grpc_host=host,
+            connect_url=url,
+            max_cloud_points=r.int("max_cloud_points", cls.max_cloud_points, lo=0),
+            image_jpeg_quality=r.int("image_jpeg_quality", cls.image_jpeg_quality, lo=0, hi=100),
         )
 
 

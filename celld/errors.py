@@ -23,7 +23,8 @@ caller never has to know which library failed::
     │   └── SafetyStop         a protective stop, e-stop or limit breach
     ├── MotionError            the motion process failed or refused a command
     ├── BusError               the zenoh bus failed or refused a request
-    └── JournalError           the job journal refused a change or is damaged
+    ├── JournalError           the job journal refused a change or is damaged
+    └── RecordingError         a job recording cannot be written
 
 In the 500 Hz loop nothing raises: controllers return status values instead.
 """
@@ -145,3 +146,7 @@ class BusError(CelldError):
 
 class JournalError(CelldError):
     """The job journal refused a change (an illegal transition, an unknown job) or is damaged."""
+
+
+class RecordingError(CelldError):
+    """A job recording (the rerun ``.rrd`` file) cannot be created or written."""

@@ -1,0 +1,522 @@
+"""One rerun recording per job: an ``.rrd`` file, optionally streamed live.
+
+:class:`JobRecording` owns one :class:`rerun.RecordingStream` whose
+``recording_id`` is the job id. It writes ``<state_dir>/recordings/<job_id>.rrd``
+with the default blueprint of :mod:`celld.recording.layout`, and can at the
+same time serve the stream on a loopback gRPC port or push it to a viewer
+address from :class:`celld.config.RecordingConfig`.
+
+Every method takes values in the package's frames and units and logs them at
+the given ``time.monotonic_ns()`` stamp. Nothing here belongs in the 500 Hz
+loop: motion state arrives in batches from the state ring through
+:meth:`JobRecording.log_state_batch`, which sends columns.
+
+The stream is thread safe; the current time of a rerun stream is per thread,
+so each method sets it before it logs.
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+import threading
+import time
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+from urllib.parse import urlsplit
+
+import numpy as np
+import rerun as rr
+from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
+
+from celld import se3
+from celld.config import RecordingConfig
+from celld.errors import InputError, RecordingError
+from celld.log import get_logger
+from celld.recording import layout
+from celld.recording.state import DEFAULT_SERIES, Series, state_columns
+
+log = get_logger(__name__)
+
+# rerun's application id: the viewer groups all job recordings under it.
+APPLICATION_ID = "celld"
+# Job ids and entity names become file names and entity path parts.
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
+# Segments of a logged circle ring.
+_CIRCLE_SEGMENTS = 96
+# Length of the drawn axes of the TCP and camera frames, m.
+_AXIS_LENGTH = 0.05
+# Length of a circle's drawn normal, in radii.
+_NORMAL_LENGTH_RADII = 1.0
+# How long close() waits for the sinks to take the last data, s.
+_FLUSH_TIMEOUT = 5.0
+# How long opening a recording waits to see whether a viewer listens, s.
+_PROBE_TIMEOUT = 0.5
+
+
+def recording_path(state_dir: str | Path, job_id: str) -> Path:
+    """Where the recording of ``job_id`` lives: ``<state_dir>/recordings/<job_id>.rrd``."""
+    return Path(state_dir) / "recordings" / f"{_check_name(job_id, 'job_id')}.rrd"
+
+
+def _check_name(name: str, what: str) -> str:
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise InputError(f"{what}: expected 1-128 letters, digits, '_', '-' or '.', not starting with a symbol, got {name!r}")
+    return name
+
+
+def _port_free(host: str, port: int) -> bool:
+    """Whether ``host:port`` can be bound now (a busy port would fail inside rerun, silently)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
+def _viewer_listening(url: str, timeout: float = _PROBE_TIMEOUT) -> bool:
+    """Whether something accepts TCP connections at the host and port of a rerun viewer URL."""
+    parts = urlsplit(url)
+    default_port = 80 if parts.scheme == "rerun+http" else 443
+    try:
+        with socket.create_connection((parts.hostname or "127.0.0.1", parts.port or default_port), timeout=timeout):
+            return True
+    except (OSError, ValueError):
+        return False
+
+
+def _points(P: ArrayLike, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Return the finite rows of ``P`` (n, 3) or (H, W, 3) as float32, and their mask."""
+    arr = np.asarray(P)
+    if arr.ndim < 2 or arr.shape[-1] != 3:
+        raise InputError(f"{name}: expected an (n, 3) or (H, W, 3) array of points, got shape {arr.shape}")
+    flat = arr.reshape(-1, 3).astype(np.float32, copy=False)
+    keep = np.all(np.isfinite(flat), axis=1)
+    return flat[keep], keep
+
+
+def _colors(colors: ArrayLike | None, n_all: int, keep: np.ndarray, name: str) -> np.ndarray | None:
+    """Colours matching the kept points: uint8 RGB, or floats in [0, 1]."""
+    if colors is None:
+        return None
+    c = np.asarray(colors)
+    if c.ndim < 1 or c.size == 0 or c.shape[-1] not in (3, 4) or c.reshape(-1, c.shape[-1]).shape[0] not in (1, n_all):
+        raise InputError(f"{name}: expected one RGB(A) colour or one per point ({n_all}), got shape {c.shape}")
+    c = c.reshape(-1, c.shape[-1])
+    if c.dtype != np.uint8:
+        c = np.clip(np.asarray(c, dtype=np.float64) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    return c if len(c) == 1 else c[keep]
+
+
+class JobRecording:
+    """The rerun recording of one job.
+
+    Parameters
+    ----------
+    path : str or Path or None
+        The ``.rrd`` file to write (its directory is created). None records
+        nothing to disk (live sinks only).
+    job_id : str
+        The job id; it is the rerun ``recording_id``.
+    kind : str
+        One of :data:`celld.recording.layout.KINDS`; chooses the first tab of
+        the blueprint and is stored as a recording property.
+    config : RecordingConfig, optional
+        ``enabled = false`` makes every method a no-op; ``serve_grpc_port``
+        serves the stream on ``serve_grpc_host``; ``connect_url`` pushes it to a
+        viewer. A busy port or an unreachable viewer never fails the job: the
+        file is written regardless and the problem is logged.
+    t0_ns : int, optional
+        ``time.monotonic_ns()`` of time zero of the ``time`` timeline; now by default.
+
+    Raises
+    ------
+    InputError
+        ``job_id`` or ``kind`` is not acceptable.
+    RecordingError
+        The file cannot be created.
+
+    Notes
+    -----
+    The first log of a process costs about 165 ms (rerun's lazy set-up); the
+    constructor pays it by logging the static parts (properties, axes, series
+    names), so a job's first real sample is not delayed.
+    """
+
+    def __init__(
+        self,
+        path: str | Path | None,
+        job_id: str,
+        kind: str = "other",
+        config: RecordingConfig | None = None,
+        *,
+        t0_ns: int | None = None,
+    ) -> None:
+        config = config or RecordingConfig()
+        self.job_id = _check_name(job_id, "job_id")
+        if kind not in layout.KINDS:
+            raise InputError(f"recording kind: expected one of {', '.join(layout.KINDS)}, got {kind!r}")
+        self.kind = kind
+        self.config = config
+        self.t0_ns = time.monotonic_ns() if t0_ns is None else int(t0_ns)
+        self.enabled = config.enabled
+        self.path: Path | None = Path(path) if (path is not None and config.enabled) else None
+        self.serve_url: str | None = None
+        self.connect_url: str | None = None
+        self._closed = False
+        self._lock = threading.Lock()
+        self._named: set[str] = set()
+        self._ignored_reported: set[str] = set()
+        self._log = log.bind(job=job_id, kind=kind)
+        self._rec = rr.RecordingStream(
+            APPLICATION_ID, recording_id=job_id, default_enabled=config.enabled, send_properties=True
+        )
+        if not config.enabled:
+            return
+        self._rec.set_sinks(*self._sinks(), default_blueprint=layout.default_blueprint(kind))
+        self._warm_up()
+
+    @classmethod
+    def for_job(
+        cls, state_dir: str | Path, job_id: str, kind: str = "other", config: RecordingConfig | None = None
+    ) -> "JobRecording":
+        """Open the recording of ``job_id`` at :func:`recording_path` under ``state_dir``."""
+        return cls(recording_path(state_dir, job_id), job_id, kind, config)
+
+    # -- set-up ---------------------------------------------------------------
+
+    def _sinks(self) -> list[Any]:
+        sinks: list[Any] = []
+        if self.path is not None:
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                sinks.append(rr.FileSink(str(self.path)))
+            except (OSError, RuntimeError) as exc:
+                raise RecordingError(f"recording {self.job_id}: cannot create {self.path}: {exc}") from exc
+        cfg = self.config
+        if cfg.serve_grpc_port:
+            if _port_free(cfg.serve_grpc_host, cfg.serve_grpc_port):
+                sinks.append(rr.GrpcServerSink(bind_ip=cfg.serve_grpc_host, port=cfg.serve_grpc_port))
+                self.serve_url = f"rerun+http://{cfg.serve_grpc_host}:{cfg.serve_grpc_port}/proxy"
+            else:
+                self._log.warning("recording_serve_port_busy", host=cfg.serve_grpc_host, port=cfg.serve_grpc_port)
+        if cfg.connect_url:
+            # A viewer that is not listening now is skipped: rerun would retry in
+            # the background and then hold close() for seconds; the file has it all.
+            if _viewer_listening(cfg.connect_url):
+                try:
+                    sinks.append(rr.GrpcSink(cfg.connect_url))
+                    self.connect_url = cfg.connect_url
+                except RuntimeError as exc:  # the config checks the scheme; rerun may still refuse
+                    self._log.warning("recording_connect_refused", url=cfg.connect_url, error=str(exc))
+            else:
+                self._log.warning("recording_viewer_not_listening", url=cfg.connect_url)
+        if not sinks:
+            raise RecordingError(f"recording {self.job_id}: no sink (no file and no live viewing)")
+        return sinks
+
+    def _warm_up(self) -> None:
+        rec = self._rec
+        rec.send_recording_name(f"{self.kind} {self.job_id}")
+        rec.send_property("job", rr.AnyValues(job_id=self.job_id, kind=self.kind))
+        rec.log(layout.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        rec.flush(timeout_sec=0.0)
+
+    def _active(self) -> bool:
+        """False when disabled or closed: a closed rerun stream would buffer in memory forever."""
+        return self.enabled and not self._closed
+
+    # -- time -----------------------------------------------------------------
+
+    def _at(self, stamp_ns: int | None) -> None:
+        """Set this thread's time to ``stamp_ns`` (now when None) and clear other timelines."""
+        ns = time.monotonic_ns() if stamp_ns is None else int(stamp_ns)
+        self._rec.reset_time()
+        self._rec.set_time(layout.TIME, duration=np.timedelta64(ns - self.t0_ns, "ns"))
+
+    def _name_series(self, entity: str, names: tuple[str, ...]) -> None:
+        with self._lock:
+            if entity in self._named:
+                return
+            self._named.add(entity)
+        self._rec.log(entity, rr.SeriesLines(names=list(names)), static=True)
+
+    # -- 3D scene -------------------------------------------------------------
+
+    def _log_cloud(self, entity: str, P: ArrayLike, colors: ArrayLike | None, stamp_ns: int | None) -> int:
+        if not self._active():
+            return 0
+        what = entity.rsplit("/", 1)[-1]
+        pts, keep = _points(P, f"cloud {what}")
+        cols = _colors(colors, len(keep), keep, f"cloud {what} colours")
+        limit = self.config.max_cloud_points
+        if limit and len(pts) > limit:
+            # An even stride keeps the cloud's coverage; the full cloud belongs in the dataset, not the log.
+            idx = np.linspace(0, len(pts) - 1, limit).astype(np.int64)
+            pts = pts[idx]
+            if cols is not None and len(cols) > 1:
+                cols = cols[idx]
+        self._at(stamp_ns)
+        self._rec.log(entity, rr.Points3D(pts, colors=cols, radii=rr.Radius.ui_points(1.5)))
+        return len(pts)
+
+    def log_cloud_base(self, name: str, P_base: ArrayLike, colors: ArrayLike | None = None, stamp_ns: int | None = None) -> int:
+        """Log a cloud in the base frame at ``/world/clouds/<name>``.
+
+        Parameters
+        ----------
+        name : str
+            Entity name (``"scan"``, ``"verification"``, ...).
+        P_base : array_like
+            (n, 3) or organized (H, W, 3) points in the base frame, metres;
+            rows with NaN (no return) are dropped.
+        colors : array_like, optional
+            One RGB(A) colour or one per point (same layout as ``P_base``),
+            uint8 or floats in [0, 1].
+        stamp_ns : int, optional
+            ``time.monotonic_ns()`` of the capture; now by default.
+
+        Returns
+        -------
+        int
+            Number of points logged (after dropping NaN rows and thinning to
+            ``config.max_cloud_points``).
+        """
+        return self._log_cloud(f"{layout.CLOUDS_BASE}/{_check_name(name, 'cloud name')}", P_base, colors, stamp_ns)
+
+    def log_cloud_cam(self, name: str, P_cam: ArrayLike, colors: ArrayLike | None = None, stamp_ns: int | None = None) -> int:
+        """Log a cloud in the camera frame at ``/world/camera/clouds/<name>``.
+
+        It is drawn through the camera pose of :meth:`log_camera_pose`
+        (identity until one is logged). Arguments as :meth:`log_cloud_base`.
+        """
+        return self._log_cloud(f"{layout.CLOUDS_CAM}/{_check_name(name, 'cloud name')}", P_cam, colors, stamp_ns)
+
+    def _log_pose(self, entity: str, T: ArrayLike, name: str, stamp_ns: int | None) -> None:
+        T = se3.check_transform(T, name)
+        if not self._active():
+            return
+        self._at(stamp_ns)
+        self._rec.log(
+            entity,
+            rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]),
+            rr.TransformAxes3D(_AXIS_LENGTH),
+        )
+
+    def log_camera_pose(self, T_base_cam: ArrayLike, stamp_ns: int | None = None) -> None:
+        """Log the scanner pose ``T_base_cam`` (4, 4) at ``/world/camera`` (an estimate or the nominal)."""
+        self._log_pose(layout.CAMERA, T_base_cam, "T_base_cam", stamp_ns)
+
+    def log_tcp(self, T_base_tcp: ArrayLike, stamp_ns: int | None = None) -> None:
+        """Log one TCP pose ``T_base_tcp`` (4, 4) at ``/world/tcp``.
+
+        For the 500 Hz stream use :meth:`log_state_batch`; this is for single
+        poses (a calibration pose, a touch point).
+        """
+        self._log_pose(layout.TCP, T_base_tcp, "T_base_tcp", stamp_ns)
+
+    def _log_circle(self, entity: str, center: ArrayLike, normal: ArrayLike, radius: float, stamp_ns: int | None) -> None:
+        c = np.asarray(center, dtype=np.float64)
+        n = np.asarray(normal, dtype=np.float64)
+        if c.shape != (3,) or n.shape != (3,) or not np.all(np.isfinite(c)) or not np.all(np.isfinite(n)):
+            raise InputError(f"circle: expected finite centre (3,) and normal (3,), got shapes {c.shape} and {n.shape}")
+        if np.linalg.norm(n) < 1e-9:
+            raise InputError("circle: the normal is zero")
+        if not (np.isfinite(radius) and radius > 0.0):
+            raise InputError(f"circle: expected a positive radius in metres, got {radius}")
+        if not self._active():
+            return
+        T = se3.frame_from_z(c, n)
+        a = np.linspace(0.0, 2.0 * np.pi, _CIRCLE_SEGMENTS + 1)
+        ring = se3.apply(T, np.column_stack([radius * np.cos(a), radius * np.sin(a), np.zeros_like(a)]))
+        self._at(stamp_ns)
+        self._rec.log(entity, rr.LineStrips3D([ring], colors=[(0, 220, 120)], radii=rr.Radius.ui_points(2.0)))
+        self._rec.log(
+            f"{entity}/normal",
+            rr.Arrows3D(origins=[c], vectors=[T[:3, 2] * radius * _NORMAL_LENGTH_RADII], colors=[(0, 220, 120)]),
+        )
+
+    def log_circle_cam(self, name: str, center_cam: ArrayLike, normal_cam: ArrayLike, radius: float, stamp_ns: int | None = None) -> None:
+        """Log a detected circle in the camera frame at ``/world/camera/circles/<name>``.
+
+        Parameters
+        ----------
+        name : str
+            Entity name (``"flange"``, ``"wrist"``).
+        center_cam, normal_cam : array_like
+            (3,) centre (m) and normal of the circle's plane, camera frame.
+        radius : float
+            Radius, metres.
+        stamp_ns : int, optional
+            Capture time; now by default.
+        """
+        self._log_circle(f"{layout.CAMERA}/circles/{_check_name(name, 'circle name')}", center_cam, normal_cam, radius, stamp_ns)
+
+    def log_circle_base(self, name: str, center_base: ArrayLike, normal_base: ArrayLike, radius: float, stamp_ns: int | None = None) -> None:
+        """Log a circle in the base frame at ``/world/circles/<name>``; arguments as :meth:`log_circle_cam`."""
+        self._log_circle(f"{layout.CIRCLES}/{_check_name(name, 'circle name')}", center_base, normal_base, radius, stamp_ns)
+
+    def log_path_base(self, name: str, P_base: ArrayLike, stamp_ns: int | None = None) -> None:
+        """Log a path polyline in the base frame at ``/world/paths/<name>``.
+
+        Parameters
+        ----------
+        name : str
+            ``"planned"``, ``"refined"`` or ``"torch"``.
+        P_base : array_like
+            (n, 3) path points in the base frame, metres, n >= 2, in order.
+        """
+        if name not in layout.PATH_COLORS:
+            raise InputError(f"path name: expected one of {', '.join(layout.PATH_COLORS)}, got {name!r}")
+        P = se3.check_points(P_base, f"{name} path P_base", min_points=2)
+        if not self._active():
+            return
+        self._at(stamp_ns)
+        self._rec.log(
+            f"{layout.PATHS}/{name}",
+            rr.LineStrips3D([P.astype(np.float32)], colors=[layout.PATH_COLORS[name]], radii=rr.Radius.ui_points(2.0)),
+        )
+
+    # -- SRM camera -----------------------------------------------------------
+
+    def log_camera_image(self, image: ArrayLike, corners_px: ArrayLike | None = None, stamp_ns: int | None = None) -> None:
+        """Log an SRM camera frame at ``/srm/camera`` and the tag outline at ``/srm/camera/tag``.
+
+        Parameters
+        ----------
+        image : array_like
+            (H, W) grey or (H, W, 3) BGR (OpenCV order) uint8 image. Stored as
+            JPEG at ``config.image_jpeg_quality`` (0: raw pixels).
+        corners_px : array_like, optional
+            (4, 2) tag corners in pixels, in ArUco order; None clears the outline
+            (no tag detected in this frame).
+        stamp_ns : int, optional
+            Capture time of the frame; now by default.
+        """
+        img = np.asarray(image)
+        if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (1, 3))):
+            raise InputError(f"SRM image: expected an (H, W) or (H, W, 3) uint8 array, got {img.dtype} {img.shape}")
+        if not self._active():
+            return
+        if img.ndim == 3 and img.shape[2] == 1:
+            img = img[:, :, 0]
+        archetype: Any = rr.Image(img, color_model="L" if img.ndim == 2 else "BGR")
+        if self.config.image_jpeg_quality:
+            archetype = archetype.compress(jpeg_quality=self.config.image_jpeg_quality)
+        outline: Any = rr.Clear(recursive=False)
+        if corners_px is not None:
+            q = np.asarray(corners_px, dtype=np.float64).reshape(-1, 2) if np.size(corners_px) == 8 else None
+            if q is None or not np.all(np.isfinite(q)):
+                raise InputError(f"tag corners: expected (4, 2) finite pixel coordinates, got shape {np.shape(corners_px)}")
+            outline = rr.LineStrips2D([np.vstack([q, q[:1]]).astype(np.float32)], colors=[(255, 60, 60)])
+        self._at(stamp_ns)
+        self._rec.log(layout.SRM_CAMERA, archetype)
+        self._rec.log(layout.SRM_TAG, outline)
+
+    # -- time series ----------------------------------------------------------
+
+    def log_state_batch(self, batch: np.ndarray, series: tuple[Series, ...] = DEFAULT_SERIES) -> int:
+        """Send a batch of motion-state ring records as columns.
+
+        Parameters
+        ----------
+        batch : numpy.ndarray
+            (n,) structured array read from the state ring
+            (:meth:`celld.shm.Ring.read_since`); the field table of
+            :mod:`celld.recording.state` says what is recorded where. Fields
+            the table does not know are skipped and reported once in the log.
+        series : tuple of Series
+            The field table, if the ring names its fields otherwise.
+
+        Returns
+        -------
+        int
+            Number of records sent.
+        """
+        cols = state_columns(batch, series)
+        if not self._active():
+            return 0
+        n = len(cols.stamp_ns)
+        new_ignored = set(cols.ignored) - self._ignored_reported
+        if new_ignored:
+            self._ignored_reported |= new_ignored
+            self._log.info("recording_fields_not_mapped", fields=sorted(new_ignored))
+        if n == 0:
+            return 0
+        times = rr.TimeColumn(layout.TIME, duration=(cols.stamp_ns - self.t0_ns).astype("timedelta64[ns]"))
+        if cols.T_base_tcp is not None:
+            ok = np.all(np.isfinite(cols.T_base_tcp.reshape(n, -1)), axis=1)
+            if ok.any():
+                T = cols.T_base_tcp[ok]
+                t_ok = rr.TimeColumn(layout.TIME, duration=(cols.stamp_ns[ok] - self.t0_ns).astype("timedelta64[ns]"))
+                self._rec.send_columns(
+                    layout.TCP,
+                    indexes=[t_ok],
+                    columns=rr.Transform3D.columns(
+                        translation=T[:, :3, 3], quaternion=Rotation.from_matrix(T[:, :3, :3]).as_quat()  # x, y, z, w
+                    ),
+                )
+        for col in cols.series:
+            self._name_series(col.entity, col.names)
+            values = col.values[:, 0] if col.values.shape[1] == 1 else col.values
+            self._rec.send_columns(col.entity, indexes=[times], columns=rr.Scalars.columns(scalars=values))
+        return n
+
+    def log_e_icp(self, iteration: int, e_icp: float, stamp_ns: int | None = None) -> None:
+        """Log the ICP error metric of Eq. 13 (metres) for one Algorithm 1 iteration.
+
+        Eq. 13 is +inf when ICP fails; a non-finite value is recorded as NaN
+        (a gap in the plot) and an event says so.
+        """
+        if isinstance(iteration, bool) or not isinstance(iteration, (int, np.integer)) or iteration < 0:
+            raise InputError(f"iteration: expected a non-negative integer, got {iteration!r}")
+        value = float(e_icp)
+        if not self._active():
+            return
+        self._name_series(layout.CALIB_E_ICP, ("e_icp",))
+        self._at(stamp_ns)
+        self._rec.set_time(layout.ITERATION, sequence=int(iteration))
+        self._rec.log(layout.CALIB_E_ICP, rr.Scalars([value if np.isfinite(value) else np.nan]))
+        if not np.isfinite(value):
+            self._rec.log(layout.EVENTS, rr.TextLog(f"iteration {iteration}: ICP failed (e_icp = {value})", level="WARN"))
+
+    def log_event(self, text: str, level: str = "INFO", stamp_ns: int | None = None) -> None:
+        """Log a line of text (job start, refusal, stop reason) at ``/events``."""
+        if not self._active():
+            return
+        self._at(stamp_ns)
+        self._rec.log(layout.EVENTS, rr.TextLog(str(text), level=level))
+
+    # -- end ------------------------------------------------------------------
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        """Flush every sink and close them; the file gets its footer (index).
+
+        Safe to call twice. An unreachable viewer costs up to about
+        5 s here (rerun's final connection attempt); the file is complete
+        regardless.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        if not self.enabled:
+            return
+        try:
+            self._rec.flush(timeout_sec=_FLUSH_TIMEOUT)
+        except RuntimeError as exc:  # a live sink that cannot take the data; the file sink has it
+            self._log.warning("recording_flush_incomplete", error=str(exc))
+        self._rec.disconnect()
+        self._log.info("recording_closed", path=str(self.path) if self.path else None)
+
+    def __enter__(self) -> "JobRecording":
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        self.close()

@@ -1,0 +1,92 @@
+"""The layout of a job recording: entity paths, timelines and the default blueprint.
+
+Every writer and reader of a recording takes its entity paths from here, so the
+daemon, the viewer layout and the tests agree on one tree::
+
+    /world                      3D scene, the robot base frame (z up, metres)
+      /world/clouds/<name>      clouds in the base frame
+      /world/camera             the scanner: pose T_base_cam
+        /world/camera/clouds/<name>   clouds in the camera frame
+      /world/circles/<name>     detected circles (ring), normal as a child arrow
+      /world/tcp                the robot TCP: pose T_base_tcp over time
+      /world/paths/<name>       planned, refined and torch paths
+    /srm/camera                 the SRM finger camera image
+      /srm/camera/tag           the detected ArUco tag outline, pixels
+    /servo/delta, /servo/v_r, /servo/omega     Algorithm 2 signals (SI)
+    /robot/v_tcp                TCP twist, base frame (m/s, rad/s)
+    /motion/loop/<signal>_ms    RT loop timing, milliseconds
+    /motion/status              the loop's ControlStatus per cycle
+    /calib/e_icp                ICP error metric of Eq. 13 per iteration, metres
+    /events                     job events as text
+
+Time: ``time`` is a duration timeline in seconds since the recording was
+opened, from ``time.monotonic_ns()`` stamps (the same clock in every
+process). ``iteration`` is a sequence timeline of Algorithm 1.
+"""
+
+from __future__ import annotations
+
+import rerun.blueprint as rrb
+
+# Timelines.
+TIME = "time"
+ITERATION = "iteration"
+
+# Entity paths.
+WORLD = "/world"
+CLOUDS_BASE = "/world/clouds"
+CAMERA = "/world/camera"
+CLOUDS_CAM = "/world/camera/clouds"
+CIRCLES = "/world/circles"
+TCP = "/world/tcp"
+PATHS = "/world/paths"
+SRM_CAMERA = "/srm/camera"
+SRM_TAG = "/srm/camera/tag"
+SERVO = "/servo"
+SERVO_DELTA = "/servo/delta"
+SERVO_V_R = "/servo/v_r"
+SERVO_OMEGA = "/servo/omega"
+ROBOT_V_TCP = "/robot/v_tcp"
+MOTION_LOOP = "/motion/loop"
+MOTION_STATUS = "/motion/status"
+CALIB_E_ICP = "/calib/e_icp"
+EVENTS = "/events"
+
+# The paths a welding job draws, and their colours (RGB).
+PATH_COLORS: dict[str, tuple[int, int, int]] = {
+    "planned": (80, 160, 255),
+    "refined": (255, 170, 0),
+    "torch": (230, 40, 40),
+}
+
+# The recording kinds the daemon opens; the blueprint puts the kind's views first.
+KINDS = ("calibration", "weld", "scan", "other")
+
+
+def default_blueprint(kind: str = "other") -> rrb.Blueprint:
+    """The viewer layout stored in every recording.
+
+    A 3D view of ``/world`` beside the SRM camera, above a tab group of time
+    series: the servo signals, loop timing and the calibration error. A
+    calibration job opens on the ``e_icp`` tab, any other job on ``delta``.
+    """
+    series = [
+        rrb.TimeSeriesView(origin=SERVO_DELTA, name="delta (m)"),
+        rrb.TimeSeriesView(origin=SERVO_V_R, name="V_r (m/s)"),
+        rrb.TimeSeriesView(origin=SERVO_OMEGA, name="omega (rad/s)"),
+        rrb.TimeSeriesView(origin=MOTION_LOOP, name="loop timing (ms)"),
+        rrb.TimeSeriesView(origin=CALIB_E_ICP, name="e_icp (m)"),
+    ]
+    active = 4 if kind == "calibration" else 0
+    return rrb.Blueprint(
+        rrb.Vertical(
+            rrb.Horizontal(
+                rrb.Spatial3DView(origin=WORLD, name="cell"),
+                rrb.Spatial2DView(origin=SRM_CAMERA, name="SRM camera"),
+                column_shares=[3, 2],
+            ),
+            rrb.Tabs(*series, active_tab=active),
+            row_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
