@@ -23,3 +23,17 @@ def rng() -> np.random.Generator:
 def loopback_host() -> str:
     n = next(_hosts)
     return f"127.0.{n // 250}.{n % 250 + 2}"
+
+
+@pytest.fixture
+def sim_robot(loopback_host: str):
+    """A simulated UR10e controller process on this test's own loopback address.
+
+    Yields a :class:`celld.sim.robot.SimRobotHandle`; ``sim_robot.host`` is the
+    address to give ur-rtde. Disconnect ur-rtde objects before the test ends:
+    the simulator stops when the fixture is torn down.
+    """
+    from celld.sim.robot import launch
+
+    with launch(loopback_host) as handle:
+        yield handle
