@@ -1,0 +1,76 @@
+"""Robot-robot calibration by Eq. 6 (a), (b), (c)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from celld.calib.comanip import solve_comanipulation
+from celld.errors import CalibrationError, InputError
+from celld.se3 import error, invert, transform_from
+
+# Robot 1 carries the camera on its flange; robot 2's base sits 1.2 m away, turned.
+T_FLAN1_CAM = transform_from(Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix(), [0.03, -0.05, 0.08])
+T_BASE1_BASE2 = transform_from(Rotation.from_euler("z", np.pi - 0.1).as_matrix(), [1.2, 0.1, 0.02])
+# Robot 2's flange during (a), face up, in its own base.
+T_BASE2_FLAN2_A = transform_from(np.eye(3), [0.6, 0.05, 0.3])
+
+
+def scene(rng: np.random.Generator, sigma: float, n_a: int = 10, n_b: int = 15):
+    p_base1 = (T_BASE1_BASE2 @ T_BASE2_FLAN2_A)[:3, 3]
+    Ta, Pa = [], []
+    for _ in range(n_a):  # (a): robot 1 moves over robot 2's still flange
+        R = Rotation.from_rotvec(rng.normal(0.0, 0.25, 3)).as_matrix() @ Rotation.from_euler("x", np.pi).as_matrix()
+        T = transform_from(R, p_base1 + [0.0, 0.0, 0.5] + rng.uniform(-0.1, 0.1, 3))
+        T_cb = invert(T @ T_FLAN1_CAM)
+        Ta.append(T)
+        Pa.append(T_cb[:3, :3] @ p_base1 + T_cb[:3, 3] + rng.normal(0.0, sigma, 3))
+    T_fixed = Ta[0]
+    T_base2_cam = invert(T_BASE1_BASE2) @ T_fixed @ T_FLAN1_CAM
+    Tb, Pb = [], []
+    for _ in range(n_b):  # (b): robot 1 still, robot 2 moves its flange under the camera
+        F = transform_from(Rotation.from_rotvec(rng.normal(0.0, 0.2, 3)).as_matrix(), T_BASE2_FLAN2_A[:3, 3] + rng.uniform(-0.1, 0.1, 3))
+        Tb.append(F)
+        Pb.append((invert(T_base2_cam) @ F)[:3, 3] + rng.normal(0.0, sigma, 3))
+    return np.array(Ta), np.array(Pa), T_fixed, np.array(Tb), np.array(Pb), T_base2_cam
+
+
+def test_exact_data_give_the_three_transforms_and_a_closed_loop(rng: np.random.Generator) -> None:
+    Ta, Pa, T_fixed, Tb, Pb, T_base2_cam = scene(rng, 0.0)
+    fit = solve_comanipulation(Ta, Pa, T_fixed, Tb, Pb, T_base2_flan2_fixed_a=T_BASE2_FLAN2_A)
+    for est, true in ((fit.T_flan1_cam, T_FLAN1_CAM), (fit.T_base2_cam, T_base2_cam), (fit.T_base1_base2, T_BASE1_BASE2)):
+        dt, dr = error(est, true)
+        assert dt < 1e-8 and dr < 1e-8
+    assert fit.closure is not None and fit.closure < 1e-8
+
+
+def test_noisy_data_stay_within_the_propagated_uncertainty() -> None:
+    rng = np.random.default_rng(11)
+    Ta, Pa, T_fixed, Tb, Pb, _ = scene(rng, 0.0002, n_a=15, n_b=25)
+    fit = solve_comanipulation(Ta, Pa, T_fixed, Tb, Pb, T_base2_flan2_fixed_a=T_BASE2_FLAN2_A)
+    dt, dr = error(fit.T_base1_base2, T_BASE1_BASE2)
+    assert dt < 4 * fit.uncertainty.translation_error
+    assert dr < 4 * fit.uncertainty.rotation_error
+    # (c) composes two estimates: its uncertainty exceeds that of (b) alone.
+    assert fit.uncertainty.translation_error > fit.eye_on_base.fit.uncertainty.translation_error
+    assert fit.closure is not None and fit.closure < 0.002
+
+
+def test_a_false_detection_in_b_is_rejected(rng: np.random.Generator) -> None:
+    Ta, Pa, T_fixed, Tb, Pb, _ = scene(rng, 0.0001)
+    Pb[4] += [0.03, 0.0, 0.0]
+    fit = solve_comanipulation(Ta, Pa, T_fixed, Tb, Pb, ids_b=[f"b{i}" for i in range(len(Pb))])
+    assert [r.id for r in fit.eye_on_base.rejected] == ["b4"]
+    assert error(fit.T_base1_base2, T_BASE1_BASE2)[0] < 0.002
+    assert fit.closure is None
+
+
+def test_bad_input_is_refused(rng: np.random.Generator) -> None:
+    Ta, Pa, T_fixed, Tb, Pb, _ = scene(rng, 0.0)
+    with pytest.raises(CalibrationError, match="at least 4 pairs"):
+        solve_comanipulation(Ta, Pa, T_fixed, Tb[:3], Pb[:3])
+    with pytest.raises(InputError, match=r"\(m, 4, 4\)"):
+        solve_comanipulation(Ta, Pa, T_fixed, Tb[:, :3], Pb)
+    with pytest.raises(InputError, match="T_base1_flan1_fixed"):
+        solve_comanipulation(Ta, Pa, np.eye(3), Tb, Pb)
