@@ -18,6 +18,13 @@ from celld.errors import BusError, JobError
 CALIBRATE = {"kind": "calibrate", "n_poses": 6, "e_required_mm": 0.3}
 
 
+def wait_until(condition, timeout: float = 3.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.005)
+
+
 @pytest.fixture
 def cell(serve_cell):
     return serve_cell()
@@ -238,7 +245,7 @@ def test_busy_server_answers_busy_without_queueing(serve_cell) -> None:
     with CellClient(bus, cell.keys.cell) as client:
         # The first status holds the only slot for 0.5 s; a second one meanwhile is busy.
         pending = client.session.get(cell.keys.query("status"), timeout=3.0)
-        time.sleep(0.1)
+        wait_until(lambda: cell.server.stats.requests == 1)
         reply = client.request_raw("status", None)
         assert reply["ok"] is False and reply["error"]["reason"].startswith("busy")
         first = [json.loads(r.ok.payload.to_bytes()) for r in pending if r.ok is not None]
@@ -247,17 +254,28 @@ def test_busy_server_answers_busy_without_queueing(serve_cell) -> None:
 
 
 def test_state_publications_are_decimated(cell) -> None:
-    received: list[dict[str, Any]] = []
+    robot: list[dict[str, Any]] = []
+    tactile: list[dict[str, Any]] = []
     with CellClient(cell.client_bus(), cell.keys.cell) as client:
-        sub = client.subscribe_state("robot", received.append)
-        time.sleep(0.1)
+        subs = [client.subscribe_state("robot", robot.append), client.subscribe_state("tactile", tactile.append)]
+        # Warm up on the tactile stream: once a sample arrives, both subscriptions reached the cell.
+        t_ns = 0
+        while not tactile:
+            t_ns += 10**9
+            cell.server.publish_tactile_state({"t_ns": t_ns, "valid": True}, now_ns=t_ns)
+            time.sleep(0.01)
         period_ns = int(1e9 / 20.0)
         t0 = time.monotonic_ns()
-        sent = [cell.server.publish_robot_state({"t_ns": t0 + i * period_ns // 10, "link": "up"}, now_ns=t0 + i * period_ns // 10) for i in range(50)]
-        time.sleep(0.2)
-        sub.undeclare()
-    assert sum(sent) == 5  # 50 samples over 2.5 periods at 10x the rate
-    assert len(received) == 5 and all(schema.check_message("state-robot", r) is None for r in received)
+        stamps = [t0 + i * period_ns // 10 for i in range(50)]  # 10x the rate, over 2.5 periods
+        sent = [cell.server.publish_robot_state({"t_ns": t, "link": "up"}, now_ns=t) for t in stamps]
+        wait_until(lambda: len(robot) >= 5)
+        time.sleep(0.05)
+        for s in subs:
+            s.undeclare()
+    assert sum(sent) == 5 and [i for i, ok in enumerate(sent) if ok] == [0, 10, 20, 30, 40]
+    assert [r["t_ns"] for r in robot] == [stamps[i] for i in (0, 10, 20, 30, 40)]
+    for r in robot + tactile:
+        schema.check_message("state-robot" if "link" in r else "state-tactile", r)
 
 
 def test_no_cell_no_reply_is_a_bus_error(cell) -> None:
@@ -284,9 +302,8 @@ def test_close_answers_in_flight_requests_and_withdraws_the_token(serve_cell) ->
         alive = [str(r.ok.key_expr) for r in client.session.liveliness().get(cell.keys.alive, timeout=1.0) if r.ok]
         assert alive == [cell.keys.alive]
         pending = client.session.get(cell.keys.query("status"), timeout=3.0)
-        time.sleep(0.1)
+        wait_until(lambda: cell.server.stats.requests == 1)
         cell.loop.run(cell.server.close())
         replies = [json.loads(r.ok.payload.to_bytes()) for r in pending if r.ok is not None]
         assert replies == [{"ok": False, "error": {"field": "", "reason": "the cell is shutting down"}}]
-        time.sleep(0.1)
-        assert [r for r in client.session.liveliness().get(cell.keys.alive, timeout=0.5) if r.ok] == []
+        wait_until(lambda: not [r for r in client.session.liveliness().get(cell.keys.alive, timeout=0.5) if r.ok])

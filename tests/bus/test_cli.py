@@ -1,0 +1,98 @@
+"""The bus subcommands of ``celld``, against a cell served on loopback."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import structlog
+
+from celld.cli import main
+from celld.config import BusUser
+
+
+@pytest.fixture(autouse=True)
+def _unconfigured_logging():
+    # main() binds structlog to the captured stderr of this test; let the next test start clean.
+    yield
+    structlog.reset_defaults()
+
+
+def write_config(tmp_path: Path, cell) -> str:
+    path = tmp_path / "cell.toml"
+    listen = ", ".join(f'"{e}"' for e in cell.bus.listen)
+    path.write_text(f'[cell]\nname = "{cell.keys.cell}"\n\n[bus]\nlisten = [{listen}]\nconnect_timeout = 2.0\nquery_timeout = 3.0\n')
+    return str(path)
+
+
+@pytest.fixture
+def served(serve_cell, capsys: pytest.CaptureFixture[str]):
+    """A cell, with what its start-up logged cleared from the captured output."""
+
+    def make(**options):
+        cell = serve_cell(**options)
+        capsys.readouterr()
+        return cell
+
+    return make
+
+
+def test_submit_wait_status_jobs_cancel(served, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cell = served()
+    cfg = write_config(tmp_path, cell)
+    assert main(["submit", "health", "--config", cfg, "--wait", "--ref", "night-shift"]) == 0
+    out, err = capsys.readouterr()
+    job = out.split()[0]
+    assert out.strip() == f"{job} health succeeded"
+    assert "running wait 0%" in err and "succeeded done 100%" in err
+
+    assert main(["submit", "move", "--config", cfg, "--joints", "0", "-1.57", "1.57", "-1.57", "-1.57", "0", "--json"]) == 0
+    reply = json.loads(capsys.readouterr().out)
+    assert reply["ok"] and reply["state"] in ("running", "queued")
+
+    assert main(["jobs", "--config", cfg, "--json"]) == 0
+    jobs = json.loads(capsys.readouterr().out)
+    assert [j["kind"] for j in jobs] == ["move", "health"] and jobs[1]["ref"] == "night-shift"
+
+    assert main(["status", "--config", cfg, "--job", job]) == 0
+    assert capsys.readouterr().out.strip() == f"{job} health succeeded"
+
+    assert main(["status", "--all", "--config", cfg, "--json"]) == 0
+    assert [s["cell"] for s in json.loads(capsys.readouterr().out)] == [cell.keys.cell]
+
+    assert main(["cancel", job, "--config", cfg]) == 2
+    assert "only queued or running jobs can be cancelled" in capsys.readouterr().err
+
+
+def test_bad_parameters_are_refused_before_sending(served, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cell = served()
+    cfg = write_config(tmp_path, cell)
+    assert main(["submit", "calibrate", "--config", cfg, "--n-poses", "3"]) == 2
+    assert capsys.readouterr().err.strip() == "celld: error: $.n_poses: expected a value >= 4, got 3"
+    job_file = tmp_path / "job.json"
+    job_file.write_text('{"kind": "weld", "delta_d_mm": 1.5, "speed": 3}')
+    assert main(["submit", "file", str(job_file), "--config", cfg]) == 2
+    assert "$.speed: unknown field" in capsys.readouterr().err
+    assert cell.server.stats.requests == 0 and cell.journal.jobs() == []
+
+
+def test_viewer_credentials_cannot_submit(served, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cell = served(users=(BusUser("vic", "view-secret", "viewer"),))
+    cfg = write_config(tmp_path, cell)
+    password = tmp_path / "password"
+    password.write_text("view-secret\n")
+    common = ["--config", cfg, "--user", "vic", "--password-file", str(password)]
+    assert main(["status", *common]) == 0
+    assert capsys.readouterr().out.startswith(f"{cell.keys.cell}: idle")
+    assert main(["submit", "health", *common]) == 2
+    assert "no reply" in capsys.readouterr().err
+    assert cell.journal.jobs() == []
+
+
+def test_schema_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bus", "schema", "--out", str(tmp_path / "schemas")]) == 0
+    written = capsys.readouterr().out.split()
+    assert len(written) == 17 and all(Path(p).name.endswith(".schema.json") for p in written)
+    submit = json.loads((tmp_path / "schemas" / "submit.schema.json").read_text())
+    assert [b["properties"]["kind"]["const"] for b in submit["oneOf"]] == ["calibrate", "weld", "move", "health"]

@@ -1,0 +1,198 @@
+"""The job journal: transitions, recovery after a crash, integrity, and kill -9 of a writer."""
+
+from __future__ import annotations
+
+import hashlib
+import signal
+import sqlite3
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from celld import fsutil
+from celld.errors import JournalError
+from celld.journal import Journal, new_job_id
+
+
+@pytest.fixture
+def journal(tmp_path: Path):
+    with Journal(tmp_path / "state" / "jobs.sqlite3") as j:
+        yield j
+
+
+def test_a_job_goes_queued_running_succeeded_with_stamps(journal: Journal) -> None:
+    r = journal.create("calibrate", {"kind": "calibrate", "n_poses": 12}, ref="order-7")
+    assert (r.state, r.started, r.ended, r.ref) == ("queued", None, None, "order-7")
+    assert r.params == {"kind": "calibrate", "n_poses": 12}
+    r = journal.start(r.id)
+    assert r.state == "running" and r.started is not None
+    r = journal.finish(r.id, "succeeded", result="/var/lib/celld/results/x.json")
+    assert (r.state, r.result) == ("succeeded", "/var/lib/celld/results/x.json") and r.ended >= r.started
+    assert r.terminal and journal.active() == []
+
+
+def test_illegal_transitions_are_refused(journal: Journal) -> None:
+    r = journal.create("weld", {"kind": "weld"})
+    with pytest.raises(JournalError, match="terminal state"):
+        journal.finish(r.id, "running")
+    journal.finish(r.id, "cancelled", "operator")
+    with pytest.raises(JournalError, match="is cancelled; it cannot become running"):
+        journal.start(r.id)
+    with pytest.raises(JournalError, match="no job"):
+        journal.start("nope")
+    with pytest.raises(JournalError, match="not JSON"):
+        journal.create("move", {"x": float("nan")})
+
+
+def test_list_is_newest_first_and_filters(journal: Journal) -> None:
+    ids = [journal.create(k, {"kind": k}).id for k in ("health", "weld", "weld", "move")]
+    journal.start(ids[1])
+    journal.finish(ids[1], "failed", "seam not found")
+    assert [r.id for r in journal.jobs()] == ids[::-1]
+    assert [r.id for r in journal.jobs(kind="weld")] == [ids[2], ids[1]]
+    assert [r.id for r in journal.jobs(state="failed")] == [ids[1]]
+    assert [r.id for r in journal.jobs(limit=2)] == ids[:1:-1]
+    assert [r.id for r in journal.active()] == [ids[0], ids[2], ids[3]]
+    message = journal.get(ids[1]).to_message()
+    assert message["reason"] == "seam not found" and message["params"] == {"kind": "weld"}
+
+
+def test_reopening_marks_running_and_queued_jobs_interrupted(tmp_path: Path) -> None:
+    path = tmp_path / "jobs.sqlite3"
+    with Journal(path) as j:
+        done = j.create("health", {})
+        j.start(done.id)
+        j.finish(done.id, "succeeded")
+        running = j.start(j.create("weld", {}).id)
+        queued = j.create("move", {})
+    with Journal(path) as j:
+        assert [r.id for r in j.recovered] == [running.id, queued.id]
+        assert j.get(running.id).state == "interrupted" and "while the job was running" in j.get(running.id).reason
+        assert j.get(queued.id).state == "interrupted" and "before the job started" in j.get(queued.id).reason
+        assert j.get(done.id).state == "succeeded"
+        assert j.check() == []
+    with Journal(path) as j:
+        assert j.recovered == ()
+
+
+def test_one_process_at_a_time(tmp_path: Path) -> None:
+    path = tmp_path / "jobs.sqlite3"
+    with Journal(path):
+        with pytest.raises(JournalError, match="held by another process"):
+            Journal(path)
+    Journal(path).close()
+
+
+def test_wal_mode_and_a_damaged_file(tmp_path: Path) -> None:
+    path = tmp_path / "jobs.sqlite3"
+    Journal(path).close()
+    assert sqlite3.connect(path).execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    bad = tmp_path / "bad.sqlite3"
+    bad.write_bytes(b"this is not a database" * 100)
+    with pytest.raises(JournalError, match="not a usable job journal"):
+        Journal(bad)
+
+
+def test_check_reports_broken_promises(journal: Journal) -> None:
+    a = journal.start(journal.create("weld", {}).id)
+    b = journal.create("weld", {})
+    # A second running job can only come from outside the journal's API.
+    journal._db.execute("UPDATE jobs SET state = 'running', started = ? WHERE id = ?", (a.started, b.id))
+    assert journal.check() == ["2 jobs are running; at most one may be"]
+
+
+def test_job_ids_are_key_chunks_and_sort_by_time() -> None:
+    ids = [new_job_id() for _ in range(50)]
+    assert len(set(ids)) == 50
+    assert all(len(i) == 22 and i.replace("-", "").isalnum() for i in ids)
+
+
+# -- kill -9 ----------------------------------------------------------------------------
+
+_WRITER = textwrap.dedent(
+    """
+    import sys, time
+    from celld.journal import Journal
+    from celld import fsutil
+    path, result, mode = sys.argv[1:4]
+    j = Journal(path)
+    job = j.start(j.create("calibrate", {"kind": "calibrate"}).id)
+    with fsutil.atomic_open(result) as f:
+        f.write(b"a" * 1_000_000)
+        if mode == "mid-write":
+            print(job.id, flush=True)
+            time.sleep(60)
+        f.write(b"b" * 1_000_000)
+    print(job.id, flush=True)
+    time.sleep(60)
+    """
+)
+
+
+@pytest.mark.parametrize("mode", ["mid-write", "after-write"])
+def test_kill_9_during_a_job_leaves_it_interrupted_and_no_half_file(tmp_path: Path, mode: str) -> None:
+    path, result = tmp_path / "jobs.sqlite3", tmp_path / "result.bin"
+    child = subprocess.Popen([sys.executable, "-c", _WRITER, str(path), str(result), mode], stdout=subprocess.PIPE, text=True)
+    try:
+        job_id = child.stdout.readline().strip()
+    finally:
+        child.send_signal(signal.SIGKILL)
+        child.wait(10)
+    assert job_id and child.returncode == -signal.SIGKILL
+    with Journal(path) as j:
+        assert [r.id for r in j.recovered] == [job_id]
+        assert j.get(job_id).state == "interrupted"
+        assert j.check() == []
+    if mode == "mid-write":
+        assert not result.exists()
+        assert len(fsutil.remove_stale_temporaries(tmp_path)) == 1
+    else:
+        assert result.read_bytes() == b"a" * 1_000_000 + b"b" * 1_000_000
+        assert fsutil.remove_stale_temporaries(tmp_path) == []
+
+
+_CHURN = textwrap.dedent(
+    """
+    import hashlib, sys
+    from celld.journal import Journal
+    from celld import fsutil
+    path, results = sys.argv[1:3]
+    j = Journal(path)
+    while True:
+        job = j.start(j.create("weld", {"kind": "weld"}).id)
+        data = job.id.encode() * 20_000
+        out = fsutil.write_bytes(f"{results}/{job.id}.bin", data)
+        j.finish(job.id, "succeeded", result=hashlib.sha256(data).hexdigest() + " " + str(out))
+    """
+)
+
+
+@pytest.mark.slow
+def test_kill_9_at_random_moments_never_damages_journal_or_results(tmp_path: Path) -> None:
+    rng = np.random.default_rng(7)
+    path, results = tmp_path / "jobs.sqlite3", tmp_path / "results"
+    results.mkdir()
+    finished = 0
+    for delay in rng.uniform(0.4, 0.9, size=4):
+        child = subprocess.Popen([sys.executable, "-c", _CHURN, str(path), str(results)])
+        try:
+            child.wait(delay)
+        except subprocess.TimeoutExpired:
+            pass
+        child.send_signal(signal.SIGKILL)
+        child.wait(10)
+        with Journal(path) as j:
+            assert j.check() == []
+            assert len(j.recovered) <= 1 and all(r.state == "interrupted" for r in j.recovered)
+            for r in j.jobs(limit=10_000, state="succeeded"):
+                digest, out = r.result.split(" ", 1)
+                assert hashlib.sha256(Path(out).read_bytes()).hexdigest() == digest
+            finished = len(j.jobs(limit=10_000, state="succeeded"))
+        fsutil.remove_stale_temporaries(results)
+        for p in results.iterdir():  # every result under its final name is whole
+            assert p.suffix == ".bin" and p.read_bytes() == p.stem.encode() * 20_000
+    assert finished > 0
