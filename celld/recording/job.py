@@ -141,9 +141,10 @@ class JobRecording:
 
     Notes
     -----
-    The first log of a process costs about 165 ms (rerun's lazy set-up); the
-    constructor pays it by logging the static parts (properties, axes, series
-    names), so a job's first real sample is not delayed.
+    The first log of a stream pays rerun's lazy set-up (165 ms measured in the
+    research notes, 35-70 ms here); the constructor pays it by logging the
+    static parts (properties, axes), so a job's first real sample takes under
+    a millisecond. A 500-record state batch costs about 10 ms to send.
     """
 
     def __init__(
@@ -176,7 +177,10 @@ class JobRecording:
         )
         if not config.enabled:
             return
-        self._rec.set_sinks(*self._sinks(), default_blueprint=layout.default_blueprint(kind))
+        try:
+            self._rec.set_sinks(*self._sinks(), default_blueprint=layout.default_blueprint(kind))
+        except RuntimeError as exc:
+            raise RecordingError(f"recording {self.job_id}: rerun refused its sinks: {exc}") from exc
         self._warm_up()
 
     @classmethod

@@ -13,8 +13,9 @@ daemon, the viewer layout and the tests agree on one tree::
     /srm/camera                 the SRM finger camera image
       /srm/camera/tag           the detected ArUco tag outline, pixels
     /servo/delta, /servo/v_r, /servo/omega     Algorithm 2 signals (SI)
-    /robot/v_tcp                TCP twist, base frame (m/s, rad/s)
-    /motion/loop/<signal>_ms    RT loop timing, milliseconds
+    /robot/v_tcp                measured TCP twist, base frame (m/s, rad/s)
+    /robot/q                    joint positions (rad)
+    /motion/loop/<signal>_ms    RT loop timing, milliseconds (late, period, work)
     /motion/status              the loop's ControlStatus per cycle
     /calib/e_icp                ICP error metric of Eq. 13 per iteration, metres
     /events                     job events as text
@@ -47,6 +48,7 @@ SERVO_DELTA = "/servo/delta"
 SERVO_V_R = "/servo/v_r"
 SERVO_OMEGA = "/servo/omega"
 ROBOT_V_TCP = "/robot/v_tcp"
+ROBOT_Q = "/robot/q"
 MOTION_LOOP = "/motion/loop"
 MOTION_STATUS = "/motion/status"
 CALIB_E_ICP = "/calib/e_icp"

@@ -1,34 +1,43 @@
-"""The mapping from a batch of motion-state records to recording columns (pure).
+"""The mapping from batches of ring records to recording columns (pure).
 
-The motion process appends one record per cycle to a shared-memory ring
-(:class:`celld.shm.Ring`) of a numpy structured dtype. The recorder reads
-batches of those records outside the loop and sends them as columns. This
-module says, in one table, which ring field becomes which entity, with which
-series names and which scale; it takes arrays and returns arrays.
+The motion process appends one record per cycle to its state ring, the
+tactile process one per frame to its sample channel (numpy structured
+dtypes, :mod:`celld.shm`). The recorder reads batches of those records
+outside the loop and sends them as columns. This module says, in one table,
+which field becomes which entity, with which series names and which scale;
+it takes arrays and returns arrays.
 
 The mapping is by exact field name and tolerant: a field the batch lacks is
 skipped, a field the table does not name is reported in
-:attr:`StateColumns.ignored`. Only ``stamp_ns`` is required.
+:attr:`StateColumns.ignored`. Only a stamp field is required: ``t_ns`` (the
+motion state) or ``stamp_ns`` (a tactile sample), ``time.monotonic_ns()``.
 
-Default field names (the ring dtype should use them, or the caller passes its
-own table):
+Default table (the motion ring's names, :data:`celld.motion.channels.STATE_DTYPE`,
+and the tactile sample's, :data:`celld.tactile.sample.TACTILE_DTYPE`):
 
-==============  ==========  ===============================  =============
-field           shape       entity                           recorded as
-==============  ==========  ===============================  =============
-stamp_ns        ()          the ``time`` timeline            s since t0
-T_base_tcp      (4, 4)      /world/tcp                       transform
-tcp_pose        (6,)        /world/tcp (UR pose, if no       transform
-                            T_base_tcp)
-v_tcp           (6,)        /robot/v_tcp                     m/s, rad/s
-delta_tool      (2,)/(3,)   /servo/delta                     m
-v_r             (2,)/(3,)   /servo/v_r                       m/s
-omega           ()          /servo/omega                     rad/s
-late_ns         ()          /motion/loop/late_ms             ms
-exec_ns         ()          /motion/loop/exec_ms             ms
-period_ns       ()          /motion/loop/period_ms           ms
-status          ()          /motion/status                   ControlStatus
-==============  ==========  ===============================  =============
+==============  ========  ================================  ===================
+field           shape     entity                            recorded as
+==============  ========  ================================  ===================
+t_ns/stamp_ns   ()        the ``time`` timeline             s since t0
+T_base_tcp      (4, 4)    /world/tcp                        transform
+tcp_pose        (6,)      /world/tcp (if no T_base_tcp)     transform (UR pose)
+tcp_speed       (6,)      /robot/v_tcp                      m/s, rad/s
+q               (6,)      /robot/q                          rad
+twist[0:3]      (6,)      /servo/v_r                        m/s
+twist[3:6]      (6,)      /servo/omega                      rad/s
+delta_tool      (3,)      /servo/delta                      m
+late_ns         ()        /motion/loop/late_ms              ms
+period_ns       ()        /motion/loop/period_ms            ms
+work_ns         ()        /motion/loop/work_ms              ms
+overruns        ()        /motion/loop/overruns             count
+state_age_ns    ()        /motion/state_age_ms              ms
+tactile_age_ns  ()        /motion/tactile_age_ms            ms
+status          ()        /motion/status                    ControlStatus
+==============  ========  ================================  ===================
+
+``twist`` is the twist the loop sent: during a seam-tracking servo it is
+Algorithm 2's command (V_r, omega) after the jerk limiter (lines 8, 13, 14),
+during a move it is the move's.
 """
 
 from __future__ import annotations
@@ -41,15 +50,15 @@ from scipy.spatial.transform import Rotation
 from celld.errors import InputError
 from celld.recording import layout
 
-# The field that carries each record's time.monotonic_ns() stamp.
-STAMP_FIELD = "stamp_ns"
+# Fields that carry a record's time.monotonic_ns() stamp, in order of preference.
+STAMP_FIELDS = ("t_ns", "stamp_ns")
 # Pose fields, in order of preference: a (4, 4) transform, else a UR pose.
 POSE_MATRIX_FIELD = "T_base_tcp"
 POSE_UR_FIELD = "tcp_pose"
 
 
 class Series(NamedTuple):
-    """One ring field recorded as a time series.
+    """One ring field (or a slice of its components) recorded as a time series.
 
     Attributes
     ----------
@@ -58,25 +67,33 @@ class Series(NamedTuple):
     entity : str
         Entity path of the series.
     names : tuple of str
-        One legend name per component (the field's trailing size).
+        One legend name per recorded component.
     scale : float
         Recorded value = field value * scale (e.g. 1e-6 for ns to ms).
+    components : tuple of int or None
+        ``(start, stop)`` of the components to record; None for all.
     """
 
     field: str
     entity: str
     names: tuple[str, ...]
     scale: float = 1.0
+    components: tuple[int, int] | None = None
 
 
+_MS = 1e-6  # ms per ns
 DEFAULT_SERIES: tuple[Series, ...] = (
-    Series("v_tcp", layout.ROBOT_V_TCP, ("vx", "vy", "vz", "wx", "wy", "wz")),
+    Series("tcp_speed", layout.ROBOT_V_TCP, ("vx", "vy", "vz", "wx", "wy", "wz")),
+    Series("q", layout.ROBOT_Q, ("q1", "q2", "q3", "q4", "q5", "q6")),
+    Series("twist", layout.SERVO_V_R, ("x", "y", "z"), components=(0, 3)),
+    Series("twist", layout.SERVO_OMEGA, ("wx", "wy", "wz"), components=(3, 6)),
     Series("delta_tool", layout.SERVO_DELTA, ("tangential", "normal", "out of plane")),
-    Series("v_r", layout.SERVO_V_R, ("x", "y", "z")),
-    Series("omega", layout.SERVO_OMEGA, ("omega",)),
-    Series("late_ns", f"{layout.MOTION_LOOP}/late_ms", ("late",), 1e-6),
-    Series("exec_ns", f"{layout.MOTION_LOOP}/exec_ms", ("exec",), 1e-6),
-    Series("period_ns", f"{layout.MOTION_LOOP}/period_ms", ("period",), 1e-6),
+    Series("late_ns", f"{layout.MOTION_LOOP}/late_ms", ("late",), _MS),
+    Series("period_ns", f"{layout.MOTION_LOOP}/period_ms", ("period",), _MS),
+    Series("work_ns", f"{layout.MOTION_LOOP}/work_ms", ("work",), _MS),
+    Series("overruns", f"{layout.MOTION_LOOP}/overruns", ("overruns",)),
+    Series("state_age_ns", "/motion/state_age_ms", ("robot state age",), _MS),
+    Series("tactile_age_ns", "/motion/tactile_age_ms", ("tactile age",), _MS),
     Series("status", layout.MOTION_STATUS, ("status",)),
 )
 
@@ -90,7 +107,7 @@ class SeriesColumn(NamedTuple):
 
 
 class StateColumns(NamedTuple):
-    """A batch of state records split into columns.
+    """A batch of records split into columns.
 
     Attributes
     ----------
@@ -124,7 +141,7 @@ def state_columns(batch: np.ndarray, series: tuple[Series, ...] = DEFAULT_SERIES
     Parameters
     ----------
     batch : numpy.ndarray
-        (n,) structured array of ring records; must have ``stamp_ns``.
+        (n,) structured array of ring records with a stamp field (``t_ns`` or ``stamp_ns``).
     series : tuple of Series
         The field table; :data:`DEFAULT_SERIES` unless the ring names its fields otherwise.
 
@@ -136,18 +153,19 @@ def state_columns(batch: np.ndarray, series: tuple[Series, ...] = DEFAULT_SERIES
     Raises
     ------
     InputError
-        ``batch`` is not a 1-D structured array with ``stamp_ns``, or a mapped
-        field has a shape the table cannot record (more than one trailing axis,
-        a pose of the wrong shape).
+        ``batch`` is not a 1-D structured array with a stamp field, or a
+        mapped field has a shape the table cannot record (more than one
+        trailing axis, too few components, a pose of the wrong shape).
     """
     if not isinstance(batch, np.ndarray) or batch.dtype.names is None or batch.ndim != 1:
         got = getattr(batch, "dtype", type(batch).__name__)
         raise InputError(f"state batch: expected a 1-D numpy structured array of ring records, got {got}")
     fields = batch.dtype.names
-    if STAMP_FIELD not in fields:
-        raise InputError(f"state batch: expected a {STAMP_FIELD!r} field, the record has {', '.join(fields)}")
-    stamp_ns = batch[STAMP_FIELD].astype(np.int64)
-    used = {STAMP_FIELD}
+    stamp_field = next((f for f in STAMP_FIELDS if f in fields), None)
+    if stamp_field is None:
+        raise InputError(f"state batch: expected a stamp field ({' or '.join(STAMP_FIELDS)}), the record has {', '.join(fields)}")
+    stamp_ns = batch[stamp_field].astype(np.int64)
+    used = {stamp_field, POSE_MATRIX_FIELD, POSE_UR_FIELD}
 
     T_base_tcp = None
     if POSE_MATRIX_FIELD in fields:
@@ -155,7 +173,6 @@ def state_columns(batch: np.ndarray, series: tuple[Series, ...] = DEFAULT_SERIES
         if T.shape[1:] != (4, 4):
             raise InputError(f"state batch: {POSE_MATRIX_FIELD} must be (4, 4) per record, got {T.shape[1:]}")
         T_base_tcp = T.copy()
-        used.add(POSE_MATRIX_FIELD)
     elif POSE_UR_FIELD in fields:
         pose = np.asarray(batch[POSE_UR_FIELD], dtype=np.float64)
         if pose.shape[1:] != (6,):
@@ -163,7 +180,6 @@ def state_columns(batch: np.ndarray, series: tuple[Series, ...] = DEFAULT_SERIES
         T_base_tcp = np.tile(np.eye(4), (len(batch), 1, 1))
         T_base_tcp[:, :3, :3] = Rotation.from_rotvec(pose[:, 3:]).as_matrix()
         T_base_tcp[:, :3, 3] = pose[:, :3]
-        used.add(POSE_UR_FIELD)
 
     columns = []
     for spec in series:
@@ -175,8 +191,12 @@ def state_columns(batch: np.ndarray, series: tuple[Series, ...] = DEFAULT_SERIES
             values = values[:, None]
         if values.ndim != 2:
             raise InputError(f"state batch: field {spec.field!r} must be a scalar or a vector per record, got shape {values.shape[1:]}")
+        if spec.components is not None:
+            start, stop = spec.components
+            if values.shape[1] < stop:
+                raise InputError(f"state batch: field {spec.field!r} has {values.shape[1]} components, the table reads {start}:{stop}")
+            values = values[:, start:stop]
         columns.append(SeriesColumn(spec.entity, _component_names(spec, values.shape[1]), values * spec.scale))
 
-    # A pose field that lost to T_base_tcp still counts as known.
-    ignored = tuple(f for f in fields if f not in used and f not in (POSE_MATRIX_FIELD, POSE_UR_FIELD))
+    ignored = tuple(f for f in fields if f not in used)
     return StateColumns(stamp_ns, T_base_tcp, tuple(columns), ignored)

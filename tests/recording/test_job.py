@@ -26,38 +26,50 @@ from celld.recording import (
     recording_path,
 )
 from celld.recording import layout
+from celld.tactile.sample import TACTILE_DTYPE
 
 # One second of the 500 Hz loop.
 N_CYCLES = 500
 PERIOD_NS = 2_000_000
+# The motion ring's fields the recording maps (celld.motion.channels.STATE_DTYPE has more).
 STATE_DTYPE = np.dtype(
     [
-        ("stamp_ns", np.int64),
-        ("tcp_pose", np.float64, (6,)),
-        ("v_tcp", np.float64, (6,)),
-        ("delta_tool", np.float64, (3,)),
-        ("v_r", np.float64, (3,)),
-        ("omega", np.float64),
+        ("cycle", np.uint64),
+        ("t_ns", np.int64),
         ("late_ns", np.int64),
-        ("exec_ns", np.int64),
-        ("status", np.int8),
+        ("period_ns", np.int64),
+        ("work_ns", np.int64),
+        ("tcp_pose", np.float64, (6,)),
+        ("tcp_speed", np.float64, (6,)),
+        ("status", np.int16),
+        ("twist", np.float64, (6,)),
     ]
 )
 
 
-def _state_batch(t0_ns: int, rng: np.random.Generator) -> np.ndarray:
+def _state_batch(t0_ns: int) -> np.ndarray:
     b = np.zeros(N_CYCLES, STATE_DTYPE)
     k = np.arange(N_CYCLES)
-    b["stamp_ns"] = t0_ns + 10_000_000 + k * PERIOD_NS
+    b["cycle"] = k
+    b["t_ns"] = t0_ns + 10_000_000 + k * PERIOD_NS
     b["tcp_pose"][:, 0] = 0.5 + 0.01 * k * PERIOD_NS * 1e-9  # 10 mm/s along x
     b["tcp_pose"][:, 2] = 0.2
     b["tcp_pose"][:, 3] = np.pi  # tool pointing down
-    b["v_tcp"][:, 0] = 0.01
-    b["delta_tool"][:, 1] = 0.0015 + 1e-5 * rng.standard_normal(N_CYCLES)
-    b["v_r"][:, 0] = 0.01
-    b["omega"] = 0.05 * np.sin(k / 50.0)
+    b["tcp_speed"][:, 0] = 0.01
+    b["twist"][:, 0] = 0.01
+    b["twist"][:, 5] = 0.05 * np.sin(k / 50.0)  # omega about the base z axis
     b["late_ns"] = 20_000 + (k % 7) * 1_000
-    b["exec_ns"] = 150_000
+    b["period_ns"] = PERIOD_NS
+    b["work_ns"] = 150_000
+    return b
+
+
+def _tactile_batch(t0_ns: int, rng: np.random.Generator) -> np.ndarray:
+    """Two seconds of the SRM camera at 60 fps."""
+    b = np.zeros(120, TACTILE_DTYPE)
+    b["stamp_ns"] = t0_ns + np.arange(120) * 16_666_667
+    b["delta_tool"][:, 1] = 0.0015 + 1e-5 * rng.standard_normal(120)
+    b["valid"] = True
     return b
 
 
@@ -81,15 +93,17 @@ def _full_recording(path: Path, rng: np.random.Generator, config: RecordingConfi
     corners = np.array([[40.0, 30.0], [90.0, 30.0], [90.0, 80.0], [40.0, 80.0]])
     rec.log_camera_image(image, corners, stamp_ns=t0 + 5_000_000)
     rec.log_camera_image(image, None, stamp_ns=t0 + 6_000_000)  # the tag lost in the next frame
-    batch = _state_batch(t0, rng)
+    batch = _state_batch(t0)
     # Two ring reads, as the recorder would make them.
     sent = rec.log_state_batch(batch[:200]) + rec.log_state_batch(batch[200:])
+    tactile = _tactile_batch(t0, rng)
+    rec.log_state_batch(tactile)
     e_icp = [0.004, 0.0021, 0.0009, float("inf"), 0.0004]
     for i, e in enumerate(e_icp):
         rec.log_e_icp(i, e, stamp_ns=t0 + i * 1_000_000_000)
     rec.log_event("weld done")
     rec.close()
-    return {"batch": batch, "sent": sent, "n_cam": n_cam, "planned": planned, "e_icp": e_icp, "corners": corners, "t0": t0}
+    return {"batch": batch, "tactile": tactile, "sent": sent, "n_cam": n_cam, "planned": planned, "e_icp": e_icp, "corners": corners, "t0": t0}
 
 
 @pytest.fixture(scope="module")
@@ -120,7 +134,8 @@ def test_the_file_holds_every_entity_of_the_layout(written: tuple[Path, dict]) -
         "/servo/omega",
         "/robot/v_tcp",
         "/motion/loop/late_ms",
-        "/motion/loop/exec_ms",
+        "/motion/loop/period_ms",
+        "/motion/loop/work_ms",
         "/motion/status",
         "/calib/e_icp",
         "/events",
@@ -139,14 +154,17 @@ def test_state_batches_become_time_series_on_the_loop_clock(written: tuple[Path,
     batch = sent["batch"]
     assert sent["sent"] == N_CYCLES
     t, omega = read_scalars(path, layout.SERVO_OMEGA)
-    assert omega.shape == (N_CYCLES, 1)
-    np.testing.assert_allclose(omega[:, 0], batch["omega"], atol=1e-12)
+    assert omega.shape == (N_CYCLES, 3)
+    np.testing.assert_allclose(omega, batch["twist"][:, 3:], atol=1e-12)
     # Times are seconds since the recording opened: 10 ms, then one cycle apart.
     np.testing.assert_allclose(t[0], 0.010, atol=1e-9)
     np.testing.assert_allclose(np.diff(t), PERIOD_NS * 1e-9, atol=1e-9)
-    _, delta = read_scalars(path, layout.SERVO_DELTA)
-    assert delta.shape == (N_CYCLES, 3)
-    np.testing.assert_allclose(delta[:, 1], batch["delta_tool"][:, 1], atol=1e-12)
+    _, v_r = read_scalars(path, layout.SERVO_V_R)
+    np.testing.assert_allclose(v_r, batch["twist"][:, :3], atol=1e-12)
+    t_delta, delta = read_scalars(path, layout.SERVO_DELTA)
+    assert delta.shape == (120, 3)
+    np.testing.assert_allclose(delta[:, 1], sent["tactile"]["delta_tool"][:, 1], atol=1e-12)
+    np.testing.assert_allclose(t_delta[-1], 119 * 16_666_667e-9, atol=1e-9)
     _, late = read_scalars(path, f"{layout.MOTION_LOOP}/late_ms")
     np.testing.assert_allclose(late[:, 0], batch["late_ns"] * 1e-6, rtol=1e-12)
     _, v_tcp = read_scalars(path, layout.ROBOT_V_TCP)
@@ -210,7 +228,7 @@ def test_a_disabled_recording_writes_nothing_and_accepts_every_call(tmp_path: Pa
     path = tmp_path / "off.rrd"
     rec = JobRecording(path, "job-off", "weld", RecordingConfig(enabled=False))
     rec.log_cloud_base("scan", np.zeros((3, 3)))
-    rec.log_state_batch(np.zeros(3, STATE_DTYPE))
+    assert rec.log_state_batch(np.zeros(3, STATE_DTYPE)) == 0
     rec.log_e_icp(0, 0.001)
     rec.close()
     assert not path.exists() and rec.path is None
