@@ -123,6 +123,10 @@ class PhotoneoScanner:
         self._clock = clock
         self._lock = threading.Lock()
         self._stats = CaptureStats()
+        self.serial = device
+        self.model = "PhoXi"
+        self.distance_unit: str | None = None
+        self._metres_per_unit = 1e-3
         self._h = factory()
         self._ia: Any = None
         try:
@@ -152,17 +156,25 @@ class PhotoneoScanner:
         _set(nm, "TriggerSelector", "FrameStart")
         _set(nm, "TriggerMode", "On")
         _set(nm, "TriggerSource", "Software")
-        for component in nm.ComponentSelector.symbolics:
+        try:
+            components = list(nm.ComponentSelector.symbolics)
+        except Exception as exc:  # not a multipart 3D device
+            raise DeviceError(f"Photoneo: the device has no ComponentSelector ({exc}); is it a PhoXi?") from exc
+        for component in components:
             _set(nm, "ComponentSelector", component)
             _set(nm, "ComponentEnable", component == _RANGE_COMPONENT)
         _set(nm, "ComponentSelector", _RANGE_COMPONENT)
         _set(nm, "Scan3dOutputMode", _OUTPUT_MODE)
+        # PhoXi firmware reports millimetres; a node map without the feature is taken to mean the same.
         unit = str(nm.Scan3dDistanceUnit.value) if hasattr(nm, "Scan3dDistanceUnit") else "Millimeter"
         if unit not in _DISTANCE_UNITS:
             raise DeviceError(f"Photoneo: Scan3dDistanceUnit {unit!r} not understood (expected {', '.join(_DISTANCE_UNITS)})")
         self.distance_unit = unit
         self._metres_per_unit = _DISTANCE_UNITS[unit]
-        self._ia.start()
+        try:
+            self._ia.start()
+        except Exception as exc:
+            raise DeviceError(f"Photoneo {self.serial}: acquisition does not start: {exc}") from exc
         log.info("photoneo_open", serial=self.serial, model=self.model, producer=str(self.producer), unit=unit)
 
     def capture(self) -> OrganizedCloud:
@@ -196,12 +208,12 @@ class PhotoneoScanner:
         size = (getattr(getattr(nm, "Width", None), "value", None), getattr(getattr(nm, "Height", None), "value", None))
         return {
             "kind": "phoxi",
-            "model": getattr(self, "model", "PhoXi"),
-            "device": getattr(self, "serial", self.device),
+            "model": self.model,
+            "device": self.serial,
             "width_px": size[0],
             "height_px": size[1],
             "producer": str(self.producer),
-            "distance_unit": getattr(self, "distance_unit", None),
+            "distance_unit": self.distance_unit,
         }
 
     def health(self) -> dict[str, Any]:
@@ -210,15 +222,12 @@ class PhotoneoScanner:
     def close(self) -> None:
         """Stop acquisition and release the device and the producer; safe to call twice."""
         ia, self._ia = self._ia, None
-        for step in (
-            (lambda: ia.stop()) if ia is not None else None,
-            (lambda: ia.destroy()) if ia is not None else None,
-            self._h.reset if getattr(self, "_h", None) is not None else None,
-        ):
-            if step is None:
-                continue
+        harvester, self._h = self._h, None
+        steps = [("stop", ia.stop), ("destroy", ia.destroy)] if ia is not None else []
+        if harvester is not None:
+            steps.append(("reset", harvester.reset))
+        for name, step in steps:
             try:
                 step()
             except Exception as exc:  # closing must not raise; the device may already be gone
-                log.warning("photoneo_close_failed", error=str(exc))
-        self._h = None
+                log.warning("photoneo_close_failed", step=name, error=str(exc))

@@ -27,6 +27,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
+from celld import fsutil
 from celld.errors import DeviceError, InputError
 from celld.scanner.base import CaptureStats, OrganizedCloud, check_organized
 
@@ -185,7 +186,8 @@ def read_cloud_file(path: str | Path, units: str = "m") -> np.ndarray:
 def write_cloud_file(path: str | Path, points: ArrayLike, units: str = "m") -> Path:
     """Write an (H, W, 3) organized cloud in metres to ``.npy`` or binary ``.ply`` in ``units``.
 
-    NaN (no return) is kept as NaN. The inverse of :func:`read_cloud_file`.
+    NaN (no return) is kept as NaN; the file appears whole or not at all
+    (:func:`celld.fsutil.atomic_open`). The inverse of :func:`read_cloud_file`.
     """
     path = Path(path)
     if units not in UNITS:
@@ -194,20 +196,21 @@ def write_cloud_file(path: str | Path, points: ArrayLike, units: str = "m") -> P
     if P.ndim != 3 or P.shape[2] != 3:
         raise InputError(f"write_cloud_file: expected an (H, W, 3) cloud, got shape {P.shape}")
     P = P / np.float32(UNITS[units])
-    if path.suffix.lower() == ".npy":
-        np.save(path, P, allow_pickle=False)
-    elif path.suffix.lower() == ".ply":
-        h, w = P.shape[:2]
-        header = (
-            "ply\nformat binary_little_endian 1.0\n"
-            f"comment celld organized cloud, units {units}\ncomment width {w}\ncomment height {h}\n"
-            f"element vertex {h * w}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
-        )
-        with open(path, "wb") as f:
+    suffix = path.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise InputError(f"{path}: expected a .npy or .ply file name")
+    with fsutil.atomic_open(path) as f:
+        if suffix == ".npy":
+            np.save(f, P, allow_pickle=False)
+        else:
+            h, w = P.shape[:2]
+            header = (
+                "ply\nformat binary_little_endian 1.0\n"
+                f"comment celld organized cloud, units {units}\ncomment width {w}\ncomment height {h}\n"
+                f"element vertex {h * w}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+            )
             f.write(header.encode("ascii"))
             f.write(P.astype("<f4").tobytes())
-    else:
-        raise InputError(f"{path}: expected a .npy or .ply file name")
     return path
 
 
