@@ -6,12 +6,12 @@ import json
 import os
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+import rerun_cli
 
 from celld import se3
 from celld.config import RecordingConfig, parse
@@ -301,8 +301,10 @@ def _rerun_cli(tmp_path: Path, args: list[str]) -> subprocess.Popen:
         )
     )
     env = dict(os.environ, XDG_CONFIG_HOME=str(config_home), XDG_DATA_HOME=str(tmp_path / "data"))
-    rerun_cli = Path(sys.executable).parent / "rerun"
-    return subprocess.Popen([str(rerun_cli), *args], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # The binary itself, not the `rerun` script: the script runs it as a child that
+    # would outlive a kill of the script.
+    binary = Path(rerun_cli.__file__).parent / "rerun"
+    return subprocess.Popen([str(binary), *args], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
 def _wait_for_entity(path: Path, entity: str, deadline: float) -> set[str]:
