@@ -35,6 +35,12 @@ def test_a_job_goes_queued_running_succeeded_with_stamps(journal: Journal) -> No
     assert r.terminal and journal.active() == []
 
 
+def test_a_job_can_be_created_running(journal: Journal) -> None:
+    r = journal.create("move", {"kind": "move"}, start=True)
+    assert r.state == "running" and r.started == r.created
+    assert journal.finish(r.id, "succeeded").state == "succeeded"
+
+
 def test_illegal_transitions_are_refused(journal: Journal) -> None:
     r = journal.create("weld", {"kind": "weld"})
     with pytest.raises(JournalError, match="terminal state"):

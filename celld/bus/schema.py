@@ -179,9 +179,9 @@ _WELD = _submit_branch(
             "description": "A workpiece model known to the cell; absent: extract the groove from the scan.",
         },
         "delta_d_mm": _number("Desired normal deformation of the SRM, mm (default: tactile.delta_d_mm).", 0.0, 20.0, open_lo=True),
-        "k_p": _number("Normal gain of Eq. 16, 1/s (default: tactile.k_p).", 0.0, 1000.0),
+        "k_p": _number("Normal gain of Eq. 16, 1/s (default: tactile.k_p).", 0.0, 1000.0, open_lo=True),
         "v_const_mm_s": _number("Tangential speed V_const, mm/s (default: tactile.v_const_mm_s).", 0.0, 500.0, open_lo=True),
-        "torch_offset_mm": _number("|d| of Eq. 14, mm (default: tactile.torch_offset_mm).", 0.0, 500.0),
+        "torch_offset_mm": _number("|d| of Eq. 14, mm (default: tactile.torch_offset_mm).", 0.0, 500.0, open_lo=True),
         "arc": {"type": "boolean", "default": True, "description": "Switch the arc on while tracking; false: a dry run."},
     },
 )

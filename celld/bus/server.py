@@ -31,6 +31,10 @@ Handler interface (:class:`CellHandlers`; the daemon's job manager implements it
   not block it. A handler slower than ``reply_timeout`` is answered with an
   error saying that the request may still take effect, and is left to finish.
 
+Ordering the daemon keeps: record a job's end in the journal before it
+publishes the job's final progress event, so a client that sees the event
+and asks ``status`` reads the final record.
+
 Threads: zenoh calls the queryable callbacks on its own threads. The callback
 only copies the payload and hops to the loop with ``call_soon_threadsafe``;
 parsing, the handler and the reply happen on the loop. More than
@@ -250,7 +254,7 @@ class BusServer:
             self.stats.requests += 1
         payload = query.payload
         if payload is not None and len(payload) > schema.MAX_PAYLOAD_BYTES:
-            self._reply_now(query, schema.error_reply("$", f"expected at most {schema.MAX_PAYLOAD_BYTES} bytes, got {len(payload)}"))
+            self._reply_now(name, query, schema.error_reply("$", f"expected at most {schema.MAX_PAYLOAD_BYTES} bytes, got {len(payload)}"))
             return
         raw = payload.to_bytes() if payload is not None else b""
         with self._lock:
@@ -260,7 +264,7 @@ class BusServer:
         if busy:
             self.stats.busy += 1
             reason = "the cell is shutting down" if self._closing else f"busy: {self.max_pending} requests in flight, try again"
-            self._reply_now(query, schema.error_reply("", reason))
+            self._reply_now(name, query, schema.error_reply("", reason))
             return
         loop = self._loop
         try:
@@ -269,7 +273,7 @@ class BusServer:
             loop.call_soon_threadsafe(self._spawn, name, query, raw)
         except RuntimeError:  # the loop is closed
             self._release()
-            self._reply_now(query, schema.error_reply("", "the cell is shutting down"))
+            self._reply_now(name, query, schema.error_reply("", "the cell is shutting down"))
 
     def _spawn(self, name: str, query: zenoh.Query, raw: bytes) -> None:
         task = asyncio.get_running_loop().create_task(self._answer(name, query, raw))
@@ -285,11 +289,11 @@ class BusServer:
         try:
             reply = await self._handle(name, raw)
         except asyncio.CancelledError:
-            self._reply_now(query, schema.error_reply("", "the cell is shutting down"))
+            self._reply_now(name, query, schema.error_reply("", "the cell is shutting down"))
             self._release()
             raise
         self._release()
-        self._reply_now(query, reply)
+        self._reply_now(name, query, reply)
 
     async def _handle(self, name: str, raw: bytes) -> Mapping[str, Any]:
         try:
@@ -318,7 +322,7 @@ class BusServer:
             log.exception("bus handler failed", request=name)
             return schema.error_reply("", f"internal error while handling {name}")
 
-    def _reply_now(self, query: zenoh.Query, reply: Mapping[str, Any]) -> None:
+    def _reply_now(self, name: str, query: zenoh.Query, reply: Mapping[str, Any]) -> None:
         if reply.get("ok") is not True:
             self.stats.refused += 1
         try:
@@ -328,7 +332,8 @@ class BusServer:
             log.error("bus reply not encodable", error=str(exc))
             payload = schema.encode(schema.error_reply("", "internal error: the reply was not valid JSON"))
         try:
-            query.reply(query.key_expr, payload, encoding=_JSON)
+            # The queryable's own key: a query may have come in on a wildcard.
+            query.reply(self.keys.query(name), payload, encoding=_JSON)
         except zenoh.ZError as exc:
             self.stats.reply_failures += 1
             log.debug("bus reply failed", error=str(exc))

@@ -132,6 +132,13 @@ def test_hostile_payloads_each_get_an_error_reply_and_the_server_stays_up(cell, 
     assert cell.journal.jobs() == [] and cell.journal.check() == []
 
 
+def test_a_wildcard_query_gets_one_reply_per_queryable_on_its_own_key(cell, client) -> None:
+    replies = list(client.session.get(f"{cell.keys.base}/*", timeout=3.0))
+    keys = sorted(str(r.ok.key_expr) for r in replies if r.ok is not None)
+    assert keys == sorted(cell.keys.query(q) for q in ("submit", "status", "cancel", "list", "accept", "calibration"))
+    assert cell.journal.jobs() == []  # an empty submit is refused ($.kind missing)
+
+
 def test_requests_of_every_queryable_with_garbage_get_errors(client) -> None:
     for name in ("status", "cancel", "list", "accept", "calibration"):
         reply = client.request_raw(name, b'{"bogus": 1}')
