@@ -18,14 +18,15 @@ readers do not share lines. A writer publishes data before the counter that
 makes it visible. No call allocates on the writer's hot path
 (:meth:`SeqlockSlot.write`, :meth:`Ring.append`) or on :meth:`SeqlockSlot.read_into`.
 
-The creator owns a segment and unlinks it; an attaching process unregisters the
-segment from its resource tracker, because in Python 3.11 the tracker of an
-attaching process may otherwise unlink a segment it never created
-(bpo-39959).
+The creator owns a segment and unlinks it; an attaching process does not
+register the segment with its resource tracker, because in Python 3.11 the
+tracker of an attaching process may otherwise unlink a segment it never
+created (bpo-39959).
 """
 
 from __future__ import annotations
 
+import threading
 from multiprocessing import resource_tracker, shared_memory
 from typing import Any
 
@@ -35,6 +36,16 @@ from celld.errors import InputError
 
 # Bytes between counters and data: one cache line.
 _LINE = 64
+
+
+def _register_all_but_shm(name: str, rtype: str) -> None:
+    if rtype != "shared_memory":
+        _register(name, rtype)
+
+
+_register = resource_tracker.register
+# Serialises the (rare) attaches that briefly swap the tracker's register function.
+_ATTACH_LOCK = threading.Lock()
 
 
 def _open(name: str, size: int, create: bool) -> shared_memory.SharedMemory:
@@ -47,12 +58,18 @@ def _open(name: str, size: int, create: bool) -> shared_memory.SharedMemory:
             stale.close()
             stale.unlink()
             return shared_memory.SharedMemory(name=name, create=True, size=size)
-    shm = shared_memory.SharedMemory(name=name, create=False)
-    # The attaching side must not let its resource tracker unlink the segment.
-    try:
-        resource_tracker.unregister(shm._name, "shared_memory")  # type: ignore[attr-defined]
-    except Exception:  # pragma: no cover - tracker absent or already gone
-        pass
+    # Attach without registering with the resource tracker (what 3.13's
+    # track=False does). Registering and then unregistering is not enough:
+    # a child started with spawn or fork shares its parent's tracker, which
+    # keeps a set of names, so the child's unregister would also erase the
+    # creator's registration (and the tracker prints a KeyError when the
+    # creator unlinks).
+    with _ATTACH_LOCK:
+        resource_tracker.register = _register_all_but_shm
+        try:
+            shm = shared_memory.SharedMemory(name=name, create=False)
+        finally:
+            resource_tracker.register = _register
     if shm.size < size:
         shm.close()
         raise InputError(f"shared memory {name!r}: expected at least {size} bytes, found {shm.size}")
@@ -218,8 +235,11 @@ class Ring:
             return np.zeros(0, self.dtype), head if head > seq else seq, lost
         idx = np.arange(start, head) % self.capacity
         slots = self._slots[idx].copy()
-        # Keep only the records still holding the sequence numbers we expected.
-        ok = slots["seq"] == np.arange(start + 1, head + 1, dtype=np.uint64)
+        # Keep only the records still holding the sequence numbers we expected,
+        # before and after the copy: the writer zeroes a slot's number before
+        # it overwrites the record, so a record it touched during the copy fails.
+        expected = np.arange(start + 1, head + 1, dtype=np.uint64)
+        ok = (slots["seq"] == expected) & (self._seqs[idx] == expected)
         first_ok = int(np.argmax(ok)) if ok.any() else len(ok)
         lost += first_ok
         good = slots["rec"][first_ok:][ok[first_ok:]]

@@ -79,3 +79,35 @@ class ServoLaw(Protocol):
         applies its own safety checks; the law must not raise.
         """
         ...
+
+
+class ServoPlan(NamedTuple):
+    """What starts a servo law in the loop: the law's name, its arrays and its parameters.
+
+    It crosses the command mailbox as bytes (:mod:`celld.motion.commands`) and
+    is turned into a :class:`ServoLaw` in the motion process by the factory
+    registered under ``name``, so the loop imports no law it is not given.
+
+    Attributes
+    ----------
+    name : str
+        Key of the factory, e.g. ``"algorithm2"``.
+    arrays : dict of str to np.ndarray
+        Float64 arrays, e.g. ``{"P_base": (n, 3) planned path points, m}``.
+    params : dict of str to float, int, bool or str
+        Scalar parameters of the law (SI units).
+    """
+
+    name: str
+    arrays: dict[str, np.ndarray]
+    params: dict[str, float | int | bool | str]
+
+
+class ServoFactory(Protocol):
+    """Builds a ServoLaw from a plan; called in the motion process when the plan arrives.
+
+    It may raise :class:`~celld.errors.InputError` for a plan it refuses; the
+    loop then reports ``BAD_COMMAND`` and keeps holding.
+    """
+
+    def __call__(self, plan: ServoPlan) -> ServoLaw: ...

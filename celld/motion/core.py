@@ -1,0 +1,288 @@
+"""One cycle of the motion loop as a pure state machine: inputs in, what to send out.
+
+:class:`MotionCore` holds the active controller, the twist limiter and the
+safety monitors. The loop (:mod:`celld.motion.loop`) feeds it the robot state,
+the latest tactile sample and setpoint, a newly taken command and a stop
+request, and sends what it returns. No clock, socket or shared memory here, so
+every behaviour can be tested by stepping it.
+
+Modes::
+
+    IDLE ──command──▶ ACTIVE ──done / fault / stop request──▶ STOPPING ──at rest──▶ IDLE
+     ▲                  │ a new command takes over smoothly                        │
+     └──────────────────┴──── the robot stops itself (protective stop, e-stop) ◀───┘
+
+- IDLE: the robot is at rest and nothing but watchdog kicks is sent.
+- ACTIVE: the controller's demand, shaped by the limiter, is sent as speedL.
+- STOPPING: the limiter ramps the twist to zero (jerk-limited) and the last
+  speedL sends exactly zero; the status then tells why the motion ended. The
+  robot's speedl keeps that zero twist, so no speedStop is needed: ur-rtde
+  treats speedStop as a non-real-time command that blocks until the
+  controller reports it done, which has no place in a 2 ms cycle.
+
+Every record carries the command id it serves and a status; the status of a
+finished command stays until the next command, so a reader that comes late
+still learns how it ended.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+from typing import Mapping, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from celld.errors import InputError
+from celld.motion.commands import Command, MoveTo, StartServo, Stream
+from celld.motion.controllers import (
+    CartesianMove,
+    ControlInput,
+    Controller,
+    Hold,
+    MoveParams,
+    ServoSlot,
+    VelocityStream,
+)
+from celld.motion.limits import CartesianLimits, LimiterResult, TwistLimiter
+from celld.motion.safety import (
+    ROBOT_STOPPED,
+    Fault,
+    SequenceMonitor,
+    WorkspaceGuard,
+    describe,
+    inside,
+    robot_faults,
+    status_of,
+)
+from celld.motion.types import ControlStatus, RobotState, ServoFactory
+from celld.tactile.sample import TactileSample
+
+Array = NDArray[np.float64]
+
+_ZERO6 = np.zeros(6)
+
+
+class Mode(IntEnum):
+    IDLE = 0
+    ACTIVE = 1
+    STOPPING = 2
+
+
+class Action(IntEnum):
+    """What the loop sends this cycle."""
+
+    KICK = 0  # nothing but a watchdog kick
+    SPEED = 1  # speedL(twist)
+
+
+class CoreParams(NamedTuple):
+    """Everything the core needs to know about the cell (SI)."""
+
+    limits: CartesianLimits
+    period: float  # s
+    workspace_min: tuple[float, float, float]
+    workspace_max: tuple[float, float, float]
+    state_stale: float  # s; older robot state stops the motion
+    tactile_stale: float  # s; an older tactile sample stops the servo
+    latency: float = 0.004  # s from a command to its effect in the measured state
+    move: MoveParams = MoveParams()
+
+
+class CycleInput(NamedTuple):
+    """What the loop hands the core each cycle."""
+
+    state: RobotState
+    state_age: float  # s since the robot state last changed
+    safety_bits: int  # UR safety_status_bits
+    tactile: TactileSample | None
+    tactile_age: float  # s, inf without a sample
+    setpoint: Array  # (6,) streaming twist
+    setpoint_age: float  # s, inf without a setpoint
+    command: Command | None = None  # a command taken from the mailbox this cycle
+    command_id: int = 0  # its mailbox sequence number
+    command_error: str = ""  # why the command with command_id could not be decoded
+    stop: bool = False  # the supervisor asked for a stop this cycle
+
+
+class CycleOutput(NamedTuple):
+    """What to send, and what to record."""
+
+    action: Action
+    twist: Array  # (6,) sent with SPEED, zero otherwise
+    mode: Mode
+    status: ControlStatus
+    command_id: int  # the command this cycle serves (or last served)
+    faults: Fault
+    guarded: bool  # the limiter's viability guard acted
+    event: str  # why a command ended badly or was refused ("" most cycles)
+    event_id: int  # the command the event is about
+    event_status: ControlStatus
+
+
+class MotionCore:
+    """The motion loop's per-cycle logic (module docstring).
+
+    Parameters
+    ----------
+    params : CoreParams
+    servo_factories : mapping of str to ServoFactory
+        The servo laws this process can run, by plan name.
+    """
+
+    def __init__(self, params: CoreParams, servo_factories: Mapping[str, ServoFactory] | None = None) -> None:
+        self.params = params
+        self.factories = dict(servo_factories or {})
+        self.limiter = TwistLimiter(params.limits, params.period)
+        self.monitor = SequenceMonitor(params.limits, params.period)
+        # The breach is found after this cycle's twist went out: one more period of travel.
+        self.workspace = WorkspaceGuard(
+            params.workspace_min, params.workspace_max, params.limits, params.latency + params.period
+        )
+        self.mode = Mode.IDLE
+        self.controller: Controller = Hold()
+        self.command_id = 0
+        self.status = ControlStatus.HOLD
+        self._stop_status = ControlStatus.STOPPED
+        self._stop_reason = ""
+        self._event = ""
+        self._event_id = 0
+        self._event_status = ControlStatus.OK
+
+    # -- transitions ----------------------------------------------------------
+
+    def _refuse(self, command_id: int, status: ControlStatus, reason: str) -> None:
+        self._event, self._event_id, self._event_status = reason, command_id, status
+
+    def _begin_stop(self, status: ControlStatus, reason: str) -> None:
+        if self.mode != Mode.ACTIVE:
+            return
+        self.mode = Mode.STOPPING
+        self._stop_status = status
+        self._stop_reason = reason
+
+    def _build(self, cmd: Command) -> Controller:
+        p = self.params
+        if isinstance(cmd, MoveTo):
+            if not inside(cmd.T_base_tcp[:3, 3], p.workspace_min, p.workspace_max):
+                raise InputError(
+                    f"move_to target {np.round(cmd.T_base_tcp[:3, 3], 4).tolist()} m lies outside the workspace "
+                    f"box {list(p.workspace_min)} .. {list(p.workspace_max)}"
+                )
+            return CartesianMove(
+                cmd.T_base_tcp, p.limits, p.period, cmd.speed_scale, cmd.tolerance, cmd.angle_tolerance, p.move
+            )
+        if isinstance(cmd, Stream):
+            return VelocityStream(cmd.timeout)
+        if isinstance(cmd, StartServo):
+            factory = self.factories.get(cmd.plan.name)
+            if factory is None:
+                raise InputError(
+                    f"no servo law registered as {cmd.plan.name!r}; known: {', '.join(sorted(self.factories)) or 'none'}"
+                )
+            return ServoSlot(factory(cmd.plan), cmd.plan.name)
+        raise InputError(f"unknown command {type(cmd).__name__}")
+
+    def _accept(self, inp: CycleInput, faults: Fault) -> None:
+        cid = inp.command_id
+        if inp.command_error:
+            self._refuse(cid, ControlStatus.BAD_COMMAND, inp.command_error)
+            return
+        if faults & Fault.STALE_STATE:
+            self._refuse(cid, ControlStatus.STALE_STATE, "robot state is stale: no motion can start")
+            return
+        try:
+            ctrl = self._build(inp.command)  # type: ignore[arg-type]
+        except InputError as exc:
+            status = ControlStatus.WORKSPACE if "workspace" in str(exc) else ControlStatus.BAD_COMMAND
+            self._refuse(cid, status, str(exc))
+            return
+        except Exception as exc:  # a servo factory must not take the loop down
+            self._refuse(cid, ControlStatus.BAD_COMMAND, f"building the controller failed: {exc!r}")
+            return
+        if self.mode == Mode.IDLE:
+            self.limiter.reset()
+            self.monitor.reset()
+        ctrl.start(inp.state, self.limiter.twist, self.limiter.accel)
+        self.controller = ctrl
+        self.command_id = cid
+        self.mode = Mode.ACTIVE
+        self.status = ControlStatus.OK
+
+    # -- the cycle ------------------------------------------------------------
+
+    def step(self, inp: CycleInput) -> CycleOutput:
+        """Advance one cycle."""
+        self._event = ""
+        p = self.params
+        faults = robot_faults(inp.safety_bits)
+        if inp.state_age > p.state_stale:
+            faults |= Fault.STALE_STATE
+
+        if faults & ROBOT_STOPPED:
+            # The robot has stopped by itself; nothing we send would move it.
+            if self.mode != Mode.IDLE:
+                self._refuse(self.command_id, ControlStatus.SAFETY, f"the robot stopped itself: {describe(faults)}")
+                self.status = ControlStatus.SAFETY
+            self.mode = Mode.IDLE
+            self.controller = Hold()
+            self.limiter.reset()
+            self.monitor.reset()
+            if inp.command is not None or inp.command_error:
+                self._refuse(inp.command_id, ControlStatus.SAFETY, f"refused: the robot reports {describe(faults)}")
+            return self._output(Action.KICK, _ZERO6, faults, False)
+
+        if inp.stop:
+            self._begin_stop(ControlStatus.STOPPED, "stopped on request")
+        if inp.command is not None or inp.command_error:
+            self._accept(inp, faults)
+
+        twist, guarded = _ZERO6, False
+        if self.mode == Mode.ACTIVE:
+            cinp = ControlInput(inp.state, inp.tactile, inp.tactile_age, inp.setpoint, inp.setpoint_age)
+            demand, status = self.controller.step(cinp)
+            if isinstance(self.controller, ServoSlot) and inp.tactile_age > p.tactile_stale:
+                faults |= Fault.STALE_TACTILE
+            if status == ControlStatus.DONE or status >= ControlStatus.WORKSPACE:
+                self._begin_stop(status, self.controller.reason)
+            elif faults:
+                self._begin_stop(status_of(faults), describe(faults))
+            else:
+                twist, result = self.limiter.step(demand.twist, demand.accel)
+                guarded = result == LimiterResult.GUARDED
+                if result == LimiterResult.ERROR:
+                    faults |= Fault.SPEED
+                    self._begin_stop(ControlStatus.LIMIT, "the twist limiter failed")
+                self.status = status
+        if self.mode == Mode.STOPPING:
+            twist, result = self.limiter.step(_ZERO6)
+            guarded = result == LimiterResult.GUARDED
+            self.status = self._stop_status
+            if self.limiter.at_rest():
+                return self._finish(faults)
+
+        if self.mode == Mode.IDLE:
+            return self._output(Action.KICK, _ZERO6, faults, False)
+        faults |= self.monitor.check(twist)
+        a = self.limiter.accel
+        if self.workspace(inp.state.T_base_tcp[:3, 3], twist[:3], a[:3]):
+            faults |= Fault.WORKSPACE
+        if faults & (Fault.WORKSPACE | Fault.SPEED | Fault.ACCEL | Fault.JERK):
+            # The twist is sent (the limiter's state already holds it); the stop starts next cycle.
+            self._begin_stop(status_of(faults), describe(faults))
+        return self._output(Action.SPEED, twist, faults, guarded)
+
+    def _finish(self, faults: Fault) -> CycleOutput:
+        self.mode = Mode.IDLE
+        self.controller = Hold()
+        self.status = self._stop_status
+        self.monitor.reset()
+        if self._stop_status != ControlStatus.DONE:
+            self._refuse(self.command_id, self._stop_status, self._stop_reason)
+        return self._output(Action.SPEED, _ZERO6, faults, False)
+
+    def _output(self, action: Action, twist: Array, faults: Fault, guarded: bool) -> CycleOutput:
+        return CycleOutput(
+            action, twist, self.mode, self.status, self.command_id, faults, guarded,
+            self._event, self._event_id, self._event_status,
+        )

@@ -1,0 +1,465 @@
+"""The main process's handle on the robot: an asyncio-friendly client of the motion process.
+
+::
+
+    async with await MotionHandle.open(config) as motion:
+        await motion.move_to(T_base_tcp)          # returns when arrived, raises why not
+        motion.stream(twist)                      # call at any rate; stale setpoints mean zero
+        motion.stop()                             # jerk-limited stop; queued commands are cancelled
+        await motion.wait_idle()
+        motion.state(), motion.health()
+
+The handle owns a :class:`~celld.motion.supervisor.MotionSupervisor` and one
+task that drains the state ring every 20 ms (it holds seconds of records, so
+nothing is lost), keeps the latest state and loop timing statistics, resolves
+the commands in flight and hands every record batch to listeners (the
+recorder, the bus).
+
+A command ends in its status: ``DONE`` returns; a stop request raises
+:class:`~celld.errors.MotionError`; a protective stop, e-stop, workspace or
+limit breach raises :class:`~celld.errors.SafetyStop`; a lost link, stale
+state or a motion process that died raises :class:`~celld.errors.LinkLost`.
+Each error carries the reason the loop gave.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections import deque
+from typing import Callable, NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from celld.config import Config
+from celld.errors import CelldError, InputError, LinkLost, MotionError, SafetyStop
+from celld.motion import commands as cmd
+from celld.motion.channels import (
+    SETPOINT_DTYPE,
+    STATE_DTYPE,
+    ChannelNames,
+    Channels,
+    decode_reason,
+)
+from celld.motion.controllers import MoveParams
+from celld.motion.core import CoreParams, Mode
+from celld.motion.limits import CartesianLimits, check_twist
+from celld.motion.loop import LoopParams
+from celld.motion.process import MotionSpec, RealtimeOptions, servo_laws_from
+from celld.motion.supervisor import Backoff, LinkState, MotionSupervisor, ProcessExit
+from celld.motion.types import ControlStatus, RobotState, ServoPlan
+from celld.se3 import from_ur_pose
+
+# The state ring holds this long of history at the loop rate (at least 2 s is required).
+RING_SECONDS = 8.0
+# How often the handle drains the ring, s.
+DRAIN_PERIOD = 0.02
+# Loop timing statistics cover this many recent cycles.
+STATS_WINDOW = 30_000
+
+_SAFETY = {ControlStatus.SAFETY, ControlStatus.WORKSPACE, ControlStatus.LIMIT}
+_LINK = {ControlStatus.LINK_LOST, ControlStatus.STALE_STATE}
+
+
+class Health(NamedTuple):
+    """The robot link and the loop's timing, for the daemon's health check and the bus."""
+
+    link: str  # LinkState value
+    pid: int | None
+    realtime: bool  # SCHED_FIFO granted to the loop
+    cpu: int  # pinned CPU, -1 if none
+    restarts: int
+    last_exit: str  # reason the last motion process ended, "" if none has
+    cycles: int  # records seen from the current and past processes
+    lost_records: int  # ring records overwritten before the handle read them
+    period_error_p50_ms: float  # |period - nominal| over the last window
+    period_error_p99_ms: float
+    period_error_p999_ms: float
+    period_error_max_ms: float
+    late_max_ms: float  # largest wake-up lateness in the window
+    late_over_1ms: int  # cycles woken more than 1 ms late, in the window
+    overruns: int  # cycles that ended after the next deadline (current process)
+    tactile_torn: int  # torn tactile reads (current process)
+    heartbeat_age_ms: float  # since the last record arrived
+
+
+def error_for(status: ControlStatus, reason: str) -> CelldError:
+    """The exception a command that ended with ``status`` raises."""
+    text = reason or f"motion ended with status {status.name}"
+    if status in _SAFETY:
+        return SafetyStop(text)
+    if status in _LINK:
+        return LinkLost(text)
+    return MotionError(text)
+
+
+def spec_from_config(config: Config, names: ChannelNames, host: str | None = None,
+                     servo_laws: dict[str, str] | None = None, realtime: RealtimeOptions = RealtimeOptions(),
+                     move: MoveParams = MoveParams(), log_level: str = "info") -> MotionSpec:
+    """Build the motion process's spec from a validated config."""
+    robot, motion = config.robot, config.motion
+    period = 1.0 / robot.frequency_hz
+    limits = CartesianLimits.from_config(motion)
+    return MotionSpec(
+        host=host or robot.host,
+        channels=names,
+        core=CoreParams(
+            limits=limits,
+            period=period,
+            workspace_min=robot.workspace_min,
+            workspace_max=robot.workspace_max,
+            state_stale=motion.state_stale_cycles * period,
+            tactile_stale=motion.tactile_stale,
+            move=move,
+        ),
+        loop=LoopParams(
+            period_ns=int(round(period * 1e9)),
+            # speedL's own ramp must never clip the limiter's profile.
+            speed_accel=2.0 * max(limits.linear_accel, limits.angular_accel),
+        ),
+        frequency_hz=robot.frequency_hz,
+        realtime=realtime,
+        servo_laws=servo_laws_from(servo_laws or {}),
+        log_level=log_level,
+    )
+
+
+class _Pending(NamedTuple):
+    future: asyncio.Future[ControlStatus]
+    reason: list[str]
+
+
+class MotionHandle:
+    """See the module docstring. Create with :meth:`open`."""
+
+    def __init__(self, supervisor: MotionSupervisor, channels: Channels, limits: CartesianLimits,
+                 workspace: tuple[tuple[float, ...], tuple[float, ...]]) -> None:
+        self.supervisor = supervisor
+        self.ch = channels
+        self.limits = limits
+        self.workspace = workspace
+        self._seq = 0
+        self._event_seq = 0
+        self._lost = 0
+        self._cycles = 0
+        self._last_record: np.void | None = None
+        self._last_record_t = 0.0
+        self._periods: deque[np.ndarray] = deque()
+        self._period_count = 0
+        self._pending: dict[int, _Pending] = {}
+        self._reasons: dict[int, tuple[ControlStatus, str]] = {}
+        self._listeners: list[Callable[[np.ndarray], None]] = []
+        self._stream_id = 0
+        self._stream_timeout = 0.1
+        self._sp = np.zeros(1, SETPOINT_DTYPE)
+        self._task: asyncio.Task[None] | None = None
+        self._period_ns = supervisor.spec.loop.period_ns
+        supervisor.on_exit(self._on_exit)
+
+    # -- life cycle ------------------------------------------------------------
+
+    @classmethod
+    async def open(
+        cls,
+        config: Config,
+        *,
+        host: str | None = None,
+        servo_laws: dict[str, str] | None = None,
+        tactile_slot: str | None = None,
+        realtime: RealtimeOptions = RealtimeOptions(),
+        move: MoveParams = MoveParams(),
+        connect_timeout: float | None = None,
+        hang_timeout: float = 0.5,
+        backoff: Backoff = Backoff(),
+        wait: bool = True,
+    ) -> "MotionHandle":
+        """Create the channels, start the motion process and (by default) wait for its loop.
+
+        ``tactile_slot`` names the tactile process's seqlock slot; without it
+        the handle creates one (tests write samples into it). Raises LinkLost
+        when the loop does not run within the connect timeout.
+        """
+        capacity = int(math.ceil(RING_SECONDS * config.robot.frequency_hz))
+        names = ChannelNames.unique(capacity, tactile_slot)
+        channels = Channels.create(names, create_tactile=tactile_slot is None)
+        try:
+            spec = spec_from_config(config, names, host, servo_laws, realtime, move)
+            timeout = connect_timeout if connect_timeout is not None else config.robot.connect_timeout
+            sup = MotionSupervisor(spec, channels, timeout, hang_timeout, backoff)
+            handle = cls(sup, channels, spec.core.limits, (spec.core.workspace_min, spec.core.workspace_max))
+            sup.start()
+            handle._task = asyncio.get_running_loop().create_task(handle._drain_forever(), name="celld-motion-drain")
+        except BaseException:
+            channels.close()
+            channels.unlink()
+            raise
+        if wait and not await sup.wait_running(timeout + 5.0):
+            reason = sup.last_exit.reason if sup.last_exit else "no reply"
+            await handle.close()
+            raise LinkLost(f"robot {spec.host}: the motion loop did not start: {reason}")
+        return handle
+
+    async def close(self) -> None:
+        """Stop the robot, end the motion process and release the channels."""
+        await self.supervisor.close()
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except asyncio.CancelledError:
+                pass
+            self._task = None
+        self._drain()
+        self._fail_all(MotionError("the motion handle was closed"))
+        self.ch.close()
+        self.ch.unlink()
+
+    async def __aenter__(self) -> "MotionHandle":
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # -- commands ----------------------------------------------------------------
+
+    def _require_link(self) -> None:
+        if self.supervisor.state != LinkState.RUNNING:
+            last = self.supervisor.last_exit
+            why = f": {last.reason}" if last else ""
+            raise LinkLost(f"the robot link is {self.supervisor.state.value}{why}")
+
+    def _post(self, command: cmd.Command) -> int:
+        self._require_link()
+        cid = self.ch.commands.post(cmd.encode(command))
+        return cid
+
+    def _track(self, cid: int) -> asyncio.Future[ControlStatus]:
+        fut: asyncio.Future[ControlStatus] = asyncio.get_running_loop().create_future()
+        self._pending[cid] = _Pending(fut, [""])
+        return fut
+
+    async def move_to(
+        self,
+        target: ArrayLike,
+        speed_scale: float = 1.0,
+        tolerance: float = 5e-5,
+        angle_tolerance: float = 5e-4,
+        timeout: float | None = None,
+    ) -> RobotState:
+        """Move the TCP straight to ``target`` and return the state on arrival.
+
+        Parameters
+        ----------
+        target : array, shape (4, 4) or (6,)
+            ``T_base_tcp``, or a UR pose ``[x, y, z, rx, ry, rz]`` (m, rad).
+        speed_scale : float
+            0 < speed_scale <= 1, applied to every configured limit.
+        tolerance, angle_tolerance : float
+            Arrival tolerances, m and rad.
+        timeout : float, optional
+            s to wait before stopping the robot and raising MotionError.
+
+        Raises
+        ------
+        InputError
+            The target is malformed or outside the workspace box.
+        SafetyStop, LinkLost, MotionError
+            The move did not arrive; the message says why.
+        """
+        arr = np.asarray(target, dtype=np.float64)
+        T = from_ur_pose(arr) if arr.shape == (6,) else arr
+        command = cmd.move_to(T, speed_scale, tolerance, angle_tolerance)
+        lo, hi = self.workspace
+        p = command.T_base_tcp[:3, 3]
+        if not all(lo[i] <= p[i] <= hi[i] for i in range(3)):
+            raise InputError(f"move_to target {np.round(p, 4).tolist()} m lies outside the workspace box "
+                             f"{list(lo)} .. {list(hi)}")
+        cid = self._post(command)
+        fut = self._track(cid)
+        try:
+            status = await asyncio.wait_for(asyncio.shield(fut), timeout)
+        except asyncio.TimeoutError:
+            self.stop()
+            raise MotionError(f"move_to did not arrive within {timeout} s; the robot was stopped") from None
+        if status != ControlStatus.DONE:
+            raise error_for(status, self._pending_reason(cid))
+        state = self.state()
+        assert state is not None  # a DONE record was read, so a state exists
+        return state
+
+    def stream(self, twist: ArrayLike, timeout: float = 0.1) -> None:
+        """Set the streamed twist (6,) (base frame, m/s and rad/s); starts streaming if needed.
+
+        The loop follows the latest setpoint through the limiter; a setpoint
+        older than ``timeout`` s counts as zero, so a caller that stops
+        calling brings the robot to rest. :meth:`stop` ends streaming; the
+        next call starts it again.
+        """
+        t = check_twist(twist)
+        self._sp["t_ns"] = time.monotonic_ns()
+        self._sp["twist"] = t
+        self.ch.setpoint.write(self._sp)
+        if self._stream_ended() or timeout != self._stream_timeout:
+            self._stream_id = self._post(cmd.stream(timeout))
+            self._stream_timeout = timeout
+
+    def _stream_ended(self) -> bool:
+        """True unless our stream command is queued or being served."""
+        sid = self._stream_id
+        if sid == 0 or sid in self._reasons:
+            return True
+        rec = self._last_record
+        if rec is None or int(rec["command_id"]) < sid:
+            return False  # posted, not yet taken up
+        return not (int(rec["command_id"]) == sid and int(rec["mode"]) == int(Mode.ACTIVE))
+
+    async def start_servo(self, plan: ServoPlan) -> int:
+        """Start the servo law ``plan.name`` with ``plan``; return its command id for :meth:`wait`."""
+        cid = self._post(cmd.start_servo(plan))
+        self._track(cid)
+        return cid
+
+    async def wait(self, command_id: int, timeout: float | None = None) -> ControlStatus:
+        """Wait until command ``command_id`` ends; return DONE or raise why it did not."""
+        pending = self._pending.get(command_id)
+        if pending is None:
+            raise InputError(f"no command {command_id} is being tracked")
+        status = await asyncio.wait_for(asyncio.shield(pending.future), timeout)
+        if status != ControlStatus.DONE:
+            raise error_for(status, self._pending_reason(command_id))
+        return status
+
+    def stop(self) -> None:
+        """Request a jerk-limited stop now; commands posted before it never run."""
+        self.supervisor.request_stop()
+
+    async def wait_idle(self, timeout: float = 5.0) -> None:
+        """Wait until the loop holds still (after a stop or the end of a motion)."""
+        deadline = time.monotonic() + timeout
+        seen = self._cycles
+        while True:
+            rec = self._last_record
+            if rec is not None and self._cycles > seen and int(rec["mode"]) == int(Mode.IDLE):
+                return
+            if time.monotonic() > deadline:
+                raise MotionError(f"the robot did not come to rest within {timeout} s")
+            await asyncio.sleep(DRAIN_PERIOD)
+
+    # -- state ---------------------------------------------------------------------
+
+    def add_listener(self, callback: Callable[[np.ndarray], None]) -> None:
+        """Call ``callback(records)`` with every batch of :data:`STATE_DTYPE` records read."""
+        self._listeners.append(callback)
+
+    def last_record(self) -> np.void | None:
+        """The latest state record (:data:`~celld.motion.channels.STATE_DTYPE`), a copy."""
+        return None if self._last_record is None else self._last_record.copy()
+
+    def state(self) -> RobotState | None:
+        """The latest robot state read by the loop, or None before the first."""
+        rec = self._last_record
+        if rec is None:
+            return None
+        return RobotState(int(rec["t_ns"]), np.array(rec["q"]), np.array(rec["qd"]),
+                          from_ur_pose(rec["tcp_pose"]), np.array(rec["tcp_speed"]))
+
+    def health(self) -> Health:
+        """Link state and loop timing over the last :data:`STATS_WINDOW` cycles."""
+        sup = self.supervisor
+        st = sup.status()
+        rec = self._last_record
+        periods = np.concatenate(list(self._periods)) if self._periods else np.zeros(0, STATE_DTYPE)
+        err = np.abs(periods["period_ns"].astype(np.float64) - self._period_ns) * 1e-6
+        err = err[periods["period_ns"] > 0]
+        late = periods["late_ns"].astype(np.float64) * 1e-6
+
+        def pct(q: float) -> float:
+            return float(np.percentile(err, q)) if len(err) else math.nan
+
+        return Health(
+            link=sup.state.value,
+            pid=sup.pid,
+            realtime=bool(st["realtime"]),
+            cpu=int(st["cpu"]),
+            restarts=sup.restarts,
+            last_exit=sup.last_exit.reason if sup.last_exit else "",
+            cycles=self._cycles,
+            lost_records=self._lost,
+            period_error_p50_ms=pct(50),
+            period_error_p99_ms=pct(99),
+            period_error_p999_ms=pct(99.9),
+            period_error_max_ms=float(err.max()) if len(err) else math.nan,
+            late_max_ms=float(late.max()) if len(late) else math.nan,
+            late_over_1ms=int(np.count_nonzero(late > 1.0)),
+            overruns=int(rec["overruns"]) if rec is not None else 0,
+            tactile_torn=int(rec["tactile_torn"]) if rec is not None else 0,
+            heartbeat_age_ms=(time.monotonic() - self._last_record_t) * 1e3 if self._last_record_t else math.inf,
+        )
+
+    # -- draining ------------------------------------------------------------------
+
+    def _pending_reason(self, cid: int) -> str:
+        got = self._reasons.get(cid)
+        return got[1] if got else ""
+
+    async def _drain_forever(self) -> None:
+        while True:
+            self._drain()
+            await asyncio.sleep(DRAIN_PERIOD)
+
+    def _drain(self) -> None:
+        records, self._seq, lost = self.ch.state.read_since(self._seq)
+        self._lost += lost
+        # Events after the state: an event is written before the record that ends its command.
+        events, self._event_seq, _ = self.ch.events.read_since(self._event_seq)
+        for e in events:
+            cid = int(e["command_id"])
+            self._reasons[cid] = (ControlStatus(int(e["status"])), decode_reason(e["reason"]))
+        if len(records):
+            self._cycles += len(records)
+            self._last_record = records[-1].copy()
+            self._last_record_t = time.monotonic()
+            self._periods.append(records[["period_ns", "late_ns"]].copy())
+            self._period_count += len(records)
+            while self._period_count - len(self._periods[0]) >= STATS_WINDOW:
+                self._period_count -= len(self._periods.popleft())
+            for callback in self._listeners:
+                callback(records)
+        self._resolve(records)
+
+    def _resolve(self, records: np.ndarray) -> None:
+        if not self._pending:
+            return
+        ids = records["command_id"].astype(np.int64) if len(records) else np.zeros(0, np.int64)
+        for cid, pending in list(self._pending.items()):
+            if pending.future.done():
+                del self._pending[cid]
+                continue
+            status: ControlStatus | None = None
+            mine = ids == cid
+            if np.any(mine & (records["mode"] == int(Mode.IDLE))):
+                status = ControlStatus(int(records["status"][mine & (records["mode"] == int(Mode.IDLE))][0]))
+            elif np.any(ids > cid):
+                if cid not in self._reasons:
+                    self._reasons[cid] = (ControlStatus.STOPPED, f"superseded by command {int(ids[ids > cid][0])}")
+                status = self._reasons[cid][0]
+            elif cid in self._reasons and not np.any(mine) and self._reasons[cid][0] != ControlStatus.DONE:
+                # Refused or cancelled before it ever ran.
+                status = self._reasons[cid][0]
+            if status is not None:
+                pending.future.set_result(status)
+                del self._pending[cid]
+
+    def _fail_all(self, exc: CelldError) -> None:
+        for pending in self._pending.values():
+            if not pending.future.done():
+                pending.future.set_exception(exc)
+        self._pending.clear()
+
+    def _on_exit(self, end: ProcessExit) -> None:
+        self._drain()
+        self._stream_id = 0
+        exc = error_for(end.status if end.status != ControlStatus.OK else ControlStatus.LINK_LOST, end.reason)
+        self._fail_all(exc)

@@ -1,0 +1,278 @@
+"""The 500 Hz loop of the motion process: wait, read, step, send, record.
+
+Each cycle:
+
+1. wait for the deadline: sleep until ``spin`` (300 µs) before it, then spin,
+   so the wake-up does not depend on the timer slack of the kernel;
+2. check the link (``isConnected`` and the freshness of the state: ur-rtde's
+   return values do not say when the link is dead) and read the robot;
+3. read the latest tactile sample and streaming setpoint (seqlocks: a torn
+   read keeps the last good sample and is counted), the control slot (stop,
+   shutdown) and at most one command from the mailbox;
+4. step :class:`~celld.motion.core.MotionCore` and send what it says
+   (speedL, or a watchdog kick while it holds still);
+5. append one record to the state ring.
+
+Nothing in the cycle logs, waits on anything but the period, or grows a
+container; Python still creates small temporary objects, which is why the
+process runs with the garbage collector disabled. A lost link ends the loop
+with its reason; the supervisor restarts the process.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from celld.errors import InputError
+from celld.motion import so3
+from celld.motion.channels import CONTROL_DTYPE, EVENT_DTYPE, SETPOINT_DTYPE, STATE_DTYPE, Channels, encode_reason
+from celld.motion.commands import Command, decode
+from celld.motion.core import Action, CycleInput, Mode, MotionCore
+from celld.motion.safety import describe, robot_faults
+from celld.motion.types import ControlStatus, RobotState
+from celld.robot.link import RUNTIME_PLAYING, RobotPort
+from celld.tactile.sample import TACTILE_DTYPE, TactileSample, from_record
+
+_INF = float("inf")
+
+
+class LoopParams(NamedTuple):
+    """Timing and link bounds of the loop (nanoseconds where the clock is read)."""
+
+    period_ns: int
+    speed_accel: float  # speedL's own ramp, m/s^2 (and rad/s^2); above what the limiter uses
+    spin_ns: int = 300_000  # sleep to this long before the deadline, then spin
+    link_timeout_ns: int = 100_000_000  # no fresh robot state this long: the link is lost
+    program_grace_ns: int = 100_000_000  # the robot's program not running this long: exit
+
+
+class LoopExit(NamedTuple):
+    """Why the loop ended: OK on a shutdown, LINK_LOST or SAFETY otherwise."""
+
+    status: ControlStatus
+    reason: str
+
+
+class MotionLoop:
+    """Runs :class:`MotionCore` against a :class:`~celld.robot.link.RobotPort` (module docstring).
+
+    Parameters
+    ----------
+    port : RobotPort
+        The robot (ur-rtde in the cell).
+    core : MotionCore
+    channels : Channels
+        Attached shared-memory channels.
+    params : LoopParams
+    clock : callable returning int ns
+        ``time.monotonic_ns`` except in tests.
+    """
+
+    def __init__(
+        self,
+        port: RobotPort,
+        core: MotionCore,
+        channels: Channels,
+        params: LoopParams,
+        clock: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self.port = port
+        self.core = core
+        self.ch = channels
+        self.params = params
+        self.clock = clock
+        self.cycles = 0
+        self.overruns = 0
+        self._last_stamp = _INF
+        self._fresh_ns = clock()
+        self._not_playing_since = -1
+        self._prev_wake = 0
+        # Reused buffers: one record per channel, read into and written from.
+        self._rec = np.zeros(1, STATE_DTYPE)
+        self._evt = np.zeros(1, EVENT_DTYPE)
+        self._tac = np.zeros(1, TACTILE_DTYPE)
+        self._sp = np.zeros(1, SETPOINT_DTYPE)
+        self._ctl = np.zeros(1, CONTROL_DTYPE)
+        self._tactile: TactileSample | None = None
+        self._tactile_seq = -1
+        self._setpoint = np.zeros(6)
+        self._setpoint_t = 0
+        # A process starting after a restart must not act on what its predecessor left.
+        self.ch.control.read_into(self._ctl)
+        self._stop_epoch = int(self._ctl["stop_epoch"][0])
+        self._stop_posted = int(self._ctl["stop_posted"][0])
+        self._drain_stale_commands()
+
+    def _drain_stale_commands(self) -> None:
+        mb = self.ch.commands
+        while mb.pending():
+            cid = mb.taken + 1
+            mb.take()
+            self._event(cid, ControlStatus.STOPPED, "cancelled: the motion process restarted before running it")
+
+    def _event(self, command_id: int, status: ControlStatus, reason: str) -> None:
+        e = self._evt
+        e["t_ns"] = self.clock()
+        e["command_id"] = command_id
+        e["status"] = int(status)
+        e["reason"] = encode_reason(reason)
+        self.ch.events.append(e)
+
+    # -- waiting -------------------------------------------------------------
+
+    def wait_until(self, deadline_ns: int) -> int:
+        """Sleep to ``spin_ns`` before ``deadline_ns``, then spin; return the wake-up time."""
+        clock = self.clock
+        remaining = deadline_ns - clock() - self.params.spin_ns
+        if remaining > 0:
+            time.sleep(remaining * 1e-9)
+        now = clock()
+        while now < deadline_ns:
+            now = clock()
+        return now
+
+    def run(self, max_cycles: int = 0) -> LoopExit:
+        """Run until the link is lost, a shutdown completes, or ``max_cycles`` (0: no bound)."""
+        period = self.params.period_ns
+        deadline = self.clock() + period
+        while True:
+            t_wake = self.wait_until(deadline)
+            end = self.cycle(t_wake, deadline)
+            if end is not None:
+                return end
+            if max_cycles and self.cycles >= max_cycles:
+                return LoopExit(ControlStatus.OK, f"ran {max_cycles} cycles")
+            deadline += period
+            now = self.clock()
+            if now > deadline:
+                self.overruns += 1
+                if now > deadline + period:
+                    # More than a whole period behind: skip the missed deadlines, keep the phase.
+                    deadline += ((now - deadline) // period) * period
+
+    # -- one cycle -------------------------------------------------------------
+
+    def cycle(self, t_wake: int, deadline: int) -> LoopExit | None:
+        """One cycle at wake-up time ``t_wake`` (module docstring); a LoopExit ends the loop."""
+        p = self.params
+        port = self.port
+        if not port.connected():
+            return LoopExit(ControlStatus.LINK_LOST, "the RTDE link reports it is disconnected")
+        raw = port.read()
+        if raw.stamp != self._last_stamp:
+            self._last_stamp = raw.stamp
+            self._fresh_ns = t_wake
+        age_ns = t_wake - self._fresh_ns
+        if age_ns > p.link_timeout_ns:
+            return LoopExit(ControlStatus.LINK_LOST, f"no fresh robot state for {age_ns / 1e6:.0f} ms")
+        if raw.runtime_state != RUNTIME_PLAYING:
+            if self._not_playing_since < 0:
+                self._not_playing_since = t_wake
+            elif t_wake - self._not_playing_since > p.program_grace_ns:
+                faults = robot_faults(raw.safety_bits)
+                if faults:
+                    return LoopExit(ControlStatus.SAFETY, f"the robot program stopped: {describe(faults)}")
+                return LoopExit(
+                    ControlStatus.LINK_LOST, f"the robot program stopped (runtime state {raw.runtime_state})"
+                )
+        else:
+            self._not_playing_since = -1
+
+        pose = raw.tcp_pose
+        T = np.eye(4)
+        T[:3, :3] = so3.exp(pose[3:])
+        T[0, 3], T[1, 3], T[2, 3] = pose[0], pose[1], pose[2]
+        state = RobotState(t_wake, np.array(raw.q), np.array(raw.qd), T, np.array(raw.tcp_speed))
+
+        ch = self.ch
+        tactile_age = _INF
+        if ch.tactile.read_into(self._tac):
+            seq = int(self._tac["seq"][0])
+            if seq != self._tactile_seq:
+                self._tactile_seq = seq
+                self._tactile = from_record(self._tac[0])
+            tactile_age = (t_wake - int(self._tac["stamp_ns"][0])) * 1e-9
+        setpoint_age = _INF
+        if ch.setpoint.read_into(self._sp):
+            self._setpoint = self._sp["twist"][0]
+            setpoint_age = (t_wake - int(self._sp["t_ns"][0])) * 1e-9
+
+        stop = False
+        shutdown = False
+        if ch.control.read_into(self._ctl):
+            epoch = int(self._ctl["stop_epoch"][0])
+            if epoch != self._stop_epoch:
+                self._stop_epoch = epoch
+                self._stop_posted = int(self._ctl["stop_posted"][0])
+                stop = True
+            shutdown = bool(self._ctl["shutdown"][0])
+            stop = stop or shutdown
+
+        command: Command | None = None
+        command_error = ""
+        command_id = 0
+        mb = ch.commands
+        if mb.pending():
+            command_id = mb.taken + 1
+            payload = mb.take()
+            if command_id <= self._stop_posted:
+                self._event(command_id, ControlStatus.STOPPED, "cancelled by a stop request")
+                command_id = 0
+            elif shutdown:
+                self._event(command_id, ControlStatus.STOPPED, "cancelled: the motion process is shutting down")
+                command_id = 0
+            else:
+                try:
+                    command = decode(payload or b"")
+                except InputError as exc:
+                    command_error = str(exc)
+
+        out = self.core.step(
+            CycleInput(
+                state, age_ns * 1e-9, raw.safety_bits, self._tactile, tactile_age, self._setpoint, setpoint_age,
+                command, command_id, command_error, stop,
+            )
+        )
+        if out.action == Action.SPEED:
+            port.speed(out.twist.tolist(), p.speed_accel)
+        else:
+            port.kick()
+        t_sent = self.clock()
+
+        if out.event:
+            self._event(out.event_id, out.event_status, out.event)
+        self.cycles += 1
+        r = self._rec
+        r["cycle"] = self.cycles
+        r["t_ns"] = t_wake
+        r["late_ns"] = t_wake - deadline
+        r["period_ns"] = t_wake - self._prev_wake if self._prev_wake else 0
+        r["work_ns"] = t_sent - t_wake
+        r["robot_stamp"] = raw.stamp
+        r["state_age_ns"] = age_ns
+        r["q"] = raw.q
+        r["qd"] = raw.qd
+        r["tcp_pose"] = pose
+        r["tcp_speed"] = raw.tcp_speed
+        r["safety_bits"] = raw.safety_bits
+        r["runtime_state"] = raw.runtime_state
+        r["mode"] = int(out.mode)
+        r["action"] = int(out.action)
+        r["guarded"] = out.guarded
+        r["status"] = int(out.status)
+        r["faults"] = int(out.faults)
+        r["command_id"] = out.command_id
+        r["twist"] = out.twist
+        r["tactile_seq"] = self._tactile_seq
+        r["tactile_age_ns"] = int(tactile_age * 1e9) if tactile_age != _INF else -1
+        r["tactile_torn"] = ch.tactile.torn_count
+        r["overruns"] = self.overruns
+        ch.state.append(r)
+        self._prev_wake = t_wake
+
+        if shutdown and out.mode == Mode.IDLE:
+            return LoopExit(ControlStatus.OK, "shutdown requested")
+        return None

@@ -1,0 +1,209 @@
+"""The motion process: its entry point, real-time set-up and robot link construction.
+
+The supervisor starts :func:`main` in a fresh interpreter (multiprocessing's
+``spawn`` start method: a forked child of a threaded parent, or of one that
+imported ur-rtde, can deadlock). The process
+
+1. attaches to the shared-memory channels and reports ``CONNECTING``;
+2. constructs ur-rtde's control, receive and IO interfaces (they hold the GIL
+   while they wait, which is why they live here, under the supervisor's
+   connect timeout) and sets the RTDE watchdog;
+3. imports the servo laws it may be asked to run, so the loop never imports;
+4. raises itself to SCHED_FIFO, pins its loop thread to one CPU and locks its
+   memory where the OS allows it, and says once in the log when it does not;
+5. disables the garbage collector and runs the loop until the link is lost or
+   a shutdown completes, then reports why in the status slot and exits with
+   a code the supervisor reads (:data:`EXIT_CODES`).
+
+Only the thread that runs the loop is made real-time and pinned: ur-rtde's
+receive threads, created while connecting, keep the default policy.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import gc
+import importlib
+import os
+import sys
+import time
+from dataclasses import dataclass
+from typing import Mapping, NamedTuple
+
+import numpy as np
+
+from celld.errors import CelldError, LinkLost
+from celld.log import configure, get_logger
+from celld.motion.channels import STATUS_DTYPE, ChannelNames, Channels, Phase, encode_reason
+from celld.motion.core import CoreParams, MotionCore
+from celld.motion.loop import LoopExit, LoopParams, MotionLoop
+from celld.motion.types import ControlStatus, ServoFactory
+
+# Exit code of the process for each way the loop ends; anything else is a crash.
+EXIT_CODES = {
+    ControlStatus.OK: 0,
+    ControlStatus.LINK_LOST: 3,
+    ControlStatus.SAFETY: 4,
+    ControlStatus.FAULT: 5,
+}
+_MCL_CURRENT = 1
+_MCL_FUTURE = 2
+_PR_SET_TIMERSLACK = 29
+
+
+@dataclass(frozen=True)
+class RealtimeOptions:
+    """How the loop thread asks for real time."""
+
+    priority: int = 80  # SCHED_FIFO priority, 1..99
+    cpu: int = -1  # CPU to pin to; -1: the last CPU the process may use
+    lock_memory: bool = True  # mlockall, so the loop never waits on a page fault
+    enabled: bool = True  # False: run best effort without asking
+
+
+@dataclass(frozen=True)
+class MotionSpec:
+    """Everything the motion process needs; picklable, built by the supervisor."""
+
+    host: str
+    channels: ChannelNames
+    core: CoreParams
+    loop: LoopParams
+    frequency_hz: float = 500.0
+    watchdog_hz: float = 10.0  # the robot's program stops 1/watchdog_hz s after the writes stop
+    realtime: RealtimeOptions = RealtimeOptions()
+    # Servo laws this process can run: plan name -> "module:attribute" of a ServoFactory.
+    servo_laws: tuple[tuple[str, str], ...] = ()
+    log_level: str = "info"
+    log_json: bool = False
+
+
+class RealtimeReport(NamedTuple):
+    fifo: bool
+    cpu: int  # -1 when not pinned
+    memory_locked: bool
+    refused: str  # what the OS refused, "" when everything was granted
+
+
+def make_realtime(opts: RealtimeOptions) -> RealtimeReport:
+    """Pin the calling thread, raise it to SCHED_FIFO, lock memory; report what was granted."""
+    refused: list[str] = []
+    cpu = -1
+    fifo = False
+    locked = False
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    # Wake-ups of a SCHED_OTHER fallback get the kernel's default 50 µs slack otherwise.
+    libc.prctl(_PR_SET_TIMERSLACK, 1, 0, 0, 0)
+    if not opts.enabled:
+        return RealtimeReport(False, -1, False, "real time disabled by the options")
+    allowed = sorted(os.sched_getaffinity(0))
+    want = allowed[-1] if opts.cpu < 0 else opts.cpu
+    try:
+        os.sched_setaffinity(0, {want})
+        cpu = want
+    except OSError as exc:
+        refused.append(f"CPU affinity {want}: {exc.strerror}")
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(opts.priority))
+        fifo = True
+    except (OSError, PermissionError) as exc:
+        refused.append(f"SCHED_FIFO {opts.priority}: {exc.strerror or exc} (needs root, CAP_SYS_NICE or LimitRTPRIO)")
+    if opts.lock_memory:
+        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
+            locked = True
+        else:
+            refused.append(f"mlockall: {os.strerror(ctypes.get_errno())} (needs LimitMEMLOCK)")
+    return RealtimeReport(fifo, cpu, locked, "; ".join(refused))
+
+
+def load_factories(servo_laws: tuple[tuple[str, str], ...]) -> dict[str, ServoFactory]:
+    """Import each ``"module:attribute"`` servo factory; raise CelldError naming the one that fails."""
+    out: dict[str, ServoFactory] = {}
+    for name, path in servo_laws:
+        module, _, attr = path.partition(":")
+        try:
+            out[name] = getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError) as exc:
+            raise CelldError(f"servo law {name!r}: cannot import {path!r}: {exc}") from exc
+    return out
+
+
+def _report(ch: Channels, phase: Phase, rt: RealtimeReport | None = None, exit_status: ControlStatus = ControlStatus.OK,
+            reason: str = "") -> None:
+    rec = np.zeros(1, STATUS_DTYPE)
+    rec["phase"] = int(phase)
+    rec["pid"] = os.getpid()
+    rec["phase_ns"] = time.monotonic_ns()
+    rec["realtime"] = bool(rt.fifo) if rt else False
+    rec["cpu"] = rt.cpu if rt else -1
+    rec["exit_status"] = int(exit_status)
+    rec["reason"] = encode_reason(reason or (rt.refused if rt else ""))
+    ch.status.write(rec)
+
+
+def run(spec: MotionSpec, connect: object = None) -> LoopExit:
+    """Connect, set up and run the loop; return why it ended. ``connect`` replaces ur-rtde in tests."""
+    from celld.robot.link import RtdeLink
+
+    log = get_logger(__name__).bind(host=spec.host, pid=os.getpid())
+    ch = Channels.attach(spec.channels)
+    link = None
+    end: LoopExit | None = None
+    try:
+        _report(ch, Phase.CONNECTING)
+        try:
+            link = (connect or RtdeLink.connect)(spec.host, spec.frequency_hz)  # type: ignore[operator]
+        except LinkLost as exc:
+            log.warning("robot link not established", reason=str(exc))
+            end = LoopExit(ControlStatus.LINK_LOST, str(exc))
+            return end
+        factories = load_factories(spec.servo_laws)
+        core = MotionCore(spec.core, factories)
+        loop = MotionLoop(link, core, ch, spec.loop)
+        rt = make_realtime(spec.realtime)
+        if rt.refused:
+            log.warning("motion loop runs without full real-time privileges", refused=rt.refused,
+                        fifo=rt.fifo, cpu=rt.cpu, memory_locked=rt.memory_locked)
+        else:
+            log.info("motion loop real time", fifo_priority=spec.realtime.priority, cpu=rt.cpu)
+        _report(ch, Phase.RUNNING, rt)
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        try:
+            # Last, so the set-up above (mlockall can take a while) cannot outlast the watchdog.
+            link.set_watchdog(spec.watchdog_hz)
+            end = loop.run()
+        except LinkLost as exc:
+            end = LoopExit(ControlStatus.LINK_LOST, str(exc))
+        finally:
+            gc.enable()
+        log.info("motion loop ended", status=end.status.name, reason=end.reason, cycles=loop.cycles,
+                 overruns=loop.overruns)
+        return end
+    finally:
+        if link is not None:
+            # A graceful end stops the robot's program; otherwise the watchdog does.
+            link.close(stop_script=end is not None and end.status == ControlStatus.OK)
+        ch.close()
+
+
+def main(spec: MotionSpec) -> None:
+    """Process entry point (spawned by the supervisor); exits with :data:`EXIT_CODES`."""
+    configure(spec.log_level, json=spec.log_json)
+    ch = Channels.attach(spec.channels)
+    _report(ch, Phase.STARTING)
+    try:
+        end = run(spec)
+    except Exception as exc:  # report any crash to the supervisor before dying
+        end = LoopExit(ControlStatus.FAULT, f"motion process failed: {exc!r}")
+        get_logger(__name__).exception("motion process failed")
+    _report(ch, Phase.EXITED, None, end.status, end.reason)
+    ch.close()
+    sys.exit(EXIT_CODES.get(end.status, 5))
+
+
+def servo_laws_from(mapping: Mapping[str, str]) -> tuple[tuple[str, str], ...]:
+    """The picklable form of a ``{name: "module:attribute"}`` registry."""
+    return tuple(sorted(mapping.items()))

@@ -1,0 +1,58 @@
+"""A kinematic stand-in for the robot in unit tests of the pure motion code.
+
+It integrates the commanded TCP twist with a fixed latency of whole cycles,
+the way speedL on a controller applies the last command it received. It is
+no simulated controller (that is :mod:`celld.sim.robot`); it only lets the
+core's logic be stepped deterministically.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from celld.motion.core import Action, CycleInput, CycleOutput, MotionCore
+from celld.motion.types import RobotState
+
+
+class KinematicPlant:
+    def __init__(self, T_base_tcp: np.ndarray, period: float, latency_cycles: int = 2) -> None:
+        self.T = np.array(T_base_tcp, dtype=np.float64)
+        self.period = period
+        self.v = np.zeros(6)
+        self._pending: deque[np.ndarray] = deque([np.zeros(6)] * latency_cycles)
+        self.stamp_ns = 0
+
+    def apply(self, out: CycleOutput) -> None:
+        if out.action == Action.SPEED:
+            cmd = out.twist.copy()
+        else:
+            cmd = self._pending[-1].copy() if self._pending else np.zeros(6)
+        self._pending.append(cmd)
+        self.v = self._pending.popleft()
+        self.T[:3, 3] += self.v[:3] * self.period
+        self.T[:3, :3] = Rotation.from_rotvec(self.v[3:] * self.period).as_matrix() @ self.T[:3, :3]
+        self.stamp_ns += int(self.period * 1e9)
+
+    def state(self) -> RobotState:
+        return RobotState(self.stamp_ns, np.zeros(6), np.zeros(6), self.T.copy(), self.v.copy())
+
+    def cycle_input(self, **kw) -> CycleInput:
+        base = dict(
+            state=self.state(), state_age=0.0, safety_bits=1, tactile=None, tactile_age=float("inf"),
+            setpoint=np.zeros(6), setpoint_age=float("inf"),
+        )
+        base.update(kw)
+        return CycleInput(**base)
+
+
+def run(core: MotionCore, plant: KinematicPlant, cycles: int, **kw) -> list[CycleOutput]:
+    """Step core and plant together; keyword arguments go into the first cycle's input."""
+    outs = []
+    for k in range(cycles):
+        out = core.step(plant.cycle_input(**(kw if k == 0 else {})))
+        plant.apply(out)
+        outs.append(out)
+    return outs

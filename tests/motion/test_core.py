@@ -1,0 +1,226 @@
+"""The per-cycle state machine: moves, streaming, stops, faults and refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from celld.config import MotionLimits
+from celld.motion.commands import move_to, start_servo, stream
+from celld.motion.core import Action, CoreParams, Mode, MotionCore
+from celld.motion.limits import CartesianLimits, sequence_peaks
+from celld.motion.safety import Fault
+from celld.motion.types import ControlStatus, RobotState, ServoInput, ServoPlan
+from celld.se3 import error, from_ur_pose
+from celld.tactile.sample import ContactState, TactileSample
+from tests.motion.plant import KinematicPlant, run
+
+LIMITS = CartesianLimits.from_config(MotionLimits())
+PERIOD = 0.002
+T0 = from_ur_pose([0.5, 0.1, 0.4, 3.1, 0.1, 0.0])
+# UR safety_status_bits: normal mode; protective stop.
+NORMAL = 1
+PROTECTIVE = 1 << 2
+
+
+def _core() -> MotionCore:
+    params = CoreParams(LIMITS, PERIOD, (-1.0, -1.0, 0.02), (1.0, 1.0, 1.2), state_stale=3 * PERIOD,
+                        tactile_stale=0.1)
+    return MotionCore(params)
+
+
+def _peaks_ok(outs) -> bool:
+    tw = np.array([o.twist for o in outs])
+    return max(sequence_peaks(tw, PERIOD, initial=np.zeros((2, 6))).ratios(LIMITS)) <= 1 + 1e-6
+
+
+def test_move_arrives_within_tolerance_straight_and_within_limits() -> None:
+    core = _core()
+    plant = KinematicPlant(T0, PERIOD, latency_cycles=2)
+    goal = from_ur_pose([0.3, -0.2, 0.5, 2.9, 0.3, 0.2])
+    outs = run(core, plant, 1600, command=move_to(goal), command_id=1)
+    idle = [i for i, o in enumerate(outs) if o.mode == Mode.IDLE]
+    assert idle, "the move never ended"
+    assert outs[idle[0]].status == ControlStatus.DONE and outs[idle[0]].command_id == 1
+    dt, dr = error(plant.T, goal)
+    assert dt < 1e-4 and dr < 1e-3
+    assert _peaks_ok(outs)
+    # Straight: the TCP never strays from the segment start-goal by more than a millimetre.
+    p0, p1 = T0[:3, 3], goal[:3, 3]
+    u = (p1 - p0) / np.linalg.norm(p1 - p0)
+    # Re-run to sample the path.
+    core, plant = _core(), KinematicPlant(T0, PERIOD, latency_cycles=2)
+    worst = 0.0
+    for k in range(idle[0]):
+        out = core.step(plant.cycle_input(**({"command": move_to(goal), "command_id": 1} if k == 0 else {})))
+        plant.apply(out)
+        d = plant.T[:3, 3] - p0
+        worst = max(worst, float(np.linalg.norm(d - (d @ u) * u)))
+    assert worst < 1e-3
+    # After the end only watchdog kicks are sent.
+    assert all(o.action == Action.KICK for o in outs[idle[0] + 1 :])
+
+
+def test_stop_request_ramps_to_rest_jerk_limited_and_cancels_nothing_else() -> None:
+    core = _core()
+    plant = KinematicPlant(T0, PERIOD)
+    setpoint = np.array([0.2, 0.0, 0.1, 0.0, 0.0, 0.5])
+    outs = []
+    for k in range(600):
+        inp = plant.cycle_input(setpoint=setpoint, setpoint_age=0.0,
+                                **({"command": stream(), "command_id": 7} if k == 0 else {}), stop=(k == 250))
+        out = core.step(inp)
+        plant.apply(out)
+        outs.append(out)
+    assert outs[249].mode == Mode.ACTIVE and np.linalg.norm(outs[249].twist[:3]) > 0.2
+    stops = [o for o in outs[250:] if o.mode == Mode.IDLE]
+    assert stops and stops[0].status == ControlStatus.STOPPED and stops[0].command_id == 7
+    first_idle = next(i for i, o in enumerate(outs) if i > 250 and o.mode == Mode.IDLE)
+    np.testing.assert_array_equal(outs[first_idle].twist, np.zeros(6))
+    assert _peaks_ok(outs)
+
+
+def test_streaming_dead_man_brings_the_robot_to_rest_and_holds() -> None:
+    core = _core()
+    plant = KinematicPlant(T0, PERIOD)
+    outs = run(core, plant, 50, command=stream(timeout=0.05), command_id=1,
+               setpoint=np.array([0.1, 0, 0, 0, 0, 0]), setpoint_age=0.0)
+    # After the first cycle the setpoint is "never written" (age inf): the twist ramps to zero.
+    assert all(o.mode == Mode.ACTIVE for o in outs)
+    assert outs[-1].status == ControlStatus.HOLD
+    assert np.linalg.norm(outs[-1].twist) < 1e-9
+
+
+def test_protective_stop_ends_the_motion_at_once_and_refuses_new_commands() -> None:
+    core = _core()
+    plant = KinematicPlant(T0, PERIOD)
+    goal = T0.copy()
+    goal[:3, 3] += [0.2, 0.0, 0.0]
+    run(core, plant, 100, command=move_to(goal), command_id=3)
+    out = core.step(plant.cycle_input(safety_bits=PROTECTIVE))
+    assert out.mode == Mode.IDLE and out.action == Action.KICK and out.status == ControlStatus.SAFETY
+    assert out.faults & Fault.PROTECTIVE_STOP
+    assert out.event_id == 3 and "protective stop" in out.event
+    out = core.step(plant.cycle_input(safety_bits=PROTECTIVE, command=move_to(goal), command_id=4))
+    assert out.event_id == 4 and out.event_status == ControlStatus.SAFETY and out.action == Action.KICK
+
+
+def test_stale_robot_state_stops_the_motion() -> None:
+    core = _core()
+    plant = KinematicPlant(T0, PERIOD)
+    goal = T0.copy()
+    goal[:3, 3] += [0.2, 0.0, 0.0]
+    run(core, plant, 200, command=move_to(goal), command_id=1)
+    outs = [core.step(plant.cycle_input(state_age=4 * PERIOD))]
+    assert outs[0].mode == Mode.STOPPING and outs[0].status == ControlStatus.STALE_STATE
+    for _ in range(300):
+        outs.append(core.step(plant.cycle_input(state_age=0.0)))
+    assert outs[-1].mode == Mode.IDLE and outs[-1].status == ControlStatus.STALE_STATE
+    assert "stale" in next(o.event for o in outs if o.event)
+    # A new command is refused while the state is stale.
+    out = core.step(plant.cycle_input(state_age=1.0, command=move_to(goal), command_id=2))
+    assert out.event_id == 2 and out.event_status == ControlStatus.STALE_STATE
+
+
+def test_streaming_towards_a_wall_stops_inside_the_workspace() -> None:
+    core = _core()
+    start = T0.copy()
+    start[:3, 3] = [0.9, 0.0, 0.5]  # 0.1 m from x = 1.0
+    plant = KinematicPlant(start, PERIOD)
+    twist = np.array([0.25, 0.0, 0.0, 0.0, 0.0, 0.0])
+    outs = []
+    for k in range(800):
+        out = core.step(plant.cycle_input(setpoint=twist, setpoint_age=0.0,
+                                          **({"command": stream(), "command_id": 1} if k == 0 else {})))
+        plant.apply(out)
+        outs.append(out)
+    assert outs[-1].mode == Mode.IDLE and outs[-1].status == ControlStatus.WORKSPACE
+    assert plant.T[0, 3] <= 1.0
+    assert _peaks_ok(outs)
+    # Moving back in from there is allowed.
+    back = core.step(plant.cycle_input(setpoint=-twist, setpoint_age=0.0, command=stream(), command_id=2))
+    assert back.mode == Mode.ACTIVE
+
+
+def test_commands_that_cannot_run_are_refused_with_a_reason() -> None:
+    core = _core()
+    plant = KinematicPlant(T0, PERIOD)
+    outside = T0.copy()
+    outside[:3, 3] = [1.5, 0.0, 0.4]
+    out = core.step(plant.cycle_input(command=move_to(outside), command_id=5))
+    assert out.event_id == 5 and out.event_status == ControlStatus.WORKSPACE and "workspace" in out.event
+    out = core.step(plant.cycle_input(command_error="command: bad magic", command_id=6))
+    assert out.event_status == ControlStatus.BAD_COMMAND and out.mode == Mode.IDLE
+    plan = ServoPlan("nope", {"P_base": np.zeros((3, 3))}, {})
+    out = core.step(plant.cycle_input(command=start_servo(plan), command_id=7))
+    assert out.event_status == ControlStatus.BAD_COMMAND and "no servo law registered" in out.event
+
+
+def test_a_new_command_takes_over_smoothly() -> None:
+    core = _core()
+    plant = KinematicPlant(T0, PERIOD)
+    g1, g2 = T0.copy(), T0.copy()
+    g1[:3, 3] += [0.3, 0.0, 0.0]
+    g2[:3, 3] += [0.0, 0.2, 0.0]
+    outs = run(core, plant, 200, command=move_to(g1), command_id=1)
+    outs += run(core, plant, 1500, command=move_to(g2), command_id=2)
+    assert outs[-1].command_id == 2 and outs[-1].status == ControlStatus.DONE
+    assert _peaks_ok(outs)
+    assert error(plant.T, g2)[0] < 1e-4
+
+
+class _Law:
+    """A stand-in servo law: moves along +y until the tactile sample says overload."""
+
+    def __init__(self, plan: ServoPlan) -> None:
+        self.speed = float(plan.params["speed"])
+        self.started: RobotState | None = None
+
+    def start(self, state: RobotState) -> None:
+        self.started = state
+
+    def step(self, inp: ServoInput) -> tuple[np.ndarray, ControlStatus]:
+        if inp.tactile is not None and inp.tactile.contact == ContactState.OVERLOAD:
+            return np.zeros(6), ControlStatus.OVERLOAD
+        return np.array([0.0, self.speed, 0.0, 0.0, 0.0, 0.0]), ControlStatus.OK
+
+
+def _sample(contact: ContactState) -> TactileSample:
+    return TactileSample(0, 1, np.zeros(3), contact, 1.0, True, 0)
+
+
+def test_servo_slot_runs_a_registered_law_and_stops_on_its_fault_or_stale_tactile() -> None:
+    core = MotionCore(_core().params, {"test": _Law})
+    plant = KinematicPlant(T0, PERIOD)
+    plan = ServoPlan("test", {"P_base": np.zeros((2, 3))}, {"speed": 0.01})
+    ok = _sample(ContactState.CONTACT)
+    outs = run(core, plant, 300, command=start_servo(plan), command_id=1, tactile=ok, tactile_age=0.0)
+    # Only the first cycle had a fresh sample: the rest are "never written" (inf) -> stale.
+    assert outs[-1].status == ControlStatus.STALE_TACTILE and outs[-1].mode == Mode.IDLE
+
+    core = MotionCore(_core().params, {"test": _Law})
+    plant = KinematicPlant(T0, PERIOD)
+    outs = []
+    for k in range(300):
+        sample = _sample(ContactState.OVERLOAD if k >= 150 else ContactState.CONTACT)
+        out = core.step(plant.cycle_input(tactile=sample, tactile_age=0.01,
+                                          **({"command": start_servo(plan), "command_id": 2} if k == 0 else {})))
+        plant.apply(out)
+        outs.append(out)
+    assert outs[149].mode == Mode.ACTIVE and outs[149].twist[1] == pytest.approx(0.01)
+    assert outs[-1].mode == Mode.IDLE and outs[-1].status == ControlStatus.OVERLOAD
+    assert _peaks_ok(outs)
+
+
+def test_a_law_that_raises_is_a_fault_not_a_crash() -> None:
+    class Broken(_Law):
+        def step(self, inp: ServoInput) -> tuple[np.ndarray, ControlStatus]:
+            raise ZeroDivisionError("boom")
+
+    core = MotionCore(_core().params, {"broken": Broken})
+    plant = KinematicPlant(T0, PERIOD)
+    plan = ServoPlan("broken", {}, {"speed": 0.01})
+    outs = run(core, plant, 5, command=start_servo(plan), command_id=1, tactile=_sample(ContactState.CONTACT),
+               tactile_age=0.0)
+    assert outs[-1].mode == Mode.IDLE and outs[-1].status == ControlStatus.FAULT
+    assert any("boom" in o.event for o in outs)
