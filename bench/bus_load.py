@@ -45,7 +45,6 @@ from typing import Any
 import numpy as np
 
 from celld import config
-from celld.bus import schema
 from celld.bus.client import CellClient
 from celld.bus.session import open_client
 

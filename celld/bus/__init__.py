@@ -1,0 +1,16 @@
+"""The cell's zenoh bus: jobs in, replies, progress and state out.
+
+- :mod:`celld.bus.schema`: the JSON Schema of every message (as data), the
+  validator that turns request bytes into frozen job values, and the export.
+- :mod:`celld.bus.checker`: the small JSON Schema checker behind it.
+- :mod:`celld.bus.keys`: key expressions under ``<prefix>/<cell>/``.
+- :mod:`celld.bus.session`: zenoh configs from :class:`~celld.config.BusConfig`
+  (modes, endpoints, scouting, user/password, ACL roles) and opening sessions.
+- :mod:`celld.bus.server`: :class:`~celld.bus.server.BusServer`, the queryables,
+  publications and liveliness token of one cell; the daemon's handler interface.
+- :mod:`celld.bus.client`: :class:`~celld.bus.client.CellClient` and
+  :func:`~celld.bus.client.discover_cells`.
+- :mod:`celld.bus.cli`: ``celld submit | status | jobs | cancel | accept | bus schema``.
+- :mod:`celld.bus.dummy`: a device-less cell behind the same interface, for
+  tests and the bus benchmark.
+"""

@@ -183,6 +183,7 @@ class BusServer:
         self._publishers: dict[str, Any] = {}
         self._decimators = {"robot": _Decimator(state_rate_hz), "tactile": _Decimator(state_rate_hz)}
         self._seq: dict[str, int] = {}
+        self._warned: set[str] = set()
         self._closing = False
 
     # -- life cycle --------------------------------------------------------------
@@ -249,9 +250,13 @@ class BusServer:
 
         return on_query
 
-    def _enqueue(self, name: str, query: zenoh.Query) -> None:
+    def _count(self, counter: str) -> None:
+        # Counters move on zenoh's threads and on the loop.
         with self._lock:
-            self.stats.requests += 1
+            setattr(self.stats, counter, getattr(self.stats, counter) + 1)
+
+    def _enqueue(self, name: str, query: zenoh.Query) -> None:
+        self._count("requests")
         payload = query.payload
         if payload is not None and len(payload) > schema.MAX_PAYLOAD_BYTES:
             self._reply_now(name, query, schema.error_reply("$", f"expected at most {schema.MAX_PAYLOAD_BYTES} bytes, got {len(payload)}"))
@@ -262,7 +267,7 @@ class BusServer:
             if not busy:
                 self._pending += 1
         if busy:
-            self.stats.busy += 1
+            self._count("busy")
             reason = "the cell is shutting down" if self._closing else f"busy: {self.max_pending} requests in flight, try again"
             self._reply_now(name, query, schema.error_reply("", reason))
             return
@@ -276,6 +281,10 @@ class BusServer:
             self._reply_now(name, query, schema.error_reply("", "the cell is shutting down"))
 
     def _spawn(self, name: str, query: zenoh.Query, raw: bytes) -> None:
+        if self._closing:  # close() began after this request was handed over
+            self._release()
+            self._reply_now(name, query, schema.error_reply("", "the cell is shutting down"))
+            return
         task = asyncio.get_running_loop().create_task(self._answer(name, query, raw))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
@@ -313,29 +322,29 @@ class BusServer:
         except CelldError as exc:
             return schema.error_reply("", str(exc))
         except asyncio.TimeoutError:
-            self.stats.timeouts += 1
+            self._count("timeouts")
             return schema.error_reply("", f"no answer within {self.reply_timeout:g} s; the request may still take effect (ask status)")
         except asyncio.CancelledError:
             raise
         except Exception:
-            self.stats.internal_errors += 1
+            self._count("internal_errors")
             log.exception("bus handler failed", request=name)
             return schema.error_reply("", f"internal error while handling {name}")
 
     def _reply_now(self, name: str, query: zenoh.Query, reply: Mapping[str, Any]) -> None:
         if reply.get("ok") is not True:
-            self.stats.refused += 1
+            self._count("refused")
         try:
             payload = schema.encode(reply)
         except (TypeError, ValueError) as exc:
-            self.stats.internal_errors += 1
+            self._count("internal_errors")
             log.error("bus reply not encodable", error=str(exc))
             payload = schema.encode(schema.error_reply("", "internal error: the reply was not valid JSON"))
         try:
             # The queryable's own key: a query may have come in on a wildcard.
             query.reply(self.keys.query(name), payload, encoding=_JSON)
         except zenoh.ZError as exc:
-            self.stats.reply_failures += 1
+            self._count("reply_failures")
             log.debug("bus reply failed", error=str(exc))
         finally:
             query.drop()  # sends the final message: the client stops waiting
@@ -383,7 +392,7 @@ class BusServer:
 
     def _publish_state(self, stream: str, state: Mapping[str, Any], now_ns: int | None) -> bool:
         if not self._decimators[stream].admit(time.monotonic_ns() if now_ns is None else now_ns):
-            self.stats.decimated += 1
+            self._count("decimated")
             return False
         publisher = self._publishers.get(stream)
         if publisher is None:
@@ -391,9 +400,11 @@ class BusServer:
         try:
             publisher.put(schema.encode(state))
         except (TypeError, ValueError, zenoh.ZError) as exc:
-            log.warning("state not published", stream=stream, error=str(exc))
+            if stream not in self._warned:  # once per stream: samples come at the state rate
+                self._warned.add(stream)
+                log.warning("state not published", stream=stream, error=str(exc))
             return False
-        self.stats.published += 1
+        self._count("published")
         return True
 
     def _put(self, key: str, message: Mapping[str, Any]) -> bool:
@@ -404,5 +415,5 @@ class BusServer:
         except (TypeError, ValueError, zenoh.ZError) as exc:
             log.warning("event not published", key=key, error=str(exc))
             return False
-        self.stats.published += 1
+        self._count("published")
         return True
