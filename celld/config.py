@@ -375,11 +375,11 @@ class TactileConfig:
     k_p: float = 5.0  # 1/s, normal gain of Eq. 16
     v_const: float = 0.010  # m/s, tangential speed
     torch_offset: float = 0.03  # m, |d| of Eq. 14
-    k_torch: float = 1.0  # 1/s, torch lateral gain added to Eq. 18 (0: the paper's law)
+    k_torch: float = 2.0  # 1/s, torch lateral gain added to Eq. 18 (0: the paper's law)
     max_correction_speed: float = 0.01  # m/s, bound of the normal correction of Eq. 16
     omega_max: float = 0.5  # rad/s, bound of line 13
     guard_cos: float = 0.25  # |n_d . n_t| below which line 13 is damped
-    plan_smoothing: float = 0.006  # m, window of the planned path's smoothing
+    plan_smoothing: float = 0.012  # m, window of the planned path's smoothing
     refine_window: float = 0.002  # m, chord of the refined path's tangent
     contact_threshold: float = 0.0003  # m
     overload: float = 0.004  # m

@@ -1,0 +1,792 @@
+"""Algorithm 2 of the paper: seam tracking by soft touch, as a servo law of the motion loop.
+
+The law works in the paper's plane (Fig. 8): the welding plane of the plan,
+embedded in 3D by ``T_base_plane`` (z is the plane normal, pointing away from
+the work, along the finger). Points and vectors below are 2D plane
+coordinates, SI units. The tool (:mod:`celld.tactile.tool`) gives
+
+- ``P_r``: the undeformed SRM tip, origin of the tool frame;
+- ``t_d``, ``n_d``: the tool's x and y axes in the plane (line 4);
+- ``P_t = P_r - |d| t_d``: the torch (Eq. 14, line 9);
+- ``delta``: the deformation of Eq. 15, ``P_r = P_s + delta``, from the sample.
+
+Each cycle (500 Hz) the law runs lines 3-14:
+
+- SERVO (lines 21-26, Eq. 16): nearest planned point ``P_v`` to ``P_r``, its
+  tangent ``t_v`` and normal ``n_v``, ``V_r = V_const t_v - k_p (delta_n -
+  delta_d) n_v``. ``delta_d`` is signed by the side of the wall; the normal
+  deformation is predicted to the current cycle from the TCP's motion since
+  the frame was captured (the wall does not move), so the camera's latency
+  does not enter the loop.
+- REFINE (lines 16-20, Eq. 15): each new sample in contact adds the tip
+  position ``P_s = P_r - delta`` (with ``P_r`` and ``t_d`` of the frame's
+  capture time) to the refined path, moved by the tip radius onto the wall.
+- Torch, nearest refined point, ``omega`` (lines 9-13, Eq. 17-18): ``omega``
+  makes the torch's velocity normal to the refined path vanish.
+
+Departures from the paper, each for a reason stated where it is coded:
+
+1. Sign of ``omega``. With ``omega`` counter-clockwise about the plane normal
+   and the torch behind the tip, the torch moves with ``V_r - omega |d| n_d``,
+   so Eq. 18 gives ``omega = +(V_r . n_t) / (|d| n_d . n_t)``. The paper's
+   line 13 carries a minus sign (its Eq. 17 writes ``+ omega |d| n_d``) and
+   ``V_r^{n_d} . t_t`` where Eq. 18 has ``. n_t``; we follow Eq. 18.
+2. Torch feedback. Eq. 18 only keeps the torch parallel to the refined path;
+   a lateral error of the torch would never shrink. We ask for
+   ``V_t . n_t = -k_torch e`` with ``e`` the torch's signed distance to the
+   refined path (``k_torch = 0`` is the paper's law).
+3. Singularity guard (paper 5.2). Where ``c = |d| n_d . n_t`` falls below
+   ``eps = |d| guard_cos`` line 13 is damped: ``omega = N c / eps^2`` (the
+   variable-damping inverse ``N c / (c^2 + lambda^2)`` with ``lambda^2 =
+   eps^2 - c^2``), continuous at ``|c| = eps``, zero at ``c = 0``. Then
+   ``|omega| <= omega_max`` always; a non-finite input gives 0.
+4. Contact loss. The paper reset delta_d to 0 and saw jitter. Here no
+   reference ever jumps: the last correction is kept and the tool goes on
+   along the last tangent for at most ``search_distance``; contact back
+   resumes tracking, otherwise the law reports ``CONTACT_LOST`` and the loop
+   stops on a jerk-limited ramp. Near the end of the plan a loss is the end of
+   the seam: the tip goes on until the torch reaches the end of the refined
+   path, then the law reports ``DONE``.
+5. Approach. Before tracking, the tool moves along the planned normal towards
+   the wall at ``touch_speed`` until the deformation settles at ``delta_d``.
+
+Pure: the state, samples and plan come in as values; no clock, no I/O. The
+law allocates its buffers when built, not in the loop.
+"""
+
+from __future__ import annotations
+
+import math
+from enum import IntEnum
+from typing import Any, NamedTuple
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from celld.config import MotionLimits, TactileConfig
+from celld.errors import InputError
+from celld.motion.types import ControlStatus, RobotState, ServoInput, ServoPlan
+from celld.se3 import check_points, check_transform
+from celld.tactile.sample import ContactState, TactileSample, TactileStatus
+from celld.tactile.tool import ToolGeometry
+
+Array = np.ndarray
+
+NAME = "algorithm2"
+# Resampling step of the planned path, m.
+PLAN_SPACING = 0.0005
+# Search window for the nearest planned point, either side of the last one, m.
+_PLAN_WINDOW = 0.02
+# Least spacing of refined points, m: a tip standing still adds nothing.
+_REFINED_STEP = 0.0001
+# Search window for the nearest refined point behind/ahead of the last one, points.
+_REFINED_WINDOW = 200
+# Cycles of TCP history kept to place a sample at its capture time.
+_HISTORY = 512
+# Touching is done when |delta_n - delta_d| < this share of delta_d.
+_TOUCHED = 0.2
+# Time constant of the correction kept for a contact loss, s, and the band of
+# |delta_n - delta_d| (share of delta_d) within which the correction counts as
+# steady tracking (a fading contact pulls hard towards the wall: not kept).
+_KEEP_TAU = 0.3
+_KEEP_BAND = 0.5
+# Bound of the torch error fed back, m: a larger one is a fault of the plan, not a correction.
+_E_MAX = 0.003
+# Largest angle between the finger axis and the plane normal accepted at start, rad.
+_MAX_TILT = math.radians(30.0)
+# Plans whose second principal extent is below this share of the first are straight.
+_STRAIGHT = 0.02
+_ZERO6 = np.zeros(6)
+
+
+# -- the lines of Algorithm 2, one pure function each ---------------------------
+
+
+def torch_position(P_r: Array, t_d: Array, d: float) -> Array:
+    """Line 9, Eq. 14: the torch ``P_t = P_r - |d| t_d`` (2,)."""
+    return P_r - d * t_d
+
+
+def servo_velocity(
+    t_v: Array, n_v: Array, v_const: float, delta_n: float, delta_d: float, k_p: float, max_correction: float
+) -> Array:
+    """Line 24, Eq. 16: ``V_r = V_const t_v - k_p (delta_n - delta_d) n_v`` (2,).
+
+    The normal correction is bounded by ``max_correction`` (m/s), as a seam
+    tracker bounds its correction rate.
+    """
+    correction = min(max(-k_p * (delta_n - delta_d), -max_correction), max_correction)
+    return v_const * t_v + correction * n_v
+
+
+def deformation_in_plane(delta_tool: Array, t_d: Array, n_d: Array) -> Array:
+    """The sample's in-plane deformation as a plane vector (2,): ``delta_t t_d + delta_n n_d``."""
+    return float(delta_tool[0]) * t_d + float(delta_tool[1]) * n_d
+
+
+def refine_point(P_r: Array, delta: Array, t_s: Array, n_s: Array) -> Array:
+    """Line 17, Eq. 15: ``P_s = (P_r . n_s - delta^{n_s}) n_s + (P_r . t_s - delta^{t_s}) t_s`` (2,).
+
+    ``delta`` (2,) is the in-plane deformation vector; ``t_s``, ``n_s`` the
+    path's axes at the tip.
+    """
+    return (float(P_r @ n_s) - float(delta @ n_s)) * n_s + (float(P_r @ t_s) - float(delta @ t_s)) * t_s
+
+
+def omega_line13(
+    V_r: Array,
+    t_d: Array,
+    n_d: Array,
+    n_t: Array,
+    d: float,
+    e: float,
+    k_torch: float,
+    guard_cos: float,
+    omega_max: float,
+) -> tuple[float, bool]:
+    """Lines 12-13, Eq. 17-18: the angular velocity that keeps the torch on the refined path.
+
+    Parameters
+    ----------
+    V_r : (2,)
+        Linear velocity of P_r, m/s.
+    t_d, n_d : (2,)
+        Tool axes.
+    n_t : (2,)
+        Normal of the refined path at the torch's nearest point.
+    d : float
+        ``|d|``, m.
+    e : float
+        Signed lateral error of the torch along ``n_t``, m (departure 2).
+    k_torch, guard_cos, omega_max : float
+
+    Returns
+    -------
+    omega : float
+        rad/s, counter-clockwise about the plane normal (departure 1), bounded
+        by ``omega_max`` for every input.
+    guarded : bool
+        The guard damped or clamped omega, or refused a non-finite input.
+    """
+    # Line 12: V_r projected along n_d and t_d.
+    V_nd = float(V_r @ n_d) * n_d
+    V_td = float(V_r @ t_d) * t_d
+    # Eq. 18 with the torch feedback: (V_r^{t_d} + V_r^{n_d}) . n_t + k e = omega c.
+    N = float(V_td @ n_t) + float(V_nd @ n_t) + k_torch * min(max(e, -_E_MAX), _E_MAX)
+    c = d * float(n_d @ n_t)
+    eps = d * guard_cos
+    if not (math.isfinite(N) and math.isfinite(c)) or eps <= 0.0:
+        return 0.0, True
+    guarded = abs(c) < eps
+    # Line 13, damped inside the guard band (departure 3).
+    omega = N * c / (eps * eps) if guarded else N / c
+    if omega > omega_max:
+        return omega_max, True
+    if omega < -omega_max:
+        return -omega_max, True
+    return omega, guarded
+
+
+def nearest_on_polyline(P: Array, q: Array, lo: int, hi: int) -> tuple[int, float, float]:
+    """Nearest point to ``q`` on the segments ``P[lo:hi]`` (lines 10, 22).
+
+    Returns the segment index ``i``, the fraction ``u`` in [0, 1] along it,
+    and the distance. The caller's window keeps the search local, so a path
+    that comes back near itself is not mistaken for its other pass.
+    """
+    lo = max(lo, 0)
+    hi = min(hi, len(P))
+    if hi - lo < 2:
+        return lo, 0.0, float(np.linalg.norm(P[lo] - q))
+    a = P[lo : hi - 1]
+    ab = P[lo + 1 : hi] - a
+    L2 = np.einsum("ij,ij->i", ab, ab)
+    L2 = np.where(L2 > 0.0, L2, 1e-30)
+    u = np.clip(np.einsum("ij,ij->i", q - a, ab) / L2, 0.0, 1.0)
+    X = a + u[:, None] * ab
+    d2 = np.einsum("ij,ij->i", X - q, X - q)
+    k = int(np.argmin(d2))
+    return lo + k, float(u[k]), math.sqrt(float(d2[k]))
+
+
+def _unit(v: Array) -> Array:
+    n = float(np.hypot(v[0], v[1]))
+    return v / n if n > 0.0 else np.array([1.0, 0.0])
+
+
+def _left(t: Array) -> Array:
+    return np.array([-t[1], t[0]])
+
+
+# -- the plan ------------------------------------------------------------------
+
+
+class PlannedPath(NamedTuple):
+    """The planned seam in the plane, resampled and smoothed.
+
+    ``P`` (m, 2) points, ``T`` (m, 2) unit tangents, ``N`` (m, 2) left normals,
+    ``s`` (m,) arc length; ``T_base_plane`` (4, 4) embeds the plane.
+    """
+
+    T_base_plane: Array
+    P: Array
+    T: Array
+    N: Array
+    s: Array
+
+
+def welding_plane(P_base: Array, normal_hint: Array) -> Array:
+    """The welding plane of a planned path, ``T_base_plane`` (4, 4).
+
+    The plane is fitted to the points; a straight path (or one that bends too
+    little to fix a plane) gets the plane through it whose normal is nearest
+    to ``normal_hint``. The normal points along the hint (away from the work,
+    along the finger), x runs from the first point towards the last, the
+    origin is the first point.
+    """
+    P = check_points(P_base, "P_base", min_points=2)
+    hint = np.asarray(normal_hint, dtype=np.float64)
+    hint = hint / np.linalg.norm(hint)
+    _, sv, Vt = np.linalg.svd(P - P.mean(axis=0), full_matrices=False)
+    if len(sv) >= 2 and sv[1] > _STRAIGHT * sv[0]:
+        z = Vt[-1] if len(sv) == 3 else np.cross(Vt[0], Vt[1])
+    else:
+        line = Vt[0]
+        z = hint - float(hint @ line) * line
+        if np.linalg.norm(z) < 1e-6:
+            raise InputError("welding plane: the planned path runs along the normal hint; give the plane explicitly")
+    z = z / np.linalg.norm(z)
+    if float(z @ hint) < 0.0:
+        z = -z
+    x = P[-1] - P[0]
+    x = x - float(x @ z) * z
+    if np.linalg.norm(x) < 1e-9:
+        x = Vt[0] - float(Vt[0] @ z) * z
+    x = x / np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    T[:3, 3] = P[0]
+    return T
+
+
+def prepare_plan(P_base: Array, T_base_plane: Array, smoothing: float, spacing: float = PLAN_SPACING) -> PlannedPath:
+    """Project the planned points into the plane, resample by arc length and smooth.
+
+    Parameters
+    ----------
+    P_base : (n, 3)
+        Planned seam points in the base frame, m, in order of travel.
+    T_base_plane : (4, 4)
+    smoothing : float
+        Length of the Savitzky-Golay window (quadratic), m; 0 for none. A
+        scanner's noise on single points would otherwise tilt the tangents.
+    spacing : float
+        Resampling step, m.
+    """
+    P = check_points(P_base, "P_base", min_points=2)
+    T_bp = check_transform(T_base_plane, "T_base_plane")
+    Q = (P - T_bp[:3, 3]) @ T_bp[:3, :2]
+    step = np.linalg.norm(np.diff(Q, axis=0), axis=1)
+    keep = np.concatenate([[True], step > 1e-9])
+    Q = Q[keep]
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(Q, axis=0), axis=1))])
+    if len(Q) < 2 or s[-1] < 4 * spacing:
+        raise InputError(f"planned path: expected at least {4 * spacing * 1e3:.1f} mm of travel in the plane, got {s[-1] * 1e3:.3f} mm")
+    m = max(int(math.ceil(s[-1] / spacing)) + 1, 5)
+    si = np.linspace(0.0, s[-1], m)
+    R = np.column_stack([np.interp(si, s, Q[:, 0]), np.interp(si, s, Q[:, 1])])
+    window = min(int(round(smoothing / (si[1] - si[0]))) | 1, m if m % 2 else m - 1)
+    if window >= 5:
+        # Tangents from the fitted quadratics' own slopes: differencing the
+        # smoothed points would bring back the noise the filter lets through.
+        Tg = savgol_filter(R, window, 2, deriv=1, axis=0, mode="interp")
+        R = savgol_filter(R, window, 2, axis=0, mode="interp")
+    else:
+        Tg = np.gradient(R, axis=0)
+    Tg /= np.linalg.norm(Tg, axis=1)[:, None]
+    N = np.column_stack([-Tg[:, 1], Tg[:, 0]])
+    sR = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(R, axis=0), axis=1))])
+    return PlannedPath(T_bp, R, Tg, N, sR)
+
+
+# -- parameters and the plan message ------------------------------------------------
+
+
+class Algorithm2Params(NamedTuple):
+    """Tuning of the law, SI units (from :class:`TactileConfig` and :class:`MotionLimits`)."""
+
+    delta_d: float  # m, desired normal deformation (unsigned)
+    side: float  # +1: wall on the tool's +y side, -1: on its -y side
+    k_p: float  # 1/s
+    v_const: float  # m/s
+    torch_offset: float  # m, |d|
+    k_torch: float  # 1/s
+    max_correction_speed: float  # m/s
+    omega_max: float  # rad/s
+    guard_cos: float
+    plan_smoothing: float  # m
+    refine_window: float  # m
+    tip_radius: float  # m
+    contact_loss_samples: int
+    search_distance: float  # m
+    touch_speed: float  # m/s
+    touch_distance: float  # m
+    tactile_stale: float  # s
+    k_height: float  # 1/s, holds the tip's height above the plane
+
+    @classmethod
+    def from_config(cls, tactile: TactileConfig, motion: MotionLimits) -> "Algorithm2Params":
+        return cls(
+            delta_d=tactile.delta_d,
+            side=1.0 if tactile.wall_side == "left" else -1.0,
+            k_p=tactile.k_p,
+            v_const=tactile.v_const,
+            torch_offset=tactile.torch_offset,
+            k_torch=tactile.k_torch,
+            max_correction_speed=tactile.max_correction_speed,
+            omega_max=min(tactile.omega_max, motion.max_angular_speed),
+            guard_cos=tactile.guard_cos,
+            plan_smoothing=tactile.plan_smoothing,
+            refine_window=tactile.refine_window,
+            tip_radius=tactile.tip_radius,
+            contact_loss_samples=tactile.contact_loss_samples,
+            search_distance=tactile.search_distance,
+            touch_speed=tactile.touch_speed,
+            touch_distance=tactile.touch_distance,
+            tactile_stale=motion.tactile_stale,
+            k_height=tactile.k_p,
+        )
+
+    @classmethod
+    def from_plan(cls, params: dict[str, Any]) -> "Algorithm2Params":
+        """Read and check the parameters carried by a :class:`ServoPlan`."""
+        values: dict[str, Any] = {}
+        for name in cls._fields:
+            if name not in params:
+                raise InputError(f"algorithm2 plan: parameter {name!r} is missing")
+            v = params[name]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+                raise InputError(f"algorithm2 plan: parameter {name!r} must be a finite number, got {v!r}")
+            values[name] = int(v) if name == "contact_loss_samples" else float(v)
+        p = cls(**values)
+        positive = ("delta_d", "k_p", "torch_offset", "max_correction_speed", "omega_max", "guard_cos",
+                    "refine_window", "touch_speed", "touch_distance", "tactile_stale")
+        for name in positive:
+            if getattr(p, name) <= 0.0:
+                raise InputError(f"algorithm2 plan: {name} must be > 0, got {getattr(p, name)}")
+        if p.side not in (1.0, -1.0):
+            raise InputError(f"algorithm2 plan: side must be +1 or -1, got {p.side}")
+        if p.contact_loss_samples < 1 or min(p.v_const, p.k_torch, p.search_distance, p.tip_radius, p.plan_smoothing, p.k_height) < 0.0:
+            raise InputError("algorithm2 plan: v_const, k_torch, search_distance, tip_radius, plan_smoothing and k_height must be >= 0")
+        return p
+
+
+def algorithm2_plan(
+    P_base: Array,
+    tactile: TactileConfig,
+    motion: MotionLimits,
+    T_base_plane: Array | None = None,
+    normal_hint: Array = np.array([0.0, 0.0, 1.0]),
+) -> ServoPlan:
+    """The :class:`ServoPlan` that starts Algorithm 2 on the planned seam ``P_base`` (n, 3).
+
+    Built where the plan is made (the main process); the motion process turns
+    it into the law with :func:`make_algorithm2`.
+    """
+    P = check_points(P_base, "P_base", min_points=2)
+    plane = welding_plane(P, normal_hint) if T_base_plane is None else check_transform(T_base_plane, "T_base_plane")
+    tool = ToolGeometry.from_config(tactile)
+    params = Algorithm2Params.from_config(tactile, motion)
+    return ServoPlan(NAME, {"P_base": P, "T_base_plane": plane, "T_tcp_tool": tool.T_tcp_tool}, dict(params._asdict()))
+
+
+def make_algorithm2(plan: ServoPlan) -> "Algorithm2Servo":
+    """The servo factory registered under ``"algorithm2"`` in the motion process."""
+    for key in ("P_base", "T_base_plane", "T_tcp_tool"):
+        if key not in plan.arrays:
+            raise InputError(f"algorithm2 plan: array {key!r} is missing")
+    params = Algorithm2Params.from_plan(dict(plan.params))
+    path = prepare_plan(plan.arrays["P_base"], plan.arrays["T_base_plane"], params.plan_smoothing)
+    return Algorithm2Servo(path, params, check_transform(plan.arrays["T_tcp_tool"], "T_tcp_tool"))
+
+
+# -- the law -------------------------------------------------------------------------
+
+
+class Phase(IntEnum):
+    """Where the law is on the seam."""
+
+    TOUCH = 0  # moving towards the wall until the deformation settles at delta_d
+    TRACK = 1  # Algorithm 2
+    SEARCH = 2  # contact lost mid-seam: last correction, last tangent, bounded travel
+    FINISH = 3  # the seam ended ahead of the tip: the torch finishes the refined path
+    DONE = 4
+    FAULT = 5
+
+
+class Diagnostics(NamedTuple):
+    """What the law did in its last cycle (for tests, benchmarks and logs outside the loop)."""
+
+    phase: Phase
+    status: ControlStatus
+    omega: float  # rad/s
+    guarded: bool  # the singularity guard acted
+    e_torch: float  # m, torch's signed distance to the refined path (NaN before it exists)
+    delta_n: float  # m, normal deformation used by SERVO (predicted to this cycle)
+    V_r: Array  # (2,) m/s
+    P_r: Array  # (2,) plane
+    P_t: Array  # (2,) plane
+    latency: float  # s from the capture of the newest sample to the cycle that first used it (NaN: none new)
+    reason: str
+
+
+class Algorithm2Servo:
+    """Algorithm 2 as a :class:`~celld.motion.types.ServoLaw` (module docstring).
+
+    Parameters
+    ----------
+    path : PlannedPath
+    params : Algorithm2Params
+    T_tcp_tool : (4, 4)
+        The tool frame (undeformed tip) in the TCP frame.
+    """
+
+    def __init__(self, path: PlannedPath, params: Algorithm2Params, T_tcp_tool: Array) -> None:
+        self.path = path
+        self.p = params
+        self.T_tcp_tool = np.array(T_tcp_tool, dtype=np.float64)
+        self._R_bp = path.T_base_plane[:3, :3]
+        self._o_bp = path.T_base_plane[:3, 3]
+        self._z = self._R_bp[:, 2]
+        self._plan_window = int(math.ceil(_PLAN_WINDOW / PLAN_SPACING))
+        cap = int(1.5 * path.s[-1] / _REFINED_STEP) + 1000
+        self._ref = np.zeros((cap, 2))
+        self._ref_s = np.zeros(cap)
+        self._hist_t = np.zeros(_HISTORY, dtype=np.int64)
+        self._hist_p = np.zeros((_HISTORY, 2))
+        self._hist_a = np.zeros((_HISTORY, 2))
+        self.guard_cycles = 0
+        self.omega_peak = 0.0
+        self.samples_used = 0
+        self._reset()
+
+    def _reset(self) -> None:
+        self.phase = Phase.TOUCH
+        self.reason = ""
+        self._n_ref = 0
+        self._n_hist = 0
+        self._i_plan = 0
+        self._i_torch = 0
+        self._last_seq = -1
+        self._last_valid: TactileSample | None = None
+        self._last_invalid = TactileStatus.OK
+        self._delta_meas = np.zeros(2)  # in-plane delta of the last valid sample (plane vector)
+        self._P_r_cap = np.zeros(2)  # P_r at that sample's capture
+        self._none_run = 0
+        self._contact_run = 0
+        self._settled_run = 0
+        self._corr_kept = 0.0
+        self._t_last = np.array([1.0, 0.0])
+        self._n_last = np.array([0.0, 1.0])
+        self._last_ns = 0
+        self._travel = 0.0
+        self._P_prev = np.zeros(2)
+        self._P_touch0 = np.zeros(2)
+        self._h0 = 0.0
+        self._start_ns = 0
+        self._status = ControlStatus.OK
+        self.last = Diagnostics(Phase.TOUCH, ControlStatus.OK, 0.0, False, math.nan, math.nan,
+                                np.zeros(2), np.zeros(2), np.zeros(2), math.nan, "")
+
+    # -- the refined path, read-only views for callers outside the loop --
+
+    @property
+    def refined_plane(self) -> Array:
+        """The refined path so far, (k, 2) plane coordinates (a copy)."""
+        return self._ref[: self._n_ref].copy()
+
+    def to_base(self, P_plane: Array) -> Array:
+        """Plane points (k, 2) to base points (k, 3)."""
+        return self._o_bp + np.asarray(P_plane) @ self._R_bp[:, :2].T
+
+    # -- geometry of the current state --
+
+    def _tool_in_plane(self, T_base_tcp: Array) -> tuple[Array, Array, float]:
+        T_bt = T_base_tcp @ self.T_tcp_tool
+        rel = T_bt[:3, 3] - self._o_bp
+        P_r = rel @ self._R_bp[:, :2]
+        t_d = _unit(T_bt[:3, 0] @ self._R_bp[:, :2])
+        return P_r, t_d, float(rel @ self._z)
+
+    def _remember(self, stamp_ns: int, P_r: Array, t_d: Array) -> None:
+        k = self._n_hist % _HISTORY
+        self._hist_t[k] = stamp_ns
+        self._hist_p[k] = P_r
+        self._hist_a[k] = t_d
+        self._n_hist += 1
+
+    def _at(self, stamp_ns: int) -> tuple[Array, Array]:
+        """P_r and t_d at ``stamp_ns``, interpolated in the history (clamped at its ends)."""
+        n = min(self._n_hist, _HISTORY)
+        newest = (self._n_hist - 1) % _HISTORY
+        if n == 0:
+            return np.zeros(2), np.array([1.0, 0.0])
+        # Walk back from the newest entry: a sample is a few cycles old.
+        k = newest
+        for _ in range(n - 1):
+            prev = (k - 1) % _HISTORY
+            if self._hist_t[prev] <= stamp_ns:
+                t0, t1 = self._hist_t[prev], self._hist_t[k]
+                w = 0.0 if t1 == t0 else min(max((stamp_ns - t0) / (t1 - t0), 0.0), 1.0)
+                P = (1 - w) * self._hist_p[prev] + w * self._hist_p[k]
+                return P, _unit((1 - w) * self._hist_a[prev] + w * self._hist_a[k])
+            k = prev
+        return self._hist_p[k].copy(), self._hist_a[k].copy()
+
+    def _plan_at(self, q: Array) -> tuple[Array, Array, Array, float, bool]:
+        """Line 22-23: nearest planned point to ``q``, its t_v, n_v, arc position, and whether past the end."""
+        path = self.path
+        i, u, _ = nearest_on_polyline(path.P, q, self._i_plan - self._plan_window, self._i_plan + self._plan_window + 2)
+        self._i_plan = i
+        j = min(i + 1, len(path.P) - 1)
+        P_v = (1 - u) * path.P[i] + u * path.P[j]
+        t_v = _unit((1 - u) * path.T[i] + u * path.T[j])
+        s = (1 - u) * path.s[i] + u * path.s[j]
+        past_end = j == len(path.P) - 1 and u >= 1.0 and float((q - path.P[-1]) @ path.T[-1]) >= 0.0
+        return P_v, t_v, _left(t_v), s, past_end
+
+    def _refined_at(self, P_t: Array) -> tuple[Array, Array, float, bool] | None:
+        """Lines 10-11: the refined path's axes at the torch's nearest point and the torch's error.
+
+        Returns ``(t_t, n_t, e, past_end)`` or None while the refined path is
+        shorter than ``refine_window``. Before its first point and after its
+        last the path is extended along its end chords.
+        """
+        n = self._n_ref
+        if n < 2 or self._ref_s[n - 1] < self.p.refine_window:
+            return None
+        R, S = self._ref, self._ref_s
+        i, u, _ = nearest_on_polyline(R[:n], P_t, self._i_torch - _REFINED_WINDOW, self._i_torch + _REFINED_WINDOW)
+        self._i_torch = i
+        j = min(i + 1, n - 1)
+        s_near = (1 - u) * S[i] + u * S[j]
+        # Line 11: tangent from a chord of refine_window centred on the nearest point.
+        half = 0.5 * self.p.refine_window
+        s0 = min(max(s_near - half, 0.0), S[n - 1] - 2 * half)
+        k0 = int(np.searchsorted(S[:n], s0, side="right")) - 1
+        k1 = int(np.searchsorted(S[:n], s0 + 2 * half, side="left"))
+        k0, k1 = max(k0, 0), min(max(k1, k0 + 1), n - 1)
+        t_t = _unit(R[k1] - R[k0])
+        n_t = _left(t_t)
+        anchor = (1 - u) * R[i] + u * R[j]
+        e = float((P_t - anchor) @ n_t)
+        past_end = j == n - 1 and u >= 1.0 and float((P_t - R[n - 1]) @ t_t) >= 0.0
+        return t_t, n_t, e, past_end
+
+    # -- ServoLaw --
+
+    def start(self, state: RobotState) -> None:
+        """Take over: remember the height above the plane and check the tool's axis."""
+        self._reset()
+        T = np.asarray(state.T_base_tcp, dtype=np.float64)
+        if not np.all(np.isfinite(T)):
+            self._fault(ControlStatus.FAULT, "the robot state at start is not finite")
+            return
+        T_bt = T @ self.T_tcp_tool
+        tilt = math.acos(min(max(float(T_bt[:3, 2] @ self._z), -1.0), 1.0))
+        if tilt > _MAX_TILT:
+            self._fault(
+                ControlStatus.FAULT,
+                f"the finger axis is {math.degrees(tilt):.1f} deg from the welding plane's normal "
+                f"(at most {math.degrees(_MAX_TILT):.0f} deg): the tool does not face the seam plane",
+            )
+            return
+        P_r, t_d, h = self._tool_in_plane(T)
+        self._h0 = h
+        self._P_prev = P_r
+        self._P_touch0 = P_r
+        self._start_ns = state.stamp_ns
+        self._i_plan = nearest_on_polyline(self.path.P, P_r, 0, len(self.path.P))[0]
+        self._remember(state.stamp_ns, P_r, t_d)
+
+    def _fault(self, status: ControlStatus, reason: str) -> None:
+        self.phase = Phase.FAULT
+        self._status = status
+        self.reason = reason
+
+    def _take_sample(self, sample: TactileSample | None, now_ns: int) -> float:
+        """Consume a new sample; returns its latency at first use (s) or NaN."""
+        if sample is None or sample.seq == self._last_seq:
+            return math.nan
+        self._last_seq = sample.seq
+        latency = (now_ns - sample.stamp_ns) * 1e-9
+        if not sample.valid or not np.all(np.isfinite(sample.delta_tool)):
+            self._last_invalid = sample.status if sample.status != TactileStatus.OK else TactileStatus.BAD_POSE
+            return latency
+        self._last_invalid = TactileStatus.OK
+        self.samples_used += 1
+        self._last_valid = sample
+        P_cap, t_cap = self._at(sample.stamp_ns)
+        delta = deformation_in_plane(sample.delta_tool, t_cap, _left(t_cap))
+        self._delta_meas = delta
+        self._P_r_cap = P_cap
+        if sample.contact == ContactState.OVERLOAD:
+            self._fault(ControlStatus.OVERLOAD, f"the finger is overloaded: in-plane deformation {np.hypot(*delta) * 1e3:.2f} mm")
+            return latency
+        if sample.contact == ContactState.NONE:
+            self._none_run += 1
+            self._contact_run = 0
+            return latency
+        self._none_run = 0
+        self._contact_run += 1
+        if self.phase in (Phase.TRACK, Phase.SEARCH):
+            # REFINE, lines 16-20, at the sample's capture time.
+            _, t_s, n_s, _, _ = self._plan_at(P_cap)
+            P_s = refine_point(P_cap, delta, t_s, n_s)
+            # The tip's centre rides tip_radius off the wall: record the wall.
+            P_wall = P_s + self.p.side * self.p.tip_radius * n_s
+            self._append_refined(P_wall, t_s)
+        return latency
+
+    def _append_refined(self, P: Array, t_s: Array) -> None:
+        n = self._n_ref
+        if n > 0:
+            step = P - self._ref[n - 1]
+            if float(step @ t_s) < _REFINED_STEP:
+                return
+            if n >= len(self._ref):
+                self._fault(ControlStatus.FAULT, "the refined path is full: the seam is longer than the plan allows")
+                return
+            self._ref_s[n] = self._ref_s[n - 1] + float(np.hypot(step[0], step[1]))
+        self._ref[n] = P
+        self._n_ref = n + 1
+
+    def step(self, inp: ServoInput) -> tuple[Array, ControlStatus]:
+        """One cycle of Algorithm 2 (module docstring); never raises on finite input."""
+        state = inp.state
+        T = np.asarray(state.T_base_tcp, dtype=np.float64)
+        if self.phase == Phase.FAULT:
+            return self._out(_ZERO6, self._status, math.nan)
+        if self.phase == Phase.DONE:
+            return self._out(_ZERO6, ControlStatus.DONE, math.nan)
+        if not np.all(np.isfinite(T)):
+            self._fault(ControlStatus.FAULT, "the robot state is not finite")
+            return self._out(_ZERO6, self._status, math.nan)
+        # Lines 3-5: the tool's angle, axes and position.
+        P_r, t_d, h = self._tool_in_plane(T)
+        n_d = _left(t_d)
+        self._remember(state.stamp_ns, P_r, t_d)
+        if self._last_ns == 0:
+            self._last_ns = state.stamp_ns
+        self._travel += float(np.hypot(*(P_r - self._P_prev)))
+        self._P_prev = P_r
+        # Line 6: the newest deformation.
+        latency = self._take_sample(inp.tactile, state.stamp_ns)
+        if self.phase == Phase.FAULT:
+            return self._out(_ZERO6, self._status, latency)
+        ref_ns = self._last_valid.stamp_ns if self._last_valid is not None else self._start_ns
+        age = (state.stamp_ns - ref_ns) * 1e-9
+        if age > self.p.tactile_stale:
+            why = self._last_invalid.name if self._last_invalid != TactileStatus.OK else "no new sample"
+            self._fault(ControlStatus.STALE_TACTILE, f"no valid tactile sample for {age * 1e3:.0f} ms (last: {why})")
+            return self._out(_ZERO6, self._status, latency)
+
+        delta_d = self.p.side * self.p.delta_d
+        P_v, t_v, n_v, s_tip, past_end = self._plan_at(P_r)
+        # The wall stands still: the normal deformation grows by how far the
+        # tip has moved towards it since the frame was captured.
+        delta_n = float(self._delta_meas @ n_v) + float((P_r - self._P_r_cap) @ n_v) if self._last_valid else 0.0
+        in_contact = self._last_valid is not None and self._none_run == 0
+
+        if self.phase == Phase.TOUCH:
+            if in_contact and abs(delta_n - delta_d) < _TOUCHED * self.p.delta_d:
+                self._settled_run += 1
+            else:
+                self._settled_run = 0
+            if self._settled_run >= self.p.contact_loss_samples:
+                self.phase = Phase.TRACK
+            elif float(np.hypot(*(P_r - self._P_touch0))) > self.p.touch_distance:
+                self._fault(ControlStatus.CONTACT_LOST, f"no wall within the touch distance of {self.p.touch_distance * 1e3:.1f} mm")
+                return self._out(_ZERO6, self._status, latency)
+            # Approach along n_v with the law of Eq. 16 and no tangential speed.
+            V_r = servo_velocity(t_v, n_v, 0.0, delta_n if in_contact else 0.0, delta_d, self.p.k_p, self.p.touch_speed)
+            return self._twist(T, V_r, 0.0, False, h, math.nan, delta_n, P_r, torch_position(P_r, t_d, self.p.torch_offset), latency)
+
+        if self.phase == Phase.TRACK:
+            if past_end:
+                self._begin_finish()
+            elif self._none_run >= self.p.contact_loss_samples:
+                if s_tip >= self.path.s[-1] - self.p.search_distance:
+                    self._begin_finish()
+                else:
+                    self.phase = Phase.SEARCH
+                    self._travel = 0.0
+        elif self.phase == Phase.SEARCH:
+            if self._contact_run >= self.p.contact_loss_samples:
+                self.phase = Phase.TRACK
+            elif past_end or s_tip >= self.path.s[-1] - 1e-9:
+                self._begin_finish()
+            elif self._travel > self.p.search_distance:
+                self._fault(
+                    ControlStatus.CONTACT_LOST,
+                    f"contact lost for {self._travel * 1e3:.1f} mm (search distance {self.p.search_distance * 1e3:.1f} mm)",
+                )
+                return self._out(_ZERO6, self._status, latency)
+
+        if self.phase == Phase.TRACK:
+            # Line 8: SERVO.
+            V_r = servo_velocity(t_v, n_v, self.p.v_const, delta_n, delta_d, self.p.k_p, self.p.max_correction_speed)
+            if abs(delta_n - delta_d) < _KEEP_BAND * self.p.delta_d:
+                # The steady correction (the drift between plan and wall), kept for a loss.
+                a = min(max((state.stamp_ns - self._last_ns) * 1e-9 / _KEEP_TAU, 0.0), 1.0)
+                self._corr_kept += a * (float(V_r @ n_v) - self._corr_kept)
+            self._t_last, self._n_last = t_v, n_v
+        elif self.phase == Phase.SEARCH:
+            # Keep the last steady correction and the last tangent (departure 4).
+            V_r = self.p.v_const * self._t_last + self._corr_kept * self._n_last
+        else:
+            V_r = self.p.v_const * self._t_last
+        # Line 9: the torch.
+        P_t = torch_position(P_r, t_d, self.p.torch_offset)
+        # Lines 10-11 on the refined path; on the plan until it is long enough.
+        near = self._refined_at(P_t)
+        if near is None:
+            i, _, _ = nearest_on_polyline(self.path.P, P_t, 0, len(self.path.P))
+            n_t, e, torch_done = self.path.N[i], 0.0, False
+        else:
+            t_t, n_t, e, torch_done = near
+            if self.phase == Phase.FINISH:
+                # The seam has ended ahead: go on along the refined path where the torch is.
+                V_r = self.p.v_const * t_t
+        if self.phase == Phase.FINISH and torch_done:
+            self.phase = Phase.DONE
+            return self._out(_ZERO6, ControlStatus.DONE, latency)
+        # Lines 12-13.
+        omega, guarded = omega_line13(V_r, t_d, n_d, n_t, self.p.torch_offset, e, self.p.k_torch, self.p.guard_cos, self.p.omega_max)
+        return self._twist(T, V_r, omega, guarded, h, e if near is not None else math.nan, delta_n, P_r, P_t, latency)
+
+    def _begin_finish(self) -> None:
+        self.phase = Phase.FINISH
+
+    def _twist(
+        self, T: Array, V_r: Array, omega: float, guarded: bool, h: float, e: float, delta_n: float,
+        P_r: Array, P_t: Array, latency: float,
+    ) -> tuple[Array, ControlStatus]:
+        """Line 14: the TCP twist (6,) in the base frame that moves P_r with V_r and turns at omega."""
+        if guarded:
+            self.guard_cycles += 1
+        self.omega_peak = max(self.omega_peak, abs(omega))
+        self._last_ns = self._hist_t[(self._n_hist - 1) % _HISTORY]
+        # In the plane, plus a hold of the tip's height above it.
+        v_tip = self._R_bp[:, :2] @ V_r - self.p.k_height * (h - self._h0) * self._z
+        w = omega * self._z
+        # P_r is the tool origin; the TCP moves with v_tip + w x (p_tcp - p_tip).
+        r_base = -(T[:3, :3] @ self.T_tcp_tool[:3, 3])
+        v_tcp = v_tip + np.cross(w, r_base)
+        self.last = Diagnostics(self.phase, ControlStatus.OK, omega, guarded, e, delta_n, V_r.copy(), P_r, P_t, latency, "")
+        return np.concatenate([v_tcp, w]), ControlStatus.OK
+
+    def _out(self, twist: Array, status: ControlStatus, latency: float) -> tuple[Array, ControlStatus]:
+        self.last = Diagnostics(self.phase, status, 0.0, False, math.nan, math.nan, np.zeros(2),
+                                self.last.P_r, self.last.P_t, latency, self.reason)
+        return twist, status

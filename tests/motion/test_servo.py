@@ -1,0 +1,393 @@
+"""Algorithm 2: each line against hand-computed cases, omega's bound, and the law in closed loop.
+
+The closed-loop tests step the real motion core (ruckig limiter, servo slot)
+with a kinematic arm and the simulated finger's contact model; the tactile
+samples are the simulator's truth plus noise (no images here: the image path
+is tested in tests/tactile and benchmarked in bench/seam_tracking.py).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from celld.config import MotionLimits, TactileConfig
+from celld.errors import InputError
+from celld.motion.commands import start_servo
+from celld.motion.core import CoreParams, CycleInput, Mode, MotionCore
+from celld.motion.limits import CartesianLimits, sequence_peaks
+from celld.motion.servo import (
+    NAME,
+    Algorithm2Params,
+    Phase,
+    algorithm2_plan,
+    deformation_in_plane,
+    make_algorithm2,
+    nearest_on_polyline,
+    omega_line13,
+    prepare_plan,
+    refine_point,
+    servo_velocity,
+    torch_position,
+    welding_plane,
+)
+from celld.motion.types import ControlStatus, RobotState
+from celld.sim.srm import ContactParams, Wall, finger_contact
+from celld.tactile.deformation import contact_state, invalid_sample
+from celld.tactile.sample import ContactState, TactileSample, TactileStatus
+
+PERIOD = 0.002
+
+
+def _rot(a: float) -> np.ndarray:
+    return np.array([math.cos(a), math.sin(a)])
+
+
+# -- each line by hand ------------------------------------------------------------------
+
+
+def test_line9_torch_trails_the_tip_by_d() -> None:
+    # Eq. 14: P_r = P_t + |d| t_d.
+    np.testing.assert_allclose(torch_position(np.array([0.1, 0.2]), np.array([0.0, 1.0]), 0.03), [0.1, 0.17])
+    t_d = _rot(math.radians(30))
+    np.testing.assert_allclose(torch_position(np.zeros(2), t_d, 0.03), [-0.03 * math.cos(math.radians(30)), -0.015])
+
+
+def test_line24_servo_velocity() -> None:
+    t_v, n_v = np.array([1.0, 0.0]), np.array([0.0, 1.0])
+    # Pressed 0.5 mm too hard with k_p = 5/s: back off at 2.5 mm/s along -n_v.
+    np.testing.assert_allclose(servo_velocity(t_v, n_v, 0.01, 0.002, 0.0015, 5.0, 0.01), [0.01, -0.0025])
+    # Free (delta 0): press at k_p delta_d = 7.5 mm/s towards the wall.
+    np.testing.assert_allclose(servo_velocity(t_v, n_v, 0.01, 0.0, 0.0015, 5.0, 0.01), [0.01, 0.0075])
+    # The correction is bounded.
+    np.testing.assert_allclose(servo_velocity(t_v, n_v, 0.01, 0.01, 0.0015, 5.0, 0.004), [0.01, -0.004])
+    # A wall on the right: delta_d is negative, the same law presses towards -n_v.
+    np.testing.assert_allclose(servo_velocity(t_v, n_v, 0.0, 0.0, -0.0015, 5.0, 0.01), [0.0, -0.0075])
+
+
+def test_line6_deformation_into_the_plane() -> None:
+    # Tool turned 90 degrees: its x is the plane's y.
+    d = deformation_in_plane(np.array([0.0003, 0.0015, 0.0001]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]))
+    np.testing.assert_allclose(d, [-0.0015, 0.0003])
+
+
+def test_line17_refine_subtracts_the_deformation() -> None:
+    P_r = np.array([0.1, 0.02])
+    delta = np.array([0.0003, 0.0015])
+    np.testing.assert_allclose(refine_point(P_r, delta, np.array([1.0, 0.0]), np.array([0.0, 1.0])), [0.0997, 0.0185])
+    # Whatever the path's axes, the components recombine to P_r - delta (Eq. 15).
+    t_s = _rot(0.7)
+    n_s = np.array([-t_s[1], t_s[0]])
+    np.testing.assert_allclose(refine_point(P_r, delta, t_s, n_s), P_r - delta, atol=1e-15)
+
+
+def test_line13_omega_by_hand() -> None:
+    # Tool along x, refined path along x, V_r with 1 mm/s towards +y:
+    # the torch (30 mm behind) must not move sideways: omega = 0.001 / 0.03.
+    V_r = np.array([0.01, 0.001])
+    t_d, n_d, n_t = np.array([1.0, 0.0]), np.array([0.0, 1.0]), np.array([0.0, 1.0])
+    omega, guarded = omega_line13(V_r, t_d, n_d, n_t, 0.03, 0.0, 0.0, 0.25, 1.0)
+    assert omega == pytest.approx(0.001 / 0.03)
+    assert not guarded
+    # Tool turned 30 degrees off the path, torch 1 mm left of it, k_torch 2/s:
+    # omega = (V_r . n_t + k e) / (|d| n_d . n_t) = (0 + 0.002) / (0.03 cos 30).
+    t_d = _rot(math.radians(30))
+    n_d = np.array([-t_d[1], t_d[0]])
+    omega, _ = omega_line13(np.array([0.01, 0.0]), t_d, n_d, n_t, 0.03, 0.001, 2.0, 0.25, 1.0)
+    assert omega == pytest.approx(0.002 / (0.03 * math.cos(math.radians(30))))
+
+
+def test_line13_makes_the_torch_velocity_follow_the_refined_path() -> None:
+    # Eq. 17-18: V_t = V_r - omega |d| n_d, and V_t . n_t = -k e.
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        V_r = rng.normal(0, 0.01, 2)
+        t_d = _rot(rng.uniform(-math.pi, math.pi))
+        n_d = np.array([-t_d[1], t_d[0]])
+        t_t = _rot(math.atan2(t_d[1], t_d[0]) + rng.uniform(-1.0, 1.0))  # at most 57 deg off: outside the guard
+        n_t = np.array([-t_t[1], t_t[0]])
+        e = rng.uniform(-0.001, 0.001)
+        omega, guarded = omega_line13(V_r, t_d, n_d, n_t, 0.03, e, 2.0, 0.25, 100.0)
+        assert not guarded
+        V_t = V_r - omega * 0.03 * n_d
+        assert float(V_t @ n_t) == pytest.approx(-2.0 * e, abs=1e-12)
+
+
+def test_guard_damps_omega_to_zero_at_the_singularity() -> None:
+    t_d = np.array([1.0, 0.0])
+    n_d = np.array([0.0, 1.0])
+    V_r = np.array([0.0, 0.01])
+    # n_t perpendicular to n_d: no omega can help (paper 5.2); the guard gives 0.
+    omega, guarded = omega_line13(V_r, t_d, n_d, np.array([1.0, 0.0]), 0.03, 0.0, 0.0, 0.25, 0.5)
+    assert omega == 0.0 and guarded
+    # Continuous at the edge of the band: |n_d . n_t| = guard_cos from both sides.
+    a = math.acos(0.25)
+    # n_t at angle b from n_d has n_d . n_t = cos b.
+    inside = omega_line13(V_r, t_d, n_d, np.array([math.sin(a + 1e-9), math.cos(a + 1e-9)]), 0.03, 0.0, 0.0, 0.25, 10.0)
+    outside = omega_line13(V_r, t_d, n_d, np.array([math.sin(a - 1e-9), math.cos(a - 1e-9)]), 0.03, 0.0, 0.0, 0.25, 10.0)
+    assert inside[1] and not outside[1]
+    assert inside[0] == pytest.approx(outside[0], rel=1e-6)
+    # Non-finite input: zero, flagged.
+    assert omega_line13(np.array([math.nan, 0.0]), t_d, n_d, n_d, 0.03, 0.0, 0.0, 0.25, 0.5) == (0.0, True)
+
+
+unit_angle = st.floats(-math.pi, math.pi, allow_nan=False)
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    vx=st.floats(-1.0, 1.0), vy=st.floats(-1.0, 1.0),
+    a_d=unit_angle, a_t=unit_angle,
+    d=st.floats(1e-4, 0.5), e=st.floats(-0.1, 0.1), k=st.floats(0.0, 20.0),
+    guard=st.floats(0.01, 0.9), omega_max=st.floats(0.01, 3.0),
+    perpendicular=st.booleans(),
+)
+def test_omega_is_bounded_for_any_geometry(vx, vy, a_d, a_t, d, e, k, guard, omega_max, perpendicular) -> None:
+    t_d = _rot(a_d)
+    n_d = np.array([-t_d[1], t_d[0]])
+    # Half the cases put n_t exactly perpendicular to n_d (the paper's singularity).
+    n_t = np.array([n_d[1], -n_d[0]]) if perpendicular else _rot(a_t)
+    omega, guarded = omega_line13(np.array([vx, vy]), t_d, n_d, n_t, d, e, k, guard, omega_max)
+    assert math.isfinite(omega)
+    assert abs(omega) <= omega_max
+    if perpendicular:
+        assert guarded
+        assert abs(omega) <= (abs(vx) + abs(vy) + k * 0.003) * abs(float(n_d @ n_t)) / (d * guard * guard) + 1e-12
+
+
+def test_lines10_22_nearest_point_on_a_polyline() -> None:
+    P = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]])
+    assert nearest_on_polyline(P, np.array([0.4, 0.3]), 0, 3) == (0, pytest.approx(0.4), pytest.approx(0.3))
+    i, u, dist = nearest_on_polyline(P, np.array([1.2, 0.7]), 0, 3)
+    assert (i, u, dist) == (1, pytest.approx(0.7), pytest.approx(0.2))
+    # The window keeps the search local.
+    assert nearest_on_polyline(P, np.array([1.2, 0.7]), 0, 2)[0] == 0
+
+
+# -- the plan ----------------------------------------------------------------------
+
+
+def test_plan_is_smoothed_and_its_plane_found() -> None:
+    rng = np.random.default_rng(0)
+    x = np.arange(0.0, 0.2, 0.001)
+    P = np.column_stack([x, 0.3 + 0.05 * x + rng.normal(0, 3e-4, len(x)), 0.1 + rng.normal(0, 3e-4, len(x))])
+    T_bp = welding_plane(P, np.array([0.0, 0.0, 1.0]))
+    # A straight plan: the plane through it nearest to horizontal, normal up.
+    assert T_bp[2, 2] > 0.999
+    path = prepare_plan(P, T_bp, 0.012)
+    angles = np.arctan2(path.T[:, 1], path.T[:, 0])
+    # The plane's x runs along the plan. The raw points' tangents scatter by
+    # tens of degrees; a quadratic over 12 mm has a slope noise of about
+    # 0.3 mm / 12 mm = 1.4 degrees RMS.
+    raw = np.diff(P[:, :2], axis=0)
+    assert np.degrees(np.abs(np.arctan2(raw[:, 1], raw[:, 0]) - math.atan2(0.05, 1.0))).max() > 20.0
+    inner = np.degrees(angles[20:-20])
+    assert np.sqrt(np.mean(inner**2)) < 2.0
+    assert np.abs(inner).max() < 5.0
+    assert path.s[-1] == pytest.approx(0.2 * math.hypot(1.0, 0.05), rel=0.01)
+    # An arc fixes its plane: tilted by 10 degrees about x.
+    a = np.linspace(0, 1.5, 200)
+    arc = np.column_stack([0.1 * np.sin(a), 0.1 * (1 - np.cos(a)), np.zeros_like(a)])
+    R = Rotation.from_rotvec([math.radians(10), 0, 0]).as_matrix()
+    T_arc = welding_plane(arc @ R.T, np.array([0.0, 0.0, 1.0]))
+    assert math.degrees(math.acos(min(float(T_arc[:3, 2] @ R[:, 2]), 1.0))) < 0.01
+
+
+def test_plan_message_is_checked() -> None:
+    cfg, motion = TactileConfig(), MotionLimits()
+    plan = algorithm2_plan(np.column_stack([np.linspace(0, 0.1, 50), np.zeros(50), np.zeros(50)]), cfg, motion)
+    assert plan.name == NAME
+    law = make_algorithm2(plan)
+    assert law.p == Algorithm2Params.from_config(cfg, motion)
+    bad = plan._replace(params={**plan.params, "k_p": -1.0})
+    with pytest.raises(InputError, match="k_p"):
+        make_algorithm2(bad)
+    with pytest.raises(InputError, match="missing"):
+        make_algorithm2(plan._replace(arrays={"P_base": plan.arrays["P_base"]}))
+    with pytest.raises(InputError, match="travel"):
+        make_algorithm2(plan._replace(arrays={**plan.arrays, "P_base": np.zeros((3, 3))}))
+
+
+# -- closed loop -------------------------------------------------------------------------
+
+T_PLANE = np.array([[1.0, 0, 0, 0.45], [0, 1.0, 0, -0.1], [0, 0, 1.0, 0.12], [0, 0, 0, 1.0]])
+
+
+class Loop:
+    """The motion core with Algorithm 2, a kinematic arm, and the finger's contact model.
+
+    The seam is a straight wall along +x (left of the tool); ``gap`` removes
+    the wall over an interval of x. Samples (truth plus 3 um noise) are
+    captured at ``fps`` and delivered ``latency`` later; ``tamper`` may
+    replace a sample (faults).
+    """
+
+    def __init__(self, length: float = 0.06, gap: tuple[float, float] | None = None, plan_offset: float = -0.002,
+                 fps: float = 60.0, latency: float = 0.006, cfg: TactileConfig | None = None) -> None:
+        self.cfg = cfg or TactileConfig()
+        self.motion = MotionLimits()
+        self.limits = CartesianLimits.from_config(self.motion)
+        x = np.arange(0.0, length, 0.0002)
+        walls = [np.column_stack([x, np.zeros_like(x)])]
+        if gap is not None:
+            walls = [w for w in (walls[0][x < gap[0]], walls[0][x > gap[1]]) if len(w) > 1]
+        self.walls = [Wall(w, free=-1.0) for w in walls]
+        plan2 = np.column_stack([np.arange(0.0, length, 0.001), np.full(len(np.arange(0.0, length, 0.001)), plan_offset)])
+        P_plan = np.column_stack([plan2, np.zeros(len(plan2))]) @ T_PLANE[:3, :3].T + T_PLANE[:3, 3]
+        self.plan = algorithm2_plan(P_plan, self.cfg, self.motion, T_base_plane=T_PLANE)
+        self.core = MotionCore(
+            CoreParams(self.limits, PERIOD, (-1.5, -1.5, -0.5), (1.5, 1.5, 1.5), 0.05, self.motion.tactile_stale),
+            {NAME: make_algorithm2},
+        )
+        T = np.eye(4)
+        T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # TCP x along the seam, z down the finger
+        T[:3, 3] = P_plan[5] - np.array([0.0, 0.003, 0.0])
+        self.T = T
+        self.v = np.zeros(6)
+        self._next = np.zeros(6)
+        self.fps, self.latency = fps, latency
+        self.rng = np.random.default_rng(1)
+        self.t_ns = 0
+        self.next_frame = 0
+        self.pending: list[tuple[int, TactileSample]] = []
+        self.latest: TactileSample | None = None
+        self.seq = 0
+        self.contact = ContactState.NONE
+        self.servo = None
+        self.twists: list[np.ndarray] = []
+        self.statuses: list[ControlStatus] = []
+        self.phases: list[Phase] = []
+        self.tamper = None  # callable(sample, t_s) -> sample | None (None: the frame never comes)
+
+    def _sample(self, stamp: int) -> TactileSample:
+        T_bt = self.T  # the tool frame at the TCP (default tool), orientation of the tool: x = TCP x
+        p = (T_bt[:3, 3] - T_PLANE[:3, 3])[:2]
+        v = self.v[:2]
+        shift = np.zeros(2)
+        for w in self.walls:
+            c = finger_contact(p, v, w, self.cfg.tip_radius, ContactParams())
+            if c.in_contact:
+                shift = c.tip_shift_plane
+        t_d = T_bt[:2, 0] / np.linalg.norm(T_bt[:2, 0])
+        n_d = np.array([-t_d[1], t_d[0]])
+        delta = np.array([-shift @ t_d, -shift @ n_d, 0.0]) + self.rng.normal(0, 3e-6, 3)
+        self.seq += 1
+        state = contact_state(delta, self.contact, self.cfg.contact_threshold, self.cfg.overload)
+        self.contact = state
+        return TactileSample(stamp, self.seq, delta, state, 1.0, True, 1_000_000)
+
+    def run(self, seconds: float, start_after: float = 0.02) -> None:
+        for _ in range(int(seconds / PERIOD)):
+            while self.next_frame <= self.t_ns:
+                s = self._sample(self.next_frame)
+                if self.tamper is not None:
+                    s = self.tamper(s, self.next_frame * 1e-9)
+                if s is not None:
+                    self.pending.append((self.next_frame + int(self.latency * 1e9), s))
+                self.next_frame += int(1e9 / self.fps)
+            while self.pending and self.pending[0][0] <= self.t_ns:
+                self.latest = self.pending.pop(0)[1]
+            state = RobotState(self.t_ns, np.zeros(6), np.zeros(6), self.T.copy(), self.v.copy())
+            age = (self.t_ns - self.latest.stamp_ns) * 1e-9 if self.latest is not None else math.inf
+            starting = self.servo is None and self.t_ns * 1e-9 >= start_after and self.latest is not None
+            cmd = start_servo(self.plan) if starting else None
+            out = self.core.step(CycleInput(state, 0.0, 1, self.latest, age, np.zeros(6), math.inf, cmd, 1 if starting else 0))
+            if starting:
+                self.servo = self.core.controller.law
+            self.v, self._next = self._next, out.twist.copy()
+            self.T[:3, 3] += self.v[:3] * PERIOD
+            self.T[:3, :3] = Rotation.from_rotvec(self.v[3:] * PERIOD).as_matrix() @ self.T[:3, :3]
+            self.t_ns += int(PERIOD * 1e9)
+            if self.servo is not None:
+                self.twists.append(out.twist.copy())
+                self.statuses.append(out.status)
+                self.phases.append(self.servo.phase)
+                if self.core.mode == Mode.IDLE:
+                    return
+
+    def assert_jerk_limited(self) -> None:
+        peaks = sequence_peaks(np.array(self.twists), PERIOD, np.zeros((2, 6))).ratios(self.limits)
+        assert max(peaks) <= 1.0 + 1e-6, peaks
+
+    def torch_error(self) -> float:
+        """Lateral distance (m) of the torch to the wall line y = 0."""
+        torch = self.T[:3, 3] - self.cfg.torch_offset * self.T[:3, 0]
+        return float(torch[1] - T_PLANE[1, 3])
+
+
+@pytest.mark.slow
+def test_tracks_a_straight_seam_and_stops_cleanly_at_its_end() -> None:
+    loop = Loop(length=0.06)
+    loop.run(20.0)
+    assert loop.core.mode == Mode.IDLE
+    assert loop.statuses[-1] == ControlStatus.DONE
+    assert Phase.TRACK in loop.phases and Phase.FINISH in loop.phases
+    assert loop.servo.phase == Phase.DONE
+    # The torch reached the end of the refined path on the seam line.
+    assert abs(loop.torch_error()) < 1e-4
+    assert np.linalg.norm(loop.twists[-1]) == 0.0
+    loop.assert_jerk_limited()
+
+
+@pytest.mark.slow
+def test_contact_lost_mid_seam_ends_in_a_controlled_stop() -> None:
+    # A 15 mm gap in the wall: longer than the 5 mm search distance.
+    loop = Loop(length=0.08, gap=(0.03, 0.045))
+    loop.run(20.0)
+    assert loop.core.mode == Mode.IDLE
+    assert ControlStatus.CONTACT_LOST in loop.statuses
+    assert Phase.SEARCH in loop.phases
+    assert loop.servo.phase == Phase.FAULT and "contact lost" in loop.servo.reason
+    # The search ran along the last tangent, no further than the search distance (+ the stop).
+    x_stop = loop.T[0, 3] - T_PLANE[0, 3]
+    assert x_stop < 0.03 + 0.005 + 0.002
+    assert np.linalg.norm(loop.twists[-1]) == 0.0
+    loop.assert_jerk_limited()
+
+
+@pytest.mark.slow
+def test_a_short_gap_is_bridged_by_the_search() -> None:
+    loop = Loop(length=0.08, gap=(0.03, 0.033))
+    loop.run(25.0)
+    assert Phase.SEARCH in loop.phases
+    assert loop.statuses[-1] == ControlStatus.DONE
+
+
+def _fault_after(t_fault: float, make):
+    def tamper(sample: TactileSample, t: float) -> TactileSample | None:
+        return sample if t < t_fault else make(sample)
+
+    return tamper
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("name", "make", "why"),
+    [
+        ("wrong tag id", lambda s: invalid_sample(s.stamp_ns, s.seq, TactileStatus.WRONG_ID), "WRONG_ID"),
+        ("no tag", lambda s: invalid_sample(s.stamp_ns, s.seq, TactileStatus.NO_TAG), "NO_TAG"),
+        ("blurred frames", lambda s: invalid_sample(s.stamp_ns, s.seq, TactileStatus.BLURRED), "BLURRED"),
+        ("camera unplugged", lambda s: invalid_sample(s.stamp_ns, s.seq, TactileStatus.CAMERA_LOST), "CAMERA_LOST"),
+        ("camera silent", lambda s: None, ""),
+        ("late samples", lambda s: s._replace(stamp_ns=s.stamp_ns - 150_000_000), ""),
+    ],
+)
+def test_tactile_faults_stop_without_a_jump(name: str, make, why: str) -> None:
+    t_fault = 4.0  # mid-seam, tracking
+    loop = Loop(length=0.08)
+    loop.tamper = _fault_after(t_fault, make)
+    loop.run(15.0)
+    assert Phase.TRACK in loop.phases
+    assert loop.core.mode == Mode.IDLE, name
+    assert loop.statuses[-1] == ControlStatus.STALE_TACTILE, name
+    if why:
+        assert why in loop.servo.reason
+    loop.assert_jerk_limited()
+    # The stop began within the staleness bound (0.1 s) and took a jerk-limited ramp.
+    n_before = int((t_fault - 0.02) / PERIOD)
+    assert (len(loop.twists) - n_before) * PERIOD < 0.1 + 0.02 + 0.2, name
