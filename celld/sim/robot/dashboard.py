@@ -97,7 +97,7 @@ def handle(ctrl: c.Controller, line: str) -> Reply:
     if cmd == "get loaded program":
         return Reply(f"Loaded program: {ctrl.loaded_program}" if ctrl.loaded_program else "No program loaded")
     if cmd == "isprogramsaved":
-        return Reply(f"true {ctrl.loaded_program or '<unnamed>'}")
+        return Reply(f"True {ctrl.loaded_program or '<unnamed>'}")  # capital T, as PolyScope answers
     if cmd.startswith("addtolog"):
         return Reply("Added log message" if arg else "No log message to add")
     if cmd.startswith("setuserrole"):

@@ -1,0 +1,84 @@
+"""True state in shared memory: publisher, reader, interpolation, and the running simulator."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+import rtde_control
+import rtde_receive
+
+from celld import se3
+from celld.errors import InputError
+from celld.robot import kinematics as kin
+from celld.sim.robot import SimRobotHandle, TruthReader
+from celld.sim.robot.truth import HISTORY_CAPACITY, TruthPublisher
+
+
+def _rows(T: np.ndarray) -> list[float]:
+    return T[:3, :4].ravel().tolist()
+
+
+def test_reader_interpolates_between_cycles(loopback_host: str) -> None:
+    pub = TruthPublisher(loopback_host)
+    reader = TruthReader(loopback_host, timeout=1.0)
+    try:
+        T0 = se3.from_xyz_rpy([0.5, 0.0, 0.3], [math.pi, 0.0, 0.0])
+        T1 = se3.from_xyz_rpy([0.5, 0.01, 0.3], [math.pi, 0.0, 0.02])
+        q = np.zeros(6)
+        t0 = 1_000_000_000
+        pub.publish(t0, q, q, _rows(T0), _rows(np.eye(4)), 1, (7, 1, 2))
+        pub.publish(t0 + 2_000_000, q + 0.02, q, _rows(T1), _rows(np.eye(4)), 1, (7, 1, 2))
+        latest = reader.latest()
+        assert latest.stamp_ns == t0 + 2_000_000 and latest.digital_out == 1
+        np.testing.assert_allclose(latest.T_base_tcp, T1, atol=1e-15)
+        mid = reader.at(t0 + 500_000)  # a quarter of the way
+        np.testing.assert_allclose(mid.T_base_tcp[:3, 3], [0.5, 0.0025, 0.3], atol=1e-12)
+        np.testing.assert_allclose(mid.q, 0.005, atol=1e-12)
+        assert se3.error(mid.T_base_tcp, se3.from_xyz_rpy([0.5, 0.0025, 0.3], [math.pi, 0.0, 0.005]))[1] < 1e-9
+        with pytest.raises(InputError, match="outside the history"):
+            reader.at(t0 - 1)
+    finally:
+        reader.close()
+        pub.close()
+
+
+def test_history_keeps_the_last_two_seconds(loopback_host: str) -> None:
+    pub = TruthPublisher(loopback_host)
+    reader = TruthReader(loopback_host, timeout=1.0)
+    try:
+        q = np.zeros(6)
+        for k in range(HISTORY_CAPACITY + 100):
+            pub.publish(k * 2_000_000, q, q, _rows(np.eye(4)), _rows(np.eye(4)), 0, (7, 1, 1))
+        stamps = reader.history()["stamp_ns"]
+        assert len(stamps) == HISTORY_CAPACITY
+        assert stamps[-1] == (HISTORY_CAPACITY + 99) * 2_000_000 and np.all(np.diff(stamps) == 2_000_000)
+    finally:
+        reader.close()
+        pub.close()
+
+
+@pytest.mark.slow
+def test_simulator_publishes_the_pose_it_streams(sim_robot: SimRobotHandle) -> None:
+    r = rtde_receive.RTDEReceiveInterface(sim_robot.host)
+    c = rtde_control.RTDEControlInterface(sim_robot.host)
+    try:
+        start = np.array(r.getActualTCPPose())
+        target = start + [0.1, 0.0, 0.0, 0.0, 0.0, 0.0]
+        t_before = time.monotonic_ns()
+        assert c.moveL(target.tolist(), 0.25, 1.2)
+        time.sleep(0.02)
+        stamp, T, q = sim_robot.truth()
+        assert stamp > t_before
+        np.testing.assert_allclose(T, se3.from_ur_pose(r.getActualTCPPose()), atol=1e-9)
+        np.testing.assert_allclose(T, kin.forward(q), atol=1e-9)
+        # Half-way through the move, by the clock: somewhere strictly between start and target.
+        t_mid = t_before + 300_000_000
+        x_mid = sim_robot.truth_at(t_mid).T_base_tcp[0, 3]
+        assert start[0] + 0.01 < x_mid < target[0] - 0.01
+    finally:
+        c.stopScript()
+        c.disconnect()
+        r.disconnect()
