@@ -97,8 +97,14 @@ def error_for(status: ControlStatus, reason: str) -> CelldError:
 
 def spec_from_config(config: Config, names: ChannelNames, host: str | None = None,
                      servo_laws: dict[str, str] | None = None, realtime: RealtimeOptions = RealtimeOptions(),
-                     move: MoveParams = MoveParams(), log_level: str = "info") -> MotionSpec:
-    """Build the motion process's spec from a validated config."""
+                     move: MoveParams = MoveParams(), link_timeout: float = 0.1, watchdog_hz: float = 10.0,
+                     log_level: str = "info") -> MotionSpec:
+    """Build the motion process's spec from a validated config.
+
+    ``link_timeout`` (s without fresh robot state before the link counts as
+    lost) and ``watchdog_hz`` (the robot stops its program 1/watchdog_hz s
+    after the last write) are the link's bounds.
+    """
     robot, motion = config.robot, config.motion
     period = 1.0 / robot.frequency_hz
     limits = CartesianLimits.from_config(motion)
@@ -118,8 +124,10 @@ def spec_from_config(config: Config, names: ChannelNames, host: str | None = Non
             period_ns=int(round(period * 1e9)),
             # speedL's own ramp must never clip the limiter's profile.
             speed_accel=2.0 * max(limits.linear_accel, limits.angular_accel),
+            link_timeout_ns=int(link_timeout * 1e9),
         ),
         frequency_hz=robot.frequency_hz,
+        watchdog_hz=watchdog_hz,
         realtime=realtime,
         servo_laws=servo_laws_from(servo_laws or {}),
         log_level=log_level,
@@ -172,6 +180,8 @@ class MotionHandle:
         move: MoveParams = MoveParams(),
         connect_timeout: float | None = None,
         hang_timeout: float = 0.5,
+        link_timeout: float = 0.1,
+        watchdog_hz: float = 10.0,
         backoff: Backoff = Backoff(),
         wait: bool = True,
     ) -> "MotionHandle":
@@ -185,7 +195,7 @@ class MotionHandle:
         names = ChannelNames.unique(capacity, tactile_slot)
         channels = Channels.create(names, create_tactile=tactile_slot is None)
         try:
-            spec = spec_from_config(config, names, host, servo_laws, realtime, move)
+            spec = spec_from_config(config, names, host, servo_laws, realtime, move, link_timeout, watchdog_hz)
             timeout = connect_timeout if connect_timeout is not None else config.robot.connect_timeout
             sup = MotionSupervisor(spec, channels, timeout, hang_timeout, backoff)
             handle = cls(sup, channels, spec.core.limits, (spec.core.workspace_min, spec.core.workspace_max))
@@ -195,11 +205,23 @@ class MotionHandle:
             channels.close()
             channels.unlink()
             raise
-        if wait and not await sup.wait_running(timeout + 5.0):
+        if wait and not await handle.wait_ready(timeout + 5.0):
             reason = sup.last_exit.reason if sup.last_exit else "no reply"
             await handle.close()
             raise LinkLost(f"robot {spec.host}: the motion loop did not start: {reason}")
         return handle
+
+    async def wait_ready(self, timeout: float) -> bool:
+        """Wait until the loop runs and its first state has been read; False on timeout."""
+        deadline = time.monotonic() + timeout
+        if not await self.supervisor.wait_running(timeout):
+            return False
+        seen = self._cycles
+        while self._cycles == seen or self.supervisor.state != LinkState.RUNNING:
+            if time.monotonic() > deadline:
+                return False
+            await asyncio.sleep(DRAIN_PERIOD)
+        return True
 
     async def close(self) -> None:
         """Stop the robot, end the motion process and release the channels."""

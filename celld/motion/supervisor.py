@@ -214,7 +214,7 @@ class MotionSupervisor:
             if head != proc.last_head:
                 proc.last_head = head
                 proc.last_progress = now
-            elif now - proc.last_progress > self.hang_timeout and not proc.killed_for:
+            elif now - proc.last_progress > self.hang_timeout and not proc.killed_for and not self._closing:
                 proc.killed_for = f"the motion loop stood still for {(now - proc.last_progress) * 1e3:.0f} ms"
                 log.error("killing the motion process", pid=proc.process.pid, reason=proc.killed_for)
                 self._kill(proc)
