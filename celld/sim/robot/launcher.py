@@ -31,6 +31,32 @@ _REQUEST_TIMEOUT = 5.0
 _STOP_TIMEOUT = 5.0
 
 
+def control_request(host: str, op: str, **args: Any) -> dict[str, Any]:
+    """Send one request to the control endpoint of the simulator on ``host``; return its reply.
+
+    Raises InputError when the simulator refuses the request, RobotError when
+    it cannot be reached.
+    """
+    payload = (json.dumps({"op": op, **args}) + "\n").encode()
+    try:
+        with socket.create_connection((host, CONTROL_PORT), timeout=_REQUEST_TIMEOUT) as sock:
+            sock.sendall(payload)
+            buf = b""
+            while not buf.endswith(b"\n"):
+                chunk = sock.recv(65536)
+                if not chunk:
+                    break
+                buf += chunk
+    except OSError as exc:
+        raise RobotError(f"simulated robot on {host}: control endpoint unreachable ({exc})") from exc
+    if not buf:
+        raise RobotError(f"simulated robot on {host}: control endpoint closed without a reply")
+    reply = json.loads(buf)
+    if not reply.pop("ok", False):
+        raise InputError(f"simulated robot on {host}: {reply.get('error', 'request refused')}")
+    return dict(reply)
+
+
 class SimRobotHandle:
     """A running simulated controller: its address, faults, teleport and true state.
 
@@ -46,29 +72,8 @@ class SimRobotHandle:
     # --- control endpoint -------------------------------------------------------------
 
     def request(self, op: str, **args: Any) -> dict[str, Any]:
-        """Send one request to the control endpoint and return its reply.
-
-        Raises InputError when the simulator refuses the request, RobotError when
-        it cannot be reached.
-        """
-        payload = (json.dumps({"op": op, **args}) + "\n").encode()
-        try:
-            with socket.create_connection((self.host, CONTROL_PORT), timeout=_REQUEST_TIMEOUT) as sock:
-                sock.sendall(payload)
-                buf = b""
-                while not buf.endswith(b"\n"):
-                    chunk = sock.recv(65536)
-                    if not chunk:
-                        break
-                    buf += chunk
-        except OSError as exc:
-            raise RobotError(f"simulated robot on {self.host}: control endpoint unreachable ({exc})") from exc
-        if not buf:
-            raise RobotError(f"simulated robot on {self.host}: control endpoint closed without a reply")
-        reply = json.loads(buf)
-        if not reply.pop("ok", False):
-            raise InputError(f"simulated robot on {self.host}: {reply.get('error', 'request refused')}")
-        return reply
+        """Send one request to the control endpoint; see :func:`control_request`."""
+        return control_request(self.host, op, **args)
 
     def inject(self, fault: str, **kw: float) -> None:
         """Play a fault (see :mod:`celld.sim.robot.faults`), e.g. ``inject("stall", ms=200)``."""

@@ -1,0 +1,58 @@
+"""``celld sim``: run simulated devices and play faults on them.
+
+- ``celld sim robot --host 127.0.0.N [options]`` runs the simulated UR10e
+  controller in the foreground until interrupted.
+- ``celld sim fault --host 127.0.0.N <fault> [--ms N] [--down-ms N]`` plays a
+  fault on a running simulator (see :mod:`celld.sim.robot.faults`);
+  ``clear`` undoes them and ``status`` prints the simulator's state.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+from celld.sim.robot.faults import FAULTS
+from celld.sim.robot.options import add_arguments, check_host, from_args
+
+
+def add_parser(sub: Any) -> None:
+    """Add ``sim`` and its subcommands to the top-level subparsers ``sub``."""
+    sim = sub.add_parser("sim", help="run simulated devices and play faults on them")
+    sim_sub = sim.add_subparsers(dest="sim_command", metavar="DEVICE")
+
+    robot = sim_sub.add_parser("robot", help="run the simulated UR10e controller (RTDE, dashboard, script ports)")
+    add_arguments(robot)
+    robot.set_defaults(func=_run_robot)
+
+    fault = sim_sub.add_parser("fault", help="play a fault on a running simulated robot")
+    fault.add_argument("--host", required=True, help="address the simulator listens on, 127.x.y.z")
+    names = sorted(f.replace("_", "-") for f in FAULTS) + ["clear", "status"]
+    fault.add_argument("fault", choices=names, help="the fault, or clear / status")
+    fault.add_argument("--ms", type=float, help="duration of stall, delay of latency, in milliseconds")
+    fault.add_argument("--down-ms", type=float, help="how long dropped ports stay closed, milliseconds")
+    fault.set_defaults(func=_run_fault)
+
+    sim.set_defaults(func=lambda args: sim.print_help() or 2)
+
+
+def _run_robot(args: argparse.Namespace) -> int:
+    from celld.sim.robot.server import serve
+
+    return serve(from_args(args))
+
+
+def _run_fault(args: argparse.Namespace) -> int:
+    from celld.sim.robot.launcher import control_request
+
+    host = check_host(args.host)
+    if args.fault == "status":
+        reply = control_request(host, "status")
+    elif args.fault == "clear":
+        reply = control_request(host, "clear")
+    else:
+        extra = {k: v for k, v in (("ms", args.ms), ("down_ms", args.down_ms)) if v is not None}
+        reply = control_request(host, "inject", fault=args.fault.replace("-", "_"), **extra)
+    print(json.dumps(reply))
+    return 0
