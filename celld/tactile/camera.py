@@ -1,0 +1,440 @@
+"""The tactile process: SRM camera -> tag detection -> deformation -> shared memory.
+
+The process reads frames from a :class:`FrameSource` (OpenCV ``VideoCapture``
+on the cell, :class:`~celld.sim.srm.SimSrmCamera` in the simulated cell),
+detects the tag (:mod:`celld.tactile.aruco`), turns it into a
+:class:`~celld.tactile.sample.TactileSample` (:mod:`celld.tactile.deformation`)
+stamped with the frame's capture time, and writes it into a seqlock slot that
+the motion process reads every cycle. Every frame gives a sample: a failed
+detection is written as an invalid sample whose status says why (no tag,
+another id, blurred, bad pose), a camera that gives no frame as
+``CAMERA_LOST``; none of them ever reads as zero deformation. Counters of each
+outcome go to a second slot (:data:`COUNTERS_DTYPE`).
+
+At start (and on request) the process tares: it averages ``tare_frames``
+detections with the finger free; until a tare succeeds it writes
+``NOT_TARED`` samples.
+
+:class:`TactileProcess` starts the process from the main process and owns
+both slots. OpenCV runs single-threaded in it, so detection does not take the
+second core from the motion loop.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import time
+from multiprocessing.synchronize import Event
+from typing import Any, Callable, NamedTuple, Protocol
+
+import cv2
+import numpy as np
+
+from celld.config import TactileConfig
+from celld.errors import DeviceError, TactileError
+from celld.log import get_logger
+from celld.shm import SeqlockSlot
+from celld.tactile.aruco import TagDetector
+from celld.tactile.deformation import DeformationParams, Tare, estimate, invalid_sample, tare
+from celld.tactile.sample import TACTILE_DTYPE, ContactState, TactileSample, TactileStatus, to_record
+
+log = get_logger(__name__)
+
+# Seconds between attempts to reopen a camera that stopped delivering.
+_REOPEN_INTERVAL = 1.0
+# Frames a tare may look at before it gives up and starts again.
+_TARE_PATIENCE = 3
+# How long the parent waits for the process to come up, s.
+_START_TIMEOUT = 20.0
+
+# Counters the process publishes: frames per outcome (index = TactileStatus).
+COUNTERS_DTYPE = np.dtype(
+    [
+        ("frames", np.int64),
+        ("by_status", np.int64, (len(TactileStatus),)),
+        ("tared", np.bool_),
+        ("p_cam_rest", np.float64, (3,)),
+        ("tare_spread", np.float64),
+        ("detect_ns", np.int64),  # of the last frame
+        ("pid", np.int64),
+    ]
+)
+
+
+class FrameSource(Protocol):
+    """A camera: ``read()`` returns ``(capture stamp_ns, image)`` or None when it gives no frame."""
+
+    def open(self) -> None: ...
+
+    def read(self) -> tuple[int, np.ndarray] | None: ...
+
+    def close(self) -> None: ...
+
+
+class OpenCvCamera:
+    """The SRM camera through ``cv2.VideoCapture`` (device, resolution and fps from the config).
+
+    A frame's capture time is the time ``grab()`` returned minus the
+    configured ``capture_latency`` (exposure and transfer), on the
+    ``time.monotonic_ns()`` clock the motion process uses. A failed grab (the
+    camera unplugged) returns None; the camera is reopened at most once a
+    second after that.
+    """
+
+    def __init__(self, cfg: TactileConfig, clock: Callable[[], int] = time.monotonic_ns) -> None:
+        self.cfg = cfg
+        self._clock = clock
+        self._cap: Any = None
+        self._retry_at = 0.0
+
+    def _device(self) -> int | str:
+        d = self.cfg.device
+        return int(d) if d.isdigit() else d
+
+    def open(self) -> None:
+        cap = cv2.VideoCapture(self._device())
+        if not cap.isOpened():
+            cap.release()
+            raise DeviceError(f"SRM camera {self.cfg.device!r}: cannot open it (is it connected, and readable by this user?)")
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.cfg.width_px)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.cfg.height_px)
+        cap.set(cv2.CAP_PROP_FPS, self.cfg.fps)
+        # Keep no queue of old frames: each grab should be the newest.
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
+        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        if (w, h) != (self.cfg.width_px, self.cfg.height_px):
+            cap.release()
+            raise DeviceError(
+                f"SRM camera {self.cfg.device!r}: expected {self.cfg.width_px} x {self.cfg.height_px} px "
+                f"(the intrinsics are for that size), the camera gives {w} x {h}"
+            )
+        self._cap = cap
+
+    def read(self) -> tuple[int, np.ndarray] | None:
+        if self._cap is None:
+            if time.monotonic() < self._retry_at:
+                time.sleep(1.0 / self.cfg.fps)
+                return None
+            try:
+                self.open()
+            except DeviceError:
+                self._retry_at = time.monotonic() + _REOPEN_INTERVAL
+                return None
+        if not self._cap.grab():
+            self._cap.release()
+            self._cap = None
+            self._retry_at = time.monotonic() + _REOPEN_INTERVAL
+            return None
+        stamp = self._clock() - int(self.cfg.capture_latency * 1e9)
+        ok, image = self._cap.retrieve()
+        if not ok or image is None:
+            return None
+        return stamp, image
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+class FrameEstimator:
+    """Turns frames into samples and counts the outcomes (the camera process's state).
+
+    Parameters
+    ----------
+    cfg : TactileConfig
+    rest : Tare or None
+        The tared rest position; None until a tare.
+    """
+
+    def __init__(self, cfg: TactileConfig, rest: Tare | None = None) -> None:
+        self.cfg = cfg
+        self.detector = TagDetector.from_config(cfg)
+        self.params = DeformationParams.from_config(cfg)
+        self.rest = rest
+        self.seq = 0
+        self.contact = ContactState.NONE
+        self.counters = np.zeros(1, COUNTERS_DTYPE)
+
+    def process(self, stamp_ns: int, image: np.ndarray) -> tuple[TactileSample, np.ndarray]:
+        """The sample of one frame, and the tag position in the camera frame (NaN when not found)."""
+        t0 = time.perf_counter_ns()
+        det = self.detector.detect(image)
+        detect_ns = time.perf_counter_ns() - t0
+        self.seq += 1
+        sample = estimate(det, self.rest, self.params, stamp_ns, self.seq, self.contact, detect_ns)
+        if sample.valid:
+            self.contact = sample.contact
+        self._count(sample)
+        return sample, det.p_cam if det.status == TactileStatus.OK else np.full(3, np.nan)
+
+    def lost(self, stamp_ns: int) -> TactileSample:
+        """The sample of a frame that never came."""
+        self.seq += 1
+        sample = invalid_sample(stamp_ns, self.seq, TactileStatus.CAMERA_LOST)
+        self._count(sample)
+        return sample
+
+    def _count(self, sample: TactileSample) -> None:
+        c = self.counters[0]
+        c["frames"] += 1
+        c["by_status"][int(sample.status)] += 1
+        c["detect_ns"] = sample.detect_ns
+        c["tared"] = self.rest is not None
+        if self.rest is not None:
+            c["p_cam_rest"] = self.rest.p_cam_rest
+            c["tare_spread"] = self.rest.spread
+
+
+def run_tare(source: FrameSource, est: FrameEstimator, publish: Callable[[TactileSample], None]) -> Tare:
+    """Tare with the finger free: average ``tare_frames`` detections.
+
+    Every frame read meanwhile is still published (as ``NOT_TARED`` or the
+    detection's failure), so the motion process sees a live camera.
+
+    Raises
+    ------
+    TactileError
+        Too few detections in ``_TARE_PATIENCE`` times the frames asked for,
+        or the tag moved during the tare.
+    """
+    cfg = est.cfg
+    positions = []
+    saved, est.rest = est.rest, None
+    try:
+        for _ in range(_TARE_PATIENCE * cfg.tare_frames):
+            frame = source.read()
+            if frame is None:
+                publish(est.lost(time.monotonic_ns()))
+                continue
+            sample, p_cam = est.process(*frame)
+            publish(sample)
+            if np.all(np.isfinite(p_cam)):
+                positions.append(p_cam)
+            if len(positions) >= cfg.tare_frames:
+                break
+        rest = tare(np.array(positions).reshape(-1, 3), cfg.tare_max_spread, cfg.tare_frames)
+    except TactileError:
+        est.rest = saved
+        raise
+    est.rest = rest
+    est.counters[0]["tared"] = True
+    est.counters[0]["p_cam_rest"] = rest.p_cam_rest
+    est.counters[0]["tare_spread"] = rest.spread
+    return rest
+
+
+def run_camera(
+    source: FrameSource,
+    est: FrameEstimator,
+    samples: SeqlockSlot,
+    counters: SeqlockSlot | None,
+    stop: Callable[[], bool],
+    tare_requested: Callable[[], bool] = lambda: False,
+) -> None:
+    """The camera loop: read, estimate, publish, until ``stop()``; tares when asked (and at start without a rest)."""
+
+    def publish(sample: TactileSample) -> None:
+        samples.write(to_record(sample, time.monotonic_ns()))
+        if counters is not None:
+            counters.write(est.counters)
+
+    need_tare = est.rest is None
+    while not stop():
+        if need_tare or tare_requested():
+            try:
+                rest = run_tare(source, est, publish)
+                log.info("SRM tared", p_cam_rest_mm=np.round(rest.p_cam_rest * 1e3, 4).tolist(), spread_um=round(rest.spread * 1e6, 2))
+                need_tare = False
+            except TactileError as exc:
+                log.warning("SRM tare failed, trying again", reason=str(exc))
+                need_tare = True
+            continue
+        frame = source.read()
+        if frame is None:
+            publish(est.lost(time.monotonic_ns()))
+            continue
+        sample, _ = est.process(*frame)
+        publish(sample)
+
+
+# -- the process ----------------------------------------------------------------------
+
+
+class SimSourceSpec(NamedTuple):
+    """What the tactile process needs to run the simulated camera (picklable).
+
+    ``wall`` (n, 2) and ``free`` describe the seam wall in the plane
+    ``T_base_plane``; ``robot_host`` is the simulated controller whose true
+    TCP pose drives the finger.
+    """
+
+    robot_host: str
+    wall: np.ndarray
+    free: float
+    T_base_plane: np.ndarray
+    params: Any = None  # celld.sim.srm.SrmSimParams or None for the defaults
+
+
+def _make_source(cfg: TactileConfig, sim: SimSourceSpec | None) -> tuple[FrameSource, Callable[[], None]]:
+    if cfg.kind == "opencv":
+        return OpenCvCamera(cfg), lambda: None
+    if sim is None:
+        raise DeviceError("tactile.kind is 'sim' but no simulated seam was given to the tactile process")
+    from celld.sim.robot.truth import TruthReader
+    from celld.sim.srm import SimSrm, SimSrmCamera, SrmSimParams, Wall
+
+    reader = TruthReader(sim.robot_host)
+    srm = SimSrm(cfg, Wall(np.asarray(sim.wall), sim.free), sim.T_base_plane, sim.params or SrmSimParams(fps=cfg.fps))
+
+    def pose_at(stamp_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        a = reader.at(stamp_ns)
+        b = reader.at(stamp_ns - 4_000_000)
+        v = np.zeros(6)
+        v[:3] = (a.T_base_tcp[:3, 3] - b.T_base_tcp[:3, 3]) / 0.004
+        return a.T_base_tcp, v
+
+    cam = SimSrmCamera(srm, pose_at)
+    cam.keep_truth = False
+    return cam, reader.close
+
+
+def tactile_main(
+    cfg: TactileConfig,
+    slot_name: str,
+    counters_name: str,
+    stop: Event,
+    tare_request: Event,
+    ready: Event,
+    sim: SimSourceSpec | None = None,
+    truth_slot: str = "",
+) -> None:
+    """Entry point of the tactile process (``multiprocessing`` spawn target)."""
+    cv2.setNumThreads(1)
+    samples = SeqlockSlot.attach(slot_name, TACTILE_DTYPE)
+    counters = SeqlockSlot.attach(counters_name, COUNTERS_DTYPE)
+    truth = SeqlockSlot.attach(truth_slot, TRUTH_DTYPE) if truth_slot else None
+    source, cleanup = _make_source(cfg, sim)
+    try:
+        source.open()
+        est = FrameEstimator(cfg)
+        est.counters[0]["pid"] = os.getpid()
+        if truth is not None and hasattr(source, "truth"):
+            source.keep_truth = True  # type: ignore[attr-defined]
+        ready.set()
+
+        def requested() -> bool:
+            if tare_request.is_set():
+                tare_request.clear()
+                return True
+            return False
+
+        if truth is not None:
+            _run_with_truth(source, est, samples, counters, truth, stop, requested)
+        else:
+            run_camera(source, est, samples, counters, stop.is_set, requested)
+    finally:
+        source.close()
+        cleanup()
+        samples.close()
+        counters.close()
+        if truth is not None:
+            truth.close()
+
+
+# The simulator's truth of each frame, for benchmarks: capture stamp, delta, contact.
+TRUTH_DTYPE = np.dtype([("stamp_ns", np.int64), ("delta_true", np.float64, (3,)), ("in_contact", np.bool_)])
+
+
+def _run_with_truth(source, est, samples, counters, truth, stop, requested) -> None:
+    """:func:`run_camera` that also publishes the simulator's truth of each frame (benchmarks only)."""
+    rec = np.zeros(1, TRUTH_DTYPE)
+    seen = 0
+
+    def stop_and_share() -> bool:
+        nonlocal seen
+        log_ = source.truth
+        while seen < len(log_):
+            stamp, delta, contact = log_[seen]
+            rec["stamp_ns"], rec["delta_true"], rec["in_contact"] = stamp, delta, contact
+            truth.write(rec)
+            seen += 1
+        if len(log_) > 1000:
+            del log_[: len(log_) - 10]
+            seen = len(log_)
+        return stop.is_set()
+
+    run_camera(source, est, samples, counters, stop_and_share, requested)
+
+
+class TactileProcess:
+    """Starts and stops the tactile process; owns its sample and counter slots.
+
+    Parameters
+    ----------
+    cfg : TactileConfig
+    name : str
+        Prefix of the shared-memory names (unique per cell instance).
+    sim : SimSourceSpec or None
+        Required when ``cfg.kind == "sim"``.
+    share_truth : bool
+        Also publish the simulator's truth per frame (benchmarks).
+    """
+
+    def __init__(self, cfg: TactileConfig, name: str, sim: SimSourceSpec | None = None, share_truth: bool = False) -> None:
+        self.cfg = cfg
+        self.slot_name = f"{name}-tactile"
+        self.counters_name = f"{name}-tactile-counters"
+        self.truth_name = f"{name}-tactile-truth" if share_truth else ""
+        self.samples = SeqlockSlot.create(self.slot_name, TACTILE_DTYPE)
+        self.counters = SeqlockSlot.create(self.counters_name, COUNTERS_DTYPE)
+        self.truth = SeqlockSlot.create(self.truth_name, TRUTH_DTYPE) if share_truth else None
+        ctx = mp.get_context("spawn")
+        self._stop = ctx.Event()
+        self._tare = ctx.Event()
+        self._ready = ctx.Event()
+        self._proc = ctx.Process(
+            target=tactile_main,
+            args=(cfg, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, sim, self.truth_name),
+            name="celld-tactile",
+            daemon=True,
+        )
+
+    def start(self, timeout: float = _START_TIMEOUT) -> None:
+        self._proc.start()
+        deadline = time.monotonic() + timeout
+        while not self._ready.wait(0.1):
+            if not self._proc.is_alive():
+                raise DeviceError(f"the tactile process exited at start (exit code {self._proc.exitcode})")
+            if time.monotonic() > deadline:
+                self.stop()
+                raise DeviceError(f"the tactile process did not come up within {timeout} s")
+
+    def request_tare(self) -> None:
+        self._tare.set()
+
+    def latest(self) -> TactileSample | None:
+        from celld.tactile.sample import from_record
+
+        rec, _ = self.samples.read()
+        return None if rec is None or int(rec["seq"]) == 0 else from_record(rec)
+
+    def read_counters(self) -> np.void | None:
+        rec, _ = self.counters.read()
+        return rec
+
+    def alive(self) -> bool:
+        return self._proc.is_alive()
+
+    def stop(self, timeout: float = 5.0) -> int | None:
+        self._stop.set()
+        self._proc.join(timeout)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(1.0)
+        for slot in (self.samples, self.counters, self.truth):
+            if slot is not None:
+                slot.close()
+                slot.unlink()
+        return self._proc.exitcode

@@ -1,0 +1,162 @@
+"""The camera process's loop: tare, one sample per frame, every failure a status, never zero."""
+
+from __future__ import annotations
+
+import math
+import uuid
+
+import numpy as np
+import pytest
+
+from celld.config import TactileConfig
+from celld.errors import DeviceError
+from celld.shm import SeqlockSlot
+from celld.sim.srm import SimSrm, SimSrmCamera, SrmSimParams, Wall
+from celld.tactile.camera import COUNTERS_DTYPE, FrameEstimator, OpenCvCamera, TactileProcess, run_camera
+from celld.tactile.sample import TACTILE_DTYPE, ContactState, TactileStatus, from_record
+
+# A wall along +x at y = 0 of a horizontal plane; the default tool faces +x
+# with its TCP z down, the wall on its left.
+T_PLANE = np.eye(4)
+WALL = Wall(np.array([[-0.05, 0.0], [0.05, 0.0]]), free=-1.0)
+
+
+def _pose(y: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    T[1, 3] = y
+    return T
+
+
+class FakeClock:
+    """Simulated time for the camera: sleeping advances it."""
+
+    def __init__(self) -> None:
+        self.ns = 1_000_000_000
+
+    def __call__(self) -> int:
+        return self.ns
+
+    def sleep(self, s: float) -> None:
+        self.ns += int(s * 1e9)
+
+
+class Rig:
+    """The sim camera on a fake clock, the estimator and real shared-memory slots."""
+
+    def __init__(self, y: float = -0.002) -> None:
+        self.cfg = TactileConfig(tare_frames=10)
+        self.clock = FakeClock()
+        self.y = y
+        srm = SimSrm(self.cfg, WALL, T_PLANE, SrmSimParams(seed=3, lighting_swing=0.1))
+        self.camera = SimSrmCamera(srm, lambda stamp: (_pose(self.y), np.zeros(6)), self.clock, self.clock.sleep)
+        self.camera.open()
+        tag = uuid.uuid4().hex[:8]
+        self.samples = SeqlockSlot.create(f"t-{tag}-s", TACTILE_DTYPE)
+        self.counters = SeqlockSlot.create(f"t-{tag}-c", COUNTERS_DTYPE)
+        self.est = FrameEstimator(self.cfg)
+        self.written = []
+        orig = self.samples.write
+
+        def write(rec):
+            self.written.append(from_record(rec))
+            orig(rec)
+
+        self.samples.write = write  # record every sample the loop publishes
+
+    def run(self, frames: int) -> None:
+        """Run the loop until ``frames`` more samples are published (a tare may publish a few more)."""
+        target = len(self.written) + frames
+        run_camera(self.camera, self.est, self.samples, self.counters, lambda: len(self.written) >= target)
+
+    def close(self) -> None:
+        for s in (self.samples, self.counters):
+            s.close()
+            s.unlink()
+
+
+@pytest.fixture
+def rig():
+    r = Rig()
+    yield r
+    r.close()
+
+
+def test_tares_then_publishes_valid_samples_stamped_at_capture(rig: Rig) -> None:
+    rig.run(40)
+    tare_frames = rig.cfg.tare_frames
+    assert all(s.status == TactileStatus.NOT_TARED for s in rig.written[:tare_frames])
+    assert rig.est.rest is not None
+    after = rig.written[tare_frames:]
+    assert after and all(s.valid and s.status == TactileStatus.OK for s in after)
+    # Free finger: no contact, deformation within micrometres of zero.
+    assert all(s.contact == ContactState.NONE for s in after)
+    assert max(np.abs(s.delta_tool[:2]).max() for s in after) < 20e-6
+    # Stamps are the capture times: one frame period apart.
+    stamps = np.diff([s.stamp_ns for s in after])
+    assert np.all(stamps == int(round(1e9 / 60.0)))
+    c = rig.counters.read()[0]
+    assert c["frames"] == 40 and c["tared"]
+    assert c["by_status"][int(TactileStatus.OK)] == 40 - tare_frames
+
+
+def test_contact_reads_the_wall(rig: Rig) -> None:
+    rig.run(11)
+    rig.y = 0.0005  # the undeformed tip 1.5 mm into the wall (tip radius 1 mm)
+    rig.run(5)
+    s = rig.written[-1]
+    assert s.valid and s.contact == ContactState.CONTACT
+    assert s.delta_tool[1] == pytest.approx(0.0015, abs=20e-6)
+
+
+@pytest.mark.parametrize(
+    ("fault", "status"),
+    [("wrong_id", TactileStatus.WRONG_ID), ("no_tag", TactileStatus.NO_TAG), ("blur", TactileStatus.BLURRED)],
+)
+def test_failed_detections_are_flagged_never_zero(rig: Rig, fault: str, status: TactileStatus) -> None:
+    rig.run(11)
+    rig.camera.srm.fault = fault
+    rig.run(5)
+    bad = rig.written[-5:]
+    assert all(not s.valid and s.status == status for s in bad)
+    assert all(np.all(np.isnan(s.delta_tool)) for s in bad)
+    assert rig.counters.read()[0]["by_status"][int(status)] == 5
+
+
+def test_an_unplugged_camera_gives_camera_lost_samples(rig: Rig) -> None:
+    rig.run(11)
+    rig.camera.unplug()
+    rig.run(3)
+    assert [s.status for s in rig.written[-3:]] == [TactileStatus.CAMERA_LOST] * 3
+    assert all(math.isnan(s.delta_tool[0]) for s in rig.written[-3:])
+
+
+def test_a_moving_finger_fails_the_tare_and_stays_untared() -> None:
+    r = Rig()
+    try:
+        # The finger is pushed into the wall while taring: 0.1 mm more each frame.
+        r.camera.pose_at = lambda stamp: (_pose(-0.0009 + (stamp - 1_000_000_000) * 6e-3 / 1e9), np.zeros(6))
+        r.run(r.cfg.tare_frames)
+        assert r.est.rest is None
+        assert all(not s.valid for s in r.written)
+    finally:
+        r.close()
+
+
+def test_opencv_camera_that_is_absent_is_refused_then_reads_as_lost() -> None:
+    cfg = TactileConfig(kind="opencv", device="/dev/celld-no-such-camera", fps=200.0)
+    cam = OpenCvCamera(cfg)
+    with pytest.raises(DeviceError, match="cannot open"):
+        cam.open()
+    assert cam.read() is None
+
+
+@pytest.mark.slow
+def test_tactile_process_refuses_to_start_without_its_camera() -> None:
+    cfg = TactileConfig(kind="opencv", device="/dev/celld-no-such-camera")
+    proc = TactileProcess(cfg, f"t-{uuid.uuid4().hex[:8]}")
+    try:
+        with pytest.raises(DeviceError, match="exited at start"):
+            proc.start(timeout=20.0)
+    finally:
+        proc.stop()
