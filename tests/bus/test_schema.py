@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from celld.bus import schema
 from celld.bus.schema import CalibrateJob, HealthJob, MoveJob, WeldJob, parse, parse_submit
 from celld.errors import JobError
+from tests.bus.strategies import json_values, valid_jobs
 
 
 def submit(message: object) -> schema.Job:
@@ -132,43 +133,14 @@ def test_other_requests() -> None:
 
 # -- round trip and fuzz ------------------------------------------------------------
 
-finite = st.floats(allow_nan=False, allow_infinity=False)
-poses = st.lists(
-    st.tuples(*[st.floats(-2.5, 2.5)] * 3, *[st.floats(-6.28, 6.28)] * 3).map(list), min_size=4, max_size=8
-)
-jobs = st.one_of(
-    st.builds(
-        lambda n, e, k, c, s: {"kind": "calibrate", "n_poses": n, "e_required_mm": e, "k_max": k, "compensate": c, "seed": s},
-        st.integers(4, 1000), st.floats(0, 100), st.integers(1, 10_000), st.booleans(), st.integers(0, 2**32 - 1),
-    ),
-    st.builds(lambda p: {"kind": "calibrate", "poses": p}, poses),
-    st.builds(
-        lambda d, v, k, a: {"kind": "weld", "delta_d_mm": d, "v_const_mm_s": v, "k_p": k, "arc": a},
-        st.floats(0.01, 20), st.floats(0.01, 500), st.floats(0.01, 1000), st.booleans(),
-    ),
-    st.builds(
-        lambda q, s: {"kind": "move", "target": {"space": "joint", "q": q}, "speed_scale": s},
-        st.lists(st.floats(-6.28, 6.28), min_size=6, max_size=6), st.floats(0.01, 1.0),
-    ),
-    st.builds(lambda c: {"kind": "health", "check": c}, st.sampled_from(schema.HEALTH_CHECKS)),
-)
-
-
 @settings(max_examples=100, deadline=None)
-@given(jobs)
+@given(valid_jobs)
 def test_job_to_message_round_trips(message: dict) -> None:
     job = submit(message)
     again = submit(schema.job_to_message(job))
     assert type(again) is type(job)
     for a, b in zip(json.loads(json.dumps(schema.job_to_message(job))).values(), schema.job_to_message(again).values()):
         assert a == pytest.approx(b, rel=1e-9, abs=1e-12) if isinstance(a, float) else a == b
-
-
-json_values = st.recursive(
-    st.none() | st.booleans() | st.integers() | finite | st.text(max_size=30),
-    lambda children: st.lists(children, max_size=6) | st.dictionaries(st.text(max_size=12), children, max_size=6),
-    max_leaves=30,
-)
 
 
 @settings(max_examples=300, deadline=None)
@@ -181,7 +153,7 @@ def test_random_bytes_give_a_job_or_a_job_error(raw: bytes) -> None:
 
 
 @settings(max_examples=150, deadline=None)
-@given(jobs, st.sampled_from(["n_poses", "poses", "target", "arc", "check", "k_p", "ref", "kind", "extra"]), json_values)
+@given(valid_jobs, st.sampled_from(["n_poses", "poses", "target", "arc", "check", "k_p", "ref", "kind", "extra"]), json_values)
 def test_a_valid_job_with_one_field_replaced_gives_a_job_or_names_a_field(message: dict, key: str, value: object) -> None:
     message = {**message, key: value}
     try:
@@ -209,7 +181,7 @@ def test_schemas_are_valid_json_schema(name: str) -> None:
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.one_of(jobs, st.builds(lambda m, k, v: {**m, k: v}, jobs, st.sampled_from(["n_poses", "poses", "target", "arc", "zz"]), json_values)))
+@given(st.one_of(valid_jobs, st.builds(lambda m, k, v: {**m, k: v}, valid_jobs, st.sampled_from(["n_poses", "poses", "target", "arc", "zz"]), json_values)))
 def test_checker_agrees_with_the_reference_validator(message: dict) -> None:
     """Same verdict as jsonschema on the same schema (cross-field checks aside)."""
     jsonschema = pytest.importorskip("jsonschema", reason="the reference validator is only a test aid")

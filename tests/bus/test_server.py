@@ -9,11 +9,11 @@ from typing import Any, Mapping
 
 import pytest
 from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 
 from celld.bus import schema
 from celld.bus.client import CellClient
 from celld.errors import BusError, JobError
+from tests.bus.strategies import HOSTILE_PAYLOADS, hostile_jobs
 
 CALIBRATE = {"kind": "calibrate", "n_poses": 6, "e_required_mm": 0.3}
 
@@ -103,28 +103,8 @@ def test_unknown_job_is_refused_with_the_field(client) -> None:
     assert err.value.field == "$.job" and "no job" in err.value.reason
 
 
-HOSTILE = [
-    b"\xff\xfe\x00garbage",
-    b"[1, 2, 3]",
-    b'"a string"',
-    b"null",
-    b'{"kind": "calibrate", "n_poses": NaN}',
-    b'{"kind": "calibrate", "e_required_mm": 1e999}',
-    b'{"kind": "weld", "kind": "move"}',
-    b'{"kind": "move"}',
-    b'{"kind": "move", "target": {"space": "joint", "q": [0, 0, 0, 0, 0]}}',
-    b'{"kind": "calibrate", "poses": [[0, 0, 0, 0, 0, 0]]}',
-    b'{"kind": "health", "check": "everything"}',
-    b'{"kind": "health", "extra": {}}',
-    b'{"kind": "calibrate", "seed": 123456789012345678901234567890}',
-    b"[" * 50_000 + b"]" * 50_000,
-    b'{"kind": "health", "ref": "' + b"x" * 300_000 + b'"}',
-    b'{"kind": "health", "ref": "\\ud800"}',
-]
-
-
 def test_hostile_payloads_each_get_an_error_reply_and_the_server_stays_up(cell, client) -> None:
-    for payload in HOSTILE:
+    for payload in HOSTILE_PAYLOADS:
         reply = client.request_raw("submit", payload)
         schema.check_message("error-reply", reply)
         assert reply["error"]["reason"], payload[:40]
@@ -143,28 +123,6 @@ def test_requests_of_every_queryable_with_garbage_get_errors(client) -> None:
     for name in ("status", "cancel", "list", "accept", "calibration"):
         reply = client.request_raw(name, b'{"bogus": 1}')
         assert reply["ok"] is False and reply["error"]["field"] == "$.bogus", (name, reply)
-
-
-json_values = st.recursive(
-    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False, allow_infinity=False) | st.text(max_size=20),
-    lambda children: st.lists(children, max_size=5) | st.dictionaries(st.text(max_size=10), children, max_size=5),
-    max_leaves=20,
-)
-kinds = st.sampled_from(["calibrate", "weld", "move", "health", "Weld", "", "x"])
-
-
-@st.composite
-def hostile_jobs(draw: st.DrawFn) -> bytes:
-    """Job-shaped messages with a wrong field, and raw garbage."""
-    choice = draw(st.integers(0, 3))
-    if choice == 0:
-        return draw(st.binary(max_size=200))
-    if choice == 1:
-        return json.dumps(draw(json_values)).encode()
-    message = {"kind": draw(kinds), draw(st.sampled_from(["n_poses", "poses", "target", "arc", "check", "ref", "zz"])): draw(json_values)}
-    if choice == 3:
-        message["extra_" + draw(st.text(max_size=5))] = draw(json_values)
-    return json.dumps(message).encode()
 
 
 def _is_valid_submit(payload: bytes) -> bool:
