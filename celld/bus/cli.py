@@ -236,7 +236,7 @@ def _submit(args: argparse.Namespace) -> int:
             return 0
         bar = ProgressBar()
         try:
-            with cell.watch() as events:
+            with cell.watch_progress() as events:
                 reply = cell.submit(message)
                 print(f"{reply['job']} {reply['state']}", file=sys.stderr)
                 record = events.wait(reply["job"], bar.update, args.wait_timeout)

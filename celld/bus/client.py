@@ -4,7 +4,7 @@ The CLI is built on this module; MES connectors and scripts can use it the
 same way::
 
     with CellClient(config.load("/etc/celld/cell.toml").bus, "cell-01") as cell:
-        with cell.watch() as events:              # subscribe before submitting
+        with cell.watch_progress() as events:     # subscribe before submitting
             reply = cell.submit({"kind": "calibrate", "n_poses": 12})
             record = events.wait(reply["job"], on_event=print)
 
@@ -193,7 +193,7 @@ class CellClient:
 
     # -- publications -----------------------------------------------------------------
 
-    def watch(self, job: str | None = None) -> "ProgressWatch":
+    def watch_progress(self, job: str | None = None) -> "ProgressWatch":
         """Subscribe to the progress events of ``job`` (all jobs if None). Use as a context manager."""
         return ProgressWatch(self, job)
 
@@ -204,7 +204,7 @@ class CellClient:
         timeout: float | None = None,
     ) -> tuple[dict[str, Any], dict[str, Any]]:
         """Submit and wait for the job to end; returns (submit-reply, final job record)."""
-        with self.watch() as events:
+        with self.watch_progress() as events:
             reply = self.submit(message)
             return reply, events.wait(reply["job"], on_event, timeout)
 
@@ -227,7 +227,7 @@ class CellClient:
 
 
 class ProgressWatch:
-    """Progress events of one cell, buffered from a subscription (see :meth:`CellClient.watch`)."""
+    """Progress events of one cell, buffered from a subscription (see :meth:`CellClient.watch_progress`)."""
 
     def __init__(self, client: CellClient, job: str | None = None) -> None:
         self.client = client

@@ -29,4 +29,4 @@ def test_cells_in_client_mode_behind_a_router_cell(serve_cell) -> None:
     assert discover_cells(bus) == ["cell-hub", "cell-leaf"]
     with CellClient(bus, "cell-leaf") as client:
         reply = client.submit({"kind": "health"})
-        assert client.watch().wait(reply["job"], timeout=5.0)["state"] == "succeeded"
+        assert client.watch_progress().wait(reply["job"], timeout=5.0)["state"] == "succeeded"

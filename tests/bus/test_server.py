@@ -40,7 +40,7 @@ def test_submit_returns_a_job_id_and_the_job_runs_to_success(cell, client) -> No
     reply = client.submit(CALIBRATE)
     schema.check_message("submit-reply", reply)
     assert reply["state"] == "running" and reply["position"] == 0
-    record = client.watch().wait(reply["job"], timeout=5.0)
+    record = client.watch_progress().wait(reply["job"], timeout=5.0)
     assert record["state"] == "succeeded"
     assert record["params"] == CALIBRATE
     assert cell.journal.get(reply["job"]).state == "succeeded"
@@ -74,7 +74,7 @@ def test_full_queue_refuses_with_a_reason(serve_cell) -> None:
 
 def test_progress_events_are_numbered_and_end_terminal(cell, client) -> None:
     events: list[dict[str, Any]] = []
-    with client.watch() as watch:
+    with client.watch_progress() as watch:
         reply = client.submit({"kind": "health"})
         watch.wait(reply["job"], events.append, timeout=5.0)
     for e in events:
@@ -86,7 +86,7 @@ def test_progress_events_are_numbered_and_end_terminal(cell, client) -> None:
 def test_status_list_accept_calibration_replies_match_their_schemas(cell, client) -> None:
     assert client.calibration() is None
     reply = client.submit(CALIBRATE)
-    client.watch().wait(reply["job"], timeout=5.0)
+    client.watch_progress().wait(reply["job"], timeout=5.0)
     record = client.status(reply["job"])
     schema.check_message("job-reply", {"ok": True, "record": record})
     schema.check_message("list-reply", {"ok": True, "jobs": client.list()})
