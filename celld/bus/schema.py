@@ -367,10 +367,14 @@ def _exported(name: str, body: dict[str, Any]) -> dict[str, Any]:
     return {"$schema": DIALECT, "$id": f"urn:celld:bus:{name}", "title": f"celld {name}", **body}
 
 
-SCHEMAS: Mapping[str, dict[str, Any]] = {name: _exported(name, body) for name, body in _BODIES.items()}
-# The checker enforces exactly what is exported: refuse a keyword it would skip.
-for _name, _schema in SCHEMAS.items():
-    check_schema(_schema, f"{_name}#")
+def _checked(schemas: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    # The checker enforces exactly what is exported: refuse a keyword it would skip.
+    for name, s in schemas.items():
+        check_schema(s, f"{name}#")
+    return schemas
+
+
+SCHEMAS: Mapping[str, dict[str, Any]] = _checked({name: _exported(name, body) for name, body in _BODIES.items()})
 
 # Requests, by queryable name.
 REQUESTS = ("submit", "status", "cancel", "list", "accept", "calibration")
