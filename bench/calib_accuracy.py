@@ -410,6 +410,139 @@ def speed(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+# Benchmark 3 set-ups: scanner, flange preset, box centre (base frame, m) inside
+# the scanner's range (the camera is 1 m above the base), translation target
+# (mm) and rotation target (deg).
+E2E_SETUPS = {
+    "phoxi-m": ("phoxi-m", "ur10e", np.array([0.6, 0.0, 0.35]), 0.15, 0.05),
+    "azure-kinect": ("azure-kinect", "ur10e-wrist", np.array([0.6, 0.0, 0.3]), 1.5, math.inf),
+}
+
+
+def realization_3(job: tuple[int, str, int, float]) -> dict[str, Any]:
+    """Benchmark 3, one seed: ray-cast captures, the detector, the session solve."""
+    from celld.calib.detect import PARAMS_BY_SCANNER, detect_flange
+    from celld.calib.robust import RejectedPair
+    from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
+    from celld.errors import DetectionError
+    from celld.sim.scanner import SimScanner
+    from celld.sim.scene import robot_scene
+
+    seed, setup, n_poses, scale = job
+    scanner_name, flange_name, centre, _, _ = E2E_SETUPS[setup]
+    flange = preset(flange_name)
+    dparams = PARAMS_BY_SCANNER[scanner_name]
+    scanner = SimScanner(scanner_name, T_BASE_CAM_TRUE, seed=seed, resolution_scale=scale)
+    rng = np.random.default_rng([seed, 3])
+    P_base = centre + rng.uniform(-0.5, 0.5, (n_poses, 3)) * BOX_SIZE
+    T_bf = tilted_poses(rng, P_base)
+    T_v = transform_from(np.eye(3), centre)
+    t0 = time.perf_counter()
+    ids, Pb, Pc, pre = [], [], [], []
+    for i, T in enumerate(T_bf):
+        cloud = scanner.capture(robot_scene(T, flange)).points
+        try:
+            det = detect_flange(cloud, flange, dparams)
+        except DetectionError as exc:
+            pre.append(RejectedPair(str(i), -1, math.nan, f"detection failed at {exc.stage}: {exc.reason}"))
+            continue
+        ids.append(str(i))
+        Pb.append(T[:3, 3])
+        Pc.append(det.center)
+    params = SolveParams(method="robust", compensate=True, e_required=0.0)
+    out: dict[str, Any] = {"seed": seed, "setup": setup, "detected": len(ids), "poses": n_poses}
+    try:
+        verifier = verifier_from_cloud(scanner.capture(robot_scene(T_v, flange)).points, T_v, flange, params, dparams)
+    except CalibrationError as exc:
+        verifier = None
+        out["verification_error"] = str(exc)
+    try:
+        res = solve_pairs(ids, np.reshape(Pb, (-1, 3)), np.reshape(Pc, (-1, 3)), params, verifier, pre)
+    except CalibrationError as exc:
+        out["error"] = str(exc)
+        for m in ("robust", "svd_all", "algorithm1", "robust_eq21"):
+            out[m] = (math.nan, math.nan)
+        return out
+    out["robust"] = errors(res.T_base_cam)
+    out["robust_eq21"] = errors(res.T_base_cam_compensated)
+    out["svd_all"] = errors(solve_rigid(np.array(Pb), np.array(Pc)).T_dst_src)
+    out["algorithm1"] = errors(None if res.algorithm1 is None else res.algorithm1.T_base_cam)
+    out["rejected"] = len(res.rejected)
+    out["predicted_t_mm"] = res.uncertainty.translation_error * 1e3
+    out["predicted_r_deg"] = math.degrees(res.uncertainty.rotation_error)
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def bench3(args: argparse.Namespace) -> dict[str, Any]:
+    if args.quick:
+        plan = {"phoxi-m": (1, 8, 0.4), "azure-kinect": (1, 8, 1.0)}
+    else:
+        plan = {"phoxi-m": (args.seeds3, 20, 1.0), "azure-kinect": (args.seeds3, 20, 1.0)}
+    result: dict[str, Any] = {}
+    t0 = time.perf_counter()
+    for setup, (n_seeds, n_poses, scale) in plan.items():
+        rows = _map(realization_3, [(seed, setup, n_poses, scale) for seed in range(n_seeds)], args.workers)
+        t_target, r_target = E2E_SETUPS[setup][3], E2E_SETUPS[setup][4]
+        t = np.array([r["robust"][0] for r in rows])
+        r = np.array([r["robust"][1] for r in rows])
+        ok = (t <= t_target) & (r <= r_target)
+        need = n_seeds - 1 if n_seeds > 1 else n_seeds
+        result[setup] = {
+            "seeds": n_seeds,
+            "poses": n_poses,
+            "resolution_scale": scale,
+            "stats": {m: _stats(rows, m) for m in ("robust", "robust_eq21", "svd_all", "algorithm1")},
+            "robust_t_mm": t.tolist(),
+            "robust_r_deg": r.tolist(),
+            "seeds_within_target": int(ok.sum()),
+            "target_met": bool(ok.sum() >= need),
+            "detected_mean": float(np.mean([x["detected"] for x in rows])),
+            "rejected_mean": float(np.mean([x.get("rejected", 0) for x in rows])),
+            "predicted_t_mm_mean": float(np.nanmean([x.get("predicted_t_mm", math.nan) for x in rows])),
+            "predicted_r_deg_mean": float(np.nanmean([x.get("predicted_r_deg", math.nan) for x in rows])),
+            "errors": [x["error"] for x in rows if "error" in x],
+        }
+    result["seconds"] = time.perf_counter() - t0
+    _write_bench3(result, args)
+    return result
+
+
+def _write_bench3(result: dict[str, Any], args: argparse.Namespace) -> None:
+    OUT.mkdir(parents=True, exist_ok=True)
+    tag = "_quick" if args.quick else ""
+    lines = ["| set-up | method | t mean (mm) | t max (mm) | r mean (deg) | seeds within target |", "|---|---|---|---|---|---|"]
+    setups = [k for k in result if k in E2E_SETUPS]
+    for setup in setups:
+        res = result[setup]
+        for m, st in res["stats"].items():
+            within = f"{res['seeds_within_target']}/{res['seeds']}" if m == "robust" else ""
+            lines.append(
+                f"| {setup} | {m} | {st['t_mean_mm']:.3f} | {st.get('t_max_mm', math.nan):.3f} | {st['r_mean_deg']:.4f} | {within} |"
+            )
+    (OUT / f"bench3_table{tag}.md").write_text("\n".join(lines) + "\n")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(setups), figsize=(6 * len(setups), 4.2), squeeze=False)
+    for ax, setup in zip(axes[0], setups):
+        res = result[setup]
+        ax.plot(res["robust_t_mm"], res["robust_r_deg"], "o")
+        ax.axvline(E2E_SETUPS[setup][3], color="k", ls=":", label="translation target")
+        if math.isfinite(E2E_SETUPS[setup][4]):
+            ax.axhline(E2E_SETUPS[setup][4], color="k", ls="--", label="rotation target")
+        ax.set_xlabel("translation error (mm)")
+        ax.set_ylabel("rotation error (deg)")
+        ax.set_title(f"{setup}: {res['seeds']} seeds x {res['poses']} poses (default estimator)")
+        ax.legend()
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(OUT / f"bench3_errors{tag}.png", dpi=120)
+    plt.close(fig)
+
+
 def _write_bench1(result: dict[str, Any], args: argparse.Namespace) -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     tag = "_quick" if args.quick else ""
@@ -496,6 +629,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reps", type=int, default=100, help="realizations per sigma (full run)")
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds3", type=int, default=20, help="seeds of benchmark 3 (full run)")
     p.add_argument("--e-required-mm", type=float, default=0.0, help="Algorithm 1 target (0: use every pair)")
     args = p.parse_args(argv)
     which = {s.strip() for s in args.bench.split(",")}
@@ -523,6 +657,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"bench2 {m:16s} t {s['t_mean_mm']:8.3f} +- {s['t_std_mm']:7.3f} mm  r {s['r_mean_deg']:7.4f} deg  failed {s['failed']}")
     if "3" in which:
         figures["bench3"] = bench3(args)
+        for setup in E2E_SETUPS:
+            res = figures["bench3"][setup]
+            st = res["stats"]["robust"]
+            print(
+                f"bench3 {setup}: robust t mean {st['t_mean_mm']:.3f} mm (max {st.get('t_max_mm', math.nan):.3f}), "
+                f"r mean {st['r_mean_deg']:.4f} deg, within target in {res['seeds_within_target']}/{res['seeds']} seeds"
+            )
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / f"figures{'_quick' if args.quick else ''}.json").write_text(json.dumps(figures, indent=1, default=float))
     if args.json:

@@ -23,6 +23,7 @@ with the work radius ``r``. Eq. 21 compensates an estimate with its e_icp.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, replace
 from typing import Callable
@@ -257,6 +258,17 @@ class IcpVerifier:
         self._criteria = o3d.pipelines.registration.ICPConvergenceCriteria(
             relative_fitness=params.relative_change, relative_rmse=params.relative_change, max_iteration=params.max_iterations
         )
+
+    def strict(self) -> "IcpVerifier":
+        """A verifier on the same clouds whose ICP runs to convergence (:meth:`IcpParams.strict`)."""
+        other = copy.copy(self)
+        other.params = self.params.strict()
+        other._criteria = o3d.pipelines.registration.ICPConvergenceCriteria(
+            relative_fitness=other.params.relative_change,
+            relative_rmse=other.params.relative_change,
+            max_iteration=other.params.max_iterations,
+        )
+        return other
 
     def __call__(self, T_base_camhat: ArrayLike) -> IcpMetric:
         """e_icp of the estimate ``T_base_cam'``."""

@@ -106,7 +106,11 @@ class RobustParams:
 
 @dataclass(frozen=True)
 class RejectedPair:
-    """A pair left out of the solve, and why."""
+    """A pair left out of the solve, and why.
+
+    ``index`` is the pair's position in the arrays given to the solver, -1
+    for a pair that never reached it (e.g. its flange detection failed).
+    """
 
     id: str
     index: int

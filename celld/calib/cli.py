@@ -1,0 +1,153 @@
+"""Calibration subcommands: ``celld calib solve DIR`` and ``celld calib detect CLOUD``.
+
+``celld calib solve DIR [--json] [--flange PRESET] [--method robust|svd|algorithm1]``
+solves a saved session again, offline (this project's ``poses.json`` or the
+reference toolbox's ``calib_data.json``). With ``--json`` it prints one JSON
+object with ``T_base_cam`` (4 x 4, metres), ``residuals_mm`` (one per used
+pair, aligned with ``pairs``), ``rejected`` (ids) and ``pairs`` (ids used),
+plus the details of :meth:`~celld.calib.session.CalibrationResult.as_dict`.
+
+``celld calib detect CLOUD --flange PRESET --units mm|m [--json]`` finds the
+flange in one cloud (PLY or PCD, or a ``.npy`` array (n, 3) or (H, W, 3)) and
+prints ``center`` and ``radius`` in the cloud's units, the unit ``normal``
+and the ``inliers`` count, or ``error`` with the reason.
+
+In ``--json`` mode every failure prints ``{"error": "..."}`` and exits 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from celld.errors import CelldError, InputError
+
+# Exit code of a refused input or a failed solve (celld.cli's convention).
+_EXIT_ERROR = 2
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("calib", help="flange-based hand-eye calibration tools")
+    psub = p.add_subparsers(dest="calib_command", metavar="ACTION", required=True)
+
+    s = psub.add_parser("solve", help="solve a saved calibration session again, offline")
+    s.add_argument("dir", help="session directory (poses.json, or the reference calib_data.json)")
+    s.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    s.add_argument("--flange", help="flange preset (default: the session's); needed to detect centres in clouds")
+    s.add_argument("--method", default="robust", choices=("robust", "svd", "algorithm1"))
+    s.add_argument("--config", help="cell config whose [calibration] sets e_required, k_max and the cost")
+    s.add_argument("--compensate", action="store_true", help="also report the estimate compensated by Eq. 21")
+    s.add_argument("--redetect", action="store_true", help="detect every centre in its cloud, ignoring recorded centres")
+    s.add_argument("--scale", action="store_true", help="estimate the scale c of Eq. 11")
+    s.set_defaults(func=_solve)
+
+    d = psub.add_parser("detect", help="find the flange centre and normal in one cloud")
+    d.add_argument("cloud", help="PLY / PCD file, or .npy (n, 3) or (H, W, 3)")
+    d.add_argument("--flange", required=True, help="flange preset, e.g. ur10e or ur10e-wrist")
+    d.add_argument("--units", required=True, choices=("mm", "m"), help="units of the cloud")
+    d.add_argument("--scanner", help="scanner model whose detection tolerances to use (phoxi-s, phoxi-m, azure-kinect)")
+    d.add_argument("--json", action="store_true", help="print the detection as one JSON object")
+    d.set_defaults(func=_detect)
+
+
+def _fail(args: argparse.Namespace, exc: Exception) -> int:
+    if not args.json:
+        raise exc
+    print(json.dumps({"error": str(exc)}))
+    return _EXIT_ERROR
+
+
+def _solve(args: argparse.Namespace) -> int:
+    try:
+        out = _solve_dict(args)
+    except CelldError as exc:
+        return _fail(args, exc)
+    if args.json:
+        print(json.dumps(out, allow_nan=False))
+        return 0
+    print(f"T_base_cam ({out['method']}, {len(out['pairs'])} of {out['n_pairs']} pairs, rms {out['rms_mm']:.3f} mm):")
+    for row in out["T_base_cam"]:
+        print("  " + "  ".join(f"{x:+.6f}" for x in row))
+    for r in out["rejected_detail"]:
+        print(f"rejected {r['id']}: {r['reason']}")
+    unc = out["uncertainty"]
+    print(f"uncertainty: translation {unc['translation_error_mm']} mm, rotation {unc['rotation_error_deg']} deg (1 sigma RMS)")
+    if out["e_icp"] is not None:
+        print(f"e_icp: {json.dumps(out['e_icp'])}")
+    return 0
+
+
+def _solve_dict(args: argparse.Namespace) -> dict[str, Any]:
+    from celld import config
+    from celld.calib.dataset import load_session
+    from celld.calib.flange import preset
+    from celld.calib.session import SolveParams, calibrate_session
+
+    session = load_session(args.dir)
+    name = args.flange or session.flange
+    flange = preset(name) if name else None
+    cal = config.load(args.config).calibration if args.config else config.CalibrationConfig()
+    params = SolveParams(
+        method=args.method,
+        cost=cal.cost,
+        work_radius=cal.work_radius,
+        e_required=cal.e_required,
+        k_max=cal.k_max,
+        compensate=args.compensate,
+        with_scale=args.scale,
+    )
+    result = calibrate_session(session, flange, params, redetect=args.redetect)
+    out = result.as_dict()
+    out.update({"source": str(Path(args.dir)), "format": session.kind, "flange": name})
+    return out
+
+
+def _read_any_cloud(path: Path, units: str) -> np.ndarray:
+    """A cloud file in metres: PLY / PCD (organized if written so by celld), or .npy (n, 3) / (H, W, 3)."""
+    from celld.calib.dataset import read_cloud
+    from celld.calib.detect import to_metres
+
+    if path.suffix.lower() != ".npy":
+        return read_cloud(path, units)
+    if not path.is_file():
+        raise InputError(f"{path}: cloud file not found")
+    try:
+        return to_metres(np.load(path, allow_pickle=False), units)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable .npy array: {exc}") from exc
+
+
+def _detect(args: argparse.Namespace) -> int:
+    from celld.calib.detect import PARAMS_BY_SCANNER, detect_flange
+    from celld.calib.flange import preset
+
+    try:
+        flange = preset(args.flange)
+        if args.scanner is not None and args.scanner not in PARAMS_BY_SCANNER:
+            raise InputError(f"--scanner: expected one of {', '.join(PARAMS_BY_SCANNER)}, got {args.scanner!r}")
+        P = _read_any_cloud(Path(args.cloud), args.units)
+        det = detect_flange(P, flange, PARAMS_BY_SCANNER.get(args.scanner or ""))
+    except CelldError as exc:
+        return _fail(args, exc)
+    scale = 1e3 if args.units == "mm" else 1.0  # back to the cloud's units at this boundary
+    out = {
+        "center": (det.center * scale).tolist(),
+        "normal": det.normal.tolist(),
+        "radius": det.radius * scale,
+        "inliers": int(det.inliers),
+        "residual": det.residual * scale,
+        "coverage": det.coverage,
+        "units": args.units,
+        "flange": flange.name,
+    }
+    if args.json:
+        print(json.dumps(out))
+    else:
+        c = ", ".join(f"{x:.4f}" for x in out["center"])
+        n = ", ".join(f"{x:.5f}" for x in out["normal"])
+        print(f"flange {flange.name}: centre ({c}) {args.units}, normal ({n}), radius {out['radius']:.4f} {args.units}, {det.inliers} rim inliers")
+    return 0

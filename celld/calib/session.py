@@ -1,0 +1,383 @@
+"""From a calibration session to ``T_base_cam``: detections, solve, Algorithm 1, report.
+
+Owns the eye-on-base calibration of one session (clouds and flange poses,
+plus a verification cloud): each cloud goes through the flange detector
+(pairs whose detection fails are rejected with the detector's reason), the
+centres are solved by the chosen method, Algorithm 1 runs over the pairs in
+their captured order when a verification cloud is there, the final estimate
+is scored by e_icp (Eq. 13, run to convergence) and, on request, compensated
+by Eq. 21. The result says which pairs were used, which were rejected and
+why, the residual of each pair and the uncertainty.
+
+Methods:
+
+- ``robust`` (default): :func:`~celld.calib.robust.solve_robust`, every
+  consistent pair;
+- ``svd``: Eq. 9-12 on every detected pair (the paper's Table 1);
+- ``algorithm1``: the optimum pool of Algorithm 1 (needs the verification cloud).
+
+:func:`solve_pairs` is the pure core (arrays in); :func:`calibrate_session`
+reads the clouds of a :class:`~celld.calib.dataset.Session` and runs the
+detector first.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from celld.calib.algorithm1 import Algorithm1Result, run_algorithm1
+from celld.calib.dataset import Session
+from celld.calib.detect import PARAMS_BY_SCANNER, DetectParams, detect_flange
+from celld.calib.flange import FlangeModel
+from celld.calib.metrics import IcpMetric, IcpParams, IcpVerifier, compensate, cost_function, model_cloud_with_normals
+from celld.calib.rigid import Array, Uncertainty, check_pairs, pair_residuals, solve_rigid
+from celld.calib.robust import RejectedPair, RobustParams, solve_robust
+from celld.errors import CalibrationError, DetectionError, InputError
+from celld.log import get_logger
+
+log = get_logger(__name__)
+
+METHODS = ("robust", "svd", "algorithm1")
+# Margin around the flange model when the verification cloud is cropped, m.
+_VERIFICATION_MARGIN = 0.005
+
+
+@dataclass(frozen=True)
+class SolveParams:
+    """How a session is solved.
+
+    Attributes
+    ----------
+    method : str
+        ``robust``, ``svd`` or ``algorithm1``.
+    robust : RobustParams
+    icp : IcpParams
+        e_icp registration (Algorithm 1's ranking; the final score runs it to convergence).
+    model_spacing : float
+        Point spacing of the flange model cloud for ICP, metres.
+    cost : str
+        Algorithm 1's cost metric: ``translation`` or ``se3``.
+    work_radius : float
+        r of the ``se3`` cost, metres.
+    e_required : float
+        Algorithm 1's target cost, metres.
+    k_max : int | None
+        Algorithm 1's bound on new pairs (None: all of them).
+    compensate : bool
+        Also report the estimate compensated by Eq. 21.
+    with_scale : bool
+        Estimate the scale of Eq. 11.
+    """
+
+    method: str = "robust"
+    robust: RobustParams = field(default_factory=RobustParams)
+    icp: IcpParams = field(default_factory=IcpParams)
+    model_spacing: float = 0.002
+    cost: str = "translation"
+    work_radius: float = 0.5
+    e_required: float = 0.0005
+    k_max: int | None = None
+    compensate: bool = False
+    with_scale: bool = False
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise InputError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
+        cost_function(self.cost, self.work_radius)  # validates the name and radius
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """An eye-on-base calibration and its report.
+
+    Attributes
+    ----------
+    T_base_cam : (4, 4) array
+        The estimate of the chosen method, metres.
+    method : str
+    pair_ids : tuple of str
+        The pairs the estimate uses, in pair order.
+    residuals : (k,) array
+        Residual of each used pair, metres, aligned with ``pair_ids``.
+    rejected : tuple of RejectedPair
+        Pairs left out (failed detection, inconsistent, or outside Algorithm
+        1's pool), each with its reason.
+    uncertainty : Uncertainty
+        Of ``T_base_cam`` (convention of :mod:`celld.calib.rigid`).
+    all_residuals : dict
+        Residual of every pair with a centre against ``T_base_cam``, metres.
+    e_icp : IcpMetric | None
+        Eq. 13 of the estimate against the verification cloud.
+    T_base_cam_compensated : (4, 4) array | None
+        Eq. 21, when asked for and e_icp is finite.
+    algorithm1 : Algorithm1Result | None
+        Algorithm 1 over the pairs in order, when a verification cloud is there.
+    n_pairs : int
+        Pairs in the session.
+    """
+
+    T_base_cam: Array
+    method: str
+    pair_ids: tuple[str, ...]
+    residuals: Array
+    rejected: tuple[RejectedPair, ...]
+    uncertainty: Uncertainty
+    all_residuals: dict[str, float]
+    e_icp: IcpMetric | None
+    T_base_cam_compensated: Array | None
+    algorithm1: Algorithm1Result | None
+    n_pairs: int
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready report: transforms in metres, residuals in mm."""
+        out: dict[str, Any] = {
+            "T_base_cam": self.T_base_cam.tolist(),
+            "method": self.method,
+            "pairs": list(self.pair_ids),
+            "residuals_mm": (self.residuals * 1e3).tolist(),
+            "rejected": [r.id for r in self.rejected],
+            "rejected_detail": [
+                {"id": r.id, "reason": r.reason, "residual_mm": r.residual * 1e3 if np.isfinite(r.residual) else None}
+                for r in self.rejected
+            ],
+            "rms_mm": float(np.sqrt(np.mean(self.residuals**2)) * 1e3),
+            "uncertainty": _finite_or_none(self.uncertainty.as_dict()),
+            "n_pairs": self.n_pairs,
+            "e_icp": None if self.e_icp is None else self.e_icp.as_dict(),
+            "T_base_cam_compensated": None if self.T_base_cam_compensated is None else self.T_base_cam_compensated.tolist(),
+        }
+        if self.algorithm1 is not None:
+            a = self.algorithm1
+            out["algorithm1"] = {
+                "pool": list(a.pool_ids),
+                "cost_mm": a.cost * 1e3 if np.isfinite(a.cost) else None,
+                "reached": a.reached,
+                "pairs_used": a.n_pairs_used,
+                "T_base_cam": None if a.T_base_cam is None else a.T_base_cam.tolist(),
+                "steps": [s.as_dict() for s in a.steps],
+            }
+        return out
+
+
+def _finite_or_none(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite_or_none(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def solve_pairs(
+    ids: Sequence[str],
+    P_base: ArrayLike,
+    P_cam: ArrayLike,
+    params: SolveParams = SolveParams(),
+    verifier: IcpVerifier | None = None,
+    pre_rejected: Sequence[RejectedPair] = (),
+    n_pairs: int | None = None,
+) -> CalibrationResult:
+    """Solve ``T_base_cam`` from detected centre pairs (the pure core).
+
+    Parameters
+    ----------
+    ids : sequence of str
+        Pair ids in captured order.
+    P_base, P_cam : (n, 3) arrays
+        Flange centres in the base and camera frames, metres.
+    params : SolveParams
+    verifier : IcpVerifier | None
+        e_icp against the verification cloud; without it Algorithm 1 and
+        e_icp are skipped (and ``algorithm1`` refused).
+    pre_rejected : sequence of RejectedPair
+        Pairs already rejected upstream (failed detections), reported as such.
+    n_pairs : int | None
+        Pairs in the session (default: detected plus pre-rejected).
+
+    Raises
+    ------
+    InputError, CalibrationError
+        Malformed or too few pairs, degenerate positions, no consistent set,
+        or ``algorithm1`` without a verification cloud.
+    """
+    P_b, P_c = check_pairs(P_base, P_cam)
+    ids_t = tuple(str(i) for i in ids)
+    if len(ids_t) != len(P_b):
+        raise InputError(f"ids: expected {len(P_b)} pair ids, got {len(ids_t)}")
+    if params.method == "algorithm1" and verifier is None:
+        raise CalibrationError("method algorithm1 needs a verification cloud (the session has none)")
+    cost = cost_function(params.cost, params.work_radius)
+
+    a1 = None
+    if verifier is not None and len(P_b) >= 4:
+        a1 = run_algorithm1(
+            ids_t, P_b, P_c, verifier, cost, e_required=params.e_required, k_max=params.k_max, with_scale=params.with_scale
+        )
+
+    rejected = list(pre_rejected)
+    if params.method == "robust":
+        rob = solve_robust(P_b, P_c, ids=ids_t, params=replace(params.robust, with_scale=params.with_scale))
+        T, used, unc, scale = rob.T_base_cam, list(rob.inliers), rob.fit.uncertainty, rob.fit.scale
+        rejected += list(rob.rejected)
+    elif params.method == "svd":
+        fit = solve_rigid(P_b, P_c, with_scale=params.with_scale)
+        T, used, unc, scale = fit.T_dst_src, list(range(len(P_b))), fit.uncertainty, fit.scale
+    else:
+        if a1 is None or a1.T_base_cam is None:
+            raise CalibrationError("Algorithm 1 found no solvable pool of four pairs")
+        used = [ids_t.index(i) for i in a1.pool_ids]
+        used.sort()
+        fit = solve_rigid(P_b[used], P_c[used], with_scale=params.with_scale)
+        T, unc, scale = a1.T_base_cam, fit.uncertainty, fit.scale
+        rejected += [
+            RejectedPair(ids_t[i], i, float("nan"), "not in Algorithm 1's final pool") for i in range(len(P_b)) if i not in used
+        ]
+    res_all = pair_residuals(T, P_b, P_c, scale)
+    for k, r in enumerate(rejected):
+        if r.id in ids_t and not np.isfinite(r.residual):
+            rejected[k] = replace(r, residual=float(res_all[ids_t.index(r.id)]))
+
+    e_final = None
+    T_comp = None
+    if verifier is not None:
+        e_final = verifier.strict()(T)
+        if params.compensate and e_final.ok:
+            T_comp = compensate(T, e_final)
+    return CalibrationResult(
+        T_base_cam=T,
+        method=params.method,
+        pair_ids=tuple(ids_t[i] for i in used),
+        residuals=res_all[used],
+        rejected=tuple(rejected),
+        uncertainty=unc,
+        all_residuals={i: float(r) for i, r in zip(ids_t, res_all)},
+        e_icp=e_final,
+        T_base_cam_compensated=T_comp,
+        algorithm1=a1,
+        n_pairs=n_pairs if n_pairs is not None else len(P_b) + len(pre_rejected),
+    )
+
+
+@dataclass(frozen=True)
+class Detections:
+    """Centres of the pairs of a session, and the pairs without one."""
+
+    ids: tuple[str, ...]
+    P_base: Array
+    P_cam: Array
+    rejected: tuple[RejectedPair, ...]
+
+
+def detect_pairs(
+    session: Session, flange: FlangeModel | None, detect_params: DetectParams | None = None, redetect: bool = False
+) -> Detections:
+    """Flange centres of every pair: recorded ones (reference sessions), else detected in the cloud.
+
+    A pair whose detection fails, or that has neither a centre nor a cloud,
+    is rejected with the reason.
+    """
+    ids, P_base, P_cam, rejected = [], [], [], []
+    for rec in session.pairs:
+        p_cam = None if redetect else rec.p_cam
+        if p_cam is None:
+            if rec.cloud_path is None:
+                rejected.append(RejectedPair(rec.id, -1, float("nan"), "no flange centre recorded and no cloud to detect it in"))
+                continue
+            if flange is None:
+                raise InputError(f"pair {rec.id!r}: a flange preset is needed to detect the centre in its cloud (--flange)")
+            try:
+                det = detect_flange(session.cloud(rec), flange, detect_params)
+            except DetectionError as exc:
+                log.info("calib.detection_failed", pair=rec.id, stage=exc.stage, reason=exc.reason)
+                rejected.append(RejectedPair(rec.id, -1, float("nan"), f"detection failed at {exc.stage}: {exc.reason}"))
+                continue
+            p_cam = det.center
+        ids.append(rec.id)
+        P_base.append(rec.p_base)
+        P_cam.append(p_cam)
+    return Detections(tuple(ids), np.reshape(P_base, (-1, 3)), np.reshape(P_cam, (-1, 3)), tuple(rejected))
+
+
+def verifier_from_cloud(
+    P_v_cam: ArrayLike,
+    T_base_flan_v: ArrayLike,
+    flange: FlangeModel,
+    params: SolveParams = SolveParams(),
+    detect_params: DetectParams | None = None,
+) -> IcpVerifier:
+    """e_icp against a verification capture, cropped around the flange found in it.
+
+    The crop is the cylinder the flange model fills, about the detected
+    centre and along the detected normal, plus a margin: what the model
+    cannot explain (other links, the table) stays out of the registration.
+    The detection only says where the flange is in the cloud. ``P_v_cam`` may
+    be organized (H, W, 3) with NaN for no return.
+
+    Raises
+    ------
+    CalibrationError
+        The flange is not found in the verification cloud.
+    """
+    P_v = np.asarray(P_v_cam, dtype=np.float64)
+    try:
+        det = detect_flange(P_v, flange, detect_params)  # organized if given so: the detector uses the grid
+    except DetectionError as exc:
+        raise CalibrationError(f"verification cloud: {exc}") from exc
+    P_v = P_v.reshape(-1, 3)
+    P_v = P_v[np.all(np.isfinite(P_v), axis=1)]
+    P_model, N_model = model_cloud_with_normals(flange, params.model_spacing)
+    m = _VERIFICATION_MARGIN
+    r_max = float(np.max(np.linalg.norm(P_model[:, :2], axis=1))) + m
+    d = P_v - det.center
+    h = d @ det.normal  # along the flange's +z (toward the camera)
+    radial = np.linalg.norm(d - np.outer(h, det.normal), axis=1)
+    keep = (h >= P_model[:, 2].min() - m) & (h <= P_model[:, 2].max() + m) & (radial <= r_max)
+    P_v = P_v[keep]
+    return IcpVerifier(P_v, P_model, T_base_flan_v, params.icp, normals_flan=N_model)
+
+
+def verification_verifier(
+    session: Session, flange: FlangeModel, params: SolveParams, detect_params: DetectParams | None = None
+) -> IcpVerifier | None:
+    """:func:`verifier_from_cloud` on the session's verification capture; None when it has none."""
+    rec = session.verification
+    if rec is None or rec.cloud_path is None or rec.T_base_flan is None:
+        return None
+    return verifier_from_cloud(session.cloud(rec), rec.T_base_flan, flange, params, detect_params)
+
+
+def calibrate_session(
+    session: Session,
+    flange: FlangeModel | None,
+    params: SolveParams = SolveParams(),
+    detect_params: DetectParams | None = None,
+    redetect: bool = False,
+) -> CalibrationResult:
+    """Solve a saved session again: detections, the chosen method, Algorithm 1, e_icp.
+
+    ``detect_params`` default to the session scanner's
+    (:data:`~celld.calib.detect.PARAMS_BY_SCANNER`), else the paper's.
+    """
+    if detect_params is None and session.scanner in PARAMS_BY_SCANNER:
+        detect_params = PARAMS_BY_SCANNER[session.scanner]
+    det = detect_pairs(session, flange, detect_params, redetect)
+    if len(det.ids) < 4:
+        reasons = "; ".join(f"{r.id}: {r.reason}" for r in det.rejected[:4])
+        raise CalibrationError(f"only {len(det.ids)} of {len(session.pairs)} pairs have a flange centre ({reasons})")
+    verifier = None
+    if flange is not None:
+        verifier = verification_verifier(session, flange, params, detect_params)
+    result = solve_pairs(det.ids, det.P_base, det.P_cam, params, verifier, det.rejected, n_pairs=len(session.pairs))
+    log.info(
+        "calib.solved",
+        method=result.method,
+        pairs=len(result.pair_ids),
+        rejected=len(result.rejected),
+        rms_mm=round(float(np.sqrt(np.mean(result.residuals**2))) * 1e3, 4),
+    )
+    return result
