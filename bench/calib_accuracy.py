@@ -198,9 +198,9 @@ def _robust(P_base: np.ndarray, P_cam: np.ndarray) -> tuple[np.ndarray | None, i
     return fit.T_base_cam, len(fit.rejected)
 
 
-def realization_1(args: tuple[int, float, int, float]) -> dict[str, Any]:
-    """Benchmark 1, one (sigma, realization): errors of every method."""
-    seed, sigma, rep, e_required = args
+def realization_1(args: tuple[int, float, int, float, bool]) -> dict[str, Any]:
+    """Benchmark 1, one (sigma, realization): errors of every method (Algorithm 1 when asked)."""
+    seed, sigma, rep, e_required, with_alg1 = args
     rng = np.random.default_rng([seed, int(round(sigma * 1e5)), rep])
     P_base = grid_positions(5, 5, 3)
     order = rng.permutation(len(P_base))
@@ -212,9 +212,10 @@ def realization_1(args: tuple[int, float, int, float]) -> dict[str, Any]:
     T_svd = solve_rigid(P_base, P_cam).T_dst_src
     out["svd_all"] = errors(T_svd)
     out["oracle"] = errors(T_svd)  # no outliers: the true inliers are every pair
-    T_a1, T_a1c, _ = _algorithm1(ids, P_base, P_cam, P_v, sigma, e_required)
-    out["algorithm1"] = errors(T_a1)
-    out["algorithm1_eq21"] = errors(T_a1c)
+    if with_alg1:
+        T_a1, T_a1c, _ = _algorithm1(ids, P_base, P_cam, P_v, sigma, e_required)
+        out["algorithm1"] = errors(T_a1)
+        out["algorithm1_eq21"] = errors(T_a1c)
     T_rob, n_rej = _robust(P_base, P_cam)
     out["robust"] = errors(T_rob)
     out["robust_rejected"] = n_rej
@@ -318,7 +319,11 @@ def bench1(args: argparse.Namespace) -> dict[str, Any]:
         sigmas, reps = [0.0002, 0.001, 0.005], 2
     else:
         sigmas, reps = [round(0.0002 * k, 6) for k in range(1, 51)], args.reps
-    jobs = [(args.seed, s, r, args.e_required_mm * 1e-3) for s in sigmas for r in range(reps)]
+    if args.quick or args.alg1_sigmas_mm == "all":
+        alg1_sigmas = set(sigmas)
+    else:
+        alg1_sigmas = {round(float(x) * 1e-3, 6) for x in args.alg1_sigmas_mm.split(",")}
+    jobs = [(args.seed, s, r, args.e_required_mm * 1e-3, s in alg1_sigmas) for s in sigmas for r in range(reps)]
     t0 = time.perf_counter()
     rows = _map(realization_1, jobs, args.workers)
     elapsed = time.perf_counter() - t0
@@ -327,7 +332,7 @@ def bench1(args: argparse.Namespace) -> dict[str, Any]:
         rs = [r for r in rows if abs(r["sigma_mm"] - s * 1e3) < 1e-9]
         entry: dict[str, Any] = {"sigma_mm": s * 1e3}
         for m in METHODS_1:
-            entry[m] = _stats(rs, m)
+            entry[m] = _stats([r for r in rs if m in r], m) if any(m in r for r in rs) else None
         entry["robust_rejected_mean"] = float(np.mean([r["robust_rejected"] for r in rs]))
         o, d = entry["oracle"], entry["robust"]
         entry["ratio_t"] = d["t_mean_mm"] / o["t_mean_mm"]
@@ -337,6 +342,7 @@ def bench1(args: argparse.Namespace) -> dict[str, Any]:
     worst_r = max(e["ratio_r"] for e in table)
     result = {
         "sigmas_mm": [e["sigma_mm"] for e in table],
+        "algorithm1_sigmas_mm": sorted(x * 1e3 for x in alg1_sigmas),
         "reps": reps,
         "table": table,
         "robust_over_oracle_max_t": worst_t,
@@ -551,6 +557,9 @@ def _write_bench1(result: dict[str, Any], args: argparse.Namespace) -> None:
         vals = [f"{e['sigma_mm']:.1f}"]
         for m in METHODS_1:
             s = e[m]
+            if s is None:
+                vals += [""] * 4
+                continue
             vals += [f"{s['t_mean_mm']:.4f}", f"{s['t_std_mm']:.4f}", f"{s['r_mean_deg']:.5f}", f"{s['r_std_deg']:.5f}"]
         vals += [f"{e['robust_rejected_mean']:.3f}", f"{e['ratio_t']:.4f}", f"{e['ratio_r']:.4f}"]
         lines.append(",".join(vals))
@@ -563,12 +572,15 @@ def _write_bench1(result: dict[str, Any], args: argparse.Namespace) -> None:
     x = np.array(result["sigmas_mm"])
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for ax, key, unit in ((axes[0], "t", "mm"), (axes[1], "r", "deg")):
-        for m, style in zip(("svd_all", "algorithm1", "algorithm1_eq21", "robust"), ("k--", "C1-", "C2-", "C0-")):
-            mean = np.array([e[m][f"{key}_mean_{unit}"] for e in result["table"]])
-            std = np.array([e[m][f"{key}_std_{unit}"] for e in result["table"]])
+        for m, style in zip(("svd_all", "algorithm1", "algorithm1_eq21", "robust"), ("k--", "C1o-", "C2s-", "C0-")):
+            rows = [(e["sigma_mm"], e[m]) for e in result["table"] if e[m] is not None]
+            xs = np.array([r[0] for r in rows])
+            mean = np.array([r[1][f"{key}_mean_{unit}"] for r in rows])
+            std = np.array([r[1][f"{key}_std_{unit}"] for r in rows])
             label = "all-points SVD = oracle" if m == "svd_all" else m
-            ax.plot(x, mean, style, label=label)
-            ax.fill_between(x, mean - std, mean + std, color=style[:2] if style[0] == "C" else "0.7", alpha=0.15)
+            ax.plot(xs, mean, style, label=label, ms=4)
+            ax.fill_between(xs, mean - std, mean + std, color=style[:2] if style[0] == "C" else "0.7", alpha=0.15)
+        ax.set_yscale("log")
         ax.set_xlabel("sigma of the centre noise (mm)")
         ax.set_ylabel(f"{'translation' if key == 't' else 'rotation'} error of T_base_cam ({unit})")
         ax.grid(alpha=0.3)
@@ -630,6 +642,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--seeds3", type=int, default=20, help="seeds of benchmark 3 (full run)")
+    p.add_argument(
+        "--alg1-sigmas-mm",
+        default="0.2,0.4,1,2,4,6,8,10",
+        help="sigmas (mm) at which benchmark 1 runs Algorithm 1 (its ICP is the cost), or 'all'",
+    )
     p.add_argument("--e-required-mm", type=float, default=0.0, help="Algorithm 1 target (0: use every pair)")
     args = p.parse_args(argv)
     which = {s.strip() for s in args.bench.split(",")}
@@ -641,14 +658,19 @@ def main(argv: list[str] | None = None) -> int:
         r1 = bench1(args)
         figures["bench1"] = {k: v for k, v in r1.items() if k != "table"}
         for e in r1["table"]:
+            a1 = e["algorithm1"]
+            a1c = e["algorithm1_eq21"]
+            alg = (
+                f"alg1 {a1['t_mean_mm']:.3f} alg1+eq21 {a1c['t_mean_mm']:.3f} " if a1 is not None else ""
+            )
             print(
-                f"bench1 sigma {e['sigma_mm']:5.1f} mm: t mean (mm) svd/oracle {e['svd_all']['t_mean_mm']:.3f} "
-                f"alg1 {e['algorithm1']['t_mean_mm']:.3f} alg1+eq21 {e['algorithm1_eq21']['t_mean_mm']:.3f} "
+                f"bench1 sigma {e['sigma_mm']:5.1f} mm: t mean (mm) svd/oracle {e['svd_all']['t_mean_mm']:.3f} {alg}"
                 f"robust {e['robust']['t_mean_mm']:.3f} (ratio {e['ratio_t']:.3f}); r mean (deg) svd {e['svd_all']['r_mean_deg']:.4f} "
-                f"alg1 {e['algorithm1']['r_mean_deg']:.4f} robust {e['robust']['r_mean_deg']:.4f}"
+                f"robust {e['robust']['r_mean_deg']:.4f} (ratio {e['ratio_r']:.3f})" + (f" alg1 {a1['r_mean_deg']:.4f}" if a1 else "")
             )
         figures["bench1"]["summary"] = [
-            {"sigma_mm": e["sigma_mm"], **{m: [e[m]["t_mean_mm"], e[m]["r_mean_deg"]] for m in METHODS_1}} for e in r1["table"]
+            {"sigma_mm": e["sigma_mm"], **{m: [e[m]["t_mean_mm"], e[m]["r_mean_deg"]] for m in METHODS_1 if e[m] is not None}}
+            for e in r1["table"]
         ]
     if "2" in which:
         r2 = bench2(args)

@@ -308,6 +308,15 @@ class CalibrationConfig:
     pose_box: tuple[float, float, float] = (0.3, 0.3, 0.2)
     max_tilt: float = 0.3  # rad
     verification_pose: tuple[float, ...] = (0.6, 0.0, 0.45, 0.0, 0.0, 0.0)
+    # Estimator of T_base_cam: robust (every consistent pair), svd (all pairs,
+    # Eq. 9-12) or algorithm1 (the optimum pool of Algorithm 1).
+    method: str = "robust"
+    compensate: bool = False  # also report Eq. 21's compensated estimate
+    # e_icp (Eq. 13): ICP correspondence distance (m; about 3x the scanner's
+    # point noise or more), verification points used, model point spacing (m).
+    icp_max_distance: float = 0.003
+    icp_points: int = 1000
+    model_spacing: float = 0.002
 
     @classmethod
     def read(cls, r: TableReader) -> "CalibrationConfig":
@@ -323,6 +332,13 @@ class CalibrationConfig:
             pose_box=r.vector("pose_box", 3, list(cls.pose_box)),  # type: ignore[arg-type]
             max_tilt=r.float("max_tilt_deg", math.degrees(cls.max_tilt), lo=0.0, hi=60.0, scale=math.pi / 180),
             verification_pose=r.vector("verification_pose", 6, list(cls.verification_pose)),
+            method=r.str("method", cls.method, choices=("robust", "svd", "algorithm1")),
+            compensate=r.bool("compensate", False),
+            icp_max_distance=r.float(
+                "icp_max_distance_mm", cls.icp_max_distance * 1e3, lo=0.0, hi=100.0, scale=1e-3, open_lo=True
+            ),
+            icp_points=r.int("icp_points", cls.icp_points, lo=10, hi=1_000_000),
+            model_spacing=r.float("model_spacing_mm", cls.model_spacing * 1e3, lo=0.1, hi=10.0, scale=1e-3),
         )
 
 

@@ -38,8 +38,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("dir", help="session directory (poses.json, or the reference calib_data.json)")
     s.add_argument("--json", action="store_true", help="print the result as one JSON object")
     s.add_argument("--flange", help="flange preset (default: the session's); needed to detect centres in clouds")
-    s.add_argument("--method", default="robust", choices=("robust", "svd", "algorithm1"))
-    s.add_argument("--config", help="cell config whose [calibration] sets e_required, k_max and the cost")
+    s.add_argument("--method", choices=("robust", "svd", "algorithm1"), help="estimator (default: the config's, robust)")
+    s.add_argument("--config", help="cell config whose [calibration] section sets the method, e_icp and Algorithm 1")
     s.add_argument("--compensate", action="store_true", help="also report the estimate compensated by Eq. 21")
     s.add_argument("--redetect", action="store_true", help="detect every centre in its cloud, ignoring recorded centres")
     s.add_argument("--scale", action="store_true", help="estimate the scale c of Eq. 11")
@@ -91,15 +91,12 @@ def _solve_dict(args: argparse.Namespace) -> dict[str, Any]:
     name = args.flange or session.flange
     flange = preset(name) if name else None
     cal = config.load(args.config).calibration if args.config else config.CalibrationConfig()
-    params = SolveParams(
-        method=args.method,
-        cost=cal.cost,
-        work_radius=cal.work_radius,
-        e_required=cal.e_required,
-        k_max=cal.k_max,
-        compensate=args.compensate,
-        with_scale=args.scale,
-    )
+    overrides: dict[str, Any] = {"with_scale": args.scale}
+    if args.method is not None:
+        overrides["method"] = args.method
+    if args.compensate:
+        overrides["compensate"] = True
+    params = SolveParams.from_config(cal, **overrides)
     result = calibrate_session(session, flange, params, redetect=args.redetect)
     out = result.as_dict()
     out.update({"source": str(Path(args.dir)), "format": session.kind, "flange": name})

@@ -36,6 +36,7 @@ from celld.calib.flange import FlangeModel
 from celld.calib.metrics import IcpMetric, IcpParams, IcpVerifier, compensate, cost_function, model_cloud_with_normals
 from celld.calib.rigid import Array, Uncertainty, check_pairs, pair_residuals, solve_rigid
 from celld.calib.robust import RejectedPair, RobustParams, solve_robust
+from celld.config import CalibrationConfig
 from celld.errors import CalibrationError, DetectionError, InputError
 from celld.log import get_logger
 
@@ -83,6 +84,22 @@ class SolveParams:
     k_max: int | None = None
     compensate: bool = False
     with_scale: bool = False
+
+    @classmethod
+    def from_config(cls, cal: CalibrationConfig, **overrides: Any) -> "SolveParams":
+        """The parameters of a cell's ``[calibration]`` section; ``overrides`` win."""
+        values: dict[str, Any] = {
+            "method": cal.method,
+            "icp": IcpParams(max_distances=(cal.icp_max_distance,), max_points=cal.icp_points),
+            "model_spacing": cal.model_spacing,
+            "cost": cal.cost,
+            "work_radius": cal.work_radius,
+            "e_required": cal.e_required,
+            "k_max": cal.k_max,
+            "compensate": cal.compensate,
+        }
+        values.update(overrides)
+        return cls(**values)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

@@ -135,3 +135,15 @@ def test_detect_reports_errors_as_json(tmp_path: Path, rng: np.random.Generator,
     assert code == 2 and "flange detection failed" in out["error"]
     code, out = run(capsys, "calib", "detect", str(tmp_path / "plane.ply"), "--flange", "nope", "--units", "m", "--json")
     assert code == 2 and "unknown flange" in out["error"]
+
+
+def test_solve_takes_the_method_from_the_cell_config(tmp_path: Path, rng: np.random.Generator, capsys) -> None:
+    reference_session(tmp_path / "ref", rng, 8, 0.0002, {})
+    (tmp_path / "cell.toml").write_text('[calibration]\nmethod = "svd"\nicp_max_distance_mm = 2.0\n')
+    code, out = run(capsys, "calib", "solve", str(tmp_path / "ref"), "--json", "--config", str(tmp_path / "cell.toml"))
+    assert code == 0 and out["method"] == "svd"
+    code, out = run(capsys, "calib", "solve", str(tmp_path / "ref"), "--json", "--config", str(tmp_path / "cell.toml"), "--method", "robust")
+    assert code == 0 and out["method"] == "robust"
+    (tmp_path / "bad.toml").write_text('[calibration]\nmethod = "magic"\n')
+    code, out = run(capsys, "calib", "solve", str(tmp_path / "ref"), "--json", "--config", str(tmp_path / "bad.toml"))
+    assert code == 2 and "calibration.method" in out["error"]
