@@ -16,6 +16,11 @@ a composition:
 When robot 2's flange pose during (a) is known, the position of its centre
 found in (a) closes a loop with (c): the closure residual is reported as an
 independent check.
+
+When the camera is not on a robot but fixed (the cell's scanner above the
+table) and sees both robots' flanges, (a) is not needed: both bases are
+calibrated to the camera by Eq. 9-12 and (c) becomes
+``T_base1_base2 = T_base1_cam T_base2_cam^-1`` (:func:`solve_shared_camera`).
 """
 
 from __future__ import annotations
@@ -135,3 +140,47 @@ def solve_comanipulation(
         eye_on_base=b,
         closure=closure,
     )
+
+
+@dataclass(frozen=True)
+class SharedCameraFit:
+    """Two robots calibrated to one fixed camera, and the robot-robot transform."""
+
+    T_base1_cam: Array
+    T_base2_cam: Array
+    T_base1_base2: Array
+    uncertainty: Uncertainty
+    robot1: RobustFit
+    robot2: RobustFit
+
+
+def solve_shared_camera(
+    P_base1: ArrayLike,
+    P_cam1: ArrayLike,
+    P_base2: ArrayLike,
+    P_cam2: ArrayLike,
+    *,
+    ids1: Sequence[str] | None = None,
+    ids2: Sequence[str] | None = None,
+    robust: RobustParams = RobustParams(),
+) -> SharedCameraFit:
+    """``T_base1_base2`` from a fixed camera that sees both robots' flanges.
+
+    Each robot's flange centres (base frame) and their images (camera frame)
+    give its ``T_base_cam`` (robust Eq. 9-12); the composition is Eq. 6c with
+    the camera fixed: ``T_base1_base2 = T_base1_cam T_base2_cam^-1``, with the
+    covariance propagated to first order.
+    """
+    f1 = solve_robust(P_base1, P_cam1, ids=ids1, params=robust)
+    f2 = solve_robust(P_base2, P_cam2, ids=ids2, params=robust)
+
+    def compose(T_b1c: Array, T_b2c: Array) -> Array:
+        return T_b1c @ invert(T_b2c)
+
+    cov = propagate(compose, [f1.T_base_cam, f2.T_base_cam], [f1.fit.uncertainty.covariance, f2.fit.uncertainty.covariance])
+    unc = Uncertainty(
+        covariance=cov,
+        sigma=float(np.hypot(f1.fit.uncertainty.sigma, f2.fit.uncertainty.sigma)),
+        dof=f1.fit.uncertainty.dof + f2.fit.uncertainty.dof,
+    )
+    return SharedCameraFit(f1.T_base_cam, f2.T_base_cam, compose(f1.T_base_cam, f2.T_base_cam), unc, f1, f2)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from celld.calib.comanip import solve_comanipulation
+from celld.calib.comanip import solve_comanipulation, solve_shared_camera
 from celld.errors import CalibrationError, InputError
 from celld.se3 import error, invert, transform_from
 
@@ -74,3 +74,21 @@ def test_bad_input_is_refused(rng: np.random.Generator) -> None:
         solve_comanipulation(Ta, Pa, T_fixed, Tb[:, :3], Pb)
     with pytest.raises(InputError, match="T_base1_flan1_fixed"):
         solve_comanipulation(Ta, Pa, np.eye(3), Tb, Pb)
+
+
+def test_fixed_camera_seeing_both_flanges() -> None:
+    rng = np.random.default_rng(2)
+    T_base1_cam = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
+    T_base2_cam = invert(T_BASE1_BASE2) @ T_base1_cam
+    box = np.array([0.3, 0.3, 0.2])
+    P1 = rng.uniform(-0.5, 0.5, (15, 3)) * box + [0.5, -0.2, 0.4]
+    P2_b1 = rng.uniform(-0.5, 0.5, (15, 3)) * box + [0.7, 0.2, 0.4]  # robot 2's flange, seen in base 1
+    P2 = (invert(T_BASE1_BASE2) @ np.c_[P2_b1, np.ones(15)].T).T[:, :3]
+    cam1 = (invert(T_base1_cam) @ np.c_[P1, np.ones(15)].T).T[:, :3] + rng.normal(0.0, 0.0002, (15, 3))
+    cam2 = (invert(T_base1_cam) @ np.c_[P2_b1, np.ones(15)].T).T[:, :3] + rng.normal(0.0, 0.0002, (15, 3))
+    cam2[6] += [0.0, 0.04, 0.0]  # one false detection on robot 2
+    fit = solve_shared_camera(P1, cam1, P2, cam2)
+    assert [r.index for r in fit.robot2.rejected] == [6]
+    dt, dr = error(fit.T_base1_base2, T_BASE1_BASE2)
+    assert dt < 4 * fit.uncertainty.translation_error and dr < 4 * fit.uncertainty.rotation_error
+    assert error(fit.T_base2_cam, T_base2_cam)[0] < 0.002
