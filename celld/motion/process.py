@@ -179,6 +179,8 @@ def run(spec: MotionSpec, connect: object = None) -> LoopExit:
             end = LoopExit(ControlStatus.LINK_LOST, str(exc))
         finally:
             gc.enable()
+        # Say why at once: closing the link below can take a while.
+        _report(ch, Phase.EXITED, rt, end.status, end.reason)
         log.info("motion loop ended", status=end.status.name, reason=end.reason, cycles=loop.cycles,
                  overruns=loop.overruns)
         return end

@@ -40,6 +40,8 @@ log = get_logger(__name__)
 
 # How often the supervisor looks at the process, s.
 _WATCH_PERIOD = 0.02
+# How long a process whose loop has ended may take to close its link and exit, s.
+_EXIT_TIMEOUT = 5.0
 _CODE_STATUS = {code: status for status, code in EXIT_CODES.items()}
 
 
@@ -77,6 +79,7 @@ class _Proc:
     process: multiprocessing.process.BaseProcess
     started: float
     running_since: float | None = None
+    exiting_since: float | None = None
     last_head: int = -1
     last_progress: float = field(default_factory=time.monotonic)
     killed_for: str = ""
@@ -215,8 +218,17 @@ class MotionSupervisor:
                 proc.last_head = head
                 proc.last_progress = now
             elif now - proc.last_progress > self.hang_timeout and not proc.killed_for and not self._closing:
-                proc.killed_for = f"the motion loop stood still for {(now - proc.last_progress) * 1e3:.0f} ms"
+                proc.killed_for = (
+                    f"the motion loop stood still for {(now - proc.last_progress) * 1e3:.0f} ms "
+                    "(blocked in a ur-rtde call: the controller stopped answering)"
+                )
                 log.error("killing the motion process", pid=proc.process.pid, reason=proc.killed_for)
+                self._kill(proc)
+        elif phase == Phase.EXITED:
+            if proc.exiting_since is None:
+                proc.exiting_since = now
+            elif now - proc.exiting_since > _EXIT_TIMEOUT and not proc.killed_for:
+                proc.killed_for = f"did not exit within {_EXIT_TIMEOUT} s after its loop ended"
                 self._kill(proc)
         elif phase in (Phase.STARTING, Phase.CONNECTING, Phase.NONE):
             if now - proc.started > self.connect_timeout and not proc.killed_for:
@@ -229,7 +241,7 @@ class MotionSupervisor:
         st = self.status()
         own = int(st["pid"]) == proc.process.pid and int(st["phase"]) == int(Phase.EXITED)
         ran = time.monotonic() - proc.running_since if proc.running_since else 0.0
-        if own and code in _CODE_STATUS:
+        if own and (code in _CODE_STATUS or proc.exiting_since is not None):
             return ProcessExit(proc.process.pid, code, ControlStatus(int(st["exit_status"])),  # type: ignore[arg-type]
                                decode_reason(st["reason"]), ran)
         if proc.killed_for:

@@ -8,8 +8,10 @@ Python process that, on a loaded 2-core machine, can miss its 2 ms tick by
 tens of milliseconds (it also stalls ~15 ms when the first speedl arrives).
 A real controller does not. With the cell's defaults (state stale after 3
 cycles, link lost after 100 ms without state) those stalls would stop the
-robot, correctly but not usefully, so here the state may be 25 cycles old
-and the link may be silent 0.5 s. The 3-cycle logic itself is tested
+robot, correctly but not usefully, so here the state may be 25 cycles old,
+the link may be silent 0.5 s, and the RTDE watchdog allows 200 ms (its first
+ready handshake after setWatchdog can take ~100 ms in the simulator). The
+3-cycle logic itself is tested
 deterministically in ``test_core.py``. The simulator runs at SCHED_FIFO on
 CPU 0, away from the loop's CPU, where the OS allows it.
 """
@@ -62,7 +64,7 @@ def _run(sim: Any, scenario: Callable[[MotionHandle], Awaitable[None]], **open_k
     records: list[np.ndarray] = []
 
     async def main() -> None:
-        kw = {"link_timeout": 0.5, "backoff": Backoff(delays=(0.2, 0.5))} | open_kw
+        kw = {"link_timeout": 0.5, "watchdog_hz": 5.0, "backoff": Backoff(delays=(0.2, 0.5))} | open_kw
         motion = await MotionHandle.open(_config(), host=sim.host, connect_timeout=20.0, **kw)
         motion.add_listener(records.append)
         try:
@@ -148,7 +150,7 @@ def test_kill_9_watchdog_stops_the_robot_and_the_next_motion_works(sim: Any) -> 
         t_kill = time.monotonic()
         with pytest.raises(LinkLost, match="SIGKILL"):
             await move
-        # The RTDE watchdog (10 Hz) stops the program, and the arm comes to rest.
+        # The RTDE watchdog (5 Hz here) stops the program, and the arm comes to rest.
         q_prev = sim.truth()[2]
         still_since = None
         while time.monotonic() - t_kill < 2.0:
@@ -185,14 +187,13 @@ def test_a_link_drop_fails_the_motion_with_its_reason_and_the_link_comes_back(si
         with pytest.raises(LinkLost) as info:
             await move
         assert str(info.value)  # the reason the loop or the supervisor gave
-        assert motion.supervisor.state != LinkState.RUNNING or motion.supervisor.restarts >= 1
         # The daemon side keeps running and reconnects once the controller is back.
         assert await motion.wait_ready(30.0)
         here = motion.state()
         assert here is not None
         goal = _offset(here.T_base_tcp, [-0.05, 0.0, 0.0])
         await motion.move_to(goal)
-        assert motion.health().restarts >= 1
+        assert motion.health().restarts >= 1 and motion.health().link == LinkState.RUNNING.value
 
     _run(sim, scenario)
 
