@@ -190,3 +190,43 @@ def test_second_control_interface_is_refused_with_in_use(robot) -> None:
     with pytest.raises(RuntimeError, match="IN_USE|in use"):
         rtde_control.RTDEControlInterface(sim.host)
     assert c.isConnected()
+
+
+def test_upper_register_range_speed_j_stop_j_and_stop_script(sim_robot: SimRobotHandle) -> None:
+    flags = rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT | rtde_control.RTDEControlInterface.FLAG_UPPER_RANGE_REGISTERS
+    c = rtde_control.RTDEControlInterface(sim_robot.host, 500.0, flags)
+    r = rtde_receive.RTDEReceiveInterface(sim_robot.host, 125.0)
+    try:
+        assert c.isProgramRunning()
+        q0 = np.array(r.getActualQ())
+        assert c.speedJ([0.2, 0.0, 0.0, 0.0, 0.0, -0.1], 2.0, 0.0)
+        time.sleep(0.3)
+        c.stopJ(2.0)
+        time.sleep(0.05)
+        assert max(abs(v) for v in r.getActualQd()) < 1e-12
+        dq = np.array(r.getActualQ()) - q0
+        assert dq[0] > 0.03 and dq[5] == pytest.approx(-dq[0] / 2, rel=1e-9)  # one ramp for all joints
+        target = np.array(r.getActualTCPPose()) + [0.0, 0.0, 0.05, 0.0, 0.0, 0.0]
+        assert c.moveL(target.tolist(), 0.25, 1.2)
+        # The 125 Hz receiver sees the controller clock in steps of 8 ms.
+        stamps = []
+        for _ in range(15):
+            stamps.append(r.getTimestamp())
+            time.sleep(0.01)
+        steps = np.round(np.diff(stamps) / 0.008, 6)
+        assert np.all(steps == np.round(steps)) and steps.max() >= 1
+        c.stopScript()
+        assert _wait(lambda: sim_robot.status()["runtime_state"] == "STOPPED")
+        assert sim_robot.status()["last_stop_reason"] == "program ended"
+    finally:
+        c.disconnect()
+        r.disconnect()
+
+
+def _wait(predicate, timeout: float = 1.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.005)
+    return predicate()

@@ -245,3 +245,19 @@ def test_options_are_checked_and_survive_the_command_line() -> None:
         SimOptions(workspace_min=(0.0, 0.0, 2.0))
     with pytest.raises(ConfigError, match="tcp_speed_limit"):
         SimOptions(tcp_speed_limit=0.0)
+
+
+def test_moves_faster_than_the_limits_are_slowed_with_a_warning() -> None:
+    ctrl = started(tcp_speed_limit=0.2)
+    pose = g.pose_from_rows(ctrl.arm.T_tcp)
+    pose[0] += 0.1
+    command(ctrl, 3, doubles=[*pose, 1.0, 100.0], ints=[0])  # 1 m/s, 100 m/s^2
+    peak = 0.0
+    for _ in range(1000):
+        ctrl.tick()
+        peak = max(peak, g.norm3(*ctrl.arm.tcp_speed[:3]))
+        if ctrl.out_int[0] == DONE:
+            break
+    assert ctrl.out_int[0] == DONE and ctrl.safety_mode == c.SAFETY_NORMAL
+    assert peak == pytest.approx(0.2, abs=1e-9)
+    assert any("reduced to the safety limit" in text and level == P.LEVEL_WARNING for text, level in ctrl.outbox)

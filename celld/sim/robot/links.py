@@ -124,7 +124,8 @@ class RtdeLink(Link):
         self.reader = P.PackageReader()
         self.protocol = 1
         self.outputs: list[OutputStream] = []
-        self.inputs: dict[int, tuple[P.Recipe, "InputPlan"]] = {}
+        self.input_recipes: dict[int, P.Recipe] = {}
+        self.input_plans: dict[int, "InputPlan"] = {}
         self.started = False
         self.dropped_packages = 0
         # Packages held back by the latency fault: (due ns, type, payload) in, (due ns, bytes) out.
@@ -175,8 +176,8 @@ class RtdeLink(Link):
     def handle(self, msg_type: int, payload: bytes) -> None:
         try:
             if msg_type == P.DATA_PACKAGE:
-                recipe, values = P.parse_data(payload, {k: v[0] for k, v in self.inputs.items()})
-                self.ctrl.write_inputs(self.inputs[recipe.recipe_id][1], values)
+                recipe, values = P.parse_data(payload, self.input_recipes)
+                self.ctrl.write_inputs(self.input_plans[recipe.recipe_id], values)
             elif msg_type == P.REQUEST_PROTOCOL_VERSION:
                 version = P.parse_protocol_version(payload)
                 ok = 1 <= version <= P.PROTOCOL_VERSION
@@ -233,8 +234,9 @@ class RtdeLink(Link):
             return
         for name in names:
             self.owners[name] = self
-        recipe = P.make_recipe(len(self.inputs) + 1, names, tuple(types))
-        self.inputs[recipe.recipe_id] = (recipe, self.ctrl.input_plan(names))
+        recipe = P.make_recipe(len(self.input_recipes) + 1, names, tuple(types))
+        self.input_recipes[recipe.recipe_id] = recipe
+        self.input_plans[recipe.recipe_id] = self.ctrl.input_plan(names)
         self.reply(P.reply_setup(P.CONTROL_PACKAGE_SETUP_INPUTS, recipe.recipe_id, tuple(types)))
 
     def close(self) -> None:

@@ -19,6 +19,7 @@ import os
 import selectors
 import signal
 import socket
+import struct
 import time
 from typing import Any
 
@@ -112,7 +113,8 @@ class SimServer:
         self.selector.register(sock, selectors.EVENT_READ, ("link", link))
         log.debug("link_open", kind=link.kind, peer=link.peer)
 
-    def _drop(self, link: L.Link) -> None:
+    def _drop(self, link: L.Link, reset: bool = False) -> None:
+        """Close ``link``; with ``reset`` abortively (RST), as a link that breaks rather than ends."""
         if link in self.links:
             self.links.discard(link)
             try:
@@ -121,6 +123,8 @@ class SimServer:
                 pass
             link.close()
             try:
+                if reset:
+                    link.sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
                 link.sock.close()
             except OSError:
                 pass
@@ -303,7 +307,7 @@ class SimServer:
         if name in ("drop_rtde", "drop_all"):
             kinds = ("rtde",) if name == "drop_rtde" else ("rtde", "dashboard", "script")
             for link in [lk for lk in self.links if lk.kind in kinds]:
-                self._drop(link)
+                self._drop(link, reset=True)
             down_ns = int(args.get("down_ms", 0.0) * 1e6)
             if down_ns:
                 ports = (RTDE_PORT,) if name == "drop_rtde" else (RTDE_PORT, DASHBOARD_PORT, *SCRIPT_PORTS)
