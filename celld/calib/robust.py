@@ -27,7 +27,7 @@ rejected pair is reported with its residual and the threshold it failed.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from itertools import combinations
 from typing import Sequence
 
@@ -153,7 +153,6 @@ class RobustFit:
     sigma: float
     threshold: float
     rounds: int
-    notes: tuple[str, ...] = field(default=())
 
     @property
     def T_base_cam(self) -> Array:
