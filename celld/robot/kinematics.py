@@ -14,7 +14,7 @@ Two layers share one implementation:
 
 The inverse is the closed form for the UR geometry (three parallel middle
 axes, spherical-like wrist offsets): up to eight solutions, each joint in
-(-pi, pi]; :func:`inverse` picks the one nearest a seed, shifted by 2 pi where
+[-pi, pi); :func:`inverse` picks the one nearest a seed, shifted by 2 pi where
 the joint range allows it.
 """
 
@@ -172,24 +172,17 @@ def _clamp_trig(x: float) -> float | None:
     return x
 
 
-def _wrap(angle: float) -> float:
-    """``angle`` wrapped to (-pi, pi]."""
-    a = math.fmod(angle + math.pi, 2 * math.pi)
-    if a <= 0.0:
-        a += 2 * math.pi
-    return a - math.pi
-
-
 def inverse_rows(T_base_flange: Rows, dh: DH = UR10E, q6_seed: float = 0.0) -> list[list[float]]:
     """Every joint solution of ``T_base_flange`` (12 row-major floats), plain Python.
 
-    Returns up to eight solutions, each joint wrapped to (-pi, pi]. At the wrist
+    Returns up to eight solutions, each joint wrapped to [-pi, pi). At the wrist
     singularity (q5 = 0 or pi) q6 is not determined; ``q6_seed`` is used. An
     empty list means the pose is out of reach (or on the shoulder singularity).
     """
     d1, _, _, d4, d5, d6 = dh.d
     _, a2, a3, _, _, _ = dh.a
     tw = _twists(dh)
+    pi, two_pi = math.pi, 2 * math.pi
     T06 = list(T_base_flange)
     r00, r01, r02, px, r10, r11, r12, py, _, _, _, _ = T06
     # Origin of frame 5: back along the flange z axis by d6.
@@ -211,27 +204,23 @@ def inverse_rows(T_base_flange: Rows, dh: DH = UR10E, q6_seed: float = 0.0) -> l
         ys6 = -r01 * s1 + r11 * c1
         yc6 = r00 * s1 - r10 * c1
         abs_s5 = math.hypot(ys6, yc6)
+        # T_1_6 = T_0_1^-1 T_0_6, shared by both wrist branches.
+        T16 = _mul(_inv(_link(q1, d1, 0.0, *tw[0])), T06)
         for sign in (1.0, -1.0):
             q5 = math.atan2(sign * abs_s5, c5)
-            if abs_s5 < _WRIST_SINGULAR:
-                q6 = q6_seed
-            else:
-                q6 = math.atan2(sign * ys6, sign * yc6)
-            # T_1_4 = T_0_1^-1 T_0_6 T_5_6^-1 T_4_5^-1: a planar 3R problem for q2, q3, q4.
-            T01 = _link(q1, d1, 0.0, *tw[0])
-            T46 = _mul(_link(q5, d5, 0.0, *tw[4]), _link(q6, d6, 0.0, *tw[5]))
-            T14 = _mul(_mul(_inv(T01), T06), _inv(T46))
+            q6 = q6_seed if abs_s5 < _WRIST_SINGULAR else math.atan2(sign * ys6, sign * yc6)
+            # T_1_4 = T_1_6 (T_4_5 T_5_6)^-1: a planar 3R problem for q2, q3, q4.
+            T14 = _mul(T16, _inv(_mul(_link(q5, d5, 0.0, *tw[4]), _link(q6, d6, 0.0, *tw[5]))))
             x14, y14 = T14[3], T14[7]
             # With alpha_1 = pi/2 the planar arm lies in frame 1's x-y plane.
-            n2 = x14 * x14 + y14 * y14
-            c3 = _clamp_trig((n2 - a2 * a2 - a3 * a3) / (2.0 * a2 * a3))
+            c3 = _clamp_trig((x14 * x14 + y14 * y14 - a2 * a2 - a3 * a3) / (2.0 * a2 * a3))
             if c3 is None:
                 continue
+            q234 = math.atan2(T14[4], T14[0])
             for q3 in (math.acos(c3), -math.acos(c3)):
                 q2 = math.atan2(y14, x14) - math.atan2(a3 * math.sin(q3), a2 + a3 * math.cos(q3))
-                q234 = math.atan2(T14[4], T14[0])
                 q4 = q234 - q2 - q3
-                solutions.append([_wrap(q1), _wrap(q2), _wrap(q3), _wrap(q4), _wrap(q5), _wrap(q6)])
+                solutions.append([(a + pi) % two_pi - pi for a in (q1, q2, q3, q4, q5, q6)])
     return solutions
 
 
@@ -248,23 +237,29 @@ def nearest_solution(
     best: list[float] | None = None
     best_cost = math.inf
     two_pi = 2 * math.pi
+    pi = math.pi
+    q_min, q_max = limits.q_min, limits.q_max
     for sol in solutions:
         q: list[float] = []
         cost = 0.0
         for j in range(6):
+            qn = q_near[j]
             # The turn of sol[j] closest to q_near[j], kept inside the joint range.
-            v = sol[j] + two_pi * round((q_near[j] - sol[j]) / two_pi)
-            if v > limits.q_max[j]:
+            v = qn + (sol[j] - qn + pi) % two_pi - pi
+            if v > q_max[j]:
                 v -= two_pi
-            elif v < limits.q_min[j]:
+            elif v < q_min[j]:
                 v += two_pi
-            if v > limits.q_max[j] or v < limits.q_min[j]:
+            if v > q_max[j] or v < q_min[j]:
                 break
+            c = abs(v - qn)
+            if c > cost:
+                cost = c
+                if cost >= best_cost:
+                    break
             q.append(v)
-            cost = max(cost, abs(v - q_near[j]))
         else:
-            if cost < best_cost:
-                best, best_cost = q, cost
+            best, best_cost = q, cost
     return best
 
 
@@ -291,7 +286,7 @@ def forward(q: ArrayLike, dh: DH = UR10E, T_flange_tcp: ArrayLike | None = None)
 
 
 def inverse_all(T_base_flange: ArrayLike, dh: DH = UR10E, q6_seed: float = 0.0) -> Array:
-    """All (n, 6) joint solutions of ``T_base_flange`` (4, 4), each joint in (-pi, pi]."""
+    """All (n, 6) joint solutions of ``T_base_flange`` (4, 4), each joint in [-pi, pi)."""
     T = np.asarray(T_base_flange, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise InputError(f"T_base_flange: expected a finite (4, 4) transform, got shape {T.shape}")
