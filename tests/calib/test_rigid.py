@@ -171,8 +171,8 @@ def test_propagate_matches_sampling_for_a_composition(rng: np.random.Generator) 
     C = f(A, B)
     samples = [
         perturbation(f(perturb(A, rng.multivariate_normal(np.zeros(6), cov_a)), perturb(B, rng.multivariate_normal(np.zeros(6), cov_b))), C)
-        for _ in range(3000)
+        for _ in range(1200)
     ]
-    # Each entry within 0.1 of sqrt(C_ii C_jj) (3000 samples: sampling error about 0.03).
+    # Each entry within 0.12 of sqrt(C_ii C_jj) (1200 samples: sampling error about 0.03-0.04).
     scale = np.sqrt(np.outer(np.diag(cov), np.diag(cov)))
-    assert np.max(np.abs(np.cov(np.array(samples).T) - cov) / scale) < 0.1
+    assert np.max(np.abs(np.cov(np.array(samples).T) - cov) / scale) < 0.12
