@@ -1,0 +1,561 @@
+"""Workpiece scan to seam path: crop, register, measure the groove, hand over.
+
+:func:`find_seam` takes one scanner cloud (camera frame), the part model and
+the hand-eye transform ``T_base_cam`` and returns a :class:`SeamPath` in the
+robot base frame, ready for the tactile servo (paper section 3.3: register the
+scan with the CAD model to place the seam in the camera frame, then move it to
+the base with the hand-eye calibration). Steps:
+
+1. Check the cloud (shape, units) and cut it to the part with numpy: points
+   above the table in the region of interest, in the base frame.
+2. Register the model (:mod:`celld.seam.register`): FPFH + RANSAC, ICP,
+   fitness gate with re-seeding.
+3. Check the scan shows the seam: every seam station must have scan points
+   near it (else the scan is partial), and the joint walls the camera should
+   see must be there (else it is a different part or a wrong fit).
+4. Measure the joint model-free (:mod:`celld.seam.groove`) and move the seam
+   to the measured walls, when they were measured along the seam; refuse when
+   the walls contradict the model.
+5. Resample at a fixed spacing, order from start to end, and attach tangents,
+   normals and quality figures.
+
+Every refusal is a :class:`~celld.errors.SeamError` subclass with a reason;
+no wrong path is ever returned in place of a refusal.
+
+Seam plane and normals (the contract with the servo): ``plane_normal`` is the
+approach direction of the part (out of the joint toward the tool; +z for a
+part lying on the table). The servo works in the plane normal to it, which
+holds the seam (paper section 2.2.2, Fig. 8: the 2D plane of Algorithm 2). At
+each point ``tangent`` is the unit travel direction and ``normal`` =
+``plane_normal x tangent`` (the paper's n = [-sin a, cos a] for t = [cos a,
+sin a]): it lies in the seam plane, across the seam, pointing to the wall on
+the left of travel seen from the tool. With ``finger_wall = "right"`` the
+normals point the other way. The finger rides on the wall the normals point
+to, pressing along +normal; its deformation grows along -normal.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from celld import se3
+from celld.errors import GrooveError, InputError, RegistrationError, ScanError
+from celld.log import get_logger
+from celld.seam.groove import CONTRADICTS, GrooveFit, GrooveParams, apex_offsets, fit_groove, smooth_offsets
+from celld.seam.register import PreparedModel, RegistrationParams, prepare_model, register
+from celld.seam.workpiece import LEFT_WALL, NO_WALL, RIGHT_WALL, Workpiece, project_to_polyline, resample_polyline
+
+log = get_logger(__name__)
+
+Array = NDArray[np.float64]
+
+SEAM_SOURCES = ("auto", "groove", "model")
+
+
+@dataclass(frozen=True)
+class SeamParams:
+    """Everything :func:`find_seam` can be tuned by (SI units).
+
+    Attributes
+    ----------
+    registration, groove : parameters of the two stages
+    spacing : output point spacing along the seam, m
+    table_z : height of the table top in the base frame, m; points up to
+        ``table_z + table_margin`` are the table and are dropped
+    roi_min, roi_max : base-frame box where the part may be, m
+    max_range : a camera-frame range beyond this is taken as wrong units, m
+    min_points : fewest part points a usable scan has
+    range_offset : known range bias of the scanner on this material (ToF on
+        bright metal reads long), subtracted along each ray, m
+    label_distance : a scan point within this of a model wall sample counts
+        as on that wall, m
+    view_cos : a model wall sample facing the camera more than this cosine
+        should be seen by it
+    support_distance : such a sample is seen when a scan point lies this close, m
+    min_coverage : share of seam stations that must have scan points near them
+    min_wall_support : share of the should-be-seen wall samples that must be seen
+    seam_source : ``"auto"`` (groove where measured, else the registered
+        model), ``"groove"`` (refuse unless measured) or ``"model"``
+    min_groove_coverage : share of stations the groove must be measured at
+        for it to be the seam
+    max_gap : longest stretch (m) of seam without a groove window that is
+        bridged by interpolation
+    max_contradicting : share of groove windows that may contradict the
+        model before the scan is refused
+    max_model_deviation : largest distance between the measured and the
+        registered seam accepted, m
+    deviation_span : the groove's offsets from the model are smoothed along
+        the seam over this length, m
+    deviation_sigmas : in ``"auto"``, the measured seam replaces the model's
+        only where somewhere it differs by more than this many of its own
+        standard errors; otherwise the (more precise) registered seam stands,
+        confirmed by the groove
+    tangent_span : length over which tangents are taken, m
+    finger_wall : ``"left"`` or ``"right"`` of travel; the normals point to it
+    """
+
+    registration: RegistrationParams = field(default_factory=RegistrationParams)
+    groove: GrooveParams = field(default_factory=GrooveParams)
+    spacing: float = 0.001
+    table_z: float = 0.0
+    table_margin: float = 0.002
+    roi_min: tuple[float, float, float] = (-0.2, -1.0, -0.1)
+    roi_max: tuple[float, float, float] = (1.4, 1.0, 0.6)
+    max_range: float = 4.0
+    min_points: int = 500
+    range_offset: float = 0.0
+    label_distance: float = 0.002
+    view_cos: float = 0.5
+    support_distance: float = 0.0015
+    min_coverage: float = 0.95
+    min_wall_support: float = 0.5
+    seam_source: str = "auto"
+    min_groove_coverage: float = 0.9
+    max_gap: float = 0.010
+    max_contradicting: float = 0.2
+    max_model_deviation: float = 0.003
+    deviation_span: float = 0.030
+    deviation_sigmas: float = 3.5
+    tangent_span: float = 0.004
+    finger_wall: str = "left"
+
+    def __post_init__(self) -> None:
+        if self.seam_source not in SEAM_SOURCES:
+            raise InputError(f"seam_source: expected one of {', '.join(SEAM_SOURCES)}, got {self.seam_source!r}")
+        if self.finger_wall not in ("left", "right"):
+            raise InputError(f"finger_wall: expected 'left' or 'right', got {self.finger_wall!r}")
+        if not 0.0 < self.spacing <= 0.05:
+            raise InputError(f"spacing: expected 0 < spacing <= 0.05 m, got {self.spacing}")
+        if self.registration.attempts < 1:
+            raise InputError(f"registration.attempts: expected at least 1, got {self.registration.attempts}")
+        if not all(a < b for a, b in zip(self.roi_min, self.roi_max)):
+            raise InputError(f"roi_min {self.roi_min} must be below roi_max {self.roi_max} on every axis")
+
+    @classmethod
+    def for_scanner(cls, model: str, **overrides: Any) -> SeamParams:
+        """Defaults tuned for a scanner model (``phoxi-s``, ``phoxi-m``, ``azure-kinect``)."""
+        if model not in _PRESETS:
+            raise InputError(f"no seam preset for scanner {model!r}; known: {', '.join(_PRESETS)}")
+        return replace(_PRESETS[model], **overrides)
+
+
+_PRESETS: dict[str, SeamParams] = {
+    "phoxi-s": SeamParams(),
+    "phoxi-m": SeamParams(),
+    # Millimetres of noise and flying pixels: coarser voxels, wider gates, long
+    # groove windows; the groove is used only where its apex is measured well.
+    "azure-kinect": SeamParams(
+        registration=RegistrationParams(voxel=0.005, icp_points=10_000, icp_distance=0.008, gate_distance=0.008, min_fitness=0.8),
+        groove=GrooveParams(window=0.040, step=0.005, min_points=25, max_normal_deviation=math.radians(20.0), max_apex_sigma=0.8e-3),
+        label_distance=0.006,
+        support_distance=0.008,
+        min_wall_support=0.3,
+        max_gap=0.04,
+        max_model_deviation=0.006,
+        tangent_span=0.010,
+    ),
+}
+
+
+@dataclass(frozen=True)
+class SeamQuality:
+    """Quality figures of one seam (SI units; NaN where not measured).
+
+    source : ``"groove"`` (measured walls) or ``"model"`` (registered model)
+    source_reason : why the model seam was used, ``""`` for the groove
+    fitness : share of scan points on the registered model
+    inlier_rmse : RMS distance of those points, m
+    attempts : RANSAC seeds tried
+    coverage : share of seam stations with scan points near them
+    wall_support : share of the wall samples the camera should see that it saw
+    groove_coverage : share of stations where the groove was measured
+    groove_windows_ok : share of groove windows with a good wall pair
+    groove_contradicting : share of windows whose walls contradict the model
+    apex_sigma : median 1-sigma apex uncertainty of the groove windows, m
+    wall_rms : median RMS residual of the wall plane fits, m
+    model_groove_rms, model_groove_max : distance between the measured and
+        the registered seam, RMS and max, m
+    deviation_sigma : median standard error of that distance, m
+    n_points : part points in the scan after cropping
+    reversed : the model seam was reversed to match the nominal direction
+    duration : s, from cloud to path
+    """
+
+    source: str
+    source_reason: str
+    fitness: float
+    inlier_rmse: float
+    attempts: int
+    coverage: float
+    wall_support: float
+    groove_coverage: float
+    groove_windows_ok: float
+    groove_contradicting: float
+    apex_sigma: float
+    wall_rms: float
+    model_groove_rms: float
+    model_groove_max: float
+    deviation_sigma: float
+    n_points: int
+    reversed: bool
+    duration: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in asdict(self).items()}
+
+
+@dataclass(frozen=True, eq=False)
+class SeamPath:
+    """The seam in the robot base frame, ready for the tactile servo.
+
+    Attributes
+    ----------
+    points_base : (n, 3) m, ordered from start to end, ``spacing`` apart
+    tangents : (n, 3) unit travel directions
+    normals : (n, 3) unit, in the seam plane, ``plane_normal x tangent``
+        (toward the left wall; toward the right one if ``finger_wall`` is right)
+    plane_normal : (3,) unit approach direction, normal of the seam plane
+    spacing : m between consecutive points
+    model_points_base : (n, 3) the registered model's seam at the same stations
+    T_base_obj : (4, 4) registered pose of the part model
+    quality : SeamQuality
+    """
+
+    points_base: Array
+    tangents: Array
+    normals: Array
+    plane_normal: Array
+    spacing: float
+    model_points_base: Array
+    T_base_obj: Array
+    quality: SeamQuality
+
+    def __post_init__(self) -> None:
+        for name in ("points_base", "tangents", "normals", "plane_normal", "model_points_base", "T_base_obj"):
+            a = np.array(getattr(self, name), dtype=np.float64)
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+
+    @property
+    def length(self) -> float:
+        return float(np.sum(np.linalg.norm(np.diff(self.points_base, axis=0), axis=1)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: lengths in metres, frame ``base``."""
+        return {
+            "frame": "base",
+            "units": "m",
+            "spacing": self.spacing,
+            "points_base": self.points_base.tolist(),
+            "tangents": self.tangents.tolist(),
+            "normals": self.normals.tolist(),
+            "plane_normal": self.plane_normal.tolist(),
+            "model_points_base": self.model_points_base.tolist(),
+            "T_base_obj": self.T_base_obj.tolist(),
+            "quality": self.quality.to_dict(),
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedWorkpiece:
+    """A part made ready once for many scans.
+
+    model : the registration model; groove_prior : the groove fitted on the
+    model's own samples (None without labelled walls); wall_points,
+    wall_normals : (k, 3) model wall samples within the wall band of the seam.
+    """
+
+    workpiece: Workpiece
+    model: PreparedModel
+    groove_prior: GrooveFit | None
+    wall_points: Array
+    wall_normals: Array
+    params: SeamParams
+
+
+def prepare(workpiece: Workpiece, params: SeamParams | None = None) -> PreparedWorkpiece:
+    """Sample and describe ``workpiece`` for :func:`find_seam` (once per part and params)."""
+    params = params or SeamParams()
+    model = prepare_model(workpiece, params.registration)
+    prior = None
+    if workpiece.has_walls:
+        prior = fit_groove(model.points, model.labels, workpiece.seam, workpiece.approach, workpiece.wall_band, params.groove)
+    walls = model.labels != NO_WALL
+    proj = project_to_polyline(model.points[walls], workpiece.seam)
+    radial = np.linalg.norm(model.points[walls] - proj.point, axis=1)
+    band = (radial >= workpiece.wall_band[0]) & (radial <= workpiece.wall_band[1])
+    return PreparedWorkpiece(workpiece, model, prior, model.points[walls][band], model.normals[walls][band], params)
+
+
+def crop_cloud(cloud_cam: ArrayLike, T_base_cam: Array, params: SeamParams) -> Array:
+    """Check a camera-frame cloud and cut it to what may be the part, in the base frame.
+
+    Accepts an organized (H, W, 3) or flat (n, 3) array (NaN = no return), or
+    an object with such a ``points`` attribute. Returns ``P_base`` (m, 3).
+
+    Raises
+    ------
+    ScanError
+        The cloud is empty, has no points above the table in the region, or its
+        ranges say it is not in metres.
+    """
+    P = np.asarray(getattr(cloud_cam, "points", cloud_cam))
+    if P.ndim not in (2, 3) or P.shape[-1] != 3:
+        raise ScanError(f"cloud: expected an (H, W, 3) or (n, 3) array of camera-frame points, got shape {P.shape}")
+    Q = P.reshape(-1, 3)
+    if not np.issubdtype(Q.dtype, np.floating):
+        Q = Q.astype(np.float32)
+    finite = np.isfinite(Q).all(axis=1)
+    n_finite = int(np.count_nonzero(finite))
+    if n_finite == 0:
+        raise ScanError("the scan is empty: no valid point in the cloud")
+    rng_ = np.linalg.norm(Q[finite][:: max(1, n_finite // 20000)], axis=1)
+    median = float(np.median(rng_))
+    if median > params.max_range:
+        raise ScanError(
+            f"cloud ranges have a median of {median:.4g} m, beyond the scanner's {params.max_range} m: "
+            "is the cloud in millimetres? (expected metres)",
+            {"median_range": median},
+        )
+    if median < 0.01:
+        raise ScanError(f"cloud ranges have a median of {median * 1e3:.3g} mm: expected metres", {"median_range": median})
+    if params.range_offset:
+        norm = np.linalg.norm(Q, axis=1, keepdims=True)
+        Q = Q * (1.0 - params.range_offset / norm)
+    # Height above the table first, on the flat array (cheap on millions of points).
+    R = np.asarray(T_base_cam[:3, :3], dtype=Q.dtype)
+    t = np.asarray(T_base_cam[:3, 3], dtype=Q.dtype)
+    with np.errstate(invalid="ignore"):
+        above = (Q @ R[2] + t[2]) > params.table_z + params.table_margin
+    P_base = se3.apply(T_base_cam, Q[above])
+    inside = np.all((P_base >= params.roi_min) & (P_base <= params.roi_max), axis=1)
+    P_base = P_base[inside]
+    if len(P_base) < params.min_points:
+        raise ScanError(
+            f"the scan is empty where the part should be: {len(P_base)} points above the table "
+            f"in the region of interest, expected at least {params.min_points}",
+            {"n_points": float(len(P_base))},
+        )
+    return P_base
+
+
+def find_seam(
+    cloud_cam: ArrayLike,
+    model: Workpiece | PreparedWorkpiece,
+    T_base_cam: ArrayLike,
+    params: SeamParams | None = None,
+    T_base_obj_nominal: ArrayLike | None = None,
+) -> SeamPath:
+    """Find the seam of ``model`` in one scan and return it in the base frame.
+
+    Parameters
+    ----------
+    cloud_cam : (H, W, 3) or (n, 3) camera-frame points, m, NaN for no return
+        (or an ``OrganizedCloud``)
+    model : the part, or the part prepared by :func:`prepare` (faster when
+        the same part is scanned many times)
+    T_base_cam : (4, 4) hand-eye transform, pose of the camera in the base frame
+    params : SeamParams; defaults to the prepared model's, or ``SeamParams()``
+    T_base_obj_nominal : (4, 4) expected placement of the part, optional. The
+        registration then only considers poses within
+        ``params.registration.max_rotation`` of it (the part's position is
+        free), which rules out the symmetric twins of symmetric parts; the
+        seam is ordered along the nominal travel direction. Without it the
+        search is global and the order of a symmetric part's seam is the
+        model's as registered.
+
+    Raises
+    ------
+    ScanError, RegistrationError, GrooveError
+        The scan cannot give a trustworthy seam; the message says why.
+    """
+    t0 = time.perf_counter()
+    T_base_cam = se3.check_transform(T_base_cam, "T_base_cam")
+    if isinstance(model, PreparedWorkpiece):
+        prepared = model if params is None or params == model.params else prepare(model.workpiece, params)
+    else:
+        prepared = prepare(model, params)
+    params = prepared.params
+    wp = prepared.workpiece
+
+    P_base = crop_cloud(cloud_cam, T_base_cam, params)
+    cam_base = T_base_cam[:3, 3]
+    T_nom = None if T_base_obj_nominal is None else se3.check_transform(T_base_obj_nominal, "T_base_obj_nominal")
+    registration = register(P_base, cam_base, prepared.model, params.registration, T_nom)
+    T_base_obj = registration.T_base_obj
+    T_obj_base = se3.invert(T_base_obj)
+
+    # Scan points near the seam, in the model frame.
+    band_out = wp.wall_band[1]
+    stations, spacing = resample_polyline(wp.seam, params.spacing)
+    P_obj = se3.apply(T_obj_base, P_base)
+    proj = project_to_polyline(P_obj, wp.seam)
+    near = np.linalg.norm(P_obj - proj.point, axis=1) <= band_out + 0.005
+    P_near = P_obj[near]
+    figures = {"fitness": registration.fitness, "inlier_rmse": registration.inlier_rmse, "attempts": float(registration.attempts)}
+
+    coverage = _coverage(P_near, stations, band_out + 0.005)
+    figures["coverage"] = coverage
+    if coverage < params.min_coverage:
+        raise ScanError(
+            f"partial scan: {coverage:.0%} of the seam has scan points near it, expected at least {params.min_coverage:.0%}",
+            figures,
+        )
+    support = _wall_support(prepared, P_near, se3.apply(T_obj_base, cam_base[None])[0], params)
+    figures["wall_support"] = support
+    if math.isfinite(support) and support < params.min_wall_support:
+        raise RegistrationError(
+            f"the scan does not show the joint where the registered model has it: {support:.0%} of the walls "
+            f"the camera should see were seen, expected at least {params.min_wall_support:.0%} (a different part?)",
+            figures,
+        )
+
+    points_obj, source, reason, gq = _seam_points(prepared, P_near, stations, params, figures)
+
+    # Order: follow the nominal travel direction if one is given.
+    reversed_ = False
+    if T_nom is not None:
+        nominal_dir = se3.rotate(T_nom, wp.seam[-1] - wp.seam[0])
+        found_dir = se3.rotate(T_base_obj, wp.seam[-1] - wp.seam[0])
+        reversed_ = bool(nominal_dir @ found_dir < 0)
+    points_base = se3.apply(T_base_obj, points_obj)
+    model_base = se3.apply(T_base_obj, stations)
+    if reversed_:
+        points_base, model_base = points_base[::-1], model_base[::-1]
+    plane_normal = se3.rotate(T_base_obj, wp.approach)
+    tangents = _tangents(points_base, max(1, int(round(params.tangent_span / 2.0 / spacing))))
+    normals = np.cross(plane_normal, tangents)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    if params.finger_wall == "right":
+        normals = -normals
+
+    quality = SeamQuality(
+        source=source,
+        source_reason=reason,
+        fitness=registration.fitness,
+        inlier_rmse=registration.inlier_rmse,
+        attempts=registration.attempts,
+        coverage=coverage,
+        wall_support=support,
+        n_points=len(P_base),
+        reversed=reversed_,
+        duration=time.perf_counter() - t0,
+        **gq,
+    )
+    log.debug("seam found", workpiece=wp.name, source=source, fitness=round(quality.fitness, 4), duration=round(quality.duration, 3))
+    return SeamPath(points_base, tangents, normals, plane_normal, spacing, model_base, T_base_obj, quality)
+
+
+def _coverage(P_near: Array, stations: Array, radius: float) -> float:
+    """Share of seam stations with at least one scan point within ``radius``."""
+    if len(P_near) == 0:
+        return 0.0
+    counts = cKDTree(P_near).query_ball_point(stations, radius, return_length=True)
+    return float(np.mean(np.asarray(counts) > 0))
+
+
+def _wall_support(prepared: PreparedWorkpiece, P_near: Array, cam_obj: Array, params: SeamParams) -> float:
+    """Share of the model's wall samples near the seam and facing the camera
+    that have a scan point near them.
+
+    NaN when the camera should see no wall there (the check then says nothing).
+    """
+    Pw, Nw = prepared.wall_points, prepared.wall_normals
+    to_cam = cam_obj - Pw
+    facing = np.einsum("ij,ij->i", Nw, to_cam) > params.view_cos * np.linalg.norm(to_cam, axis=1)
+    if np.count_nonzero(facing) < 10:
+        return math.nan
+    if len(P_near) == 0:
+        return 0.0
+    d, _ = cKDTree(P_near).query(Pw[facing], distance_upper_bound=params.support_distance)
+    return float(np.mean(np.isfinite(d)))
+
+
+def _seam_points(
+    prepared: PreparedWorkpiece, P_near: Array, stations: Array, params: SeamParams, figures: dict[str, float]
+) -> tuple[Array, str, str, dict[str, float]]:
+    """The seam at the stations (model frame): measured groove or registered model."""
+    nan = math.nan
+    gq = dict(groove_coverage=nan, groove_windows_ok=nan, groove_contradicting=nan, apex_sigma=nan,
+              wall_rms=nan, model_groove_rms=nan, model_groove_max=nan, deviation_sigma=nan)
+    wp, prior = prepared.workpiece, prepared.groove_prior
+    if prior is None:
+        if params.seam_source == "groove":
+            raise GrooveError(f"{wp.name}: the model has no labelled joint walls, so the groove cannot be measured", figures)
+        return stations, "model", "the model has no labelled joint walls", gq
+
+    d, idx = prepared.model.tree.query(P_near, distance_upper_bound=params.label_distance)
+    labels = np.full(len(P_near), NO_WALL, dtype=np.int8)
+    hit = np.isfinite(d)
+    labels[hit] = prepared.model.labels[idx[hit]]
+    fit = fit_groove(P_near, labels, wp.seam, wp.approach, wp.wall_band, params.groove, prior)
+    D, valid = apex_offsets(fit, prior)
+    n_win = len(fit.arc)
+    gq["groove_windows_ok"] = float(np.count_nonzero(valid)) / n_win
+    gq["groove_contradicting"] = float(np.count_nonzero(fit.status == CONTRADICTS)) / n_win
+    if np.any(valid):
+        gq["apex_sigma"] = float(np.median(fit.sigma[valid]))
+        gq["wall_rms"] = float(np.nanmedian(fit.rms[valid]))
+    figures.update({k: v for k, v in gq.items() if math.isfinite(v)})
+    if gq["groove_contradicting"] > params.max_contradicting:
+        raise GrooveError(
+            f"the joint walls in the scan contradict the model in {gq['groove_contradicting']:.0%} of the seam "
+            f"(at most {params.max_contradicting:.0%}): a different joint, or a wrong registration",
+            figures,
+        )
+    arc_st = np.linspace(0.0, wp.seam_length, len(stations))
+    Dst, se = smooth_offsets(fit, D, valid, arc_st, params.deviation_span, params.groove.step)
+    measured = np.isfinite(se)
+    if np.any(measured):
+        # Stations beyond max_gap / 2 of a good window count as unmeasured.
+        gap = np.abs(arc_st[:, None] - fit.arc[valid][None, :]).min(axis=1)
+        measured &= gap <= params.max_gap / 2.0 + 1e-9
+    groove_cov = float(np.mean(measured))
+    gq["groove_coverage"] = groove_cov
+    figures["groove_coverage"] = groove_cov
+    if groove_cov < params.min_groove_coverage:
+        why = f"the groove was measured along {groove_cov:.0%} of the seam, expected at least {params.min_groove_coverage:.0%}"
+        if params.seam_source == "groove":
+            raise GrooveError(why, figures)
+        return stations, "model", why, gq
+
+    # Bridge the short unmeasured stretches from their neighbours.
+    for i in range(3):
+        Dst[:, i] = np.interp(arc_st, arc_st[measured], Dst[measured, i])
+    se = np.interp(arc_st, arc_st[measured], se[measured])
+    dev = np.linalg.norm(Dst, axis=1)
+    gq["model_groove_rms"] = float(np.sqrt(np.mean(dev**2)))
+    gq["model_groove_max"] = float(dev.max())
+    gq["deviation_sigma"] = float(np.median(se))
+    figures.update(model_groove_rms=gq["model_groove_rms"], model_groove_max=gq["model_groove_max"])
+    if gq["model_groove_max"] > params.max_model_deviation:
+        raise GrooveError(
+            f"the measured seam is up to {gq['model_groove_max'] * 1e3:.2f} mm from the registered model's, "
+            f"more than the {params.max_model_deviation * 1e3:.2f} mm accepted: check the part's fit-up",
+            figures,
+        )
+    if params.seam_source == "model":
+        return stations, "model", "seam_source is 'model'", gq
+    z = float(np.max(dev / se))
+    if params.seam_source == "auto" and z < params.deviation_sigmas:
+        # The registered model seam is the more precise of the two here.
+        why = (f"the measured groove agrees with the model within its uncertainty "
+               f"(largest deviation {z:.1f} sigma, below {params.deviation_sigmas:.1f})")
+        return stations, "model", why, gq
+    return stations + Dst, "groove", "", gq
+
+
+def _tangents(P: Array, k: int) -> Array:
+    """Unit tangents of a polyline from differences over +-k points (one-sided at the ends)."""
+    n = len(P)
+    hi = np.minimum(np.arange(n) + k, n - 1)
+    lo = np.maximum(np.arange(n) - k, 0)
+    T = P[hi] - P[lo]
+    return T / np.linalg.norm(T, axis=1, keepdims=True)

@@ -1,0 +1,69 @@
+"""Simulated workpiece scenes for the seam finder's tests and benchmark.
+
+A workpiece (metal) on the table (matte, top at base z = 0) under the cell's
+scanner, placed at a nominal pose or at a random pose off it. Only the
+simulator reads the true pose; it is returned beside the scene so tests can
+score the seam against it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from celld import se3
+from celld.seam.workpiece import Workpiece
+from celld.sim.scene import SceneObject, box
+
+Array = NDArray[np.float64]
+
+# The cell's table top, base frame (celld.sim.scene uses the same plane).
+TABLE_Z = 0.0
+# Nominal place of a workpiece on the table, base frame, m.
+NOMINAL_XY = (0.6, 0.0)
+# The table slab: extent and thickness, m.
+_TABLE_SIZE = (1.2, 1.0, 0.03)
+
+
+def nominal_pose(workpiece: Workpiece, yaw: float = 0.0) -> Array:
+    """Pose of a part lying on the table at the nominal place, seam along base x turned by ``yaw``."""
+    z = TABLE_Z - float(workpiece.vertices[:, 2].min())
+    return se3.from_xyz_rpy([NOMINAL_XY[0], NOMINAL_XY[1], z], [0.0, 0.0, yaw])
+
+
+def random_pose(workpiece: Workpiece, rng: np.random.Generator, max_angle: float, max_offset: float, yaw: float = 0.0) -> Array:
+    """A pose off the nominal one by a rotation of up to ``max_angle`` (rad) about a
+    random axis and a shift of up to ``max_offset`` (m) across the table; the
+    part is then set down so its lowest point touches the table (held there by
+    a fixture when tilted)."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = rng.uniform(0.0, max_angle)
+    r, phi = max_offset * math.sqrt(rng.uniform()), rng.uniform(-math.pi, math.pi)
+    T_nom = nominal_pose(workpiece, yaw)
+    R = Rotation.from_rotvec(axis * angle).as_matrix() @ T_nom[:3, :3]
+    t = T_nom[:3, 3] + np.array([r * math.cos(phi), r * math.sin(phi), 0.0])
+    T = se3.transform_from(R, t)
+    lowest = float(se3.apply(T, workpiece.vertices)[:, 2].min())
+    T[2, 3] += TABLE_Z - lowest
+    return T
+
+
+def workpiece_scene(workpiece: Workpiece, T_base_obj: Array, table: bool = True) -> list[SceneObject]:
+    """The scanner's scene: the part (metal) first, then the table (matte)."""
+    objects = [SceneObject(workpiece.name, workpiece.mesh(), T_base_obj, "metal")]
+    if table:
+        centre = [NOMINAL_XY[0], NOMINAL_XY[1], TABLE_Z - _TABLE_SIZE[2] / 2.0]
+        objects.append(SceneObject("table", box(_TABLE_SIZE), se3.transform_from(np.eye(3), centre), "matte"))
+    return objects
+
+
+def seam_error(points_base: Array, true_seam_base: Array) -> Array:
+    """Distance (m) from each found seam point to the true seam polyline (both base frame)."""
+    from celld.seam.workpiece import project_to_polyline
+
+    proj = project_to_polyline(points_base, true_seam_base, step=5e-5)
+    return np.linalg.norm(points_base - proj.point, axis=1)
