@@ -687,7 +687,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"r mean {st['r_mean_deg']:.4f} deg, within target in {res['seeds_within_target']}/{res['seeds']} seeds"
             )
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / f"figures{'_quick' if args.quick else ''}.json").write_text(json.dumps(figures, indent=1, default=float))
+    name = "figures_" + "_".join(sorted(which)) + ("_quick" if args.quick else "")
+    (OUT / f"{name}.json").write_text(json.dumps(figures, indent=1, default=float))
     if args.json:
         print(json.dumps(figures, default=float))
     return 0
