@@ -39,8 +39,10 @@ object last. Full runs write ``bench/out/seam_tracking/`` (table and plots).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -62,11 +64,13 @@ from celld.sim.srm import SimSrm, SrmSimParams, Wall, _nearest_on_polyline  # no
 from celld.tactile.aruco import TagDetector  # noqa: E402
 from celld.tactile.deformation import DeformationParams, estimate, tare  # noqa: E402
 from celld.tactile.sample import ContactState  # noqa: E402
+from celld.tactile.tool import ToolGeometry  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "seam_tracking"
 PERIOD = 0.002
-# The welding plane: a horizontal table plane in front of the robot.
-T_BASE_PLANE = np.array([[1.0, 0, 0, 0.45], [0, 1.0, 0, -0.10], [0, 0, 1.0, 0.12], [0, 0, 0, 1.0]])
+# The welding plane: a horizontal table plane on the side of the robot's home pose.
+T_BASE_PLANE = np.array([[1.0, 0, 0, -0.78], [0, 1.0, 0, -0.22], [0, 0, 1.0, 0.30], [0, 0, 0, 1.0]])
+SERVO_LAWS = {NAME: "celld.motion.servo:make_algorithm2"}
 TARGETS = {"lateral_rms_mm": 0.2, "lateral_max_mm": 0.5, "detect_median_ms": 3.0, "deformation_error_mm": 0.02, "latency_ms": 10.0}
 
 
@@ -242,19 +246,13 @@ def run_kinematic(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: bo
     latest = None
     contact = ContactState.NONE
     seq = 0
-    log: dict[str, list] = {k: [] for k in ("t", "e_torch", "s_torch", "beside", "omega", "phase", "twist", "guarded",
-                                                "delta_n_true", "latency")}
-    frames: dict[str, list] = {"stamp": [], "err": [], "detect_ms": [], "valid": [], "contact": []}
+    cyc: dict[str, list] = {k: [] for k in ("t", "torch", "tip", "t_d", "twist", "omega", "latency")}
+    frames: dict[str, list] = {"stamp": [], "err": [], "dn": [], "contact": [], "detect_ms": []}
     servo: Algorithm2Servo | None = None
     t_ns = 0
-    max_s = 600.0
     status = ControlStatus.OK
-    torch_tool = np.array([-cfg.torch_offset, 0.0, 0.0, 1.0])
-    from celld.tactile.tool import ToolGeometry
-
     tool = ToolGeometry.from_config(cfg)
-    last_true_dn = math.nan
-    for k in range(int(max_s / PERIOD)):
+    for _ in range(int(600.0 / PERIOD)):
         arm.record(t_ns)
         # Camera frames captured up to now: rendered at their capture pose.
         while next_frame <= t_ns:
@@ -275,12 +273,12 @@ def run_kinematic(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: bo
                 sample = estimate(det, rest, dparams, next_frame, seq, contact, d_ns)
             if sample.valid:
                 contact = sample.contact
-                frames["err"].append(sample.delta_tool - f.delta_true)
-            frames["stamp"].append(next_frame)
-            frames["detect_ms"].append(d_ns * 1e-6)
-            frames["valid"].append(sample.valid)
+            frames["stamp"].append(next_frame * 1e-9)
+            frames["err"].append(sample.delta_tool - f.delta_true)
+            frames["dn"].append(float(f.delta_true[1]) if f.in_contact else 0.0)
             frames["contact"].append(f.in_contact)
-            last_true_dn = float(f.delta_true[1]) if f.in_contact else 0.0
+            frames["detect_ms"].append(d_ns * 1e-6)
+            # Delivered after the camera's latency and the detection itself.
             pending.append((next_frame + int(srm.params.latency * 1e9) + d_ns, sample))
             next_frame += frame_ns
         while pending and pending[0][0] <= t_ns:
@@ -293,86 +291,293 @@ def run_kinematic(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: bo
         out = core.step(CycleInput(state, 0.0, 1, latest, age, np.zeros(6), math.inf, cmd, 1 if starting else 0))
         if starting:
             servo = core.controller.law  # type: ignore[attr-defined]
-        if servo is None:
-            arm.apply(out.action, out.twist)
-            t_ns += int(PERIOD * 1e9)
-            continue
         arm.apply(out.action, out.twist)
-        d = servo.last
+        t_ns += int(PERIOD * 1e9)
+        if servo is None:
+            continue
         T_tool = arm.T @ tool.T_tcp_tool
-        p_torch = ((T_tool @ torch_tool)[:3] - T_BASE_PLANE[:3, 3]) @ T_BASE_PLANE[:3, :2]
-        e, s_t, beside = lateral(P_true, p_torch)
-        log["t"].append(t_ns * 1e-9)
-        log["e_torch"].append(e)
-        log["s_torch"].append(s_t)
-        log["beside"].append(beside)
-        log["omega"].append(d.omega)
-        log["phase"].append(int(d.phase))
-        log["twist"].append(out.twist.copy() if out.action == Action.SPEED else np.zeros(6))
-        log["guarded"].append(d.guarded)
-        log["delta_n_true"].append(last_true_dn)
-        log["latency"].append(d.latency)
+        cyc["t"].append(t_ns * 1e-9)
+        cyc["torch"].append(_plane((T_tool @ np.array([-cfg.torch_offset, 0.0, 0.0, 1.0]))[:3]))
+        cyc["tip"].append(_plane(T_tool[:3, 3]))
+        cyc["t_d"].append(T_tool[:3, 0] @ T_BASE_PLANE[:3, :2])
+        cyc["twist"].append(out.twist.copy() if out.action == Action.SPEED else np.zeros(6))
+        cyc["omega"].append(servo.last.omega)
+        if math.isfinite(servo.last.latency):
+            # The cycle's command goes out at the cycle's start: t_ns before the increment.
+            cyc["latency"].append(servo.last.latency * 1e3)
         status = out.status
         if core.mode == Mode.IDLE:
             break
-        t_ns += int(PERIOD * 1e9)
-    series = {k: np.array(v) for k, v in log.items()}
-    figures = summarise(kind, cfg, motion, servo, series, frames, P_true, P_plan2, status)
-    series["refined"] = servo.refined_plane
-    series["P_true"] = P_true
-    series["P_plan"] = P_plan2
-    return RunResult(figures, series)
+    tr = Trace(
+        np.array(cyc["t"]), np.array(cyc["torch"]), np.array(cyc["tip"]), np.array(cyc["t_d"]), np.array(cyc["twist"]),
+        np.array(cyc["omega"]), np.array(frames["stamp"]), np.array(frames["err"]), np.array(frames["dn"]),
+        np.array(frames["contact"]), np.array(frames["detect_ms"]), np.array(cyc["latency"]),
+        ControlStatus(status).name, servo.reason, servo.guard_cycles,
+    )
+    figures = summarise(kind, cfg, motion, tr, P_true, P_plan2)
+    return RunResult(figures, {"t": tr.t, "e_torch": np.array([lateral(P_true, q)[0] for q in tr.torch]), "omega": tr.omega,
+                               "refined": servo.refined_plane, "P_true": P_true, "P_plan": P_plan2})
 
 
-def summarise(kind, cfg, motion, servo, S, frames, P_true, P_plan2, status) -> dict[str, Any]:
-    ref = servo.refined_plane
-    # The weld starts where the tip first touched: from there the torch runs on the refined path.
-    s0 = lateral(P_true, ref[0])[1] if len(ref) else math.inf
-    weld = S["beside"] & (S["s_torch"] >= s0) & (S["phase"] != int(Phase.TOUCH))
-    e = S["e_torch"][weld]
-    lead = S["beside"] & (S["s_torch"] < s0) & (S["phase"] != int(Phase.TOUCH))
-    # Plan alone: the smoothed plan's distance to the seam where beside it.
-    smooth = prepare_plan(np.column_stack([P_plan2, np.zeros(len(P_plan2))]), np.eye(4), cfg.plan_smoothing).P
-    e_plan = np.array([lateral(P_true, q)[0] for q in smooth[::4]])
+def _plane(p_base: np.ndarray) -> np.ndarray:
+    return (p_base - T_BASE_PLANE[:3, 3]) @ T_BASE_PLANE[:3, :2]
+
+
+class Trace(NamedTuple):
+    """What a run recorded, per control cycle and per camera frame (SI)."""
+
+    t: np.ndarray  # (k,) s
+    torch: np.ndarray  # (k, 2) true torch position in the plane
+    tip: np.ndarray  # (k, 2) true undeformed tip position in the plane
+    t_d: np.ndarray  # (k, 2) true tool direction in the plane
+    twist: np.ndarray  # (k, 6) sent twists (zero when nothing was sent)
+    omega: np.ndarray  # (k,) rad/s commanded about the plane normal
+    frame_stamp: np.ndarray  # (f,) capture times, s
+    frame_err: np.ndarray  # (f, 3) estimate minus truth (NaN when invalid)
+    frame_dn_true: np.ndarray  # (f,) true normal deformation (0 without contact)
+    frame_contact: np.ndarray  # (f,) bool, truth
+    detect_ms: np.ndarray  # (f,)
+    latency_ms: np.ndarray  # (m,) capture to the first command computed from a frame
+    status: str
+    reason: str
+    guard_cycles: int | None  # counted by the law (kinematic) or None when not observable
+
+
+def summarise(kind: str, cfg: TactileConfig, motion: MotionLimits, tr: Trace, P_true: np.ndarray, P_plan2: np.ndarray) -> dict[str, Any]:
     side = 1.0 if cfg.wall_side == "left" else -1.0
-    track = S["phase"] == int(Phase.TRACK)
-    dn = S["delta_n_true"][track] - side * cfg.delta_d
-    dn = dn[np.isfinite(dn)]
-    err = np.array(frames["err"]) if frames["err"] else np.zeros((0, 3))
-    in_contact = np.array(frames["contact"])[np.array(frames["valid"])] if frames["err"] else np.zeros(0, bool)
-    peaks = sequence_peaks(np.array(S["twist"]), PERIOD, np.zeros((2, 6)))
+    near = [lateral(P_true, q) for q in tr.torch]
+    e_all = np.array([n[0] for n in near])
+    s_torch = np.array([n[1] for n in near])
+    beside = np.array([n[2] for n in near])
+    # The weld starts where the tip first settled on the wall: the torch runs the refined path from there.
+    settled = tr.frame_contact & (np.abs(tr.frame_dn_true - side * cfg.delta_d) < 0.3 * cfg.delta_d)
+    if np.any(settled):
+        t0 = tr.frame_stamp[np.argmax(settled)]
+        s0 = lateral(P_true, tr.tip[min(np.searchsorted(tr.t, t0), len(tr.t) - 1)])[1]
+    else:
+        s0 = math.inf
+    weld = beside & (s_torch >= s0)
+    e = e_all[weld]
+    lead = beside & (s_torch < s0) & (np.arange(len(tr.t)) > np.argmax(s_torch > -1))
+    # Plan alone: the smoothed plan's distance to the seam where it runs beside it.
+    smooth = prepare_plan(np.column_stack([P_plan2, np.zeros(len(P_plan2))]), np.eye(4), cfg.plan_smoothing).P
+    e_plan = np.array([lateral(P_true, q)[0] for q in smooth[::4] if lateral(P_true, q)[2]])
+    # delta_n while tracking: frames in contact after the first settled one.
+    track = tr.frame_contact & (np.cumsum(settled) > 0)
+    dn = tr.frame_dn_true[track] - side * cfg.delta_d
+    valid = np.all(np.isfinite(tr.frame_err), axis=1)
+    err_c = tr.frame_err[valid & tr.frame_contact]
+    err_v = tr.frame_err[valid]
+    peaks = sequence_peaks(tr.twist, PERIOD, np.zeros((2, 6)))
     ratios = peaks.ratios(CartesianLimits.from_config(motion))
-    lat = S["latency"][np.isfinite(S["latency"])]
-    covered = (S["s_torch"][weld].max() - s0) if np.any(weld) else 0.0
-    length = float(np.sum(np.linalg.norm(np.diff(P_true, axis=0), axis=1)))
+    # |n_d . n_seam| at the torch, from the truth: where the guard band is.
+    t_seam = np.array([_nearest_on_polyline(P_true, q)[1] for q in tr.torch])
+    cos_dt = np.abs(np.einsum("ij,ij->i", tr.t_d, t_seam))  # n_d . n_t = t_d . t_t in the plane
+    length = float(_arc(P_true)[-1])
+
+    def r(x: float | None, k: int = 4) -> float | None:
+        return None if x is None or not math.isfinite(x) else round(float(x), k)
+
     return {
         "seam": kind,
-        "status": ControlStatus(status).name,
-        "reason": servo.reason,
-        "seam_length_mm": round(length * 1e3, 1),
-        "welded_mm": round(covered * 1e3, 1),
-        "lateral_rms_mm": round(float(np.sqrt(np.mean(e**2))) * 1e3, 4) if len(e) else None,
-        "lateral_max_mm": round(float(np.abs(e).max()) * 1e3, 4) if len(e) else None,
-        "lead_in_max_mm": round(float(np.abs(S["e_torch"][lead]).max()) * 1e3, 4) if np.any(lead) else None,
-        "plan_only_rms_mm": round(float(np.sqrt(np.mean(e_plan**2))) * 1e3, 3),
-        "plan_only_max_mm": round(float(np.abs(e_plan).max()) * 1e3, 3),
-        "delta_n_rms_mm": round(float(np.sqrt(np.mean(dn**2))) * 1e3, 4) if len(dn) else None,
-        "delta_n_max_mm": round(float(np.abs(dn).max()) * 1e3, 4) if len(dn) else None,
-        "omega_peak_rad_s": round(float(np.nanmax(np.abs(S["omega"]))), 4),
-        "guard_cycles": int(np.sum(S["guarded"])),
-        "cycles": int(len(S["t"])),
-        "limit_ratio_max": round(float(max(ratios)), 4),
-        "limit_ratios": {k: round(float(v), 4) for k, v in ratios._asdict().items()},
-        "frames": len(frames["stamp"]),
-        "invalid_frames": int(np.sum(~np.array(frames["valid"]))),
-        "detect_median_ms": round(float(np.median(frames["detect_ms"])), 3),
-        "detect_p99_ms": round(float(np.percentile(frames["detect_ms"], 99)), 3),
-        "deformation_rms_mm": round(float(np.sqrt(np.mean(err[in_contact, :2] ** 2))) * 1e3, 4) if np.any(in_contact) else None,
-        "deformation_max_mm": round(float(np.abs(err[in_contact, :2]).max()) * 1e3, 4) if np.any(in_contact) else None,
-        "deformation_out_of_plane_rms_mm": round(float(np.sqrt(np.mean(err[:, 2] ** 2))) * 1e3, 4) if len(err) else None,
-        "latency_median_ms": round(float(np.median(lat)) * 1e3, 3) if len(lat) else None,
-        "latency_max_ms": round(float(lat.max()) * 1e3, 3) if len(lat) else None,
+        "status": tr.status,
+        "reason": tr.reason,
+        "seam_length_mm": r(length * 1e3, 1),
+        "welded_mm": r((s_torch[weld].max() - s0) * 1e3, 1) if np.any(weld) else 0.0,
+        "lateral_rms_mm": r(np.sqrt(np.mean(e**2)) * 1e3) if len(e) else None,
+        "lateral_max_mm": r(np.abs(e).max() * 1e3) if len(e) else None,
+        "lead_in_max_mm": r(np.abs(e_all[lead]).max() * 1e3) if np.any(lead) else None,
+        "plan_only_rms_mm": r(np.sqrt(np.mean(e_plan**2)) * 1e3, 3),
+        "plan_only_max_mm": r(np.abs(e_plan).max() * 1e3, 3),
+        "delta_n_rms_mm": r(np.sqrt(np.mean(dn**2)) * 1e3) if len(dn) else None,
+        "delta_n_max_mm": r(np.abs(dn).max() * 1e3) if len(dn) else None,
+        "omega_peak_rad_s": r(np.nanmax(np.abs(tr.omega))),
+        "guard_cycles": tr.guard_cycles,
+        "min_nd_dot_nt": r(cos_dt[weld].min()) if np.any(weld) else None,
+        "guard_band_cycles_truth": int(np.sum(cos_dt[weld] < cfg.guard_cos)),
+        "cycles": int(len(tr.t)),
+        "limit_ratio_max": r(max(ratios)),
+        "limit_ratios": {k: r(v) for k, v in ratios._asdict().items()},
+        "frames": int(len(tr.frame_stamp)),
+        "invalid_frames": int(np.sum(~valid)),
+        "detect_median_ms": r(np.median(tr.detect_ms), 3),
+        "detect_p99_ms": r(np.percentile(tr.detect_ms, 99), 3),
+        "deformation_rms_mm": r(np.sqrt(np.mean(err_c[:, :2] ** 2)) * 1e3) if len(err_c) else None,
+        "deformation_max_mm": r(np.abs(err_c[:, :2]).max() * 1e3) if len(err_c) else None,
+        "deformation_out_of_plane_rms_mm": r(np.sqrt(np.mean(err_v[:, 2] ** 2)) * 1e3) if len(err_v) else None,
+        "latency_median_ms": r(np.median(tr.latency_ms), 3) if len(tr.latency_ms) else None,
+        "latency_p99_ms": r(np.percentile(tr.latency_ms, 99), 3) if len(tr.latency_ms) else None,
+        "latency_max_ms": r(tr.latency_ms.max(), 3) if len(tr.latency_ms) else None,
     }
+
+
+# -- closed loop: motion process, simulated UR10e through ur-rtde, camera process ------------
+
+
+# Far from the 127.0.0.x / 127.0.1.x addresses the test suite hands out, so a
+# test's simulator never takes this one's shared-memory names or ports.
+HOST = "127.0.99.61"
+
+
+def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: bool, seed: int, host: str = HOST) -> RunResult:
+    """One seam in wall-clock time through the cell's own processes.
+
+    The simulated UR10e (its own process, real ur-rtde against it), the motion
+    process running Algorithm 2 in its servo slot, and the tactile process
+    with the simulated camera, which renders each frame at the simulator's
+    true TCP pose of its capture time. The bench reads the simulator's truth,
+    the motion state ring, and the tactile sample and truth slots.
+    """
+    import asyncio
+    import uuid
+
+    from celld.config import parse
+    from celld.motion.handle import MotionHandle
+    from celld.motion.supervisor import Backoff
+    from celld.errors import CelldError, LinkLost
+    from celld.sim.robot import launch
+    from celld.sim.robot.truth import TruthReader
+    from celld.tactile.camera import SimSourceSpec, TactileProcess
+    from celld.tactile.sample import from_record
+
+    rng = np.random.default_rng(seed)
+    P_true = seam(kind, quick)
+    side = 1.0 if cfg.wall_side == "left" else -1.0
+    P_plan2 = planned(P_true, rng, away=-side)
+    P_plan = to_base(P_plan2, rng.normal(0.0, 0.0003, len(P_plan2)))
+    plan = algorithm2_plan(P_plan, cfg, motion, T_base_plane=T_BASE_PLANE)
+    # The simulator (a Python process on a loaded, shared 2-core machine) can
+    # miss its tick by tens of ms; the motion process's own integration tests
+    # allow 25 cycles of state age, this long run allows 50 (100 ms) and a
+    # link silent for 0.5 s. A real controller does not stall like that.
+    config = parse({"robot": {"workspace_min": [-1.2, -1.2, 0.02], "workspace_max": [1.2, 1.2, 1.2]}})
+    config = dataclasses.replace(config, tactile=cfg, motion=dataclasses.replace(motion, state_stale_cycles=50))
+    tool = ToolGeometry.from_config(cfg)
+    T_start = start_pose(P_plan, cfg)
+    records: list[np.ndarray] = []
+    truth: dict[int, np.ndarray] = {}
+    samples: dict[int, tuple] = {}
+    frame_truth: dict[int, tuple] = {}
+    outcome: dict[str, Any] = {"status": "OK", "reason": "", "cid": 0, "t0": 0, "restarts": 0}
+
+    with launch(host, realtime=True) as sim:
+        try:
+            os.sched_setaffinity(sim.process.pid, {0})
+        except (OSError, AttributeError):
+            pass
+        spec = SimSourceSpec(host, P_true, -side, T_BASE_PLANE, SrmSimParams(seed=seed, fps=cfg.fps))
+        # The simulator runs at FIFO 50 on CPU 0 (as in the motion tests), the
+        # motion loop at FIFO 80 on CPU 1; the camera process shares CPU 1 at
+        # FIFO 40, so the loop preempts it and best-effort work (other
+        # processes on this shared machine) does not delay its frames. Left
+        # free on both CPUs it starved the simulator's other threads; it also
+        # renders each frame here (5-8 ms on this machine, which a real camera
+        # does not), so at 60 fps the two FIFO processes on CPU 1 hit the
+        # kernel's real-time throttling (950 ms per second) and frames waited
+        # up to 100 ms: see ``--camera-fps``.
+        tactile = TactileProcess(cfg, f"bench-{uuid.uuid4().hex[:8]}", spec, share_truth=True, cpus=(1,), fifo_priority=40)
+        reader = TruthReader(host)
+
+        def poll() -> None:
+            rec, _ = tactile.samples.read()
+            if rec is not None and int(rec["seq"]) > 0:
+                smp = from_record(rec)
+                samples.setdefault(smp.stamp_ns, (smp.valid, smp.delta_tool, smp.detect_ns))
+            rec, _ = tactile.truth.read()
+            if rec is not None and int(rec["stamp_ns"]) > 0:
+                frame_truth.setdefault(int(rec["stamp_ns"]), (np.array(rec["delta_true"]), bool(rec["in_contact"])))
+
+        def pull_truth() -> None:
+            for r in reader.history():
+                truth.setdefault(int(r["stamp_ns"]), np.array(r["T_base_tcp"]))
+
+        async def main() -> None:
+            handle = await MotionHandle.open(
+                config, host=host, servo_laws=SERVO_LAWS, tactile_slot=tactile.slot_name,
+                connect_timeout=60.0, link_timeout=0.5, backoff=Backoff(delays=(0.2, 0.5)),
+            )
+            handle.add_listener(records.append)
+            try:
+                for attempt in range(4):
+                    # Under load the simulated controller sometimes stops the
+                    # freshly sent program; the supervisor restarts the motion
+                    # process and the approach is tried again (counted).
+                    try:
+                        await handle.move_to(T_start, timeout=60.0)
+                        break
+                    except LinkLost:
+                        outcome["restarts"] += 1
+                        if attempt == 3 or not await handle.wait_ready(30.0):
+                            raise
+                await asyncio.get_running_loop().run_in_executor(None, tactile.start)
+                while True:  # the tare: the finger is free at the start pose
+                    c = tactile.read_counters()
+                    if c is not None and bool(c["tared"]):
+                        break
+                    await asyncio.sleep(0.05)
+                outcome["t0"] = time.monotonic_ns()
+                cid = await handle.start_servo(plan)
+                outcome["cid"] = cid
+                waiting = asyncio.ensure_future(handle.wait(cid, timeout=240.0))
+                k = 0
+                while not waiting.done():
+                    poll()
+                    if k % 100 == 0:
+                        pull_truth()
+                    k += 1
+                    await asyncio.sleep(0.004)
+                try:
+                    outcome["status"] = waiting.result().name
+                except CelldError as exc:
+                    outcome["status"] = type(exc).__name__
+                    outcome["reason"] = str(exc)
+                pull_truth()
+            finally:
+                await handle.close()
+
+        try:
+            asyncio.run(main())
+        finally:
+            reader.close()
+            tactile.stop()
+
+    # Per cycle, from the truth (500 Hz) after the servo started.
+    stamps = np.array(sorted(t for t in truth if t >= outcome["t0"]))
+    Ts = np.array([truth[t] for t in stamps]) @ tool.T_tcp_tool
+    torch_h = np.array([-cfg.torch_offset, 0.0, 0.0, 1.0])
+    rec = np.concatenate([r for r in records if len(r)])
+    mine = rec[rec["command_id"] == outcome["cid"]]
+    sent = np.where((mine["action"] == int(Action.SPEED))[:, None], mine["twist"], 0.0)
+    # Frame to command: the cycle that first used a frame sent its command work_ns after waking,
+    # and the frame was tactile_age_ns old at the wake-up.
+    new = np.concatenate([[False], np.diff(mine["tactile_seq"]) != 0]) & (mine["tactile_age_ns"] >= 0)
+    latency = (mine["tactile_age_ns"][new] + mine["work_ns"][new]) * 1e-6
+    common = sorted(set(samples) & set(frame_truth))
+    err = np.array([samples[t][1] - frame_truth[t][0] for t in common]).reshape(-1, 3)
+    tr = Trace(
+        (stamps - outcome["t0"]) * 1e-9,
+        np.array([_plane((T @ torch_h)[:3]) for T in Ts]),
+        np.array([_plane(T[:3, 3]) for T in Ts]),
+        Ts[:, :3, 0] @ T_BASE_PLANE[:3, :2],
+        sent,
+        sent[:, 5],
+        np.array([(t - outcome["t0"]) * 1e-9 for t in common]),
+        err,
+        np.array([frame_truth[t][0][1] if frame_truth[t][1] else 0.0 for t in common]),
+        np.array([frame_truth[t][1] for t in common], dtype=bool),
+        np.array([samples[t][2] * 1e-6 for t in common]),
+        latency,
+        outcome["status"],
+        outcome["reason"],
+        None,
+    )
+    figures = summarise(kind, cfg, motion, tr, P_true, P_plan2)
+    figures["link_restarts_before_servo"] = outcome["restarts"]
+    figures["overruns"] = int(mine["overruns"].max() - mine["overruns"].min()) if len(mine) else None
+    figures["late_p99_us"] = round(float(np.percentile(mine["late_ns"], 99)) * 1e-3, 1) if len(mine) else None
+    e = np.array([lateral(P_true, q)[0] for q in tr.torch])
+    return RunResult(figures, {"t": tr.t, "e_torch": e, "omega": np.interp(tr.t, np.arange(len(sent)) * PERIOD, sent[:, 5]) if len(sent) else np.zeros(len(tr.t)),
+                               "refined": np.zeros((0, 2)), "P_true": P_true, "P_plan": P_plan2})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -383,23 +588,30 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seams", default="straight,arc,corner")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--direct", action="store_true", help="development: deformation from the simulator's truth, no images")
+    ap.add_argument("--camera-fps", type=float, default=None, help="camera frame rate (default: the config's, 60)")
+    ap.add_argument("--tactile-stale-ms", type=float, default=None,
+                    help="age of the last valid sample that stops the servo (default: the config's, 100 ms); "
+                         "recorded in the output when changed")
     args = ap.parse_args(argv)
     cfg = TactileConfig()
+    if args.camera_fps:
+        cfg = dataclasses.replace(cfg, fps=args.camera_fps)
     motion = MotionLimits()
+    if args.tactile_stale_ms:
+        motion = dataclasses.replace(motion, tactile_stale=args.tactile_stale_ms * 1e-3)
     results = []
     for kind in args.seams.split(","):
         t0 = time.perf_counter()
         if args.mode == "kinematic":
             r = run_kinematic(kind, cfg, motion, args.quick, args.seed, args.direct)
         else:
-            from bench.seam_tracking_closed_loop import run_closed_loop  # pragma: no cover
-
             r = run_closed_loop(kind, cfg, motion, args.quick, args.seed)
         r.figures["wall_s"] = round(time.perf_counter() - t0, 1)
         results.append(r)
         if not args.json:
             print(json.dumps(r.figures))
-    figures = {"mode": args.mode + ("-direct" if args.direct else ""), "quick": args.quick, "seams": [r.figures for r in results], "targets": TARGETS}
+    figures = {"mode": args.mode + ("-direct" if args.direct else ""), "quick": args.quick, "camera_fps": cfg.fps,
+               "tactile_stale_ms": round(motion.tactile_stale * 1e3, 1), "seams": [r.figures for r in results], "targets": TARGETS}
     if not args.quick:
         write_outputs(results, figures)
     print(json.dumps(figures))

@@ -41,9 +41,10 @@ Array = np.ndarray
 # Pixels per tag cell in the texture; the tag spans about 20 px per cell on
 # the default camera, so the texture is sampled below its resolution.
 _TEXTURE_PX_PER_CELL = 40
-# Supersampling of the rendered window: beyond 4 the read-back corner error
-# no longer changes (it is the detector's).
-_SUPERSAMPLE = 4
+# Supersampling of the rendered window. Measured read-back error of tag
+# displacements: 3 gives 4-7 um RMS, 4 and 8 give 4-6 um (the rest is the
+# detector's); 3 renders in 60 % of the time of 4.
+_SUPERSAMPLE = 3
 # White margin around the tag's black square, in cells (the tag's quiet zone).
 _QUIET_CELLS = 1
 # Grey levels of the tag's ink and paper under nominal light (paper is not a
@@ -257,22 +258,28 @@ class TagRenderer:
         ``None`` renders the finger without a tag (an occluded or lost tag).
         """
         img = self._background.copy()
-        if T_cam_tag is not None:
-            self._draw_tag(img, np.asarray(T_cam_tag, dtype=np.float64))
+        window = self._draw_tag(img, np.asarray(T_cam_tag, dtype=np.float64)) if T_cam_tag is not None else None
         if imaging.gradient != 0.0:
-            ramp = self._xn * math.cos(imaging.gradient_angle) + self._yn * math.sin(imaging.gradient_angle)
-            img *= 1.0 + imaging.gradient * ramp
-        if imaging.blur > 0.0:
-            img = cv2.GaussianBlur(img, (0, 0), imaging.blur)
+            g = imaging.gradient
+            light = cv2.addWeighted(self._xn, g * math.cos(imaging.gradient_angle), self._yn, g * math.sin(imaging.gradient_angle), 1.0)
+            cv2.multiply(img, light, dst=img)
+        if imaging.blur > 0.0 and window is not None:
+            # The background is smooth already: only the tag's window needs the lens blur.
+            m = int(math.ceil(3.0 * imaging.blur)) + 1
+            y0, y1, x0, x1 = window
+            ys = slice(max(y0 - m, 0), min(y1 + m, self._h))
+            xs = slice(max(x0 - m, 0), min(x1 + m, self._w))
+            img[ys, xs] = cv2.GaussianBlur(img[ys, xs], (0, 0), imaging.blur)
         if imaging.noise > 0.0:
             k = int(self._rng.integers(_NOISE_BANK))
             dy, dx = (int(v) for v in self._rng.integers(_NOISE_PAD, size=2))
-            img += imaging.noise * self._noise[k, dy : dy + self._h, dx : dx + self._w]
+            cv2.scaleAdd(self._noise[k, dy : dy + self._h, dx : dx + self._w], imaging.noise, img, dst=img)
         return cv2.convertScaleAbs(img, alpha=imaging.gain, beta=imaging.offset)
 
-    def _draw_tag(self, img: Array, T_cam_tag: Array) -> None:
+    def _draw_tag(self, img: Array, T_cam_tag: Array) -> tuple[int, int, int, int] | None:
+        """Draw the tag into ``img``; returns its window (y0, y1, x0, x1) or None when out of view."""
         if T_cam_tag[2, 3] <= 0.0:
-            return
+            return None
         n = self._texture.shape[0]
         s = self._side
         # Texture pixel i covers [i - 0.5, i + 0.5]; its outer edges map to the square's edges.
@@ -284,7 +291,7 @@ class TagRenderer:
         x1 = min(int(math.ceil(img_pts[:, 0].max())) + 3, self._w)
         y1 = min(int(math.ceil(img_pts[:, 1].max())) + 3, self._h)
         if x1 <= x0 or y1 <= y0:
-            return
+            return None
         ss = _SUPERSAMPLE
         roi = img[y0:y1, x0:x1]
         hi = cv2.resize(roi, ((x1 - x0) * ss, (y1 - y0) * ss), interpolation=cv2.INTER_LINEAR).astype(np.uint8)
@@ -296,6 +303,7 @@ class TagRenderer:
             flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_TRANSPARENT,
         )
         roi[:] = cv2.resize(hi.astype(np.float32), (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
+        return y0, y1, x0, x1
 
 
 # -- the finger and its camera on a seam -------------------------------------------
