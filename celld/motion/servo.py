@@ -75,12 +75,15 @@ Array = np.ndarray
 NAME = "algorithm2"
 # Resampling step of the planned path, m.
 PLAN_SPACING = 0.0005
-# Search window for the nearest planned point, either side of the last one, m.
-_PLAN_WINDOW = 0.02
+# Search window for the nearest planned point, either side of the last one, m
+# (the tip moves 20 um per cycle at 10 mm/s; the window only has to hold the
+# nearest point and keep a path that comes back near itself out).
+_PLAN_WINDOW = 0.008
 # Least spacing of refined points, m: a tip standing still adds nothing.
 _REFINED_STEP = 0.0001
-# Search window for the nearest refined point behind/ahead of the last one, points.
-_REFINED_WINDOW = 200
+# Search window for the nearest refined point either side of the last one, points
+# (at least 0.1 mm apart, so at least 4 mm).
+_REFINED_WINDOW = 40
 # Cycles of TCP history kept to place a sample at its capture time.
 _HISTORY = 512
 # Touching is done when |delta_n - delta_d| < this share of delta_d.
@@ -455,6 +458,7 @@ class Algorithm2Servo:
         self.path = path
         self.p = params
         self.T_tcp_tool = np.array(T_tcp_tool, dtype=np.float64)
+        self._tip_offset = bool(np.any(self.T_tcp_tool[:3, 3] != 0.0))
         self._R_bp = path.T_base_plane[:3, :3]
         self._o_bp = path.T_base_plane[:3, 3]
         self._z = self._R_bp[:, 2]
@@ -781,8 +785,10 @@ class Algorithm2Servo:
         v_tip = self._R_bp[:, :2] @ V_r - self.p.k_height * (h - self._h0) * self._z
         w = omega * self._z
         # P_r is the tool origin; the TCP moves with v_tip + w x (p_tcp - p_tip).
-        r_base = -(T[:3, :3] @ self.T_tcp_tool[:3, 3])
-        v_tcp = v_tip + np.cross(w, r_base)
+        if self._tip_offset:
+            r = -(T[:3, :3] @ self.T_tcp_tool[:3, 3])
+            v_tip = v_tip + np.array([w[1] * r[2] - w[2] * r[1], w[2] * r[0] - w[0] * r[2], w[0] * r[1] - w[1] * r[0]])
+        v_tcp = v_tip
         self.last = Diagnostics(self.phase, ControlStatus.OK, omega, guarded, e, delta_n, V_r.copy(), P_r, P_t, latency, "")
         return np.concatenate([v_tcp, w]), ControlStatus.OK
 
