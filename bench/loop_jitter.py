@@ -55,6 +55,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from celld.config import TactileConfig, parse  # noqa: E402
+from celld.errors import LinkLost  # noqa: E402
 from celld.log import configure  # noqa: E402
 from celld.motion.core import Action  # noqa: E402
 from celld.motion.handle import MotionHandle  # noqa: E402
@@ -156,8 +157,9 @@ def make_tactile(host: str) -> Any:
 
 def figures(records: np.ndarray, fifo: bool, cpu: int, extra: dict[str, Any]) -> dict[str, Any]:
     """The timing figures of one case from its state records (ms)."""
+    # The first record of a (re)started process has no period.
     period = records["period_ns"][1:].astype(np.float64) * 1e-6
-    err = np.abs(period - PERIOD_MS)
+    err = np.abs(period[period > 0] - PERIOD_MS)
     late = records["late_ns"].astype(np.float64) * 1e-6
     work = records["work_ns"].astype(np.float64) * 1e-6
     sent = np.count_nonzero(records["action"] == int(Action.SPEED))
@@ -174,7 +176,8 @@ def figures(records: np.ndarray, fifo: bool, cpu: int, extra: dict[str, Any]) ->
         "late_max_ms": float(late.max()),
         "cycles_late_over_1ms": int(np.count_nonzero(late > 1.0)),
         "cycles_late_over_2ms": int(np.count_nonzero(late > 2.0)),
-        "overruns": int(records["overruns"][-1] - records["overruns"][0]),
+        # Cumulative per process: add up the increments (a restart resets the counter).
+        "overruns": int(np.clip(np.diff(records["overruns"].astype(np.int64)), 0, None).sum()),
         "work_p50_ms": float(np.percentile(work, 50)),
         "work_p99_ms": float(np.percentile(work, 99)),
         "work_max_ms": float(work.max()),
@@ -183,11 +186,16 @@ def figures(records: np.ndarray, fifo: bool, cpu: int, extra: dict[str, Any]) ->
     return out
 
 
-async def stream_circle(motion: MotionHandle, seconds: float) -> None:
+async def stream_circle(motion: MotionHandle, seconds: float, link_losses: list[str]) -> None:
+    """Stream the circle for ``seconds``; a lost link (best effort under load) is counted and waited out."""
     t0 = time.monotonic()
     while (t := time.monotonic() - t0) < seconds:
         w = CIRCLE_W
-        motion.stream([-CIRCLE_R * w * math.sin(w * t), CIRCLE_R * w * math.cos(w * t), 0.0, 0.0, 0.0, 0.0])
+        try:
+            motion.stream([-CIRCLE_R * w * math.sin(w * t), CIRCLE_R * w * math.cos(w * t), 0.0, 0.0, 0.0, 0.0])
+        except LinkLost as exc:
+            link_losses.append(str(exc))
+            await motion.wait_ready(30.0)
         await asyncio.sleep(0.02)
 
 
@@ -199,6 +207,8 @@ async def run_pair(rt: bool, seconds: float) -> tuple[dict[str, Any], dict[str, 
     solves = [0]
     worker = threading.Thread(target=calibration_solves, args=(stop, solves), daemon=True)
     records: list[np.ndarray] = []
+    losses_idle: list[str] = []
+    losses_loaded: list[str] = []
     motion = await MotionHandle.open(
         config, host=HOST, realtime=RealtimeOptions(enabled=rt), tactile_slot=tactile.slot_name,
         connect_timeout=30.0, link_timeout=0.5, watchdog_hz=5.0,
@@ -207,13 +217,13 @@ async def run_pair(rt: bool, seconds: float) -> tuple[dict[str, Any], dict[str, 
     try:
         await asyncio.sleep(0.3)
         records.clear()
-        await stream_circle(motion, seconds)
+        await stream_circle(motion, seconds, losses_idle)
         idle = np.concatenate(records)
         tactile.start()
         worker.start()
         await asyncio.sleep(0.3)
         records.clear()
-        await stream_circle(motion, seconds)
+        await stream_circle(motion, seconds, losses_loaded)
         loaded = np.concatenate(records)
         motion.stop()
         await motion.wait_idle()
@@ -229,9 +239,10 @@ async def run_pair(rt: bool, seconds: float) -> tuple[dict[str, Any], dict[str, 
         tactile.stop()
     common = {"restarts": health.restarts, "lost_records": health.lost_records, "seconds": seconds}
     seen = int(len(np.unique(loaded["tactile_seq"][loaded["tactile_seq"] > 0])))
-    r_idle = figures(idle, bool(st["realtime"]), int(st["cpu"]), common)
+    r_idle = figures(idle, bool(st["realtime"]), int(st["cpu"]), common | {"link_losses": losses_idle})
     r_loaded = figures(loaded, bool(st["realtime"]), int(st["cpu"]),
-                       common | {"calibration_solves": solves[0], "tactile_frames": frames, "tactile_samples_seen": seen})
+                       common | {"calibration_solves": solves[0], "tactile_frames": frames, "tactile_samples_seen": seen,
+                                 "link_losses": losses_loaded})
     return r_idle, r_loaded, idle, loaded
 
 
@@ -243,10 +254,13 @@ def write_outputs(results: dict[str, dict[str, Any]], series: dict[str, np.ndarr
     import matplotlib.pyplot as plt
 
     OUT.mkdir(parents=True, exist_ok=True)
+    for r in results.values():
+        r["link_loss_count"] = len(r.get("link_losses", []))
     cols = [
         ("period_error_p50_ms", "p50"), ("period_error_p99_ms", "p99"), ("period_error_p999_ms", "p99.9"),
         ("period_error_max_ms", "max"), ("cycles_late_over_1ms", ">1 ms late"), ("cycles_late_over_2ms", ">2 ms late"),
         ("late_max_ms", "max late"), ("overruns", "overruns"), ("work_p99_ms", "work p99"), ("cycles", "cycles"),
+        ("link_loss_count", "link losses"),
     ]
     lines = [
         "| case | FIFO | " + " | ".join(c[1] for c in cols) + " |",
@@ -259,14 +273,15 @@ def write_outputs(results: dict[str, dict[str, Any]], series: dict[str, np.ndarr
         lines.append(f"| {name} | {'yes' if 'rt' in name.split('-')[-1] else 'no'} | "
                      f"{r['period_error_p50_ms']:.3f} | {r['period_error_p99_ms']:.3f} | {r['period_error_p999_ms']:.3f} | "
                      f"{r['period_error_max_ms']:.3f} | {r['cycles_late_over_1ms']} | {r['cycles_late_over_2ms']} | "
-                     f"{r['late_max_ms']:.3f} | - | - | {r['cycles']} |")
+                     f"{r['late_max_ms']:.3f} | - | - | {r['cycles']} | - |")
     text = "Loop period error and lateness, ms (targets, real-time cases: p99 <= 0.2, p99.9 <= 0.5, max late <= 2)\n\n"
     (OUT / "results.md").write_text(text + "\n".join(lines) + "\n")
     (OUT / "results.json").write_text(json.dumps({"cases": results, "platform": bare}, indent=2))
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for name, recs in series.items():
-        err = np.abs(recs["period_ns"][1:] * 1e-6 - PERIOD_MS)
+        period = recs["period_ns"][1:] * 1e-6
+        err = np.abs(period[period > 0] - PERIOD_MS)
         err = np.maximum(err, 1e-4)
         axes[0].hist(err, bins=np.logspace(-4, 2, 80), histtype="step", label=name)
         t = (recs["t_ns"] - recs["t_ns"][0]) * 1e-9

@@ -161,26 +161,29 @@ class MotionCore:
         self._stop_status = status
         self._stop_reason = reason
 
+    def _refusal(self, cmd: Command) -> tuple[ControlStatus, str] | None:
+        """Why ``cmd`` cannot start here, or None."""
+        p = self.params
+        if isinstance(cmd, MoveTo) and not inside(cmd.T_base_tcp[:3, 3], p.workspace_min, p.workspace_max):
+            return ControlStatus.WORKSPACE, (
+                f"move_to target {np.round(cmd.T_base_tcp[:3, 3], 4).tolist()} m lies outside the workspace "
+                f"box {list(p.workspace_min)} .. {list(p.workspace_max)}"
+            )
+        if isinstance(cmd, StartServo) and cmd.plan.name not in self.factories:
+            known = ", ".join(sorted(self.factories)) or "none"
+            return ControlStatus.BAD_COMMAND, f"no servo law registered as {cmd.plan.name!r}; known: {known}"
+        return None
+
     def _build(self, cmd: Command) -> Controller:
         p = self.params
         if isinstance(cmd, MoveTo):
-            if not inside(cmd.T_base_tcp[:3, 3], p.workspace_min, p.workspace_max):
-                raise InputError(
-                    f"move_to target {np.round(cmd.T_base_tcp[:3, 3], 4).tolist()} m lies outside the workspace "
-                    f"box {list(p.workspace_min)} .. {list(p.workspace_max)}"
-                )
             return CartesianMove(
                 cmd.T_base_tcp, p.limits, p.period, cmd.speed_scale, cmd.tolerance, cmd.angle_tolerance, p.move
             )
         if isinstance(cmd, Stream):
             return VelocityStream(cmd.timeout)
         if isinstance(cmd, StartServo):
-            factory = self.factories.get(cmd.plan.name)
-            if factory is None:
-                raise InputError(
-                    f"no servo law registered as {cmd.plan.name!r}; known: {', '.join(sorted(self.factories)) or 'none'}"
-                )
-            return ServoSlot(factory(cmd.plan), cmd.plan.name)
+            return ServoSlot(self.factories[cmd.plan.name](cmd.plan), cmd.plan.name)
         raise InputError(f"unknown command {type(cmd).__name__}")
 
     def _accept(self, inp: CycleInput, faults: Fault) -> None:
@@ -191,11 +194,14 @@ class MotionCore:
         if faults & Fault.STALE_STATE:
             self._refuse(cid, ControlStatus.STALE_STATE, "robot state is stale: no motion can start")
             return
+        refusal = self._refusal(inp.command)  # type: ignore[arg-type]
+        if refusal is not None:
+            self._refuse(cid, *refusal)
+            return
         try:
             ctrl = self._build(inp.command)  # type: ignore[arg-type]
-        except InputError as exc:
-            status = ControlStatus.WORKSPACE if "workspace" in str(exc) else ControlStatus.BAD_COMMAND
-            self._refuse(cid, status, str(exc))
+        except InputError as exc:  # a servo factory refused its plan
+            self._refuse(cid, ControlStatus.BAD_COMMAND, str(exc))
             return
         except Exception as exc:  # a servo factory must not take the loop down
             self._refuse(cid, ControlStatus.BAD_COMMAND, f"building the controller failed: {exc!r}")

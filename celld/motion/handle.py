@@ -58,6 +58,9 @@ RING_SECONDS = 8.0
 DRAIN_PERIOD = 0.02
 # Loop timing statistics cover this many recent cycles.
 STATS_WINDOW = 30_000
+# The servo laws the daemon registers: plan name -> "module:factory", imported
+# by the motion process at start (never in the loop).
+DEFAULT_SERVO_LAWS = {"algorithm2": "celld.motion.servo:make_algorithm2"}
 
 _SAFETY = {ControlStatus.SAFETY, ControlStatus.WORKSPACE, ControlStatus.LIMIT}
 _LINK = {ControlStatus.LINK_LOST, ControlStatus.STALE_STATE}
@@ -308,7 +311,8 @@ class MotionHandle:
         if status != ControlStatus.DONE:
             raise error_for(status, self._pending_reason(cid))
         state = self.state()
-        assert state is not None  # a DONE record was read, so a state exists
+        if state is None:  # cannot happen: a DONE record was read
+            raise MotionError("move_to arrived but no robot state was read")
         return state
 
     def stream(self, twist: ArrayLike, timeout: float = 0.1) -> None:

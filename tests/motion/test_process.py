@@ -35,7 +35,9 @@ from celld.motion.core import Action, Mode
 from celld.motion.handle import MotionHandle
 from celld.motion.limits import CartesianLimits, sequence_peaks
 from celld.motion.supervisor import Backoff, LinkState
+from celld.motion.types import ServoPlan
 from celld.se3 import error
+from celld.tactile.sample import ContactState, TactileSample, to_record
 
 pytestmark = pytest.mark.slow
 
@@ -233,3 +235,55 @@ def test_a_protective_stop_raises_safety_stop(sim: Any) -> None:
             await move
 
     _run(sim, scenario)
+
+
+def test_the_servo_slot_runs_a_registered_law_fed_by_the_tactile_slot(sim: Any) -> None:
+    moved: list[float] = []
+
+    async def feed(motion: MotionHandle, contact: ContactState, stop: asyncio.Event) -> None:
+        seq = 0
+        while not stop.is_set():
+            seq += 1
+            sample = TactileSample(time.monotonic_ns(), seq, np.zeros(3), contact, 1.0, True, 0)
+            motion.ch.tactile.write(to_record(sample))
+            await asyncio.sleep(1 / 60)
+
+    async def scenario(motion: MotionHandle) -> None:
+        plan = ServoPlan("probe", {"direction": np.array([0.0, 1.0, 0.0])}, {"speed": 0.02, "cycles": 500})
+        stop = asyncio.Event()
+        feeder = asyncio.ensure_future(feed(motion, ContactState.CONTACT, stop))
+        start = motion.state()
+        assert start is not None
+        cid = await motion.start_servo(plan)
+        await motion.wait(cid, timeout=10.0)  # DONE after 500 cycles
+        here = motion.state()
+        assert here is not None
+        moved.append(float(here.T_base_tcp[1, 3] - start.T_base_tcp[1, 3]))
+        # Tactile samples stop: the servo is stopped for stale tactile data.
+        cid = await motion.start_servo(plan)
+        await asyncio.sleep(0.3)
+        stop.set()
+        await feeder
+        with pytest.raises(MotionError, match="stale"):
+            await motion.wait(cid, timeout=10.0)
+
+    _run(sim, scenario, servo_laws={"probe": "tests.motion.laws:make_probe"})
+    # 500 cycles at 20 mm/s, less the jerk-limited ramps: about 18-20 mm along +y.
+    assert 0.015 < moved[0] < 0.021
+
+
+def test_cli_status_reports_the_robot_and_the_loop(sim: Any) -> None:
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-m", "celld.cli", "--log-level", "error", "motion", "status", "--host", sim.host,
+         "--seconds", "1", "--json"],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert len(report["tcp_pose"]) == 6 and len(report["q"]) == 6
+    assert report["health"]["cycles"] > 100
+    assert report["health"]["link"] in ("running", "restarting", "starting")
