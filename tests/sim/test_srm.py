@@ -51,3 +51,47 @@ def test_tag_tilts_like_a_bent_cantilever() -> None:
     z = T[:3, 2]
     assert np.arctan2(z[1], z[2]) == pytest.approx(1.5 * 0.0015 / 0.04, rel=1e-6)
     assert z[0] == pytest.approx(0.0)
+
+
+def _tool_pose(y: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # default tool: x along the wall, TCP z down the finger
+    T[1, 3] = y
+    return T
+
+
+def test_a_frame_carries_the_contact_truth_in_the_tool_frame() -> None:
+    from celld.config import TactileConfig
+    from celld.sim.srm import SimSrm
+
+    # A wall on the tool's left (+y of the plane) along +x; the tip is 0.5 mm into it.
+    srm = SimSrm(TactileConfig(), Wall(np.array([[-0.05, 0.0], [0.05, 0.0]]), free=-1.0), np.eye(4))
+    f = srm.frame(0, _tool_pose(-0.0005), np.array([0.01, 0.0, 0.0]), 0.0)
+    assert f.in_contact and not f.bottomed
+    # Eq. 15's delta: 0.5 mm towards the wall (normal), friction drag along the motion (tangential).
+    np.testing.assert_allclose(f.delta_true, [0.3 * 0.0005, 0.0005, 0.0], atol=1e-9)
+    assert f.image.shape == (480, 640) and f.image.dtype == np.uint8
+    free = srm.frame(0, _tool_pose(-0.003), np.zeros(3), 0.0)
+    assert not free.in_contact
+    np.testing.assert_array_equal(free.delta_true, 0.0)
+
+
+def test_the_simulated_camera_keeps_its_frame_rate_and_skips_frames_it_missed() -> None:
+    from celld.config import TactileConfig
+    from celld.sim.srm import SimSrm, SimSrmCamera
+
+    now = [0]
+    srm = SimSrm(TactileConfig(), Wall(np.array([[-0.05, 0.0], [0.05, 0.0]]), free=-1.0), np.eye(4))
+    cam = SimSrmCamera(srm, lambda t: (_tool_pose(-0.003), np.zeros(6)), lambda: now[0],
+                       lambda s: now.__setitem__(0, now[0] + int(s * 1e9)))
+    cam.open()
+    stamps = [cam.read()[0] for _ in range(3)]
+    period = int(round(1e9 / 60.0))
+    assert np.diff(stamps).tolist() == [period, period]
+    # Delivered after the configured latency.
+    assert now[0] == stamps[-1] + int(srm.params.latency * 1e9)
+    now[0] += 5 * period  # the reader fell behind by five frames
+    late = cam.read()[0]
+    assert late > stamps[-1] + 4 * period and (late - stamps[0]) % period == 0
+    cam.unplug()
+    assert cam.read() is None
