@@ -95,7 +95,7 @@ def test_stall_freezes_the_stream_then_it_resumes(sim_robot: SimRobotHandle) -> 
     try:
         sim_robot.inject("stall", ms=300)
         t0 = time.monotonic()
-        time.sleep(0.02)
+        time.sleep(0.05)
         frozen = r.getTimestamp()
         time.sleep(0.15)
         assert r.getTimestamp() == frozen

@@ -91,7 +91,7 @@ def test_dashboard_commands_of_ur_rtde(sim_robot: SimRobotHandle) -> None:
 
 
 def test_protective_stop_shows_and_unlock_clears_it(loopback_host: str) -> None:
-    with launch(loopback_host, unlock_delay=0.3) as sim:
+    with launch(loopback_host, unlock_delay=0.3, realtime=True) as sim:
         r = rtde_receive.RTDEReceiveInterface(sim.host)
         c = rtde_control.RTDEControlInterface(sim.host)
         d = dashboard_client.DashboardClient(sim.host)
@@ -124,7 +124,7 @@ def test_protective_stop_shows_and_unlock_clears_it(loopback_host: str) -> None:
 
 
 def test_tool_speed_over_the_safety_limit_is_a_protective_stop(loopback_host: str) -> None:
-    with launch(loopback_host, tcp_speed_limit=0.25) as sim:
+    with launch(loopback_host, tcp_speed_limit=0.25, realtime=True) as sim:
         r = rtde_receive.RTDEReceiveInterface(sim.host)
         c = rtde_control.RTDEControlInterface(sim.host)
         try:
@@ -140,7 +140,7 @@ def test_tool_speed_over_the_safety_limit_is_a_protective_stop(loopback_host: st
 
 def test_leaving_the_workspace_box_is_a_protective_stop(loopback_host: str) -> None:
     # The home pose has the TCP at z = 0.677 m; the box floor is 5 cm below it.
-    with launch(loopback_host, workspace_min=(-1.5, -1.5, 0.627), workspace_max=(1.5, 1.5, 1.5)) as sim:
+    with launch(loopback_host, workspace_min=(-1.5, -1.5, 0.627), workspace_max=(1.5, 1.5, 1.5), realtime=True) as sim:
         r = rtde_receive.RTDEReceiveInterface(sim.host)
         c = rtde_control.RTDEControlInterface(sim.host)
         try:

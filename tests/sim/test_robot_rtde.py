@@ -12,7 +12,7 @@ import rtde_receive
 
 from celld import se3
 from celld.robot import kinematics as kin
-from celld.sim.robot import SimRobotHandle
+from celld.sim.robot import SimRobotHandle, launch
 
 pytestmark = pytest.mark.slow
 
@@ -57,7 +57,7 @@ def test_move_l_ends_within_a_tenth_of_a_millimetre(robot) -> None:
     assert c.moveL(target.tolist(), 0.25, 1.2)
     elapsed = time.monotonic() - t0
     # 0.153 m at 0.25 m/s and 1.2 m/s^2: 0.61 s of trapezoid plus the handshake.
-    assert 0.55 < elapsed < 1.5
+    assert 0.55 < elapsed < 3.0
     end = np.array(r.getActualTCPPose())
     assert np.linalg.norm(end[:3] - target[:3]) < 1e-4
     _, T_truth, _ = sim.truth()
@@ -96,44 +96,52 @@ def test_move_j_and_the_query_getters(robot) -> None:
     np.testing.assert_allclose(r.getActualTCPPose()[:3], T_tcp[:3, 3], atol=1e-9)
 
 
-def test_speed_l_at_500_hz_integrates_the_commanded_profile(robot) -> None:
-    """10 s of speedL from a 500 Hz loop: the TCP follows the integral of the commands."""
-    sim, r, c = robot
+def test_speed_l_at_500_hz_integrates_the_commanded_profile(loopback_host: str) -> None:
+    """10 s of speedL from a 500 Hz loop: the TCP follows the integral of the commands.
+
+    The commanded profile is each command held from the moment it was sent
+    (client clock) until the next one. The simulator runs at SCHED_FIFO where
+    the OS allows it, so that a loaded test machine does not stall its cycle
+    (a real controller never stalls); start and end come from its true state.
+    """
     acc = 0.5
     n = 5000  # 10 s at 500 Hz
-    p_start = np.array(r.getActualTCPPose()[:3])
-    t_start = r.getTimestamp()
-    commands = []
-    for k in range(n):
-        t = c.initPeriod()
-        phase = 2 * math.pi * k / n
-        # A velocity whose acceleration (<= 0.13 m/s^2) stays under acc: no ramp lag.
-        xd = [0.04 * math.sin(phase), 0.03 * (1 - math.cos(phase)), 0.02 * math.sin(2 * phase), 0.0, 0.0, 0.0]
-        assert c.speedL(xd, acc, 0.0)
-        commands.append((r.getTimestamp(), xd[:3]))
-        c.waitPeriod(t)
-    c.speedStop(acc)
-    time.sleep(0.02)
-    p_end = np.array(r.getActualTCPPose()[:3])
-    # The commanded displacement: each command held until the next one (controller time).
-    stamps = np.array([s for s, _ in commands] + [r.getTimestamp()])
-    v = np.array([x for _, x in commands])
-    dt = np.diff(stamps)
-    expected = (v * dt[:, None]).sum(axis=0)
-    assert stamps[0] - t_start < 0.05
+    with launch(loopback_host, realtime=True) as sim:
+        c = rtde_control.RTDEControlInterface(sim.host)
+        try:
+            _, T_start, _ = sim.truth()
+            sent_ns, commands = [], []
+            for k in range(n):
+                t = c.initPeriod()
+                phase = 2 * math.pi * k / n
+                # A velocity whose acceleration (<= 0.13 m/s^2) stays under acc: no ramp lag.
+                xd = [0.04 * math.sin(phase), 0.03 * (1 - math.cos(phase)), 0.02 * math.sin(2 * phase), 0.0, 0.0, 0.0]
+                assert c.speedL(xd, acc, 0.0)
+                sent_ns.append(time.monotonic_ns())
+                commands.append(xd[:3])
+                c.waitPeriod(t)
+            sent_ns.append(time.monotonic_ns())
+            assert c.speedStop(acc)
+            time.sleep(0.02)
+            _, T_end, _ = sim.truth()
+        finally:
+            c.stopScript()
+            c.disconnect()
+    expected = (np.array(commands) * (np.diff(sent_ns) * 1e-9)[:, None]).sum(axis=0)
+    assert np.linalg.norm(expected) > 0.3
     # The last command (v = 0 at phase 2 pi) is what speedStop decelerates from.
-    assert np.linalg.norm((p_end - p_start) - expected) < 5e-4
-    assert r.getActualTCPSpeed() == pytest.approx([0.0] * 6, abs=1e-12)
+    assert np.linalg.norm((T_end[:3, 3] - T_start[:3, 3]) - expected) < 5e-4
 
 
 def test_the_robot_keeps_the_last_speed_until_speed_stop(robot) -> None:
     sim, r, c = robot
     assert c.speedL([0.0, 0.0, -0.05, 0.0, 0.0, 0.0], 1.0, 0.0)
     time.sleep(0.3)
-    z0 = r.getActualTCPPose()[2]
+    t0, T0, _ = sim.truth()
     time.sleep(0.2)
-    z1 = r.getActualTCPPose()[2]
-    assert (z0 - z1) == pytest.approx(0.05 * 0.2, abs=0.004)  # still moving, at the commanded speed
+    t1, T1, _ = sim.truth()
+    # Still moving at the commanded speed, with no command since.
+    assert (T1[2, 3] - T0[2, 3]) / ((t1 - t0) * 1e-9) == pytest.approx(-0.05, rel=1e-3)
     assert c.speedStop(1.0)
     time.sleep(0.02)  # the receive interface's copy may be a few cycles older than the control's
     assert max(abs(v) for v in r.getActualTCPSpeed()) < 1e-12
@@ -141,7 +149,7 @@ def test_the_robot_keeps_the_last_speed_until_speed_stop(robot) -> None:
 
 def test_watchdog_expiry_stops_the_robot_and_the_program(robot) -> None:
     sim, r, c = robot
-    assert c.setWatchdog(10.0)  # 100 ms: a loaded test machine can stall the client loop for 20 ms
+    assert c.setWatchdog(5.0)  # 200 ms: a loaded test machine can stall the client loop for tens of ms
     for _ in range(100):
         t = c.initPeriod()
         c.speedL([0.05, 0.0, 0.0, 0.0, 0.0, 0.0], 1.0, 0.0)
@@ -149,8 +157,8 @@ def test_watchdog_expiry_stops_the_robot_and_the_program(robot) -> None:
         c.waitPeriod(t)
     assert c.isProgramRunning()
     assert abs(r.getActualTCPSpeed()[0] - 0.05) < 1e-6
-    # The client goes silent: within 100 ms plus the stop ramp, the arm is still.
-    time.sleep(0.3)
+    # The client goes silent: within 200 ms plus the stop ramp, the arm is still.
+    time.sleep(0.5)
     assert not c.isProgramRunning()
     assert max(abs(v) for v in r.getActualQd()) < 1e-12
     assert sim.status()["last_stop_reason"] == "RTDE watchdog expired"
@@ -170,19 +178,27 @@ def test_async_move_reports_progress_and_stop_l_cancels_it(robot) -> None:
     assert max(abs(v) for v in r.getActualQd()) < 1e-12
 
 
-def test_servo_l_follows_its_target_with_a_lag(robot) -> None:
+def test_servo_l_follows_a_step_with_its_time_constant(robot) -> None:
     sim, r, c = robot
     start = np.array(r.getActualTCPPose())
-    lookahead, gain = 0.05, 300
-    for k in range(250):  # 0.5 s at 0.05 m/s
+    lookahead, gain, step = 0.05, 300, 0.005
+    target = start + [step, 0.0, 0.0, 0.0, 0.0, 0.0]
+    for _ in range(200):  # 0.4 s of the same target at 500 Hz
         t = c.initPeriod()
-        pose = start + [0.05 * 0.002 * (k + 1), 0.0, 0.0, 0.0, 0.0, 0.0]
-        assert c.servoL(pose.tolist(), 0.0, 0.0, 0.002, lookahead, gain)
+        assert c.servoL(target.tolist(), 0.0, 0.0, 0.002, lookahead, gain)
         c.waitPeriod(t)
-    lag = pose[0] - r.getActualTCPPose()[0]
-    # A first-order lag of tau = lookahead + 1/gain trails a ramp by v * tau.
-    assert lag == pytest.approx(0.05 * (lookahead + 1 / gain), rel=0.3)
     assert c.servoStop(2.0)
+    # The step response in the simulator's own time, from its true state.
+    history = sim.truth_history()
+    x = history["T_base_tcp"][:, 0, 3] - start[0]
+    moving = np.flatnonzero(x > 1e-7)
+    first, t = moving[0], history["stamp_ns"] * 1e-9
+    t63 = t[first + np.flatnonzero(x[first:] >= (1 - math.exp(-1)) * step)[0]]
+    # First order with tau = lookahead + 1/gain: 63 % of the step after tau (one cycle
+    # less, since the first cycle already moves).
+    tau = lookahead + 1 / gain
+    assert t63 - t[first] + 0.002 == pytest.approx(tau, rel=0.1)
+    assert x.max() == pytest.approx(step, rel=0.02)
 
 
 def test_second_control_interface_is_refused_with_in_use(robot) -> None:

@@ -116,7 +116,8 @@ class Controller:
         self.out_int = [0] * n
         self.out_double = [0.0] * n
         self.out_bits = [0, 0]
-        self.in_int_written = [0.0] * n  # controller time of the last write of each input int register
+        self.in_int_written = [0.0] * n  # watchdog clock (see tick) of the last write of each input int register
+        self.now = 0.0  # the watchdog clock at the last tick
         self.digital_out = 0  # bits 0-7 standard, 8-15 configurable, 16-17 tool
         self.digital_in = 0
         self.analog_out = [0.0, 0.0]
@@ -232,7 +233,7 @@ class Controller:
             self.watchdog = None
             return
         self.watchdog = (register, 1.0 / min_frequency)
-        self.in_int_written[register] = self.time
+        self.in_int_written[register] = self.now
 
     # --- safety -------------------------------------------------------------------
 
@@ -289,13 +290,20 @@ class Controller:
 
     # --- the cycle ----------------------------------------------------------------
 
-    def tick(self) -> None:
-        """One controller cycle: watchdog, program, arm, safety."""
+    def tick(self, now: float | None = None) -> None:
+        """One controller cycle: watchdog, program, arm, safety.
+
+        ``now`` is the clock (s) the watchdog measures silence on, the one the
+        server also stamps input writes with; by default the controller time.
+        The server passes its monotonic clock, so that a stall of its own
+        process is not taken for the client's silence.
+        """
         self.ticks += 1
         self.time = self.ticks * PERIOD
+        self.now = self.time if now is None else now
         if self.watchdog is not None:
             register, silence = self.watchdog
-            if self.time - self.in_int_written[register] > silence:
+            if self.now - self.in_int_written[register] > silence:
                 self.message(
                     f"RTDE watchdog: input_int_register_{register} not updated for {silence * 1e3:.0f} ms, program stopped",
                     P.LEVEL_ERROR,
@@ -340,11 +348,11 @@ class Controller:
                 plan.append((_IO, name, width))
         return tuple(plan)
 
-    def write_inputs(self, plan: InputPlan, values: Sequence[Any]) -> None:
-        """Apply the flat ``values`` of one data package."""
+    def write_inputs(self, plan: InputPlan, values: Sequence[Any], now: float | None = None) -> None:
+        """Apply the flat ``values`` of one data package that arrived at ``now`` (watchdog clock)."""
         io: dict[str, Any] | None = None
         i = 0
-        t = self.time
+        t = self.time if now is None else now
         for code, key, width in plan:
             if code == _INT:
                 self.in_int[key] = values[i]

@@ -110,6 +110,10 @@ class SimRobotHandle:
         s = self._reader().latest()
         return s.stamp_ns, s.T_base_tcp, s.q
 
+    def truth_history(self) -> NDArray[np.void]:
+        """The true states of the last ~2 s, oldest first (:data:`~celld.sim.robot.truth.TRUTH_DTYPE`)."""
+        return self._reader().history()
+
     def truth_at(self, stamp_ns: int) -> TruthSample:
         """The true state at ``stamp_ns`` (within the last ~2 s), interpolated."""
         return self._reader().at(stamp_ns)

@@ -177,7 +177,7 @@ class RtdeLink(Link):
         try:
             if msg_type == P.DATA_PACKAGE:
                 recipe, values = P.parse_data(payload, self.input_recipes)
-                self.ctrl.write_inputs(self.input_plans[recipe.recipe_id], values)
+                self.ctrl.write_inputs(self.input_plans[recipe.recipe_id], values, time.monotonic())
             elif msg_type == P.REQUEST_PROTOCOL_VERSION:
                 version = P.parse_protocol_version(payload)
                 ok = 1 <= version <= P.PROTOCOL_VERSION
