@@ -7,8 +7,8 @@ Faults reach the simulator on its control endpoint (JSON lines on
 ============== ======================== ==============================================
 fault          arguments                effect
 ============== ======================== ==============================================
-drop_rtde      down_ms=0                close every RTDE connection; refuse new ones for down_ms
-drop_all       down_ms=0                close every connection (RTDE, dashboard, script)
+drop_rtde      down_ms=0                reset every RTDE connection; refuse new ones for down_ms
+drop_all       down_ms=0                reset every connection (RTDE, dashboard, script)
 stall          ms                       send no RTDE data packages for ms
 latency        ms                       delay RTDE traffic both ways by ms (0 clears)
 protective_stop                         protective stop, as the safety system would
@@ -16,6 +16,13 @@ estop                                   robot e-stop pressed: stop, program ends
 power_off                               arm powered off, program ends
 refuse_upload                           programs sent to the script ports do not start
 ============== ======================== ==============================================
+
+Dropped connections are reset (RST), as a link that breaks rather than one
+the controller ends. Beware: with only the RTDE link dropped, ur-rtde 1.6.5's
+RTDEControlInterface reconnects in an endless loop and crashes its process
+(research/ur_rtde.md, section 5); play ``drop_all`` with ``down_ms`` of a few
+seconds on a control interface, then call its ``reconnect()``. The receive
+interface takes ``drop_rtde`` well.
 
 ``clear`` undoes what can be undone: latency, stall, refused uploads, links
 held down, and a pressed e-stop (the arm stays powered off; power it on and

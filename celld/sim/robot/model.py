@@ -129,7 +129,9 @@ class CartesianVelocity(Motion):
 
     cartesian = True
 
-    def __init__(self, arm: "Arm", target: Sequence[float], acc: float, acc_rot: float | None = None, stopping: bool = False) -> None:
+    def __init__(
+        self, arm: "Arm", target: Sequence[float], acc: float, acc_rot: float | None = None, stopping: bool = False
+    ) -> None:
         self.v = list(arm.current_twist())
         self.T = list(arm.T_tcp)
         self.stopping = stopping

@@ -67,7 +67,9 @@ class SimOptions:
         _check_vector("workspace_max", self.workspace_max, 3)
         if not all(a < b for a, b in zip(self.workspace_min, self.workspace_max)):
             raise ConfigError(
-                _SOURCE, "workspace_max", f"expected every value above workspace_min {self.workspace_min}, got {self.workspace_max}"
+                _SOURCE,
+                "workspace_max",
+                f"expected every value above workspace_min {self.workspace_min}, got {self.workspace_max}",
             )
         for name, lo, hi in (
             ("tcp_speed_limit", 0.01, 5.0),
@@ -89,7 +91,8 @@ class SimOptions:
         """A copy with ``changes`` applied (and checked)."""
         unknown = set(changes) - {f.name for f in fields(self)}
         if unknown:
-            raise ConfigError(_SOURCE, sorted(unknown)[0], f"unknown option; expected one of {sorted(f.name for f in fields(self))}")
+            known = sorted(f.name for f in fields(self))
+            raise ConfigError(_SOURCE, sorted(unknown)[0], f"unknown option; expected one of {known}")
         return replace(self, **changes)
 
     def to_argv(self) -> list[str]:
@@ -131,7 +134,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = SimOptions()
     parser.add_argument("--host", required=True, help="loopback address to bind, 127.x.y.z")
     parser.add_argument("--q0", nargs=6, type=float, default=d.q0, metavar="RAD", help="initial joints")
-    parser.add_argument("--tcp-offset", nargs=6, type=float, default=d.tcp_offset, metavar="V", help="TCP pose in the flange [m, rad]")
+    parser.add_argument(
+        "--tcp-offset", nargs=6, type=float, default=d.tcp_offset, metavar="V", help="TCP pose in the flange [m, rad]"
+    )
     parser.add_argument(
         "--workspace", nargs=6, type=float, default=(*d.workspace_min, *d.workspace_max),
         metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"), help="safety box of the TCP in the base frame, m",

@@ -4,8 +4,12 @@ One thread. Between cycles it waits for socket events with ``select`` (its
 timeout has microsecond resolution, unlike epoll's milliseconds) until about
 :data:`SPIN_NS` before the next deadline, then spins to the deadline and runs
 the cycle: controller tick, truth record, text messages, data packages. A cycle
-that starts late is run anyway; more than :data:`MAX_CATCHUP` cycles behind,
-the schedule is reset rather than replayed.
+that starts late is run anyway, after taking in the input that arrived
+meanwhile, so simulated time keeps pace with the clock; more than
+:data:`MAX_CATCHUP` cycles behind, the schedule is reset rather than replayed.
+Input writes are stamped with the monotonic clock on arrival and the RTDE
+watchdog measures silence on it, so a stall of this process is not taken for a
+silent client. ``--realtime`` raises the process to SCHED_FIFO where allowed.
 
 Ports on the host: dashboard 29999, script 30001-30003, RTDE 30004, and the
 simulator's own control endpoint 30100 (opened last: when it answers, every
