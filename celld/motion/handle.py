@@ -322,6 +322,13 @@ class MotionHandle:
         older than ``timeout`` s counts as zero, so a caller that stops
         calling brings the robot to rest. :meth:`stop` ends streaming; the
         next call starts it again.
+
+        Raises
+        ------
+        InputError
+            ``twist`` is not 6 finite numbers.
+        LinkLost
+            The robot link is not running (the reason of the last exit is given).
         """
         t = check_twist(twist)
         self._sp["t_ns"] = time.monotonic_ns()

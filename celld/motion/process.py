@@ -33,7 +33,7 @@ from typing import Mapping, NamedTuple
 
 import numpy as np
 
-from celld.errors import CelldError, LinkLost
+from celld.errors import LinkLost, MotionError
 from celld.log import configure, get_logger
 from celld.motion.channels import STATUS_DTYPE, ChannelNames, Channels, Phase, encode_reason
 from celld.motion.core import CoreParams, MotionCore
@@ -118,14 +118,14 @@ def make_realtime(opts: RealtimeOptions) -> RealtimeReport:
 
 
 def load_factories(servo_laws: tuple[tuple[str, str], ...]) -> dict[str, ServoFactory]:
-    """Import each ``"module:attribute"`` servo factory; raise CelldError naming the one that fails."""
+    """Import each ``"module:attribute"`` servo factory; raise MotionError naming the one that fails."""
     out: dict[str, ServoFactory] = {}
     for name, path in servo_laws:
         module, _, attr = path.partition(":")
         try:
             out[name] = getattr(importlib.import_module(module), attr)
         except (ImportError, AttributeError) as exc:
-            raise CelldError(f"servo law {name!r}: cannot import {path!r}: {exc}") from exc
+            raise MotionError(f"servo law {name!r}: cannot import {path!r}: {exc}") from exc
     return out
 
 
@@ -142,8 +142,8 @@ def _report(ch: Channels, phase: Phase, rt: RealtimeReport | None = None, exit_s
     ch.status.write(rec)
 
 
-def run(spec: MotionSpec, connect: object = None) -> LoopExit:
-    """Connect, set up and run the loop; return why it ended. ``connect`` replaces ur-rtde in tests."""
+def run(spec: MotionSpec) -> LoopExit:
+    """Connect, set up and run the loop; return why it ended."""
     from celld.robot.link import RtdeLink
 
     log = get_logger(__name__).bind(host=spec.host, pid=os.getpid())
@@ -153,7 +153,7 @@ def run(spec: MotionSpec, connect: object = None) -> LoopExit:
     try:
         _report(ch, Phase.CONNECTING)
         try:
-            link = (connect or RtdeLink.connect)(spec.host, spec.frequency_hz)  # type: ignore[operator]
+            link = RtdeLink.connect(spec.host, spec.frequency_hz)
         except LinkLost as exc:
             log.warning("robot link not established", reason=str(exc))
             end = LoopExit(ControlStatus.LINK_LOST, str(exc))

@@ -220,7 +220,7 @@ class MotionSupervisor:
             elif now - proc.last_progress > self.hang_timeout and not proc.killed_for and not self._closing:
                 proc.killed_for = (
                     f"the motion loop stood still for {(now - proc.last_progress) * 1e3:.0f} ms "
-                    "(blocked in a ur-rtde call: the controller stopped answering)"
+                    "(most likely blocked in a ur-rtde call that waits for the controller)"
                 )
                 log.error("killing the motion process", pid=proc.process.pid, reason=proc.killed_for)
                 self._kill(proc)
