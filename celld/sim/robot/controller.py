@@ -381,8 +381,9 @@ class Controller:
             mask = io.get(mask_name, 0) << shift
             if mask and value_name in io:
                 self.digital_out = (self.digital_out & ~mask) | ((io[value_name] << shift) & mask)
-        if io.get("speed_slider_mask") and "speed_slider_fraction" in io:
-            self.speed_fraction = min(1.0, max(0.0, float(io["speed_slider_fraction"])))
+        fraction = float(io.get("speed_slider_fraction", math.nan))
+        if io.get("speed_slider_mask") and math.isfinite(fraction):
+            self.speed_fraction = min(1.0, max(0.0, fraction))
         amask = io.get("standard_analog_output_mask", 0)
         for k in (0, 1):
             if amask & (1 << k) and f"standard_analog_output_{k}" in io:

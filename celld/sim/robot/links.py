@@ -27,6 +27,8 @@ log = get_logger(__name__)
 MAX_TX_BACKLOG = 256 * 1024
 # A script connection that sends this much without a complete program is cut.
 MAX_SCRIPT_BUFFER = 4 * 1024 * 1024
+# A dashboard or control line longer than this is refused and the connection cut.
+MAX_LINE = 64 * 1024
 _RECV_SIZE = 65536
 
 
@@ -259,6 +261,10 @@ class DashboardLink(Link):
 
     def on_data(self, data: bytes) -> None:
         self.buf += data
+        if len(self.buf) > MAX_LINE and b"\n" not in self.buf:
+            self.send(b"could not understand: line too long\n")
+            self.close()
+            return
         while b"\n" in self.buf and not self.closed:
             line, _, rest = bytes(self.buf).partition(b"\n")
             self.buf = bytearray(rest)
@@ -307,6 +313,10 @@ class ControlLink(Link):
 
     def on_data(self, data: bytes) -> None:
         self.buf += data
+        if len(self.buf) > MAX_LINE and b"\n" not in self.buf:
+            self.send((json.dumps({"ok": False, "error": f"request longer than {MAX_LINE} bytes"}) + "\n").encode())
+            self.close()
+            return
         while b"\n" in self.buf and not self.closed:
             line, _, rest = bytes(self.buf).partition(b"\n")
             self.buf = bytearray(rest)
