@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from celld.calib.metrics import IcpMetric, translation_cost
-from celld.calib.rigid import Array, check_pairs, solve_rigid
+from celld.calib.rigid import Array, RigidFit, check_pairs, solve_rigid
 from celld.errors import CalibrationError, InputError
 
 # Size of the pool (line 2 of Algorithm 1).
@@ -43,10 +43,14 @@ class Candidate:
     """One candidate pool: the new pair in ``slot`` (None: the initial pool)."""
 
     slot: int | None
-    T_base_cam: Array | None  # None when the pool is degenerate
+    fit: RigidFit | None  # Eq. 9-12 on the pool (residuals, uncertainty); None when degenerate
     e_icp: IcpMetric
     cost: float
     reason: str = ""  # why the candidate has no estimate
+
+    @property
+    def T_base_cam(self) -> Array | None:
+        return None if self.fit is None else self.fit.T_dst_src
 
 
 @dataclass(frozen=True)
@@ -65,8 +69,9 @@ class Algorithm1Step:
         The slot the new pair took, or None when the pool was kept.
     pool_ids : tuple of str
         The pool after the step.
-    T_base_cam : (4, 4) array | None
-        The optimum after the step (None while every pool so far was degenerate).
+    fit : RigidFit | None
+        The optimum after the step, with the pool's residuals and uncertainty
+        (None while every pool so far was degenerate).
     e_optimal : IcpMetric
     cost_optimal : float
     reached : bool
@@ -78,10 +83,14 @@ class Algorithm1Step:
     candidates: tuple[Candidate, ...]
     accepted_slot: int | None
     pool_ids: tuple[str, ...]
-    T_base_cam: Array | None
+    fit: RigidFit | None
     e_optimal: IcpMetric
     cost_optimal: float
     reached: bool
+
+    @property
+    def T_base_cam(self) -> Array | None:
+        return None if self.fit is None else self.fit.T_dst_src
 
     def as_dict(self) -> dict[str, object]:
         return {
@@ -97,14 +106,18 @@ class Algorithm1Step:
 
 @dataclass(frozen=True)
 class Algorithm1Result:
-    """Outcome of a run: the optimum, its e_icp and the history."""
+    """Outcome of a run: the optimum (with its pool's residuals and uncertainty), its e_icp and the history."""
 
-    T_base_cam: Array | None
+    fit: RigidFit | None
     e_optimal: IcpMetric
     cost: float
     pool_ids: tuple[str, ...]
     reached: bool
     steps: tuple[Algorithm1Step, ...]
+
+    @property
+    def T_base_cam(self) -> Array | None:
+        return None if self.fit is None else self.fit.T_dst_src
 
     @property
     def n_pairs_used(self) -> int:
@@ -173,7 +186,7 @@ class Algorithm1:
 
     def result(self) -> Algorithm1Result:
         s = self.last
-        return Algorithm1Result(s.T_base_cam, s.e_optimal, s.cost_optimal, s.pool_ids, s.reached, tuple(self._steps))
+        return Algorithm1Result(s.fit, s.e_optimal, s.cost_optimal, s.pool_ids, s.reached, tuple(self._steps))
 
     # -- steps ---------------------------------------------------------------
 
@@ -183,7 +196,7 @@ class Algorithm1:
         except CalibrationError as exc:
             return Candidate(slot, None, IcpMetric.failed(str(exc)), math.inf, reason=str(exc))
         e = self._evaluate(fit.T_dst_src)
-        return Candidate(slot, fit.T_dst_src, e, float(self._cost(e)))
+        return Candidate(slot, fit, e, float(self._cost(e)))
 
     def start(self, ids: Sequence[str], P_base: ArrayLike, P_cam: ArrayLike) -> Algorithm1Step:
         """Lines 1-3: the initial pool of four pairs, its estimate and e_icp."""
@@ -204,7 +217,7 @@ class Algorithm1:
             candidates=(cand,),
             accepted_slot=None,
             pool_ids=ids_t,
-            T_base_cam=cand.T_base_cam,
+            fit=cand.fit,
             e_optimal=cand.e_icp,
             cost_optimal=cand.cost,
             reached=cand.cost <= self.e_required,
@@ -242,16 +255,16 @@ class Algorithm1:
         if accepted and best.slot is not None:
             self._P_base[best.slot], self._P_cam[best.slot] = pb[0], pc[0]
             self._pool_ids[best.slot] = pid
-            T, e, cost = best.T_base_cam, best.e_icp, best.cost
+            fit, e, cost = best.fit, best.e_icp, best.cost
         else:
-            T, e, cost = prev.T_base_cam, prev.e_optimal, prev.cost_optimal
+            fit, e, cost = prev.fit, prev.e_optimal, prev.cost_optimal
         step = Algorithm1Step(
             k=prev.k + 1,
             pair_id=pid,
             candidates=tuple(candidates),
             accepted_slot=best.slot if accepted else None,
             pool_ids=tuple(self._pool_ids),
-            T_base_cam=T,
+            fit=fit,
             e_optimal=e,
             cost_optimal=cost,
             reached=cost <= self.e_required,

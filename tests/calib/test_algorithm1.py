@@ -140,6 +140,8 @@ def test_batch_helper_stops_when_the_target_is_reached() -> None:
     # It stopped at the first step that reached the target.
     assert [s.reached for s in res.steps].index(True) == len(res.steps) - 1
     assert res.n_pairs_used == 4 + res.steps[-1].k
+    # The optimum carries its pool's residuals and uncertainty (12 equations, 6 unknowns).
+    assert res.fit is not None and res.fit.residuals.shape == (4,) and res.fit.uncertainty.dof == 6
     assert metric.calls == 1 + POOL_SIZE * res.steps[-1].k
     assert res.steps[-1].as_dict()["reached"] is True
 
