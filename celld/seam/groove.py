@@ -5,7 +5,8 @@ root gap, distortion). Here the two walls of the joint (the bevels of a
 V-groove, the flange and web faces of a fillet) are fitted as planes in short
 windows along the seam and intersected; the intersection line is the joint's
 apex as built (research/seam_anchors.md section 5: 0.02-0.4 mm at scanner
-noise 0.05-0.3 mm).
+noise 0.05-0.3 mm). The walls' bisector plane gives the joint's position
+across the seam (:func:`lateral_offsets`).
 
 The only model knowledge used is where to look: which scan points belong to
 which wall (``labels``, from the registered model) and the radial band around
@@ -71,7 +72,11 @@ class GrooveFit:
     arc : (w,) window centres, arc length along the seam from its start
     apex : (w, 3) apex point nearest the window's seam point; NaN unless OK
     direction : (w, 3) unit direction of the wall intersection, along the seam
-    normals : (w, 2, 3) unit normals of the left and right wall planes (NaN if unfitted)
+    normals : (w, 2, 3) unit normals of the left and right wall planes (NaN if
+        unfitted), facing out of the material into the joint
+    offsets : (w, 2) plane offsets: a wall is ``normals . x = offsets``
+    offset_var : (w, 2) variance of each wall's signed distance at the
+        window's seam point, from its fit, m^2
     sigma : (w,) 1-sigma apex uncertainty estimated from the fits, m
     rms : (w, 2) RMS plane residual of the left and right wall fits, m
     count : (w, 2) points used on each wall
@@ -83,6 +88,8 @@ class GrooveFit:
     apex: Array
     direction: Array
     normals: Array
+    offsets: Array
+    offset_var: Array
     sigma: Array
     rms: Array
     count: NDArray[np.int64]
@@ -141,18 +148,23 @@ def intersect(p1: _Plane, p2: _Plane, near: Array) -> tuple[Array, Array, float]
     x = near + pinv @ (d - N @ near)
     direction = np.cross(p1.normal, p2.normal)
     direction /= np.linalg.norm(direction)
-    var = np.zeros(2)
-    for k, p in enumerate((p1, p2)):
-        rvec = x - p.centroid
-        rvec -= (rvec @ p.normal) * p.normal
-        r = float(np.linalg.norm(rvec))
-        lever = 0.0
-        if r > 1e-9:
-            s2 = float(np.mean(((p.points - p.centroid) @ (rvec / r)) ** 2))
-            lever = r * r / max(s2, 1e-12)
-        var[k] = max(p.rms, 1e-6) ** 2 / p.count * (1.0 + lever)
-    cov = pinv @ np.diag(var) @ pinv.T
+    cov = pinv @ np.diag([_offset_variance(p1, x), _offset_variance(p2, x)]) @ pinv.T
     return x, direction, float(math.sqrt(np.trace(cov)))
+
+
+def _offset_variance(p: _Plane, x: Array) -> float:
+    """Variance (m^2) of a fitted plane's signed distance at ``x``: the offset
+    error rms^2 / n, grown by the tilt error's lever (r / s)^2, with r the
+    in-plane distance of x from the fit's centroid and s the spread of the
+    points along r."""
+    rvec = x - p.centroid
+    rvec = rvec - (rvec @ p.normal) * p.normal
+    r = float(np.linalg.norm(rvec))
+    lever = 0.0
+    if r > 1e-9:
+        s2 = float(np.mean(((p.points - p.centroid) @ (rvec / r)) ** 2))
+        lever = r * r / max(s2, 1e-12)
+    return max(p.rms, 1e-6) ** 2 / p.count * (1.0 + lever)
 
 
 def window_centres(seam: Array, step: float) -> tuple[Array, Array, Array]:
@@ -199,6 +211,8 @@ def fit_groove(
     apex = np.full((w, 3), np.nan)
     direction = np.full((w, 3), np.nan)
     normals = np.full((w, 2, 3), np.nan)
+    offsets = np.full((w, 2), np.nan)
+    offset_var = np.full((w, 2), np.nan)
     sigma = np.full(w, np.nan)
     rms = np.full((w, 2), np.nan)
     count = np.zeros((w, 2), dtype=np.int64)
@@ -240,6 +254,8 @@ def fit_groove(
             if plane.normal @ (approach + across) < 0:
                 plane = _Plane(-plane.normal, -plane.offset, plane.centroid, plane.rms, plane.count, plane.points)
             normals[k, j] = plane.normal
+            offsets[k, j] = plane.offset
+            offset_var[k, j] = _offset_variance(plane, C[k])
             rms[k, j] = plane.rms
             count[k, j] = plane.count
             planes.append(plane)
@@ -262,26 +278,62 @@ def fit_groove(
         apex[k] = x
         direction[k] = dvec if dvec @ Tc[k] >= 0 else -dvec
         status[k] = OK
-    return GrooveFit(arc_c, apex, direction, normals, sigma, rms, count, length, status)
+    return GrooveFit(arc_c, apex, direction, normals, offsets, offset_var, sigma, rms, count, length, status)
 
 
-def apex_offsets(scan: GrooveFit, model: GrooveFit) -> tuple[Array, NDArray[np.bool_]]:
-    """Displacement (w, 3) of the scanned apex from the model's, across the seam.
+def lateral_offsets(scan: GrooveFit, model: GrooveFit, seam: Array, approach: Array, step: float) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """How far the joint's centre line moved across the seam, per window.
 
-    The component along the seam is removed: a window's apex moves the seam
-    sideways and in depth, not along itself. Rows where either fit failed are
-    NaN; the mask says which are valid.
+    Two walls fix the joint's side-to-side position, not its depth: a V-groove
+    whose gap opened looks the same to its bevels as one sitting deeper. So
+    the seam keeps the registered model's depth and moves only across, in the
+    seam plane, onto the walls' bisector plane (the points equally far from
+    both walls) as measured: by s such that the scan's bisector distance at
+    ``seam + s * left`` equals the model's at the seam.
+
+    Parameters
+    ----------
+    scan, model : fits of the scan and of the model's own samples
+    seam, approach : the model seam polyline and approach, model frame
+    step : the window spacing the fits used, m
+
+    Returns
+    -------
+    s (w,) signed shift along ``approach x tangent`` (to the left), m; its
+    1-sigma (w,); and the mask of windows where both fits are OK.
     """
+    _, C, T = window_centres(seam, step)
+    left = np.cross(approach, T)
+    left /= np.linalg.norm(left, axis=1, keepdims=True)
     valid = scan.ok & model.ok
-    D = np.full_like(scan.apex, np.nan)
-    dv = scan.apex[valid] - model.apex[valid]
-    t = model.direction[valid]
-    D[valid] = dv - np.einsum("ij,ij->i", dv, t)[:, None] * t
-    return D, valid
+    shift = np.full(len(C), np.nan)
+    sigma = np.full(len(C), np.nan)
+    for k in np.flatnonzero(valid):
+        m_scan, g_scan = _bisector_distance(scan, k, C[k])
+        _, g_model = _bisector_distance(model, k, C[k])
+        across = float(m_scan @ left[k])
+        if abs(across) < 0.2:  # a bisector along the seam plane cannot place it
+            valid[k] = False
+            continue
+        diff = scan.normals[k, 0] - scan.normals[k, 1]
+        shift[k] = (g_model - g_scan) / across
+        sigma[k] = math.sqrt(scan.offset_var[k].sum()) / float(np.linalg.norm(diff)) / abs(across)
+    return shift, sigma, valid
 
 
-def smooth_offsets(fit: GrooveFit, D: Array, valid: NDArray[np.bool_], arc: Array, span: float, step: float) -> tuple[Array, Array]:
-    """Apex offsets at seam stations: a local linear fit over the windows within
+def _bisector_distance(fit: GrooveFit, k: int, x: Array) -> tuple[Array, float]:
+    """Unit normal of the walls' bisector plane and the signed distance of x from it."""
+    n1, n2 = fit.normals[k]
+    diff = n1 - n2
+    scale = float(np.linalg.norm(diff))
+    g = ((n1 @ x - fit.offsets[k, 0]) - (n2 @ x - fit.offsets[k, 1])) / scale
+    return diff / scale, g
+
+
+def smooth_offsets(
+    arc_w: Array, shift: Array, sigma: Array, length: Array, valid: NDArray[np.bool_], arc: Array, span: float, step: float
+) -> tuple[Array, Array]:
+    """Shifts at seam stations: a local linear fit over the windows within
     ``span / 2`` of each station, weighted by 1 / sigma^2.
 
     Real deviations of a part from its model (fit-up, distortion) vary slowly
@@ -291,20 +343,20 @@ def smooth_offsets(fit: GrooveFit, D: Array, valid: NDArray[np.bool_], arc: Arra
 
     Parameters
     ----------
-    fit : the scan's GrooveFit; D, valid : from :func:`apex_offsets`
+    arc_w, shift, sigma, length : (w,) window centres, shifts, their 1-sigma
+        and window lengths (m); valid : (w,) windows to use
     arc : (k,) station arc lengths, m
     span : smoothing length, m; step : window spacing, m
 
     Returns
     -------
-    offsets (k, 3) (NaN where no valid window is within ``span / 2``) and
-    their 1-sigma standard errors (k,), m
+    shifts (k,) (NaN where no valid window is within ``span / 2``) and their
+    1-sigma standard errors (k,), m
     """
-    a = fit.arc[valid]
-    Dv = D[valid]
-    w = 1.0 / np.maximum(fit.sigma[valid], 1e-7) ** 2
-    overlap = np.maximum(fit.length[valid] / step, 1.0)
-    out = np.full((len(arc), 3), np.nan)
+    a, y = arc_w[valid], shift[valid]
+    w = 1.0 / np.maximum(sigma[valid], 1e-7) ** 2
+    overlap = np.maximum(length[valid] / step, 1.0)
+    out = np.full(len(arc), np.nan)
     se = np.full(len(arc), np.nan)
     for i, s in enumerate(arc):
         near = np.abs(a - s) <= span / 2.0
@@ -312,9 +364,7 @@ def smooth_offsets(fit: GrooveFit, D: Array, valid: NDArray[np.bool_], arc: Arra
             continue
         x, wi = a[near] - s, w[near]
         X = np.column_stack([np.ones_like(x), x]) if np.ptp(x) > step / 2.0 else np.ones((len(x), 1))
-        A = X.T @ (wi[:, None] * X)
-        cov = np.linalg.inv(A)
-        beta = cov @ (X.T @ (wi[:, None] * Dv[near]))
-        out[i] = beta[0]
+        cov = np.linalg.inv(X.T @ (wi[:, None] * X))
+        out[i] = float((cov @ (X.T @ (wi * y[near])))[0])
         se[i] = math.sqrt(cov[0, 0] * float(np.mean(overlap[near])))
     return out, se

@@ -42,13 +42,14 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
+import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from celld import se3
 from celld.errors import GrooveError, InputError, RegistrationError, ScanError
 from celld.log import get_logger
-from celld.seam.groove import CONTRADICTS, GrooveFit, GrooveParams, apex_offsets, fit_groove, smooth_offsets
+from celld.seam.groove import CONTRADICTS, GrooveFit, GrooveParams, fit_groove, lateral_offsets, smooth_offsets
 from celld.seam.register import PreparedModel, RegistrationParams, prepare_model, register
 from celld.seam.workpiece import LEFT_WALL, NO_WALL, RIGHT_WALL, Workpiece, project_to_polyline, resample_polyline
 
@@ -67,13 +68,14 @@ class SeamParams:
     ----------
     registration, groove : parameters of the two stages
     spacing : output point spacing along the seam, m
-    table_z : height of the table top in the base frame, m; points up to
-        ``table_z + table_margin`` are the table and are dropped
+    table_z : height of the table top in the base frame, m, or None to
+        measure the table plane in each scan (the largest near-horizontal
+        plane in the region of interest); points up to ``table_margin``
+        above the table are the table and are dropped
+    table_tolerance : inlier distance of the table plane fit, m
     roi_min, roi_max : base-frame box where the part may be, m
     max_range : a camera-frame range beyond this is taken as wrong units, m
     min_points : fewest part points a usable scan has
-    range_offset : known range bias of the scanner on this material (ToF on
-        bright metal reads long), subtracted along each ray, m
     label_distance : a scan point within this of a model wall sample counts
         as on that wall, m
     view_cos : a model wall sample facing the camera more than this cosine
@@ -81,6 +83,8 @@ class SeamParams:
     support_distance : such a sample is seen when a scan point lies this close, m
     min_coverage : share of seam stations that must have scan points near them
     min_wall_support : share of the should-be-seen wall samples that must be seen
+    min_visible_wall : fewest wall samples (0.5 mm apart) the camera must be
+        able to see for the joint to count as visible
     seam_source : ``"auto"`` (groove where measured, else the registered
         model), ``"groove"`` (refuse unless measured) or ``"model"``
     min_groove_coverage : share of stations the groove must be measured at
@@ -104,18 +108,19 @@ class SeamParams:
     registration: RegistrationParams = field(default_factory=RegistrationParams)
     groove: GrooveParams = field(default_factory=GrooveParams)
     spacing: float = 0.001
-    table_z: float = 0.0
+    table_z: float | None = None
     table_margin: float = 0.002
+    table_tolerance: float = 0.001
     roi_min: tuple[float, float, float] = (-0.2, -1.0, -0.1)
     roi_max: tuple[float, float, float] = (1.4, 1.0, 0.6)
     max_range: float = 4.0
     min_points: int = 500
-    range_offset: float = 0.0
     label_distance: float = 0.002
     view_cos: float = 0.5
     support_distance: float = 0.0015
     min_coverage: float = 0.95
     min_wall_support: float = 0.5
+    min_visible_wall: int = 200
     seam_source: str = "auto"
     min_groove_coverage: float = 0.9
     max_gap: float = 0.010
@@ -154,6 +159,8 @@ _PRESETS: dict[str, SeamParams] = {
     "azure-kinect": SeamParams(
         registration=RegistrationParams(voxel=0.005, icp_points=10_000, icp_distance=0.008, gate_distance=0.008, min_fitness=0.8),
         groove=GrooveParams(window=0.040, step=0.005, min_points=25, max_normal_deviation=math.radians(20.0), max_apex_sigma=0.8e-3),
+        table_margin=0.006,
+        table_tolerance=0.006,
         label_distance=0.006,
         support_distance=0.008,
         min_wall_support=0.3,
@@ -178,11 +185,14 @@ class SeamQuality:
     groove_coverage : share of stations where the groove was measured
     groove_windows_ok : share of groove windows with a good wall pair
     groove_contradicting : share of windows whose walls contradict the model
-    apex_sigma : median 1-sigma apex uncertainty of the groove windows, m
+    apex_sigma : median 1-sigma uncertainty of the groove windows' across-seam
+        position, m
     wall_rms : median RMS residual of the wall plane fits, m
     model_groove_rms, model_groove_max : distance between the measured and
         the registered seam, RMS and max, m
     deviation_sigma : median standard error of that distance, m
+    lateral_shift_mean : mean shift of the measured seam from the model's
+        across the seam, toward the left wall positive, m
     n_points : part points in the scan after cropping
     reversed : the model seam was reversed to match the nominal direction
     duration : s, from cloud to path
@@ -203,6 +213,7 @@ class SeamQuality:
     model_groove_rms: float
     model_groove_max: float
     deviation_sigma: float
+    lateral_shift_mean: float
     n_points: int
     reversed: bool
     duration: float
@@ -269,7 +280,8 @@ class PreparedWorkpiece:
 
     model : the registration model; groove_prior : the groove fitted on the
     model's own samples (None without labelled walls); wall_points,
-    wall_normals : (k, 3) model wall samples within the wall band of the seam.
+    wall_normals : (k, 3) model wall samples within the wall band of the seam;
+    scene : the model mesh for ray casting (what hides the joint from the camera).
     """
 
     workpiece: Workpiece
@@ -277,6 +289,7 @@ class PreparedWorkpiece:
     groove_prior: GrooveFit | None
     wall_points: Array
     wall_normals: Array
+    scene: o3d.t.geometry.RaycastingScene
     params: SeamParams
 
 
@@ -291,7 +304,9 @@ def prepare(workpiece: Workpiece, params: SeamParams | None = None) -> PreparedW
     proj = project_to_polyline(model.points[walls], workpiece.seam)
     radial = np.linalg.norm(model.points[walls] - proj.point, axis=1)
     band = (radial >= workpiece.wall_band[0]) & (radial <= workpiece.wall_band[1])
-    return PreparedWorkpiece(workpiece, model, prior, model.points[walls][band], model.normals[walls][band], params)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(workpiece.vertices.astype(np.float32)), o3d.core.Tensor(workpiece.triangles.astype(np.uint32)))
+    return PreparedWorkpiece(workpiece, model, prior, model.points[walls][band], model.normals[walls][band], scene, params)
 
 
 def crop_cloud(cloud_cam: ArrayLike, T_base_cam: Array, params: SeamParams) -> Array:
@@ -326,14 +341,13 @@ def crop_cloud(cloud_cam: ArrayLike, T_base_cam: Array, params: SeamParams) -> A
         )
     if median < 0.01:
         raise ScanError(f"cloud ranges have a median of {median * 1e3:.3g} mm: expected metres", {"median_range": median})
-    if params.range_offset:
-        norm = np.linalg.norm(Q, axis=1, keepdims=True)
-        Q = Q * (1.0 - params.range_offset / norm)
-    # Height above the table first, on the flat array (cheap on millions of points).
-    R = np.asarray(T_base_cam[:3, :3], dtype=Q.dtype)
-    t = np.asarray(T_base_cam[:3, 3], dtype=Q.dtype)
+    # Height above the table, as one dot product per point in the camera frame
+    # (cheap on millions of points); only the survivors go to the base frame.
+    n_base, d_base = _table_plane(Q, T_base_cam, params)
+    n_cam = T_base_cam[:3, :3].T @ n_base
+    offset = float(n_base @ T_base_cam[:3, 3]) - d_base
     with np.errstate(invalid="ignore"):
-        above = (Q @ R[2] + t[2]) > params.table_z + params.table_margin
+        above = (Q @ n_cam.astype(Q.dtype) + offset) > params.table_margin
     P_base = se3.apply(T_base_cam, Q[above])
     inside = np.all((P_base >= params.roi_min) & (P_base <= params.roi_max), axis=1)
     P_base = P_base[inside]
@@ -344,6 +358,35 @@ def crop_cloud(cloud_cam: ArrayLike, T_base_cam: Array, params: SeamParams) -> A
             {"n_points": float(len(P_base))},
         )
     return P_base
+
+
+def _table_plane(Q: NDArray, T_base_cam: Array, params: SeamParams) -> tuple[Array, float]:
+    """The table plane ``n . p = d`` in the base frame (n up), fixed or measured.
+
+    Measured on a thinned copy of the cloud in the region of interest: the
+    largest plane, which must be within 10 degrees of horizontal.
+    """
+    if params.table_z is not None:
+        return np.array([0.0, 0.0, 1.0]), float(params.table_z)
+    finite = Q[np.isfinite(Q[:, 2])]
+    thin = se3.apply(T_base_cam, finite[:: max(1, len(finite) // 40000)])
+    thin = thin[np.all((thin >= params.roi_min) & (thin <= params.roi_max), axis=1)]
+    if len(thin) < 100:
+        raise ScanError(f"no table in the region of interest to measure ({len(thin)} points): give table_z")
+    o3d.utility.random.seed(params.registration.seed)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(thin))
+    plane, inliers = cloud.segment_plane(params.table_tolerance, 3, 500)
+    n, d = np.asarray(plane[:3], dtype=np.float64), float(plane[3])
+    scale = float(np.linalg.norm(n))
+    n, d = n / scale, -d / scale
+    if n[2] < 0:
+        n, d = -n, -d
+    if n[2] < math.cos(math.radians(10.0)) or len(inliers) < 0.2 * len(thin):
+        raise ScanError(
+            f"no table plane found: the largest plane holds {len(inliers) / len(thin):.0%} of the region "
+            f"and is tilted {math.degrees(math.acos(min(1.0, abs(n[2])))):.0f} degrees: give table_z"
+        )
+    return n, d
 
 
 def find_seam(
@@ -408,15 +451,21 @@ def find_seam(
             f"partial scan: {coverage:.0%} of the seam has scan points near it, expected at least {params.min_coverage:.0%}",
             figures,
         )
-    support = _wall_support(prepared, P_near, se3.apply(T_obj_base, cam_base[None])[0], params)
+    support, n_visible = _wall_support(prepared, P_near, se3.apply(T_obj_base, cam_base[None])[0], params)
     figures["wall_support"] = support
-    if math.isfinite(support) and support < params.min_wall_support:
-        raise RegistrationError(
-            f"the scan does not show the joint where the registered model has it: {support:.0%} of the walls "
-            f"the camera should see were seen, expected at least {params.min_wall_support:.0%} (a different part?)",
+    if prepared.wall_points.size and n_visible < params.min_visible_wall:
+        raise ScanError(
+            "the joint is hidden from the scanner: the registered part covers its walls from the camera "
+            f"({n_visible} of {len(prepared.wall_points)} wall samples visible); turn the part or the scanner",
             figures,
         )
-
+    if math.isfinite(support) and support < params.min_wall_support:
+        raise RegistrationError(
+            f"the scan does not show the joint where the registered model has it: {support:.0%} of the wall "
+            f"surface facing the camera was seen, expected at least {params.min_wall_support:.0%} "
+            "(a different part, a wrong fit, or the joint in the projector's shadow)",
+            figures,
+        )
     points_obj, source, reason, gq = _seam_points(prepared, P_near, stations, params, figures)
 
     # Order: follow the nominal travel direction if one is given.
@@ -461,21 +510,24 @@ def _coverage(P_near: Array, stations: Array, radius: float) -> float:
     return float(np.mean(np.asarray(counts) > 0))
 
 
-def _wall_support(prepared: PreparedWorkpiece, P_near: Array, cam_obj: Array, params: SeamParams) -> float:
-    """Share of the model's wall samples near the seam and facing the camera
-    that have a scan point near them.
-
-    NaN when the camera should see no wall there (the check then says nothing).
-    """
+def _wall_support(prepared: PreparedWorkpiece, P_near: Array, cam_obj: Array, params: SeamParams) -> tuple[float, int]:
+    """Share of the model's wall samples near the seam that the camera should
+    see (facing it, not hidden behind the part itself) with a scan point near
+    them, and how many such samples there are."""
     Pw, Nw = prepared.wall_points, prepared.wall_normals
     to_cam = cam_obj - Pw
-    facing = np.einsum("ij,ij->i", Nw, to_cam) > params.view_cos * np.linalg.norm(to_cam, axis=1)
-    if np.count_nonzero(facing) < 10:
-        return math.nan
-    if len(P_near) == 0:
-        return 0.0
+    dist = np.linalg.norm(to_cam, axis=1)
+    facing = np.einsum("ij,ij->i", Nw, to_cam) > params.view_cos * dist
+    if np.any(facing):
+        start = Pw[facing] + 1e-4 * Nw[facing]
+        rays = np.hstack([start, to_cam[facing]]).astype(np.float32)
+        hidden = prepared.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0).numpy().astype(bool)
+        facing[np.flatnonzero(facing)[hidden]] = False
+    n_visible = int(np.count_nonzero(facing))
+    if n_visible == 0 or len(P_near) == 0:
+        return (0.0 if n_visible else math.nan), n_visible
     d, _ = cKDTree(P_near).query(Pw[facing], distance_upper_bound=params.support_distance)
-    return float(np.mean(np.isfinite(d)))
+    return float(np.mean(np.isfinite(d))), n_visible
 
 
 def _seam_points(
@@ -484,7 +536,8 @@ def _seam_points(
     """The seam at the stations (model frame): measured groove or registered model."""
     nan = math.nan
     gq = dict(groove_coverage=nan, groove_windows_ok=nan, groove_contradicting=nan, apex_sigma=nan,
-              wall_rms=nan, model_groove_rms=nan, model_groove_max=nan, deviation_sigma=nan)
+              wall_rms=nan, model_groove_rms=nan, model_groove_max=nan, deviation_sigma=nan,
+              lateral_shift_mean=nan)
     wp, prior = prepared.workpiece, prepared.groove_prior
     if prior is None:
         if params.seam_source == "groove":
@@ -496,12 +549,12 @@ def _seam_points(
     hit = np.isfinite(d)
     labels[hit] = prepared.model.labels[idx[hit]]
     fit = fit_groove(P_near, labels, wp.seam, wp.approach, wp.wall_band, params.groove, prior)
-    D, valid = apex_offsets(fit, prior)
+    shift, sigma, valid = lateral_offsets(fit, prior, wp.seam, wp.approach, params.groove.step)
     n_win = len(fit.arc)
     gq["groove_windows_ok"] = float(np.count_nonzero(valid)) / n_win
     gq["groove_contradicting"] = float(np.count_nonzero(fit.status == CONTRADICTS)) / n_win
     if np.any(valid):
-        gq["apex_sigma"] = float(np.median(fit.sigma[valid]))
+        gq["apex_sigma"] = float(np.median(sigma[valid]))
         gq["wall_rms"] = float(np.nanmedian(fit.rms[valid]))
     figures.update({k: v for k, v in gq.items() if math.isfinite(v)})
     if gq["groove_contradicting"] > params.max_contradicting:
@@ -511,7 +564,7 @@ def _seam_points(
             figures,
         )
     arc_st = np.linspace(0.0, wp.seam_length, len(stations))
-    Dst, se = smooth_offsets(fit, D, valid, arc_st, params.deviation_span, params.groove.step)
+    s_st, se = smooth_offsets(fit.arc, shift, sigma, fit.length, valid, arc_st, params.deviation_span, params.groove.step)
     measured = np.isfinite(se)
     if np.any(measured):
         # Stations beyond max_gap / 2 of a good window count as unmeasured.
@@ -526,14 +579,19 @@ def _seam_points(
             raise GrooveError(why, figures)
         return stations, "model", why, gq
 
-    # Bridge the short unmeasured stretches from their neighbours.
-    for i in range(3):
-        Dst[:, i] = np.interp(arc_st, arc_st[measured], Dst[measured, i])
+    # Bridge the short unmeasured stretches from their neighbours; move the
+    # stations across the seam, in the seam plane.
+    s_st = np.interp(arc_st, arc_st[measured], s_st[measured])
     se = np.interp(arc_st, arc_st[measured], se[measured])
+    T_st = np.gradient(stations, axis=0)
+    left = np.cross(wp.approach, T_st)
+    left /= np.linalg.norm(left, axis=1, keepdims=True)
+    Dst = s_st[:, None] * left
     dev = np.linalg.norm(Dst, axis=1)
     gq["model_groove_rms"] = float(np.sqrt(np.mean(dev**2)))
     gq["model_groove_max"] = float(dev.max())
     gq["deviation_sigma"] = float(np.median(se))
+    gq["lateral_shift_mean"] = float(np.mean(s_st))
     figures.update(model_groove_rms=gq["model_groove_rms"], model_groove_max=gq["model_groove_max"])
     if gq["model_groove_max"] > params.max_model_deviation:
         raise GrooveError(

@@ -1,6 +1,6 @@
 """Simulated workpiece scenes for the seam finder's tests and benchmark.
 
-A workpiece (metal) on the table (matte, top at base z = 0) under the cell's
+A workpiece (metal) on the welding table (steel, top at base z = 0) under the cell's
 scanner, placed at a nominal pose or at a random pose off it. Only the
 simulator reads the true pose; it is returned beside the scene so tests can
 score the seam against it.
@@ -52,12 +52,13 @@ def random_pose(workpiece: Workpiece, rng: np.random.Generator, max_angle: float
     return T
 
 
-def workpiece_scene(workpiece: Workpiece, T_base_obj: Array, table: bool = True) -> list[SceneObject]:
-    """The scanner's scene: the part (metal) first, then the table (matte)."""
+def workpiece_scene(workpiece: Workpiece, T_base_obj: Array, table: bool = True, table_material: str = "metal") -> list[SceneObject]:
+    """The scanner's scene: the part (metal) first, then the table (a steel
+    welding table by default)."""
     objects = [SceneObject(workpiece.name, workpiece.mesh(), T_base_obj, "metal")]
     if table:
         centre = [NOMINAL_XY[0], NOMINAL_XY[1], TABLE_Z - _TABLE_SIZE[2] / 2.0]
-        objects.append(SceneObject("table", box(_TABLE_SIZE), se3.transform_from(np.eye(3), centre), "matte"))
+        objects.append(SceneObject("table", box(_TABLE_SIZE), se3.transform_from(np.eye(3), centre), table_material))
     return objects
 
 

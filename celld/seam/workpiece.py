@@ -531,7 +531,8 @@ def label_walls(
     """Find the two joint walls of a mesh: the faces whose planes run along the seam.
 
     A triangle is a wall candidate when part of it lies within ``band[1]`` of
-    the seam and its plane passes within ``plane_tol`` of the seam there. The
+    the seam, its plane passes within ``plane_tol`` of the seam there, and it
+    does not face away from the approach direction. The
     candidates are split by their normal: a wall left of the seam faces back
     toward it, against ``approach x tangent``, and becomes ``LEFT_WALL``; the
     others become ``RIGHT_WALL``. Returns all ``NO_WALL`` when either side has
@@ -543,7 +544,9 @@ def label_walls(
     left_dir = np.cross(a, near.tangent)
     radial = np.linalg.norm(samples - near.point, axis=1)
     plane_dist = np.abs(np.einsum("ij,ij->i", normals, samples - near.point))
-    cand = (radial <= band[1]) & (radial >= band[0]) & (plane_dist <= plane_tol) & (near.inside)
+    # Walls face the joint's open side, never away from the tool (the underside).
+    open_side = normals @ a > -0.2
+    cand = (radial <= band[1]) & (radial >= band[0]) & (plane_dist <= plane_tol) & near.inside & open_side
     labels = np.zeros(len(triangles), dtype=np.int8)
     if np.count_nonzero(cand) < 20:
         return labels
@@ -610,25 +613,30 @@ def resample_polyline(S: Array, spacing: float) -> tuple[Array, float]:
 
 
 def project_to_polyline(P: Array, S: Array, step: float = 2e-4) -> Projection:
-    """Project points ``P`` (n, 3) onto the polyline ``S`` (m, 3).
+    """Project points ``P`` (n, 3) onto the polyline ``S`` (m, 3), exactly.
 
     The polyline is resampled every ``step`` m and searched with a k-d tree;
-    the nearest sample is then refined along its segment, so the projection is
-    exact on straight stretches and within ``step**2 / radius`` on arcs.
+    the exact foot is then taken on the segments of the nearest sample and of
+    its two neighbours (which covers a nearest point past a vertex).
     """
     D, _ = resample_polyline(S, step)
-    # Tangent of the original segment each sample lies on.
-    seg_len = np.linalg.norm(np.diff(S, axis=0), axis=1)
+    seg = np.diff(S, axis=0)
+    seg_len = np.linalg.norm(seg, axis=1)
+    T = seg / seg_len[:, None]
     arc_S = np.concatenate([[0.0], np.cumsum(seg_len)])
     arc_D = np.linspace(0.0, arc_S[-1], len(D))
-    seg_of = np.clip(np.searchsorted(arc_S, arc_D, side="right") - 1, 0, len(seg_len) - 1)
-    T = (np.diff(S, axis=0) / seg_len[:, None])[seg_of]
+    seg_of = np.clip(np.searchsorted(arc_S, arc_D, side="right") - 1, 0, len(seg) - 1)
     _, idx = cKDTree(D).query(P)
-    u = np.einsum("ij,ij->i", P - D[idx], T[idx])
-    lo = np.where(idx == 0, 0.0, -step)
-    hi = np.where(idx == len(D) - 1, 0.0, step)
-    u = np.clip(u, lo, hi)
-    point = D[idx] + u[:, None] * T[idx]
-    arc = arc_D[idx] + u
+    best_d = np.full(len(P), np.inf)
+    best_s = np.zeros(len(P), dtype=np.int64)
+    best_u = np.zeros(len(P))
+    for shift in (-1, 0, 1):
+        s = seg_of[np.clip(idx + shift, 0, len(D) - 1)]
+        u = np.clip(np.einsum("ij,ij->i", P - S[s], T[s]), 0.0, seg_len[s])
+        d = np.linalg.norm(P - (S[s] + u[:, None] * T[s]), axis=1)
+        better = d < best_d
+        best_d[better], best_s[better], best_u[better] = d[better], s[better], u[better]
+    point = S[best_s] + best_u[:, None] * T[best_s]
+    arc = arc_S[best_s] + best_u
     inside = (arc > 1e-9) & (arc < arc_S[-1] - 1e-9)
-    return Projection(point, T[idx], arc, inside)
+    return Projection(point, T[best_s], arc, inside)
