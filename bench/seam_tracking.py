@@ -359,7 +359,7 @@ def summarise(kind: str, cfg: TactileConfig, motion: MotionLimits, tr: Trace, P_
     near = [lateral(P_true, q) for q in tr.torch]
     e_all = np.array([n[0] for n in near])
     s_torch = np.array([n[1] for n in near])
-    beside = np.array([n[2] for n in near])
+    beside = np.array([n[2] for n in near], dtype=bool)
     # The weld starts where the tip first settled on the wall: the torch runs the refined path from there.
     settled = tr.frame_contact & (np.abs(tr.frame_dn_true - side * cfg.delta_d) < 0.3 * cfg.delta_d)
     if np.any(settled):
@@ -369,7 +369,7 @@ def summarise(kind: str, cfg: TactileConfig, motion: MotionLimits, tr: Trace, P_
         s0 = math.inf
     weld = beside & (s_torch >= s0)
     e = e_all[weld]
-    lead = beside & (s_torch < s0) & (np.arange(len(tr.t)) > np.argmax(s_torch > -1))
+    lead = beside & (s_torch < s0)
     # Plan alone: the smoothed plan's distance to the seam where it runs beside it.
     smooth = prepare_plan(np.column_stack([P_plan2, np.zeros(len(P_plan2))]), np.eye(4), cfg.plan_smoothing).P
     e_plan = np.array([lateral(P_true, q)[0] for q in smooth[::4] if lateral(P_true, q)[2]])
@@ -379,11 +379,12 @@ def summarise(kind: str, cfg: TactileConfig, motion: MotionLimits, tr: Trace, P_
     valid = np.all(np.isfinite(tr.frame_err), axis=1)
     err_c = tr.frame_err[valid & tr.frame_contact]
     err_v = tr.frame_err[valid]
-    peaks = sequence_peaks(tr.twist, PERIOD, np.zeros((2, 6)))
-    ratios = peaks.ratios(CartesianLimits.from_config(motion))
+    twists = tr.twist.reshape(-1, 6)
+    ratios = sequence_peaks(twists if len(twists) else np.zeros((1, 6)), PERIOD, np.zeros((2, 6))).ratios(
+        CartesianLimits.from_config(motion))
     # |n_d . n_seam| at the torch, from the truth: where the guard band is.
-    t_seam = np.array([_nearest_on_polyline(P_true, q)[1] for q in tr.torch])
-    cos_dt = np.abs(np.einsum("ij,ij->i", tr.t_d, t_seam))  # n_d . n_t = t_d . t_t in the plane
+    t_seam = np.array([_nearest_on_polyline(P_true, q)[1] for q in tr.torch]).reshape(-1, 2)
+    cos_dt = np.abs(np.einsum("ij,ij->i", tr.t_d.reshape(-1, 2), t_seam))  # n_d . n_t = t_d . t_t in the plane
     length = float(_arc(P_true)[-1])
 
     def r(x: float | None, k: int = 4) -> float | None:
@@ -402,7 +403,7 @@ def summarise(kind: str, cfg: TactileConfig, motion: MotionLimits, tr: Trace, P_
         "plan_only_max_mm": r(np.abs(e_plan).max() * 1e3, 3),
         "delta_n_rms_mm": r(np.sqrt(np.mean(dn**2)) * 1e3) if len(dn) else None,
         "delta_n_max_mm": r(np.abs(dn).max() * 1e3) if len(dn) else None,
-        "omega_peak_rad_s": r(np.nanmax(np.abs(tr.omega))),
+        "omega_peak_rad_s": r(np.nanmax(np.abs(tr.omega))) if len(tr.omega) else None,
         "guard_cycles": tr.guard_cycles,
         "min_nd_dot_nt": r(cos_dt[weld].min()) if np.any(weld) else None,
         "guard_band_cycles_truth": int(np.sum(cos_dt[weld] < cfg.guard_cos)),
@@ -411,8 +412,8 @@ def summarise(kind: str, cfg: TactileConfig, motion: MotionLimits, tr: Trace, P_
         "limit_ratios": {k: r(v) for k, v in ratios._asdict().items()},
         "frames": int(len(tr.frame_stamp)),
         "invalid_frames": int(np.sum(~valid)),
-        "detect_median_ms": r(np.median(tr.detect_ms), 3),
-        "detect_p99_ms": r(np.percentile(tr.detect_ms, 99), 3),
+        "detect_median_ms": r(np.median(tr.detect_ms), 3) if len(tr.detect_ms) else None,
+        "detect_p99_ms": r(np.percentile(tr.detect_ms, 99), 3) if len(tr.detect_ms) else None,
         "deformation_rms_mm": r(np.sqrt(np.mean(err_c[:, :2] ** 2)) * 1e3) if len(err_c) else None,
         "deformation_max_mm": r(np.abs(err_c[:, :2]).max() * 1e3) if len(err_c) else None,
         "deformation_out_of_plane_rms_mm": r(np.sqrt(np.mean(err_v[:, 2] ** 2)) * 1e3) if len(err_v) else None,
@@ -443,6 +444,7 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
     import uuid
 
     from celld.config import parse
+    from celld.motion.channels import STATE_DTYPE
     from celld.motion.handle import MotionHandle
     from celld.motion.supervisor import Backoff
     from celld.errors import CelldError, LinkLost
@@ -548,16 +550,20 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
 
         try:
             asyncio.run(main())
+        except CelldError as exc:
+            # The run ended before the servo did (the link, the camera): report it.
+            outcome["status"] = type(exc).__name__
+            outcome["reason"] = str(exc)
         finally:
             reader.close()
             tactile.stop()
 
     # Per cycle, from the truth (500 Hz) after the servo started.
-    stamps = np.array(sorted(t for t in truth if t >= outcome["t0"]))
-    Ts = np.array([truth[t] for t in stamps]) @ tool.T_tcp_tool
+    stamps = np.array(sorted(t for t in truth if outcome["t0"] and t >= outcome["t0"]), dtype=np.int64)
+    Ts = np.array([truth[t] for t in stamps]).reshape(-1, 4, 4) @ tool.T_tcp_tool
     torch_h = np.array([-cfg.torch_offset, 0.0, 0.0, 1.0])
-    rec = np.concatenate([r for r in records if len(r)])
-    mine = rec[rec["command_id"] == outcome["cid"]]
+    rec = np.concatenate([r for r in records if len(r)]) if any(len(r) for r in records) else np.zeros(0, STATE_DTYPE)
+    mine = rec[rec["command_id"] == outcome["cid"]] if outcome["cid"] else rec[:0]
     sent = np.where((mine["action"] == int(Action.SPEED))[:, None], mine["twist"], 0.0)
     # Frame to command: the cycle that first used a frame sent its command work_ns after waking,
     # and the frame was tactile_age_ns old at the wake-up.
@@ -567,8 +573,8 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
     err = np.array([samples[t][1] - frame_truth[t][0] for t in common]).reshape(-1, 3)
     tr = Trace(
         (stamps - outcome["t0"]) * 1e-9,
-        np.array([_plane((T @ torch_h)[:3]) for T in Ts]),
-        np.array([_plane(T[:3, 3]) for T in Ts]),
+        np.array([_plane((T @ torch_h)[:3]) for T in Ts]).reshape(-1, 2),
+        np.array([_plane(T[:3, 3]) for T in Ts]).reshape(-1, 2),
         Ts[:, :3, 0] @ T_BASE_PLANE[:3, :2],
         sent,
         sent[:, 5],
