@@ -26,6 +26,7 @@ _COMMAND_MODULES = (
     "celld.sim.cli",
     "celld.motion.cli",
     "celld.bus.cli",
+    "celld.daemon.cli",
     "celld.demo",
 )
 

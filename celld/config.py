@@ -208,6 +208,10 @@ class MotionLimits:
     tactile_stale: float = 0.1
     # Robot state older than this many cycles stops the loop.
     state_stale_cycles: int = 3
+    # Without fresh robot state for this long the link counts as lost, s.
+    link_timeout: float = 0.1
+    # RTDE watchdog: the controller stops its program after 1/rate s without a kick.
+    rtde_watchdog_hz: float = 10.0
 
     @classmethod
     def read(cls, r: TableReader) -> "MotionLimits":
@@ -220,6 +224,8 @@ class MotionLimits:
             max_angular_jerk=r.float("max_angular_jerk", cls.max_angular_jerk, lo=0.0, hi=4000.0, open_lo=True),
             tactile_stale=r.float("tactile_stale_ms", cls.tactile_stale * 1e3, lo=1.0, hi=5000.0, scale=1e-3),
             state_stale_cycles=r.int("state_stale_cycles", cls.state_stale_cycles, lo=1, hi=50),
+            link_timeout=r.float("link_timeout_ms", cls.link_timeout * 1e3, lo=4.0, hi=5000.0, scale=1e-3),
+            rtde_watchdog_hz=r.float("rtde_watchdog_hz", cls.rtde_watchdog_hz, lo=1.0, hi=500.0),
         )
 
 

@@ -1,0 +1,194 @@
+"""The celld daemon: start-up, supervision, the bus, systemd, shutdown.
+
+Start-up, in order, each step refusing to go on when it fails:
+
+1. the config is loaded and validated (before any device is opened);
+2. the state directory and the job journal (jobs a previous process left
+   running are marked interrupted);
+3. the motion process (it owns the robot link; :class:`MotionHandle`
+   supervises and restarts it) and the tactile camera process;
+4. the scanner;
+5. the zenoh session, the bus server and the cell's liveliness token;
+6. ``READY=1`` to systemd once the robot link is up, then ``WATCHDOG=1`` only
+   while the motion loop's heartbeat is fresh.
+
+SIGTERM or SIGINT: the robot stops first (jerk-limited), queued and running
+jobs end as cancelled, then the bus, the devices and the motion process close.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+from pathlib import Path
+from typing import Any, Mapping
+
+from celld import fsutil, sdnotify
+from celld.bus.keys import CellKeys
+from celld.bus.server import BusServer
+from celld.bus.session import open_server
+from celld.config import Config
+from celld.daemon.jobs import JobManager, Runner
+from celld.journal import Journal
+from celld.log import get_logger
+from celld.recording.job import JobRecording
+
+log = get_logger(__name__)
+
+# The motion heartbeat counts as fresh below this age, s.
+HEARTBEAT_FRESH = 0.5
+# How long to wait for the robot link before saying so in the log again, s.
+LINK_WAIT = 10.0
+# How often robot state goes to the bus (the server decimates further), s.
+STATE_PERIOD = 0.05
+
+
+class Daemon:
+    """One cell's daemon. ``devices`` opens and closes the cell's devices.
+
+    Parameters
+    ----------
+    config : Config
+    devices : celld.daemon.devices.CellDevices
+        The robot (motion handle), the tactile sensor and the scanner, real or
+        simulated, behind one interface.
+    runners : mapping of job kind to Runner
+        Built by :func:`celld.daemon.runners.build_runners` from the devices.
+    """
+
+    def __init__(self, config: Config, devices: Any, runners: Mapping[str, Runner]) -> None:
+        self.config = config
+        self.devices = devices
+        self.runners = runners
+        self.state_dir = Path(config.cell.state_dir)
+        self.notifier = sdnotify.Notifier()
+        self.manager: JobManager | None = None
+        self.bus: BusServer | None = None
+        self._session: Any = None
+        self._journal: Journal | None = None
+        self._stop = asyncio.Event()
+        self._tasks: list[asyncio.Task[None]] = []
+
+    # -- life cycle ---------------------------------------------------------------
+
+    async def start(self) -> None:
+        cfg = self.config
+        self.state_dir.mkdir(parents=True, exist_ok=True)
+        fsutil.remove_stale_temporaries(self.state_dir)
+        self._journal = Journal(self.state_dir / "journal.db")
+        for record in self._journal.recovered:
+            log.warning("job interrupted by the previous stop", job=record.id, kind=record.kind)
+        self.notifier.status("opening devices")
+        await self.devices.open()
+        keys = CellKeys.of(cfg.bus.prefix, cfg.cell.name)
+        self._session = open_server(cfg.bus, keys)
+        self.manager = JobManager(
+            self._journal,
+            self.state_dir,
+            self.runners,
+            self._publish_progress,
+            self.devices.stop_robot,
+            cell=cfg.cell.name,
+            recording_factory=self._open_recording if cfg.recording.enabled else None,
+            link_state=self.devices.link_state,
+            auto_accept=cfg.calibration.auto_accept,
+        )
+        self.bus = BusServer(self._session.session, keys, self.manager, state_rate_hz=cfg.bus.state_rate_hz)
+        await self.bus.start()
+        self.manager.start()
+        loop = asyncio.get_running_loop()
+        self._tasks.append(loop.create_task(self._publish_state(), name="celld-state"))
+        self._tasks.append(
+            loop.create_task(
+                sdnotify.run_watchdog(self.notifier, self._healthy, on_unhealthy=self._unhealthy),
+                name="celld-watchdog",
+            )
+        )
+        # READY only once the robot link is up; until then the bus answers and
+        # the motion supervisor keeps reconnecting with back-off.
+        self.notifier.status("waiting for the robot link")
+        while not await self.devices.wait_robot(LINK_WAIT):
+            log.warning("robot link not up yet; still trying", robot=cfg.robot.host)
+            if self._stop.is_set():
+                return
+        self.notifier.ready()
+        self.notifier.status(f"cell {cfg.cell.name}: ready")
+        log.info("celld ready", cell=cfg.cell.name, state_dir=str(self.state_dir))
+
+    async def run(self) -> None:
+        """Start, serve until SIGTERM/SIGINT (or :meth:`request_stop`), then shut down."""
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            try:
+                loop.add_signal_handler(sig, self.request_stop)
+            except (NotImplementedError, RuntimeError):  # not the main thread (tests)
+                pass
+        try:
+            await self.start()
+            await self._stop.wait()
+        finally:
+            await self.shutdown()
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    async def shutdown(self) -> None:
+        """Robot first, then jobs, bus, devices; safe to call more than once."""
+        self.notifier.stopping()
+        log.info("celld stopping")
+        try:
+            await self.devices.stop_robot()
+        except Exception as exc:
+            log.error("robot stop at shutdown failed", error=str(exc))
+        if self.manager is not None:
+            await self.manager.close()
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+        if self.bus is not None:
+            await self.bus.close()
+            self.bus = None
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+        await self.devices.close()
+        if self._journal is not None:
+            self._journal.close()
+            self._journal = None
+        log.info("celld stopped")
+
+    # -- helpers -----------------------------------------------------------------------
+
+    def _publish_progress(self, job: str, kind: str, state: str, stage: str, **kw: Any) -> None:
+        if self.bus is not None:
+            self.bus.publish_progress(job, kind, state, stage, **kw)
+
+    def _open_recording(self, job_id: str, kind: str) -> JobRecording:
+        rec_kind = {"calibrate": "calibration", "weld": "weld"}.get(kind, "other")
+        recording = JobRecording.for_job(self.state_dir, job_id, rec_kind, self.config.recording)
+        self.devices.attach_recording(recording)
+        return recording
+
+    def _healthy(self) -> bool:
+        age = self.devices.heartbeat_age()
+        return age is not None and age < HEARTBEAT_FRESH
+
+    def _unhealthy(self) -> None:
+        self.notifier.status("robot link down or motion loop stalled: watchdog not kicked")
+        if self.manager is not None:
+            self.manager.set_fault("robot link down or motion loop stalled")
+
+    async def _publish_state(self) -> None:
+        while True:
+            await asyncio.sleep(STATE_PERIOD)
+            if self.bus is None:
+                continue
+            robot = self.devices.robot_state_message()
+            if robot is not None:
+                self.bus.publish_robot_state(robot)
+            tactile = self.devices.tactile_state_message()
+            if tactile is not None:
+                self.bus.publish_tactile_state(tactile)
+            if self.manager is not None and self._healthy():
+                self.manager.set_fault("")

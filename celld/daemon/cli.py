@@ -1,0 +1,26 @@
+"""``celld run``: the daemon, as systemd starts it."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+
+from celld import config as config_mod
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="run the cell daemon (robot link, jobs over zenoh, recordings)")
+    p.add_argument("--config", default="/etc/celld/cell.toml", help="the cell config (default: %(default)s)")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from celld.daemon.app import Daemon
+    from celld.daemon.devices import CellDevices
+    from celld.daemon.runners import build_runners
+
+    cfg = config_mod.load(args.config)  # refused here, before any device is opened
+    devices = CellDevices(cfg)
+    daemon = Daemon(cfg, devices, build_runners(cfg, devices))
+    asyncio.run(daemon.run())
+    return 0

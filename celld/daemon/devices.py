@@ -1,0 +1,214 @@
+"""The cell's devices as the daemon sees them: robot, scanner, tactile sensor.
+
+:class:`CellDevices` opens, in order, the motion process (through
+:class:`~celld.motion.handle.MotionHandle`, which owns the robot link and
+restarts its process), the tactile camera process when the cell has one,
+and the scanner. It closes them in the reverse order, robot last, after a
+jerk-limited stop.
+
+The same code path serves the real cell and the simulated one. What differs
+is configuration: with ``scanner.kind = "sim"`` the scanner ray-casts the
+scene at the simulated controller's true flange pose (read from the
+simulator's shared memory, as a camera would see the real flange); nothing
+the estimators use comes from that truth.
+
+Blocking device calls (a scan takes up to a second) run in worker threads so
+the daemon's event loop never stalls.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+from typing import Any, Callable
+
+import numpy as np
+
+from celld.config import Config
+from celld.errors import CelldError, DeviceError
+from celld.log import get_logger
+from celld.motion.handle import MotionHandle
+from celld.scanner.base import OrganizedCloud, Scanner
+from celld.scanner.factory import open_scanner
+from celld.tactile.sample import TactileSample
+
+log = get_logger(__name__)
+
+# Servo laws the motion process may be asked to run, by name.
+SERVO_LAWS = {"algorithm2": "celld.motion.servo:make_algorithm2"}
+# Longest a stop may take before the daemon gives up waiting, s.
+STOP_TIMEOUT = 5.0
+
+
+class CellDevices:
+    """Robot, tactile sensor and scanner of one cell.
+
+    Parameters
+    ----------
+    config : Config
+    tactile_factory : callable(config) -> TactileProcess | None, optional
+        Builds the tactile process (the simulated one needs the seam wall);
+        None: the cell runs without one, and weld jobs are refused.
+    scene_extra : callable() -> list of SceneObject, optional
+        More objects for the simulated scanner to see (the workpiece).
+    """
+
+    def __init__(
+        self,
+        config: Config,
+        *,
+        tactile_factory: Callable[[Config], Any] | None = None,
+        scene_extra: Callable[[], list[Any]] | None = None,
+    ) -> None:
+        self.config = config
+        self.motion: MotionHandle | None = None
+        self.tactile: Any = None
+        self.scanner: Scanner | None = None
+        self._tactile_factory = tactile_factory
+        self._scene_extra = scene_extra
+        self._truth: Any = None
+        self._recordings: list[Any] = []
+
+    # -- life cycle ----------------------------------------------------------------
+
+    async def open(self) -> None:
+        cfg = self.config
+        if self._tactile_factory is not None:
+            self.tactile = self._tactile_factory(cfg)
+            await asyncio.to_thread(self.tactile.start)
+        self.motion = await MotionHandle.open(
+            cfg,
+            servo_laws=SERVO_LAWS,
+            tactile_slot=None if self.tactile is None else self.tactile.slot_name,
+            link_timeout=cfg.motion.link_timeout,
+            watchdog_hz=cfg.motion.rtde_watchdog_hz,
+            wait=False,  # the supervisor keeps (re)connecting; see wait_robot()
+        )
+        self.motion.add_listener(self._on_state_batch)
+        self.scanner = await asyncio.to_thread(self._open_scanner)
+        log.info("devices open", robot=cfg.robot.host, scanner=f"{cfg.scanner.kind}/{cfg.scanner.model}",
+                 tactile=cfg.tactile.kind if self.tactile is not None else "none")
+
+    def _open_scanner(self) -> Scanner:
+        cfg = self.config
+        if cfg.scanner.kind != "sim":
+            return open_scanner(cfg.scanner)
+        from celld.calib.flange import preset
+        from celld.scanner.sim import robot_scene_source
+        from celld.sim.robot.truth import TruthReader
+
+        # The simulated scanner renders the flange where the simulated arm truly is.
+        self._truth = TruthReader(cfg.robot.host)
+        truth = self._truth
+        return open_scanner(
+            cfg.scanner,
+            scene=robot_scene_source(lambda: truth.latest().T_base_tcp, preset(cfg.calibration.flange), extra=self._scene_extra),
+        )
+
+    async def close(self) -> None:
+        if self.motion is not None:
+            try:
+                await self.stop_robot()
+            except CelldError as exc:
+                log.error("stop before close failed", error=str(exc))
+            await self.motion.close()
+            self.motion = None
+        if self.scanner is not None:
+            await asyncio.to_thread(self.scanner.close)
+            self.scanner = None
+        if self.tactile is not None:
+            await asyncio.to_thread(self.tactile.stop)
+            self.tactile = None
+        if self._truth is not None:
+            self._truth.close()
+            self._truth = None
+
+    # -- robot ----------------------------------------------------------------------
+
+    async def wait_robot(self, timeout: float) -> bool:
+        """Wait until the motion loop runs and has read the robot; False on timeout."""
+        return await self.require_motion().wait_ready(timeout)
+
+    def require_motion(self) -> MotionHandle:
+        if self.motion is None:
+            raise DeviceError("the robot is not connected")
+        return self.motion
+
+    async def stop_robot(self) -> None:
+        """Jerk-limited stop; returns once the robot holds still (or the link is gone)."""
+        if self.motion is None:
+            return
+        self.motion.stop()
+        try:
+            await self.motion.wait_idle(STOP_TIMEOUT)
+        except CelldError as exc:
+            log.warning("robot not confirmed at rest after a stop", error=str(exc))
+
+    def link_state(self) -> str:
+        if self.motion is None:
+            return "unknown"
+        return "up" if self.motion.health().link == "running" else "down"
+
+    def heartbeat_age(self) -> float | None:
+        if self.motion is None:
+            return None
+        return self.motion.health().heartbeat_age_ms * 1e-3
+
+    def robot_state_message(self) -> dict[str, Any] | None:
+        if self.motion is None:
+            return None
+        rec = self.motion.last_record()
+        if rec is None:
+            return {"t_ns": 0, "link": "down"}
+        return {
+            "t_ns": max(0, int(rec["t_ns"])),
+            "link": self.link_state(),
+            "q": np.asarray(rec["q"]).tolist(),
+            "qd": np.asarray(rec["qd"]).tolist(),
+            "tcp_pose": np.asarray(rec["tcp_pose"]).tolist(),
+            "tcp_speed": np.asarray(rec["tcp_speed"]).tolist(),
+        }
+
+    # -- tactile --------------------------------------------------------------------
+
+    def tactile_sample(self) -> TactileSample | None:
+        return None if self.tactile is None else self.tactile.latest()
+
+    def tactile_state_message(self) -> dict[str, Any] | None:
+        sample = self.tactile_sample()
+        if sample is None:
+            return None
+        msg: dict[str, Any] = {"t_ns": max(0, sample.stamp_ns), "valid": bool(sample.valid), "contact": int(sample.contact) > 0}
+        if sample.valid:
+            msg["delta"] = np.asarray(sample.delta_tool).tolist()
+        return msg
+
+    # -- scanner --------------------------------------------------------------------
+
+    async def capture(self) -> OrganizedCloud:
+        if self.scanner is None:
+            raise DeviceError("the scanner is not open")
+        return await asyncio.to_thread(self.scanner.capture)
+
+    # -- recordings -----------------------------------------------------------------
+
+    def attach_recording(self, recording: Any) -> None:
+        """Feed motion state batches to ``recording`` until it closes."""
+        self._recordings.append(recording)
+
+    def _on_state_batch(self, batch: np.ndarray) -> None:
+        live = []
+        for rec in self._recordings:
+            if rec.closed:
+                continue
+            try:
+                rec.log_state_batch(batch)
+            except CelldError as exc:
+                log.warning("state batch not recorded", error=str(exc))
+            live.append(rec)
+        self._recordings = live
+
+
+def unique_name(config: Config) -> str:
+    """A shared-memory name prefix unique to this daemon instance."""
+    return f"celld-{config.cell.name}-{os.getpid()}"

@@ -1,0 +1,246 @@
+"""Job runners: what each job kind does with the cell's devices.
+
+A runner is a coroutine ``runner(ctx) -> result dict``. It raises a
+:class:`~celld.errors.CelldError` to fail; the job manager then stops the
+robot and records the reason. Heavy maths (detection, ICP, solves) runs in
+worker threads so the event loop keeps answering the bus.
+
+- **calibrate** (eye-on-base, Algorithm 1 online): the verification pose
+  first, then one calibration pose after another: move, settle, capture,
+  read the flange pose from the robot, detect the flange, feed Algorithm 1,
+  publish a progress event, stop early once the cost reaches
+  ``e_required``. The dataset is saved as it is captured, so the session can
+  be solved again offline (``celld calib solve``). The final estimate is the
+  robust solve over every consistent pair, reported with Algorithm 1's
+  history and the e_icp of Eq. 13.
+- **move**: a jerk-limited move to a TCP pose, or to joint positions through
+  the forward kinematics.
+- **health**: the robot link and loop timing, the scanner (one capture), the
+  tactile sensor.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from typing import Any, Mapping
+
+import numpy as np
+
+from celld import se3
+from celld.bus.schema import CalibrateJob, HealthJob, MoveJob
+from celld.calib.algorithm1 import Algorithm1
+from celld.calib.dataset import SessionWriter
+from celld.calib.detect import PARAMS_BY_SCANNER, DetectParams, detect_flange
+from celld.calib.flange import preset
+from celld.calib.metrics import cost_function
+from celld.calib.poses import calibration_poses
+from celld.calib.robust import RejectedPair
+from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
+from celld.config import Config
+from celld.daemon.devices import CellDevices
+from celld.daemon.jobs import JobContext, Runner
+from celld.errors import CalibrationError, CelldError, DetectionError, JobError
+from celld.log import get_logger
+from celld.robot.kinematics import forward
+
+log = get_logger(__name__)
+
+
+def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
+    """The runners of every job kind this cell can run."""
+
+    async def calibrate(ctx: JobContext) -> Mapping[str, Any]:
+        return await run_calibrate(ctx, config, devices)
+
+    async def move(ctx: JobContext) -> Mapping[str, Any]:
+        return await run_move(ctx, devices)
+
+    async def health(ctx: JobContext) -> Mapping[str, Any]:
+        return await run_health(ctx, devices)
+
+    return {"calibrate": calibrate, "move": move, "health": health}
+
+
+# -- calibrate ---------------------------------------------------------------------
+
+
+async def _settled_flange_pose(devices: CellDevices, T_target: np.ndarray, settle: float) -> np.ndarray:
+    """Move to ``T_target``, let the arm settle, and return the flange pose the robot reports."""
+    motion = devices.require_motion()
+    await motion.move_to(T_target)
+    await asyncio.sleep(settle)
+    state = motion.state()
+    if state is None:
+        raise CalibrationError("no robot state after the move")
+    return state.T_base_tcp
+
+
+async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -> Mapping[str, Any]:
+    job = ctx.job
+    if not isinstance(job, CalibrateJob):
+        raise JobError("$.kind", "not a calibrate job")
+    cal = config.calibration
+    if any(abs(v) > 1e-12 for v in config.robot.tcp_offset):
+        raise JobError("$", "calibration reads the flange pose: set robot.tcp_offset to zero for a calibrate job")
+    flange = preset(cal.flange)
+    dparams = PARAMS_BY_SCANNER.get(config.scanner.model, DetectParams())
+    overrides: dict[str, Any] = {}
+    if job.e_required is not None:
+        overrides["e_required"] = job.e_required
+    if job.k_max is not None:
+        overrides["k_max"] = job.k_max
+    if job.compensate:
+        overrides["compensate"] = True
+    params = SolveParams.from_config(cal, **overrides)
+    T_v = se3.from_ur_pose(job.verification_pose if job.verification_pose is not None else cal.verification_pose)
+    if job.poses:
+        poses = np.array([se3.from_ur_pose(p) for p in job.poses])
+    else:
+        n = job.n_poses if job.n_poses is not None else cal.n_poses
+        poses = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=job.seed or 0)
+    dataset = ctx.result_dir() / "dataset"
+    writer = SessionWriter(dataset, flange=cal.flange, scanner=config.scanner.model)
+    rec = ctx.recording
+
+    # Verification pose first: its cloud scores every estimate (Eq. 13).
+    ctx.progress("verify", 0.0, "verification pose")
+    T_v_robot = await _settled_flange_pose(devices, T_v, cal.settle)
+    cloud_v = await devices.capture()
+    writer.set_verification(T_v_robot, cloud_v.points)
+    if rec is not None:
+        rec.log_cloud_cam("verification", cloud_v.points)
+    verifier = await asyncio.to_thread(verifier_from_cloud, cloud_v.points, T_v_robot, flange, params, dparams)
+    alg = Algorithm1(verifier, cost_function(params.cost, params.work_radius), e_required=params.e_required, k_max=params.k_max or len(poses))
+
+    ids: list[str] = []
+    P_base: list[np.ndarray] = []
+    P_cam: list[np.ndarray] = []
+    rejected: list[RejectedPair] = []
+    early = False
+    for i, T in enumerate(poses):
+        T_bf = await _settled_flange_pose(devices, T, cal.settle)
+        cloud = await devices.capture()
+        pid = await asyncio.to_thread(writer.add_pair, T_bf, cloud.points)
+        try:
+            det = await asyncio.to_thread(detect_flange, cloud.points, flange, dparams)
+        except DetectionError as exc:
+            rejected.append(RejectedPair(pid, i, math.nan, f"detection failed at {exc.stage}: {exc.reason}"))
+            ctx.progress("pair", (i + 1) / len(poses), f"pair {pid}: no flange ({exc.reason})", pair=pid, detected=False)
+            continue
+        ids.append(pid)
+        P_base.append(T_bf[:3, 3].copy())
+        P_cam.append(det.center)
+        if rec is not None:
+            rec.log_cloud_cam("pair", cloud.points)
+            rec.log_circle_cam("flange", det.center, det.normal, det.radius)
+            rec.log_tcp(T_bf)
+        data: dict[str, Any] = {"pair": pid, "detected": True, "radius_mm": det.radius * 1e3, "inliers": det.inliers}
+        if len(ids) == 4:
+            step = await asyncio.to_thread(alg.start, ids, np.array(P_base), np.array(P_cam))
+        elif len(ids) > 4:
+            step = await asyncio.to_thread(alg.add, pid, P_base[-1], P_cam[-1])
+        else:
+            step = None
+        if step is not None:
+            data["cost_mm"] = step.cost_optimal * 1e3 if math.isfinite(step.cost_optimal) else None
+            data["pool"] = list(step.pool_ids)
+            if rec is not None:
+                rec.log_e_icp(step.k, step.cost_optimal)
+        ctx.progress("pair", (i + 1) / len(poses), f"pair {pid}", **data)
+        if alg.started and alg.done:
+            early = alg.reached
+            break
+
+    if len(ids) < 4:
+        raise CalibrationError(f"only {len(ids)} of {len(poses)} captures showed the flange; at least 4 are needed")
+    ctx.progress("solve", None, f"solving from {len(ids)} pairs")
+    result = await asyncio.to_thread(
+        solve_pairs, ids, np.array(P_base), np.array(P_cam), params, verifier, rejected, len(ids) + len(rejected)
+    )
+    report = result.as_dict()
+    a1 = alg.result() if alg.started else None
+    cost_mm = a1.cost * 1e3 if a1 is not None and math.isfinite(a1.cost) else None
+    calibration = {
+        "job": ctx.job_id,
+        "T_base_cam": result.T_base_cam.tolist(),
+        "cost_mm": cost_mm,
+        "pairs": len(result.pair_ids),
+        "dataset": str(dataset),
+        "method": result.method,
+    }
+    log.info("calibration solved", job=ctx.job_id, pairs=len(result.pair_ids), cost_mm=cost_mm, early_stop=early)
+    return {
+        "calibration": calibration,
+        "report": report,
+        "early_stop": early,
+        "poses_captured": len(ids) + len(rejected),
+        "poses_planned": len(poses),
+        "dataset": str(dataset),
+    }
+
+
+# -- move ----------------------------------------------------------------------------
+
+
+async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
+    job = ctx.job
+    if not isinstance(job, MoveJob):
+        raise JobError("$.kind", "not a move job")
+    motion = devices.require_motion()
+    target = np.asarray(job.target, dtype=np.float64)
+    T = forward(target) if job.space == "joint" else se3.from_ur_pose(target)
+    ctx.progress("move", 0.0, f"moving to {np.round(se3.to_ur_pose(T), 4).tolist()}")
+    state = await motion.move_to(T, speed_scale=job.speed_scale)
+    dt, dr = se3.error(state.T_base_tcp, T)
+    return {"tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(), "error_mm": dt * 1e3, "error_deg": math.degrees(dr)}
+
+
+# -- health ----------------------------------------------------------------------------
+
+
+async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
+    job = ctx.job
+    if not isinstance(job, HealthJob):
+        raise JobError("$.kind", "not a health job")
+    out: dict[str, Any] = {}
+    problems: list[str] = []
+    if job.check in ("all", "robot"):
+        h = devices.require_motion().health()
+        out["robot"] = h._asdict()
+        if h.link != "running":
+            problems.append(f"robot link {h.link}")
+    if job.check in ("all", "scanner"):
+        try:
+            cloud = await devices.capture()
+            n = int(np.count_nonzero(np.all(np.isfinite(cloud.points), axis=-1)))
+            out["scanner"] = {"ok": n > 0, "valid_points": n, "shape": list(cloud.points.shape[:2])}
+            if n == 0:
+                problems.append("the scanner returned no points")
+        except CelldError as exc:
+            out["scanner"] = {"ok": False, "error": str(exc)}
+            problems.append(f"scanner: {exc}")
+    if job.check in ("all", "tactile"):
+        sample = devices.tactile_sample()
+        if devices.tactile is None:
+            out["tactile"] = {"ok": False, "error": "no tactile sensor configured"}
+        else:
+            out["tactile"] = {"ok": sample is not None and sample.valid, "valid": bool(sample and sample.valid)}
+            if sample is None or not sample.valid:
+                problems.append("the tactile sensor sees no tag")
+    if problems and job.check != "all":
+        raise CelldError("; ".join(problems))
+    out["problems"] = problems
+    return _json_safe(out)
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, np.generic):
+        return _json_safe(value.item())
+    return value
