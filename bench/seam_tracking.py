@@ -37,8 +37,9 @@ Targets: lateral RMS <= 0.2 mm and max <= 0.5 mm on all three seams; limits
 never exceeded; detection median <= 3 ms per 640 x 480 frame; deformation
 error <= 0.02 mm; frame-to-command latency <= 10 ms.
 
-``--quick`` runs shorter seams and fewer frames; ``--json`` prints one JSON
-object last. Full runs write ``bench/out/seam_tracking/`` (table and plots).
+``--quick`` runs shorter seams (60, 50 and 91 mm); ``--json`` prints one
+JSON object last. Full runs write ``bench/out/seam_tracking/<mode>/``
+(results.json, results.md and a plot per seam).
 """
 
 from __future__ import annotations
@@ -630,19 +631,19 @@ def main(argv: list[str] | None = None) -> int:
     figures = {"mode": args.mode + ("-direct" if args.direct else ""), "quick": args.quick, "camera_fps": cfg.fps,
                "tactile_stale_ms": round(motion.tactile_stale * 1e3, 1), "seams": [r.figures for r in results], "targets": TARGETS}
     if not args.quick:
-        write_outputs(results, figures)
+        write_outputs(results, figures, OUT / figures["mode"])
     print(json.dumps(figures))
     return 0
 
 
-def write_outputs(results: list[RunResult], figures: dict[str, Any]) -> None:
+def write_outputs(results: list[RunResult], figures: dict[str, Any], out: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "results.json").write_text(json.dumps(figures, indent=2))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(figures, indent=2))
     for r in results:
         S, f = r.series, r.figures
         fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
@@ -658,7 +659,7 @@ def write_outputs(results: list[RunResult], figures: dict[str, Any]) -> None:
         ax[1].legend()
         ax[1].set_xlabel("t s")
         fig.suptitle(f"{f['seam']}: RMS {f['lateral_rms_mm']} mm, max {f['lateral_max_mm']} mm")
-        fig.savefig(OUT / f"{f['seam']}.png", dpi=100)
+        fig.savefig(out / f"{f['seam']}.png", dpi=100)
         plt.close(fig)
     lines = ["| seam | lateral RMS mm | max mm | plan only RMS/max mm | delta_n RMS mm | omega peak | guard | limit ratio | detect ms | deform RMS/max mm | latency ms |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -669,7 +670,7 @@ def write_outputs(results: list[RunResult], figures: dict[str, Any]) -> None:
             f"{f['delta_n_rms_mm']} | {f['omega_peak_rad_s']} | {f['guard_cycles']} | {f['limit_ratio_max']} | "
             f"{f['detect_median_ms']} | {f['deformation_rms_mm']}/{f['deformation_max_mm']} | {f['latency_median_ms']} |"
         )
-    (OUT / "results.md").write_text("\n".join(lines) + "\n")
+    (out / "results.md").write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
