@@ -1,0 +1,156 @@
+"""The daemon end to end: simulated UR10e (real ur-rtde), ray-cast scanner, real zenoh.
+
+``celld run`` runs as its own process, as systemd would start it; the test
+talks to it only over the bus, like an MES. Slow: it moves the arm through a
+calibration.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from celld import config as config_mod
+from celld import se3
+from celld.bus.client import CellClient
+from celld.errors import BusError
+from celld.journal import Journal
+from celld.recording.readback import read_entities
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[2]
+# A start pose near the verification pose, flange up towards the scanner (elbow up).
+Q0 = (2.847, -1.401, 2.311, -2.481, 1.571, -1.276)
+T_BASE_CAM_TRUE = [[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]]
+
+
+def _write_config(path: Path, host: str, state_dir: Path) -> Path:
+    path.write_text(
+        f"""
+include = ["{ROOT / 'configs' / 'robots' / 'ur10e.toml'}"]
+[cell]
+name = "e2e"
+state_dir = "{state_dir}"
+[robot]
+host = "{host}"
+[motion]
+# The simulator shares two cores with the test machine's other work.
+state_stale_cycles = 50
+link_timeout_ms = 500
+rtde_watchdog_hz = 5
+[scanner]
+kind = "sim"
+model = "phoxi-m"
+resolution_scale = 0.5
+T_base_cam = {T_BASE_CAM_TRUE}
+[calibration]
+flange = "ur10e"
+n_poses = 6
+e_required_mm = 0.0
+[bus]
+listen = ["tcp/{host}:7447"]
+"""
+    )
+    return path
+
+
+@pytest.fixture
+def daemon(tmp_path: Path, loopback_host: str):
+    from celld.sim.robot import launch
+
+    cfg_path = _write_config(tmp_path / "cell.toml", loopback_host, tmp_path / "state")
+    with launch(loopback_host, realtime=True, q0=Q0):
+        log = open(tmp_path / "daemon.log", "wb")
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "celld.cli", "run", "--config", str(cfg_path)],
+            stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
+        )
+        cfg = config_mod.load(cfg_path)
+        try:
+            deadline = time.monotonic() + 60
+            client = None
+            while client is None:
+                assert proc.poll() is None, (tmp_path / "daemon.log").read_text()[-2000:]
+                assert time.monotonic() < deadline, "the daemon's bus did not come up"
+                try:
+                    client = CellClient(cfg.bus, "e2e", timeout=20.0)
+                except BusError:
+                    time.sleep(0.5)
+            while client.status().get("robot_link") != "up":
+                assert proc.poll() is None, (tmp_path / "daemon.log").read_text()[-2000:]
+                assert time.monotonic() < deadline, "the robot link did not come up"
+                time.sleep(0.5)
+            yield client, proc, cfg
+            client.close()
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+                try:
+                    proc.wait(30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+            log.close()
+
+
+def test_calibrate_over_the_bus_then_accept(daemon) -> None:
+    client, proc, cfg = daemon
+    events: list[dict] = []
+    reply, record = client.submit_and_wait({"kind": "calibrate", "seed": 3}, on_event=events.append, timeout=400)
+    assert record["state"] == "succeeded", record["reason"]
+    pairs = [e for e in events if e.get("stage") == "pair"]
+    assert len(pairs) == 6, "one progress event per pair"
+    assert any("cost_mm" in e.get("data", {}) for e in pairs), "Algorithm 1's cost is reported per pair"
+
+    import json
+
+    result = json.loads(Path(record["result"]).read_text())
+    T = np.array(result["calibration"]["T_base_cam"])
+    dt, dr = se3.error(T, np.array(T_BASE_CAM_TRUE))
+    # Six half-resolution PhoXi M captures: well under a millimetre and a tenth of a degree.
+    assert dt < 0.5e-3 and math.degrees(dr) < 0.1, (dt, math.degrees(dr))
+    assert Path(result["dataset"], "poses.json").exists()
+
+    # Not current until the operator accepts it.
+    assert client.calibration() is None
+    accepted = client.accept(reply["job"])
+    assert accepted["calibration"]["job"] == reply["job"]
+    assert client.calibration()["T_base_cam"] == result["calibration"]["T_base_cam"]
+
+    rrd = Path(result["recording"])
+    entities = read_entities(rrd)
+    assert any(e.startswith("/world") for e in entities), entities
+    assert any("e_icp" in e for e in entities), entities
+
+    # SIGTERM: the robot stops first, the daemon exits cleanly.
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(30) == 0
+    journal = Journal(Path(cfg.cell.state_dir) / "journal.db")
+    assert journal.get(reply["job"]).state == "succeeded"
+    assert journal.check() == []
+    journal.close()
+
+
+def test_move_and_health_and_a_refused_job(daemon) -> None:
+    client, _, _ = daemon
+    _, record = client.submit_and_wait({"kind": "health", "check": "all"}, timeout=60)
+    assert record["state"] == "succeeded", record["reason"]
+    target = [0.62, 0.02, 0.46, 0.0, 0.0, 0.0]
+    _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": target}}, timeout=60)
+    assert record["state"] == "succeeded", record["reason"]
+    import json
+
+    moved = json.loads(Path(record["result"]).read_text())
+    assert moved["error_mm"] < 0.1
+    # Outside the workspace box: refused with the reason, the daemon stays up.
+    _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 1.3, 0, 0, 0]}}, timeout=60)
+    assert record["state"] == "failed" and "workspace" in record["reason"]
+    assert client.status()["state"] in ("idle", "fault")
