@@ -193,6 +193,9 @@ class SeamQuality:
     deviation_sigma : median standard error of that distance, m
     lateral_shift_mean : mean shift of the measured seam from the model's
         across the seam, toward the left wall positive, m
+    along_shift : the seam's ends measured in the scan lie this far along
+        the seam from the registered model's (mean of both ends); the path is
+        slid by it, m (NaN: not measured)
     n_points : part points in the scan after cropping
     reversed : the model seam was reversed to match the nominal direction
     duration : s, from cloud to path
@@ -214,6 +217,7 @@ class SeamQuality:
     model_groove_max: float
     deviation_sigma: float
     lateral_shift_mean: float
+    along_shift: float
     n_points: int
     reversed: bool
     duration: float
@@ -467,6 +471,9 @@ def find_seam(
             figures,
         )
     points_obj, source, reason, gq = _seam_points(prepared, P_near, stations, params, figures)
+    along = _along_shift(P_obj[near], proj, near, wp, params)
+    if math.isfinite(along):
+        points_obj = _slide(points_obj, along)
 
     # Order: follow the nominal travel direction if one is given.
     reversed_ = False
@@ -494,6 +501,7 @@ def find_seam(
         coverage=coverage,
         wall_support=support,
         n_points=len(P_base),
+        along_shift=along,
         reversed=reversed_,
         duration=time.perf_counter() - t0,
         **gq,
@@ -608,6 +616,50 @@ def _seam_points(
                f"(largest deviation {z:.1f} sigma, below {params.deviation_sigmas:.1f})")
         return stations, "model", why, gq
     return stations + Dst, "groove", "", gq
+
+
+def _along_shift(P: Array, proj: Any, near: NDArray[np.bool_], wp: Workpiece, params: SeamParams) -> float:
+    """How far along the seam the joint's two ends in the scan lie from the model's.
+
+    Registration fixes the part across the seam well but along it only through
+    its end faces, which a camera above sees at grazing angles (a millimetre
+    off on a curved groove). The part's points close to the seam end where
+    the part ends; the mean of the two ends' offsets cancels the half-pixel
+    by which the last points fall short of each edge. NaN when the measured
+    length differs from the model's by more than ``max_model_deviation``.
+    """
+    arc = proj.arc[near]
+    L = wp.seam_length
+    radial = np.linalg.norm(P - proj.point[near], axis=1)
+    close = radial <= wp.wall_band[1]
+    T0 = wp.seam[1] - wp.seam[0]
+    T1 = wp.seam[-1] - wp.seam[-2]
+    # Past an end the projection sticks to it: measure how far past.
+    before = close & (arc <= 1e-9)
+    after = close & (arc >= L - 1e-9)
+    ext_before = (P[before] - wp.seam[0]) @ (T0 / np.linalg.norm(T0))
+    ext_after = L + (P[after] - wp.seam[-1]) @ (T1 / np.linalg.norm(T1))
+    ext = np.concatenate([arc[close & ~before & ~after], ext_before, ext_after])
+    if len(ext) < 20:
+        return math.nan
+    lo, hi = np.sort(ext)[[4, -5]]  # the fifth point in from each end: robust to strays
+    if abs((hi - lo) - L) > params.max_model_deviation:
+        return math.nan
+    return float(((lo - 0.0) + (hi - L)) / 2.0)
+
+
+def _slide(S: Array, ds: float) -> Array:
+    """Move the points of a polyline ``ds`` along it (extrapolating at the ends)."""
+    seg = np.linalg.norm(np.diff(S, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    target = arc + ds
+    out = np.column_stack([np.interp(target, arc, S[:, i]) for i in range(3)])
+    t0 = (S[1] - S[0]) / seg[0]
+    t1 = (S[-1] - S[-2]) / seg[-1]
+    lo, hi = target < 0.0, target > arc[-1]
+    out[lo] = S[0] + target[lo, None] * t0
+    out[hi] = S[-1] + (target[hi] - arc[-1])[:, None] * t1
+    return out
 
 
 def _tangents(P: Array, k: int) -> Array:

@@ -24,17 +24,24 @@ Array = NDArray[np.float64]
 TABLE_Z = 0.0
 # Nominal place of a workpiece on the table, base frame, m.
 NOMINAL_XY = (0.6, 0.0)
+# Nominal heading of the seam: along base y, which is the direction of the
+# simulated PhoXi's projector baseline (camera x = base -y). Across the
+# baseline, one bevel of a V-groove faces away from the projector and is lit
+# at grazing angles (no returns): the joint could be registered but not
+# measured. Along it, both bevels are lit. A cell places grooves this way.
+NOMINAL_YAW = math.pi / 2
 # The table slab: extent and thickness, m.
 _TABLE_SIZE = (1.2, 1.0, 0.03)
 
 
-def nominal_pose(workpiece: Workpiece, yaw: float = 0.0) -> Array:
-    """Pose of a part lying on the table at the nominal place, seam along base x turned by ``yaw``."""
+def nominal_pose(workpiece: Workpiece, yaw: float = NOMINAL_YAW) -> Array:
+    """Pose of a part lying on the table at the nominal place, its model x
+    axis (the seam's heading) turned by ``yaw`` from base x."""
     z = TABLE_Z - float(workpiece.vertices[:, 2].min())
     return se3.from_xyz_rpy([NOMINAL_XY[0], NOMINAL_XY[1], z], [0.0, 0.0, yaw])
 
 
-def random_pose(workpiece: Workpiece, rng: np.random.Generator, max_angle: float, max_offset: float, yaw: float = 0.0) -> Array:
+def random_pose(workpiece: Workpiece, rng: np.random.Generator, max_angle: float, max_offset: float, yaw: float = NOMINAL_YAW) -> Array:
     """A pose off the nominal one by a rotation of up to ``max_angle`` (rad) about a
     random axis and a shift of up to ``max_offset`` (m) across the table; the
     part is then set down so its lowest point touches the table (held there by
