@@ -176,9 +176,9 @@ def summarize(rows: list[Row]) -> dict[str, Any]:
     return out
 
 
-def write_outputs(rows: list[Row], summary: dict[str, Any]) -> None:
-    OUT.mkdir(parents=True, exist_ok=True)
-    with open(OUT / "results.csv", "w", newline="") as f:
+def write_outputs(rows: list[Row], summary: dict[str, Any], out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "results.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["scanner", "workpiece", "pose", "outcome", "source", "rms_mm", "max_mm", "model_rms_mm", "time_s", "attempts", "fitness", "reason"])
         for r in rows:
@@ -189,7 +189,7 @@ def write_outputs(rows: list[Row], summary: dict[str, Any]) -> None:
         for wp, c in fig["cases"].items():
             lines.append(f"| {variant} | {wp} | {c['ok']} | {c['refused']} | {c['wrong']} | {c['seam_rms_mm']:.3f} | {c['seam_max_mm']:.3f} | {c['time_median_s']:.2f} / {c['time_max_s']:.2f} |")
         lines.append(f"| **{variant}** | all | {fig['ok']} | {fig['refused']} | {fig['wrong']} | {fig['seam_rms_mm']:.3f} (target {fig['target_rms_mm']:.2f}) | {fig['seam_max_mm']:.3f} | {fig['time_median_s']:.2f} / {fig['time_max_s']:.2f} |")
-    (OUT / "summary.md").write_text("\n".join(lines) + "\n")
+    (out / "summary.md").write_text("\n".join(lines) + "\n")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -211,7 +211,7 @@ def write_outputs(rows: list[Row], summary: dict[str, Any]) -> None:
     axes[1].set_ylabel("fraction of scans")
     axes[1].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(OUT / "seam_find.png", dpi=120)
+    fig.savefig(out / "seam_find.png", dpi=120)
     plt.close(fig)
 
 
@@ -223,6 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scanners", default="phoxi-m,azure-kinect,azure-kinect-raw")
     ap.add_argument("--workpieces", default=",".join(WORKPIECES))
+    ap.add_argument("--out", default=str(OUT), help="directory of the results of a full run")
     args = ap.parse_args(argv)
     configure("warning")
     n = 4 if args.quick else args.n
@@ -238,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"t {r.time:5.2f} s att {r.attempts} {r.reason}", file=sys.stderr if args.json else sys.stdout, flush=True)
     summary = summarize(rows)
     if not args.quick:
-        write_outputs(rows, summary)
+        write_outputs(rows, summary, Path(args.out))
     for variant, fig in summary.items():
         print(f"{variant}: ok {fig['ok']}/{fig['scans']}, refused {fig['refused']}, wrong {fig['wrong']}, "
               f"seam RMS {fig['seam_rms_mm']:.3f} mm (target {fig['target_rms_mm']:.2f}), max {fig['seam_max_mm']:.3f} mm, "

@@ -73,6 +73,8 @@ class SeamParams:
         plane in the region of interest); points up to ``table_margin``
         above the table are the table and are dropped
     table_tolerance : inlier distance of the table plane fit, m
+    outlier_radius, outlier_neighbours : a point with fewer neighbours than
+        this within the radius (m) is dropped; radius 0 keeps all
     roi_min, roi_max : base-frame box where the part may be, m
     max_range : a camera-frame range beyond this is taken as wrong units, m
     min_points : fewest part points a usable scan has
@@ -111,6 +113,8 @@ class SeamParams:
     table_z: float | None = None
     table_margin: float = 0.002
     table_tolerance: float = 0.001
+    outlier_radius: float = 0.0
+    outlier_neighbours: int = 8
     roi_min: tuple[float, float, float] = (-0.2, -1.0, -0.1)
     roi_max: tuple[float, float, float] = (1.4, 1.0, 0.6)
     max_range: float = 4.0
@@ -161,6 +165,8 @@ _PRESETS: dict[str, SeamParams] = {
         groove=GrooveParams(window=0.040, step=0.005, min_points=25, max_normal_deviation=math.radians(20.0), max_apex_sigma=0.8e-3),
         table_margin=0.006,
         table_tolerance=0.006,
+        outlier_radius=0.008,
+        outlier_neighbours=10,
         label_distance=0.006,
         support_distance=0.008,
         min_wall_support=0.3,
@@ -355,6 +361,12 @@ def crop_cloud(cloud_cam: ArrayLike, T_base_cam: Array, params: SeamParams) -> A
     P_base = se3.apply(T_base_cam, Q[above])
     inside = np.all((P_base >= params.roi_min) & (P_base <= params.roi_max), axis=1)
     P_base = P_base[inside]
+    if params.outlier_radius > 0.0 and len(P_base):
+        # Noisy scanners leave a sprinkle of table points above the margin;
+        # alone in their neighbourhood, they go.
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P_base))
+        _, keep = cloud.remove_radius_outlier(params.outlier_neighbours, params.outlier_radius)
+        P_base = P_base[np.asarray(keep, dtype=np.int64)]
     if len(P_base) < params.min_points:
         raise ScanError(
             f"the scan is empty where the part should be: {len(P_base)} points above the table "
