@@ -1,0 +1,543 @@
+"""Flange detection: the centre and normal of a robot's tool flange in a point cloud.
+
+:func:`detect_flange` takes a cloud in the camera frame, metres, either
+organized (H, W, 3) as a scanner gives it, any non-finite value marking a
+missing return, or unorganized (n, 3) as a user may have cropped it: there
+points with a NaN coordinate are dropped and counted (``n_dropped``) and
+infinite values are refused. It returns a :class:`FlangeDetection`: the
+centre of the flange frame (the TCP of the paper's Eq. 9) and the face
+normal, toward the camera, with a quality record. When no flange is found it
+raises :class:`~celld.errors.DetectionError` naming the stage; it never
+returns a centre it has not verified.
+
+The pipeline follows the paper's section 2.1.4 in two passes. The coarse
+pass (:mod:`celld.calib.segment`: crop, background planes, outlier filter,
+plane segmentation, clustering with the size constraint, a coarse rim circle)
+works on a thinned copy, a stride of the organized image or a seeded random
+subset, so that Open3D gets tens of thousands of points, not millions.
+
+The fine pass goes back to the full cloud around each coarse candidate (an
+image window of an organized cloud):
+
+- the face plane by least squares, trimmed from the coarse plane's slab down
+  to 3 sigma of the measured noise;
+- the rim: the outer edge of the face region with its holes filled. In an
+  organized cloud the pixels near the edge are decided on the median height
+  of their 5 x 5 neighbourhood, so a chamfer that is lit on one side and in
+  shadow on the other does not pull the circle toward the lit side;
+- circle RANSAC on the rim with the paper's R, e_r, e_d, k_max (section
+  3.2.2), then a geometric least-squares circle in the face plane.
+
+The circle is accepted only if its radius is within e_r of R, its inliers
+cover ``min_coverage`` of the circumference, and the centring bore is empty
+(an ISO 9409-1 face is an annulus: a solid disc of the right radius is not a
+flange).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from scipy import ndimage
+
+from celld.calib.circle import angular_coverage, fit_plane, ransac_circle, refine_circle
+from celld.calib.flange import FlangeModel
+from celld.calib.segment import (
+    COVERAGE_BINS,
+    CROSS,
+    MIN_POINTS,
+    CoarseCandidate,
+    SearchLog,
+    coarse_candidates,
+    crop_mask,
+    hollow,
+    outer_edge,
+    project,
+    raster_cells,
+    spacing,
+)
+from celld.errors import DetectionError, InputError
+
+# A cloud in the camera frame whose median range is outside this window (m)
+# is not in metres: scanners see from about 0.1 m to a few metres.
+_PLAUSIBLE_RANGE = (0.05, 20.0)
+# Points sampled to check the scale of a cloud.
+_SCALE_SAMPLE = 4096
+# The rim of an unorganized cloud is cut from the face plane at this many sigmas of its noise.
+_RIM_SIGMAS = 2.5
+# Organized: a pixel is face when most of its (2 h + 1)^2 neighbourhood is within this many sigmas.
+_VOTE_SIGMAS = 2.0
+_VOTE_BELOW = 0.5
+_VOTE_HALF = 2
+# Floor of the slabs above, m (a noise-free cloud has sigma 0).
+_SLAB_MIN = 2e-5
+# Fine-pass circle normal against the face plane, rad (the rim is projected on it).
+_FINE_NORMAL_ANGLE = math.radians(5)
+# Coarse candidates tried in the fine pass before giving up.
+_MAX_CANDIDATES = 3
+
+
+@dataclass(frozen=True)
+class DetectParams:
+    """Parameters of :func:`detect_flange`; SI units.
+
+    The defaults are the paper's for a structured-light scanner (section
+    3.2.2: e_d = 0.3 mm, e_r = 1 mm, k_max = 10 000); see
+    :data:`PARAMS_BY_SCANNER` for a time-of-flight camera.
+
+    Attributes
+    ----------
+    e_d : float
+        Inlier distance of a rim point to the circle, m.
+    e_r : float
+        Tolerance of the fitted radius around the model's ``circle_radius``, m.
+    k_max : int
+        Most RANSAC triples per circle fit.
+    e_plane : float
+        Inlier distance to the face plane in the fine pass, m. Above half the
+        bore depth the bore cannot be told from the face and the bore check
+        is skipped.
+    e_plane_coarse : float
+        Inlier distance of the coarse plane segmentation, m.
+    crop_min, crop_max : tuple of 3 float, or None
+        Workspace box in the camera frame, m; None for no box.
+    roi_radius : float
+        Radius of the sphere kept around ``roi_center``, m.
+    coarse_points : int
+        Size the coarse pass thins the cloud to.
+    max_planes : int
+        Most planes segmented in the coarse pass.
+    size_tol : float
+        A cluster may be at most ``2 R (1 + size_tol)`` wide (the paper's constraint) ...
+    min_extent : float
+        ... and at least ``2 R min_extent`` (a flange seen in part).
+    cluster_eps : float
+        DBSCAN radius in units of the point spacing.
+    outlier_neighbours, outlier_std : int, float
+        Statistical outlier filter: neighbours and the std-dev ratio.
+    min_coverage : float
+        Fraction of the circumference the rim inliers must cover.
+    min_inliers : int
+        Fewest rim inliers of an accepted circle.
+    hollow_fraction : float
+        The bore may hold at most this fraction of the points a solid face would have there.
+    seed : int
+        Seed of every random choice (RANSAC samples, subsets).
+    """
+
+    e_d: float = 0.0003
+    e_r: float = 0.001
+    k_max: int = 10_000
+    e_plane: float = 0.0005
+    e_plane_coarse: float = 0.002
+    crop_min: tuple[float, float, float] | None = None
+    crop_max: tuple[float, float, float] | None = None
+    roi_radius: float = 0.12
+    coarse_points: int = 20_000
+    max_planes: int = 12
+    size_tol: float = 0.15
+    min_extent: float = 0.5
+    cluster_eps: float = 2.5
+    outlier_neighbours: int = 8
+    outlier_std: float = 2.5
+    min_coverage: float = 0.5
+    min_inliers: int = 30
+    hollow_fraction: float = 0.2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        positive = ("e_d", "e_r", "e_plane", "e_plane_coarse", "roi_radius", "size_tol", "cluster_eps", "outlier_std")
+        for key in positive:
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(f"DetectParams.{key}: expected a positive number, got {value!r}")
+        for key in ("k_max", "coarse_points", "max_planes", "outlier_neighbours", "min_inliers"):
+            if getattr(self, key) < 1:
+                raise InputError(f"DetectParams.{key}: expected a positive integer, got {getattr(self, key)!r}")
+        if not 0 < self.min_extent <= 1 or not 0 < self.min_coverage <= 1 or not 0 <= self.hollow_fraction <= 1:
+            raise InputError("DetectParams: min_extent, min_coverage and hollow_fraction are fractions in (0, 1]")
+        if (self.crop_min is None) != (self.crop_max is None):
+            raise InputError("DetectParams: give both crop_min and crop_max, or neither")
+        if self.crop_min is not None and not all(a < b for a, b in zip(self.crop_min, self.crop_max)):  # type: ignore[arg-type]
+            raise InputError(f"DetectParams: crop_min {self.crop_min} must be below crop_max {self.crop_max}")
+
+
+# Parameters per scanner model. Time of flight: mm noise, so wide tolerances,
+# and a plane slab thick enough to take the face and the wrist shoulder as one.
+PARAMS_BY_SCANNER: dict[str, DetectParams] = {
+    "phoxi-s": DetectParams(),
+    "phoxi-m": DetectParams(),
+    "azure-kinect": DetectParams(
+        e_d=0.003, e_r=0.004, e_plane=0.008, e_plane_coarse=0.010, min_coverage=0.4, cluster_eps=3.0
+    ),
+}
+
+
+@dataclass(frozen=True, eq=False)
+class FlangeDetection:
+    """A verified flange in a cloud: pose of its centre and the quality of the fit.
+
+    Attributes
+    ----------
+    center : numpy.ndarray
+        (3,) origin of the flange frame (face centre, the TCP), camera frame, m.
+    normal : numpy.ndarray
+        (3,) unit face normal (flange +z), pointing toward the camera.
+    radius : float
+        Fitted radius of the model's circle, m.
+    inliers : int
+        Rim points within e_d of the circle.
+    residual : float
+        RMS distance of the rim inliers to the circle, m.
+    n_input : int
+        Points given (H * W for an organized cloud).
+    circle_center : numpy.ndarray
+        (3,) centre of the fitted circle (differs from ``center`` when the
+        circle lies behind the face, as on ``ur10e-wrist``), m.
+    coverage : float
+        Fraction of the circumference covered by rim inliers.
+    plane_rms : float
+        RMS distance of the face points to their plane, m.
+    n_face : int
+        Points of the face plane in the fine pass.
+    n_dropped : int
+        NaN points dropped from an unorganized cloud.
+    """
+
+    center: np.ndarray
+    normal: np.ndarray
+    radius: float
+    inliers: int
+    residual: float
+    n_input: int
+    circle_center: np.ndarray
+    coverage: float
+    plane_rms: float
+    n_face: int
+    n_dropped: int = 0
+
+
+class _Input(NamedTuple):
+    P: np.ndarray  # (H, W, 3) organized, or (n, 3) finite
+    organized: bool
+    n_input: int
+    n_dropped: int
+
+
+# -- input --------------------------------------------------------------------
+
+
+def _validate(points: np.ndarray) -> _Input:
+    try:
+        P = np.asarray(points)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"points: expected a numeric array, got {type(points).__name__}") from exc
+    if P.dtype.kind not in "fiu":
+        raise InputError(f"points: expected real numbers, got dtype {P.dtype}")
+    if P.dtype.kind != "f":
+        P = P.astype(np.float64)
+    if P.ndim == 3 and P.shape[2] == 3:
+        if P.shape[0] * P.shape[1] == 0:
+            raise InputError(f"points: the organized cloud is empty, shape {P.shape}")
+        return _Input(P, True, P.shape[0] * P.shape[1], 0)
+    if P.ndim == 2 and P.shape[1] == 3:
+        if len(P) == 0:
+            raise InputError("points: the cloud is empty")
+        if np.isinf(P).any():
+            raise InputError(f"points: {int(np.isinf(P).any(axis=1).sum())} points have infinite coordinates")
+        finite = ~np.isnan(P).any(axis=1)
+        n_dropped = int(len(P) - finite.sum())
+        if n_dropped == len(P):
+            raise InputError(f"points: all {len(P)} points are NaN")
+        return _Input(P[finite] if n_dropped else P, False, len(P), n_dropped)
+    raise InputError(f"points: expected an organized (H, W, 3) or an (n, 3) cloud, got shape {P.shape}")
+
+
+def _check_scale(P: np.ndarray, units: str = "m") -> None:
+    """Refuse a cloud whose distances from the camera are not plausible in metres."""
+    flat = P.reshape(-1, 3)
+    step = max(1, len(flat) // _SCALE_SAMPLE)
+    sample = flat[::step]
+    sample = sample[np.isfinite(sample).all(axis=1)]
+    if len(sample) == 0:
+        return
+    r = float(np.median(np.linalg.norm(sample, axis=1)))
+    lo, hi = _PLAUSIBLE_RANGE
+    if r > hi:
+        raise InputError(
+            f"points: the median distance from the camera is {r:.4g} m, expected {lo}-{hi} m; "
+            f"the data look like millimetres declared as {units!r} (use to_metres(points, 'mm'))"
+        )
+    if r < lo:
+        raise InputError(
+            f"points: the median distance from the camera is {r:.4g} m, expected {lo}-{hi} m; "
+            f"the data are not in the declared units {units!r} (metres given as millimetres?)"
+        )
+
+
+def to_metres(points: np.ndarray, units: str) -> np.ndarray:
+    """Convert a camera-frame cloud from ``units`` ("mm" or "m") to metres, checking the scale.
+
+    The floating dtype is kept (float32 stays float32); integers become float64.
+
+    Raises
+    ------
+    InputError
+        Unknown units, or data that do not look like the stated units (their
+        median distance from the camera would be outside 0.05-20 m).
+    """
+    scale = {"m": 1.0, "mm": 1e-3}.get(units)
+    if scale is None:
+        raise InputError(f"units: expected 'm' or 'mm', got {units!r}")
+    P = np.asarray(points)
+    if P.dtype.kind not in "fiu":
+        raise InputError(f"points: expected real numbers, got dtype {P.dtype}")
+    P = P.astype(P.dtype if P.dtype.kind == "f" else np.float64) * scale
+    _check_scale(P, units)
+    return P
+
+
+
+
+# -- fine pass ----------------------------------------------------------------
+
+
+class _Face(NamedTuple):
+    """The face plane fitted at full resolution."""
+
+    point: np.ndarray  # (3,) on the plane, camera frame, m
+    normal: np.ndarray  # (3,) unit
+    sigma: float  # robust noise of the face points along the normal, m
+    rms: float  # RMS distance of the face points to the plane, m
+    h: np.ndarray  # (n,) signed distance of every region point to the plane, m
+
+
+def _fit_face(P: np.ndarray, point: np.ndarray, normal: np.ndarray, params: DetectParams) -> _Face:
+    """Least-squares plane, trimmed from the coarse slab down to 3 sigma of the measured noise.
+
+    Points of a chamfer inside a wide slab would lower and tilt the plane.
+    """
+    slab = params.e_plane_coarse
+    for _ in range(4):
+        face = np.abs((P - point) @ normal) <= slab
+        if face.sum() < MIN_POINTS:
+            raise DetectionError("plane", f"only {int(face.sum())} points on the face plane")
+        point, normal, rms = fit_plane(P[face])
+        h = (P - point) @ normal
+        sigma = 1.4826 * float(np.median(np.abs(h[face])))
+        slab = min(params.e_plane, max(3.0 * sigma, _SLAB_MIN))
+    return _Face(point, normal, sigma, rms, h)
+
+
+def _rim_image(h_img: np.ndarray, region: np.ndarray, sigma: float, e_plane: float) -> np.ndarray:
+    """Rim pixels (bool image) of the face in an image of heights above the face plane (NaN: no point).
+
+    Only pixels of ``region`` (bool image) can be face. A pixel is face when
+    most of its 5 x 5 neighbourhood lies within a slab of about the noise
+    sigma around the plane; a missing return counts as not face. A single
+    noisy pixel cannot carry the rim outward, and the edge sits at the same
+    place whether a chamfer beyond it is lit (seen just below the plane) or
+    in shadow (missing).
+    """
+    with np.errstate(invalid="ignore"):
+        near = (h_img <= min(e_plane, max(_VOTE_SIGMAS * sigma, _SLAB_MIN))) & region
+        near &= h_img >= -min(e_plane, max(_VOTE_BELOW * sigma, _SLAB_MIN))
+        # Fraction of face pixels inside the slab: the vote expects that many.
+        wide = region & (np.abs(h_img) <= e_plane)
+    p_near = near.sum() / max(int(wide.sum()), 1)
+    size = 2 * _VOTE_HALF + 1
+    votes = ndimage.correlate(near.astype(np.uint8), np.ones((size, size), dtype=np.uint8), mode="constant")
+    face = (votes >= 0.5 * p_near * size * size) & region & np.isfinite(h_img)
+    filled = ndimage.binary_fill_holes(face, structure=CROSS)
+    return filled & ~ndimage.binary_erosion(filled, structure=CROSS) & face
+
+
+def _region(
+    inp: _Input, cells: np.ndarray | None, stride: int, cand: CoarseCandidate, flange: FlangeModel, params: DetectParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """Full-resolution points near the coarse circle.
+
+    Returns the points as an image window (h, w, 3) float64 (organized) or
+    (n, 1, 3) (unorganized), and the mask (h, w) of those near the circle.
+    """
+    if cells is not None:
+        rc = cells[cand.idx] * stride
+        lo, hi = rc.min(axis=0), rc.max(axis=0)
+        margin = 2 * stride + (hi - lo) // 5
+        lo = np.maximum(lo - margin, 0)
+        hi = np.minimum(hi + margin + 1, inp.P.shape[:2])
+        window = inp.P[lo[0] : hi[0], lo[1] : hi[1]].astype(np.float64)
+    else:
+        window = inp.P.astype(np.float64, copy=False)[:, None, :]
+    c0, n0 = cand.circle.centre, cand.circle.normal
+    reach = cand.circle.radius + max(2 * cand.spacing, 0.1 * flange.circle_radius)
+    with np.errstate(invalid="ignore"):
+        d = window - c0
+        h = d @ n0
+        rho2 = np.einsum("...i,...i->...", d, d) - h * h
+        mask = (np.abs(h) < 2 * params.e_plane_coarse) & (rho2 < reach**2)
+    return window, mask
+
+
+def _fine(
+    inp: _Input,
+    cells: np.ndarray | None,
+    stride: int,
+    cand: CoarseCandidate,
+    flange: FlangeModel,
+    params: DetectParams,
+    rng: np.random.Generator,
+) -> FlangeDetection:
+    """Face plane, rim, RANSAC and least squares at full resolution around one coarse candidate."""
+    R = flange.circle_radius
+    window, mask = _region(inp, cells, stride, cand, flange, params)
+    P = window[mask]
+    if len(P) < MIN_POINTS:
+        raise DetectionError("plane", f"only {len(P)} points near the coarse circle")
+    face = _fit_face(P, cand.circle.centre, cand.circle.normal, params)
+    on_face = np.abs(face.h) <= params.e_plane
+    F = P[on_face]
+    if cells is not None:
+        # Heights of every pixel of the window, so that the medians see what
+        # lies beyond the face (a shoulder, a wall) and skip only missing returns.
+        up = face.normal if face.normal @ face.point < 0 else -face.normal  # toward the camera
+        with np.errstate(invalid="ignore"):
+            h_img = (window - face.point) @ up
+        rim = _rim_image(h_img, mask, face.sigma, params.e_plane)[mask]
+    else:
+        near = np.abs(face.h) <= min(params.e_plane, max(_RIM_SIGMAS * face.sigma, _SLAB_MIN))
+        cell = 1.5 * spacing(P[near])
+        rim = np.zeros(len(P), dtype=bool)
+        rim[np.flatnonzero(near)[outer_edge(raster_cells(P[near], face.normal, cell))]] = True
+    Q = project(P[rim], face.point, face.normal)
+    fit = ransac_circle(Q, R, params.e_r, params.e_d, params.k_max, rng, face.normal, _FINE_NORMAL_ANGLE)
+    if fit is None:
+        raise DetectionError("circle", f"no rim circle of radius {R * 1e3:.2f} +- {params.e_r * 1e3:.2f} mm in {len(Q)} rim points")
+    fit = refine_circle(Q, fit, face.point, face.normal, params.e_d)
+    n_in = int(fit.inliers.sum())
+    coverage = angular_coverage(Q[fit.inliers], fit.centre, face.normal, COVERAGE_BINS)
+    if abs(fit.radius - R) > params.e_r:
+        raise DetectionError(
+            "refine", f"fitted radius {fit.radius * 1e3:.3f} mm is outside {R * 1e3:.2f} +- {params.e_r * 1e3:.2f} mm"
+        )
+    if n_in < params.min_inliers or coverage < params.min_coverage:
+        raise DetectionError(
+            "refine",
+            f"the circle is supported by {n_in} rim points over {coverage:.0%} of its circumference "
+            f"(need {params.min_inliers} and {params.min_coverage:.0%})",
+        )
+    if not hollow(F, fit.centre, face.normal, fit.radius, flange, params.e_plane, params.hollow_fraction):
+        raise DetectionError("refine", "the centring bore is not empty: a solid disc, not a flange face")
+    # Height of the circle's plane from the face points just inside the rim:
+    # with a slab thicker than a step (ToF on ur10e-wrist) the plane averages both.
+    d = F - fit.centre
+    h = d @ face.normal
+    rho = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) - h * h, 0.0))
+    band = (rho > 0.85 * fit.radius) & (rho < fit.radius)
+    circle_center = fit.centre + (float(np.mean(h[band])) if band.any() else 0.0) * face.normal
+    normal = -face.normal if face.normal @ circle_center > 0 else face.normal  # toward the camera
+    return FlangeDetection(
+        center=circle_center - flange.circle_z * normal,
+        normal=normal,
+        radius=fit.radius,
+        inliers=n_in,
+        residual=fit.residual,
+        n_input=inp.n_input,
+        circle_center=circle_center,
+        coverage=coverage,
+        plane_rms=face.rms,
+        n_face=len(F),
+        n_dropped=inp.n_dropped,
+    )
+
+
+# -- entry point ----------------------------------------------------------------
+
+
+def _coarse_cloud(inp: _Input, params: DetectParams, roi: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """Thinned, cropped points (m, 3) float64, their cells in the thinned image (or None), and the stride."""
+    if inp.organized:
+        H, W = inp.P.shape[:2]
+        stride = max(1, math.ceil(math.sqrt(H * W / params.coarse_points)))
+        G = inp.P[::stride, ::stride]
+        mask = crop_mask(G, params, roi)
+        return G[mask].astype(np.float64), np.argwhere(mask), stride
+    P = inp.P[crop_mask(inp.P, params, roi)]
+    if len(P) > params.coarse_points:
+        rng = np.random.default_rng(params.seed)
+        P = P[np.sort(rng.choice(len(P), params.coarse_points, replace=False))]
+    return P.astype(np.float64), None, 1
+
+
+def detect_flange(
+    points: np.ndarray, flange: FlangeModel, params: DetectParams | None = None, roi_center: np.ndarray | None = None
+) -> FlangeDetection:
+    """Find the flange in a cloud and return its centre and normal in the camera frame.
+
+    Parameters
+    ----------
+    points : numpy.ndarray
+        (H, W, 3) organized cloud (non-finite: no return) or (n, 3) points
+        (NaN rows dropped and counted), camera frame, metres.
+    flange : FlangeModel
+        The flange to look for; its ``circle_radius`` is the R of the fit.
+    params : DetectParams or None
+        Tolerances and crop; ``DetectParams()`` (the paper's values) when None.
+    roi_center : numpy.ndarray or None
+        (3,) predicted flange centre in the camera frame, m (from the current
+        calibration estimate); only points within ``params.roi_radius`` of it
+        are searched.
+
+    Returns
+    -------
+    FlangeDetection
+
+    Raises
+    ------
+    InputError
+        Malformed input: shape, dtype, empty, infinite values, all NaN, or a
+        scale that is not metres.
+    DetectionError
+        No flange found; ``stage`` is crop, cluster, circle, plane or refine.
+    """
+    params = params or DetectParams()
+    if not isinstance(flange, FlangeModel):
+        raise InputError(f"flange: expected a FlangeModel, got {type(flange).__name__}")
+    inp = _validate(points)
+    _check_scale(inp.P)
+    roi = None
+    if roi_center is not None:
+        roi = np.asarray(roi_center, dtype=np.float64)
+        if roi.shape != (3,) or not np.isfinite(roi).all():
+            raise InputError(f"roi_center: expected 3 finite numbers (camera frame, m), got {roi_center!r}")
+    P, cells, stride = _coarse_cloud(inp, params, roi)
+    if len(P) < MIN_POINTS:
+        raise DetectionError("crop", f"{len(P)} points left after the crop (box {params.crop_min}-{params.crop_max}, roi {roi})")
+    rng = np.random.default_rng(params.seed)
+    log = SearchLog()
+    failures: list[DetectionError] = []
+    for cand in coarse_candidates(P, cells, flange, params, rng, log):
+        try:
+            return _fine(inp, cells, stride, cand, flange, params, rng)
+        except DetectionError as exc:
+            failures.append(exc)
+            if len(failures) >= _MAX_CANDIDATES:
+                break
+    if failures:
+        raise failures[0]
+    D = 2 * flange.circle_radius
+    if log.clusters == 0:
+        seen = ", ".join(f"{e * 1e3:.0f}" for e in sorted(log.extents, reverse=True)[:8]) or "none"
+        raise DetectionError(
+            "cluster",
+            f"no planar cluster {params.min_extent * D * 1e3:.0f}-{(1 + params.size_tol) * D * 1e3:.0f} mm wide "
+            f"in {log.planes} planes after {log.background} background planes (widest seen, mm: {seen})",
+        )
+    raise DetectionError(
+        "circle",
+        f"none of {log.clusters} clusters has a hollow rim circle of radius {flange.circle_radius * 1e3:.2f} "
+        f"+- {params.e_r * 1e3:.2f} mm covering {params.min_coverage:.0%} of it",
+    )

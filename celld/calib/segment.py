@@ -1,0 +1,256 @@
+"""The coarse pass of flange detection: from a thinned scene to candidate flange circles.
+
+Steps 1-6 of :mod:`celld.calib.detect`, on a thinned copy of the cloud (tens
+of thousands of points, so Open3D stays fast):
+
+1. crop to the workspace box and the sphere around a predicted centre;
+2. segment the background planes (Open3D RANSAC), far wider than the
+   flange, and remove them whole;
+3. statistical outlier filter (Open3D) on what is left;
+4. plane segmentation (Open3D RANSAC), plane after plane;
+5. clustering of each plane (Open3D DBSCAN), keeping the clusters whose
+   extent lies between ``min_extent`` and ``1 + size_tol`` flange diameters
+   (the paper's size constraint, section 2.1.4);
+6. the rim of each such cluster, a circle RANSAC with the radius check on
+   it (tolerances widened by the coarse point spacing), and the checks:
+   coverage of the circumference and an empty centring bore.
+
+:func:`coarse_candidates` yields the candidates one by one as the planes are
+segmented, so the caller can stop at the first one its fine pass verifies.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Iterator, NamedTuple
+
+import numpy as np
+import open3d as o3d
+from scipy import ndimage
+
+from celld.calib.circle import CircleFit, angular_coverage, fit_plane, plane_basis, ransac_circle
+from celld.calib.flange import FlangeModel
+
+if TYPE_CHECKING:
+    from celld.calib.detect import DetectParams
+
+# Fewest points a plane or a cluster needs to be considered.
+MIN_POINTS = 12
+# A plane wider than this many flange diameters is background (table, floor).
+_BACKGROUND_EXTENT = 3.0
+# Most background planes removed before the outlier filter.
+_MAX_BACKGROUND = 3
+# In-plane directions over which the extent (largest width) of a cluster is taken.
+_EXTENT_DIRECTIONS = 8
+# Plane RANSAC: iterations and the probability at which Open3D stops early.
+PLANE_ITERATIONS = 300
+PLANE_PROBABILITY = 0.9999
+# DBSCAN: fewest neighbours of a core point.
+_DBSCAN_MIN_POINTS = 4
+# The bore must be empty inside this fraction of its radius.
+_HOLLOW_RADIUS = 0.8
+# Angular sectors of the coverage check.
+COVERAGE_BINS = 36
+# Largest angle between a coarse circle's normal and its cluster's plane.
+_COARSE_NORMAL_ANGLE = math.radians(10)
+# 4-connected structuring element of the occupancy grids.
+CROSS = ndimage.generate_binary_structure(2, 1)
+
+
+class CoarseCandidate(NamedTuple):
+    """A cluster of the thinned cloud with a verified rim circle."""
+
+    idx: np.ndarray  # (k,) indices into the coarse points
+    circle: CircleFit  # in the camera frame
+    coverage: float
+    spacing: float  # median point spacing of the cluster, m
+
+
+@dataclass
+class SearchLog:
+    """What the coarse pass saw, for the error message when nothing is found."""
+
+    background: int = 0
+    planes: int = 0
+    extents: list[float] = field(default_factory=list)
+    clusters: int = 0
+
+
+def crop_mask(P: np.ndarray, params: DetectParams, roi_center: np.ndarray | None) -> np.ndarray:
+    """Mask (...,) of the finite points of P (..., 3) inside the crop box and the ROI sphere."""
+    mask = np.isfinite(P).all(axis=-1)
+    with np.errstate(invalid="ignore"):
+        if params.crop_min is not None and params.crop_max is not None:
+            mask &= np.all((P >= np.asarray(params.crop_min)) & (P <= np.asarray(params.crop_max)), axis=-1)
+        if roi_center is not None:
+            mask &= np.sum((P - roi_center) ** 2, axis=-1) <= params.roi_radius**2
+    return mask
+
+
+def pcd(P: np.ndarray) -> o3d.geometry.PointCloud:
+    """An Open3D cloud of P (n, 3)."""
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(P, dtype=np.float64)))
+
+
+def segment_plane(P: np.ndarray, distance: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Open3D RANSAC plane of P (n, 3): (unit normal (3,), inlier indices)."""
+    o3d.utility.random.seed(seed)
+    model, inliers = pcd(P).segment_plane(distance, 3, PLANE_ITERATIONS, PLANE_PROBABILITY)
+    normal = np.asarray(model[:3], dtype=np.float64)
+    return normal / np.linalg.norm(normal), np.asarray(inliers, dtype=np.int64)
+
+
+def extent(P: np.ndarray, normal: np.ndarray) -> float:
+    """Largest width of points P (n, 3) within the plane normal to ``normal``, m."""
+    E = plane_basis(normal)
+    angles = np.pi * np.arange(_EXTENT_DIRECTIONS) / _EXTENT_DIRECTIONS
+    D = np.cos(angles)[:, None] * E[0] + np.sin(angles)[:, None] * E[1]
+    proj = P @ D.T
+    return float(np.max(proj.max(axis=0) - proj.min(axis=0)))
+
+
+def spacing(P: np.ndarray) -> float:
+    """Median nearest-neighbour distance of points P (n, 3), m (Open3D KD-tree)."""
+    return float(np.median(np.asarray(pcd(P).compute_nearest_neighbor_distance())))
+
+
+def project(P: np.ndarray, point: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Points P (n, 3) projected along ``normal`` onto the plane through ``point``."""
+    return P - np.outer((P - point) @ normal, normal)
+
+
+def outer_edge(cells: np.ndarray) -> np.ndarray:
+    """Mask (n,) of the cells (n, 2) on the outer edge of the region they cover.
+
+    The cells form an occupancy grid; its holes (the bore, the threaded
+    holes, missing returns) are filled, so only the outer edge and the cuts
+    of occluders remain. A cell is on the edge when it has an empty 4-neighbour.
+    """
+    c = cells - cells.min(axis=0) + 1
+    grid = np.zeros(tuple(c.max(axis=0) + 2), dtype=bool)
+    grid[c[:, 0], c[:, 1]] = True
+    grid = ndimage.binary_fill_holes(grid, structure=CROSS)
+    inner = ndimage.binary_erosion(grid, structure=CROSS)
+    return ~inner[c[:, 0], c[:, 1]]
+
+
+def raster_cells(P: np.ndarray, normal: np.ndarray, cell: float) -> np.ndarray:
+    """Integer cells (n, 2) of points P (n, 3) on a grid of ``cell`` metres in their plane."""
+    return np.floor((P @ plane_basis(normal).T) / cell).astype(np.int64)
+
+
+def hollow(
+    face: np.ndarray, centre: np.ndarray, normal: np.ndarray, radius: float, flange: FlangeModel, slab: float, fraction: float
+) -> bool:
+    """True when the centring bore holds (almost) no face points, or the slab is too thick to tell.
+
+    The face density is measured on the annulus between the bore and the
+    rim; the disc inside 0.8 of the bore radius may hold at most
+    ``fraction`` of what that density predicts. With a plane slab thicker
+    than half the bore depth the bore bottom counts as face and the check is
+    skipped.
+    """
+    if slab >= flange.bore_depth / 2:
+        return True
+    r_bore = flange.bore_diameter / 2
+    d = face - centre
+    h = d @ normal
+    rho = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) - h * h, 0.0))
+    r_in, r_lo, r_hi = _HOLLOW_RADIUS * r_bore, 1.2 * r_bore, 0.9 * radius
+    if r_hi <= r_lo:
+        return True
+    density = np.count_nonzero((rho > r_lo) & (rho < r_hi)) / (math.pi * (r_hi**2 - r_lo**2))
+    return bool(np.count_nonzero(rho < r_in) <= fraction * density * math.pi * r_in**2)
+
+
+def _coarse_circle(
+    P: np.ndarray, cells: np.ndarray | None, idx: np.ndarray, flange: FlangeModel, params: DetectParams, rng: np.random.Generator
+) -> CoarseCandidate | None:
+    """Step 6 on one cluster: its rim circle at the coarse spacing, or None."""
+    Q = P[idx]
+    point, normal, _ = fit_plane(Q)
+    step = spacing(Q)
+    rim = outer_edge(raster_cells(Q, normal, 1.5 * step) if cells is None else cells[idx])
+    R = project(Q[rim], point, normal)
+    # The rim of a thinned cloud lies up to one spacing inside the true edge.
+    e_r, e_d = params.e_r + step, max(params.e_d, 0.75 * step)
+    fit = ransac_circle(R, flange.circle_radius, e_r, e_d, params.k_max, rng, normal, _COARSE_NORMAL_ANGLE)
+    if fit is None or fit.inliers.sum() < MIN_POINTS:
+        return None
+    coverage = angular_coverage(R[fit.inliers], fit.centre, normal, COVERAGE_BINS)
+    if coverage < params.min_coverage:
+        return None
+    if not hollow(Q, fit.centre, normal, fit.radius, flange, params.e_plane_coarse, params.hollow_fraction):
+        return None
+    return CoarseCandidate(idx, fit, coverage, step)
+
+
+def coarse_candidates(
+    P: np.ndarray,
+    cells: np.ndarray | None,
+    flange: FlangeModel,
+    params: DetectParams,
+    rng: np.random.Generator,
+    log: SearchLog,
+) -> Iterator[CoarseCandidate]:
+    """Yield flange candidates among the thinned points P (m, 3), camera frame, m.
+
+    Parameters
+    ----------
+    P : numpy.ndarray
+        (m, 3) thinned, cropped points.
+    cells : numpy.ndarray or None
+        (m, 2) their (row, column) in the thinned image of an organized
+        cloud; None for an unorganized cloud (the rim is then found on a raster).
+    flange, params, rng
+        The model, the parameters and the RANSAC sampler.
+    log : SearchLog
+        Filled in as the search goes.
+    """
+    diameter = 2 * flange.circle_radius
+    lo, hi = params.min_extent * diameter, (1 + params.size_tol) * diameter
+    remaining = np.arange(len(P))
+    pending = None  # the first plane that is not background, found before the filter
+    for i in range(_MAX_BACKGROUND):
+        if len(remaining) < MIN_POINTS:
+            return
+        normal, inl = segment_plane(P[remaining], params.e_plane_coarse, params.seed + i)
+        inl = remaining[inl]
+        if extent(P[inl], normal) <= _BACKGROUND_EXTENT * diameter:
+            pending = (normal, inl)
+            break
+        remaining = np.setdiff1d(remaining, inl, assume_unique=True)
+        log.background += 1
+    if len(remaining) < MIN_POINTS:
+        return
+    _, keep = pcd(P[remaining]).remove_statistical_outlier(params.outlier_neighbours, params.outlier_std)
+    remaining = remaining[np.asarray(keep, dtype=np.int64)]
+    for i in range(params.max_planes):
+        if pending is not None:
+            normal, inl = pending
+            inl = np.intersect1d(inl, remaining, assume_unique=True)
+            pending = None
+        elif len(remaining) >= MIN_POINTS:
+            normal, inl = segment_plane(P[remaining], params.e_plane_coarse, params.seed + _MAX_BACKGROUND + i)
+            inl = remaining[inl]
+        else:
+            return
+        remaining = np.setdiff1d(remaining, inl, assume_unique=True)
+        log.planes += 1
+        if len(inl) < MIN_POINTS:
+            continue
+        eps = params.cluster_eps * spacing(P[inl])
+        labels = np.asarray(pcd(P[inl]).cluster_dbscan(eps, _DBSCAN_MIN_POINTS))
+        for label in range(int(labels.max(initial=-1)) + 1):
+            member = inl[labels == label]
+            if len(member) < MIN_POINTS:
+                continue
+            width = extent(P[member], normal)
+            log.extents.append(width)
+            if not lo <= width <= hi:
+                continue
+            log.clusters += 1
+            cand = _coarse_circle(P, cells, member, flange, params, rng)
+            if cand is not None:
+                yield cand
