@@ -64,7 +64,7 @@ from celld.config import MotionLimits, TactileConfig  # noqa: E402
 from celld.motion.commands import start_servo  # noqa: E402
 from celld.motion.core import Action, CoreParams, CycleInput, Mode, MotionCore  # noqa: E402
 from celld.motion.limits import CartesianLimits, sequence_peaks  # noqa: E402
-from celld.motion.servo import NAME, Algorithm2Servo, Phase, algorithm2_plan, make_algorithm2, prepare_plan  # noqa: E402
+from celld.motion.servo import NAME, Algorithm2Servo, algorithm2_plan, make_algorithm2, prepare_plan  # noqa: E402
 from celld.motion.types import ControlStatus, RobotState  # noqa: E402
 from celld.sim.srm import SimSrm, SrmSimParams, Wall, _nearest_on_polyline  # noqa: E402
 from celld.tactile.aruco import TagDetector  # noqa: E402
