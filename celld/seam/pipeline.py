@@ -13,9 +13,14 @@ the base with the hand-eye calibration). Steps:
 3. Check the scan shows the seam: every seam station must have scan points
    near it (else the scan is partial), and the joint walls the camera should
    see must be there (else it is a different part or a wrong fit).
-4. Measure the joint model-free (:mod:`celld.seam.groove`) and move the seam
-   to the measured walls, when they were measured along the seam; refuse when
-   the walls contradict the model.
+4. Measure the joint model-free (:mod:`celld.seam.groove`): the two walls'
+   bisector gives the joint's position across the seam. Where the walls were
+   measured along the seam and differ from the registered model by more than
+   their own uncertainty, the seam moves across onto them (its depth stays
+   the registration's: two walls cannot tell a wider gap from a deeper
+   groove); the walls contradicting the model is a refusal. The joint's two
+   ends in the scan slide the seam along itself (registration is weak along
+   a seam whose end faces the camera sees at grazing angles).
 5. Resample at a fixed spacing, order from start to end, and attach tangents,
    normals and quality figures.
 
@@ -47,11 +52,12 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from celld import se3
+from celld.config import TableReader
 from celld.errors import GrooveError, InputError, RegistrationError, ScanError
 from celld.log import get_logger
 from celld.seam.groove import CONTRADICTS, GrooveFit, GrooveParams, fit_groove, lateral_offsets, smooth_offsets
 from celld.seam.register import PreparedModel, RegistrationParams, prepare_model, register
-from celld.seam.workpiece import LEFT_WALL, NO_WALL, RIGHT_WALL, Workpiece, project_to_polyline, resample_polyline
+from celld.seam.workpiece import NO_WALL, Projection, Workpiece, project_to_polyline, resample_polyline
 
 log = get_logger(__name__)
 
@@ -146,6 +152,24 @@ class SeamParams:
             raise InputError(f"registration.attempts: expected at least 1, got {self.registration.attempts}")
         if not all(a < b for a, b in zip(self.roi_min, self.roi_max)):
             raise InputError(f"roi_min {self.roi_min} must be below roi_max {self.roi_max} on every axis")
+
+    @classmethod
+    def read(cls, r: TableReader, scanner_model: str = "phoxi-m") -> SeamParams:
+        """Read a ``[seam]`` config table (celld.config conventions): the
+        scanner's preset with ``seam_source``, ``spacing_mm``, ``finger_wall``,
+        ``table_z`` (omit to measure the table), ``max_model_deviation_mm``
+        and ``seed`` over it."""
+        base = cls.for_scanner(r.str("preset", scanner_model, choices=tuple(_PRESETS)))
+        table_z = r.float("table_z", 0.0, lo=-2.0, hi=2.0) if r.has("table_z") else None
+        return replace(
+            base,
+            seam_source=r.str("seam_source", base.seam_source, choices=SEAM_SOURCES),
+            spacing=r.float("spacing_mm", base.spacing * 1e3, lo=0.1, hi=50.0, scale=1e-3),
+            finger_wall=r.str("finger_wall", base.finger_wall, choices=("left", "right")),
+            table_z=table_z,
+            max_model_deviation=r.float("max_model_deviation_mm", base.max_model_deviation * 1e3, lo=0.0, hi=50.0, open_lo=True, scale=1e-3),
+            registration=replace(base.registration, seed=r.int("seed", base.registration.seed, lo=0)),
+        )
 
     @classmethod
     def for_scanner(cls, model: str, **overrides: Any) -> SeamParams:
@@ -630,7 +654,7 @@ def _seam_points(
     return stations + Dst, "groove", "", gq
 
 
-def _along_shift(P: Array, proj: Any, near: NDArray[np.bool_], wp: Workpiece, params: SeamParams) -> float:
+def _along_shift(P: Array, proj: Projection, near: NDArray[np.bool_], wp: Workpiece, params: SeamParams) -> float:
     """How far along the seam the joint's two ends in the scan lie from the model's.
 
     Registration fixes the part across the seam well but along it only through

@@ -198,3 +198,17 @@ def test_cli_prints_one_json_object(vgroove_scan, tmp_path, capsys) -> None:
     code = celld_main(["seam", "find", str(tmp_path / "mm.npy"), "--cloud-units", "mm", "--model", "v-groove",
                        "--T-base-cam", str(tmp_path / "T_base_cam.json"), "--nominal", str(tmp_path / "nominal.json"), "--json"])
     assert code == 0 and json.loads(capsys.readouterr().out)["ok"] is True
+
+
+def test_seam_config_table_is_read_and_checked() -> None:
+    from celld.config import TableReader
+    from celld.errors import ConfigError
+
+    r = TableReader({"preset": "azure-kinect", "spacing_mm": 2, "seam_source": "groove", "finger_wall": "right"}, "cell.toml", "seam")
+    params = SeamParams.read(r)
+    r.done()
+    assert params.spacing == pytest.approx(0.002)
+    assert (params.seam_source, params.finger_wall, params.table_z) == ("groove", "right", None)
+    assert params.registration.voxel == SeamParams.for_scanner("azure-kinect").registration.voxel
+    with pytest.raises(ConfigError, match="seam.seam_source"):
+        SeamParams.read(TableReader({"seam_source": "cad"}, "cell.toml", "seam"))
