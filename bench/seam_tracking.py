@@ -37,7 +37,7 @@ Targets: lateral RMS <= 0.2 mm and max <= 0.5 mm on all three seams; limits
 never exceeded; detection median <= 3 ms per 640 x 480 frame; deformation
 error <= 0.02 mm; frame-to-command latency <= 10 ms.
 
-``--quick`` runs shorter seams (60, 50 and 91 mm); ``--json`` prints one
+``--quick`` runs shorter seams (50, 45 and 81 mm); ``--json`` prints one
 JSON object last. Full runs write ``bench/out/seam_tracking/<mode>/``
 (results.json, results.md and a plot per seam).
 """
@@ -85,18 +85,18 @@ TARGETS = {"lateral_rms_mm": 0.2, "lateral_max_mm": 0.5, "detect_median_ms": 3.0
 
 def seam(kind: str, quick: bool, step: float = 0.0002) -> np.ndarray:
     """The true seam wall, (n, 2) plane coordinates from the origin along +x."""
-    straight = 0.06 if quick else 0.20
+    straight = 0.05 if quick else 0.20
     if kind == "straight":
         s = np.arange(0.0, straight + 1e-12, step)
         return np.column_stack([s, np.zeros_like(s)])
     if kind == "arc":
         # Radius 100 mm turning left (the tip rides the outside of the wall).
         R = 0.1
-        a = np.arange(0.0, (0.5 if quick else 1.6) + 1e-12, step / R)
+        a = np.arange(0.0, (0.45 if quick else 1.6) + 1e-12, step / R)
         return np.column_stack([R * np.sin(a), R * (1 - np.cos(a))])
     if kind == "corner":
         # 90 degrees to the right with a 20 mm fillet (the tip rides the inside).
-        L, R = (0.03 if quick else 0.08), 0.02
+        L, R = (0.025 if quick else 0.08), 0.02
         s1 = np.arange(0.0, L, step)
         a = np.arange(0.0, math.pi / 2, step / R)
         s2 = np.arange(0.0, L + 1e-12, step)
