@@ -126,7 +126,7 @@ class SeamParams:
     max_range: float = 4.0
     min_points: int = 500
     label_distance: float = 0.002
-    view_cos: float = 0.5
+    view_cos: float = 0.34  # cos 70 deg: the scanners return up to 75-80 deg of incidence
     support_distance: float = 0.0015
     min_coverage: float = 0.95
     min_wall_support: float = 0.5
