@@ -190,9 +190,10 @@ def _put(m: dict[str, Any], key: str, value: Any) -> None:
 class ProgressBar:
     """Progress events of one job drawn on a terminal, or as lines when not a terminal."""
 
-    def __init__(self, stream: TextIO = sys.stderr) -> None:
-        self.stream = stream
-        self.tty = stream.isatty()
+    def __init__(self, stream: TextIO | None = None) -> None:
+        # The stderr of now, not of import time (it may have been replaced since).
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = self.stream.isatty()
         self._last: tuple[str, int] | None = None
         self._drawn = False
 
