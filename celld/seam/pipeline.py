@@ -361,12 +361,14 @@ def crop_cloud(cloud_cam: ArrayLike, T_base_cam: Array, params: SeamParams) -> A
     Q = P.reshape(-1, 3)
     if not np.issubdtype(Q.dtype, np.floating):
         Q = Q.astype(np.float32)
-    finite = np.isfinite(Q).all(axis=1)
-    n_finite = int(np.count_nonzero(finite))
-    if n_finite == 0:
-        raise ScanError("the scan is empty: no valid point in the cloud")
-    rng_ = np.linalg.norm(Q[finite][:: max(1, n_finite // 20000)], axis=1)
-    median = float(np.median(rng_))
+    # Units and the table from a thinned copy: millions of points say no more.
+    thin = Q[:: max(1, len(Q) // 50000)]
+    thin = thin[np.isfinite(thin).all(axis=1)]
+    if len(thin) == 0:
+        thin = Q[np.isfinite(Q).all(axis=1)]
+        if len(thin) == 0:
+            raise ScanError("the scan is empty: no valid point in the cloud")
+    median = float(np.median(np.linalg.norm(thin, axis=1)))
     if median > params.max_range:
         raise ScanError(
             f"cloud ranges have a median of {median:.4g} m, beyond the scanner's {params.max_range} m: "
@@ -377,7 +379,7 @@ def crop_cloud(cloud_cam: ArrayLike, T_base_cam: Array, params: SeamParams) -> A
         raise ScanError(f"cloud ranges have a median of {median * 1e3:.3g} mm: expected metres", {"median_range": median})
     # Height above the table, as one dot product per point in the camera frame
     # (cheap on millions of points); only the survivors go to the base frame.
-    n_base, d_base = _table_plane(Q, T_base_cam, params)
+    n_base, d_base = _table_plane(thin, T_base_cam, params)
     n_cam = T_base_cam[:3, :3].T @ n_base
     offset = float(n_base @ T_base_cam[:3, 3]) - d_base
     with np.errstate(invalid="ignore"):
@@ -400,16 +402,16 @@ def crop_cloud(cloud_cam: ArrayLike, T_base_cam: Array, params: SeamParams) -> A
     return P_base
 
 
-def _table_plane(Q: NDArray, T_base_cam: Array, params: SeamParams) -> tuple[Array, float]:
+def _table_plane(thin_cam: NDArray, T_base_cam: Array, params: SeamParams) -> tuple[Array, float]:
     """The table plane ``n . p = d`` in the base frame (n up), fixed or measured.
 
-    Measured on a thinned copy of the cloud in the region of interest: the
-    largest plane, which must be within 10 degrees of horizontal.
+    Measured on a thinned copy of the cloud (finite points, camera frame) in
+    the region of interest: the largest plane, which must be within 10
+    degrees of horizontal.
     """
     if params.table_z is not None:
         return np.array([0.0, 0.0, 1.0]), float(params.table_z)
-    finite = Q[np.isfinite(Q[:, 2])]
-    thin = se3.apply(T_base_cam, finite[:: max(1, len(finite) // 40000)])
+    thin = se3.apply(T_base_cam, thin_cam)
     thin = thin[np.all((thin >= params.roi_min) & (thin <= params.roi_max), axis=1)]
     if len(thin) < 100:
         raise ScanError(f"no table in the region of interest to measure ({len(thin)} points): give table_z")
@@ -479,12 +481,16 @@ def find_seam(
     band_out = wp.wall_band[1]
     stations, spacing = resample_polyline(wp.seam, params.spacing)
     P_obj = se3.apply(T_obj_base, P_base)
+    # Exact projection only for points the stations' k-d tree finds near the seam.
+    reach = band_out + 0.005
+    d_st, _ = cKDTree(stations).query(P_obj, distance_upper_bound=reach + spacing)
+    P_obj = P_obj[np.isfinite(d_st)]
     proj = project_to_polyline(P_obj, wp.seam)
-    near = np.linalg.norm(P_obj - proj.point, axis=1) <= band_out + 0.005
+    near = np.linalg.norm(P_obj - proj.point, axis=1) <= reach
     P_near = P_obj[near]
     figures = {"fitness": registration.fitness, "inlier_rmse": registration.inlier_rmse, "attempts": float(registration.attempts)}
 
-    coverage = _coverage(P_near, stations, band_out + 0.005)
+    coverage = _coverage(P_near, stations, reach)
     figures["coverage"] = coverage
     if coverage < params.min_coverage:
         raise ScanError(
