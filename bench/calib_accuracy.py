@@ -572,7 +572,8 @@ def _write_bench1(result: dict[str, Any], args: argparse.Namespace) -> None:
     x = np.array(result["sigmas_mm"])
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for ax, key, unit in ((axes[0], "t", "mm"), (axes[1], "r", "deg")):
-        for m, style in zip(("svd_all", "algorithm1", "algorithm1_eq21", "robust"), ("k--", "C1o-", "C2s-", "C0-")):
+        # The oracle (= all-points SVD here) last and dashed, on top of the default estimator it matches.
+        for m, style in zip(("algorithm1", "algorithm1_eq21", "robust", "svd_all"), ("C1o-", "C2s-", "C0-", "k--")):
             rows = [(e["sigma_mm"], e[m]) for e in result["table"] if e[m] is not None]
             xs = np.array([r[0] for r in rows])
             mean = np.array([r[1][f"{key}_mean_{unit}"] for r in rows])
