@@ -53,9 +53,13 @@ def random_pose(workpiece: Workpiece, rng: np.random.Generator, max_angle: float
     T_nom = nominal_pose(workpiece, yaw)
     R = Rotation.from_rotvec(axis * angle).as_matrix() @ T_nom[:3, :3]
     t = T_nom[:3, 3] + np.array([r * math.cos(phi), r * math.sin(phi), 0.0])
-    T = se3.transform_from(R, t)
-    lowest = float(se3.apply(T, workpiece.vertices)[:, 2].min())
-    T[2, 3] += TABLE_Z - lowest
+    return set_down(workpiece, se3.transform_from(R, t))
+
+
+def set_down(workpiece: Workpiece, T_base_obj: Array) -> Array:
+    """``T_base_obj`` moved up or down so the part's lowest point touches the table."""
+    T = np.array(T_base_obj, dtype=np.float64)
+    T[2, 3] += TABLE_Z - float(se3.apply(T, workpiece.vertices)[:, 2].min())
     return T
 
 

@@ -39,18 +39,19 @@ def _error(path, wp: Workpiece, T_true: np.ndarray) -> np.ndarray:
     return simscene.seam_error(path.points_base, truth)
 
 
-# The fillet's across-seam position rests on its web faces, which a camera
-# straight above sees at grazing angles: a few hundred points, at half
-# resolution fewer. Its bound is the torch budget, not the groove's 0.1 mm.
 @pytest.mark.slow
-@pytest.mark.parametrize(("name", "rms_bound"), [("v-groove", 1e-4), ("curved-groove", 1e-4), ("fillet-t", 5e-4)])
-def test_known_truth_scene_gives_the_seam_in_the_base_frame(name: str, rms_bound: float) -> None:
+@pytest.mark.parametrize("name", ["v-groove", "curved-groove", "fillet-t"])
+def test_known_truth_scene_gives_the_seam_in_the_base_frame(name: str) -> None:
     wp = example(name)
     T_true = _pose(wp, seed=11)
+    if name == "fillet-t":
+        # Tilted 35 degrees about its seam (toward the PA welding position), so
+        # the camera above sees the web face; lying flat, see the next test.
+        T_true = simscene.set_down(wp, T_true @ se3.from_xyz_rpy([0.0, 0.0, 0.0], [math.radians(-35.0), 0.0, 0.0]))
     path = find_seam(_scan(wp, T_true), wp, T_BASE_CAM, SeamParams(), T_base_obj_nominal=simscene.nominal_pose(wp))
     err = _error(path, wp, T_true)
-    assert math.sqrt(np.mean(err**2)) < rms_bound
-    assert err.max() < 2.0 * rms_bound + 0.3e-3
+    assert math.sqrt(np.mean(err**2)) < 1e-4
+    assert err.max() < 0.3e-3
     # Ordered from the model's start to its end, 1 mm apart.
     true_start, true_end = se3.apply(T_true, wp.seam[[0, -1]])
     assert np.linalg.norm(path.points_base[0] - true_start) < 2e-3
@@ -67,6 +68,16 @@ def test_known_truth_scene_gives_the_seam_in_the_base_frame(name: str, rms_bound
     q = path.quality
     assert q.fitness > 0.97 and q.coverage > 0.95
     assert q.source in ("groove", "model")
+
+
+@pytest.mark.slow
+def test_fillet_lying_flat_is_refused_not_guessed() -> None:
+    # Under a camera straight above, the web faces are seen at grazing angles
+    # by a few dozen points: the seam's sideways position is not fixed.
+    wp = example("fillet-t")
+    T_true = simscene.nominal_pose(wp)
+    with pytest.raises(ScanError, match="across"):
+        find_seam(_scan(wp, T_true), wp, T_BASE_CAM, SeamParams(), T_base_obj_nominal=T_true)
 
 
 def _bowed_v_groove(bow: float) -> Workpiece:
