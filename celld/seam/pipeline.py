@@ -214,6 +214,7 @@ class SeamQuality:
     inlier_rmse : RMS distance of those points, m
     attempts : RANSAC seeds tried
     coverage : share of seam stations with scan points near them
+    across_support : share of the points near the seam on faces facing across it
     wall_support : share of the wall samples the camera should see that it saw
     groove_coverage : share of stations where the groove was measured
     groove_windows_ok : share of groove windows with a good wall pair
@@ -240,6 +241,7 @@ class SeamQuality:
     inlier_rmse: float
     attempts: int
     coverage: float
+    across_support: float
     wall_support: float
     groove_coverage: float
     groove_windows_ok: float
@@ -493,37 +495,8 @@ def find_seam(
     P_near = P_obj[near]
     figures = {"fitness": registration.fitness, "inlier_rmse": registration.inlier_rmse, "attempts": float(registration.attempts)}
 
-    coverage = _coverage(P_near, stations, reach)
-    figures["coverage"] = coverage
-    if coverage < params.min_coverage:
-        raise ScanError(
-            f"partial scan: {coverage:.0%} of the seam has scan points near it, expected at least {params.min_coverage:.0%}",
-            figures,
-        )
-    across = _across_support(prepared, P_near, proj, near, params)
-    figures["across_support"] = across
-    if across < params.min_across_support:
-        raise ScanError(
-            f"the scan cannot place the seam across itself: {across:.1%} of the points near it lie on faces "
-            f"that face across the seam, expected at least {params.min_across_support:.0%} (those faces are "
-            "seen at grazing angles or not at all: tilt the part or the scanner)",
-            figures,
-        )
-    support, n_visible = _wall_support(prepared, P_near, se3.apply(T_obj_base, cam_base[None])[0], params)
-    figures["wall_support"] = support
-    if prepared.wall_points.size and n_visible < params.min_visible_wall:
-        raise ScanError(
-            "the joint is hidden from the scanner: the registered part covers its walls from the camera "
-            f"({n_visible} of {len(prepared.wall_points)} wall samples visible); turn the part or the scanner",
-            figures,
-        )
-    if math.isfinite(support) and support < params.min_wall_support:
-        raise RegistrationError(
-            f"the scan does not show the joint where the registered model has it: {support:.0%} of the wall "
-            f"surface facing the camera was seen, expected at least {params.min_wall_support:.0%} "
-            "(a different part, a wrong fit, or the joint in the projector's shadow)",
-            figures,
-        )
+    cam_obj = se3.apply(T_obj_base, cam_base[None])[0]
+    coverage, across, support = _check_seam_seen(prepared, P_near, proj, near, stations, reach, cam_obj, params, figures)
     points_obj, source, reason, gq = _seam_points(prepared, P_near, stations, params, figures)
     along = _along_shift(P_obj[near], proj, near, wp, params)
     if math.isfinite(along):
@@ -553,6 +526,7 @@ def find_seam(
         inlier_rmse=registration.inlier_rmse,
         attempts=registration.attempts,
         coverage=coverage,
+        across_support=across,
         wall_support=support,
         n_points=len(P_base),
         along_shift=along,
@@ -562,6 +536,57 @@ def find_seam(
     )
     log.debug("seam found", workpiece=wp.name, source=source, fitness=round(quality.fitness, 4), duration=round(quality.duration, 3))
     return SeamPath(points_base, tangents, normals, plane_normal, spacing, model_base, T_base_obj, quality)
+
+
+def _check_seam_seen(
+    prepared: PreparedWorkpiece,
+    P_near: Array,
+    proj: Projection,
+    near: NDArray[np.bool_],
+    stations: Array,
+    reach: float,
+    cam_obj: Array,
+    params: SeamParams,
+    figures: dict[str, float],
+) -> tuple[float, float, float]:
+    """Refuse a scan that does not show the seam well enough to place it.
+
+    Returns the coverage, across-support and wall-support figures; raises
+    ScanError (partial, not placeable sideways, joint hidden) or
+    RegistrationError (the joint is not where the registered model has it).
+    """
+    coverage = _coverage(P_near, stations, reach)
+    figures["coverage"] = coverage
+    if coverage < params.min_coverage:
+        raise ScanError(
+            f"partial scan: {coverage:.0%} of the seam has scan points near it, expected at least {params.min_coverage:.0%}",
+            figures,
+        )
+    across = _across_support(prepared, P_near, proj, near, params)
+    figures["across_support"] = across
+    if across < params.min_across_support:
+        raise ScanError(
+            f"the scan cannot place the seam across itself: {across:.1%} of the points near it lie on faces "
+            f"that face across the seam, expected at least {params.min_across_support:.0%} (those faces are "
+            "seen at grazing angles or not at all: tilt the part or the scanner)",
+            figures,
+        )
+    support, n_visible = _wall_support(prepared, P_near, cam_obj, params)
+    figures["wall_support"] = support
+    if prepared.wall_points.size and n_visible < params.min_visible_wall:
+        raise ScanError(
+            "the joint is hidden from the scanner: the registered part covers its walls from the camera "
+            f"({n_visible} of {len(prepared.wall_points)} wall samples visible); turn the part or the scanner",
+            figures,
+        )
+    if math.isfinite(support) and support < params.min_wall_support:
+        raise RegistrationError(
+            f"the scan does not show the joint where the registered model has it: {support:.0%} of the wall "
+            f"surface facing the camera was seen, expected at least {params.min_wall_support:.0%} "
+            "(a different part, a wrong fit, or the joint in the projector's shadow)",
+            figures,
+        )
+    return coverage, across, support
 
 
 def _coverage(P_near: Array, stations: Array, radius: float) -> float:
