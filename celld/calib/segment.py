@@ -44,8 +44,11 @@ _MAX_BACKGROUND = 3
 # In-plane directions over which the extent (largest width) of a cluster is taken.
 _EXTENT_DIRECTIONS = 8
 # Plane RANSAC: iterations and the probability at which Open3D stops early.
-PLANE_ITERATIONS = 300
+PLANE_ITERATIONS = 150
 PLANE_PROBABILITY = 0.9999
+# Coarse RANSAC draws at most this many triples: a flange rim is most of its
+# cluster's edge (found in tens of draws); anything else should be given up fast.
+_COARSE_K_MAX = 1000
 # DBSCAN: fewest neighbours of a core point.
 _DBSCAN_MIN_POINTS = 4
 # The bore must be empty inside this fraction of its radius.
@@ -175,7 +178,8 @@ def _coarse_circle(
     R = project(Q[rim], point, normal)
     # The rim of a thinned cloud lies up to one spacing inside the true edge.
     e_r, e_d = params.e_r + step, max(params.e_d, 0.75 * step)
-    fit = ransac_circle(R, flange.circle_radius, e_r, e_d, params.k_max, rng, normal, _COARSE_NORMAL_ANGLE)
+    k_max = min(params.k_max, _COARSE_K_MAX)
+    fit = ransac_circle(R, flange.circle_radius, e_r, e_d, k_max, rng, normal, _COARSE_NORMAL_ANGLE)
     if fit is None or fit.inliers.sum() < MIN_POINTS:
         return None
     coverage = angular_coverage(R[fit.inliers], fit.centre, normal, COVERAGE_BINS)
