@@ -107,7 +107,7 @@ class SimulatedScanner:
                 self._stats.failure(exc)
                 raise
             self._stats.success(cloud.stamp_ns, started)
-            return OrganizedCloud(points=cloud.points, stamp_ns=int(cloud.stamp_ns), labels=cloud.labels)
+            return cloud
 
     def info(self) -> dict[str, Any]:
         m = self._sim.model

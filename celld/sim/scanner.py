@@ -46,6 +46,7 @@ import open3d as o3d
 
 from celld import se3
 from celld.errors import InputError
+from celld.scanner.base import OrganizedCloud
 from celld.sim.scene import SceneObject, robot_scene
 
 __all__ = ["SCANNER_MODELS", "OrganizedCloud", "ScannerModel", "SceneObject", "SimScanner", "robot_scene", "scanner_model"]
@@ -178,32 +179,6 @@ def scanner_model(name: str) -> ScannerModel:
         raise InputError(f"unknown scanner model {name!r}; known: {', '.join(SCANNER_MODELS)}") from None
 
 
-@dataclass(frozen=True, eq=False)
-class OrganizedCloud:
-    """One capture: an organized cloud in the camera frame.
-
-    Attributes
-    ----------
-    points : numpy.ndarray
-        (H, W, 3) float32, camera frame, metres; NaN where there is no return.
-    stamp_ns : int
-        ``time.monotonic_ns()`` of the capture.
-    labels : numpy.ndarray or None
-        (H, W) int16 index of the scene object each pixel's ray hit first, -1
-        for none. Simulation truth for tests and benchmarks; nothing in the
-        calibration reads it.
-    """
-
-    points: np.ndarray
-    stamp_ns: int
-    labels: np.ndarray | None = None
-
-    def valid(self) -> np.ndarray:
-        """The (n, 3) finite points, row-major pixel order."""
-        P = self.points.reshape(-1, 3)
-        return P[np.isfinite(P[:, 2])]
-
-
 class SimScanner:
     """A scanner fixed at ``T_base_cam`` that ray casts scenes.
 
@@ -219,6 +194,10 @@ class SimScanner:
         Image scale in (0, 1]; 0.25 gives a 516 x 386 PhoXi for fast tests.
     clock : callable
         Source of the capture stamps, ``time.monotonic_ns`` by default.
+    roi_px : tuple of 4 int or None
+        Region of interest ``(row0, row1, col0, col1)`` of the (scaled) image:
+        only its pixels are cast, the rest of the full-size cloud is NaN, as
+        on a scanner with an ROI set. None for the whole image.
     """
 
     def __init__(
@@ -228,6 +207,7 @@ class SimScanner:
         seed: int = 0,
         resolution_scale: float = 1.0,
         clock: Callable[[], int] = time.monotonic_ns,
+        roi_px: tuple[int, int, int, int] | None = None,
     ) -> None:
         base = scanner_model(model) if isinstance(model, str) else model
         self.model = base.scaled(resolution_scale)
@@ -243,7 +223,15 @@ class SimScanner:
         D[..., 0] = u[None, :]
         D[..., 1] = v[:, None]
         D[..., 2] = 1.0
-        self._dirs = D.reshape(-1, 3)
+        self._all_dirs = D
+        self._cast = np.ones((m.height_px, m.width_px), dtype=bool)
+        if roi_px is not None:
+            r0, r1, c0, c1 = (int(x) for x in roi_px)
+            if not (0 <= r0 < r1 <= m.height_px and 0 <= c0 < c1 <= m.width_px):
+                raise InputError(f"roi_px: expected 0 <= row0 < row1 <= {m.height_px}, 0 <= col0 < col1 <= {m.width_px}, got {roi_px}")
+            self._cast[:] = False
+            self._cast[r0:r1, c0:c1] = True
+        self._dirs = D[self._cast]
         self._dir_norm = np.linalg.norm(self._dirs, axis=1)
         self._rays = o3d.core.Tensor(np.hstack([np.zeros_like(self._dirs), self._dirs]))
 
@@ -286,13 +274,16 @@ class SimScanner:
         dr = sigma * self._rng.standard_normal(len(idx), dtype=np.float32)
         if m.metal_bias:
             dr = dr + np.where(on_metal, np.float32(m.metal_bias), np.float32(0.0))
-        depth = np.full(m.width_px * m.height_px, np.nan, dtype=np.float32)
-        depth[idx] = tt + dr / dn
-        depth = depth.reshape(m.height_px, m.width_px)
+        cast = np.full(len(self._dirs), np.nan, dtype=np.float32)
+        cast[idx] = tt + dr / dn
+        depth = np.full((m.height_px, m.width_px), np.nan, dtype=np.float32)
+        depth[self._cast] = cast
         if m.flying_probability > 0.0:
             depth = self._flying_pixels(depth)
-        points = depth[..., None] * self._dirs.reshape(m.height_px, m.width_px, 3)
-        return OrganizedCloud(points=points, stamp_ns=int(stamp), labels=labels.reshape(m.height_px, m.width_px))
+        label_img = np.full((m.height_px, m.width_px), -1, dtype=np.int16)
+        label_img[self._cast] = labels
+        points = depth[..., None] * self._all_dirs
+        return OrganizedCloud(points=points, stamp_ns=int(stamp), labels=label_img)
 
     def _incidence_keep(self, cos_inc: np.ndarray) -> np.ndarray:
         """Grazing-angle returns: lost beyond max_incidence, thinned beyond dropout_incidence."""
