@@ -51,8 +51,6 @@ PLANE_PROBABILITY = 0.9999
 _COARSE_K_MAX = 1000
 # DBSCAN: fewest neighbours of a core point.
 _DBSCAN_MIN_POINTS = 4
-# The bore must be empty inside this fraction of its radius.
-_HOLLOW_RADIUS = 0.8
 # Angular sectors of the coverage check.
 COVERAGE_BINS = 36
 # Largest angle between a coarse circle's normal and its cluster's plane.
@@ -143,28 +141,61 @@ def raster_cells(P: np.ndarray, normal: np.ndarray, cell: float) -> np.ndarray:
     return np.floor((P @ plane_basis(normal).T) / cell).astype(np.int64)
 
 
-def hollow(
-    face: np.ndarray, centre: np.ndarray, normal: np.ndarray, radius: float, flange: FlangeModel, slab: float, fraction: float
-) -> bool:
-    """True when the centring bore holds (almost) no face points, or the slab is too thick to tell.
+def _bands(flange: FlangeModel, slab: float) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
+    """Radial bands about the axis, in the plane of the model's circle: (surface, empty).
 
-    The face density is measured on the annulus between the bore and the
-    rim; the disc inside 0.8 of the bore radius may hold at most
-    ``fraction`` of what that density predicts. With a plane slab thicker
-    than half the bore depth the bore bottom counts as face and the check is
-    skipped.
+    The model's surfaces that face the camera, as (r_in, r_out, z): bore
+    bottom, face, shoulder. ``surface`` is the one whose outer edge is the
+    circle, where the density of points is measured; ``empty`` the widest
+    other one at least 2 slabs above or below the circle's plane, which must
+    hold no points. Both are trimmed by 15 % of their width at each bounding
+    edge; None when there is no such band.
     """
-    if slab >= flange.bore_depth / 2:
+    levels = [
+        (0.0, flange.bore_diameter / 2, -flange.bore_depth),
+        (flange.bore_diameter / 2, flange.face_radius, 0.0),
+        (flange.outer_diameter / 2, flange.wrist_diameter / 2, -flange.thickness),
+    ]
+    surface, empty = None, None
+    for r0, r1, z in levels:
+        if r0 >= flange.circle_radius:
+            continue
+        carries_rim = r1 >= flange.circle_radius - 1e-9
+        r1 = min(r1, flange.circle_radius)
+        trim = 0.15 * (r1 - r0)
+        band = (r0 + trim if r0 > 0 else 0.0, r1 - trim)
+        if carries_rim:
+            surface = band
+        elif abs(z - flange.circle_z) > 2 * slab and (empty is None or band[1] - band[0] > empty[1] - empty[0]):
+            empty = band
+    return surface, empty
+
+
+def hollow(face: np.ndarray, centre: np.ndarray, normal: np.ndarray, flange: FlangeModel, slab: float, fraction: float) -> bool:
+    """True when the model's empty band around the circle holds (almost) no points of its plane.
+
+    An ISO 9409-1 face is an annulus: seen in the plane of the face, the
+    centring bore is empty; seen in the plane of the UR10e wrist shoulder,
+    the face 6.5 mm above it is. The empty band may hold at most
+    ``fraction`` of the points the density on the surface band predicts.
+    True too when the slab is too thick to tell the levels apart.
+
+    Parameters
+    ----------
+    face : numpy.ndarray
+        (n, 3) points within ``slab`` of the circle's plane.
+    centre, normal : numpy.ndarray
+        (3,) the circle's centre and unit normal, same frame.
+    """
+    surface, empty = _bands(flange, slab)
+    if surface is None or empty is None:
         return True
-    r_bore = flange.bore_diameter / 2
     d = face - centre
     h = d @ normal
     rho = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) - h * h, 0.0))
-    r_in, r_lo, r_hi = _HOLLOW_RADIUS * r_bore, 1.2 * r_bore, 0.9 * radius
-    if r_hi <= r_lo:
-        return True
-    density = np.count_nonzero((rho > r_lo) & (rho < r_hi)) / (math.pi * (r_hi**2 - r_lo**2))
-    return bool(np.count_nonzero(rho < r_in) <= fraction * density * math.pi * r_in**2)
+    density = np.count_nonzero((rho > surface[0]) & (rho < surface[1])) / (math.pi * (surface[1] ** 2 - surface[0] ** 2))
+    inside = np.count_nonzero((rho > empty[0]) & (rho < empty[1]))
+    return bool(inside <= fraction * density * math.pi * (empty[1] ** 2 - empty[0] ** 2))
 
 
 def _coarse_circle(
@@ -185,7 +216,7 @@ def _coarse_circle(
     coverage = angular_coverage(R[fit.inliers], fit.centre, normal, COVERAGE_BINS)
     if coverage < params.min_coverage:
         return None
-    if not hollow(Q, fit.centre, normal, fit.radius, flange, params.e_plane_coarse, params.hollow_fraction):
+    if not hollow(Q, fit.centre, normal, flange, params.e_plane_coarse, params.hollow_fraction):
         return None
     return CoarseCandidate(idx, fit, coverage, step)
 
