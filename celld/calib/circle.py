@@ -22,7 +22,9 @@ from scipy.optimize import least_squares
 
 from celld.errors import InputError
 
-# RANSAC draws this many triples per vectorised batch.
+# RANSAC draws triples in vectorised batches, from this many up to _BATCH
+# (doubling): a clean rim stops the search after the first small batch.
+_FIRST_BATCH = 32
 _BATCH = 256
 # Probability that the adaptive stop has drawn at least one all-inlier triple.
 _CONFIDENCE = 0.999
@@ -107,7 +109,7 @@ def ransac_circle(
 ) -> CircleFit | None:
     """RANSAC of a 3D circle of radius ``radius +- e_r`` through points P.
 
-    Triples are drawn in vectorised batches. A sampled circle is verified
+    Triples are drawn in vectorised batches (32, 64, ... 256). A sampled circle is verified
     only when it passes the model checks: its radius within ``e_r`` of
     ``radius`` and, when ``normal`` is given, its normal within
     ``max_normal_angle`` of it (either sign). Sampling stops after ``k_max``
@@ -142,8 +144,10 @@ def ransac_circle(
     cos_min = math.cos(max_normal_angle)
     best_count, best = 0, None
     drawn, needed = 0, k_max
+    batch = _FIRST_BATCH
     while drawn < min(k_max, needed):
-        k = min(_BATCH, k_max - drawn)
+        k = min(batch, k_max - drawn)
+        batch = min(2 * batch, _BATCH)
         idx = rng.integers(0, n, size=(k, 3))
         drawn += k
         c, nrm, r, ok = circles_through(P[idx[:, 0]], P[idx[:, 1]], P[idx[:, 2]])

@@ -176,7 +176,13 @@ PARAMS_BY_SCANNER: dict[str, DetectParams] = {
     "phoxi-s": DetectParams(),
     "phoxi-m": DetectParams(),
     "azure-kinect": DetectParams(
-        e_d=0.003, e_r=0.005, e_plane=0.008, e_plane_coarse=0.010, min_coverage=0.4, cluster_eps=3.0
+        e_d=0.003,
+        e_r=0.005,
+        e_plane=0.008,
+        e_plane_coarse=0.010,
+        min_coverage=0.4,
+        cluster_eps=3.0,
+        coarse_points=40_000,  # a 640 x 576 image: thin it less, the flange is small in it
     ),
 }
 
@@ -375,7 +381,7 @@ def _region(
     (n, 1, 3) (unorganized), and the mask (h, w) of those near the circle.
     """
     if cells is not None:
-        rc = cells[cand.idx] * stride
+        rc = cells[cand.idx]
         lo, hi = rc.min(axis=0), rc.max(axis=0)
         margin = 2 * stride + (hi - lo) // 5
         lo = np.maximum(lo - margin, 0)
@@ -471,26 +477,34 @@ def _fine(
 def _coarse_cloud(
     inp: _Input, flange: FlangeModel, params: DetectParams, roi: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray | None, int]:
-    """Thinned, cropped points (m, 3) float64, their cells in the thinned image (or None), and the stride."""
+    """Thinned, cropped points (m, 3) float64, their full-resolution pixels (m, 2) (or None), and the stride."""
     if inp.organized:
         H, W = inp.P.shape[:2]
         stride = max(1, math.ceil(math.sqrt(H * W / params.coarse_points)))
-        G = inp.P[::stride, ::stride]
-        mask = crop_mask(G, params, roi)
+        mask = crop_mask(inp.P[::stride, ::stride], params, roi)
         n = int(mask.sum())
-        if stride > 1 and n < params.coarse_points / 4:
-            # Few returns where the crop allows (a scanner ROI, a small crop
-            # box): a finer stride, so the flange keeps its points.
-            stride = max(1, math.floor(stride * math.sqrt(max(n, 1) / params.coarse_points)))
-            G = inp.P[::stride, ::stride]
-            mask = crop_mask(G, params, roi)
-        return G[mask].astype(np.float64), np.argwhere(mask), stride
+        origin = np.zeros(2, dtype=np.int64)
+        if stride > 1 and 0 < n < params.coarse_points / 4:
+            # Few returns inside the crop (a scanner ROI, a crop box, a
+            # predicted centre): a finer stride over their bounding box only,
+            # so the flange keeps its points and the crop stays cheap.
+            rc = np.argwhere(mask) * stride
+            origin = np.maximum(rc.min(axis=0) - stride, 0)
+            end = np.minimum(rc.max(axis=0) + stride + 1, (H, W))
+            stride = max(1, math.floor(stride * math.sqrt(n / (params.coarse_points / 3))))
+            mask = crop_mask(inp.P[origin[0] : end[0] : stride, origin[1] : end[1] : stride], params, roi)
+        cells = np.argwhere(mask)
+        pix = origin + cells * stride
+        return inp.P[pix[:, 0], pix[:, 1]].astype(np.float64), pix, stride
     P = inp.P[crop_mask(inp.P, params, roi)].astype(np.float64)
     if len(P) > params.coarse_points:
         # A voxel grid, not a random subset: the spacing must stay even for the
         # DBSCAN radius and the rim raster, which are set from it.
         voxel = flange.circle_radius / _COARSE_VOXELS_PER_RADIUS
         P = np.asarray(pcd(P).voxel_down_sample(voxel).points)
+        # Open3D's voxel grid comes out in a thread-dependent order: sort it,
+        # so that seeded sampling downstream sees the same cloud every time.
+        P = P[np.lexsort(P.T[::-1])]
     return P, None, 1
 
 
@@ -541,7 +555,7 @@ def detect_flange(
     rng = np.random.default_rng(params.seed)
     log = SearchLog()
     failures: list[DetectionError] = []
-    for cand in coarse_candidates(P, cells, flange, params, rng, log):
+    for cand in coarse_candidates(P, cells, stride, flange, params, rng, log):
         try:
             return _fine(inp, cells, stride, cand, flange, params, rng)
         except DetectionError as exc:

@@ -39,18 +39,23 @@ if TYPE_CHECKING:
 MIN_POINTS = 12
 # A plane wider than this many flange diameters is background (table, floor).
 _BACKGROUND_EXTENT = 3.0
+# ... and holds at least this share of the thinned scene.
+_BACKGROUND_SHARE = 0.25
 # Most background planes removed before the outlier filter.
 _MAX_BACKGROUND = 3
 # In-plane directions over which the extent (largest width) of a cluster is taken.
 _EXTENT_DIRECTIONS = 8
-# Plane RANSAC: iterations and the probability at which Open3D stops early.
+# Plane RANSAC iterations. No early stop (probability 1): Open3D decides it
+# across its threads, so under load the result would depend on the timing.
 PLANE_ITERATIONS = 150
-PLANE_PROBABILITY = 0.9999
+PLANE_PROBABILITY = 1.0
 # Coarse RANSAC draws at most this many triples: a flange rim is most of its
 # cluster's edge (found in tens of draws); anything else should be given up fast.
 _COARSE_K_MAX = 1000
 # DBSCAN: fewest neighbours of a core point.
 _DBSCAN_MIN_POINTS = 4
+# Smallest height difference between two levels of the model that counts as a step, m.
+_MIN_STEP = 0.002
 # Angular sectors of the coverage check.
 COVERAGE_BINS = 36
 # Largest angle between a coarse circle's normal and its cluster's plane.
@@ -141,14 +146,14 @@ def raster_cells(P: np.ndarray, normal: np.ndarray, cell: float) -> np.ndarray:
     return np.floor((P @ plane_basis(normal).T) / cell).astype(np.int64)
 
 
-def _bands(flange: FlangeModel, slab: float) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
-    """Radial bands about the axis, in the plane of the model's circle: (surface, empty).
+def _bands(flange: FlangeModel) -> tuple[tuple[float, float] | None, tuple[float, float] | None, float]:
+    """Radial bands about the axis, in the plane of the model's circle: (surface, other, dz).
 
     The model's surfaces that face the camera, as (r_in, r_out, z): bore
     bottom, face, shoulder. ``surface`` is the one whose outer edge is the
-    circle, where the density of points is measured; ``empty`` the widest
-    other one at least 2 slabs above or below the circle's plane, which must
-    hold no points. Both are trimmed by 15 % of their width at each bounding
+    circle; ``other`` the widest one inside the circle at a different height
+    (a step of at least _MIN_STEP), ``dz`` its height above the circle's
+    plane. Both bands are trimmed by 15 % of their width at each bounding
     edge; None when there is no such band.
     """
     levels = [
@@ -156,7 +161,7 @@ def _bands(flange: FlangeModel, slab: float) -> tuple[tuple[float, float] | None
         (flange.bore_diameter / 2, flange.face_radius, 0.0),
         (flange.outer_diameter / 2, flange.wrist_diameter / 2, -flange.thickness),
     ]
-    surface, empty = None, None
+    surface, other, dz = None, None, 0.0
     for r0, r1, z in levels:
         if r0 >= flange.circle_radius:
             continue
@@ -166,46 +171,61 @@ def _bands(flange: FlangeModel, slab: float) -> tuple[tuple[float, float] | None
         band = (r0 + trim if r0 > 0 else 0.0, r1 - trim)
         if carries_rim:
             surface = band
-        elif abs(z - flange.circle_z) > 2 * slab and (empty is None or band[1] - band[0] > empty[1] - empty[0]):
-            empty = band
-    return surface, empty
+        elif abs(z - flange.circle_z) >= _MIN_STEP and (other is None or band[1] - band[0] > other[1] - other[0]):
+            other, dz = band, z - flange.circle_z
+    return surface, other, dz
 
 
 def hollow(face: np.ndarray, centre: np.ndarray, normal: np.ndarray, flange: FlangeModel, slab: float, fraction: float) -> bool:
-    """True when the model's empty band around the circle holds (almost) no points of its plane.
+    """True when the points around the circle show the model's step: a flange, not a solid disc.
 
-    An ISO 9409-1 face is an annulus: seen in the plane of the face, the
-    centring bore is empty; seen in the plane of the UR10e wrist shoulder,
-    the face 6.5 mm above it is. The empty band may hold at most
-    ``fraction`` of the points the density on the surface band predicts.
-    True too when the slab is too thick to tell the levels apart.
+    An ISO 9409-1 face is an annulus: seen in the plane of the face the
+    centring bore is a hole; seen in the plane of the UR10e wrist shoulder,
+    the face stands 6.5 mm above it. With a slab thinner than the step, the
+    other band must be empty: at most ``fraction`` of the points the density
+    on the surface band predicts. With a thicker slab (time of flight) both
+    levels are in it, and the median height of the other band above the
+    surface band must be the model's step within half of it.
 
     Parameters
     ----------
     face : numpy.ndarray
-        (n, 3) points within ``slab`` of the circle's plane.
+        (n, 3) points within ``slab`` of the circle's plane, camera frame.
     centre, normal : numpy.ndarray
-        (3,) the circle's centre and unit normal, same frame.
+        (3,) the circle's centre and unit normal (either sign), camera frame.
     """
-    surface, empty = _bands(flange, slab)
-    if surface is None or empty is None:
+    surface, other, dz = _bands(flange)
+    if surface is None or other is None:
         return True
+    up = normal if normal @ centre < 0 else -normal  # toward the camera, as flange +z
     d = face - centre
-    h = d @ normal
+    h = d @ up
     rho = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) - h * h, 0.0))
-    density = np.count_nonzero((rho > surface[0]) & (rho < surface[1])) / (math.pi * (surface[1] ** 2 - surface[0] ** 2))
-    inside = np.count_nonzero((rho > empty[0]) & (rho < empty[1]))
-    return bool(inside <= fraction * density * math.pi * (empty[1] ** 2 - empty[0] ** 2))
+    on_surface = (rho > surface[0]) & (rho < surface[1])
+    on_other = (rho > other[0]) & (rho < other[1])
+    if abs(dz) > 2 * slab:
+        density = np.count_nonzero(on_surface) / (math.pi * (surface[1] ** 2 - surface[0] ** 2))
+        return bool(np.count_nonzero(on_other) <= fraction * density * math.pi * (other[1] ** 2 - other[0] ** 2))
+    if np.count_nonzero(on_other) < MIN_POINTS or np.count_nonzero(on_surface) < MIN_POINTS:
+        return False
+    step = float(np.median(h[on_other]) - np.median(h[on_surface]))
+    return abs(step - dz) < 0.5 * abs(dz)
 
 
 def _coarse_circle(
-    P: np.ndarray, cells: np.ndarray | None, idx: np.ndarray, flange: FlangeModel, params: DetectParams, rng: np.random.Generator
+    P: np.ndarray,
+    cells: np.ndarray | None,
+    stride: int,
+    idx: np.ndarray,
+    flange: FlangeModel,
+    params: DetectParams,
+    rng: np.random.Generator,
 ) -> CoarseCandidate | None:
     """Step 6 on one cluster: its rim circle at the coarse spacing, or None."""
     Q = P[idx]
     point, normal, _ = fit_plane(Q)
     step = spacing(Q)
-    rim = outer_edge(raster_cells(Q, normal, 1.5 * step) if cells is None else cells[idx])
+    rim = outer_edge(raster_cells(Q, normal, 1.5 * step) if cells is None else cells[idx] // stride)
     R = project(Q[rim], point, normal)
     # The rim of a thinned cloud lies up to one spacing inside the true edge.
     e_r, e_d = params.e_r + step, max(params.e_d, 0.75 * step)
@@ -224,6 +244,7 @@ def _coarse_circle(
 def coarse_candidates(
     P: np.ndarray,
     cells: np.ndarray | None,
+    stride: int,
     flange: FlangeModel,
     params: DetectParams,
     rng: np.random.Generator,
@@ -236,8 +257,11 @@ def coarse_candidates(
     P : numpy.ndarray
         (m, 3) thinned, cropped points.
     cells : numpy.ndarray or None
-        (m, 2) their (row, column) in the thinned image of an organized
-        cloud; None for an unorganized cloud (the rim is then found on a raster).
+        (m, 2) their (row, column) in the full image of an organized cloud,
+        on a grid of ``stride``; None for an unorganized cloud (the rim is
+        then found on a raster).
+    stride : int
+        Pixel step of the thinned image.
     flange, params, rng
         The model, the parameters and the RANSAC sampler.
     log : SearchLog
@@ -252,7 +276,10 @@ def coarse_candidates(
             return
         normal, inl = segment_plane(P[remaining], params.e_plane_coarse, params.seed + i)
         inl = remaining[inl]
-        if extent(P[inl], normal) <= _BACKGROUND_EXTENT * diameter:
+        # Background: wide and a large share of the whole scene. A plane that
+        # only happens to be wide (through the flange and a link beyond it) is
+        # split by the clustering below instead.
+        if len(inl) < _BACKGROUND_SHARE * len(P) or extent(P[inl], normal) <= _BACKGROUND_EXTENT * diameter:
             pending = (normal, inl)
             break
         remaining = np.setdiff1d(remaining, inl, assume_unique=True)
@@ -286,6 +313,6 @@ def coarse_candidates(
             if not lo <= width <= hi:
                 continue
             log.clusters += 1
-            cand = _coarse_circle(P, cells, member, flange, params, rng)
+            cand = _coarse_circle(P, cells, stride, member, flange, params, rng)
             if cand is not None:
                 yield cand

@@ -182,3 +182,16 @@ def test_bad_scene_objects_are_refused() -> None:
         SceneObject("x", box((0.1, 0.1, 0.1)), np.eye(3), "matte")
     with pytest.raises(InputError, match="known: phoxi-m, phoxi-s"):
         SimScanner("phoxi-x", np.eye(4))
+
+
+def test_roi_casts_only_its_window_of_the_full_size_cloud() -> None:
+    quiet = replace(SCANNER_MODELS["phoxi-m"], sigma=0.0)
+    full = SimScanner(quiet, np.eye(4), resolution_scale=0.1).capture([plate(0.8)])
+    part = SimScanner(quiet, np.eye(4), resolution_scale=0.1, roi_px=(10, 60, 20, 90)).capture([plate(0.8)])
+    assert part.points.shape == full.points.shape
+    np.testing.assert_array_equal(part.points[10:60, 20:90], full.points[10:60, 20:90])
+    outside = np.ones(part.points.shape[:2], dtype=bool)
+    outside[10:60, 20:90] = False
+    assert not np.isfinite(part.points[outside]).any() and (part.labels[outside] == -1).all()
+    with pytest.raises(InputError, match="roi_px"):
+        SimScanner(quiet, np.eye(4), resolution_scale=0.1, roi_px=(10, 5, 0, 10))
