@@ -31,9 +31,10 @@ image window of an organized cloud):
   3.2.2), then a geometric least-squares circle in the face plane.
 
 The circle is accepted only if its radius is within e_r of R, its inliers
-cover ``min_coverage`` of the circumference, and the centring bore is empty
-(an ISO 9409-1 face is an annulus: a solid disc of the right radius is not a
-flange).
+cover ``min_coverage`` of the circumference, and the points around it show
+the model's step: the centring bore empty in the plane of the face, or the
+face 6.5 mm above the shoulder for the UR10e wrist circle (an ISO 9409-1 face
+is an annulus: a solid disc of the right radius is not a flange).
 """
 
 from __future__ import annotations
@@ -309,8 +310,6 @@ def to_metres(points: np.ndarray, units: str) -> np.ndarray:
     P = P.astype(P.dtype if P.dtype.kind == "f" else np.float64) * scale
     _check_scale(P, units)
     return P
-
-
 
 
 # -- fine pass ----------------------------------------------------------------

@@ -13,7 +13,7 @@ of thousands of points, so Open3D stays fast):
    (the paper's size constraint, section 2.1.4);
 6. the rim of each such cluster, a circle RANSAC with the radius check on
    it (tolerances widened by the coarse point spacing), and the checks:
-   coverage of the circumference and an empty centring bore.
+   coverage of the circumference and the model's step (:func:`hollow`).
 
 :func:`coarse_candidates` yields the candidates one by one as the planes are
 segmented, so the caller can stop at the first one its fine pass verifies.
