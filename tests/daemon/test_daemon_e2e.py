@@ -7,6 +7,7 @@ calibration.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
@@ -68,7 +69,7 @@ def daemon(tmp_path: Path, loopback_host: str):
     from celld.sim.robot import launch
 
     cfg_path = _write_config(tmp_path / "cell.toml", loopback_host, tmp_path / "state")
-    with launch(loopback_host, realtime=True, q0=Q0):
+    with launch(loopback_host, realtime=True, q0=Q0) as sim:
         log = open(tmp_path / "daemon.log", "wb")
         proc = subprocess.Popen(
             [sys.executable, "-m", "celld.cli", "run", "--config", str(cfg_path)],
@@ -89,7 +90,7 @@ def daemon(tmp_path: Path, loopback_host: str):
                 assert proc.poll() is None, (tmp_path / "daemon.log").read_text()[-2000:]
                 assert time.monotonic() < deadline, "the robot link did not come up"
                 time.sleep(0.5)
-            yield client, proc, cfg
+            yield client, proc, cfg, sim
             client.close()
         finally:
             if proc.poll() is None:
@@ -102,15 +103,13 @@ def daemon(tmp_path: Path, loopback_host: str):
 
 
 def test_calibrate_over_the_bus_then_accept(daemon) -> None:
-    client, proc, cfg = daemon
+    client, proc, cfg, _ = daemon
     events: list[dict] = []
     reply, record = client.submit_and_wait({"kind": "calibrate", "seed": 3}, on_event=events.append, timeout=400)
     assert record["state"] == "succeeded", record["reason"]
     pairs = [e for e in events if e.get("stage") == "pair"]
     assert len(pairs) == 6, "one progress event per pair"
     assert any("cost_mm" in e.get("data", {}) for e in pairs), "Algorithm 1's cost is reported per pair"
-
-    import json
 
     result = json.loads(Path(record["result"]).read_text())
     T = np.array(result["calibration"]["T_base_cam"])
@@ -140,17 +139,89 @@ def test_calibrate_over_the_bus_then_accept(daemon) -> None:
 
 
 def test_move_and_health_and_a_refused_job(daemon) -> None:
-    client, _, _ = daemon
+    client, _, _, _ = daemon
     _, record = client.submit_and_wait({"kind": "health", "check": "all"}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
     target = [0.62, 0.02, 0.46, 0.0, 0.0, 0.0]
     _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": target}}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
-    import json
-
     moved = json.loads(Path(record["result"]).read_text())
     assert moved["error_mm"] < 0.1
     # Outside the workspace box: refused with the reason, the daemon stays up.
     _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 1.3, 0, 0, 0]}}, timeout=60)
     assert record["state"] == "failed" and "workspace" in record["reason"]
     assert client.status()["state"] in ("idle", "fault")
+
+
+def _wait_for_stage(client: CellClient, job: str, stage: str, timeout: float = 120) -> None:
+    with client.watch_progress(job) as events:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            event = events.next(timeout=1.0)
+            if event is not None and event.get("stage") == stage:
+                return
+            if client.status(job)["state"] not in ("queued", "running"):
+                raise AssertionError(f"job {job} ended before stage {stage}")
+    raise AssertionError(f"no {stage} event within {timeout} s")
+
+
+def _wait_end(client: CellClient, job: str, timeout: float) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        record = client.status(job)
+        if record["state"] not in ("queued", "running"):
+            return record
+        time.sleep(0.5)
+    raise AssertionError(f"job {job} did not end within {timeout} s")
+
+
+def test_cancel_during_a_job_stops_the_robot_and_ends_cancelled(daemon) -> None:
+    client, _, _, sim = daemon
+    job = client.submit({"kind": "calibrate", "seed": 1})["job"]
+    _wait_for_stage(client, job, "pair")
+    reply = client.cancel(job, "operator")
+    assert reply["state"] == "cancelled"
+    assert client.status(job)["state"] == "cancelled"
+    # The arm is at rest a moment after the cancel: its true joints stand still.
+    time.sleep(0.5)
+    q0 = sim.truth()[2]
+    time.sleep(0.3)
+    assert np.max(np.abs(sim.truth()[2] - q0)) < 1e-4
+    _, record = client.submit_and_wait({"kind": "health", "check": "robot"}, timeout=60)
+    assert record["state"] == "succeeded", record["reason"]
+
+
+def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(daemon) -> None:
+    client, proc, _, sim = daemon
+    job = client.submit({"kind": "calibrate", "seed": 2})["job"]
+    _wait_for_stage(client, job, "pair")
+    sim.inject("drop_all", down_ms=3000)
+    record = _wait_end(client, job, 120)
+    assert record["state"] == "failed" and record["reason"], record
+    assert proc.poll() is None, "the daemon keeps running"
+    deadline = time.monotonic() + 90
+    while client.status().get("robot_link") != "up":
+        assert time.monotonic() < deadline, "the robot link did not come back"
+        time.sleep(0.5)
+    move = {"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 0.45, 0.0, 0.0, 0.0]}}
+    _, record = client.submit_and_wait(move, timeout=90)
+    assert record["state"] == "succeeded", record["reason"]
+
+
+def test_kill_9_of_the_daemon_during_a_job_leaves_it_interrupted(daemon) -> None:
+    client, proc, cfg, _ = daemon
+    job = client.submit({"kind": "calibrate", "seed": 4})["job"]
+    _wait_for_stage(client, job, "pair")
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(10)
+    state_dir = Path(cfg.cell.state_dir)
+    journal = Journal(state_dir / "journal.db")  # what the next start does
+    try:
+        assert journal.get(job).state == "interrupted"
+        assert journal.check() == []
+    finally:
+        journal.close()
+    # Nothing half-written: complete files only (temporaries are swept at start).
+    for poses in state_dir.rglob("poses.json"):
+        json.loads(poses.read_text())
+    assert not (state_dir / "results" / f"{job}.json").exists()
