@@ -292,5 +292,7 @@ class ServoSlot:
             self.reason = f"servo law {self.law_name!r} returned a twist of shape {twist.shape} with non-finite values"
             return Demand(_ZERO6), ControlStatus.FAULT
         if status >= ControlStatus.WORKSPACE:
-            self.reason = f"servo law {self.law_name!r} reported {status.name}"
+            # The law's own reason says what it saw (e.g. the last tag status).
+            detail = getattr(self.law, "reason", "")
+            self.reason = f"servo law {self.law_name!r} reported {status.name}" + (f": {detail}" if detail else "")
         return Demand(twist), status
