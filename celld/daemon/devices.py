@@ -19,7 +19,6 @@ the daemon's event loop never stalls.
 from __future__ import annotations
 
 import asyncio
-import os
 from typing import Any, Callable
 
 import numpy as np
@@ -147,12 +146,12 @@ class CellDevices:
     def link_state(self) -> str:
         if self.motion is None:
             return "unknown"
-        return "up" if self.motion.health().link == "running" else "down"
+        return "up" if self.motion.link_running() else "down"
 
     def heartbeat_age(self) -> float | None:
         if self.motion is None:
             return None
-        return self.motion.health().heartbeat_age_ms * 1e-3
+        return self.motion.heartbeat_age()
 
     def robot_state_message(self) -> dict[str, Any] | None:
         if self.motion is None:
@@ -208,7 +207,3 @@ class CellDevices:
             live.append(rec)
         self._recordings = live
 
-
-def unique_name(config: Config) -> str:
-    """A shared-memory name prefix unique to this daemon instance."""
-    return f"celld-{config.cell.name}-{os.getpid()}"

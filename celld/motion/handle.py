@@ -398,6 +398,14 @@ class MotionHandle:
         return RobotState(int(rec["t_ns"]), np.array(rec["q"]), np.array(rec["qd"]),
                           from_ur_pose(rec["tcp_pose"]), np.array(rec["tcp_speed"]))
 
+    def link_running(self) -> bool:
+        """True while the motion loop runs (cheap: no timing statistics)."""
+        return self.supervisor.state == LinkState.RUNNING
+
+    def heartbeat_age(self) -> float:
+        """Seconds since the last state record arrived (inf before the first); cheap."""
+        return time.monotonic() - self._last_record_t if self._last_record_t else math.inf
+
     def health(self) -> Health:
         """Link state and loop timing over the last :data:`STATS_WINDOW` cycles."""
         sup = self.supervisor
@@ -428,7 +436,7 @@ class MotionHandle:
             late_over_1ms=int(np.count_nonzero(late > 1.0)),
             overruns=int(rec["overruns"]) if rec is not None else 0,
             tactile_torn=int(rec["tactile_torn"]) if rec is not None else 0,
-            heartbeat_age_ms=(time.monotonic() - self._last_record_t) * 1e3 if self._last_record_t else math.inf,
+            heartbeat_age_ms=self.heartbeat_age() * 1e3,
         )
 
     # -- draining ------------------------------------------------------------------
