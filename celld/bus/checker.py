@@ -79,10 +79,13 @@ def literal(value: Any) -> str:
 
 
 def field_path(path: str, key: str) -> str:
-    """The JSON path of member ``key`` of the object at ``path``."""
-    if key.isidentifier() and key.isascii():
+    """The JSON path of member ``key`` of the object at ``path`` (a long key is shortened, as quoted values are)."""
+    if key.isidentifier() and key.isascii() and len(key) <= _QUOTE_MAX:
         return f"{path}.{key}"
-    return f"{path}[{ascii(key)}]"
+    text = ascii(key)
+    if len(text) > _QUOTE_MAX:
+        text = text[: _QUOTE_MAX - 4] + "...'"
+    return f"{path}[{text}]"
 
 
 def _matches_type(value: Any, name: str) -> bool:

@@ -62,3 +62,12 @@ def test_long_values_are_quoted_short_and_ascii() -> None:
 def test_schemas_with_unenforced_keywords_are_refused(schema: dict) -> None:
     with pytest.raises(ValueError):
         check_schema(schema)
+
+
+def test_a_long_unknown_key_is_shortened_in_the_error_path() -> None:
+    from celld.bus.checker import field_path
+
+    path = field_path("$", "k" * 200_000)
+    assert len(path) < 60 and path.startswith("$['kkk") and path.endswith("...']")
+    assert len(field_path("$", "\U0001F600" * 50_000)) < 60
+    assert field_path("$", "n_poses") == "$.n_poses"
