@@ -175,6 +175,9 @@ class RobotConfig:
     # Pose of the TCP in the flange frame, UR pose [x, y, z, rx, ry, rz].
     tcp_offset: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     home_q: tuple[float, ...] = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
+    # Standard digital output (0..7) that switches the process (the welding
+    # arc), driven by the motion loop; -1: the cell has none.
+    arc_output: int = -1
 
     @classmethod
     def read(cls, r: TableReader) -> "RobotConfig":
@@ -191,6 +194,7 @@ class RobotConfig:
             workspace_max=wmax,  # type: ignore[arg-type]
             tcp_offset=r.vector("tcp_offset", 6, list(cls.tcp_offset)),
             home_q=r.vector("home_q", 6, list(cls.home_q)),
+            arc_output=r.int("arc_output", cls.arc_output, lo=-1, hi=7),
         )
 
 

@@ -61,6 +61,11 @@ STATE_DTYPE = np.dtype(
         ("tactile_age_ns", np.int64),
         ("tactile_torn", np.uint32),  # torn tactile reads so far
         ("overruns", np.uint32),  # cycles that ended after the next deadline, so far
+        # The servo law's telemetry (celld.motion.types.ServoTelemetry).
+        ("servo_phase", np.int8),  # the law's phase, -1 without a servo
+        ("delta_n", np.float64),  # m, normal deformation the law used, NaN without
+        ("refined_base", np.float64, (3,)),  # latest refined path point, base frame, m; NaN without
+        ("process_on", np.bool_),  # the core asked for the process output (welding arc) this cycle
     ]
 )
 

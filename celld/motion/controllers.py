@@ -35,7 +35,7 @@ from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ru
 
 from celld.motion import so3
 from celld.motion.limits import CartesianLimits, axis_weights
-from celld.motion.types import ControlStatus, RobotState, ServoInput, ServoLaw
+from celld.motion.types import NO_TELEMETRY, ControlStatus, RobotState, ServoInput, ServoLaw, ServoTelemetry
 from celld.tactile.sample import TactileSample
 
 Array = NDArray[np.float64]
@@ -259,6 +259,11 @@ class ServoSlot:
     The law gets the robot state and the latest tactile sample; its twist is
     shaped by the limiter like any other demand. A law that raises or returns
     a twist that is not 6 finite numbers is a fault, never a crash of the loop.
+
+    :meth:`telemetry` passes on the law's optional ``telemetry()``; a law
+    without one, or whose telemetry raises or is malformed, reports
+    :data:`~celld.motion.types.NO_TELEMETRY` (process off), and the first
+    failure is kept in ``telemetry_error``.
     """
 
     name = "servo"
@@ -267,7 +272,11 @@ class ServoSlot:
         self.law = law
         self.law_name = law_name
         self.reason = ""
+        self.telemetry_error = ""
         self._failed = ""
+        self._telemetry = getattr(law, "telemetry", None)
+        if not callable(self._telemetry):
+            self._telemetry = None
 
     def start(self, state: RobotState, twist: Array, accel: Array) -> None:
         self.reason = ""
@@ -296,3 +305,22 @@ class ServoSlot:
             detail = getattr(self.law, "reason", "")
             self.reason = f"servo law {self.law_name!r} reported {status.name}" + (f": {detail}" if detail else "")
         return Demand(twist), status
+
+    def telemetry(self) -> ServoTelemetry:
+        """The law's :class:`~celld.motion.types.ServoTelemetry`, or the fallback (class docstring)."""
+        fn = self._telemetry
+        if fn is None or self._failed:
+            return NO_TELEMETRY
+        try:
+            t = fn()
+            phase = int(t.phase)
+            if not -1 <= phase <= 127:  # the state record holds it in an int8
+                raise ValueError(f"phase {phase}, expected -1..127")
+            refined = np.asarray(t.refined_base, dtype=np.float64)
+            if refined.shape != (3,):
+                raise ValueError(f"refined_base of shape {refined.shape}, expected (3,)")
+            return ServoTelemetry(phase, float(t.delta_n), refined, bool(t.process_on))
+        except Exception as exc:  # a law must not take the loop down
+            if not self.telemetry_error:
+                self.telemetry_error = f"servo law {self.law_name!r}: telemetry failed: {exc!r}"
+            return NO_TELEMETRY

@@ -20,6 +20,13 @@ Modes::
   treats speedStop as a non-real-time command that blocks until the
   controller reports it done, which has no place in a 2 ms cycle.
 
+The process output (the welding arc) is the servo law's to ask for and the
+core's to grant: ``CycleOutput.process_on`` is True only while the mode is
+ACTIVE with no fault, the controller is the servo slot, and the law's
+telemetry says ``process_on``. It drops on the cycle a stop begins (a stop
+request, a fault, the law's own DONE or fault), when the robot stops itself,
+and whenever another command takes over. The loop switches the output.
+
 Every record carries the command id it serves and a status; the status of a
 finished command stays until the next command, so a reader that comes late
 still learns how it ended.
@@ -55,7 +62,7 @@ from celld.motion.safety import (
     robot_faults,
     status_of,
 )
-from celld.motion.types import ControlStatus, RobotState, ServoFactory
+from celld.motion.types import NO_TELEMETRY, ControlStatus, RobotState, ServoFactory, ServoTelemetry
 from celld.tactile.sample import TactileSample
 
 Array = NDArray[np.float64]
@@ -118,6 +125,8 @@ class CycleOutput(NamedTuple):
     event: str  # why a command ended badly or was refused ("" most cycles)
     event_id: int  # the command the event is about
     event_status: ControlStatus
+    process_on: bool = False  # the process output (welding arc) should be on (module docstring)
+    telemetry: ServoTelemetry = NO_TELEMETRY  # the servo law's, NO_TELEMETRY without a servo
 
 
 class MotionCore:
@@ -288,7 +297,10 @@ class MotionCore:
         return self._output(Action.SPEED, _ZERO6, faults, False)
 
     def _output(self, action: Action, twist: Array, faults: Fault, guarded: bool) -> CycleOutput:
+        ctrl = self.controller
+        telemetry = ctrl.telemetry() if isinstance(ctrl, ServoSlot) else NO_TELEMETRY
+        process_on = self.mode == Mode.ACTIVE and not faults and telemetry.process_on
         return CycleOutput(
             action, twist, self.mode, self.status, self.command_id, faults, guarded,
-            self._event, self._event_id, self._event_status,
+            self._event, self._event_id, self._event_status, process_on, telemetry,
         )

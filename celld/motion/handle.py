@@ -128,6 +128,7 @@ def spec_from_config(config: Config, names: ChannelNames, host: str | None = Non
             # speedL's own ramp must never clip the limiter's profile.
             speed_accel=2.0 * max(limits.linear_accel, limits.angular_accel),
             link_timeout_ns=int(link_timeout * 1e9),
+            process_output=robot.arc_output,
         ),
         frequency_hz=robot.frequency_hz,
         watchdog_hz=watchdog_hz,

@@ -10,8 +10,20 @@ Each cycle:
    read keeps the last good sample and is counted), the control slot (stop,
    shutdown) and at most one command from the mailbox;
 4. step :class:`~celld.motion.core.MotionCore` and send what it says
-   (speedL, or a watchdog kick while it holds still);
+   (speedL, or a watchdog kick while it holds still), then switch the process
+   output (the welding arc) when the core's ``process_on`` changed;
 5. append one record to the state ring.
+
+The process output (``LoopParams.process_output``, a standard digital output;
+-1: none) is written only on a change, and once at the first cycle (off), so
+a process that starts after a crash of its predecessor does not leave the arc
+as it found it. A write that fails is retried every cycle and reported once
+in the events ring (command id 0: it ends no command). When the loop has
+ended, :meth:`MotionLoop.release_output` switches the output off; the motion
+process calls it on every way out, after it has reported why the loop ended
+(on a dead link ur-rtde's IO interface tries to reconnect first). Where the
+link is gone for good, only the robot's own I/O set-up (outputs off at
+program stop) can switch the arc off.
 
 Nothing in the cycle logs, waits on anything but the period, or grows a
 container; Python still creates small temporary objects, which is why the
@@ -47,6 +59,7 @@ class LoopParams(NamedTuple):
     spin_ns: int = 300_000  # sleep to this long before the deadline, then spin
     link_timeout_ns: int = 100_000_000  # no fresh robot state this long: the link is lost
     program_grace_ns: int = 100_000_000  # the robot's program not running this long: exit
+    process_output: int = -1  # standard digital output of the process (welding arc), 0..7; -1: none
 
 
 class LoopExit(NamedTuple):
@@ -100,6 +113,9 @@ class MotionLoop:
         self._tactile_seq = -1
         self._setpoint = np.zeros(6)
         self._setpoint_t = 0
+        # The process output as last written: None until the first write succeeds.
+        self._output_on: bool | None = None
+        self._output_failed = False  # a failed write was reported; cleared by the next success
         # A process starting after a restart must not act on what its predecessor left.
         self.ch.control.read_into(self._ctl)
         self._stop_epoch = int(self._ctl["stop_epoch"][0])
@@ -120,6 +136,40 @@ class MotionLoop:
         e["status"] = int(status)
         e["reason"] = encode_reason(reason)
         self.ch.events.append(e)
+
+    # -- the process output ----------------------------------------------------
+
+    def _switch_output(self, on: bool) -> bool:
+        idx = self.params.process_output
+        try:
+            ok = bool(self.port.set_digital_out(idx, on))
+        except Exception:  # a port must not take the loop down; RtdeLink never raises here
+            ok = False
+        if ok:
+            self._output_on = on
+            self._output_failed = False
+        elif not self._output_failed:
+            self._output_failed = True
+            self._event(
+                0, ControlStatus.FAULT,
+                f"process output {idx}: switching it {'on' if on else 'off'} failed; retrying every cycle",
+            )
+        return ok
+
+    @property
+    def output_on(self) -> bool | None:
+        """The process output as last written (None: not written yet, or no process output)."""
+        return self._output_on
+
+    def release_output(self) -> bool:
+        """Switch the process output off unless it is known to be off; True when it is off (or absent).
+
+        Call after the loop has ended (module docstring); never raises.
+        """
+        if self.params.process_output < 0 or self._output_on is False:
+            return True
+        self._output_failed = False  # a failure here is news, whatever happened in the loop
+        return self._switch_output(False)
 
     # -- waiting -------------------------------------------------------------
 
@@ -241,6 +291,8 @@ class MotionLoop:
         else:
             port.kick()
         t_sent = self.clock()
+        if p.process_output >= 0 and out.process_on != self._output_on:
+            self._switch_output(out.process_on)
 
         if out.event:
             self._event(out.event_id, out.event_status, out.event)
@@ -270,6 +322,11 @@ class MotionLoop:
         r["tactile_age_ns"] = int(tactile_age * 1e9) if tactile_age != _INF else -1
         r["tactile_torn"] = ch.tactile.torn_count
         r["overruns"] = self.overruns
+        tel = out.telemetry
+        r["servo_phase"] = tel.phase
+        r["delta_n"] = tel.delta_n
+        r["refined_base"] = tel.refined_base
+        r["process_on"] = out.process_on
         ch.state.append(r)
         self._prev_wake = t_wake
 

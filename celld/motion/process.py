@@ -12,8 +12,9 @@ imported ur-rtde, can deadlock). The process
 4. raises itself to SCHED_FIFO, pins its loop thread to one CPU and locks its
    memory where the OS allows it, and says once in the log when it does not;
 5. disables the garbage collector and runs the loop until the link is lost or
-   a shutdown completes, then reports why in the status slot and exits with
-   a code the supervisor reads (:data:`EXIT_CODES`).
+   a shutdown completes, then reports why in the status slot, switches the
+   process output (the welding arc) off if the loop may have left it on, and
+   exits with a code the supervisor reads (:data:`EXIT_CODES`).
 
 Only the thread that runs the loop is made real-time and pinned: ur-rtde's
 receive threads, created while connecting, keep the default policy.
@@ -149,6 +150,7 @@ def run(spec: MotionSpec) -> LoopExit:
     log = get_logger(__name__).bind(host=spec.host, pid=os.getpid())
     ch = Channels.attach(spec.channels)
     link = None
+    loop: MotionLoop | None = None
     end: LoopExit | None = None
     try:
         _report(ch, Phase.CONNECTING)
@@ -185,6 +187,10 @@ def run(spec: MotionSpec) -> LoopExit:
                  overruns=loop.overruns)
         return end
     finally:
+        if loop is not None and not loop.release_output():
+            # After the exit report: on a dead link ur-rtde tries to reconnect first.
+            log.error("the process output could not be switched off; the robot's I/O set-up must do it",
+                      output=spec.loop.process_output)
         if link is not None:
             # A graceful end stops the robot's program; otherwise the watchdog does.
             link.close(stop_script=end is not None and end.status == ControlStatus.OK)

@@ -50,6 +50,16 @@ Departures from the paper, each for a reason stated where it is coded:
 5. Approach. Before tracking, the tool moves along the planned normal towards
    the wall at ``touch_speed`` until the deformation settles at ``delta_d``.
 
+Two plan parameters reach beyond the paper:
+
+- ``seam_offset`` (m, >= 0): the seam lies this far from the wall the finger
+  touches, on the free side (against ``side n_s``). REFINE records the wall
+  point moved by it, so the refined path, which the torch follows, is the
+  seam; the finger still rides the wall. 0 records the wall itself.
+- ``process`` (bool): the plan asks for the process (the welding arc).
+  :meth:`Algorithm2Servo.telemetry` reports ``process_on`` while the phase is
+  TRACK, SEARCH or FINISH; the motion core grants it (:mod:`celld.motion.core`).
+
 Pure: the state, samples and plan come in as values; no clock, no I/O. The
 law allocates its buffers when built, not in the loop.
 """
@@ -65,7 +75,7 @@ from scipy.signal import savgol_filter
 
 from celld.config import MotionLimits, TactileConfig
 from celld.errors import InputError
-from celld.motion.types import ControlStatus, RobotState, ServoInput, ServoPlan
+from celld.motion.types import ControlStatus, RobotState, ServoInput, ServoPlan, ServoTelemetry
 from celld.se3 import check_points, check_transform
 from celld.tactile.sample import ContactState, TactileSample, TactileStatus
 from celld.tactile.tool import ToolGeometry
@@ -336,6 +346,8 @@ class Algorithm2Params(NamedTuple):
     touch_distance: float  # m
     tactile_stale: float  # s
     k_height: float  # 1/s, holds the tip's height above the plane
+    process: bool = False  # the plan asks for the process (welding arc) while tracking
+    seam_offset: float = 0.0  # m, seam's distance from the wall, on the free side (module docstring)
 
     @classmethod
     def from_config(cls, tactile: TactileConfig, motion: MotionLimits) -> "Algorithm2Params":
@@ -362,12 +374,22 @@ class Algorithm2Params(NamedTuple):
 
     @classmethod
     def from_plan(cls, params: dict[str, Any]) -> "Algorithm2Params":
-        """Read and check the parameters carried by a :class:`ServoPlan`."""
+        """Read and check the parameters carried by a :class:`ServoPlan`.
+
+        Parameters with a default (``process``, ``seam_offset``) may be left out.
+        """
         values: dict[str, Any] = {}
         for name in cls._fields:
             if name not in params:
+                if name in cls._field_defaults:
+                    continue
                 raise InputError(f"algorithm2 plan: parameter {name!r} is missing")
             v = params[name]
+            if name == "process":
+                if not isinstance(v, bool):
+                    raise InputError(f"algorithm2 plan: parameter 'process' must be true or false, got {v!r}")
+                values[name] = v
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
                 raise InputError(f"algorithm2 plan: parameter {name!r} must be a finite number, got {v!r}")
             values[name] = int(v) if name == "contact_loss_samples" else float(v)
@@ -381,6 +403,11 @@ class Algorithm2Params(NamedTuple):
             raise InputError(f"algorithm2 plan: side must be +1 or -1, got {p.side}")
         if p.contact_loss_samples < 1 or min(p.v_const, p.k_torch, p.search_distance, p.tip_radius, p.plan_smoothing, p.k_height) < 0.0:
             raise InputError("algorithm2 plan: v_const, k_torch, search_distance, tip_radius, plan_smoothing and k_height must be >= 0")
+        if not 0.0 <= p.seam_offset < p.torch_offset:
+            # The torch trails the tip by |d|: it cannot reach a seam |d| or more off the wall.
+            raise InputError(
+                f"algorithm2 plan: seam_offset must be >= 0 and below torch_offset {p.torch_offset} m, got {p.seam_offset} m"
+            )
         return p
 
 
@@ -390,16 +417,27 @@ def algorithm2_plan(
     motion: MotionLimits,
     T_base_plane: Array | None = None,
     normal_hint: Array = np.array([0.0, 0.0, 1.0]),
+    *,
+    process: bool = False,
+    seam_offset: float = 0.0,
 ) -> ServoPlan:
     """The :class:`ServoPlan` that starts Algorithm 2 on the planned seam ``P_base`` (n, 3).
 
     Built where the plan is made (the main process); the motion process turns
-    it into the law with :func:`make_algorithm2`.
+    it into the law with :func:`make_algorithm2`. ``process`` asks for the
+    process output (welding arc) while tracking; ``seam_offset`` (m) is the
+    seam's distance from the wall the finger touches (module docstring).
+
+    Raises
+    ------
+    InputError
+        A parameter is out of range (the same checks as the motion process's).
     """
     P = check_points(P_base, "P_base", min_points=2)
     plane = welding_plane(P, normal_hint) if T_base_plane is None else check_transform(T_base_plane, "T_base_plane")
     tool = ToolGeometry.from_config(tactile)
-    params = Algorithm2Params.from_config(tactile, motion)
+    params = Algorithm2Params.from_config(tactile, motion)._replace(process=bool(process), seam_offset=float(seam_offset))
+    Algorithm2Params.from_plan(dict(params._asdict()))  # refuse a bad plan where it is made
     return ServoPlan(NAME, {"P_base": P, "T_base_plane": plane, "T_tcp_tool": tool.T_tcp_tool}, dict(params._asdict()))
 
 
@@ -499,6 +537,8 @@ class Algorithm2Servo:
         self._h0 = 0.0
         self._start_ns = 0
         self._status = ControlStatus.OK
+        self._tel_n = 0  # refined points when _tel_refined was computed
+        self._tel_refined = np.full(3, math.nan)
         self.last = Diagnostics(Phase.TOUCH, ControlStatus.OK, 0.0, False, math.nan, math.nan,
                                 np.zeros(2), np.zeros(2), np.zeros(2), math.nan, "")
 
@@ -512,6 +552,20 @@ class Algorithm2Servo:
     def to_base(self, P_plane: Array) -> Array:
         """Plane points (k, 2) to base points (k, 3)."""
         return self._o_bp + np.asarray(P_plane) @ self._R_bp[:, :2].T
+
+    def telemetry(self) -> ServoTelemetry:
+        """Phase, delta_n, latest refined point (base frame) and process wish after the last step.
+
+        ``process_on`` is the plan's ``process`` while the phase is TRACK,
+        SEARCH or FINISH. Cheap: the refined point is converted when it changes.
+        """
+        n = self._n_ref
+        if n != self._tel_n:
+            self._tel_n = n
+            self._tel_refined = self.to_base(self._ref[n - 1]) if n > 0 else np.full(3, math.nan)
+            self._tel_refined.flags.writeable = False  # handed out every cycle: nobody may change it
+        on = self.p.process and self.phase in (Phase.TRACK, Phase.SEARCH, Phase.FINISH)
+        return ServoTelemetry(int(self.phase), float(self.last.delta_n), self._tel_refined, bool(on))
 
     # -- geometry of the current state --
 
@@ -647,9 +701,11 @@ class Algorithm2Servo:
             # REFINE, lines 16-20, at the sample's capture time.
             _, t_s, n_s, _, _ = self._plan_at(P_cap)
             P_s = refine_point(P_cap, delta, t_s, n_s)
-            # The tip's centre rides tip_radius off the wall: record the wall.
+            # The tip's centre rides tip_radius off the wall: record the wall,
+            # moved to the seam seam_offset off it on the free side.
             P_wall = P_s + self.p.side * self.p.tip_radius * n_s
-            self._append_refined(P_wall, t_s)
+            P_seam = P_wall - self.p.side * self.p.seam_offset * n_s
+            self._append_refined(P_seam, t_s)
         return latency
 
     def _append_refined(self, P: Array, t_s: Array) -> None:

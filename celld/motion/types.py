@@ -7,6 +7,7 @@ Twists are ``[vx, vy, vz, wx, wy, wz]`` in the base frame, m/s and rad/s.
 
 from __future__ import annotations
 
+import math
 from enum import IntEnum
 from typing import NamedTuple, Protocol
 
@@ -66,8 +67,45 @@ class ServoInput(NamedTuple):
     tactile_age: float  # seconds since the sample's capture
 
 
+class ServoTelemetry(NamedTuple):
+    """What a servo law reports about itself each cycle, for the state ring and the process output.
+
+    Attributes
+    ----------
+    phase : int
+        The law's own phase (for Algorithm 2 :class:`celld.motion.servo.Phase`); -1: no servo.
+    delta_n : float
+        Normal deformation the law used this cycle, m; NaN: none.
+    refined_base : np.ndarray, shape (3,)
+        Latest point of the refined path in the base frame, m; NaN: none yet.
+    process_on : bool
+        The law wants the process (the welding arc) on. The core switches it
+        on only while the law runs undisturbed (:mod:`celld.motion.core`).
+    """
+
+    phase: int
+    delta_n: float
+    refined_base: np.ndarray
+    process_on: bool
+
+
+def _nan3() -> np.ndarray:
+    v = np.full(3, math.nan)
+    v.flags.writeable = False
+    return v
+
+
+# What is recorded when no servo runs, or a law has no telemetry (or its telemetry failed).
+NO_TELEMETRY = ServoTelemetry(-1, math.nan, _nan3(), False)
+
+
 class ServoLaw(Protocol):
-    """A seam-tracking law stepped in the motion loop's servo slot."""
+    """A seam-tracking law stepped in the motion loop's servo slot.
+
+    A law may also have ``telemetry() -> ServoTelemetry`` (see
+    :class:`TelemetryLaw`); the slot calls it after each step when present and
+    records :data:`NO_TELEMETRY` otherwise.
+    """
 
     def start(self, state: RobotState) -> None:
         """Called once, in the loop, when the servo takes over."""
@@ -78,6 +116,14 @@ class ServoLaw(Protocol):
         The loop shapes the twist with its jerk-limited velocity limiter and
         applies its own safety checks; the law must not raise.
         """
+        ...
+
+
+class TelemetryLaw(ServoLaw, Protocol):
+    """A :class:`ServoLaw` that reports its :class:`ServoTelemetry` (the optional method)."""
+
+    def telemetry(self) -> ServoTelemetry:
+        """The law's state after its last step; must be cheap (called every cycle)."""
         ...
 
 

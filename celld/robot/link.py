@@ -10,7 +10,8 @@ link): the loop checks :meth:`RtdeLink.connected` and how fresh the state is
 every cycle. ``stopL`` does not end ``speedL``; :meth:`RtdeLink.speed_stop`
 uses ``speedStop``. The RTDE watchdog (:meth:`RtdeLink.set_watchdog`) stops
 the robot's program when the loop stops writing, e.g. when the process is
-killed.
+killed. :meth:`RtdeLink.set_digital_out` switches a standard digital output
+(the cell's process output, e.g. the welding arc) through the IO interface.
 
 Third-party errors are translated here into :class:`~celld.errors.LinkLost`.
 """
@@ -60,6 +61,10 @@ class RobotPort(Protocol):
     def speed(self, twist: Sequence[float], accel: float) -> bool: ...
 
     def kick(self) -> None: ...
+
+    def set_digital_out(self, index: int, value: bool) -> bool:
+        """Set standard digital output ``index`` (0..7); False when it could not be sent."""
+        ...
 
     def close(self, stop_script: bool = False) -> None: ...
 
@@ -142,6 +147,18 @@ class RtdeLink:
     def kick(self) -> None:
         """Write the watchdog register without commanding anything."""
         self._c.kickWatchdog()  # type: ignore[attr-defined]
+
+    def set_digital_out(self, index: int, value: bool) -> bool:
+        """Set standard digital output ``index`` (0..7) through the IO interface; never raises.
+
+        Returns False when ur-rtde refused or failed (a lost link). The write
+        goes out without waiting for the controller, so the loop can call it
+        on the cycle the process output must change.
+        """
+        try:
+            return bool(self.io.setStandardDigitalOut(index, value))  # type: ignore[attr-defined]
+        except RuntimeError:
+            return False
 
     def close(self, stop_script: bool = False) -> None:
         """Disconnect every interface; never raises.

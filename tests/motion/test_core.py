@@ -10,9 +10,10 @@ from celld.motion.commands import move_to, start_servo, stream
 from celld.motion.core import Action, CoreParams, Mode, MotionCore
 from celld.motion.limits import CartesianLimits, sequence_peaks
 from celld.motion.safety import Fault
-from celld.motion.types import ControlStatus, RobotState, ServoInput, ServoPlan
+from celld.motion.types import NO_TELEMETRY, ControlStatus, RobotState, ServoInput, ServoPlan
 from celld.se3 import error, from_ur_pose
 from celld.tactile.sample import ContactState, TactileSample
+from tests.motion.laws import Probe, make_probe
 from tests.motion.plant import KinematicPlant, run
 
 LIMITS = CartesianLimits.from_config(MotionLimits())
@@ -224,3 +225,103 @@ def test_a_law_that_raises_is_a_fault_not_a_crash() -> None:
                tactile_age=0.0)
     assert outs[-1].mode == Mode.IDLE and outs[-1].status == ControlStatus.FAULT
     assert any("boom" in o.event for o in outs)
+
+
+# -- the process output (welding arc) -------------------------------------------------
+
+
+def _probe_plan(process: bool = True, cycles: int = 200, process_from: int = 20) -> ServoPlan:
+    """tests.motion.laws.Probe: asks for the process from its cycle ``process_from`` until it ends."""
+    return ServoPlan("probe", {"direction": np.array([0.0, 1.0, 0.0])},
+                     {"speed": 0.01, "cycles": cycles, "process": process, "process_from": process_from})
+
+
+def _run_probe(plan: ServoPlan, cycles: int, at: int = -1, factory=make_probe, **at_kw) -> list:
+    """Run the probe law in the core; ``at_kw`` go into the input of cycle ``at`` (and stay after it)."""
+    core = MotionCore(_core().params, {"probe": factory})
+    plant = KinematicPlant(T0, PERIOD)
+    outs = []
+    for k in range(cycles):
+        kw = {"tactile": _sample(ContactState.CONTACT), "tactile_age": 0.0}
+        if k == 0:
+            kw |= {"command": start_servo(plan), "command_id": 1}
+        if 0 <= at <= k:
+            kw |= at_kw
+        out = core.step(plant.cycle_input(**kw))
+        plant.apply(out)
+        outs.append(out)
+    return outs
+
+
+def test_the_process_goes_on_only_while_the_law_asks_and_off_at_done() -> None:
+    outs = _run_probe(_probe_plan(process=True), 300)
+    on = [o.process_on for o in outs]
+    # The probe asks from its 20th cycle (index 19) to its 199th; its 200th says DONE.
+    assert not any(on[:19]) and all(on[19:199]) and not any(on[199:])
+    assert outs[199].mode == Mode.STOPPING and outs[-1].mode == Mode.IDLE and outs[-1].status == ControlStatus.DONE
+    # The law's telemetry rides along while the servo slot runs, NO_TELEMETRY once it is gone.
+    assert outs[50].telemetry.phase == 1 and outs[50].telemetry.delta_n == pytest.approx(0.051)
+    np.testing.assert_allclose(outs[50].telemetry.refined_base, [0.0, 0.0, 0.051])
+    assert outs[-1].telemetry is NO_TELEMETRY
+    assert all(type(o.process_on) is bool for o in outs)
+
+
+def test_a_plan_without_the_process_never_switches_it_on() -> None:
+    outs = _run_probe(_probe_plan(process=False), 300)
+    assert not any(o.process_on for o in outs)
+    assert outs[-1].status == ControlStatus.DONE
+
+
+def test_a_stop_request_switches_the_process_off_on_the_cycle_it_begins() -> None:
+    outs = _run_probe(_probe_plan(cycles=10_000), 400, at=100, stop=True)
+    assert outs[99].process_on and outs[99].mode == Mode.ACTIVE
+    assert outs[100].mode == Mode.STOPPING and not outs[100].process_on
+    assert not any(o.process_on for o in outs[100:])
+    assert outs[-1].mode == Mode.IDLE and outs[-1].status == ControlStatus.STOPPED
+
+
+@pytest.mark.parametrize(
+    ("fault", "status"),
+    [
+        ({"tactile_age": 0.2}, ControlStatus.STALE_TACTILE),
+        ({"state_age": 4 * PERIOD}, ControlStatus.STALE_STATE),
+        ({"tactile": _sample(ContactState.OVERLOAD)}, ControlStatus.OVERLOAD),
+    ],
+)
+def test_a_fault_switches_the_process_off_on_the_cycle_it_is_seen(fault: dict, status: ControlStatus) -> None:
+    outs = _run_probe(_probe_plan(cycles=10_000), 400, at=100, **fault)
+    assert outs[99].process_on
+    assert outs[100].mode == Mode.STOPPING and outs[100].status == status and not outs[100].process_on
+    assert not any(o.process_on for o in outs[100:])
+    assert outs[-1].mode == Mode.IDLE and outs[-1].status == status
+
+
+def test_the_robot_stopping_itself_switches_the_process_off() -> None:
+    outs = _run_probe(_probe_plan(cycles=10_000), 150, at=100, safety_bits=PROTECTIVE)
+    assert outs[99].process_on
+    assert outs[100].mode == Mode.IDLE and outs[100].status == ControlStatus.SAFETY and not outs[100].process_on
+    assert outs[100].telemetry.phase == -1
+
+
+def test_another_command_taking_over_switches_the_process_off() -> None:
+    outs = _run_probe(_probe_plan(cycles=10_000), 150, at=100, command=stream(), command_id=2)
+    assert outs[99].process_on
+    assert outs[100].mode == Mode.ACTIVE and outs[100].command_id == 2 and not outs[100].process_on
+    assert outs[100].telemetry.phase == -1
+
+
+def test_a_law_whose_telemetry_raises_runs_on_with_the_process_off() -> None:
+    class Broken(Probe):
+        def telemetry(self):
+            raise RuntimeError("no telemetry")
+
+    laws: list[Broken] = []
+
+    def factory(plan: ServoPlan) -> Broken:
+        laws.append(Broken(plan))
+        return laws[-1]
+
+    outs = _run_probe(_probe_plan(cycles=100, process_from=1), 150, factory=factory)
+    assert all(o.mode == Mode.ACTIVE for o in outs[:99]) and outs[-1].status == ControlStatus.DONE
+    assert all(o.telemetry is NO_TELEMETRY and not o.process_on for o in outs)
+    assert laws[0].count == 100  # the law ran to its end

@@ -1,7 +1,8 @@
-"""The loop around the core: link checks, channels, cancellation, records (fake port, real shared memory)."""
+"""The loop around the core: link checks, channels, cancellation, records, the process output (fake port, real shared memory)."""
 
 from __future__ import annotations
 
+import time
 from typing import Iterator, Sequence
 
 import numpy as np
@@ -13,10 +14,11 @@ from celld.motion.channels import CONTROL_DTYPE, SETPOINT_DTYPE, ChannelNames, C
 from celld.motion.core import Action, CoreParams, Mode, MotionCore
 from celld.motion.limits import CartesianLimits
 from celld.motion.loop import LoopParams, MotionLoop
-from celld.motion.types import ControlStatus
+from celld.motion.types import ControlStatus, ServoPlan
 from celld.robot.link import RawState
 from celld.se3 import from_ur_pose, to_ur_pose
 from celld.tactile.sample import ContactState, TactileSample, to_record
+from tests.motion.laws import make_probe
 
 PERIOD_NS = 2_000_000
 POSE = [0.5, 0.1, 0.4, 3.1, 0.1, 0.0]
@@ -34,11 +36,18 @@ class FakePort:
         self.pose = np.array(POSE, dtype=np.float64)
         self.twist = np.zeros(6)
         self.sent: list[tuple[str, list[float]]] = []
+        self.outputs: list[tuple[int, bool]] = []  # every set_digital_out call
+        self.output_ok = True  # what set_digital_out returns
+        self.reads_left = -1  # >= 0: the link drops after this many reads
+        self.watchdog_hz = 0.0
+        self.closed = False
 
     def connected(self) -> bool:
-        return self.is_connected
+        return self.is_connected and self.reads_left != 0
 
     def read(self) -> RawState:
+        if self.reads_left > 0:
+            self.reads_left -= 1
         if self.fresh:
             self.stamp += 0.002
             T = from_ur_pose(self.pose)
@@ -55,8 +64,15 @@ class FakePort:
     def kick(self) -> None:
         self.sent.append(("kick", []))
 
+    def set_digital_out(self, index: int, value: bool) -> bool:
+        self.outputs.append((index, value))
+        return self.output_ok
+
+    def set_watchdog(self, min_frequency_hz: float) -> None:
+        self.watchdog_hz = min_frequency_hz
+
     def close(self, stop_script: bool = False) -> None:
-        pass
+        self.closed = True
 
 
 @pytest.fixture
@@ -77,10 +93,13 @@ class Clock:
         return self.t
 
 
-def _loop(channels: Channels, port: FakePort, clock: Clock) -> MotionLoop:
-    limits = CartesianLimits.from_config(MotionLimits())
-    core = MotionCore(CoreParams(limits, 0.002, (-1.0, -1.0, 0.0), (1.0, 1.0, 1.2), 0.006, 0.1))
-    return MotionLoop(port, core, channels, LoopParams(PERIOD_NS, speed_accel=8.0), clock=clock)
+CORE = CoreParams(CartesianLimits.from_config(MotionLimits()), 0.002, (-1.0, -1.0, 0.0), (1.0, 1.0, 1.2), 0.006, 0.1)
+
+
+def _loop(channels: Channels, port: FakePort, clock: Clock, process_output: int = -1) -> MotionLoop:
+    core = MotionCore(CORE, {"probe": make_probe})
+    return MotionLoop(port, core, channels, LoopParams(PERIOD_NS, speed_accel=8.0, process_output=process_output),
+                      clock=clock)
 
 
 def _cycles(loop: MotionLoop, clock: Clock, n: int):
@@ -196,3 +215,139 @@ def test_torn_tactile_reads_keep_the_last_good_sample_and_are_counted(channels: 
     rec = channels.state.latest(1)[0]
     assert rec["tactile_seq"] == 42 and rec["tactile_torn"] == 3
     assert loop._tactile is not None and loop._tactile.seq == 42
+
+
+# -- the process output (welding arc) ------------------------------------------------------
+
+ARC = 3
+
+
+def _probe(cycles: int = 200, process_from: int = 20, process: bool = True) -> cmd.Command:
+    plan = ServoPlan("probe", {"direction": np.array([0.0, 1.0, 0.0])},
+                     {"speed": 0.01, "cycles": cycles, "process": process, "process_from": process_from})
+    return cmd.start_servo(plan)
+
+
+def _touching(loop: MotionLoop, channels: Channels, clock: Clock, n: int, port: FakePort | None = None,
+              ok_from: dict[int, bool] | None = None) -> list[int]:
+    """``n`` cycles with a fresh tactile sample each; returns the loop cycle of each set_digital_out call."""
+    at: list[int] = []
+    for _ in range(n):
+        clock.t += PERIOD_NS
+        channels.tactile.write(to_record(TactileSample(clock.t, loop.cycles + 1, np.zeros(3), ContactState.CONTACT,
+                                                       1.0, True, 0)))
+        if port is not None and ok_from and loop.cycles + 1 in ok_from:
+            port.output_ok = ok_from[loop.cycles + 1]
+        before = len(port.outputs) if port is not None else 0
+        assert loop.cycle(clock.t, clock.t) is None
+        if port is not None:
+            at += [loop.cycles] * (len(port.outputs) - before)
+    return at
+
+
+def test_the_process_output_is_written_on_transitions_only(channels: Channels) -> None:
+    port, clock = FakePort(), Clock()
+    loop = _loop(channels, port, clock, process_output=ARC)
+    channels.commands.post(cmd.encode(_probe(cycles=200, process_from=20)))
+    at = _touching(loop, channels, clock, 300, port)
+    # Off once at the first cycle (a predecessor may have left it on), on at the probe's
+    # 20th cycle, off at its 200th (DONE: the stop begins).
+    assert port.outputs == [(ARC, False), (ARC, True), (ARC, False)]
+    assert at == [1, 20, 200]
+    recs, _, _ = channels.state.read_since(0)
+    recs = recs[-64:]  # the ring holds 64: cycles 237..300, after the servo ended
+    assert not recs["process_on"].any() and np.all(recs["servo_phase"] == -1)
+    assert np.all(np.isnan(recs["delta_n"])) and np.all(np.isnan(recs["refined_base"]))
+    # Already off: nothing to do on exit.
+    assert loop.release_output() and len(port.outputs) == 3
+
+
+def test_the_servo_telemetry_is_recorded_each_cycle(channels: Channels) -> None:
+    port, clock = FakePort(), Clock()
+    loop = _loop(channels, port, clock, process_output=ARC)
+    channels.commands.post(cmd.encode(_probe(cycles=1000, process_from=20)))
+    _touching(loop, channels, clock, 50)
+    recs, _, _ = channels.state.read_since(0)
+    by_cycle = {int(r["cycle"]): r for r in recs}
+    r10, r40 = by_cycle[10], by_cycle[40]
+    assert r10["servo_phase"] == 0 and not r10["process_on"]
+    assert r40["servo_phase"] == 1 and r40["process_on"]
+    assert r40["delta_n"] == pytest.approx(0.040)
+    np.testing.assert_allclose(r40["refined_base"], [0.0, 0.0, 0.040])
+
+
+def test_without_a_process_output_nothing_is_written_but_the_wish_is_recorded(channels: Channels) -> None:
+    port, clock = FakePort(), Clock()
+    loop = _loop(channels, port, clock, process_output=-1)
+    channels.commands.post(cmd.encode(_probe(cycles=1000, process_from=5)))
+    _touching(loop, channels, clock, 30)
+    assert port.outputs == []
+    assert channels.state.latest(1)["process_on"][0]
+    assert loop.release_output() and port.outputs == []
+
+
+def test_a_failed_write_is_retried_every_cycle_and_reported_once(channels: Channels) -> None:
+    port, clock = FakePort(), Clock()
+    port.output_ok = False
+    loop = _loop(channels, port, clock, process_output=ARC)
+    channels.commands.post(cmd.encode(_probe(cycles=1000, process_from=20)))
+    # The first off fails for cycles 1-5; the on fails for cycles 20-29.
+    at = _touching(loop, channels, clock, 60, port, ok_from={6: True, 20: False, 30: True})
+    assert at == [1, 2, 3, 4, 5, 6] + list(range(20, 31))
+    assert port.outputs == [(ARC, False)] * 6 + [(ARC, True)] * 11
+    assert loop.output_on is True
+    events = [e for e in _events(channels) if "process output" in e[2]]
+    assert events == [
+        (0, ControlStatus.FAULT, "process output 3: switching it off failed; retrying every cycle"),
+        (0, ControlStatus.FAULT, "process output 3: switching it on failed; retrying every cycle"),
+    ]
+
+
+def test_release_output_switches_it_off_after_the_loop_ended(channels: Channels) -> None:
+    port, clock = FakePort(), Clock()
+    loop = _loop(channels, port, clock, process_output=ARC)
+    channels.commands.post(cmd.encode(_probe(cycles=1000, process_from=5)))
+    _touching(loop, channels, clock, 20)
+    assert port.outputs[-1] == (ARC, True)
+    port.is_connected = False
+    end = _cycles(loop, clock, 1)
+    assert end is not None and end.status == ControlStatus.LINK_LOST
+    port.output_ok = False
+    assert not loop.release_output()
+    assert _events(channels)[-1] == (0, ControlStatus.FAULT, "process output 3: switching it off failed; retrying every cycle")
+    port.output_ok = True
+    assert loop.release_output() and loop.output_on is False
+    assert port.outputs[-3:] == [(ARC, True), (ARC, False), (ARC, False)]
+    assert loop.release_output() and len(port.outputs) == 4  # known off: not written again
+
+
+def test_the_motion_process_switches_the_output_off_when_the_link_drops(
+    channels: Channels, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from celld.motion import process
+    from celld.robot import link
+
+    class Port(FakePort):
+        def read(self) -> RawState:
+            self.reads += 1
+            if self.reads == 5:  # after the loop started: a command posted earlier would be cancelled
+                channels.commands.post(cmd.encode(_probe(cycles=100_000, process_from=10)))
+            if self.reads == 300:
+                self.is_connected = False
+            return super().read()
+
+    port = Port()
+    port.reads = 0
+    monkeypatch.setattr(link.RtdeLink, "connect", classmethod(lambda cls, host, frequency_hz=500.0: port))
+    monkeypatch.setattr(process.gc, "freeze", lambda: None)  # keep the test process's collector as it is
+    channels.tactile.write(to_record(TactileSample(time.monotonic_ns(), 1, np.zeros(3), ContactState.CONTACT,
+                                                   1.0, True, 0)))
+    spec = process.MotionSpec(
+        host="fake", channels=channels.names, core=CORE._replace(tactile_stale=60.0),
+        loop=LoopParams(PERIOD_NS, speed_accel=8.0, process_output=ARC),
+        realtime=process.RealtimeOptions(enabled=False), servo_laws=(("probe", "tests.motion.laws:make_probe"),),
+    )
+    end = process.run(spec)
+    assert end.status == ControlStatus.LINK_LOST
+    assert port.outputs == [(ARC, False), (ARC, True), (ARC, False)]
+    assert port.closed and port.watchdog_hz == spec.watchdog_hz

@@ -61,13 +61,14 @@ def sim(loopback_host: str):
         yield handle
 
 
-def _run(sim: Any, scenario: Callable[[MotionHandle], Awaitable[None]], **open_kw: Any) -> list[np.ndarray]:
+def _run(sim: Any, scenario: Callable[[MotionHandle], Awaitable[None]], config: Config | None = None,
+         **open_kw: Any) -> list[np.ndarray]:
     """Open a handle on ``sim``, run ``scenario``, close; return every state record read."""
     records: list[np.ndarray] = []
 
     async def main() -> None:
         kw = {"link_timeout": 0.5, "watchdog_hz": 5.0, "backoff": Backoff(delays=(0.2, 0.5))} | open_kw
-        motion = await MotionHandle.open(_config(), host=sim.host, connect_timeout=20.0, **kw)
+        motion = await MotionHandle.open(config or _config(), host=sim.host, connect_timeout=20.0, **kw)
         motion.add_listener(records.append)
         try:
             await scenario(motion)
@@ -270,6 +271,67 @@ def test_the_servo_slot_runs_a_registered_law_fed_by_the_tactile_slot(sim: Any) 
     _run(sim, scenario, servo_laws={"probe": "tests.motion.laws:make_probe"})
     # 500 cycles at 20 mm/s, less the jerk-limited ramps: about 18-20 mm along +y.
     assert 0.015 < moved[0] < 0.021
+
+
+def test_a_servo_law_switches_the_arc_output_of_the_simulated_controller(sim: Any) -> None:
+    arc = 0  # the simulated cell's arc output
+    config = _config()
+    # The feeder below shares the event loop with the truth sampling: allow it a late frame.
+    config = dataclasses.replace(config, robot=dataclasses.replace(config.robot, arc_output=arc),
+                                 motion=dataclasses.replace(config.motion, tactile_stale=0.5))
+    truth: list[np.ndarray] = []  # the simulator's own digital outputs, every cycle
+    marks: dict[str, int] = {}
+
+    def sample_truth() -> None:
+        h = sim.truth_history()[["stamp_ns", "digital_out"]]
+        truth.append(h[h["stamp_ns"] > truth[-1]["stamp_ns"][-1]] if truth and len(truth[-1]) else h)
+
+    async def feed(motion: MotionHandle, stop: asyncio.Event) -> None:
+        seq = 0
+        while not stop.is_set():
+            seq += 1
+            sample = TactileSample(time.monotonic_ns(), seq, np.zeros(3), ContactState.CONTACT, 1.0, True, 0)
+            motion.ch.tactile.write(to_record(sample))
+            sample_truth()
+            await asyncio.sleep(1 / 60)
+
+    async def scenario(motion: MotionHandle) -> None:
+        stop = asyncio.Event()
+        feeder = asyncio.ensure_future(feed(motion, stop))
+        await asyncio.sleep(0.05)  # a sample is in the slot before the servo starts
+        # 600 cycles (1.2 s) at 10 mm/s; the process is asked for from the 100th to the end.
+        plan = ServoPlan("probe", {"direction": np.array([0.0, 1.0, 0.0])},
+                         {"speed": 0.01, "cycles": 600, "process": True, "process_from": 100})
+        marks["start"] = time.monotonic_ns()
+        cid = await motion.start_servo(plan)
+        await motion.wait(cid, timeout=10.0)
+        marks["done"] = time.monotonic_ns()
+        await asyncio.sleep(0.3)
+        stop.set()
+        await feeder
+        sample_truth()
+
+    records = np.concatenate(_run(sim, scenario, config=config, servo_laws={"probe": "tests.motion.laws:make_probe"}))
+    t = np.concatenate(truth)
+    bit = (t["digital_out"] >> arc) & 1 == 1
+    assert np.all(np.diff(t["stamp_ns"]) > 0), "truth samples overlap or are out of order"
+    assert not bit[t["stamp_ns"] < marks["start"]].any(), "the arc was on before the servo started"
+    on_at = t["stamp_ns"][bit]
+    assert len(on_at), "the simulated controller's arc output never went on"
+    assert np.count_nonzero(np.diff(bit.astype(np.int8)) == 1) == 1, "the arc went on more than once"
+    assert not bit[-1], "the arc stayed on after the servo ended"
+    # The state records: asked for over the law's 500 cycles (fewer if records were lost), one interval.
+    asked = records["process_on"]
+    assert 450 <= np.count_nonzero(asked) <= 500
+    assert np.count_nonzero(np.diff(asked.astype(np.int8)) == 1) == 1 and not asked[-1]
+    assert np.all(records["servo_phase"][asked] == 1)
+    # The controller followed the loop: on after the cycle that asked, off after the cycle
+    # that stopped asking, each within the link's delay (bounded loosely for a loaded machine).
+    t_on = int(records["t_ns"][asked][0])
+    t_off = int(records["t_ns"][np.flatnonzero(asked)[-1] + 1])
+    assert t_on < on_at[0] < t_on + 100_000_000
+    assert t_off - 10_000_000 < on_at[-1] < t_off + 100_000_000
+    assert on_at[-1] < marks["done"]
 
 
 def test_cli_status_reports_the_robot_and_the_loop(sim: Any) -> None:

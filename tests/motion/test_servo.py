@@ -36,7 +36,7 @@ from celld.motion.servo import (
     torch_position,
     welding_plane,
 )
-from celld.motion.types import ControlStatus, RobotState
+from celld.motion.types import ControlStatus, RobotState, ServoInput
 from celld.sim.srm import ContactParams, Wall, finger_contact
 from celld.tactile.deformation import contact_state, invalid_sample
 from celld.tactile.sample import ContactState, TactileSample, TactileStatus
@@ -228,7 +228,8 @@ class Loop:
     """
 
     def __init__(self, length: float = 0.06, gap: tuple[float, float] | None = None, plan_offset: float = -0.002,
-                 fps: float = 60.0, latency: float = 0.006, cfg: TactileConfig | None = None) -> None:
+                 fps: float = 60.0, latency: float = 0.006, cfg: TactileConfig | None = None,
+                 process: bool = False, seam_offset: float = 0.0) -> None:
         self.cfg = cfg or TactileConfig()
         self.motion = MotionLimits()
         self.limits = CartesianLimits.from_config(self.motion)
@@ -239,7 +240,8 @@ class Loop:
         self.walls = [Wall(w, free=-1.0) for w in walls]
         plan2 = np.column_stack([np.arange(0.0, length, 0.001), np.full(len(np.arange(0.0, length, 0.001)), plan_offset)])
         P_plan = np.column_stack([plan2, np.zeros(len(plan2))]) @ T_PLANE[:3, :3].T + T_PLANE[:3, 3]
-        self.plan = algorithm2_plan(P_plan, self.cfg, self.motion, T_base_plane=T_PLANE)
+        self.plan = algorithm2_plan(P_plan, self.cfg, self.motion, T_base_plane=T_PLANE, process=process,
+                                    seam_offset=seam_offset)
         self.core = MotionCore(
             CoreParams(self.limits, PERIOD, (-1.5, -1.5, -0.5), (1.5, 1.5, 1.5), 0.05, self.motion.tactile_stale),
             {NAME: make_algorithm2},
@@ -262,6 +264,7 @@ class Loop:
         self.twists: list[np.ndarray] = []
         self.statuses: list[ControlStatus] = []
         self.phases: list[Phase] = []
+        self.outs: list = []  # the core's CycleOutput of every cycle the servo ran
         self.tamper = None  # callable(sample, t_s) -> sample | None (None: the frame never comes)
 
     def _sample(self, stamp: int) -> TactileSample:
@@ -281,7 +284,8 @@ class Loop:
         self.contact = state
         return TactileSample(stamp, self.seq, delta, state, 1.0, True, 1_000_000)
 
-    def run(self, seconds: float, start_after: float = 0.02) -> None:
+    def run(self, seconds: float, start_after: float = 0.02, stop_at: float = math.inf) -> None:
+        """Run up to ``seconds`` (until the servo has ended); ``stop_at`` (s) posts a stop request."""
         for _ in range(int(seconds / PERIOD)):
             while self.next_frame <= self.t_ns:
                 s = self._sample(self.next_frame)
@@ -296,7 +300,8 @@ class Loop:
             age = (self.t_ns - self.latest.stamp_ns) * 1e-9 if self.latest is not None else math.inf
             starting = self.servo is None and self.t_ns * 1e-9 >= start_after and self.latest is not None
             cmd = start_servo(self.plan) if starting else None
-            out = self.core.step(CycleInput(state, 0.0, 1, self.latest, age, np.zeros(6), math.inf, cmd, 1 if starting else 0))
+            out = self.core.step(CycleInput(state, 0.0, 1, self.latest, age, np.zeros(6), math.inf, cmd,
+                                            1 if starting else 0, stop=self.t_ns * 1e-9 >= stop_at))
             if starting:
                 self.servo = self.core.controller.law
             self.v, self._next = self._next, out.twist.copy()
@@ -307,6 +312,7 @@ class Loop:
                 self.twists.append(out.twist.copy())
                 self.statuses.append(out.status)
                 self.phases.append(self.servo.phase)
+                self.outs.append(out)
                 if self.core.mode == Mode.IDLE:
                     return
 
@@ -391,3 +397,119 @@ def test_tactile_faults_stop_without_a_jump(name: str, make, why: str) -> None:
     # The stop began within the staleness bound (0.1 s) and took a jerk-limited ramp.
     n_before = int((t_fault - 0.02) / PERIOD)
     assert (len(loop.twists) - n_before) * PERIOD < 0.1 + 0.02 + 0.2, name
+
+
+# -- the process output and the seam offset ----------------------------------------------------
+
+
+def _on(loop: Loop) -> np.ndarray:
+    return np.array([o.process_on for o in loop.outs])
+
+
+def test_the_process_is_asked_for_only_while_tracking_and_dropped_at_the_end() -> None:
+    loop = Loop(length=0.03, process=True)
+    loop.run(20.0)
+    on, phases = _on(loop), np.array(loop.phases)
+    assert loop.statuses[-1] == ControlStatus.DONE and loop.servo.phase == Phase.DONE
+    assert np.count_nonzero(phases == Phase.TOUCH) > 100 and not on[phases == Phase.TOUCH].any()
+    assert on[phases == Phase.TRACK].all() and on[phases == Phase.FINISH].all()
+    assert not on[phases == Phase.DONE].any()
+    assert not any(o.process_on for o in loop.outs if o.mode != Mode.ACTIVE)
+    # The telemetry the core passes on is the law's.
+    tel = [o.telemetry for o in loop.outs]
+    assert [t.phase for t in tel[:-1]] == [int(p) for p in phases[:-1]]
+    track = [t for t, p in zip(tel, phases) if p == Phase.TRACK]
+    assert np.all(np.isfinite([t.refined_base for t in track[-100:]]))
+    assert np.median([t.delta_n for t in track]) == pytest.approx(loop.cfg.delta_d, abs=1e-4)
+
+
+def test_without_the_process_in_the_plan_it_is_never_asked_for() -> None:
+    loop = Loop(length=0.03, process=False)
+    loop.run(20.0)
+    assert loop.statuses[-1] == ControlStatus.DONE and Phase.TRACK in loop.phases
+    assert not _on(loop).any()
+
+
+def test_a_stop_request_mid_seam_drops_the_process_on_that_cycle() -> None:
+    loop = Loop(length=0.06, process=True)
+    loop.run(20.0, stop_at=3.0)
+    on = _on(loop)
+    first_stop = next(i for i, o in enumerate(loop.outs) if o.mode == Mode.STOPPING)
+    assert loop.phases[first_stop - 1] == Phase.TRACK and on[first_stop - 1]
+    assert not on[first_stop:].any()
+    assert loop.statuses[-1] == ControlStatus.STOPPED
+
+
+def test_a_tactile_fault_mid_seam_drops_the_process() -> None:
+    loop = Loop(length=0.06, process=True)
+    loop.tamper = _fault_after(3.0, lambda s: invalid_sample(s.stamp_ns, s.seq, TactileStatus.NO_TAG))
+    loop.run(20.0)
+    on = _on(loop)
+    first_stop = next(i for i, o in enumerate(loop.outs) if o.mode == Mode.STOPPING)
+    assert on[first_stop - 1] and not on[first_stop:].any()
+    assert loop.outs[first_stop].status == ControlStatus.STALE_TACTILE
+
+
+def _scripted_refined_path(seam_offset: float, process: bool = False) -> tuple[np.ndarray, list]:
+    """Algorithm 2 fed a fixed script: the tip slides along +x at 10 mm/s, 3 mm off the plan, pressed
+    into the wall by exactly delta_d each cycle. Returns the refined path and the telemetry per cycle."""
+    cfg, motion = TactileConfig(), MotionLimits()
+    x = np.arange(0.0, 0.06, 0.001)
+    P_plan = np.column_stack([x, np.full(len(x), -0.002), np.zeros(len(x))]) @ T_PLANE[:3, :3].T + T_PLANE[:3, 3]
+    law = make_algorithm2(algorithm2_plan(P_plan, cfg, motion, T_base_plane=T_PLANE, process=process,
+                                          seam_offset=seam_offset))
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = P_plan[5] - np.array([0.0, 0.003, 0.0])
+    law.start(RobotState(0, np.zeros(6), np.zeros(6), T.copy(), np.zeros(6)))
+    tel = []
+    for k in range(1, 500):
+        T[0, 3] += 0.01 * PERIOD
+        sample = TactileSample(k * 2_000_000, k, np.array([0.0, cfg.delta_d, 0.0]), ContactState.CONTACT, 1.0, True, 0)
+        law.step(ServoInput(RobotState(k * 2_000_000, np.zeros(6), np.zeros(6), T.copy(), np.zeros(6)), sample, 0.0))
+        tel.append(law.telemetry())
+    return law.refined_plane, tel
+
+
+def test_seam_offset_moves_the_refined_path_by_exactly_the_offset_on_a_straight_wall() -> None:
+    R0, tel0 = _scripted_refined_path(0.0)
+    R1, tel1 = _scripted_refined_path(0.0012)
+    assert len(R0) > 50 and len(R1) == len(R0)
+    # The wall side is +y (left): the seam lies towards -y. Same script, same points, shifted.
+    np.testing.assert_allclose(R1 - R0, np.tile([0.0, -0.0012], (len(R0), 1)), rtol=0, atol=1e-12)
+    # The telemetry's refined point is the latest one, in the base frame (the plane is parallel to base xy).
+    np.testing.assert_allclose(tel1[-1].refined_base, [R1[-1, 0] + T_PLANE[0, 3], R1[-1, 1] + T_PLANE[1, 3], T_PLANE[2, 3]],
+                               atol=1e-12)
+    assert np.all(np.isnan(tel0[0].refined_base)) and tel0[-1].phase == Phase.TRACK
+    assert tel0[-1].delta_n == pytest.approx(TactileConfig().delta_d, abs=1e-12)
+    # process is False in these plans: never asked for, whatever the phase.
+    assert not any(t.process_on for t in tel0 + tel1)
+    _, tel2 = _scripted_refined_path(0.0, process=True)
+    assert [t.process_on for t in tel2] == [t.phase == Phase.TRACK for t in tel2]
+
+
+def test_with_a_seam_offset_the_torch_follows_the_seam_not_the_wall() -> None:
+    loop = Loop(length=0.03, seam_offset=0.001)
+    loop.run(20.0)
+    assert loop.statuses[-1] == ControlStatus.DONE
+    R = loop.servo.refined_plane
+    # The wall is y = 0 in the plane: the refined path (the seam) 1 mm on the free side,
+    # within the 3 um noise of the samples.
+    assert abs(float(np.mean(R[:, 1])) + 0.001) < 5e-6 and np.ptp(R[:, 1]) < 3e-5
+    assert abs(loop.torch_error() + 0.001) < 1e-4
+
+
+def test_the_new_plan_parameters_are_checked() -> None:
+    cfg, motion = TactileConfig(), MotionLimits()
+    P = np.column_stack([np.linspace(0, 0.1, 50), np.zeros(50), np.zeros(50)])
+    for bad in (-0.001, cfg.torch_offset):
+        with pytest.raises(InputError, match="seam_offset"):
+            algorithm2_plan(P, cfg, motion, seam_offset=bad)
+    plan = algorithm2_plan(P, cfg, motion, process=True, seam_offset=0.002)
+    law = make_algorithm2(plan)
+    assert law.p.process is True and law.p.seam_offset == 0.002
+    with pytest.raises(InputError, match="process"):
+        make_algorithm2(plan._replace(params={**plan.params, "process": 1}))
+    # A plan that leaves them out gets the defaults: no process, the wall is the seam.
+    older = {k: v for k, v in plan.params.items() if k not in ("process", "seam_offset")}
+    assert make_algorithm2(plan._replace(params=older)).p[-2:] == (False, 0.0)

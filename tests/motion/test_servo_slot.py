@@ -1,13 +1,14 @@
-"""The servo slot passes a law's fault on with the law's own reason."""
+"""The servo slot passes a law's fault on with the law's own reason, and its telemetry with safe fallbacks."""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+import pytest
 
 from celld.motion.controllers import ControlInput, ServoSlot
-from celld.motion.types import ControlStatus, RobotState, ServoInput
+from celld.motion.types import NO_TELEMETRY, ControlStatus, RobotState, ServoInput, ServoTelemetry
 
 STATE = RobotState(0, np.zeros(6), np.zeros(6), np.eye(4), np.zeros(6))
 INPUT = ControlInput(STATE, None, math.inf, np.zeros(6), math.inf)
@@ -44,3 +45,69 @@ def test_a_law_without_a_reason_still_names_its_status() -> None:
     _, status = slot.step(INPUT)
     assert status == ControlStatus.CONTACT_LOST
     assert slot.reason == "servo law 'algorithm2' reported CONTACT_LOST"
+
+
+# -- telemetry ----------------------------------------------------------------------------
+
+
+class ReportingLaw(QuietLaw):
+    def __init__(self, telemetry) -> None:
+        self._t = telemetry
+
+    def telemetry(self):
+        if isinstance(self._t, Exception):
+            raise self._t
+        return self._t
+
+
+GOOD = ServoTelemetry(1, 0.0015, np.array([0.4, -0.1, 0.12]), True)
+
+
+def _slot(law) -> ServoSlot:
+    slot = ServoSlot(law, "algorithm2")
+    slot.start(STATE, np.zeros(6), np.zeros(6))
+    slot.step(INPUT)
+    return slot
+
+
+def test_a_law_with_telemetry_is_passed_on() -> None:
+    t = _slot(ReportingLaw(GOOD)).telemetry()
+    assert (t.phase, t.delta_n, t.process_on) == (1, 0.0015, True)
+    np.testing.assert_array_equal(t.refined_base, [0.4, -0.1, 0.12])
+    assert type(t.phase) is int and type(t.process_on) is bool
+
+
+def test_a_law_without_telemetry_reports_no_servo_values() -> None:
+    t = _slot(QuietLaw()).telemetry()
+    assert t is NO_TELEMETRY
+    assert t.phase == -1 and math.isnan(t.delta_n) and np.all(np.isnan(t.refined_base)) and t.process_on is False
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        ZeroDivisionError("boom"),
+        GOOD._replace(refined_base=np.zeros(2)),
+        GOOD._replace(phase=300),
+        GOOD._replace(delta_n="wide"),
+        (1, 2),
+    ],
+    ids=["raises", "bad shape", "phase out of range", "not a number", "not telemetry"],
+)
+def test_a_law_whose_telemetry_fails_gets_the_fallback_and_the_slot_keeps_stepping(bad) -> None:
+    slot = _slot(ReportingLaw(bad))
+    assert slot.telemetry() is NO_TELEMETRY
+    assert slot.telemetry_error.startswith("servo law 'algorithm2': telemetry failed")
+    first = slot.telemetry_error
+    assert slot.telemetry() is NO_TELEMETRY and slot.telemetry_error == first  # kept once
+    demand, status = slot.step(INPUT)
+    assert status == ControlStatus.CONTACT_LOST and np.all(demand.twist == 0.0)
+
+
+def test_a_law_that_failed_to_start_reports_no_telemetry() -> None:
+    class NoStart(ReportingLaw):
+        def start(self, state: RobotState) -> None:
+            raise RuntimeError("cannot start")
+
+    slot = _slot(NoStart(GOOD))
+    assert slot.telemetry() is NO_TELEMETRY
