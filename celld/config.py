@@ -362,7 +362,7 @@ class TactileConfig:
     finger towards the flange (the welding-plane normal), y = n_d.
     """
 
-    kind: str = "sim"  # sim | opencv
+    kind: str = "sim"  # sim | opencv | none (the cell has no finger camera: no weld jobs)
     device: str = "0"
     width_px: int = 640
     height_px: int = 480
@@ -438,7 +438,7 @@ class TactileConfig:
                 f"expected contact_threshold < delta_d < overload, got {contact * 1e3} / {delta_d * 1e3} / {overload * 1e3} mm",
             )
         return cls(
-            kind=r.str("kind", cls.kind, choices=("sim", "opencv")),
+            kind=r.str("kind", cls.kind, choices=("sim", "opencv", "none")),
             device=r.str("device", cls.device),
             width_px=r.int("width_px", cls.width_px, lo=16, hi=8192),
             height_px=r.int("height_px", cls.height_px, lo=16, hi=8192),
@@ -601,6 +601,73 @@ class RecordingConfig:
 
 
 @dataclass(frozen=True)
+class WeldConfig:
+    """The weld job: which part, where the arm waits while the scanner looks,
+    and how the SRM finger meets the seam.
+
+    Poses are UR poses of the TCP ``[x, y, z, rx, ry, rz]`` (m, rad). Heights
+    are measured along the seam plane's normal (the approach direction).
+    """
+
+    # The part the cell welds when a job names none: an example name
+    # (v-groove, fillet-t, curved-groove) or a model in workpiece_dir.
+    workpiece: str = ""
+    # Directory of user parts: <name>.stl|.ply|.obj with <name>.seam.json|.csv.
+    workpiece_dir: str = ""
+    workpiece_units: str = "mm"  # units of the user meshes
+    # Where the fixture holds the part (the registration's window is around it);
+    # empty: anywhere the scan shows it.
+    nominal_pose: tuple[float, ...] = ()
+    # TCP pose while the scanner looks at the part: the arm out of its view.
+    scan_pose: tuple[float, ...] = (0.45, -0.35, 0.5, 1.5708, 0.0, 0.0)
+    # SRM tip centre above the seam while tracking, m.
+    tip_height: float = 0.004
+    # The tool comes down onto the seam from this far above the tracking height, m.
+    approach_height: float = 0.03
+    # ... and leaves it this far up when the weld ends (or fails), m.
+    retract_height: float = 0.05
+    # Share of the motion limits used by the moves of a weld job.
+    speed_scale: float = 0.5
+    # The longest a weld may run before it is stopped, s.
+    timeout: float = 600.0
+
+    @classmethod
+    def read(cls, r: TableReader) -> "WeldConfig":
+        nominal = r.vector("nominal_pose", 6, list(cls.nominal_pose)) if r.has("nominal_pose") else ()
+        return cls(
+            workpiece=r.str("workpiece", cls.workpiece),
+            workpiece_dir=r.str("workpiece_dir", cls.workpiece_dir),
+            workpiece_units=r.str("workpiece_units", cls.workpiece_units, choices=("mm", "m")),
+            nominal_pose=nominal,
+            scan_pose=r.vector("scan_pose", 6, list(cls.scan_pose)),
+            tip_height=r.float("tip_height_mm", cls.tip_height * 1e3, lo=0.0, hi=50.0, scale=1e-3),
+            approach_height=r.float("approach_height_mm", cls.approach_height * 1e3, lo=1.0, hi=500.0, scale=1e-3),
+            retract_height=r.float("retract_height_mm", cls.retract_height * 1e3, lo=1.0, hi=500.0, scale=1e-3),
+            speed_scale=r.float("speed_scale", cls.speed_scale, lo=0.0, hi=1.0, open_lo=True),
+            timeout=r.float("timeout_s", cls.timeout, lo=1.0, hi=36_000.0),
+        )
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The simulated cell's truth: what the simulated devices show.
+
+    Read only by the simulated devices (the scanner's scene, the SRM's wall);
+    no estimator sees it. ``workpiece`` empty: the table is bare.
+    """
+
+    workpiece: str = ""
+    # The part's true pose on the table (model frame in base), UR pose; empty:
+    # the simulator's nominal place (celld.seam.simscene).
+    workpiece_pose: tuple[float, ...] = ()
+
+    @classmethod
+    def read(cls, r: TableReader) -> "SimConfig":
+        pose = r.vector("workpiece_pose", 6, []) if r.has("workpiece_pose") else ()
+        return cls(workpiece=r.str("workpiece", cls.workpiece), workpiece_pose=pose)
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole cell configuration; every section validated."""
 
@@ -613,6 +680,11 @@ class Config:
     tactile: TactileConfig = field(default_factory=TactileConfig)
     bus: BusConfig = field(default_factory=BusConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
+    weld: WeldConfig = field(default_factory=WeldConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+    # The seam finder's parameters (celld.seam.pipeline.SeamParams) when the
+    # file has a [seam] table; None: the scanner's preset.
+    seam: Any = None
 
     def T_base_cam_nominal(self) -> np.ndarray:
         return np.array(self.scanner.T_base_cam, dtype=np.float64)
@@ -627,6 +699,8 @@ _SECTIONS: dict[str, Callable[[TableReader], Any]] = {
     "tactile": TactileConfig.read,
     "bus": BusConfig.read,
     "recording": RecordingConfig.read,
+    "weld": WeldConfig.read,
+    "sim": SimConfig.read,
 }
 
 
@@ -668,6 +742,12 @@ def parse(data: dict[str, Any], source: str = "<dict>") -> Config:
     for name, reader in _SECTIONS.items():
         sub = top.table(name)
         values[name] = reader(sub)
+        sub.done()
+    if top.has("seam"):
+        from celld.seam.pipeline import SeamParams  # heavy (Open3D): only when asked for
+
+        sub = top.table("seam")
+        values["seam"] = SeamParams.read(sub, values["scanner"].model)
         sub.done()
     top.done()
     return Config(**values)

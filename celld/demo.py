@@ -1,12 +1,15 @@
-"""``celld demo``: flange-based calibration of the simulated scanner, end to end.
+"""``celld demo``: the simulated cell end to end, driven over the bus like an MES.
 
-The robot shows its flange to a ray-cast PhoXi M (the simulated cell of
-``configs/sim-cell.toml``) at generated calibration poses. Each capture goes
-through the flange detector; the centre pairs are solved by the robust
-estimator, Algorithm 1 runs against the verification cloud with the honest
-e_icp metric (Eq. 13), and the session is saved so that
-``celld calib solve DIR`` can solve it again offline. Only at the end is the
-estimate compared with the simulator's truth, which the solver never sees.
+1. starts the simulated cell of ``configs/sim-cell.toml`` (the UR10e behind
+   real ur-rtde, in real time) and ``celld run`` on it as its own process;
+2. submits a calibrate job over zenoh, shows its progress, accepts the result;
+3. submits a weld job: scan, seam, touch, Algorithm 2 with the arc, retract;
+4. prints the calibration error against the simulator's truth, the seam
+   tracking error (the torch path against the true seam) and the paths of
+   the jobs' ``.rrd`` recordings.
+
+Only this script reads the truth (the config's ``[scanner] T_base_cam`` and
+``[sim]`` part), after the jobs have ended; the daemon never sees it.
 """
 
 from __future__ import annotations
@@ -14,106 +17,127 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from celld import config as config_mod
 from celld import se3
-from celld.calib.dataset import SessionWriter
-from celld.calib.detect import PARAMS_BY_SCANNER, DetectParams, detect_flange
-from celld.calib.flange import preset
-from celld.calib.poses import calibration_poses
-from celld.calib.robust import RejectedPair
-from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
-from celld.errors import DetectionError
-from celld.sim.scanner import SimScanner
-from celld.sim.scene import robot_scene
 
-# The simulated cell the demo runs on, relative to the repository.
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "sim-cell.toml"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="calibrate the simulated scanner from the robot's flange, end to end")
-    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="a cell config whose scanner is simulated")
+    p = sub.add_parser("demo", help="run the simulated cell and its daemon: calibrate, then weld, over the bus")
+    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="a cell config whose devices are simulated")
     p.add_argument("--poses", type=int, default=None, help="calibration poses (default: the config's n_poses)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=None, help="where to save the session (default: <state_dir>/demo/<time>)")
-    p.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    p.add_argument("--json", action="store_true", help="print the figures as one JSON object last")
     p.set_defaults(func=run)
 
 
+def tracking_error(torch_base: np.ndarray, seam_base: np.ndarray, T_base_plane: np.ndarray) -> dict[str, float]:
+    """Lateral distance (mm) of path points from the true seam in the welding plane.
+
+    Only points alongside the seam count (a point beyond either end of it has
+    no lateral error); ``outside`` says how many were left out.
+    """
+    from celld.seam.workpiece import project_to_polyline
+
+    R, o = T_base_plane[:3, :3], T_base_plane[:3, 3]
+
+    def flat(P: np.ndarray) -> np.ndarray:
+        Q = (np.asarray(P, dtype=np.float64).reshape(-1, 3) - o) @ R
+        Q[:, 2] = 0.0
+        return Q
+
+    P = flat(torch_base)
+    proj = project_to_polyline(P, flat(seam_base), step=5e-5)
+    e = np.linalg.norm(P - proj.point, axis=1)[proj.inside]
+    if len(e) == 0:
+        return {"rms_mm": float("nan"), "max_mm": float("nan"), "points": 0, "outside": int(len(P))}
+    return {"rms_mm": float(np.sqrt(np.mean(e**2))) * 1e3, "max_mm": float(e.max()) * 1e3,
+            "points": int(len(e)), "outside": int(len(P) - len(e))}
+
+
 def run(args: argparse.Namespace) -> int:
+    from celld.errors import CelldError
+    from celld.sim.cell import run_cell, sim_workpiece
+
     cfg = config_mod.load(args.config)
-    cal = cfg.calibration
-    scanner_model = cfg.scanner.model
-    flange = preset(cal.flange)
-    n = args.poses if args.poses is not None else cal.n_poses
-    # The simulator's truth: it renders the scene, the estimator never reads it.
-    T_base_cam_true = cfg.T_base_cam_nominal()
-    scanner = SimScanner(scanner_model, T_base_cam_true, seed=args.seed)
-    dparams: DetectParams = PARAMS_BY_SCANNER[scanner_model]
-    out = Path(args.out) if args.out else Path(cfg.cell.state_dir) / "demo" / time.strftime("%Y%m%d-%H%M%S")
-    writer = SessionWriter(out, flange=cal.flange, scanner=scanner_model)
-    say = _printer(args.json)
-
-    T_v = se3.from_ur_pose(cal.verification_pose)
-    poses = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=args.seed)
-    say(f"celld demo: {scanner_model} at T_base_cam (simulated), flange {flange.name}, {n} poses")
-    t0 = time.perf_counter()
-    P_v = scanner.capture(robot_scene(T_v, flange)).points
-    writer.set_verification(T_v, P_v)
-    ids, P_base, P_cam, rejected = [], [], [], []
-    for i, T in enumerate(poses):
-        cloud = scanner.capture(robot_scene(T, flange)).points
-        pid = writer.add_pair(T, cloud)
-        try:
-            det = detect_flange(cloud, flange, dparams)
-        except DetectionError as exc:
-            rejected.append(RejectedPair(pid, i, math.nan, f"detection failed at {exc.stage}: {exc.reason}"))
-            say(f"  pair {pid}: no flange ({exc.reason})")
-            continue
-        ids.append(pid)
-        P_base.append(T[:3, 3])
-        P_cam.append(det.center)
-        say(f"  pair {pid}: centre found, radius {det.radius * 1e3:.2f} mm, {det.inliers} rim points, "
-            f"residual {det.residual * 1e6:.0f} um")
-    params = SolveParams.from_config(cal)
-    verifier = verifier_from_cloud(P_v, T_v, flange, params, dparams)
-    result = solve_pairs(ids, np.array(P_base), np.array(P_cam), params, verifier, rejected, n_pairs=n)
-    seconds = time.perf_counter() - t0
-
-    dt, dr = se3.error(result.T_base_cam, T_base_cam_true)
-    report = result.as_dict()
-    report.update(
-        dataset=str(out),
-        seconds=seconds,
-        error_vs_truth={"translation_mm": dt * 1e3, "rotation_deg": math.degrees(dr)},
-    )
+    part = sim_workpiece(cfg)
+    if cfg.scanner.kind != "sim" or cfg.tactile.kind != "sim" or part is None:
+        print("celld demo: the config must simulate the scanner and the SRM and name a [sim] workpiece", file=sys.stderr)
+        return 2
+    state = Path(cfg.cell.state_dir)
+    state.mkdir(parents=True, exist_ok=True)
+    log_path = state / "demo-daemon.log"
+    say = (lambda text: print(text, file=sys.stderr, flush=True)) if args.json else (lambda text: print(text, flush=True))
+    figures: dict[str, Any] = {}
+    say(f"celld demo: simulated cell {cfg.cell.name!r} on {cfg.robot.host}; daemon log {log_path}")
+    t0 = time.monotonic()
+    try:
+        with run_cell(args.config, log_path) as cell:
+            say(f"daemon up, robot link up ({time.monotonic() - t0:.0f} s)")
+            calibrate: dict[str, Any] = {"kind": "calibrate"}
+            if args.poses:
+                calibrate["n_poses"] = args.poses
+            cal = _job(cell.client, calibrate, say)
+            if cal["state"] != "succeeded":
+                return _failed(cal, say)
+            accepted = cell.client.accept(cal["id"])
+            T_est = np.array(accepted["calibration"]["T_base_cam"])
+            dt, dr = se3.error(T_est, cfg.T_base_cam_nominal())
+            cal_result = json.loads(Path(cal["result"]).read_text())
+            figures["calibration"] = {"job": cal["id"], "translation_error_mm": dt * 1e3, "rotation_error_deg": math.degrees(dr),
+                                      "pairs": cal_result["calibration"]["pairs"], "recording": cal_result.get("recording")}
+            say(f"calibration {cal['id']} accepted: error against the simulator's truth {dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg")
+            weld = _job(cell.client, {"kind": "weld"}, say)
+            if weld["state"] != "succeeded":
+                return _failed(weld, say)
+            res = json.loads(Path(weld["result"]).read_text())  # the record names the result file
+            g = part.wall
+            torch = tracking_error(np.array(res["torch_path"]), g.seam_base, g.T_base_plane)
+            refined = tracking_error(np.array(res["refined_path"]), g.seam_base, g.T_base_plane)
+            planned = tracking_error(np.array(res["planned_path"]), g.seam_base, g.T_base_plane)
+            figures["weld"] = {"job": weld["id"], "torch_error": torch, "refined_error": refined, "planned_error": planned,
+                               "figures": res["figures"], "recording": res.get("recording"), "paths": res.get("paths")}
+    except CelldError as exc:
+        say(f"celld demo failed: {exc}")
+        return 1
+    f = figures["weld"]
+    say("")
+    say(f"calibration: {figures['calibration']['translation_error_mm']:.3f} mm, {figures['calibration']['rotation_error_deg']:.4f} deg from the truth "
+        f"({figures['calibration']['pairs']} pairs)")
+    say(f"seam plan from the scan: {f['planned_error']['rms_mm']:.3f} mm RMS, {f['planned_error']['max_mm']:.3f} mm max from the true seam")
+    say(f"torch path (tactile tracking): {f['torch_error']['rms_mm']:.3f} mm RMS, {f['torch_error']['max_mm']:.3f} mm max from the true seam "
+        f"over {f['figures']['tracked_mm']:.0f} mm, arc on {f['figures']['arc_on_s']:.1f} s")
+    say(f"delta_n tracking error: {f['figures']['delta_n_error_rms_mm']} mm RMS")
+    say("recordings (open with: rerun FILE.rrd):")
+    say(f"  {figures['calibration']['recording']}")
+    say(f"  {f['recording']}")
+    say(f"weld paths: {f['paths']}   total {time.monotonic() - t0:.0f} s")
     if args.json:
-        print(json.dumps(report))
-        return 0
-    np.set_printoptions(precision=5, suppress=True)
-    say(f"\nT_base_cam ({result.method}, {len(result.pair_ids)} of {n} pairs, {seconds:.1f} s):\n{result.T_base_cam}")
-    for r in result.rejected:
-        say(f"  rejected {r.id}: {r.reason}")
-    if result.e_icp is not None:
-        say(f"e_icp (Eq. 13): {np.linalg.norm(result.e_icp.translation) * 1e3:.3f} mm")
-    if result.algorithm1 is not None:
-        a1 = result.algorithm1
-        say(f"Algorithm 1: cost {a1.cost * 1e3:.3f} mm after {a1.n_pairs_used} pairs (target reached: {a1.reached})")
-    unc = result.uncertainty
-    say(f"predicted 1-sigma error: {unc.translation_error * 1e3:.3f} mm, {math.degrees(unc.rotation_error):.4f} deg")
-    say(f"error against the simulator's truth: {dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg")
-    say(f"session saved to {out}; solve it again with: celld calib solve {out} --json")
+        print(json.dumps(figures))
     return 0
 
 
-def _printer(quiet: bool):
-    def say(text: str) -> None:
-        if not quiet:
-            print(text, flush=True)
+def _job(client: Any, message: dict[str, Any], say: Any) -> dict[str, Any]:
+    from celld.bus.cli import ProgressBar
 
-    return say
+    bar = ProgressBar(sys.stderr)
+    try:
+        with client.watch_progress() as events:
+            reply = client.submit(message)
+            say(f"{message['kind']} job {reply['job']} {reply['state']}")
+            record = events.wait(reply["job"], bar.update, 1800.0)
+    finally:
+        bar.close()
+    return record
+
+
+def _failed(record: dict[str, Any], say: Any) -> int:
+    say(f"job {record['id']} {record['state']}: {record.get('reason') or record}")
+    return 1

@@ -69,7 +69,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--seed", type=int, help="seed of the pose generator")
 
     w = kinds.add_parser("weld", parents=[job_common], help="scan, find the seam, touch and track it")
-    w.add_argument("--workpiece", help="workpiece model known to the cell (default: groove from the scan)")
+    w.add_argument("--workpiece", help="workpiece model known to the cell (default: the config's weld.workpiece)")
     w.add_argument("--delta-d-mm", type=float, help="desired normal deformation, mm")
     w.add_argument("--k-p", type=float, help="normal gain of Eq. 16, 1/s")
     w.add_argument("--v-const-mm-s", type=float, help="tangential speed, mm/s")

@@ -176,7 +176,7 @@ _WELD = _submit_branch(
         "workpiece": {
             "type": "string",
             "pattern": r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$",
-            "description": "A workpiece model known to the cell; absent: extract the groove from the scan.",
+            "description": "A workpiece model known to the cell (an example or a model in weld.workpiece_dir); absent: the cell's weld.workpiece.",
         },
         "delta_d_mm": _number("Desired normal deformation of the SRM, mm (default: tactile.delta_d_mm).", 0.0, 20.0, open_lo=True),
         "k_p": _number("Normal gain of Eq. 16, 1/s (default: tactile.k_p).", 0.0, 1000.0, open_lo=True),
@@ -402,7 +402,7 @@ class CalibrateJob:
 class WeldJob:
     """Scan, find, touch and track one seam. ``None`` means "the cell config's value"."""
 
-    workpiece: str = ""  # "" extracts the groove from the scan
+    workpiece: str = ""  # "": the cell's weld.workpiece
     delta_d: float | None = None  # m
     k_p: float | None = None  # 1/s
     v_const: float | None = None  # m/s

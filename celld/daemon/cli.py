@@ -18,9 +18,12 @@ def _run(args: argparse.Namespace) -> int:
     from celld.daemon.app import Daemon
     from celld.daemon.devices import CellDevices
     from celld.daemon.runners import build_runners
+    from celld.sim.cell import make_tactile, scene_extra
 
     cfg = config_mod.load(args.config)  # refused here, before any device is opened
-    devices = CellDevices(cfg)
+    # The simulated scanner also sees the [sim] part; the simulated finger its wall.
+    extra = scene_extra(cfg) if cfg.scanner.kind == "sim" else None
+    devices = CellDevices(cfg, tactile_factory=make_tactile, scene_extra=extra)
     daemon = Daemon(cfg, devices, build_runners(cfg, devices))
     asyncio.run(daemon.run())
     return 0

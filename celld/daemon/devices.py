@@ -46,7 +46,8 @@ class CellDevices:
     ----------
     config : Config
     tactile_factory : callable(config) -> TactileProcess | None, optional
-        Builds the tactile process (the simulated one needs the seam wall);
+        Builds the tactile process (the simulated one needs the seam wall,
+        :func:`celld.sim.cell.make_tactile`); None, or a factory returning
         None: the cell runs without one, and weld jobs are refused.
     scene_extra : callable() -> list of SceneObject, optional
         More objects for the simulated scanner to see (the workpiece).
@@ -67,6 +68,7 @@ class CellDevices:
         self._scene_extra = scene_extra
         self._truth: Any = None
         self._recordings: list[Any] = []
+        self._collectors: list[Callable[[np.ndarray], None]] = []
 
     # -- life cycle ----------------------------------------------------------------
 
@@ -74,7 +76,8 @@ class CellDevices:
         cfg = self.config
         if self._tactile_factory is not None:
             self.tactile = self._tactile_factory(cfg)
-            await asyncio.to_thread(self.tactile.start)
+            if self.tactile is not None:
+                await asyncio.to_thread(self.tactile.start)
         self.motion = await MotionHandle.open(
             cfg,
             servo_laws=SERVO_LAWS,
@@ -195,7 +198,17 @@ class CellDevices:
         """Feed motion state batches to ``recording`` until it closes."""
         self._recordings.append(recording)
 
+    def add_collector(self, callback: Callable[[np.ndarray], None]) -> None:
+        """Also pass every motion state batch to ``callback`` (until removed)."""
+        self._collectors.append(callback)
+
+    def remove_collector(self, callback: Callable[[np.ndarray], None]) -> None:
+        if callback in self._collectors:
+            self._collectors.remove(callback)
+
     def _on_state_batch(self, batch: np.ndarray) -> None:
+        for collect in list(self._collectors):
+            collect(batch)
         live = []
         for rec in self._recordings:
             if rec.closed:

@@ -17,6 +17,7 @@ worker threads so the event loop keeps answering the bus.
   the forward kinematics.
 - **health**: the robot link and loop timing, the scanner (one capture), the
   tactile sensor.
+- **weld**: :mod:`celld.daemon.weld`.
 """
 
 from __future__ import annotations
@@ -59,7 +60,14 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
     async def health(ctx: JobContext) -> Mapping[str, Any]:
         return await run_health(ctx, devices)
 
-    return {"calibrate": calibrate, "move": move, "health": health}
+    weld_cache: dict[str, Any] = {}  # prepared part models, by name
+
+    async def weld(ctx: JobContext) -> Mapping[str, Any]:
+        from celld.daemon.weld import run_weld
+
+        return await run_weld(ctx, config, devices, weld_cache)
+
+    return {"calibrate": calibrate, "move": move, "health": health, "weld": weld}
 
 
 # -- calibrate ---------------------------------------------------------------------

@@ -516,6 +516,7 @@ class Algorithm2Servo:
         self.phase = Phase.TOUCH
         self.reason = ""
         self._n_ref = 0
+        self._torch_on_path = False
         self._n_hist = 0
         self._i_plan = 0
         self._i_torch = 0
@@ -557,14 +558,15 @@ class Algorithm2Servo:
         """Phase, delta_n, latest refined point (base frame) and process wish after the last step.
 
         ``process_on`` is the plan's ``process`` while the phase is TRACK,
-        SEARCH or FINISH. Cheap: the refined point is converted when it changes.
+        SEARCH or FINISH and the torch is on the refined path (past its first
+        point: the arc lights where the finger first touched, not |d| before it). Cheap: the refined point is converted when it changes.
         """
         n = self._n_ref
         if n != self._tel_n:
             self._tel_n = n
             self._tel_refined = self.to_base(self._ref[n - 1]) if n > 0 else np.full(3, math.nan)
             self._tel_refined.flags.writeable = False  # handed out every cycle: nobody may change it
-        on = self.p.process and self.phase in (Phase.TRACK, Phase.SEARCH, Phase.FINISH)
+        on = self.p.process and self._torch_on_path and self.phase in (Phase.TRACK, Phase.SEARCH, Phase.FINISH)
         return ServoTelemetry(int(self.phase), float(self.last.delta_n), self._tel_refined, bool(on))
 
     # -- geometry of the current state --
@@ -813,8 +815,11 @@ class Algorithm2Servo:
         if near is None:
             i, _, _ = nearest_on_polyline(self.path.P, P_t, 0, len(self.path.P))
             n_t, e, torch_done = self.path.N[i], 0.0, False
+            self._torch_on_path = False
         else:
             t_t, n_t, e, torch_done = near
+            # The torch has reached the refined path once it is past its first point.
+            self._torch_on_path = self._i_torch > 0 or float((P_t - self._ref[0]) @ t_t) >= 0.0
             if self.phase == Phase.FINISH:
                 # The seam has ended ahead: go on along the refined path where the torch is.
                 V_r = self.p.v_const * t_t

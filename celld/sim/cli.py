@@ -2,6 +2,11 @@
 
 - ``celld sim robot --host 127.0.0.N [options]`` runs the simulated UR10e
   controller in the foreground until interrupted.
+- ``celld sim cell --config CELL.toml`` runs the simulated cell of a cell
+  config: the simulated UR10e on ``robot.host`` at ``robot.home_q``, in real
+  time. The scanner and the SRM camera are simulated inside the daemon
+  (``scanner.kind = "sim"``, ``tactile.kind = "sim"``); the part on the
+  table and its true pose come from the config's ``[sim]`` table.
 - ``celld sim fault --host 127.0.0.N <fault> [--ms N] [--down-ms N]`` plays a
   fault on a running simulator (see :mod:`celld.sim.robot.faults`);
   ``clear`` undoes them and ``status`` prints the simulator's state.
@@ -26,6 +31,10 @@ def add_parser(sub: Any) -> None:
     add_arguments(robot)
     robot.set_defaults(func=_run_robot)
 
+    cell = sim_sub.add_parser("cell", help="run the simulated cell of a cell config (robot at its home pose)")
+    cell.add_argument("--config", required=True, help="the cell config (e.g. configs/sim-cell.toml)")
+    cell.set_defaults(func=_run_cell)
+
     fault = sim_sub.add_parser("fault", help="play a fault on a running simulated robot")
     fault.add_argument("--host", required=True, help="address the simulator listens on, 127.x.y.z")
     names = sorted(f.replace("_", "-") for f in FAULTS) + ["clear", "status"]
@@ -41,6 +50,26 @@ def _run_robot(args: argparse.Namespace) -> int:
     from celld.sim.robot.server import serve
 
     return serve(from_args(args))
+
+
+def _run_cell(args: argparse.Namespace) -> int:
+    from celld import config as config_mod
+    from celld.sim.cell import sim_workpiece
+    from celld.sim.robot.options import SimOptions
+    from celld.sim.robot.server import serve
+
+    cfg = config_mod.load(args.config)
+    host = check_host(cfg.robot.host)
+    part = sim_workpiece(cfg)  # refused here if [sim] names no usable part
+    if part is not None:
+        print(f"simulated cell {cfg.cell.name}: {part.workpiece.name} at {se3_text(part.T_base_obj)}", flush=True)
+    return serve(SimOptions(host=host).with_(realtime=True, q0=tuple(cfg.robot.home_q)))
+
+
+def se3_text(T: Any) -> str:
+    from celld import se3
+
+    return "[" + ", ".join(f"{v:.4f}" for v in se3.to_ur_pose(T)) + "]"
 
 
 def _run_fault(args: argparse.Namespace) -> int:

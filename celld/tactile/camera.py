@@ -58,6 +58,7 @@ COUNTERS_DTYPE = np.dtype(
         ("tare_spread", np.float64),
         ("detect_ns", np.int64),  # of the last frame
         ("pid", np.int64),
+        ("tares", np.int64),  # tares completed since the process started
     ]
 )
 
@@ -220,6 +221,7 @@ def run_tare(source: FrameSource, est: FrameEstimator, publish: Callable[[Tactil
         raise
     est.rest = rest
     est.counters[0]["tared"] = True
+    est.counters[0]["tares"] += 1
     est.counters[0]["p_cam_rest"] = rest.p_cam_rest
     est.counters[0]["tare_spread"] = rest.spread
     return rest
@@ -464,6 +466,27 @@ class TactileProcess:
 
     def request_tare(self) -> None:
         self._tare.set()
+
+    def tare(self, timeout: float = 10.0) -> None:
+        """Tare now (the finger must be free) and wait until it is done (blocking).
+
+        Raises
+        ------
+        DeviceError
+            The process is not running, or no tare succeeded within ``timeout``.
+        """
+        if not self.alive():
+            raise DeviceError("the tactile process is not running")
+        before = self.read_counters()
+        done = int(before["tares"]) if before is not None else 0
+        self.request_tare()
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            c = self.read_counters()
+            if c is not None and int(c["tares"]) > done:
+                return
+            time.sleep(0.02)
+        raise DeviceError(f"the SRM did not tare within {timeout:g} s (is the tag in view and the finger free?)")
 
     def latest(self) -> TactileSample | None:
         from celld.tactile.sample import from_record

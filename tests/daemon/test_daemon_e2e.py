@@ -57,6 +57,9 @@ T_base_cam = {T_BASE_CAM_TRUE}
 flange = "ur10e"
 n_poses = 6
 e_required_mm = 0.0
+[tactile]
+# These tests need no finger camera; the weld test's cell has one.
+kind = "none"
 [bus]
 listen = ["tcp/{host}:7447"]
 """

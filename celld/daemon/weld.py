@@ -1,0 +1,328 @@
+"""The weld job: scan, find the seam, touch it, track it with Algorithm 2, retract.
+
+Steps, each published as a progress event:
+
+1. **scan**: the arm goes to ``weld.scan_pose`` (out of the scanner's view)
+   and the scanner captures the part;
+2. **seam**: the seam finder registers the part model in the scan and places
+   its seam in the base frame with the *current* calibration (an accepted
+   calibrate job); a weld without one is refused;
+3. **approach**: the finger's wall line at ``weld.tip_height`` above the seam
+   (:mod:`celld.seam.weldpath`) becomes the servo's plan; the tool comes down
+   ``approach_height`` above its start, then onto it, ``clearance`` off the
+   wall on the free side; the SRM is tared there, free;
+4. **track**: Algorithm 2 in the motion process's servo slot touches the wall
+   until the deformation settles at ``delta_d``, then tracks; the arc is
+   switched on (robot digital output ``robot.arc_output``) by the motion loop
+   itself while the law tracks and off the cycle a stop begins, so no bus or
+   event-loop delay stands between a fault and the arc going out;
+5. **retract**: straight up by ``retract_height`` (also after a failed track,
+   when the link still stands), then to the scan pose.
+
+Results: the planned wall line, the refined path (the seam as the finger
+found it, which the torch followed) and the torch path, in the base frame,
+with the tracking figures; the paths are also written to
+``jobs/<job>/paths.json`` and logged to the job's recording.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from celld import fsutil, se3
+from celld.bus.schema import WeldJob
+from celld.config import Config
+from celld.daemon.devices import CellDevices
+from celld.daemon.jobs import CalibrationStore, JobContext
+from celld.errors import CelldError, InputError, JobError, WorkpieceError
+from celld.log import get_logger
+from celld.motion.servo import algorithm2_plan
+from celld.seam.weldpath import WeldGeometry, in_plane, start_pose, wall_offset, weld_geometry
+from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
+from celld.tactile.tool import ToolGeometry
+
+log = get_logger(__name__)
+
+# The tool starts this far along the wall line (m) ...
+LEAD_IN = 0.005
+# ... and this far off the wall on the free side (m); the servo's touch then
+# travels it at touch_speed (bounded by tactile.touch_distance).
+CLEARANCE = 0.004
+# Seconds between progress events while tracking.
+PROGRESS_PERIOD = 0.5
+# Torch path points are kept at least this far apart (m).
+TORCH_STEP = 0.0005
+
+
+def resolve_workpiece(name: str, config: Config) -> Workpiece:
+    """The part ``name`` (or the cell's default part): an example or a model in ``weld.workpiece_dir``."""
+    wc = config.weld
+    name = name or wc.workpiece
+    if not name:
+        raise JobError("$.workpiece", "no workpiece named and the cell has no default (weld.workpiece in the config)")
+    if name in EXAMPLES:
+        return example(name)
+    if not wc.workpiece_dir:
+        raise JobError("$.workpiece", f"unknown workpiece {name!r}: not an example ({', '.join(EXAMPLES)}) and weld.workpiece_dir is not set")
+    if "/" in name or name.startswith("."):
+        raise JobError("$.workpiece", f"expected a plain model name, got {name!r}")
+    d = Path(wc.workpiece_dir)
+    meshes = [d / f"{name}{ext}" for ext in (".stl", ".ply", ".obj") if (d / f"{name}{ext}").exists()]
+    seams = [d / f"{name}.seam{ext}" for ext in (".json", ".csv") if (d / f"{name}.seam{ext}").exists()]
+    if not meshes or not seams:
+        raise JobError("$.workpiece", f"unknown workpiece {name!r}: {d} holds no {name}.stl|ply|obj with a {name}.seam.json|csv")
+    try:
+        return load_workpiece(meshes[0], seams[0], mesh_units=wc.workpiece_units, name=name)
+    except WorkpieceError as exc:
+        raise JobError("$.workpiece", f"workpiece {name!r} cannot be used: {exc}") from exc
+
+
+def current_T_base_cam(state_dir: Path) -> tuple[np.ndarray, str]:
+    """The accepted calibration's T_base_cam and the job that made it; refused without one."""
+    cal = CalibrationStore(state_dir).current()
+    if cal is None:
+        raise JobError("$", "the cell has no current calibration: run a calibrate job and accept it first")
+    try:
+        T = se3.check_transform(cal.get("T_base_cam"), "calibration.T_base_cam")
+    except (InputError, ValueError, TypeError) as exc:
+        raise JobError("$", f"the current calibration is unusable: {exc}") from exc
+    return T, str(cal.get("job", ""))
+
+
+class _Collector:
+    """Motion state records of one command, gathered from the handle's batches."""
+
+    def __init__(self) -> None:
+        self.batches: list[np.ndarray] = []
+        self.command_id = 0
+
+    def __call__(self, batch: np.ndarray) -> None:
+        if self.command_id:
+            mine = batch[batch["command_id"] == self.command_id]
+            if len(mine):
+                self.batches.append(mine.copy())
+
+    def records(self) -> np.ndarray | None:
+        return np.concatenate(self.batches) if self.batches else None
+
+
+def _arc_length(P: np.ndarray) -> np.ndarray:
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+
+
+def _thin(P: np.ndarray, step: float) -> np.ndarray:
+    """Points at least ``step`` apart along the path (first and last kept)."""
+    if len(P) < 3:
+        return P
+    keep = [0]
+    for i in range(1, len(P)):
+        if np.linalg.norm(P[i] - P[keep[-1]]) >= step:
+            keep.append(i)
+    if keep[-1] != len(P) - 1:
+        keep.append(len(P) - 1)
+    return P[keep]
+
+
+def _lateral(geometry: WeldGeometry, P_base: np.ndarray, line_base: np.ndarray) -> np.ndarray:
+    """Signed in-plane distance (m) of points from a polyline, positive towards the finger wall."""
+    Q = in_plane(geometry, P_base)
+    L = in_plane(geometry, line_base)
+    a, ab = L[:-1], np.diff(L, axis=0)
+    out = np.empty(len(Q))
+    for k, q in enumerate(Q):
+        u = np.clip(np.einsum("ij,ij->i", q - a, ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
+        X = a + u[:, None] * ab
+        i = int(np.argmin(np.einsum("ij,ij->i", X - q, X - q)))
+        n = np.array([-ab[i, 1], ab[i, 0]]) / np.linalg.norm(ab[i])
+        out[k] = float((q - X[i]) @ n)
+    # Plane y is left of the first tangent; the normals point to the finger wall.
+    side = 1.0 if float(geometry.normals[0] @ geometry.T_base_plane[:3, 1]) > 0.0 else -1.0
+    return side * out
+
+
+async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache: dict[str, Any]) -> Mapping[str, Any]:
+    job = ctx.job
+    if not isinstance(job, WeldJob):
+        raise JobError("$.kind", "not a weld job")
+    if devices.tactile is None:
+        raise JobError("$", "the cell has no tactile sensor (tactile.kind); it cannot track a seam")
+    motion = devices.require_motion()
+    wc = config.weld
+    seam_params = config.seam
+    from celld.seam.pipeline import SeamParams, find_seam, prepare
+
+    if seam_params is None:
+        seam_params = SeamParams.for_scanner(config.scanner.model)
+    if seam_params.finger_wall != config.tactile.wall_side:
+        raise JobError("$", f"seam.finger_wall ({seam_params.finger_wall}) and tactile.wall_side ({config.tactile.wall_side}) must name the same wall")
+    overrides = {k: v for k, v in (("delta_d", job.delta_d), ("k_p", job.k_p), ("v_const", job.v_const), ("torch_offset", job.torch_offset)) if v is not None}
+    tactile = dataclasses.replace(config.tactile, **overrides)
+    tool = ToolGeometry.from_config(tactile)
+    T_base_cam, cal_job = current_T_base_cam(ctx.state_dir)
+    workpiece = resolve_workpiece(job.workpiece, config)
+    key = f"{workpiece.name}:{id(seam_params)}"
+    if key not in cache:
+        ctx.progress("prepare", None, f"preparing the model of {workpiece.name}")
+        prepared = await asyncio.to_thread(prepare, workpiece, seam_params)
+        offset = await asyncio.to_thread(wall_offset, workpiece, wc.tip_height, seam_params.finger_wall)
+        cache[key] = (prepared, offset)
+    prepared, offset = cache[key]
+    rec = ctx.recording
+    speed = wc.speed_scale
+    T_scan = se3.from_ur_pose(wc.scan_pose)
+
+    # 1. scan
+    ctx.progress("scan", 0.0, "arm to the scan pose, scanning")
+    await motion.move_to(T_scan, speed_scale=speed)
+    cloud = await devices.capture()
+    if rec is not None:
+        rec.log_camera_pose(T_base_cam)
+        rec.log_cloud_cam("scan", cloud.points)
+
+    # 2. seam
+    ctx.progress("seam", None, f"finding the seam of {workpiece.name} with calibration {cal_job or '(unnamed)'}")
+    nominal = se3.from_ur_pose(wc.nominal_pose) if wc.nominal_pose else None
+    seam = await asyncio.to_thread(find_seam, cloud, prepared, T_base_cam, seam_params, nominal)
+    geometry = weld_geometry(seam.points_base, seam.tangents, seam.normals, seam.plane_normal, offset, wc.tip_height)
+    if rec is not None:
+        rec.log_path_base("planned", geometry.seam_base)
+    ctx.progress("seam", None, f"seam found: {seam.length * 1e3:.1f} mm", length_mm=seam.length * 1e3, **_quality(seam))
+
+    # 3. approach
+    T_start = start_pose(geometry, tool.T_tcp_tool, LEAD_IN, CLEARANCE)
+    z = geometry.T_base_plane[:3, 2]
+    T_above = T_start.copy()
+    T_above[:3, 3] += wc.approach_height * z
+    ctx.progress("approach", None, "tool to the seam's start")
+    await motion.move_to(T_above, speed_scale=speed)
+    await motion.move_to(T_start, speed_scale=min(speed, 0.2))
+    ctx.progress("tare", None, "taring the SRM, finger free")
+    await asyncio.to_thread(devices.tactile.tare)
+
+    # 4. touch and track
+    plan = algorithm2_plan(
+        geometry.wall_base, tactile, config.motion, T_base_plane=geometry.T_base_plane,
+        process=bool(job.arc) and config.robot.arc_output >= 0, seam_offset=offset,
+    )
+    collector = _Collector()
+    devices.add_collector(collector)
+    failure: CelldError | None = None
+    try:
+        cid = await motion.start_servo(plan)
+        collector.command_id = cid
+        ctx.progress("track", 0.0, "touching the seam, then tracking" + (" with the arc on" if plan.params.get("process") else " (dry run, arc off)"))
+        waiting = asyncio.ensure_future(motion.wait(cid, timeout=wc.timeout))
+        s_wall = _arc_length(geometry.wall_base)
+        try:
+            while not waiting.done():
+                await asyncio.wait({waiting}, timeout=PROGRESS_PERIOD)
+                last = motion.last_record()
+                if last is not None and not waiting.done():
+                    p = tool.T_base_tool(se3.from_ur_pose(last["tcp_pose"]))[:3, 3]
+                    i = int(np.argmin(np.linalg.norm(geometry.wall_base - p, axis=1)))
+                    ctx.progress("track", float(min(1.0, s_wall[i] / s_wall[-1])), f"{s_wall[i] * 1e3:.0f} of {s_wall[-1] * 1e3:.0f} mm",
+                                 arc=bool(last["process_on"]) if "process_on" in last.dtype.names else None)
+            waiting.result()
+        except CelldError as exc:
+            failure = exc
+        finally:
+            if not waiting.done():
+                waiting.cancel()
+    finally:
+        devices.remove_collector(collector)
+
+    # 5. retract (also after a failed track, while the robot can still be moved)
+    retract_error = ""
+    if failure is None or motion.link_running():
+        try:
+            await devices.stop_robot()
+            state = motion.state()
+            if state is not None:
+                T_up = state.T_base_tcp.copy()
+                T_up[:3, 3] += wc.retract_height * z
+                ctx.progress("retract", None, "tool up and away")
+                await motion.move_to(T_up, speed_scale=min(speed, 0.2))
+                await motion.move_to(T_scan, speed_scale=speed)
+        except CelldError as exc:
+            retract_error = str(exc)
+            log.error("retract after the weld failed", job=ctx.job_id, error=retract_error)
+    if failure is not None:
+        raise failure
+
+    records = collector.records()
+    result = _summarise(records, geometry, tool, tactile, seam, offset, ctx.result_dir(), rec)
+    result["workpiece"] = workpiece.name
+    result["calibration_job"] = cal_job
+    if retract_error:
+        result["retract_error"] = retract_error
+    return result
+
+
+def _quality(seam: Any) -> dict[str, Any]:
+    q = seam.quality.to_dict()
+    return {k: q[k] for k in ("source", "fitness", "inlier_rmse", "coverage") if k in q}
+
+
+def _summarise(records: np.ndarray | None, geometry: WeldGeometry, tool: ToolGeometry, tactile: Any, seam: Any,
+               offset: float, out_dir: Path, rec: Any) -> dict[str, Any]:
+    """The paths and tracking figures of a finished track, written to paths.json."""
+    if records is None or len(records) == 0:
+        raise CelldError("the servo ran but no motion record of it was read")
+    T_tcp = np.array([se3.from_ur_pose(p) for p in records["tcp_pose"]])
+    T_tool = T_tcp @ tool.T_tcp_tool
+    torch = np.einsum("nij,j->ni", T_tool[:, :3, :3], tool.torch_tool()) + T_tool[:, :3, 3]
+    refined = records["refined_base"]
+    refined = refined[np.all(np.isfinite(refined), axis=1)]
+    if len(refined):
+        keep = np.concatenate([[True], np.any(np.diff(refined, axis=0) != 0.0, axis=1)])
+        refined = refined[keep]
+    tracking = records["servo_phase"] == 1
+    torch_weld = _thin(torch[records["process_on"]] if records["process_on"].any() else torch[tracking], TORCH_STEP)
+    delta_n = records["delta_n"][tracking]
+    delta_n = delta_n[np.isfinite(delta_n)]
+    e_delta = np.abs(np.abs(delta_n) - tactile.delta_d) if len(delta_n) else np.zeros(0)
+    corr = _lateral(geometry, refined, geometry.seam_base) if len(refined) > 1 else np.zeros(0)
+    paths = {
+        "frame": "base", "units": "m",
+        "planned": geometry.seam_base.tolist(),
+        "planned_wall": geometry.wall_base.tolist(),
+        "refined": refined.tolist(),
+        "torch": torch_weld.tolist(),
+    }
+    path_file = fsutil.write_json(out_dir / "paths.json", paths)
+    if rec is not None:
+        if len(refined) > 1:
+            rec.log_path_base("refined", refined)
+        if len(torch_weld) > 1:
+            rec.log_path_base("torch", torch_weld)
+    t = (records["t_ns"] - records["t_ns"][0]) * 1e-9
+    omega = np.abs(records["twist"][:, 3:]).max() if len(records) else 0.0
+    figures = {
+        "duration_s": round(float(t[-1]), 3),
+        "tracked_mm": round(float(_arc_length(refined)[-1]) * 1e3, 2) if len(refined) > 1 else 0.0,
+        "arc_on_s": round(float(records["process_on"].sum()) * float(np.median(np.diff(t))) if len(t) > 1 else 0.0, 3),
+        "delta_n_error_rms_mm": round(float(np.sqrt(np.mean(e_delta**2))) * 1e3, 4) if len(e_delta) else None,
+        "correction_rms_mm": round(float(np.sqrt(np.mean(corr**2))) * 1e3, 4) if len(corr) else None,
+        "correction_max_mm": round(float(np.abs(corr).max()) * 1e3, 4) if len(corr) else None,
+        "omega_peak": round(float(omega), 5),
+        "wall_offset_mm": round(offset * 1e3, 4),
+        # The motion loop while the servo ran: wake-up lateness (ms) and cycles more than 2 ms late.
+        "loop_late_p99_ms": round(float(np.percentile(records["late_ns"], 99)) * 1e-6, 3),
+        "loop_late_max_ms": round(float(records["late_ns"].max()) * 1e-6, 3),
+        "loop_cycles_late_2ms": int(np.count_nonzero(records["late_ns"] > 2_000_000)),
+        "loop_cycles": int(len(records)),
+        "seam_length_mm": round(seam.length * 1e3, 2),
+    }
+    return {
+        "figures": figures,
+        "paths": str(path_file),
+        "refined_path": paths["refined"],
+        "torch_path": paths["torch"],
+        "planned_path": paths["planned"],
+    }

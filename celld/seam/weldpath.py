@@ -1,0 +1,191 @@
+"""From a seam to what the SRM finger touches: the wall line in the welding plane.
+
+The finger does not ride the seam itself: its tip (a sphere) sits in the
+joint at ``tip_height`` above the seam and presses sideways against one wall
+of it, the finger wall (``finger_wall``, left or right of travel). Algorithm 2
+works in the plane normal to the approach direction at that height (the
+paper's Fig. 8 plane), and there the wall is a line beside the seam:
+
+- a fillet T-joint's web stands upright: the wall line is the seam itself;
+- a V-groove's bevel leans out: at height h the wall is ``b/2 + h tan(a/2)``
+  beside the root line.
+
+:func:`wall_offset` measures that distance on the part model by casting rays
+from the seam across the joint at the tip height onto the labelled wall
+triangles (Open3D). :func:`weld_geometry` turns a found seam into the planned
+wall line the servo follows, the seam line the torch must follow (the same
+line, moved back by the offset) and the welding plane. :func:`true_wall` does
+the same from a model and a true pose, for the simulated SRM.
+
+Pure: arrays in, arrays out, SI units, base frame unless a name says otherwise.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+
+from celld import se3
+from celld.errors import WorkpieceError
+from celld.seam.workpiece import LEFT_WALL, RIGHT_WALL, Workpiece, resample_polyline
+
+Array = NDArray[np.float64]
+
+# Stations along the seam where the wall offset is measured.
+_STATIONS = 9
+# The offset may vary along the seam by at most this much (m) before the part
+# counts as one whose wall does not run beside its seam at a constant distance.
+_MAX_SPREAD = 2e-4
+# Rays longer than this (m) miss: no wall of a joint stands that far off its seam.
+_MAX_REACH = 0.05
+
+
+class WeldGeometry(NamedTuple):
+    """What a weld needs of a seam, in the base frame.
+
+    Attributes
+    ----------
+    T_base_plane : (4, 4) the welding plane: z along the approach direction,
+        x along the first tangent, origin on the wall line's first point
+    wall_base : (n, 3) the wall line the finger presses against (the servo's plan)
+    seam_base : (n, 3) the seam moved up to the tip height (the torch's line)
+    tangents : (n, 3) unit travel directions
+    normals : (n, 3) unit, in the plane, pointing from the seam to the finger wall
+    offset : m from the seam line to the wall line
+    tip_height : m above the seam along the plane normal
+    """
+
+    T_base_plane: Array
+    wall_base: Array
+    seam_base: Array
+    tangents: Array
+    normals: Array
+    offset: float
+    tip_height: float
+
+
+def _side_label(finger_wall: str) -> int:
+    if finger_wall not in ("left", "right"):
+        raise WorkpieceError(f"finger_wall: expected 'left' or 'right', got {finger_wall!r}")
+    return LEFT_WALL if finger_wall == "left" else RIGHT_WALL
+
+
+def model_seam_frames(workpiece: Workpiece, finger_wall: str = "left", spacing: float = 0.001) -> tuple[Array, Array, Array]:
+    """The model's seam resampled at ``spacing``: points, tangents and normals
+    towards the finger wall (model frame; the conventions of
+    :class:`~celld.seam.pipeline.SeamPath`)."""
+    _side_label(finger_wall)
+    P, _ = resample_polyline(workpiece.seam, spacing)
+    T = np.gradient(P, axis=0)
+    T /= np.linalg.norm(T, axis=1)[:, None]
+    a = np.asarray(workpiece.approach, dtype=np.float64)
+    N = np.cross(a, T)
+    N /= np.linalg.norm(N, axis=1)[:, None]
+    if finger_wall == "right":
+        N = -N
+    return P, T, N
+
+
+def wall_offset(workpiece: Workpiece, tip_height: float, finger_wall: str = "left") -> float:
+    """Distance (m) from the seam to the finger wall at ``tip_height`` above it.
+
+    Measured on the model's labelled wall triangles at stations along the
+    seam; their median is returned.
+
+    Raises
+    ------
+    WorkpieceError
+        The model has no labelled walls, a ray across the joint misses the
+        wall, or the distance varies along the seam by more than 0.2 mm (the
+        finger's wall would not run beside the seam).
+    """
+    label = _side_label(finger_wall)
+    if not workpiece.has_walls:
+        raise WorkpieceError(f"{workpiece.name}: the model has no labelled joint walls; the finger's wall is unknown")
+    if not 0.0 <= tip_height <= _MAX_REACH:
+        raise WorkpieceError(f"tip_height: expected 0 <= h <= {_MAX_REACH} m, got {tip_height}")
+    tris = workpiece.triangles[workpiece.wall_labels == label]
+    if len(tris) == 0:
+        raise WorkpieceError(f"{workpiece.name}: no triangle is labelled as the {finger_wall} wall")
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(workpiece.vertices.astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32))
+    )
+    P, _, N = model_seam_frames(workpiece, finger_wall)
+    idx = np.linspace(0, len(P) - 1, _STATIONS + 2)[1:-1].round().astype(int)
+    a = np.asarray(workpiece.approach, dtype=np.float64)
+    origins = P[idx] + tip_height * a
+    rays = np.hstack([origins, N[idx]]).astype(np.float32)
+    t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+    if not np.all(np.isfinite(t_hit)) or np.any(t_hit > _MAX_REACH):
+        raise WorkpieceError(
+            f"{workpiece.name}: at {tip_height * 1e3:.1f} mm above the seam the {finger_wall} wall is not beside it "
+            f"(a ray across the joint missed it); lower weld.tip_height"
+        )
+    spread = float(t_hit.max() - t_hit.min())
+    if spread > _MAX_SPREAD:
+        raise WorkpieceError(
+            f"{workpiece.name}: the {finger_wall} wall's distance from the seam varies by {spread * 1e3:.2f} mm "
+            f"along it (at most {_MAX_SPREAD * 1e3:.1f} mm): the finger cannot stand in for the seam"
+        )
+    return float(np.median(t_hit))
+
+
+def _plane(origin: Array, tangent: Array, normal: Array) -> Array:
+    x = tangent - float(tangent @ normal) * normal
+    x /= np.linalg.norm(x)
+    return se3.transform_from(np.column_stack([x, np.cross(normal, x), normal]), origin)
+
+
+def weld_geometry(points: Array, tangents: Array, normals: Array, plane_normal: Array, offset: float, tip_height: float) -> WeldGeometry:
+    """The wall line, the torch's line and the welding plane of a seam (base frame).
+
+    ``points``, ``tangents``, ``normals`` (n, 3) and ``plane_normal`` (3,) are a
+    seam in the conventions of :class:`~celld.seam.pipeline.SeamPath` (normals
+    towards the finger wall); ``offset`` from :func:`wall_offset`.
+    """
+    P = np.asarray(points, dtype=np.float64)
+    T = np.asarray(tangents, dtype=np.float64)
+    N = np.asarray(normals, dtype=np.float64)
+    z = np.asarray(plane_normal, dtype=np.float64)
+    z = z / np.linalg.norm(z)
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 2 or T.shape != P.shape or N.shape != P.shape:
+        raise WorkpieceError(f"seam: expected matching (n, 3) points, tangents and normals with n >= 2, got {P.shape}, {T.shape}, {N.shape}")
+    seam_up = P + tip_height * z
+    wall = seam_up + offset * N
+    return WeldGeometry(_plane(wall[0], T[0], z), wall, seam_up, T, N, float(offset), float(tip_height))
+
+
+def true_wall(workpiece: Workpiece, T_base_obj: Array, tip_height: float, finger_wall: str = "left") -> WeldGeometry:
+    """The finger wall of a part at its true pose (the simulated SRM's wall)."""
+    offset = wall_offset(workpiece, tip_height, finger_wall)
+    P, T, N = model_seam_frames(workpiece, finger_wall)
+    R = np.asarray(T_base_obj, dtype=np.float64)[:3, :3]
+    a = R @ np.asarray(workpiece.approach, dtype=np.float64)
+    return weld_geometry(se3.apply(T_base_obj, P), T @ R.T, N @ R.T, a, offset, tip_height)
+
+
+def in_plane(geometry: WeldGeometry, P_base: Array) -> Array:
+    """Base points (n, 3) as plane coordinates (n, 2) of the welding plane."""
+    T = geometry.T_base_plane
+    return (np.asarray(P_base, dtype=np.float64) - T[:3, 3]) @ T[:3, :2]
+
+
+def start_pose(geometry: WeldGeometry, T_tcp_tool: Array, lead: float, clearance: float) -> Array:
+    """TCP pose where the finger starts: ``lead`` (m) along the wall line,
+    ``clearance`` (m) off the wall on the free side, the tool's x along the
+    travel and its z (the finger, up) along the plane normal."""
+    W = geometry.wall_base
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(W, axis=0), axis=1))])
+    if s[-1] <= lead:
+        raise WorkpieceError(f"the seam ({s[-1] * 1e3:.1f} mm) is shorter than the lead-in of {lead * 1e3:.1f} mm")
+    i = int(np.searchsorted(s, lead))
+    z = geometry.T_base_plane[:3, 2]
+    t = geometry.tangents[i] - float(geometry.tangents[i] @ z) * z
+    t /= np.linalg.norm(t)
+    p = W[i] - clearance * geometry.normals[i]
+    T_base_tool = se3.transform_from(np.column_stack([t, np.cross(z, t), z]), p)
+    return T_base_tool @ se3.invert(np.asarray(T_tcp_tool, dtype=np.float64))
