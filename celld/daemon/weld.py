@@ -56,6 +56,8 @@ LEAD_IN = 0.005
 CLEARANCE = 0.004
 # Seconds between progress events while tracking.
 PROGRESS_PERIOD = 0.5
+# Seconds between SRM camera frames logged to the recording while tracking.
+PREVIEW_PERIOD = 0.2
 # Torch path points are kept at least this far apart (m).
 TORCH_STEP = 0.0005
 
@@ -220,14 +222,19 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         waiting = asyncio.ensure_future(motion.wait(cid, timeout=wc.timeout))
         s_wall = _arc_length(geometry.wall_base)
         try:
+            last_progress = 0.0
+            last_frame = 0
             while not waiting.done():
-                await asyncio.wait({waiting}, timeout=PROGRESS_PERIOD)
+                await asyncio.wait({waiting}, timeout=PREVIEW_PERIOD)
+                last_frame = _log_preview(devices, rec, last_frame)
+                now = asyncio.get_running_loop().time()
                 last = motion.last_record()
-                if last is not None and not waiting.done():
+                if last is not None and not waiting.done() and now - last_progress >= PROGRESS_PERIOD:
+                    last_progress = now
                     p = tool.T_base_tool(se3.from_ur_pose(last["tcp_pose"]))[:3, 3]
                     i = int(np.argmin(np.linalg.norm(geometry.wall_base - p, axis=1)))
                     ctx.progress("track", float(min(1.0, s_wall[i] / s_wall[-1])), f"{s_wall[i] * 1e3:.0f} of {s_wall[-1] * 1e3:.0f} mm",
-                                 arc=bool(last["process_on"]) if "process_on" in last.dtype.names else None)
+                                 arc=bool(last["process_on"]))
             waiting.result()
         except CelldError as exc:
             failure = exc
@@ -262,6 +269,21 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     if retract_error:
         result["retract_error"] = retract_error
     return result
+
+
+def _log_preview(devices: CellDevices, rec: Any, last_stamp: int) -> int:
+    """Log the SRM camera's latest shared frame (with the tag's outline) if it is new; its stamp."""
+    if rec is None or devices.tactile is None:
+        return last_stamp
+    frame = devices.tactile.latest_preview()
+    if frame is None or frame[0] == last_stamp:
+        return last_stamp
+    stamp, image, corners = frame
+    try:
+        rec.log_camera_image(image, corners, stamp_ns=stamp)
+    except CelldError as exc:
+        log.warning("SRM frame not recorded", error=str(exc))
+    return stamp
 
 
 def _quality(seam: Any) -> dict[str, Any]:

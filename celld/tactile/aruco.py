@@ -122,9 +122,14 @@ class EdgeFit(NamedTuple):
     sharpness: float
 
 
-def _line_intersection(l1: Array, l2: Array) -> Array:
-    p = np.cross(l1, l2)
-    return p[:2] / p[2] if abs(p[2]) > 1e-12 else np.full(2, np.nan)
+def _line_intersection(l1: tuple[float, float, float], l2: tuple[float, float, float]) -> tuple[float, float]:
+    """Where lines ``a x + b y + c = 0`` meet (homogeneous cross product, in plain floats: per frame)."""
+    a1, b1, c1 = l1
+    a2, b2, c2 = l2
+    w = a1 * b2 - b1 * a2
+    if abs(w) <= 1e-12:
+        return (math.nan, math.nan)
+    return ((b1 * c2 - c1 * b2) / w, (c1 * a2 - a1 * c2) / w)
 
 
 def fit_edges(gray: Array, corners_px: Array, cells: int, K: Array, dist: Array) -> EdgeFit:
@@ -164,10 +169,12 @@ def fit_edges(gray: Array, corners_px: Array, cells: int, K: Array, dist: Array)
     P = base[:, :, None, :] + offsets[None, None, :, None] * nrm[:, None, None, :]  # (4, m, k, 2)
     # Sample a float copy of the tag's window: remapping uint8 would round
     # every sample to a whole grey level.
+    # The window: the corners grown by the profiles' half length hold every sample.
     h, w = gray.shape
-    x0, y0 = (max(int(v) - 1, 0) for v in P.reshape(-1, 2).min(axis=0))
-    x1 = min(int(P[..., 0].max()) + 3, w)
-    y1 = min(int(P[..., 1].max()) + 3, h)
+    lo = c.min(axis=0) - half
+    hi = c.max(axis=0) + half
+    x0, y0 = max(int(lo[0]) - 1, 0), max(int(lo[1]) - 1, 0)
+    x1, y1 = min(int(hi[0]) + 3, w), min(int(hi[1]) + 3, h)
     window = gray[y0:y1, x0:x1].astype(np.float32)
     map_xy = (P.reshape(4 * _PROFILES_PER_EDGE, len(offsets), 2) - [x0, y0]).astype(np.float32)
     prof = cv2.remap(window, map_xy[..., 0], map_xy[..., 1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
@@ -195,10 +202,10 @@ def fit_edges(gray: Array, corners_px: Array, cells: int, K: Array, dist: Array)
         if int(sel.sum()) < _MIN_PROFILES:
             return EdgeFit(np.full((4, 2), np.nan), sharpness)
         q = pts[k * _PROFILES_PER_EDGE : (k + 1) * _PROFILES_PER_EDGE][sel].astype(np.float32)
-        vx, vy, x0, y0 = cv2.fitLine(q, cv2.DIST_L2, 0, 0.01, 0.01).ravel()
-        lines.append(np.array([vy, -vx, vx * y0 - vy * x0], dtype=np.float64))
+        vx, vy, px, py = (float(v) for v in cv2.fitLine(q, cv2.DIST_L2, 0, 0.01, 0.01).ravel())
+        lines.append((vy, -vx, vx * py - vy * px))
     # Corner k is where side k-1 (ending at it) meets side k (starting at it).
-    corners = np.array([_line_intersection(lines[k - 1], lines[k]) for k in range(4)])
+    corners = np.array([_line_intersection(lines[k - 1], lines[k]) for k in range(4)], dtype=np.float64)
     return EdgeFit(corners, sharpness)
 
 

@@ -157,6 +157,7 @@ class FrameEstimator:
         self.seq = 0
         self.contact = ContactState.NONE
         self.counters = np.zeros(1, COUNTERS_DTYPE)
+        self.last_corners: np.ndarray | None = None  # (4, 2) px of the last frame's tag, None without
 
     def process(self, stamp_ns: int, image: np.ndarray) -> tuple[TactileSample, np.ndarray]:
         """The sample of one frame, and the tag position in the camera frame (NaN when not found)."""
@@ -165,6 +166,7 @@ class FrameEstimator:
         detect_ns = time.perf_counter_ns() - t0
         self.seq += 1
         sample = estimate(det, self.rest, self.params, stamp_ns, self.seq, self.contact, detect_ns)
+        self.last_corners = det.corners_px if det.status == TactileStatus.OK else None
         if sample.valid:
             self.contact = sample.contact
         self._count(sample)
@@ -186,6 +188,44 @@ class FrameEstimator:
         if self.rest is not None:
             c["p_cam_rest"] = self.rest.p_cam_rest
             c["tare_spread"] = self.rest.spread
+
+
+# Frames shared for viewing (recordings, a live viewer), at most this often, s.
+PREVIEW_PERIOD = 0.2
+
+
+def preview_dtype(cfg: TactileConfig) -> np.dtype:
+    """A frame for viewing: capture stamp, the grey image and the detected tag's corners."""
+    return np.dtype([
+        ("stamp_ns", np.int64),
+        ("has_tag", np.bool_),
+        ("corners_px", np.float64, (4, 2)),
+        ("image", np.uint8, (cfg.height_px, cfg.width_px)),
+    ])
+
+
+class PreviewWriter:
+    """Writes every frame at most every :data:`PREVIEW_PERIOD` to a preview slot (outside the estimate)."""
+
+    def __init__(self, slot: SeqlockSlot, cfg: TactileConfig) -> None:
+        self.slot = slot
+        self.rec = np.zeros(1, preview_dtype(cfg))
+        self.shape = (cfg.height_px, cfg.width_px)
+        self._next_ns = 0
+
+    def offer(self, stamp_ns: int, image: np.ndarray, corners: np.ndarray | None) -> None:
+        if stamp_ns < self._next_ns:
+            return
+        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        if grey.shape != self.shape:
+            return  # a frame of another size than configured is not shared (the detector counts it)
+        self._next_ns = stamp_ns + int(PREVIEW_PERIOD * 1e9)
+        r = self.rec
+        r["stamp_ns"] = stamp_ns
+        r["has_tag"] = corners is not None
+        r["corners_px"] = corners if corners is not None else 0.0
+        r["image"][0] = grey
+        self.slot.write(r)
 
 
 def run_tare(source: FrameSource, est: FrameEstimator, publish: Callable[[TactileSample], None]) -> Tare:
@@ -234,8 +274,12 @@ def run_camera(
     counters: SeqlockSlot | None,
     stop: Callable[[], bool],
     tare_requested: Callable[[], bool] = lambda: False,
+    preview: PreviewWriter | None = None,
 ) -> None:
-    """The camera loop: read, estimate, publish, until ``stop()``; tares when asked (and at start without a rest)."""
+    """The camera loop: read, estimate, publish, until ``stop()``; tares when asked (and at start without a rest).
+
+    ``preview`` gets each frame after its sample is out, to share some for viewing.
+    """
 
     def publish(sample: TactileSample) -> None:
         samples.write(to_record(sample, time.monotonic_ns()))
@@ -259,6 +303,8 @@ def run_camera(
             continue
         sample, _ = est.process(*frame)
         publish(sample)
+        if preview is not None:
+            preview.offer(frame[0], frame[1], est.last_corners)
 
 
 # -- the process ----------------------------------------------------------------------
@@ -324,6 +370,7 @@ def tactile_main(
     nice: int = 0,
     cpus: tuple[int, ...] = (),
     fifo_priority: int = 0,
+    preview_slot: str = "",
 ) -> None:
     """Entry point of the tactile process (``multiprocessing`` spawn target)."""
     cv2.setNumThreads(1)
@@ -348,6 +395,8 @@ def tactile_main(
     samples = SeqlockSlot.attach(slot_name, TACTILE_DTYPE)
     counters = SeqlockSlot.attach(counters_name, COUNTERS_DTYPE)
     truth = SeqlockSlot.attach(truth_slot, TRUTH_DTYPE) if truth_slot else None
+    preview_shm = SeqlockSlot.attach(preview_slot, preview_dtype(cfg)) if preview_slot else None
+    preview = PreviewWriter(preview_shm, cfg) if preview_shm is not None else None
     source, cleanup = _make_source(cfg, sim)
     try:
         source.open()
@@ -364,9 +413,9 @@ def tactile_main(
             return False
 
         if truth is not None:
-            _run_with_truth(source, est, samples, counters, truth, stop, requested)
+            _run_with_truth(source, est, samples, counters, truth, stop, requested, preview)
         else:
-            run_camera(source, est, samples, counters, stop.is_set, requested)
+            run_camera(source, est, samples, counters, stop.is_set, requested, preview)
     finally:
         source.close()
         cleanup()
@@ -374,13 +423,15 @@ def tactile_main(
         counters.close()
         if truth is not None:
             truth.close()
+        if preview_shm is not None:
+            preview_shm.close()
 
 
 # The simulator's truth of each frame, for benchmarks: capture stamp, delta, contact.
 TRUTH_DTYPE = np.dtype([("stamp_ns", np.int64), ("delta_true", np.float64, (3,)), ("in_contact", np.bool_)])
 
 
-def _run_with_truth(source, est, samples, counters, truth, stop, requested) -> None:
+def _run_with_truth(source, est, samples, counters, truth, stop, requested, preview=None) -> None:
     """:func:`run_camera` that also publishes the simulator's truth of each frame (benchmarks only)."""
     rec = np.zeros(1, TRUTH_DTYPE)
     seen = 0
@@ -398,7 +449,7 @@ def _run_with_truth(source, est, samples, counters, truth, stop, requested) -> N
             seen = len(log_)
         return stop.is_set()
 
-    run_camera(source, est, samples, counters, stop_and_share, requested)
+    run_camera(source, est, samples, counters, stop_and_share, requested, preview)
 
 
 class TactileProcess:
@@ -443,13 +494,16 @@ class TactileProcess:
         self.samples = SeqlockSlot.create(self.slot_name, TACTILE_DTYPE)
         self.counters = SeqlockSlot.create(self.counters_name, COUNTERS_DTYPE)
         self.truth = SeqlockSlot.create(self.truth_name, TRUTH_DTYPE) if share_truth else None
+        self.preview_name = f"{name}-tactile-preview"
+        self.preview = SeqlockSlot.create(self.preview_name, preview_dtype(cfg))
         ctx = mp.get_context("spawn")
         self._stop = ctx.Event()
         self._tare = ctx.Event()
         self._ready = ctx.Event()
         self._proc = ctx.Process(
             target=tactile_main,
-            args=(cfg, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, sim, self.truth_name, nice, tuple(cpus), fifo_priority),
+            args=(cfg, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, sim, self.truth_name, nice, tuple(cpus), fifo_priority,
+                  self.preview_name),
             name="celld-tactile",
             daemon=True,
         )
@@ -494,6 +548,14 @@ class TactileProcess:
         rec, _ = self.samples.read()
         return None if rec is None or int(rec["seq"]) == 0 else from_record(rec)
 
+    def latest_preview(self) -> tuple[int, np.ndarray, np.ndarray | None] | None:
+        """The latest frame shared for viewing: (capture stamp, grey image, tag corners or None), or None."""
+        rec, _ = self.preview.read()
+        if rec is None or int(rec["stamp_ns"]) <= 0:
+            return None
+        corners = np.array(rec["corners_px"]) if bool(rec["has_tag"]) else None
+        return int(rec["stamp_ns"]), np.array(rec["image"]), corners
+
     def read_counters(self) -> np.void | None:
         rec, _ = self.counters.read()
         return rec
@@ -509,7 +571,7 @@ class TactileProcess:
             if self._proc.is_alive():
                 self._proc.terminate()
                 self._proc.join(1.0)
-        for slot in (self.samples, self.counters, self.truth):
+        for slot in (self.samples, self.counters, self.truth, self.preview):
             if slot is not None:
                 slot.close()
                 slot.unlink()

@@ -126,6 +126,7 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
         for name in ("planned", "refined", "torch"):
             assert any(e.endswith(name) and e.startswith("/world") for e in entities), (name, entities)
         assert any(e.startswith("/servo") for e in entities), entities
+        assert "/srm/camera" in entities and "/srm/camera/tag" in entities, entities
         assert any(e.startswith("/motion/loop") for e in entities), entities
 
         # Cancel during the track: a jerk-limited stop, the arc off, the job cancelled.

@@ -160,3 +160,31 @@ def test_tactile_process_refuses_to_start_without_its_camera() -> None:
             proc.start(timeout=20.0)
     finally:
         proc.stop()
+
+
+def test_preview_writer_shares_frames_at_most_every_period_with_the_tag_outline() -> None:
+    import uuid
+
+    from celld.config import TactileConfig
+    from celld.shm import SeqlockSlot
+    from celld.tactile.camera import PREVIEW_PERIOD, PreviewWriter, preview_dtype
+
+    cfg = TactileConfig(width_px=64, height_px=48)
+    slot = SeqlockSlot.create(f"test-preview-{uuid.uuid4().hex[:8]}", preview_dtype(cfg))
+    try:
+        writer = PreviewWriter(slot, cfg)
+        img = np.full((48, 64), 7, np.uint8)
+        corners = np.array([[1.0, 2.0], [3.0, 2.0], [3.0, 4.0], [1.0, 4.0]])
+        writer.offer(1_000, img, corners)
+        writer.offer(1_000 + int(PREVIEW_PERIOD * 1e9) - 1, np.zeros((48, 64), np.uint8), None)  # too soon: dropped
+        rec, _ = slot.read()
+        assert int(rec["stamp_ns"]) == 1_000 and bool(rec["has_tag"]) and np.all(rec["image"] == 7)
+        np.testing.assert_array_equal(rec["corners_px"], corners)
+        writer.offer(1_000 + int(PREVIEW_PERIOD * 1e9), np.zeros((48, 64, 3), np.uint8), None)  # BGR: made grey
+        rec, _ = slot.read()
+        assert not bool(rec["has_tag"]) and np.all(rec["image"] == 0)
+        writer.offer(10**12, np.zeros((10, 10), np.uint8), None)  # another size than configured: not shared
+        assert int(slot.read()[0]["stamp_ns"]) == 1_000 + int(PREVIEW_PERIOD * 1e9)
+    finally:
+        slot.close()
+        slot.unlink()
