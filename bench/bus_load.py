@@ -326,19 +326,6 @@ SIM_HOST = "127.0.0.6"
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _wait_stage(client: CellClient, job: str, stage: str, timeout: float) -> None:
-    with client.watch_progress(job) as events:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            event = events.next(timeout=1.0)
-            if event is not None and event.get("stage") == stage:
-                return
-            record = client.status(job)
-            if record["state"] not in ("queued", "running"):
-                raise RuntimeError(f"job {job} ended before {stage}: {record['state']} {record['reason']}")
-    raise RuntimeError(f"job {job}: no {stage} event within {timeout} s")
-
-
 def main_sim_cell(args: argparse.Namespace) -> int:
     """The load phase against the real daemon while it welds on the simulated cell."""
     from celld.sim.cell import run_cell
@@ -369,8 +356,9 @@ def main_sim_cell(args: argparse.Namespace) -> int:
             figures["status_rtt_ms"] = _percentiles(status_ms)
             # The 150 mm seam at V_const such that the track outlasts the load phase.
             v = max(1.0, min(10.0, 120.0 / (duration + 10.0)))
-            weld_id = client.submit({"kind": "weld", "ref": "bus-load", "v_const_mm_s": v})["job"]
-            _wait_stage(client, weld_id, "track", timeout=600)
+            with client.watch_progress() as events:
+                weld_id = client.submit({"kind": "weld", "ref": "bus-load", "v_const_mm_s": v})["job"]
+                events.wait_stage(weld_id, "track", timeout=600)
             time.sleep(2.0)  # past the touch
             load_avg0 = os.getloadavg()[0]
             load = status_load(client, args.rate, duration)

@@ -306,6 +306,26 @@ class ProgressWatch:
                     return record
 
 
+    def wait_stage(self, job: str, stage: str, timeout: float) -> dict[str, Any]:
+        """Wait for a progress event of ``job`` in ``stage``; returns it.
+
+        Raises
+        ------
+        BusError
+            The job ended first (the message says how), or ``timeout`` seconds passed.
+        """
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            event = self.next(min(_STATUS_POLL, max(0.0, deadline - time.monotonic())))
+            if event is not None and event.get("job") == job and event.get("stage") == stage:
+                return event
+            if event is None or event.get("state") in schema.TERMINAL_STATES:
+                record = self.client.status(job)
+                if record.get("state") in schema.TERMINAL_STATES:
+                    raise BusError(f"job {job} {record['state']} before its {stage} stage: {record.get('reason', '')}")
+        raise BusError(f"job {job}: no {stage} event within {timeout:g} s")
+
+
 def discover_cells(
     bus: BusConfig,
     *,

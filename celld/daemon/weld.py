@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import math
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -324,6 +323,10 @@ def _summarise(records: np.ndarray | None, geometry: WeldGeometry, tool: ToolGeo
         if len(torch_weld) > 1:
             rec.log_path_base("torch", torch_weld)
     t = (records["t_ns"] - records["t_ns"][0]) * 1e-9
+    # Frame to command: the cycle that first used a frame sent its command work_ns after
+    # waking, and the frame was tactile_age_ns old at the wake-up.
+    fresh = np.concatenate([[False], np.diff(records["tactile_seq"]) != 0]) & (records["tactile_age_ns"] >= 0)
+    latency_ms = (records["tactile_age_ns"][fresh] + records["work_ns"][fresh]) * 1e-6
     omega = np.abs(records["twist"][:, 3:]).max() if len(records) else 0.0
     figures = {
         "duration_s": round(float(t[-1]), 3),
@@ -339,6 +342,8 @@ def _summarise(records: np.ndarray | None, geometry: WeldGeometry, tool: ToolGeo
         "loop_late_max_ms": round(float(records["late_ns"].max()) * 1e-6, 3),
         "loop_cycles_late_2ms": int(np.count_nonzero(records["late_ns"] > 2_000_000)),
         "loop_cycles": int(len(records)),
+        "frame_to_command_median_ms": round(float(np.median(latency_ms)), 3) if len(latency_ms) else None,
+        "frame_to_command_p99_ms": round(float(np.percentile(latency_ms, 99)), 3) if len(latency_ms) else None,
         "seam_length_mm": round(seam.length * 1e3, 2),
     }
     return {

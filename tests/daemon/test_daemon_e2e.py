@@ -9,20 +9,15 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from celld import config as config_mod
 from celld import se3
 from celld.bus.client import CellClient
-from celld.errors import BusError
 from celld.journal import Journal
 from celld.recording.readback import read_entities
 
@@ -43,6 +38,7 @@ name = "e2e"
 state_dir = "{state_dir}"
 [robot]
 host = "{host}"
+home_q = {list(Q0)}
 [motion]
 # The simulator shares two cores with the test machine's other work.
 state_stale_cycles = 50
@@ -69,40 +65,11 @@ listen = ["tcp/{host}:7447"]
 
 @pytest.fixture
 def daemon(tmp_path: Path, loopback_host: str):
-    from celld.sim.robot import launch
+    from celld.sim.cell import run_cell
 
     cfg_path = _write_config(tmp_path / "cell.toml", loopback_host, tmp_path / "state")
-    with launch(loopback_host, realtime=True, q0=Q0) as sim:
-        log = open(tmp_path / "daemon.log", "wb")
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "celld.cli", "run", "--config", str(cfg_path)],
-            stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
-        )
-        cfg = config_mod.load(cfg_path)
-        try:
-            deadline = time.monotonic() + 60
-            client = None
-            while client is None:
-                assert proc.poll() is None, (tmp_path / "daemon.log").read_text()[-2000:]
-                assert time.monotonic() < deadline, "the daemon's bus did not come up"
-                try:
-                    client = CellClient(cfg.bus, "e2e", timeout=20.0)
-                except BusError:
-                    time.sleep(0.5)
-            while client.status().get("robot_link") != "up":
-                assert proc.poll() is None, (tmp_path / "daemon.log").read_text()[-2000:]
-                assert time.monotonic() < deadline, "the robot link did not come up"
-                time.sleep(0.5)
-            yield client, proc, cfg, sim
-            client.close()
-        finally:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGTERM)
-                try:
-                    proc.wait(30)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-            log.close()
+    with run_cell(cfg_path, tmp_path / "daemon.log", timeout=60) as cell:
+        yield cell  # (client, daemon process, config, simulated robot)
 
 
 def test_calibrate_over_the_bus_then_accept(daemon) -> None:
@@ -156,16 +123,12 @@ def test_move_and_health_and_a_refused_job(daemon) -> None:
     assert client.status()["state"] in ("idle", "fault")
 
 
-def _wait_for_stage(client: CellClient, job: str, stage: str, timeout: float = 120) -> None:
-    with client.watch_progress(job) as events:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            event = events.next(timeout=1.0)
-            if event is not None and event.get("stage") == stage:
-                return
-            if client.status(job)["state"] not in ("queued", "running"):
-                raise AssertionError(f"job {job} ended before stage {stage}")
-    raise AssertionError(f"no {stage} event within {timeout} s")
+def _submit_and_wait_for(client: CellClient, message: dict, stage: str, timeout: float = 120) -> str:
+    """Submit a job and wait for its first progress event in ``stage``; returns the job id."""
+    with client.watch_progress() as events:
+        job = client.submit(message)["job"]
+        events.wait_stage(job, stage, timeout)
+    return job
 
 
 def _wait_end(client: CellClient, job: str, timeout: float) -> dict:
@@ -180,8 +143,7 @@ def _wait_end(client: CellClient, job: str, timeout: float) -> dict:
 
 def test_cancel_during_a_job_stops_the_robot_and_ends_cancelled(daemon) -> None:
     client, _, _, sim = daemon
-    job = client.submit({"kind": "calibrate", "seed": 1})["job"]
-    _wait_for_stage(client, job, "pair")
+    job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 1}, "pair")
     reply = client.cancel(job, "operator")
     assert reply["state"] == "cancelled"
     assert client.status(job)["state"] == "cancelled"
@@ -196,8 +158,7 @@ def test_cancel_during_a_job_stops_the_robot_and_ends_cancelled(daemon) -> None:
 
 def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(daemon) -> None:
     client, proc, _, sim = daemon
-    job = client.submit({"kind": "calibrate", "seed": 2})["job"]
-    _wait_for_stage(client, job, "pair")
+    job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 2}, "pair")
     sim.inject("drop_all", down_ms=3000)
     record = _wait_end(client, job, 120)
     assert record["state"] == "failed" and record["reason"], record
@@ -213,8 +174,7 @@ def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(dae
 
 def test_kill_9_of_the_daemon_during_a_job_leaves_it_interrupted(daemon) -> None:
     client, proc, cfg, _ = daemon
-    job = client.submit({"kind": "calibrate", "seed": 4})["job"]
-    _wait_for_stage(client, job, "pair")
+    job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 4}, "pair")
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)
     state_dir = Path(cfg.cell.state_dir)

@@ -74,18 +74,6 @@ class ArcWatch:
         return self.seen_on
 
 
-def _wait_stage(client, job: str, stage: str, timeout: float) -> None:
-    with client.watch_progress(job) as events:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            event = events.next(timeout=1.0)
-            if event is not None and event.get("stage") == stage:
-                return
-            if client.status(job)["state"] not in ("queued", "running"):
-                raise AssertionError(f"job {job} ended before stage {stage}: {client.status(job)}")
-    raise AssertionError(f"no {stage} event within {timeout} s")
-
-
 def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_path: Path, loopback_host: str) -> None:
     cfg_path = _config(tmp_path, loopback_host)
     with run_cell(cfg_path, tmp_path / "daemon.log", timeout=120) as cell:
@@ -130,8 +118,9 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
         assert any(e.startswith("/motion/loop") for e in entities), entities
 
         # Cancel during the track: a jerk-limited stop, the arc off, the job cancelled.
-        job = client.submit({"kind": "weld", "ref": "cancelled"})["job"]
-        _wait_stage(client, job, "track", timeout=240)
+        with client.watch_progress() as events:
+            job = client.submit({"kind": "weld", "ref": "cancelled"})["job"]
+            events.wait_stage(job, "track", timeout=240)
         time.sleep(3.0)
         assert client.cancel(job, "operator")["state"] == "cancelled"
         assert client.status(job)["state"] == "cancelled"
