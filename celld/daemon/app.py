@@ -190,5 +190,6 @@ class Daemon:
             tactile = self.devices.tactile_state_message()
             if tactile is not None:
                 self.bus.publish_tactile_state(tactile)
+            await self.devices.supervise_tactile()
             if self.manager is not None and self._healthy():
                 self.manager.set_fault("")

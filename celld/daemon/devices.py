@@ -19,6 +19,8 @@ the daemon's event loop never stalls.
 from __future__ import annotations
 
 import asyncio
+import math
+import time
 from typing import Any, Callable
 
 import numpy as np
@@ -37,6 +39,8 @@ log = get_logger(__name__)
 SERVO_LAWS = {"algorithm2": "celld.motion.servo:make_algorithm2"}
 # Longest a stop may take before the daemon gives up waiting, s.
 STOP_TIMEOUT = 5.0
+# Least time between two restarts of a dying tactile process, s.
+TACTILE_RESTART_DELAY = 2.0
 
 
 class CellDevices:
@@ -69,6 +73,7 @@ class CellDevices:
         self._truth: Any = None
         self._recordings: list[Any] = []
         self._collectors: list[Callable[[np.ndarray], None]] = []
+        self._tactile_restart_at = -math.inf
 
     # -- life cycle ----------------------------------------------------------------
 
@@ -172,6 +177,28 @@ class CellDevices:
         }
 
     # -- tactile --------------------------------------------------------------------
+
+    async def supervise_tactile(self) -> None:
+        """Restart the tactile process if it died (at most every TACTILE_RESTART_DELAY s).
+
+        The daemon calls this periodically. While the process is down the
+        motion loop sees no fresh sample, so a running servo stops on a stale
+        sample with that reason; the restarted process tares before it
+        reports deformation again.
+        """
+        tactile = self.tactile
+        if tactile is None or tactile.alive():
+            return
+        now = time.monotonic()
+        if now - self._tactile_restart_at < TACTILE_RESTART_DELAY:
+            return
+        self._tactile_restart_at = now
+        log.error("the tactile process died; restarting it", exitcode=tactile.exitcode, restarts=tactile.restarts)
+        try:
+            await asyncio.to_thread(tactile.restart)
+            log.info("tactile process restarted", restarts=tactile.restarts)
+        except CelldError as exc:
+            log.error("tactile process restart failed", error=str(exc))
 
     def tactile_sample(self) -> TactileSample | None:
         return None if self.tactile is None else self.tactile.latest()

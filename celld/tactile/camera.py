@@ -497,16 +497,33 @@ class TactileProcess:
         self.preview_name = f"{name}-tactile-preview"
         self.preview = SeqlockSlot.create(self.preview_name, preview_dtype(cfg))
         ctx = mp.get_context("spawn")
+        self._ctx = ctx
         self._stop = ctx.Event()
         self._tare = ctx.Event()
         self._ready = ctx.Event()
-        self._proc = ctx.Process(
-            target=tactile_main,
-            args=(cfg, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, sim, self.truth_name, nice, tuple(cpus), fifo_priority,
-                  self.preview_name),
-            name="celld-tactile",
-            daemon=True,
-        )
+        self._args = (cfg, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, sim, self.truth_name, nice,
+                      tuple(cpus), fifo_priority, self.preview_name)
+        self._proc = self._new_process()
+        self.restarts = 0
+
+    def _new_process(self) -> Any:
+        return self._ctx.Process(target=tactile_main, args=self._args, name="celld-tactile", daemon=True)
+
+    def restart(self, timeout: float = _START_TIMEOUT) -> int | None:
+        """Start a new process on the same slots after this one died; returns the dead one's exit code.
+
+        The motion process keeps reading the same sample slot, so it sees the
+        new camera process's samples (after its tare) without a restart of its own.
+        """
+        if self._proc.is_alive():
+            raise DeviceError("the tactile process is running; stop it before a restart")
+        code = self._proc.exitcode
+        self._stop.clear()
+        self._ready.clear()
+        self._proc = self._new_process()
+        self.restarts += 1
+        self.start(timeout)
+        return code
 
     def start(self, timeout: float = _START_TIMEOUT) -> None:
         self._proc.start()
@@ -559,6 +576,10 @@ class TactileProcess:
     def read_counters(self) -> np.void | None:
         rec, _ = self.counters.read()
         return rec
+
+    @property
+    def exitcode(self) -> int | None:
+        return self._proc.exitcode
 
     def alive(self) -> bool:
         return self._proc.is_alive()

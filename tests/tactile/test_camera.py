@@ -188,3 +188,45 @@ def test_preview_writer_shares_frames_at_most_every_period_with_the_tag_outline(
     finally:
         slot.close()
         slot.unlink()
+
+
+@pytest.mark.slow
+def test_a_killed_tactile_process_restarts_on_the_same_slots(sim_robot) -> None:
+    import os
+    import signal
+    import time
+
+    from celld.tactile.camera import SimSourceSpec
+
+    cfg = TactileConfig(fps=30.0, tare_frames=5)
+    far_wall = np.array([[100.0, 100.0], [101.0, 100.0]])  # the finger touches nothing
+    proc = TactileProcess(cfg, f"t-{uuid.uuid4().hex[:8]}", SimSourceSpec(sim_robot.host, far_wall, -1.0, np.eye(4)))
+
+    def tared_by(pid_not: int) -> int:
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            c = proc.read_counters()
+            if c is not None and int(c["pid"]) not in (0, pid_not) and bool(c["tared"]):
+                return int(c["pid"])
+            time.sleep(0.05)
+        raise AssertionError("no tared camera process within 30 s")
+
+    try:
+        proc.start(timeout=30.0)
+        first = tared_by(0)
+        os.kill(first, signal.SIGKILL)
+        deadline = time.monotonic() + 5.0
+        while proc.alive() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert not proc.alive()
+        with_slot = proc.slot_name
+        assert proc.restart(timeout=30.0) == -signal.SIGKILL
+        second = tared_by(first)
+        assert second != first and proc.slot_name == with_slot and proc.restarts == 1
+        seq = proc.latest().seq
+        time.sleep(0.3)
+        assert proc.latest().seq > seq, "the new process writes the slot the motion process reads"
+        with pytest.raises(DeviceError, match="running"):
+            proc.restart()
+    finally:
+        proc.stop()
