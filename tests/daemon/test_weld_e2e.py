@@ -5,7 +5,7 @@ simulated UR10e in real time, the ray-cast PhoXi M with a V-groove on the
 table (placed off its nominal place), the simulated SRM camera read by the
 real ArUco detector. The test talks to ``celld run`` only over the bus and
 scores the results against the simulator's truth, which the daemon never
-reads. Slow: a calibration and two welds.
+reads. Slow (about 3 minutes): a full calibration and two welds.
 """
 
 from __future__ import annotations
@@ -41,11 +41,6 @@ name = "weld-e2e"
 state_dir = "{tmp_path / 'state'}"
 [robot]
 host = "{host}"
-[scanner]
-resolution_scale = 0.5
-[calibration]
-n_poses = 6
-e_required_mm = 0.0
 [bus]
 listen = ["tcp/{host}:7447"]
 """
@@ -84,12 +79,12 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
         _, record = client.submit_and_wait({"kind": "weld"}, timeout=60)
         assert record["state"] == "failed" and "no current calibration" in record["reason"]
 
-        _, cal = client.submit_and_wait({"kind": "calibrate", "seed": 5}, timeout=600)
+        _, cal = client.submit_and_wait({"kind": "calibrate", "seed": 5}, timeout=900)
         assert cal["state"] == "succeeded", (cal["reason"], robot.status())
         accepted = client.accept(cal["id"])
         dt, dr = se3.error(np.array(accepted["calibration"]["T_base_cam"]), cfg.T_base_cam_nominal())
-        # Six half-resolution captures (the calibration issue's full-resolution target is 0.15 mm / 0.05 deg).
-        assert dt < 0.3e-3 and math.degrees(dr) < 0.05, (dt * 1e3, math.degrees(dr))
+        # The calibration issue's target for the PhoXi M: 0.15 mm and 0.05 degrees (the cell's 20 poses).
+        assert dt <= 0.15e-3 and math.degrees(dr) <= 0.05, (dt * 1e3, math.degrees(dr))
 
         arc = ArcWatch(robot)
         events: list[dict] = []
