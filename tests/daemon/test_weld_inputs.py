@@ -1,0 +1,74 @@
+"""What the weld job checks before it moves anything: the part, the calibration, the paths' figures."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from celld import fsutil
+from celld.config import parse
+from celld.daemon.weld import _lateral, _thin, current_T_base_cam, resolve_workpiece
+from celld.errors import JobError
+from celld.seam.simscene import nominal_pose
+from celld.seam.weldpath import true_wall
+from celld.seam.workpiece import v_groove_butt
+
+
+def test_parts_resolve_from_the_examples_or_the_workpiece_dir(tmp_path: Path) -> None:
+    cfg = parse({"weld": {"workpiece": "fillet-t"}})
+    assert resolve_workpiece("", cfg).name == "fillet-t"  # the cell's default
+    assert resolve_workpiece("v-groove", cfg).name == "v-groove"
+    with pytest.raises(JobError, match="no workpiece named"):
+        resolve_workpiece("", parse({}))
+    with pytest.raises(JobError, match="workpiece_dir is not set"):
+        resolve_workpiece("bracket", cfg)
+    d = tmp_path / "parts"
+    d.mkdir()
+    with_dir = parse({"weld": {"workpiece_dir": str(d), "workpiece_units": "m"}})
+    with pytest.raises(JobError, match="holds no bracket"):
+        resolve_workpiece("bracket", with_dir)
+    with pytest.raises(JobError, match="plain model name"):
+        resolve_workpiece("../etc/passwd", with_dir)
+    # A user part: the V-groove's mesh written as STL with a JSON seam file, both in metres.
+    import open3d as o3d
+
+    wp = v_groove_butt()
+    o3d.io.write_triangle_mesh(str(d / "bracket.stl"), wp.mesh())
+    (d / "bracket.seam.json").write_text(json.dumps({"units": "m", "points": wp.seam.tolist()}))
+    part = resolve_workpiece("bracket", with_dir)
+    assert part.name == "bracket" and np.allclose(part.seam, wp.seam)
+    # The same seam read as millimetres lies off the part: refused with the reason.
+    (d / "bracket.seam.json").write_text(json.dumps({"units": "mm", "points": wp.seam.tolist()}))
+    with pytest.raises(JobError, match="cannot be used"):
+        resolve_workpiece("bracket", with_dir)
+
+
+def test_a_weld_needs_a_usable_current_calibration(tmp_path: Path) -> None:
+    with pytest.raises(JobError, match="no current calibration"):
+        current_T_base_cam(tmp_path)
+    fsutil.write_json(tmp_path / "calibration.json", {"job": "j1", "T_base_cam": [[1, 0, 0], [0, 1, 0]]})
+    with pytest.raises(JobError, match="unusable"):
+        current_T_base_cam(tmp_path)
+    T = np.eye(4)
+    T[:3, 3] = [0.6, 0.0, 1.0]
+    fsutil.write_json(tmp_path / "calibration.json", {"job": "j2", "T_base_cam": T.tolist()})
+    T_read, job = current_T_base_cam(tmp_path)
+    assert job == "j2" and np.allclose(T_read, T)
+
+
+def test_lateral_distances_are_signed_towards_the_finger_wall_and_paths_thin() -> None:
+    wp = v_groove_butt()
+    g = true_wall(wp, nominal_pose(wp), 0.004, "left")
+    # Points 1 mm towards the wall and 2 mm away from it, beside the middle of the seam.
+    mid = g.seam_base[len(g.seam_base) // 2]
+    n = g.normals[len(g.seam_base) // 2]
+    d = _lateral(g, np.array([mid + 0.001 * n, mid - 0.002 * n]), g.seam_base)
+    np.testing.assert_allclose(d, [0.001, -0.002], atol=1e-9)
+    P = np.column_stack([np.linspace(0, 0.01, 101), np.zeros(101), np.zeros(101)])
+    T = _thin(P, 0.0005)
+    gaps = np.linalg.norm(np.diff(T, axis=0), axis=1)
+    assert np.allclose(T[[0, -1]], P[[0, -1]]) and 19 <= len(T) <= 21
+    assert np.all(gaps[:-1] >= 0.0005 - 1e-12) and np.all(gaps <= 0.0006 + 1e-12)
