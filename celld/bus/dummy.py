@@ -1,12 +1,12 @@
-"""A cell without devices that answers the bus like the daemon: for bus tests and the bus benchmark.
+"""A cell without devices that answers the bus as the daemon does: for bus tests and the bus benchmark.
 
-:class:`DummyCell` implements :class:`~celld.bus.server.CellHandlers` with the
-real job journal and the daemon's queueing rules (one job at a time, a bounded
-queue, refusal beyond it, cancel of queued and running jobs), but its jobs
-only wait: each publishes ``steps`` progress events over ``job_duration``
-seconds and succeeds. A succeeded calibrate job has the identity as its
-"result", so ``accept`` and ``calibration`` can be exercised over the bus; it
-is not a calibration and nothing else may use it as one.
+:class:`DummyCell` is the daemon's own :class:`~celld.daemon.jobs.JobManager`
+(the real journal, queueing, cancelling, results and calibration store)
+with runners that only wait: each job publishes ``steps`` progress events
+over ``job_duration`` seconds and succeeds, and there is no robot to stop. A
+succeeded calibrate job leaves the identity as its calibration, so
+``accept`` and ``calibration`` can be exercised over the bus; it is not a
+calibration and nothing else may use it as one.
 
 ``python -m celld.bus.dummy --config FILE --state-dir DIR`` serves one such
 cell with the bus settings of FILE and prints ``ready <cell>`` on stdout
@@ -24,25 +24,16 @@ import math
 import signal
 import sys
 import time
-from collections import deque
 from pathlib import Path
 from typing import Any, Mapping
 
-from celld import __version__, config
+from celld import config
 from celld.bus.keys import CellKeys
-from celld.bus.schema import (
-    AcceptRequest,
-    CalibrationRequest,
-    CancelRequest,
-    Job,
-    ListRequest,
-    StatusRequest,
-    job_to_message,
-)
+from celld.bus.schema import JOB_KINDS, Job
 from celld.bus.server import BusServer
 from celld.bus.session import open_server
-from celld.errors import JobError
-from celld.journal import Journal, JobRecord, utc_now
+from celld.daemon.jobs import JobContext, JobManager
+from celld.journal import Journal
 from celld.log import configure
 
 # Default: jobs that wait at most this many, and are refused beyond.
@@ -50,19 +41,23 @@ MAX_QUEUE = 8
 _IDENTITY = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 
 
-class DummyCell:
-    """Jobs that wait, behind the daemon's bus interface (see the module docstring).
+async def _no_robot() -> None:
+    """The dummy cell has no robot to stop."""
+
+
+class DummyCell(JobManager):
+    """Jobs that wait, behind the daemon's job manager (see the module docstring).
 
     Parameters
     ----------
     name : str
         The cell's name.
     journal : Journal
-        Where jobs are recorded.
+        Where jobs are recorded; results and calibrations go beside it.
     job_duration : float
         How long each job takes, s.
     steps : int
-        Progress events per job before the final one.
+        Progress events per job between its start and end events.
     progress_hz : float, optional
         Instead of ``steps``: progress events per second of the job's duration.
     durations : mapping, optional
@@ -82,119 +77,38 @@ class DummyCell:
         durations: Mapping[str, float] | None = None,
         progress_hz: float | None = None,
     ) -> None:
-        self.name = name
         self.progress_hz = progress_hz
-        self.journal = journal
         self.job_duration = job_duration
         self.durations = dict(durations or {})
         self.steps = max(1, steps)
-        self.max_queue = max_queue
         self.server: BusServer | None = None
-        self._queue: deque[JobRecord] = deque()
-        self._running: JobRecord | None = None
-        self._task: asyncio.Task[None] | None = None
-        self._calibration: dict[str, Any] | None = None
-        self._started = time.monotonic()
+        super().__init__(
+            journal, journal.path.parent, {kind: self._wait for kind in JOB_KINDS}, self._publish, _no_robot,
+            cell=name, queue_depth=max_queue,
+        )
 
     def attach(self, server: BusServer) -> None:
         """Publish progress through ``server``."""
         self.server = server
 
-    def _progress(self, record: JobRecord, state: str, stage: str, fraction: float | None = None, message: str = "") -> None:
+    def _publish(self, job: str, kind: str, state: str, stage: str, **kw: Any) -> None:
         if self.server is not None:
-            self.server.publish_progress(record.id, record.kind, state, stage, fraction=fraction, message=message)
-
-    # -- job running ----------------------------------------------------------------
-
-    def _start(self, record: JobRecord) -> None:
-        self._running = record if record.state == "running" else self.journal.start(record.id)
-        self._task = asyncio.get_running_loop().create_task(self._run(self._running))
-
-    async def _run(self, record: JobRecord) -> None:
-        state, reason = "succeeded", ""
-        duration = self.durations.get(record.kind, self.job_duration)
-        steps = self.steps if self.progress_hz is None else max(1, round(duration * self.progress_hz))
-        try:
-            for i in range(steps):
-                self._progress(record, "running", "wait", fraction=i / steps, message=f"step {i + 1} of {steps}")
-                await asyncio.sleep(duration / steps)
-        except asyncio.CancelledError:
-            state, reason = "cancelled", "cancelled by request"
-        final = self.journal.finish(record.id, state, reason)
-        self._progress(final, state, "done", fraction=1.0 if state == "succeeded" else None, message=reason)
-        self._running, self._task = None, None
-        if self._queue:
-            self._start(self._queue.popleft())
-
-    async def close(self) -> None:
-        """Cancel the running job and mark queued ones cancelled."""
-        while self._queue:
-            self.journal.finish(self._queue.popleft().id, "cancelled", "the cell stopped")
-        if self._task is not None:
-            self._task.cancel()
-            await asyncio.gather(self._task, return_exceptions=True)
-
-    # -- handlers -------------------------------------------------------------------
+            self.server.publish_progress(job, kind, state, stage, **kw)
 
     async def on_submit(self, job: Job) -> Mapping[str, Any]:
-        if self._running is not None and len(self._queue) >= self.max_queue:
-            raise JobError("$", f"refused: a job is running and {len(self._queue)} wait (the queue holds {self.max_queue})")
-        idle = self._running is None
-        record = self.journal.create(job.kind, job_to_message(job), job.ref, start=idle)
-        if idle:
-            self._start(record)
-            return {"job": record.id, "state": "running", "position": 0}
-        self._queue.append(record)
-        return {"job": record.id, "state": "queued", "position": len(self._queue)}
+        if self._worker is None:
+            self.start()  # on the server's loop, at the first job
+        return await super().on_submit(job)
 
-    async def on_status(self, req: StatusRequest) -> Mapping[str, Any]:
-        if req.job is not None:
-            record = self.journal.get(req.job)
-            if record is None:
-                raise JobError("$.job", f"no job {req.job} in the journal")
-            return {"record": record.to_message()}
-        return {
-            "cell": self.name,
-            "state": "running" if self._running else "idle",
-            "running": self._running.id if self._running else None,
-            "queued": [r.id for r in self._queue],
-            "robot_link": "unknown",
-            "calibration": self._calibration["job"] if self._calibration else None,
-            "uptime_s": time.monotonic() - self._started,
-            "version": __version__,
-            "message": "dummy cell: jobs only wait",
-        }
-
-    async def on_cancel(self, req: CancelRequest) -> Mapping[str, Any]:
-        if self._running is not None and self._running.id == req.job and self._task is not None:
-            self._task.cancel()
-            await asyncio.gather(self._task, return_exceptions=True)
-            return {"job": req.job, "state": "cancelled"}
-        for record in self._queue:
-            if record.id == req.job:
-                self._queue.remove(record)
-                self.journal.finish(record.id, "cancelled", req.reason or "cancelled by request")
-                self._progress(record, "cancelled", "done")
-                return {"job": req.job, "state": "cancelled"}
-        found = self.journal.get(req.job)
-        if found is None:
-            raise JobError("$.job", f"no job {req.job} in the journal")
-        raise JobError("$.job", f"job {req.job} is {found.state}; only queued or running jobs can be cancelled")
-
-    async def on_list(self, req: ListRequest) -> Mapping[str, Any]:
-        return {"jobs": [r.to_message() for r in self.journal.jobs(req.limit, req.state, req.kind)]}
-
-    async def on_accept(self, req: AcceptRequest) -> Mapping[str, Any]:
-        record = self.journal.get(req.job)
-        if record is None:
-            raise JobError("$.job", f"no job {req.job} in the journal")
-        if record.kind != "calibrate" or record.state != "succeeded":
-            raise JobError("$.job", f"expected a succeeded calibrate job, got a {record.state} {record.kind} job")
-        self._calibration = {"job": record.id, "T_base_cam": _IDENTITY, "accepted": utc_now()}
-        return {"job": record.id, "calibration": self._calibration}
-
-    async def on_calibration(self, req: CalibrationRequest) -> Mapping[str, Any]:
-        return {"calibration": self._calibration}
+    async def _wait(self, ctx: JobContext) -> Mapping[str, Any]:
+        duration = self.durations.get(ctx.job.kind, self.job_duration)
+        steps = self.steps if self.progress_hz is None else max(1, round(duration * self.progress_hz))
+        for i in range(steps):
+            ctx.progress("wait", i / steps, f"step {i + 1} of {steps}")
+            await asyncio.sleep(duration / steps)
+        if ctx.job.kind == "calibrate":
+            return {"calibration": {"job": ctx.job_id, "T_base_cam": _IDENTITY, "method": "none: a dummy cell's identity"}}
+        return {"waited_s": duration}
 
     async def feed_state(self, rate_hz: float) -> None:
         """Offer made-up robot and tactile samples at ``rate_hz`` to the server until cancelled."""

@@ -264,6 +264,7 @@ _CALIBRATION = _object(
         "pairs": {"type": "integer", "minimum": 0, "description": "Pairs in the final pool."},
         "accepted": {"type": "string", "description": "When it became current, UTC ISO 8601."},
         "dataset": {"type": "string", "description": "Path of the saved dataset."},
+        "method": {"type": "string", "description": "The estimator that gave T_base_cam (robust, svd, algorithm1)."},
     },
     ("job", "T_base_cam", "accepted"),
 )

@@ -44,8 +44,8 @@ def test_submit_wait_status_jobs_cancel(served, tmp_path: Path, capsys: pytest.C
     assert main(["submit", "health", "--config", cfg, "--wait", "--ref", "night-shift"]) == 0
     out, err = capsys.readouterr()
     job = out.split()[0]
-    assert out.strip() == f"{job} health succeeded"
-    assert "running wait 0%" in err and "succeeded done 100%" in err
+    assert out.strip().startswith(f"{job} health succeeded -> ") and out.strip().endswith(f"results/{job}.json")
+    assert "running wait 0%" in err and "succeeded end 100%" in err
 
     assert main(["submit", "move", "--config", cfg, "--joints", "0", "-1.57", "1.57", "-1.57", "-1.57", "0", "--json"]) == 0
     reply = json.loads(capsys.readouterr().out)
@@ -56,13 +56,13 @@ def test_submit_wait_status_jobs_cancel(served, tmp_path: Path, capsys: pytest.C
     assert [j["kind"] for j in jobs] == ["move", "health"] and jobs[1]["ref"] == "night-shift"
 
     assert main(["status", "--config", cfg, "--job", job]) == 0
-    assert capsys.readouterr().out.strip() == f"{job} health succeeded"
+    assert capsys.readouterr().out.strip().startswith(f"{job} health succeeded -> ")
 
     assert main(["status", "--all", "--config", cfg, "--json"]) == 0
     assert [s["cell"] for s in json.loads(capsys.readouterr().out)] == [cell.keys.cell]
 
     assert main(["cancel", job, "--config", cfg]) == 2
-    assert "only queued or running jobs can be cancelled" in capsys.readouterr().err
+    assert "has already ended (succeeded)" in capsys.readouterr().err
 
 
 def test_bad_parameters_are_refused_before_sending(served, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

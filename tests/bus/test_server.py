@@ -62,7 +62,7 @@ def test_second_job_queues_and_reply_says_so(serve_cell) -> None:
 
 def test_full_queue_refuses_with_a_reason(serve_cell) -> None:
     cell = serve_cell(job_duration=5.0)
-    cell.cell.max_queue = 1
+    cell.cell.queue_depth = 1
     with CellClient(cell.client_bus(), cell.keys.cell) as client:
         client.submit({"kind": "health"})
         client.submit({"kind": "health"})
@@ -80,7 +80,9 @@ def test_progress_events_are_numbered_and_end_terminal(cell, client) -> None:
     for e in events:
         schema.check_message("progress", e)
     assert [e["seq"] for e in events] == list(range(len(events)))
-    assert events[-1]["state"] == "succeeded" and len(events) == cell.cell.steps + 1
+    # queued, start, one per step, end.
+    assert [e["stage"] for e in events] == ["queued", "start"] + ["wait"] * cell.cell.steps + ["end"]
+    assert events[-1]["state"] == "succeeded"
 
 
 def test_status_list_accept_calibration_replies_match_their_schemas(cell, client) -> None:
@@ -100,7 +102,7 @@ def test_status_list_accept_calibration_replies_match_their_schemas(cell, client
 def test_unknown_job_is_refused_with_the_field(client) -> None:
     with pytest.raises(JobError) as err:
         client.status("20250101-000000-abcdef")
-    assert err.value.field == "$.job" and "no job" in err.value.reason
+    assert err.value.field == "$.job" and "no such job" in err.value.reason
 
 
 def test_hostile_payloads_each_get_an_error_reply_and_the_server_stays_up(cell, client) -> None:

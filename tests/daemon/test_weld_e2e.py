@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from celld import se3
+from celld.bus import schema
 from celld.demo import tracking_error
 from celld.journal import Journal
 from celld.recording.readback import read_entities
@@ -82,6 +83,9 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
         _, cal = client.submit_and_wait({"kind": "calibrate", "seed": 5}, timeout=900)
         assert cal["state"] == "succeeded", (cal["reason"], robot.status())
         accepted = client.accept(cal["id"])
+        # The real daemon's replies match their exported schemas.
+        schema.check_message("accept-reply", accepted)
+        schema.check_message("calibration-reply", {"ok": True, "calibration": client.calibration()})
         dt, dr = se3.error(np.array(accepted["calibration"]["T_base_cam"]), cfg.T_base_cam_nominal())
         # The calibration issue's target for the PhoXi M: 0.15 mm and 0.05 degrees (the cell's 20 poses).
         assert dt <= 0.15e-3 and math.degrees(dr) <= 0.05, (dt * 1e3, math.degrees(dr))
