@@ -660,11 +660,18 @@ class SimConfig:
     # The part's true pose on the table (model frame in base), UR pose; empty:
     # the simulator's nominal place (celld.seam.simscene).
     workpiece_pose: tuple[float, ...] = ()
+    # The true V-groove bows sideways by this much at mid-length (tack-weld
+    # distortion) where its model is straight, m.
+    workpiece_bow: float = 0.0
 
     @classmethod
     def read(cls, r: TableReader) -> "SimConfig":
         pose = r.vector("workpiece_pose", 6, []) if r.has("workpiece_pose") else ()
-        return cls(workpiece=r.str("workpiece", cls.workpiece), workpiece_pose=pose)
+        return cls(
+            workpiece=r.str("workpiece", cls.workpiece),
+            workpiece_pose=pose,
+            workpiece_bow=r.float("workpiece_bow_mm", 0.0, lo=-10.0, hi=10.0, scale=1e-3),
+        )
 
 
 @dataclass(frozen=True)

@@ -280,31 +280,40 @@ def v_groove_butt(
     root_face: float = 0.001,
     length: float = 0.150,
     plate_width: float = 0.060,
+    bow: float = 0.0,
 ) -> Workpiece:
     """Single-V butt joint of two plates (ISO 9692-1: t, alpha, b, c), SI units.
 
     The seam is the root line at the gap centre on top of the root faces,
     (x, 0, c) for x in [-length/2, length/2]; the left plate (y > 0) carries
-    the left wall. The part lies on z = 0.
+    the left wall. The part lies on z = 0. ``bow`` (m) bends the joint
+    sideways, ``y = bow sin(pi (x / length + 1/2))``, as tack welds pull real
+    plates: the same profile swept along the bent line (0: straight).
     """
     _check_positive(thickness=thickness, groove_angle=groove_angle, length=length, plate_width=plate_width)
     if not 0.0 <= root_face < thickness:
         raise WorkpieceError(f"root_face: expected 0 <= c < t = {thickness} m, got {root_face}")
     if root_gap < 0.0 or not 0.0 < groove_angle < math.radians(120.0):
         raise WorkpieceError(f"expected root_gap >= 0 and 0 < groove_angle < 120 deg, got {root_gap}, {math.degrees(groove_angle):.1f} deg")
+    if not math.isfinite(bow) or abs(bow) > 0.1 * length:
+        raise WorkpieceError(f"bow: expected |bow| <= length / 10 = {0.1 * length} m, got {bow}")
     left, right = _v_profiles(thickness, groove_angle, root_gap, root_face, plate_width)
-    x = np.array([-length / 2.0, length / 2.0])
-    path = np.column_stack([x, np.zeros(2), np.zeros(2)])
-    lat = np.tile([0.0, 1.0, 0.0], (2, 1))
-    up = np.tile([0.0, 0.0, 1.0], (2, 1))
+    n = 2 if bow == 0.0 else 61
+    x = np.linspace(-length / 2.0, length / 2.0, n)
+    phase = math.pi * (x / length + 0.5)
+    y = bow * np.sin(phase)
+    dy = bow * math.pi / length * np.cos(phase)
+    path = np.column_stack([x, y, np.zeros(n)])
+    lat = np.column_stack([-dy, np.ones(n), np.zeros(n)]) / np.sqrt(1.0 + dy**2)[:, None]
+    up = np.tile([0.0, 0.0, 1.0], (n, 1))
     V, F, L = _merge(
         _sweep(left, path, lat, up, labels={3: LEFT_WALL}),
         _sweep(right, path, lat, up, labels={0: RIGHT_WALL}),
     )
-    seam = np.column_stack([np.linspace(-length / 2.0, length / 2.0, 2), np.zeros(2), np.full(2, root_face)])
+    seam = path + np.array([0.0, 0.0, root_face])
     bevel = (thickness - root_face) / math.cos(groove_angle / 2.0)
     band = (math.hypot(root_gap / 2.0, root_face) + 0.5e-3, root_gap / 2.0 + 0.85 * bevel)
-    params = dict(thickness=thickness, groove_angle=groove_angle, root_gap=root_gap, root_face=root_face, length=length, plate_width=plate_width)
+    params = dict(thickness=thickness, groove_angle=groove_angle, root_gap=root_gap, root_face=root_face, length=length, plate_width=plate_width, bow=bow)
     return Workpiece("v-groove", V, F, seam, np.array([0.0, 0.0, 1.0]), L, band, "v-groove", params)
 
 

@@ -35,10 +35,15 @@ def sim_workpiece(config: Config) -> SimWorkpiece | None:
         return None
     from celld.seam.simscene import nominal_pose
     from celld.seam.weldpath import true_wall
-    from celld.seam.workpiece import example
+    from celld.seam.workpiece import example, v_groove_butt
 
     try:
-        wp = example(config.sim.workpiece)
+        if config.sim.workpiece_bow != 0.0:
+            if config.sim.workpiece != "v-groove":
+                raise ConfigError(config.source, "sim.workpiece_bow_mm", f"only the v-groove can bow, not {config.sim.workpiece!r}")
+            wp = v_groove_butt(bow=config.sim.workpiece_bow)
+        else:
+            wp = example(config.sim.workpiece)
     except WorkpieceError as exc:
         raise ConfigError(config.source, "sim.workpiece", str(exc)) from exc
     T = se3.from_ur_pose(config.sim.workpiece_pose) if config.sim.workpiece_pose else nominal_pose(wp)
