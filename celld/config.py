@@ -369,6 +369,9 @@ class TactileConfig:
     fps: float = 60.0
     # Time from the start of exposure to the return of a grab (real camera), s.
     capture_latency: float = 0.008
+    # SCHED_FIFO priority of the camera process, below the motion loop's (0:
+    # best effort at nice -10). A frame then waits for no best-effort work.
+    rt_priority: int = 40
     tag_id: int = 7
     tag_dictionary: str = "DICT_4X4_50"
     tag_size: float = 0.008  # m, side of the tag's black square
@@ -444,6 +447,7 @@ class TactileConfig:
             height_px=r.int("height_px", cls.height_px, lo=16, hi=8192),
             fps=r.float("fps", cls.fps, lo=1.0, hi=1000.0),
             capture_latency=r.float("capture_latency_ms", cls.capture_latency * 1e3, lo=0.0, hi=500.0, scale=1e-3),
+            rt_priority=r.int("rt_priority", cls.rt_priority, lo=0, hi=79),
             tag_id=r.int("tag_id", cls.tag_id, lo=0, hi=999),
             tag_dictionary=r.str("tag_dictionary", cls.tag_dictionary),
             tag_size=r.float("tag_size_mm", cls.tag_size * 1e3, lo=0.5, hi=200.0, scale=1e-3),

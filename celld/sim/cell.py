@@ -84,7 +84,7 @@ def make_tactile(config: Config):
     if kind == "none":
         return None
     sim = tactile_source(config) if kind == "sim" else None
-    return TactileProcess(config.tactile, f"celld-{uuid.uuid4().hex[:8]}", sim)
+    return TactileProcess(config.tactile, f"celld-{uuid.uuid4().hex[:8]}", sim, fifo_priority=config.tactile.rt_priority)
 
 
 # -- running a whole simulated cell --------------------------------------------------
