@@ -213,6 +213,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     )
     collector = _Collector()
     devices.add_collector(collector)
+    events_before = motion.loop_event_count
     failure: CelldError | None = None
     try:
         cid = await motion.start_servo(plan)
@@ -242,6 +243,11 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
                 waiting.cancel()
     finally:
         devices.remove_collector(collector)
+    # The loop's own trouble during the track (a failed arc write): the weld is not good.
+    new_events = min(motion.loop_event_count - events_before, len(motion.loop_events))
+    trouble = list(motion.loop_events)[-new_events:] if new_events > 0 else []
+    if trouble and failure is None:
+        failure = CelldError(f"the motion loop reported during the weld: {'; '.join(trouble)}")
 
     # 5. retract (also after a failed track, while the robot can still be moved)
     retract_error = ""

@@ -50,7 +50,10 @@ from celld.motion.loop import LoopParams
 from celld.motion.process import MotionSpec, RealtimeOptions, servo_laws_from
 from celld.motion.supervisor import Backoff, LinkState, MotionSupervisor, ProcessExit
 from celld.motion.types import ControlStatus, RobotState, ServoPlan
+from celld.log import get_logger
 from celld.se3 import from_ur_pose
+
+log = get_logger(__name__)
 
 # The state ring holds this long of history at the loop rate (at least 2 s is required).
 RING_SECONDS = 8.0
@@ -162,6 +165,9 @@ class MotionHandle:
         self._period_count = 0
         self._pending: dict[int, _Pending] = {}
         self._reasons: dict[int, tuple[ControlStatus, str]] = {}
+        # Reasons of the loop's events about no command (the latest 32), e.g. a failed arc write.
+        self.loop_events: deque[str] = deque(maxlen=32)
+        self.loop_event_count = 0  # all of them so far
         self._listeners: list[Callable[[np.ndarray], None]] = []
         self._stream_id = 0
         self._stream_timeout = 0.1
@@ -458,6 +464,12 @@ class MotionHandle:
         events, self._event_seq, _ = self.ch.events.read_since(self._event_seq)
         for e in events:
             cid = int(e["command_id"])
+            if cid == 0:
+                # About no command: the loop's own trouble (e.g. the arc output could not be switched).
+                log.error("motion loop event", status=ControlStatus(int(e["status"])).name, reason=decode_reason(e["reason"]))
+                self.loop_events.append(decode_reason(e["reason"]))
+                self.loop_event_count += 1
+                continue
             self._reasons[cid] = (ControlStatus(int(e["status"])), decode_reason(e["reason"]))
         if len(records):
             self._cycles += len(records)

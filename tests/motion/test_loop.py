@@ -351,3 +351,21 @@ def test_the_motion_process_switches_the_output_off_when_the_link_drops(
     assert end.status == ControlStatus.LINK_LOST
     assert port.outputs == [(ARC, False), (ARC, True), (ARC, False)]
     assert port.closed and port.watchdog_hz == spec.watchdog_hz
+
+
+def test_the_handle_reports_loop_events_about_no_command_and_resolves_nothing_with_them(channels: Channels) -> None:
+    from celld.motion.channels import EVENT_DTYPE, encode_reason
+    from celld.motion.handle import MotionHandle
+
+    from types import SimpleNamespace
+
+    supervisor = SimpleNamespace(spec=SimpleNamespace(loop=SimpleNamespace(period_ns=2_000_000)), on_exit=lambda callback: None)
+    handle = MotionHandle(supervisor, channels, None, ((-1.0,) * 3, (1.0,) * 3))  # type: ignore[arg-type]
+    e = np.zeros(1, EVENT_DTYPE)
+    e["command_id"] = 0
+    e["status"] = int(ControlStatus.FAULT)
+    e["reason"] = encode_reason("process output 0: switching it on failed; retrying every cycle")
+    channels.events.append(e)
+    handle._drain()
+    assert list(handle.loop_events) == ["process output 0: switching it on failed; retrying every cycle"]
+    assert handle.loop_event_count == 1 and 0 not in handle._reasons  # no command is ended by it
