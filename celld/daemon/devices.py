@@ -39,8 +39,10 @@ log = get_logger(__name__)
 SERVO_LAWS = {"algorithm2": "celld.motion.servo:make_algorithm2"}
 # Longest a stop may take before the daemon gives up waiting, s.
 STOP_TIMEOUT = 5.0
-# Least time between two restarts of a dying tactile process, s.
+# Least time between two restarts of a dying tactile process, s; it doubles
+# after each failed restart, up to the longest.
 TACTILE_RESTART_DELAY = 2.0
+TACTILE_RESTART_DELAY_MAX = 60.0
 
 
 class CellDevices:
@@ -74,6 +76,8 @@ class CellDevices:
         self._recordings: list[Any] = []
         self._collectors: list[Callable[[np.ndarray], None]] = []
         self._tactile_restart_at = -math.inf
+        self._tactile_failures = 0
+        self.tactile_error = ""  # why the tactile process is not running, "" while it is
 
     # -- life cycle ----------------------------------------------------------------
 
@@ -82,7 +86,14 @@ class CellDevices:
         if self._tactile_factory is not None:
             self.tactile = self._tactile_factory(cfg)
             if self.tactile is not None:
-                await asyncio.to_thread(self.tactile.start)
+                try:
+                    await asyncio.to_thread(self.tactile.start)
+                except CelldError as exc:
+                    # The cell still calibrates and moves; welds are refused until
+                    # the supervision brings the camera back (supervise_tactile).
+                    self.tactile_error = str(exc)
+                    self._tactile_restart_at = time.monotonic()
+                    log.error("the tactile process did not start; retrying in the background", error=str(exc))
         self.motion = await MotionHandle.open(
             cfg,
             servo_laws=SERVO_LAWS,
@@ -190,15 +201,20 @@ class CellDevices:
         if tactile is None or tactile.alive():
             return
         now = time.monotonic()
-        if now - self._tactile_restart_at < TACTILE_RESTART_DELAY:
+        delay = min(TACTILE_RESTART_DELAY * 2.0 ** self._tactile_failures, TACTILE_RESTART_DELAY_MAX)
+        if now - self._tactile_restart_at < delay:
             return
         self._tactile_restart_at = now
-        log.error("the tactile process died; restarting it", exitcode=tactile.exitcode, restarts=tactile.restarts)
+        log.error("the tactile process is not running; restarting it", exitcode=tactile.exitcode, restarts=tactile.restarts)
         try:
             await asyncio.to_thread(tactile.restart)
+            self._tactile_failures = 0
+            self.tactile_error = ""
             log.info("tactile process restarted", restarts=tactile.restarts)
         except CelldError as exc:
-            log.error("tactile process restart failed", error=str(exc))
+            self._tactile_failures += 1
+            self.tactile_error = str(exc)
+            log.error("tactile process restart failed", error=str(exc), next_try_s=min(TACTILE_RESTART_DELAY * 2.0 ** self._tactile_failures, TACTILE_RESTART_DELAY_MAX))
 
     def tactile_sample(self) -> TactileSample | None:
         return None if self.tactile is None else self.tactile.latest()

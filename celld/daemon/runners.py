@@ -233,8 +233,12 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
         if devices.tactile is None:
             out["tactile"] = {"ok": False, "error": "no tactile sensor configured"}
         else:
-            out["tactile"] = {"ok": sample is not None and sample.valid, "valid": bool(sample and sample.valid)}
-            if sample is None or not sample.valid:
+            running = devices.tactile.alive()
+            out["tactile"] = {"ok": running and sample is not None and sample.valid, "running": running,
+                              "valid": bool(sample and sample.valid), "error": devices.tactile_error}
+            if not running:
+                problems.append(f"the tactile process is not running: {devices.tactile_error or 'it ended'}")
+            elif sample is None or not sample.valid:
                 problems.append("the tactile sensor sees no tag")
     if problems and job.check != "all":
         raise CelldError("; ".join(problems))

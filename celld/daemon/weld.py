@@ -153,6 +153,8 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         raise JobError("$.kind", "not a weld job")
     if devices.tactile is None:
         raise JobError("$", "the cell has no tactile sensor (tactile.kind); it cannot track a seam")
+    if not devices.tactile.alive():
+        raise JobError("$", f"the tactile sensor is not running ({devices.tactile_error or 'its process ended'}); the daemon keeps restarting it")
     motion = devices.require_motion()
     wc = config.weld
     seam_params = config.seam

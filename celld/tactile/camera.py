@@ -532,7 +532,12 @@ class TactileProcess:
             if not self._proc.is_alive():
                 raise DeviceError(f"the tactile process exited at start (exit code {self._proc.exitcode})")
             if time.monotonic() > deadline:
-                self.stop()
+                # End the process, keep the slots: a restart may use them (stop() releases them).
+                self._proc.terminate()
+                self._proc.join(1.0)
+                if self._proc.is_alive():
+                    self._proc.kill()
+                    self._proc.join(1.0)
                 raise DeviceError(f"the tactile process did not come up within {timeout} s")
 
     def request_tare(self) -> None:

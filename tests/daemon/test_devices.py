@@ -48,6 +48,10 @@ def test_a_dead_tactile_process_is_restarted_with_a_delay_between_attempts(monke
         await dev.supervise_tactile()
         await dev.supervise_tactile()  # a failed restart is logged and tried again, never raised
         assert failing.restarts == 2 and not failing.alive()
+        assert dev._tactile_failures == 2 and "exited at start" in dev.tactile_error  # the wait doubles each time
+        failing.fail = False
+        await dev.supervise_tactile()
+        assert failing.alive() and dev.tactile_error == "" and dev._tactile_failures == 0
 
         dev.tactile = None
         await dev.supervise_tactile()  # a cell without a finger camera: nothing to do
