@@ -233,7 +233,7 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
         if devices.tactile is None:
             out["tactile"] = {"ok": False, "error": "no tactile sensor configured"}
         else:
-            running = devices.tactile.alive()
+            running = devices.tactile.running()
             out["tactile"] = {"ok": running and sample is not None and sample.valid, "running": running,
                               "valid": bool(sample and sample.valid), "error": devices.tactile_error}
             if not running:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import hashlib
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -153,7 +154,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         raise JobError("$.kind", "not a weld job")
     if devices.tactile is None:
         raise JobError("$", "the cell has no tactile sensor (tactile.kind); it cannot track a seam")
-    if not devices.tactile.alive():
+    if not devices.tactile.running():
         raise JobError("$", f"the tactile sensor is not running ({devices.tactile_error or 'its process ended'}); the daemon keeps restarting it")
     motion = devices.require_motion()
     wc = config.weld
@@ -169,7 +170,8 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     tool = ToolGeometry.from_config(tactile)
     T_base_cam, cal_job = current_T_base_cam(ctx.state_dir)
     workpiece = resolve_workpiece(job.workpiece, config)
-    key = f"{workpiece.name}:{id(seam_params)}"
+    # Prepared models by content (a user's model edited on disk is prepared again).
+    key = hashlib.sha1(workpiece.vertices.tobytes() + workpiece.triangles.tobytes() + workpiece.seam.tobytes()).hexdigest()
     if key not in cache:
         ctx.progress("prepare", None, f"preparing the model of {workpiece.name}")
         prepared = await asyncio.to_thread(prepare, workpiece, seam_params)

@@ -586,6 +586,10 @@ class TactileProcess:
     def exitcode(self) -> int | None:
         return self._proc.exitcode
 
+    def running(self) -> bool:
+        """Started and reading its camera (not merely alive: a process starting may still fail)."""
+        return self._proc.is_alive() and self._ready.is_set()
+
     def alive(self) -> bool:
         return self._proc.is_alive()
 
