@@ -74,7 +74,6 @@ class CellDevices:
         self._scene_extra = scene_extra
         self._truth: Any = None
         self._recordings: list[Any] = []
-        self._collectors: list[Callable[[np.ndarray], None]] = []
         self._tactile_restart_at = -math.inf
         self._tactile_failures = 0
         self.tactile_error = ""  # why the tactile process is not running, "" while it is
@@ -241,17 +240,7 @@ class CellDevices:
         """Feed motion state batches to ``recording`` until it closes."""
         self._recordings.append(recording)
 
-    def add_collector(self, callback: Callable[[np.ndarray], None]) -> None:
-        """Also pass every motion state batch to ``callback`` (until removed)."""
-        self._collectors.append(callback)
-
-    def remove_collector(self, callback: Callable[[np.ndarray], None]) -> None:
-        if callback in self._collectors:
-            self._collectors.remove(callback)
-
     def _on_state_batch(self, batch: np.ndarray) -> None:
-        for collect in list(self._collectors):
-            collect(batch)
         live = []
         for rec in self._recordings:
             if rec.closed:

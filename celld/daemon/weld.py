@@ -216,7 +216,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         process=bool(job.arc) and config.robot.arc_output >= 0, seam_offset=offset,
     )
     collector = _Collector()
-    devices.add_collector(collector)
+    motion.add_listener(collector)
     events_before = motion.loop_event_count
     failure: CelldError | None = None
     try:
@@ -246,7 +246,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
             if not waiting.done():
                 waiting.cancel()
     finally:
-        devices.remove_collector(collector)
+        motion.remove_listener(collector)
     # The loop's own trouble during the track (a failed arc write): the weld is not good.
     new_events = min(motion.loop_event_count - events_before, len(motion.loop_events))
     trouble = list(motion.loop_events)[-new_events:] if new_events > 0 else []

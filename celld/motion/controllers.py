@@ -313,13 +313,16 @@ class ServoSlot:
             return NO_TELEMETRY
         try:
             t = fn()
-            phase = int(t.phase)
-            if not -1 <= phase <= 127:  # the state record holds it in an int8
-                raise ValueError(f"phase {phase}, expected -1..127")
-            refined = np.asarray(t.refined_base, dtype=np.float64)
-            if refined.shape != (3,):
-                raise ValueError(f"refined_base of shape {refined.shape}, expected (3,)")
-            return ServoTelemetry(phase, float(t.delta_n), refined, bool(t.process_on))
+            # Checked, not copied: this runs every cycle.
+            if not isinstance(t, ServoTelemetry):
+                raise TypeError(f"expected a ServoTelemetry, got {type(t).__name__}")
+            if not -1 <= t.phase <= 127:  # the state record holds it in an int8
+                raise ValueError(f"phase {t.phase}, expected -1..127")
+            if not isinstance(t.delta_n, float):
+                raise TypeError(f"delta_n {t.delta_n!r}, expected a float")
+            if np.shape(t.refined_base) != (3,):
+                raise ValueError(f"refined_base of shape {np.shape(t.refined_base)}, expected (3,)")
+            return t
         except Exception as exc:  # a law must not take the loop down
             if not self.telemetry_error:
                 self.telemetry_error = f"servo law {self.law_name!r}: telemetry failed: {exc!r}"

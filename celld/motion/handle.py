@@ -393,6 +393,11 @@ class MotionHandle:
         """Call ``callback(records)`` with every batch of :data:`STATE_DTYPE` records read."""
         self._listeners.append(callback)
 
+    def remove_listener(self, callback: Callable[[np.ndarray], None]) -> None:
+        """Stop calling ``callback`` (no error if it was not added)."""
+        if callback in self._listeners:
+            self._listeners.remove(callback)
+
     def last_record(self) -> np.void | None:
         """The latest state record (:data:`~celld.motion.channels.STATE_DTYPE`), a copy."""
         return None if self._last_record is None else self._last_record.copy()

@@ -102,9 +102,9 @@ NO_TELEMETRY = ServoTelemetry(-1, math.nan, _nan3(), False)
 class ServoLaw(Protocol):
     """A seam-tracking law stepped in the motion loop's servo slot.
 
-    A law may also have ``telemetry() -> ServoTelemetry`` (see
-    :class:`TelemetryLaw`); the slot calls it after each step when present and
-    records :data:`NO_TELEMETRY` otherwise.
+    A law may also have ``telemetry() -> ServoTelemetry``, its state after its
+    last step (cheap: it is called every cycle); the slot records
+    :data:`NO_TELEMETRY` for a law without one.
     """
 
     def start(self, state: RobotState) -> None:
@@ -116,14 +116,6 @@ class ServoLaw(Protocol):
         The loop shapes the twist with its jerk-limited velocity limiter and
         applies its own safety checks; the law must not raise.
         """
-        ...
-
-
-class TelemetryLaw(ServoLaw, Protocol):
-    """A :class:`ServoLaw` that reports its :class:`ServoTelemetry` (the optional method)."""
-
-    def telemetry(self) -> ServoTelemetry:
-        """The law's state after its last step; must be cheap (called every cycle)."""
         ...
 
 

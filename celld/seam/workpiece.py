@@ -273,6 +273,20 @@ def _check_positive(**values: float) -> None:
             raise WorkpieceError(f"{key}: expected a positive length in metres, got {v!r}")
 
 
+def _v_groove_along(name: str, path: Array, lateral: Array, params: dict[str, float]) -> Workpiece:
+    """The single-V profile of ``params`` swept along ``path`` (z = 0, ``lateral`` towards the left plate)."""
+    t, a, b, c = params["thickness"], params["groove_angle"], params["root_gap"], params["root_face"]
+    left, right = _v_profiles(t, a, b, c, params["plate_width"])
+    up = np.tile([0.0, 0.0, 1.0], (len(path), 1))
+    V, F, L = _merge(
+        _sweep(left, path, lateral, up, labels={3: LEFT_WALL}),
+        _sweep(right, path, lateral, up, labels={0: RIGHT_WALL}),
+    )
+    bevel = (t - c) / math.cos(a / 2.0)
+    band = (math.hypot(b / 2.0, c) + 0.5e-3, b / 2.0 + 0.85 * bevel)
+    return Workpiece(name, V, F, path + np.array([0.0, 0.0, c]), np.array([0.0, 0.0, 1.0]), L, band, "v-groove", params)
+
+
 def v_groove_butt(
     thickness: float = 0.010,
     groove_angle: float = math.radians(60.0),
@@ -297,7 +311,6 @@ def v_groove_butt(
         raise WorkpieceError(f"expected root_gap >= 0 and 0 < groove_angle < 120 deg, got {root_gap}, {math.degrees(groove_angle):.1f} deg")
     if not math.isfinite(bow) or abs(bow) > 0.1 * length:
         raise WorkpieceError(f"bow: expected |bow| <= length / 10 = {0.1 * length} m, got {bow}")
-    left, right = _v_profiles(thickness, groove_angle, root_gap, root_face, plate_width)
     n = 2 if bow == 0.0 else 61
     x = np.linspace(-length / 2.0, length / 2.0, n)
     phase = math.pi * (x / length + 0.5)
@@ -305,16 +318,8 @@ def v_groove_butt(
     dy = bow * math.pi / length * np.cos(phase)
     path = np.column_stack([x, y, np.zeros(n)])
     lat = np.column_stack([-dy, np.ones(n), np.zeros(n)]) / np.sqrt(1.0 + dy**2)[:, None]
-    up = np.tile([0.0, 0.0, 1.0], (n, 1))
-    V, F, L = _merge(
-        _sweep(left, path, lat, up, labels={3: LEFT_WALL}),
-        _sweep(right, path, lat, up, labels={0: RIGHT_WALL}),
-    )
-    seam = path + np.array([0.0, 0.0, root_face])
-    bevel = (thickness - root_face) / math.cos(groove_angle / 2.0)
-    band = (math.hypot(root_gap / 2.0, root_face) + 0.5e-3, root_gap / 2.0 + 0.85 * bevel)
     params = dict(thickness=thickness, groove_angle=groove_angle, root_gap=root_gap, root_face=root_face, length=length, plate_width=plate_width, bow=bow)
-    return Workpiece("v-groove", V, F, seam, np.array([0.0, 0.0, 1.0]), L, band, "v-groove", params)
+    return _v_groove_along("v-groove", path, lat, params)
 
 
 def fillet_t_joint(
@@ -381,17 +386,8 @@ def curved_groove(
     centre = np.array([0.0, radius, 0.0])
     path = centre + radius * np.column_stack([np.sin(theta), -np.cos(theta), np.zeros_like(theta)])
     lat = np.column_stack([-np.sin(theta), np.cos(theta), np.zeros_like(theta)])  # toward the centre: left
-    up = np.tile([0.0, 0.0, 1.0], (len(theta), 1))
-    left, right = _v_profiles(thickness, groove_angle, root_gap, root_face, plate_width)
-    V, F, L = _merge(
-        _sweep(left, path, lat, up, labels={3: LEFT_WALL}),
-        _sweep(right, path, lat, up, labels={0: RIGHT_WALL}),
-    )
-    seam = path + np.array([0.0, 0.0, root_face])
-    bevel = (thickness - root_face) / math.cos(groove_angle / 2.0)
-    band = (math.hypot(root_gap / 2.0, root_face) + 0.5e-3, root_gap / 2.0 + 0.85 * bevel)
     params = dict(radius=radius, arc_angle=arc_angle, thickness=thickness, groove_angle=groove_angle, root_gap=root_gap, root_face=root_face, plate_width=plate_width)
-    return Workpiece("curved-groove", V, F, seam, np.array([0.0, 0.0, 1.0]), L, band, "v-groove", params)
+    return _v_groove_along("curved-groove", path, lat, params)
 
 
 # Shipped examples by name, built from their default parameters.

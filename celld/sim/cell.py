@@ -51,22 +51,20 @@ def sim_workpiece(config: Config) -> SimWorkpiece | None:
     return SimWorkpiece(wp, T, true_wall(wp, T, config.weld.tip_height, finger))
 
 
-def scene_extra(config: Config):
-    """The scanner's extra scene objects (the part and the table), as a callable for CellDevices."""
+def scene_extra(part: SimWorkpiece | None):
+    """The scanner's extra scene objects (the part of :func:`sim_workpiece` and the table), as a callable for CellDevices."""
     from celld.seam.simscene import workpiece_scene
 
-    part = sim_workpiece(config)
     objects = [] if part is None else workpiece_scene(part.workpiece, part.T_base_obj)
     return lambda: objects
 
 
-def tactile_source(config: Config):
-    """The SimSourceSpec of the tactile process: the true finger wall in its plane."""
+def tactile_source(config: Config, part: SimWorkpiece | None):
+    """The SimSourceSpec of the tactile process: the true finger wall of ``part`` (:func:`sim_workpiece`) in its plane."""
     from celld.seam.weldpath import in_plane
     from celld.sim.srm import SrmSimParams
     from celld.tactile.camera import SimSourceSpec
 
-    part = sim_workpiece(config)
     side = 1.0 if config.tactile.wall_side == "left" else -1.0
     params = SrmSimParams(fps=config.tactile.fps)
     if part is None:
@@ -76,14 +74,14 @@ def tactile_source(config: Config):
     return SimSourceSpec(config.robot.host, in_plane(g, g.wall_base), -side, g.T_base_plane, params)
 
 
-def make_tactile(config: Config):
-    """The tactile process of a cell (None when ``tactile.kind = "none"``)."""
+def make_tactile(config: Config, part: SimWorkpiece | None):
+    """The tactile process of a cell (None when ``tactile.kind = "none"``); ``part`` feeds the simulated finger."""
     from celld.tactile.camera import TactileProcess
 
     kind = config.tactile.kind
     if kind == "none":
         return None
-    sim = tactile_source(config) if kind == "sim" else None
+    sim = tactile_source(config, part) if kind == "sim" else None
     return TactileProcess(config.tactile, f"celld-{uuid.uuid4().hex[:8]}", sim, fifo_priority=config.tactile.rt_priority)
 
 
