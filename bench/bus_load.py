@@ -15,7 +15,7 @@ Figures (each against its target, written to bench/out/bus_load/):
 
 Against what:
 
-- by default a dummy cell (:mod:`celld.bus.dummy`: the real bus server,
+- by default a dummy cell (:mod:`celld.daemon.dummy`: the real bus server,
   journal and queueing, jobs that only wait) is started in a child process on
   127.0.0.5, fed made-up robot and tactile samples at 100 Hz (published at
   the bus's 20 Hz), and given a 'weld' that lasts the whole load phase;
@@ -98,7 +98,7 @@ class DummyCellProcess:
         )
         self.proc = subprocess.Popen(
             [
-                sys.executable, "-m", "celld.bus.dummy", "--config", str(self.config_path),
+                sys.executable, "-m", "celld.daemon.dummy", "--config", str(self.config_path),
                 "--state-dir", str(workdir / "state"), "--job-duration", str(job_duration),
                 "--weld-duration", str(weld_duration), "--progress-hz", "10",
                 "--state-hz", str(STATE_HZ), "--log-level", "warning",

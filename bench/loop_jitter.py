@@ -147,12 +147,12 @@ def run_bare(seconds: float, rt: bool) -> dict[str, Any]:
 
 def make_tactile(host: str) -> Any:
     """The tactile process (not started) on the simulated SRM camera at 60 fps, facing a wall it does not touch."""
-    from celld.tactile.camera import SimSourceSpec, TactileProcess
+    from celld.sim.srm import SimSrmSource
+    from celld.tactile.camera import TactileProcess
 
     cfg = TactileConfig(kind="sim", fps=60.0)
     wall = np.array([[-1.0, 0.5], [1.0, 0.5]])  # far from the finger: frames render and detect, no contact
-    spec = SimSourceSpec(host, wall, 1.0, np.eye(4))
-    return TactileProcess(cfg, f"celld-bench-{os.getpid()}", sim=spec, nice=0)
+    return TactileProcess(cfg, f"celld-bench-{os.getpid()}", SimSrmSource(host, wall, 1.0, np.eye(4)), nice=0)
 
 
 def figures(records: np.ndarray, fifo: bool, cpu: int, extra: dict[str, Any]) -> dict[str, Any]:

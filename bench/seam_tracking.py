@@ -453,7 +453,9 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
     from celld.errors import CelldError, LinkLost
     from celld.sim.robot import launch
     from celld.sim.robot.truth import TruthReader
-    from celld.tactile.camera import SimSourceSpec, TactileProcess
+    from celld.shm import SeqlockSlot
+    from celld.sim.srm import SRM_TRUTH_DTYPE, SimSrmSource
+    from celld.tactile.camera import TactileProcess
     from celld.tactile.sample import from_record
 
     rng = np.random.default_rng(seed)
@@ -481,7 +483,9 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
             os.sched_setaffinity(sim.process.pid, {0})
         except (OSError, AttributeError):
             pass
-        spec = SimSourceSpec(host, P_true, -side, T_BASE_PLANE, SrmSimParams(seed=seed, fps=cfg.fps))
+        name = f"bench-{uuid.uuid4().hex[:8]}"
+        truth_slot = SeqlockSlot.create(f"{name}-srm-truth", SRM_TRUTH_DTYPE)
+        spec = SimSrmSource(host, P_true, -side, T_BASE_PLANE, SrmSimParams(seed=seed, fps=cfg.fps), truth_slot=f"{name}-srm-truth")
         # The simulator runs at FIFO 50 on CPU 0 (as in the motion tests), the
         # motion loop at FIFO 80 on CPU 1, the camera process as the daemon
         # starts it: FIFO 40 (below both) on any CPU, so best-effort work never
@@ -490,7 +494,7 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
         # waited up to 100 ms; best effort (``nice``) the frames queued behind
         # other work (latency median 10.6-11.4 ms, p99 up to 38 ms).
         sched = {"daemon": {"fifo_priority": cfg.rt_priority}, "fifo-pinned": {"cpus": (1,), "fifo_priority": 40}}.get(camera_sched, {})
-        tactile = TactileProcess(cfg, f"bench-{uuid.uuid4().hex[:8]}", spec, share_truth=True, **sched)
+        tactile = TactileProcess(cfg, name, spec, **sched)
         reader = TruthReader(host)
 
         def poll() -> None:
@@ -498,7 +502,7 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
             if rec is not None and int(rec["seq"]) > 0:
                 smp = from_record(rec)
                 samples.setdefault(smp.stamp_ns, (smp.valid, smp.delta_tool, smp.detect_ns))
-            rec, _ = tactile.truth.read()
+            rec, _ = truth_slot.read()
             if rec is not None and int(rec["stamp_ns"]) > 0:
                 frame_truth.setdefault(int(rec["stamp_ns"]), (np.array(rec["delta_true"]), bool(rec["in_contact"])))
 
@@ -559,6 +563,8 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
         finally:
             reader.close()
             tactile.stop()
+            truth_slot.close()
+            truth_slot.unlink()
 
     # Per cycle, from the truth (500 Hz) after the servo started.
     stamps = np.array(sorted(t for t in truth if outcome["t0"] and t >= outcome["t0"]), dtype=np.int64)

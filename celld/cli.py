@@ -27,7 +27,7 @@ _COMMAND_MODULES = (
     "celld.motion.cli",
     "celld.bus.cli",
     "celld.daemon.cli",
-    "celld.demo",
+    "celld.sim.demo",
 )
 
 

@@ -662,7 +662,7 @@ class SimConfig:
 
     workpiece: str = ""
     # The part's true pose on the table (model frame in base), UR pose; empty:
-    # the simulator's nominal place (celld.seam.simscene).
+    # the simulator's nominal place (celld.sim.workpiece).
     workpiece_pose: tuple[float, ...] = ()
     # The true V-groove bows sideways by this much at mid-length (tack-weld
     # distortion) where its model is straight, m.

@@ -11,6 +11,4 @@
 - :mod:`celld.bus.client`: :class:`~celld.bus.client.CellClient` and
   :func:`~celld.bus.client.discover_cells`.
 - :mod:`celld.bus.cli`: ``celld submit | status | jobs | cancel | accept | bus schema``.
-- :mod:`celld.bus.dummy`: a device-less cell behind the same interface, for
-  tests and the bus benchmark.
 """

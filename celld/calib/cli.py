@@ -45,10 +45,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--scale", action="store_true", help="estimate the scale c of Eq. 11")
     s.set_defaults(func=_solve)
 
-    from celld.calib import demo
-
-    demo.add_parser(psub)
-
     d = psub.add_parser("detect", help="find the flange centre and normal in one cloud")
     d.add_argument("cloud", help="PLY / PCD file, or .npy (n, 3) or (H, W, 3)")
     d.add_argument("--flange", required=True, help="flange preset, e.g. ur10e or ur10e-wrist")

@@ -28,7 +28,9 @@ from celld.bus.keys import CellKeys
 from celld.bus.server import BusServer
 from celld.bus.session import open_server
 from celld.config import Config
+from celld.daemon.devices import CellDevices, DeviceFactories
 from celld.daemon.jobs import JobManager, Runner
+from celld.daemon.runners import build_runners
 from celld.journal import Journal
 from celld.log import get_logger
 from celld.recording.job import JobRecording
@@ -193,3 +195,9 @@ class Daemon:
             await self.devices.supervise_tactile()
             if self.manager is not None and self._healthy():
                 self.manager.set_fault("")
+
+
+def serve(config: Config, factories: DeviceFactories) -> None:
+    """Run the daemon of ``config`` on the devices ``factories`` open, until SIGTERM or SIGINT."""
+    devices = CellDevices(config, factories)
+    asyncio.run(Daemon(config, devices, build_runners(config, devices)).run())

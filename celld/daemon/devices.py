@@ -7,10 +7,10 @@ and the scanner. It closes them in the reverse order, robot last, after a
 jerk-limited stop.
 
 The same code path serves the real cell and the simulated one. What differs
-is configuration: with ``scanner.kind = "sim"`` the scanner ray-casts the
-scene at the simulated controller's true flange pose (read from the
-simulator's shared memory, as a camera would see the real flange); nothing
-the estimators use comes from that truth.
+is the :class:`DeviceFactories` the daemon is given: a real cell opens the
+drivers its config names (:func:`real_devices`); the simulated cell
+(:mod:`celld.sim.cell`) hands factories of its own simulated scanner and
+SRM camera, which show its world. Nothing here knows which it got.
 
 Blocking device calls (a scan takes up to a second) run in worker threads so
 the daemon's event loop never stalls.
@@ -21,16 +21,19 @@ from __future__ import annotations
 import asyncio
 import math
 import time
+import uuid
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
 
 from celld.config import Config
-from celld.errors import CelldError, DeviceError
+from celld.errors import CelldError, ConfigError, DeviceError
 from celld.log import get_logger
 from celld.motion.handle import MotionHandle
 from celld.scanner.base import OrganizedCloud, Scanner
 from celld.scanner.factory import open_scanner
+from celld.tactile.camera import FrameSourceFactory, TactileProcess, opencv_camera
 from celld.tactile.sample import TactileSample
 
 log = get_logger(__name__)
@@ -45,34 +48,73 @@ TACTILE_RESTART_DELAY = 2.0
 TACTILE_RESTART_DELAY_MAX = 60.0
 
 
+@dataclass(frozen=True)
+class DeviceFactories:
+    """How the daemon opens a cell's scanner and SRM camera.
+
+    Attributes
+    ----------
+    scanner : callable(Config) -> Scanner
+        Opens the scanner, ready to capture (blocking; run in a worker thread).
+    camera : FrameSourceFactory or None
+        Builds the SRM camera inside the tactile process (picklable); None:
+        the config's ``tactile.kind`` names it.
+    """
+
+    scanner: Callable[[Config], Scanner]
+    camera: FrameSourceFactory | None = None
+
+
+def _open_configured_scanner(config: Config) -> Scanner:
+    return open_scanner(config.scanner)
+
+
+def real_devices() -> DeviceFactories:
+    """The factories of a real cell: the drivers its config names."""
+    return DeviceFactories(scanner=_open_configured_scanner)
+
+
+def make_tactile(config: Config, camera: FrameSourceFactory | None = None) -> TactileProcess | None:
+    """The tactile process of a cell (not started), or None when ``tactile.kind = "none"``.
+
+    Raises
+    ------
+    ConfigError
+        ``tactile.kind = "sim"`` without a camera factory: only the simulated
+        cell provides that camera.
+    """
+    kind = config.tactile.kind
+    if kind == "none":
+        return None
+    if camera is None:
+        if kind == "sim":
+            raise ConfigError(
+                config.source, "tactile.kind",
+                "'sim' is the simulated cell's SRM camera: run this config with `celld sim run`, or use 'opencv'",
+            )
+        camera = opencv_camera
+    return TactileProcess(config.tactile, f"celld-{uuid.uuid4().hex[:8]}", camera, fifo_priority=config.tactile.rt_priority)
+
+
 class CellDevices:
     """Robot, tactile sensor and scanner of one cell.
 
     Parameters
     ----------
     config : Config
-    tactile_factory : callable(config) -> TactileProcess | None, optional
-        Builds the tactile process (the simulated one needs the seam wall,
-        :func:`celld.sim.cell.make_tactile`); None, or a factory returning
-        None: the cell runs without one, and weld jobs are refused.
-    scene_extra : callable() -> list of SceneObject, optional
-        More objects for the simulated scanner to see (the workpiece).
+    factories : DeviceFactories
+        How to open the scanner and the SRM camera (:func:`real_devices`
+        unless the simulated cell hands its own). With ``tactile.kind =
+        "none"`` the cell runs without a tactile process, and weld jobs are
+        refused.
     """
 
-    def __init__(
-        self,
-        config: Config,
-        *,
-        tactile_factory: Callable[[Config], Any] | None = None,
-        scene_extra: Callable[[], list[Any]] | None = None,
-    ) -> None:
+    def __init__(self, config: Config, factories: DeviceFactories | None = None) -> None:
         self.config = config
         self.motion: MotionHandle | None = None
-        self.tactile: Any = None
+        self.tactile: TactileProcess | None = None
         self.scanner: Scanner | None = None
-        self._tactile_factory = tactile_factory
-        self._scene_extra = scene_extra
-        self._truth: Any = None
+        self._factories = factories or real_devices()
         self._recordings: list[Any] = []
         self._tactile_restart_at = -math.inf
         self._tactile_failures = 0
@@ -82,17 +124,16 @@ class CellDevices:
 
     async def open(self) -> None:
         cfg = self.config
-        if self._tactile_factory is not None:
-            self.tactile = self._tactile_factory(cfg)
-            if self.tactile is not None:
-                try:
-                    await asyncio.to_thread(self.tactile.start)
-                except CelldError as exc:
-                    # The cell still calibrates and moves; welds are refused until
-                    # the supervision brings the camera back (supervise_tactile).
-                    self.tactile_error = str(exc)
-                    self._tactile_restart_at = time.monotonic()
-                    log.error("the tactile process did not start; retrying in the background", error=str(exc))
+        self.tactile = make_tactile(cfg, self._factories.camera)
+        if self.tactile is not None:
+            try:
+                await asyncio.to_thread(self.tactile.start)
+            except CelldError as exc:
+                # The cell still calibrates and moves; welds are refused until
+                # the supervision brings the camera back (supervise_tactile).
+                self.tactile_error = str(exc)
+                self._tactile_restart_at = time.monotonic()
+                log.error("the tactile process did not start; retrying in the background", error=str(exc))
         self.motion = await MotionHandle.open(
             cfg,
             servo_laws=SERVO_LAWS,
@@ -102,25 +143,9 @@ class CellDevices:
             wait=False,  # the supervisor keeps (re)connecting; see wait_robot()
         )
         self.motion.add_listener(self._on_state_batch)
-        self.scanner = await asyncio.to_thread(self._open_scanner)
+        self.scanner = await asyncio.to_thread(self._factories.scanner, cfg)
         log.info("devices open", robot=cfg.robot.host, scanner=f"{cfg.scanner.kind}/{cfg.scanner.model}",
                  tactile=cfg.tactile.kind if self.tactile is not None else "none")
-
-    def _open_scanner(self) -> Scanner:
-        cfg = self.config
-        if cfg.scanner.kind != "sim":
-            return open_scanner(cfg.scanner)
-        from celld.calib.flange import preset
-        from celld.scanner.sim import robot_scene_source
-        from celld.sim.robot.truth import TruthReader
-
-        # The simulated scanner renders the flange where the simulated arm truly is.
-        self._truth = TruthReader(cfg.robot.host)
-        truth = self._truth
-        return open_scanner(
-            cfg.scanner,
-            scene=robot_scene_source(lambda: truth.latest().T_base_tcp, preset(cfg.calibration.flange), extra=self._scene_extra),
-        )
 
     async def close(self) -> None:
         if self.motion is not None:
@@ -136,9 +161,6 @@ class CellDevices:
         if self.tactile is not None:
             await asyncio.to_thread(self.tactile.stop)
             self.tactile = None
-        if self._truth is not None:
-            self._truth.close()
-            self._truth = None
 
     # -- robot ----------------------------------------------------------------------
 

@@ -34,14 +34,10 @@ class OrganizedCloud:
         (H, W, 3) float32, camera frame, metres; NaN where there is no return.
     stamp_ns : int
         ``time.monotonic_ns()`` of the capture.
-    labels : numpy.ndarray or None
-        (H, W) int16 index of the scene object each pixel saw, -1 for none;
-        simulation truth only, None from real scanners.
     """
 
     points: np.ndarray
     stamp_ns: int
-    labels: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -1,41 +1,36 @@
 """Open the scanner a :class:`~celld.config.ScannerConfig` names.
 
-``kind`` chooses the driver: ``sim`` (needs a scene source), ``replay``,
-``phoxi``, ``azure-kinect`` or ``realsense``. Real drivers import their SDK
-only here, when chosen, so a cell without one of them never loads it.
+``kind`` chooses the driver: ``replay``, ``phoxi``, ``azure-kinect`` or
+``realsense``. Real drivers import their SDK only here, when chosen, so a
+cell without one of them never loads it. ``sim`` is the simulated cell's
+scanner: the simulator builds it and hands it to the daemon (``celld sim
+run``); it is never opened from a config here.
 """
 
 from __future__ import annotations
 
-import numpy as np
-
 from celld.config import ScannerConfig
-from celld.errors import ConfigError, InputError
+from celld.errors import ConfigError
 from celld.scanner.base import Scanner
-from celld.scanner.sim import SceneSource
 
 # The source named in ConfigErrors raised here (the config file is validated already).
 _SOURCE = "scanner config"
 
 
-def open_scanner(config: ScannerConfig, *, scene: SceneSource | None = None) -> Scanner:
+def open_scanner(config: ScannerConfig) -> Scanner:
     """Open the scanner of ``config``, ready to capture.
 
     Parameters
     ----------
     config : ScannerConfig
         The validated scanner section.
-    scene : callable, optional
-        For ``kind = "sim"``: returns the scene objects in view at capture time
-        (see :func:`celld.scanner.sim.robot_scene_source`).
 
     Raises
     ------
     ConfigError
         A value the chosen driver needs is missing (``replay_dir``,
-        ``depth_intrinsics_px``, a numeric Azure Kinect ``device``).
-    InputError
-        ``kind = "sim"`` without a scene source.
+        ``depth_intrinsics_px``, a numeric Azure Kinect ``device``), or
+        ``kind = "sim"`` (only the simulated cell opens that one).
     DriverUnavailable
         A real driver's SDK, producer or device is absent.
     DeviceError
@@ -43,16 +38,9 @@ def open_scanner(config: ScannerConfig, *, scene: SceneSource | None = None) -> 
     """
     kind = config.kind
     if kind == "sim":
-        from celld.scanner.sim import SimulatedScanner
-
-        if scene is None:
-            raise InputError("the simulated scanner needs a scene source (open_scanner(..., scene=...))")
-        return SimulatedScanner(
-            config.model,
-            np.array(config.T_base_cam, dtype=np.float64),
-            scene,
-            seed=config.seed,
-            resolution_scale=config.resolution_scale,
+        raise ConfigError(
+            _SOURCE, "scanner.kind",
+            "'sim' is the simulated cell's scanner: run this config with `celld sim run`, or name a real driver",
         )
     if kind == "replay":
         from celld.scanner.replay import ReplayScanner

@@ -14,8 +14,7 @@ paper's Fig. 8 plane), and there the wall is a line beside the seam:
 from the seam across the joint at the tip height onto the labelled wall
 triangles (Open3D). :func:`weld_geometry` turns a found seam into the planned
 wall line the servo follows, the seam line the torch must follow (the same
-line, moved back by the offset) and the welding plane. :func:`true_wall` does
-the same from a model and a true pose, for the simulated SRM.
+line, moved back by the offset) and the welding plane.
 
 Pure: arrays in, arrays out, SI units, base frame unless a name says otherwise.
 """
@@ -157,15 +156,6 @@ def weld_geometry(points: Array, tangents: Array, normals: Array, plane_normal: 
     seam_up = P + tip_height * z
     wall = seam_up + offset * N
     return WeldGeometry(_plane(wall[0], T[0], z), wall, seam_up, T, N, float(offset), float(tip_height))
-
-
-def true_wall(workpiece: Workpiece, T_base_obj: Array, tip_height: float, finger_wall: str = "left") -> WeldGeometry:
-    """The finger wall of a part at its true pose (the simulated SRM's wall)."""
-    offset = wall_offset(workpiece, tip_height, finger_wall)
-    P, T, N = model_seam_frames(workpiece, finger_wall)
-    R = np.asarray(T_base_obj, dtype=np.float64)[:3, :3]
-    a = R @ np.asarray(workpiece.approach, dtype=np.float64)
-    return weld_geometry(se3.apply(T_base_obj, P), T @ R.T, N @ R.T, a, offset, tip_height)
 
 
 def in_plane(geometry: WeldGeometry, P_base: Array) -> Array:

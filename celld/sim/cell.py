@@ -1,21 +1,44 @@
-"""The simulated cell's truth, read from the cell config's ``[sim]`` table.
+"""The simulated cell: its truth, the devices it hands to the daemon, and a launcher.
 
-What the simulated devices show and no estimator reads: the workpiece and its
-true pose on the table (the scanner's scene), and the wall the SRM finger
-touches (the tactile process's simulated camera). The daemon builds its
-simulated devices from here; the demo and the tests score results against it.
+The truth is read from the cell config's ``[sim]`` table: what the simulated
+devices show and no estimator reads (the workpiece and its true pose on the
+table, the wall the SRM finger touches). :func:`sim_devices` builds the
+simulated scanner (ray casting the scene at the simulated controller's true
+flange pose, read from its shared memory as a camera would see the real
+flange) and the simulated SRM camera, and hands them to the daemon through
+the same :class:`~celld.daemon.devices.DeviceFactories` a real cell uses:
+``celld sim run`` is the daemon on them. :func:`run_cell` starts a whole
+simulated cell (robot and daemon) for the demo, the tests and benchmarks,
+which score results against the truth.
 """
 
 from __future__ import annotations
 
-import uuid
-from typing import Any, NamedTuple
+import contextlib
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator, NamedTuple
 
 import numpy as np
 
+from celld import config as config_mod
 from celld import se3
+from celld.bus.client import CellClient
+from celld.calib.flange import preset
 from celld.config import Config
-from celld.errors import ConfigError, WorkpieceError
+from celld.daemon.devices import DeviceFactories, real_devices
+from celld.errors import BusError, CelldError, ConfigError, WorkpieceError
+from celld.scanner.base import Scanner
+from celld.seam.weldpath import WeldGeometry, in_plane
+from celld.seam.workpiece import Workpiece, example, v_groove_butt
+from celld.sim.robot import SimRobotHandle, launch
+from celld.sim.robot.truth import TruthReader
+from celld.sim.scanner import SceneObject, SimulatedScanner, robot_scene_source
+from celld.sim.srm import SimSrmSource, SrmSimParams
+from celld.sim.workpiece import nominal_pose, true_wall, workpiece_scene
 
 # A wall this far away (m) stands for "no workpiece": the finger touches nothing.
 _FAR = 100.0
@@ -24,19 +47,15 @@ _FAR = 100.0
 class SimWorkpiece(NamedTuple):
     """The simulated part: model, true pose, and the finger's true wall at the weld's tip height."""
 
-    workpiece: Any  # celld.seam.workpiece.Workpiece
+    workpiece: Workpiece
     T_base_obj: np.ndarray
-    wall: Any  # celld.seam.weldpath.WeldGeometry
+    wall: WeldGeometry
 
 
 def sim_workpiece(config: Config) -> SimWorkpiece | None:
     """The part of ``[sim]`` at its true pose, or None for a bare table."""
     if not config.sim.workpiece:
         return None
-    from celld.seam.simscene import nominal_pose
-    from celld.seam.weldpath import true_wall
-    from celld.seam.workpiece import example, v_groove_butt
-
     try:
         if config.sim.workpiece_bow != 0.0:
             if config.sim.workpiece != "v-groove":
@@ -51,38 +70,50 @@ def sim_workpiece(config: Config) -> SimWorkpiece | None:
     return SimWorkpiece(wp, T, true_wall(wp, T, config.weld.tip_height, finger))
 
 
-def scene_extra(part: SimWorkpiece | None):
-    """The scanner's extra scene objects (the part of :func:`sim_workpiece` and the table), as a callable for CellDevices."""
-    from celld.seam.simscene import workpiece_scene
-
-    objects = [] if part is None else workpiece_scene(part.workpiece, part.T_base_obj)
-    return lambda: objects
-
-
-def tactile_source(config: Config, part: SimWorkpiece | None):
-    """The SimSourceSpec of the tactile process: the true finger wall of ``part`` (:func:`sim_workpiece`) in its plane."""
-    from celld.seam.weldpath import in_plane
-    from celld.sim.srm import SrmSimParams
-    from celld.tactile.camera import SimSourceSpec
-
+def srm_source(config: Config, part: SimWorkpiece | None) -> SimSrmSource:
+    """The simulated SRM camera on the true finger wall of ``part`` (:func:`sim_workpiece`), in its plane."""
     side = 1.0 if config.tactile.wall_side == "left" else -1.0
     params = SrmSimParams(fps=config.tactile.fps)
     if part is None:
         wall = np.array([[_FAR, _FAR], [_FAR + 1.0, _FAR]])
-        return SimSourceSpec(config.robot.host, wall, -side, np.eye(4), params)
+        return SimSrmSource(config.robot.host, wall, -side, np.eye(4), params)
     g = part.wall
-    return SimSourceSpec(config.robot.host, in_plane(g, g.wall_base), -side, g.T_base_plane, params)
+    return SimSrmSource(config.robot.host, in_plane(g, g.wall_base), -side, g.T_base_plane, params)
 
 
-def make_tactile(config: Config, part: SimWorkpiece | None):
-    """The tactile process of a cell (None when ``tactile.kind = "none"``); ``part`` feeds the simulated finger."""
-    from celld.tactile.camera import TactileProcess
+class _CellScanner:
+    """Opens the simulated scanner of a cell: the robot scene at the true flange pose, plus the part."""
 
-    kind = config.tactile.kind
-    if kind == "none":
-        return None
-    sim = tactile_source(config, part) if kind == "sim" else None
-    return TactileProcess(config.tactile, f"celld-{uuid.uuid4().hex[:8]}", sim, fifo_priority=config.tactile.rt_priority)
+    def __init__(self, part: SimWorkpiece | None) -> None:
+        self.objects: list[SceneObject] = [] if part is None else workpiece_scene(part.workpiece, part.T_base_obj)
+
+    def __call__(self, config: Config) -> Scanner:
+        truth = TruthReader(config.robot.host)
+        objects = self.objects
+        return SimulatedScanner(
+            config.scanner.model,
+            config.T_base_cam_nominal(),
+            robot_scene_source(lambda: truth.latest().T_base_tcp, preset(config.calibration.flange), extra=lambda: objects),
+            seed=config.scanner.seed,
+            resolution_scale=config.scanner.resolution_scale,
+            on_close=truth.close,
+        )
+
+
+def sim_devices(config: Config, part: SimWorkpiece | None) -> DeviceFactories:
+    """The simulated scanner and SRM camera of the cell, as the daemon opens devices."""
+    camera = srm_source(config, part) if config.tactile.kind == "sim" else None
+    scanner = _CellScanner(part) if config.scanner.kind == "sim" else real_devices().scanner
+    return DeviceFactories(scanner=scanner, camera=camera)
+
+
+def serve_daemon(config_path: str | Path) -> int:
+    """``celld sim run``: the daemon of a cell config on the simulated devices (the part built once)."""
+    from celld.daemon.app import serve
+
+    cfg = config_mod.load(config_path)
+    serve(cfg, sim_devices(cfg, sim_workpiece(cfg)))
+    return 0
 
 
 # -- running a whole simulated cell --------------------------------------------------
@@ -91,14 +122,14 @@ def make_tactile(config: Config, part: SimWorkpiece | None):
 class RunningCell(NamedTuple):
     """A simulated cell with its daemon, as :func:`run_cell` yields it."""
 
-    client: Any  # celld.bus.client.CellClient
-    daemon: Any  # subprocess.Popen of ``celld run``
+    client: CellClient
+    daemon: subprocess.Popen[bytes]  # ``celld sim run``
     config: Config
-    robot: Any  # celld.sim.robot.SimRobotHandle
+    robot: SimRobotHandle
 
 
-def run_cell(config_path, log_path, timeout: float = 90.0):
-    """Start the simulated robot of a cell config and ``celld run`` on it; a context manager.
+def run_cell(config_path: str | Path, log_path: str | Path, timeout: float = 90.0) -> contextlib.AbstractContextManager[RunningCell]:
+    """Start the simulated robot of a cell config and ``celld sim run`` on it; a context manager.
 
     The daemon runs as its own process, as systemd would start it, with its
     output in ``log_path``; it gets SIGTERM on exit. Yields a
@@ -109,26 +140,15 @@ def run_cell(config_path, log_path, timeout: float = 90.0):
     CelldError
         The daemon exited, or the bus or the robot link did not come up in ``timeout`` s.
     """
-    import contextlib
-    import signal
-    import subprocess
-    import sys
-    import time
-    from pathlib import Path
-
-    from celld import config as config_mod
-    from celld.bus.client import CellClient
-    from celld.errors import BusError, CelldError
-    from celld.sim.robot import launch
 
     @contextlib.contextmanager
-    def _run():
+    def _run() -> Iterator[RunningCell]:
         cfg = config_mod.load(config_path)
         sim_workpiece(cfg)  # a bad [sim] table is refused before anything starts
         with launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q)) as robot:
             log = open(log_path, "ab")
             proc = subprocess.Popen(
-                [sys.executable, "-m", "celld.cli", "run", "--config", str(Path(config_path).resolve())],
+                [sys.executable, "-m", "celld.cli", "sim", "run", "--config", str(Path(config_path).resolve())],
                 stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             )
             client = None

@@ -4,9 +4,13 @@
   controller in the foreground until interrupted.
 - ``celld sim cell --config CELL.toml`` runs the simulated cell of a cell
   config: the simulated UR10e on ``robot.host`` at ``robot.home_q``, in real
-  time. The scanner and the SRM camera are simulated inside the daemon
-  (``scanner.kind = "sim"``, ``tactile.kind = "sim"``); the part on the
-  table and its true pose come from the config's ``[sim]`` table.
+  time. The part on the table and its true pose come from the config's
+  ``[sim]`` table.
+- ``celld sim run --config CELL.toml`` runs the daemon (``celld run``) on the
+  simulated cell's devices: the scanner and the SRM camera the simulator
+  builds (``scanner.kind = "sim"``, ``tactile.kind = "sim"``).
+- ``celld sim calibrate`` calibrates the simulated scanner offline, without
+  robot or daemon (:mod:`celld.sim.calib_demo`).
 - ``celld sim fault --host 127.0.0.N <fault> [--ms N] [--down-ms N]`` plays a
   fault on a running simulator (see :mod:`celld.sim.robot.faults`);
   ``clear`` undoes them and ``status`` prints the simulator's state.
@@ -18,6 +22,7 @@ import argparse
 import json
 from typing import Any
 
+from celld.sim import calib_demo
 from celld.sim.robot.faults import FAULTS
 from celld.sim.robot.options import add_arguments, check_host, from_args
 
@@ -34,6 +39,12 @@ def add_parser(sub: Any) -> None:
     cell = sim_sub.add_parser("cell", help="run the simulated cell of a cell config (robot at its home pose)")
     cell.add_argument("--config", required=True, help="the cell config (e.g. configs/sim-cell.toml)")
     cell.set_defaults(func=_run_cell)
+
+    run = sim_sub.add_parser("run", help="run the cell daemon on the simulated cell's scanner and SRM camera")
+    run.add_argument("--config", required=True, help="the cell config (e.g. configs/sim-cell.toml)")
+    run.set_defaults(func=_run_daemon)
+
+    calib_demo.add_parser(sim_sub)
 
     fault = sim_sub.add_parser("fault", help="play a fault on a running simulated robot")
     fault.add_argument("--host", required=True, help="address the simulator listens on, 127.x.y.z")
@@ -64,6 +75,12 @@ def _run_cell(args: argparse.Namespace) -> int:
     if part is not None:
         print(f"simulated cell {cfg.cell.name}: {part.workpiece.name} at {se3_text(part.T_base_obj)}", flush=True)
     return serve(SimOptions(host=host).with_(realtime=True, q0=tuple(cfg.robot.home_q)))
+
+
+def _run_daemon(args: argparse.Namespace) -> int:
+    from celld.sim.cell import serve_daemon
+
+    return serve_daemon(args.config)
 
 
 def se3_text(T: Any) -> str:

@@ -6,6 +6,9 @@ scene and returns an :class:`OrganizedCloud` at the scanner's resolution:
 (H, W, 3) float32 points in the camera frame, metres, NaN where there is no
 return. It is generic: any :class:`~celld.sim.scene.SceneObject` meshes, the
 robot-cell scene of :func:`~celld.sim.scene.robot_scene` or a workpiece.
+:class:`SimulatedScanner` puts one behind the cell's
+:class:`~celld.scanner.base.Scanner` protocol: fixed at its true pose, it
+captures whatever a scene source says is in view at that instant.
 
 Noise models (:class:`ScannerModel`), applied in this order:
 
@@ -37,19 +40,27 @@ choices, named in each model.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from dataclasses import dataclass, replace
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import open3d as o3d
 
 from celld import se3
-from celld.errors import InputError
-from celld.scanner.base import OrganizedCloud
+from celld.calib.flange import FlangeModel
+from celld.errors import DeviceError, InputError
+from celld.scanner.base import CaptureStats, OrganizedCloud
 from celld.sim.scene import SceneObject, robot_scene
 
-__all__ = ["SCANNER_MODELS", "OrganizedCloud", "ScannerModel", "SceneObject", "SimScanner", "robot_scene", "scanner_model"]
+__all__ = [
+    "SCANNER_MODELS", "OrganizedCloud", "ScannerModel", "SceneObject", "SceneSource", "SimScanner", "SimulatedScanner",
+    "robot_scene", "robot_scene_source", "scanner_model",
+]
+
+# A scene source: called at each capture, returns the objects in view.
+SceneSource = Callable[[], Sequence[SceneObject]]
 
 # Projector shadow rays stop this far (fraction of the projector-point distance)
 # before the point, so a surface does not shadow itself.
@@ -237,6 +248,14 @@ class SimScanner:
 
     def capture(self, objects: Sequence[SceneObject]) -> OrganizedCloud:
         """Ray cast ``objects`` and return the noisy organized cloud."""
+        return self.capture_labelled(objects)[0]
+
+    def capture_labelled(self, objects: Sequence[SceneObject]) -> tuple[OrganizedCloud, np.ndarray]:
+        """:meth:`capture`, and the (H, W) int16 index into ``objects`` of what each pixel saw (-1: nothing).
+
+        The labels are the simulator's truth, for tests and benchmarks; no
+        real scanner gives them.
+        """
         m = self.model
         scene = o3d.t.geometry.RaycastingScene()
         metal = []
@@ -283,7 +302,7 @@ class SimScanner:
         label_img = np.full((m.height_px, m.width_px), -1, dtype=np.int16)
         label_img[self._cast] = labels
         points = depth[..., None] * self._all_dirs
-        return OrganizedCloud(points=points, stamp_ns=int(stamp), labels=label_img)
+        return OrganizedCloud(points=points, stamp_ns=int(stamp)), label_img
 
     def _incidence_keep(self, cos_inc: np.ndarray) -> np.ndarray:
         """Grazing-angle returns: lost beyond max_incidence, thinned beyond dropout_incidence."""
@@ -320,3 +339,115 @@ class SimScanner:
         out = depth.copy()
         out[fly] = depth[fly] + mix[fly] * (other[fly] - depth[fly])
         return out
+
+
+# -- the simulated cell's scanner device ---------------------------------------------
+
+
+def robot_scene_source(
+    T_base_flange: Callable[[], np.ndarray],
+    flange: FlangeModel,
+    table: bool = True,
+    clutter_seed: int | None = None,
+    extra: Callable[[], Sequence[SceneObject]] | None = None,
+) -> SceneSource:
+    """A scene source of the calibration scene at the robot's current pose.
+
+    Parameters
+    ----------
+    T_base_flange : callable
+        Returns the (4, 4) flange pose in the base frame now (in the simulated
+        cell: the simulated controller's truth).
+    flange : FlangeModel
+        The flange on the wrist.
+    table, clutter_seed
+        As :func:`celld.sim.scene.robot_scene`.
+    extra : callable, optional
+        Returns more objects (a workpiece) to add to each capture.
+    """
+
+    def scene() -> list[SceneObject]:
+        T = se3.check_transform(T_base_flange(), "T_base_flange")
+        objects = list(robot_scene(T, flange, table=table, clutter_seed=clutter_seed))
+        if extra is not None:
+            objects.extend(extra())
+        return objects
+
+    return scene
+
+
+class SimulatedScanner:
+    """A :class:`SimScanner` fixed at ``T_base_cam`` that captures a scene source (the Scanner protocol).
+
+    Parameters
+    ----------
+    model : str
+        Scanner model of :data:`SCANNER_MODELS` (``"phoxi-m"``, ...).
+    T_base_cam : array_like
+        (4, 4) true pose of the camera in the base frame (the simulator's truth).
+    scene : callable
+        Returns the scene objects in view at capture time.
+    seed : int
+        Noise seed; captures are a deterministic sequence per seed and scene.
+    resolution_scale : float
+        Image scale in [0.01, 1].
+    on_close : callable, optional
+        Releases what the scene source holds (the truth reader), at :meth:`close`.
+    """
+
+    def __init__(
+        self,
+        model: str,
+        T_base_cam: np.ndarray,
+        scene: SceneSource,
+        seed: int = 0,
+        resolution_scale: float = 1.0,
+        clock: Callable[[], int] = time.monotonic_ns,
+        on_close: Callable[[], None] | None = None,
+    ) -> None:
+        if not callable(scene):
+            raise InputError(f"simulated scanner: expected a callable scene source, got {type(scene).__name__}")
+        self.model_name = model
+        self._scene = scene
+        self._sim = SimScanner(model, np.asarray(T_base_cam, dtype=np.float64), seed=seed, resolution_scale=resolution_scale, clock=clock)
+        self._seed = seed
+        self._lock = threading.Lock()
+        self._stats = CaptureStats()
+        self._open = True
+        self._on_close = on_close
+
+    def capture(self) -> OrganizedCloud:
+        """Ray cast the scene as it is now."""
+        with self._lock:
+            if not self._open:
+                raise DeviceError("simulated scanner: capture after close")
+            started = time.monotonic_ns()
+            try:
+                cloud = self._sim.capture(self._scene())
+            except InputError as exc:
+                self._stats.failure(exc)
+                raise
+            self._stats.success(cloud.stamp_ns, started)
+            return cloud
+
+    def info(self) -> dict[str, Any]:
+        m = self._sim.model
+        return {
+            "kind": "sim",
+            "model": self.model_name,
+            "device": "simulated",
+            "width_px": m.width_px,
+            "height_px": m.height_px,
+            "intrinsics_px": (m.fx, m.fy, m.cx, m.cy),
+            "range": (m.min_range, m.max_range),
+            "seed": self._seed,
+        }
+
+    def health(self) -> dict[str, Any]:
+        return self._stats.as_dict(self._open)
+
+    def close(self) -> None:
+        with self._lock:
+            if self._open and self._on_close is not None:
+                self._on_close()
+            self._open = False

@@ -16,6 +16,10 @@ Three parts, each usable alone:
   :mod:`celld.tactile.camera`) driven by the true TCP pose at each frame's
   capture time; it also keeps the true deformation of each frame, which the
   benchmark compares the estimate against (the estimator never sees it).
+- :class:`SimSrmSource`: the picklable frame-source factory that the
+  simulated cell hands to the tactile process: it builds the camera there,
+  driven by the simulated controller's truth, and optionally shares each
+  frame's truth through a slot (:data:`SRM_TRUTH_DTYPE`) for benchmarks.
 
 The simulated lens is a pinhole without distortion; the detector still applies
 the configured distortion coefficients, which are zero for the simulated cell.
@@ -35,6 +39,7 @@ from scipy.spatial.transform import Rotation
 from celld.config import TactileConfig
 from celld.errors import InputError
 from celld.se3 import invert, transform_from
+from celld.shm import SeqlockSlot
 
 Array = np.ndarray
 
@@ -484,3 +489,87 @@ class SimSrmCamera:
 
     def close(self) -> None:
         pass
+
+
+# -- the simulated cell's SRM camera, as the tactile process builds it ----------------
+
+# The simulator's truth of each frame, for benchmarks: capture stamp, delta, contact.
+SRM_TRUTH_DTYPE = np.dtype([("stamp_ns", np.int64), ("delta_true", np.float64, (3,)), ("in_contact", np.bool_)])
+
+
+def _pose_at(history: Callable[[], np.ndarray]) -> PoseAt:
+    """:data:`PoseAt` over the simulated controller's ~2 s truth history (``TruthReader.history``)."""
+
+    def pose_at(stamp_ns: int) -> tuple[Array, Array]:
+        # One copy of the history per frame; position interpolated, rotation
+        # from the nearer cycle (2 ms apart: well under a milliradian here).
+        recs = history()
+        stamps = recs["stamp_ns"]
+        i = min(max(int(np.searchsorted(stamps, stamp_ns)), 1), len(recs) - 1)
+        t0, t1 = int(stamps[i - 1]), int(stamps[i])
+        w = min(max((stamp_ns - t0) / max(t1 - t0, 1), 0.0), 1.0)
+        T = np.array(recs["T_base_tcp"][i if w >= 0.5 else i - 1])
+        T[:3, 3] = (1 - w) * recs["T_base_tcp"][i - 1][:3, 3] + w * recs["T_base_tcp"][i][:3, 3]
+        j = max(i - 2, 0)
+        v = np.zeros(6)
+        dt = (t1 - int(stamps[j])) * 1e-9
+        if dt > 0:
+            v[:3] = (recs["T_base_tcp"][i][:3, 3] - recs["T_base_tcp"][j][:3, 3]) / dt
+        return T, v
+
+    return pose_at
+
+
+class _TruthSharingCamera:
+    """A :class:`SimSrmCamera` on the simulated controller's truth that closes its reader and shares each frame's truth."""
+
+    def __init__(self, cam: SimSrmCamera, close_reader: Callable[[], None], truth_slot: str) -> None:
+        self.cam = cam
+        self._close_reader = close_reader
+        self._slot = SeqlockSlot.attach(truth_slot, SRM_TRUTH_DTYPE) if truth_slot else None
+        self._rec = np.zeros(1, SRM_TRUTH_DTYPE)
+        cam.keep_truth = self._slot is not None
+
+    def open(self) -> None:
+        self.cam.open()
+
+    def read(self) -> tuple[int, Array] | None:
+        frame = self.cam.read()
+        if self._slot is not None and self.cam.truth:
+            stamp, delta, contact = self.cam.truth[-1]
+            self._rec["stamp_ns"], self._rec["delta_true"], self._rec["in_contact"] = stamp, delta, contact
+            self._slot.write(self._rec)
+            self.cam.truth.clear()
+        return frame
+
+    def close(self) -> None:
+        self.cam.close()
+        self._close_reader()
+        if self._slot is not None:
+            self._slot.close()
+
+
+@dataclass(frozen=True)
+class SimSrmSource:
+    """The simulated SRM camera as the tactile process builds it (a picklable frame-source factory).
+
+    ``wall`` (n, 2) and ``free`` describe the seam wall in the plane
+    ``T_base_plane``; ``robot_host`` is the simulated controller whose true
+    TCP pose drives the finger. With ``truth_slot`` (a :data:`SRM_TRUTH_DTYPE`
+    slot the caller created) each frame's true deformation is shared there,
+    for benchmarks; the estimator never reads it.
+    """
+
+    robot_host: str
+    wall: Array
+    free: float
+    T_base_plane: Array
+    params: SrmSimParams | None = None
+    truth_slot: str = ""
+
+    def __call__(self, cfg: TactileConfig) -> _TruthSharingCamera:
+        from celld.sim.robot.truth import TruthReader
+
+        reader = TruthReader(self.robot_host)
+        srm = SimSrm(cfg, Wall(np.asarray(self.wall), self.free), self.T_base_plane, self.params or SrmSimParams(fps=cfg.fps))
+        return _TruthSharingCamera(SimSrmCamera(srm, _pose_at(reader.history)), reader.close, self.truth_slot)

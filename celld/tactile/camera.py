@@ -1,7 +1,8 @@
 """The tactile process: SRM camera -> tag detection -> deformation -> shared memory.
 
-The process reads frames from a :class:`FrameSource` (OpenCV ``VideoCapture``
-on the cell, :class:`~celld.sim.srm.SimSrmCamera` in the simulated cell),
+The process reads frames from a :class:`FrameSource` that a picklable
+factory builds inside it (:func:`opencv_camera` on the cell; the simulated
+cell hands its own), 
 detects the tag (:mod:`celld.tactile.aruco`), turns it into a
 :class:`~celld.tactile.sample.TactileSample` (:mod:`celld.tactile.deformation`)
 stamped with the frame's capture time, and writes it into a seqlock slot that
@@ -26,7 +27,7 @@ import multiprocessing as mp
 import os
 import time
 from multiprocessing.synchronize import Event
-from typing import Any, Callable, NamedTuple, Protocol
+from typing import Any, Callable, Protocol
 
 import cv2
 import numpy as np
@@ -310,52 +311,15 @@ def run_camera(
 # -- the process ----------------------------------------------------------------------
 
 
-class SimSourceSpec(NamedTuple):
-    """What the tactile process needs to run the simulated camera (picklable).
-
-    ``wall`` (n, 2) and ``free`` describe the seam wall in the plane
-    ``T_base_plane``; ``robot_host`` is the simulated controller whose true
-    TCP pose drives the finger.
-    """
-
-    robot_host: str
-    wall: np.ndarray
-    free: float
-    T_base_plane: np.ndarray
-    params: Any = None  # celld.sim.srm.SrmSimParams or None for the defaults
+# Builds the camera inside the tactile process from the tactile config. It is
+# pickled into the spawned process: a module-level function or an instance of
+# a module-level class.
+FrameSourceFactory = Callable[[TactileConfig], FrameSource]
 
 
-def _make_source(cfg: TactileConfig, sim: SimSourceSpec | None) -> tuple[FrameSource, Callable[[], None]]:
-    if cfg.kind == "opencv":
-        return OpenCvCamera(cfg), lambda: None
-    if sim is None:
-        raise DeviceError("tactile.kind is 'sim' but no simulated seam was given to the tactile process")
-    from celld.sim.robot.truth import TruthReader
-    from celld.sim.srm import SimSrm, SimSrmCamera, SrmSimParams, Wall
-
-    reader = TruthReader(sim.robot_host)
-    srm = SimSrm(cfg, Wall(np.asarray(sim.wall), sim.free), sim.T_base_plane, sim.params or SrmSimParams(fps=cfg.fps))
-
-    def pose_at(stamp_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        # One copy of the history per frame; position interpolated, rotation
-        # from the nearer cycle (2 ms apart: well under a milliradian here).
-        recs = reader.history()
-        stamps = recs["stamp_ns"]
-        i = min(max(int(np.searchsorted(stamps, stamp_ns)), 1), len(recs) - 1)
-        t0, t1 = int(stamps[i - 1]), int(stamps[i])
-        w = min(max((stamp_ns - t0) / max(t1 - t0, 1), 0.0), 1.0)
-        T = np.array(recs["T_base_tcp"][i if w >= 0.5 else i - 1])
-        T[:3, 3] = (1 - w) * recs["T_base_tcp"][i - 1][:3, 3] + w * recs["T_base_tcp"][i][:3, 3]
-        j = max(i - 2, 0)
-        v = np.zeros(6)
-        dt = (t1 - int(stamps[j])) * 1e-9
-        if dt > 0:
-            v[:3] = (recs["T_base_tcp"][i][:3, 3] - recs["T_base_tcp"][j][:3, 3]) / dt
-        return T, v
-
-    cam = SimSrmCamera(srm, pose_at)
-    cam.keep_truth = False
-    return cam, reader.close
+def opencv_camera(cfg: TactileConfig) -> FrameSource:
+    """The cell's camera: :class:`OpenCvCamera` (``tactile.kind = "opencv"``)."""
+    return OpenCvCamera(cfg)
 
 
 def tactile_main(
@@ -365,8 +329,7 @@ def tactile_main(
     stop: Event,
     tare_request: Event,
     ready: Event,
-    sim: SimSourceSpec | None = None,
-    truth_slot: str = "",
+    source_factory: FrameSourceFactory = opencv_camera,
     nice: int = 0,
     cpus: tuple[int, ...] = (),
     fifo_priority: int = 0,
@@ -394,16 +357,13 @@ def tactile_main(
             log.warning("tactile process runs at normal priority", wanted_nice=nice, reason=str(exc))
     samples = SeqlockSlot.attach(slot_name, TACTILE_DTYPE)
     counters = SeqlockSlot.attach(counters_name, COUNTERS_DTYPE)
-    truth = SeqlockSlot.attach(truth_slot, TRUTH_DTYPE) if truth_slot else None
     preview_shm = SeqlockSlot.attach(preview_slot, preview_dtype(cfg)) if preview_slot else None
     preview = PreviewWriter(preview_shm, cfg) if preview_shm is not None else None
-    source, cleanup = _make_source(cfg, sim)
+    source = source_factory(cfg)
     try:
         source.open()
         est = FrameEstimator(cfg)
         est.counters[0]["pid"] = os.getpid()
-        if truth is not None and hasattr(source, "truth"):
-            source.keep_truth = True  # type: ignore[attr-defined]
         ready.set()
 
         def requested() -> bool:
@@ -412,44 +372,13 @@ def tactile_main(
                 return True
             return False
 
-        if truth is not None:
-            _run_with_truth(source, est, samples, counters, truth, stop, requested, preview)
-        else:
-            run_camera(source, est, samples, counters, stop.is_set, requested, preview)
+        run_camera(source, est, samples, counters, stop.is_set, requested, preview)
     finally:
         source.close()
-        cleanup()
         samples.close()
         counters.close()
-        if truth is not None:
-            truth.close()
         if preview_shm is not None:
             preview_shm.close()
-
-
-# The simulator's truth of each frame, for benchmarks: capture stamp, delta, contact.
-TRUTH_DTYPE = np.dtype([("stamp_ns", np.int64), ("delta_true", np.float64, (3,)), ("in_contact", np.bool_)])
-
-
-def _run_with_truth(source, est, samples, counters, truth, stop, requested, preview=None) -> None:
-    """:func:`run_camera` that also publishes the simulator's truth of each frame (benchmarks only)."""
-    rec = np.zeros(1, TRUTH_DTYPE)
-    seen = 0
-
-    def stop_and_share() -> bool:
-        nonlocal seen
-        log_ = source.truth
-        while seen < len(log_):
-            stamp, delta, contact = log_[seen]
-            rec["stamp_ns"], rec["delta_true"], rec["in_contact"] = stamp, delta, contact
-            truth.write(rec)
-            seen += 1
-        if len(log_) > 1000:
-            del log_[: len(log_) - 10]
-            seen = len(log_)
-        return stop.is_set()
-
-    run_camera(source, est, samples, counters, stop_and_share, requested, preview)
 
 
 class TactileProcess:
@@ -460,10 +389,9 @@ class TactileProcess:
     cfg : TactileConfig
     name : str
         Prefix of the shared-memory names (unique per cell instance).
-    sim : SimSourceSpec or None
-        Required when ``cfg.kind == "sim"``.
-    share_truth : bool
-        Also publish the simulator's truth per frame (benchmarks).
+    source_factory : FrameSourceFactory
+        Builds the camera inside the process (picklable); the cell's OpenCV
+        camera unless the simulated cell hands its own.
     nice : int
         Scheduling niceness of the process (negative: ahead of best-effort
         work; needs CAP_SYS_NICE). A camera frame must be read within its
@@ -481,8 +409,7 @@ class TactileProcess:
         self,
         cfg: TactileConfig,
         name: str,
-        sim: SimSourceSpec | None = None,
-        share_truth: bool = False,
+        source_factory: FrameSourceFactory = opencv_camera,
         nice: int = -10,
         cpus: tuple[int, ...] = (),
         fifo_priority: int = 0,
@@ -490,10 +417,8 @@ class TactileProcess:
         self.cfg = cfg
         self.slot_name = f"{name}-tactile"
         self.counters_name = f"{name}-tactile-counters"
-        self.truth_name = f"{name}-tactile-truth" if share_truth else ""
         self.samples = SeqlockSlot.create(self.slot_name, TACTILE_DTYPE)
         self.counters = SeqlockSlot.create(self.counters_name, COUNTERS_DTYPE)
-        self.truth = SeqlockSlot.create(self.truth_name, TRUTH_DTYPE) if share_truth else None
         self.preview_name = f"{name}-tactile-preview"
         self.preview = SeqlockSlot.create(self.preview_name, preview_dtype(cfg))
         ctx = mp.get_context("spawn")
@@ -501,7 +426,7 @@ class TactileProcess:
         self._stop = ctx.Event()
         self._tare = ctx.Event()
         self._ready = ctx.Event()
-        self._args = (cfg, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, sim, self.truth_name, nice,
+        self._args = (cfg, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, source_factory, nice,
                       tuple(cpus), fifo_priority, self.preview_name)
         self._proc = self._new_process()
         self.restarts = 0
@@ -601,8 +526,7 @@ class TactileProcess:
             if self._proc.is_alive():
                 self._proc.terminate()
                 self._proc.join(1.0)
-        for slot in (self.samples, self.counters, self.truth, self.preview):
-            if slot is not None:
-                slot.close()
-                slot.unlink()
+        for slot in (self.samples, self.counters, self.preview):
+            slot.close()
+            slot.unlink()
         return self._proc.exitcode

@@ -11,7 +11,7 @@ from typing import Any, Callable, Coroutine, Iterator
 
 import pytest
 
-from celld.bus.dummy import DummyCell
+from celld.daemon.dummy import DummyCell
 from celld.bus.keys import CellKeys
 from celld.bus.server import BusServer
 from celld.bus.session import ServerSession, open_server

@@ -21,7 +21,7 @@ import pytest
 
 from celld import se3
 from celld.bus import schema
-from celld.demo import tracking_error
+from celld.sim.demo import tracking_error
 from celld.journal import Journal
 from celld.recording.readback import read_entities
 from celld.sim.cell import run_cell, sim_workpiece

@@ -12,9 +12,8 @@ from celld import fsutil
 from celld.config import parse
 from celld.daemon.weld import _lateral, _thin, current_T_base_cam, resolve_workpiece
 from celld.errors import JobError
-from celld.seam.simscene import nominal_pose
-from celld.seam.weldpath import true_wall
 from celld.seam.workpiece import v_groove_butt
+from celld.sim.workpiece import nominal_pose, true_wall
 
 
 def test_parts_resolve_from_the_examples_or_the_workpiece_dir(tmp_path: Path) -> None:

@@ -81,3 +81,10 @@ def test_azure_kinect_without_its_sdk_is_driver_unavailable() -> None:
     # Safe in-process: the driver probes libk4a before Open3D makes a sensor object.
     with pytest.raises(DriverUnavailable, match="libk4a"):
         open_scanner(ScannerConfig(kind="azure-kinect", depth_intrinsics_px=(504.0, 504.0, 319.5, 287.5)))
+
+
+def test_the_simulated_scanner_is_not_opened_from_a_config() -> None:
+    # Only the simulated cell builds its scanner (celld sim run); a production
+    # daemon given kind = "sim" says so instead of simulating a device.
+    with pytest.raises(ConfigError, match=r"scanner\.kind.*celld sim run"):
+        open_scanner(ScannerConfig(kind="sim"))

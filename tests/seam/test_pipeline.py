@@ -15,7 +15,7 @@ import pytest
 from celld import se3
 from celld.cli import main as celld_main
 from celld.errors import GrooveError, RegistrationError, ScanError, SeamError
-from celld.seam import simscene
+from celld.sim import workpiece as simscene
 from celld.seam.pipeline import SeamParams, find_seam, prepare
 from celld.seam import workpiece as wpm
 from celld.seam.workpiece import Workpiece, example, resample_polyline

@@ -9,9 +9,9 @@ import pytest
 
 from celld import se3
 from celld.errors import WorkpieceError
-from celld.seam.simscene import nominal_pose
-from celld.seam.weldpath import in_plane, start_pose, true_wall, wall_offset, weld_geometry
+from celld.seam.weldpath import in_plane, start_pose, wall_offset, weld_geometry
 from celld.seam.workpiece import curved_groove, fillet_t_joint, v_groove_butt
+from celld.sim.workpiece import nominal_pose, true_wall
 
 
 @pytest.mark.parametrize("h", [0.0, 0.002, 0.005])
@@ -33,20 +33,6 @@ def test_a_wall_out_of_reach_or_a_flange_side_finger_is_refused() -> None:
         wall_offset(fillet_t_joint(), 0.004, "right")
     with pytest.raises(WorkpieceError, match="finger_wall"):
         wall_offset(v_groove_butt(), 0.004, "up")
-
-
-def test_true_wall_runs_beside_the_true_seam_in_its_plane() -> None:
-    wp = v_groove_butt()
-    T = nominal_pose(wp)
-    g = true_wall(wp, T, 0.004, "left")
-    seam = se3.apply(T, wp.seam)
-    # The torch's line is the seam lifted by the tip height along the part's up axis.
-    assert np.allclose(g.seam_base[[0, -1]], seam + 0.004 * T[:3, 2], atol=1e-9)
-    W = in_plane(g, g.wall_base)
-    S = in_plane(g, g.seam_base)
-    # Plane y is left of travel; the left wall lies offset to the left, all along.
-    assert np.allclose(W[:, 1] - S[:, 1], g.offset, atol=1e-9)
-    assert np.allclose(np.abs(((g.wall_base - g.T_base_plane[:3, 3]) @ g.T_base_plane[:3, 2])), 0.0, atol=1e-9)
 
 
 def test_start_pose_puts_the_tip_off_the_wall_on_the_free_side_facing_along_the_seam() -> None:

@@ -59,8 +59,8 @@ def test_the_flange_points_lie_on_the_flange_mesh() -> None:
     T_base_flange = se3.from_xyz_rpy([0.6, 0.0, 0.45], [0.2, -0.1, 0.5])
     objects = robot_scene(T_base_flange, flange)
     model = replace(SCANNER_MODELS["phoxi-m"], sigma=0.0)
-    cloud = SimScanner(model, T_BASE_CAM, resolution_scale=0.25).capture(objects)
-    on_flange = (cloud.labels == 0) & np.isfinite(cloud.points[..., 2])
+    cloud, labels = SimScanner(model, T_BASE_CAM, resolution_scale=0.25).capture_labelled(objects)
+    on_flange = (labels == 0) & np.isfinite(cloud.points[..., 2])
     assert on_flange.sum() > 2000
     P_flange = se3.apply(se3.invert(T_base_flange) @ T_BASE_CAM, cloud.points[on_flange])
     scene = o3d.t.geometry.RaycastingScene()
@@ -126,8 +126,8 @@ def test_structured_light_projector_casts_shadows_away_from_itself() -> None:
     # A 10 cm square 20 cm above a plane; the projector sits 0.35 m along +x.
     occluder = SceneObject("block", box((0.1, 0.1, 0.01)), se3.transform_from(np.eye(3), [0, 0, 0.6]), "matte")
     scanner = SimScanner(replace(SCANNER_MODELS["phoxi-m"], sigma=0.0), np.eye(4), resolution_scale=0.25)
-    cloud = scanner.capture([occluder, plate(0.8)])
-    missing = ~np.isfinite(cloud.points[..., 2]) & (cloud.labels == 1)
+    cloud, labels = scanner.capture_labelled([occluder, plate(0.8)])
+    missing = ~np.isfinite(cloud.points[..., 2]) & (labels == 1)
     cols = np.nonzero(missing)[1]
     centre_col = cloud.points.shape[1] / 2
     # The shadow lies on -x of the block, the side away from the projector.
@@ -187,11 +187,11 @@ def test_bad_scene_objects_are_refused() -> None:
 def test_roi_casts_only_its_window_of_the_full_size_cloud() -> None:
     quiet = replace(SCANNER_MODELS["phoxi-m"], sigma=0.0)
     full = SimScanner(quiet, np.eye(4), resolution_scale=0.1).capture([plate(0.8)])
-    part = SimScanner(quiet, np.eye(4), resolution_scale=0.1, roi_px=(10, 60, 20, 90)).capture([plate(0.8)])
+    part, labels = SimScanner(quiet, np.eye(4), resolution_scale=0.1, roi_px=(10, 60, 20, 90)).capture_labelled([plate(0.8)])
     assert part.points.shape == full.points.shape
     np.testing.assert_array_equal(part.points[10:60, 20:90], full.points[10:60, 20:90])
     outside = np.ones(part.points.shape[:2], dtype=bool)
     outside[10:60, 20:90] = False
-    assert not np.isfinite(part.points[outside]).any() and (part.labels[outside] == -1).all()
+    assert not np.isfinite(part.points[outside]).any() and (labels[outside] == -1).all()
     with pytest.raises(InputError, match="roi_px"):
         SimScanner(quiet, np.eye(4), resolution_scale=0.1, roi_px=(10, 5, 0, 10))

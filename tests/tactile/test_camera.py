@@ -196,11 +196,11 @@ def test_a_killed_tactile_process_restarts_on_the_same_slots(sim_robot) -> None:
     import signal
     import time
 
-    from celld.tactile.camera import SimSourceSpec
+    from celld.sim.srm import SimSrmSource
 
     cfg = TactileConfig(fps=30.0, tare_frames=5)
     far_wall = np.array([[100.0, 100.0], [101.0, 100.0]])  # the finger touches nothing
-    proc = TactileProcess(cfg, f"t-{uuid.uuid4().hex[:8]}", SimSourceSpec(sim_robot.host, far_wall, -1.0, np.eye(4)))
+    proc = TactileProcess(cfg, f"t-{uuid.uuid4().hex[:8]}", SimSrmSource(sim_robot.host, far_wall, -1.0, np.eye(4)))
 
     def tared_by(pid_not: int) -> int:
         deadline = time.monotonic() + 30.0

@@ -1,4 +1,4 @@
-"""``celld calib demo``: flange-based calibration of the simulated scanner, offline.
+"""``celld sim calibrate``: flange-based calibration of the simulated scanner, offline.
 
 The robot shows its flange to a ray-cast PhoXi M (the simulated cell of
 ``configs/sim-cell.toml``) at generated calibration poses. Each capture goes
@@ -36,7 +36,8 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim-cell.tom
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="calibrate the simulated scanner from the robot's flange, without robot or daemon")
+    """Add ``calibrate`` to the ``celld sim`` subcommands ``sub``."""
+    p = sub.add_parser("calibrate", help="calibrate the simulated scanner from the robot's flange, offline (no robot, no daemon)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="a cell config whose scanner is simulated")
     p.add_argument("--poses", type=int, default=None, help="calibration poses (default: the config's n_poses)")
     p.add_argument("--seed", type=int, default=0)
@@ -55,13 +56,13 @@ def run(args: argparse.Namespace) -> int:
     T_base_cam_true = cfg.T_base_cam_nominal()
     scanner = SimScanner(scanner_model, T_base_cam_true, seed=args.seed)
     dparams: DetectParams = PARAMS_BY_SCANNER[scanner_model]
-    out = Path(args.out) if args.out else Path(cfg.cell.state_dir) / "demo" / time.strftime("%Y%m%d-%H%M%S")
+    out = Path(args.out) if args.out else Path(cfg.cell.state_dir) / "sim-calibrate" / time.strftime("%Y%m%d-%H%M%S")
     writer = SessionWriter(out, flange=cal.flange, scanner=scanner_model)
     say = _printer(args.json)
 
     T_v = se3.from_ur_pose(cal.verification_pose)
     poses = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=args.seed)
-    say(f"celld demo: {scanner_model} at T_base_cam (simulated), flange {flange.name}, {n} poses")
+    say(f"celld sim calibrate: {scanner_model} at T_base_cam (simulated), flange {flange.name}, {n} poses")
     t0 = time.perf_counter()
     P_v = scanner.capture(robot_scene(T_v, flange)).points
     writer.set_verification(T_v, P_v)

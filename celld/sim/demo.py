@@ -1,7 +1,8 @@
 """``celld demo``: the simulated cell end to end, driven over the bus like an MES.
 
 1. starts the simulated cell of ``configs/sim-cell.toml`` (the UR10e behind
-   real ur-rtde, in real time) and ``celld run`` on it as its own process;
+   real ur-rtde, in real time) and the daemon on it as its own process
+   (``celld sim run``: ``celld run`` on the simulated scanner and camera);
 2. submits a calibrate job over zenoh, shows its progress, accepts the result;
 3. submits a weld job: scan, seam, touch, Algorithm 2 with the arc, retract;
 4. prints the calibration error against the simulator's truth, the seam
@@ -27,7 +28,7 @@ import numpy as np
 from celld import config as config_mod
 from celld import se3
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "sim-cell.toml"
+DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim-cell.toml"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

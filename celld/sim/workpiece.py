@@ -1,9 +1,10 @@
-"""Simulated workpiece scenes for the seam finder's tests and benchmark.
+"""The simulated part on the table: its true pose, its scene, the wall the finger truly touches.
 
 A workpiece (metal) on the welding table (steel, top at base z = 0) under the cell's
 scanner, placed at a nominal pose or at a random pose off it. Only the
 simulator reads the true pose; it is returned beside the scene so tests can
-score the seam against it.
+score the seam against it. :func:`true_wall` is the finger wall of the part
+at its true pose, which the simulated SRM touches.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from celld import se3
+from celld.seam.weldpath import WeldGeometry, model_seam_frames, wall_offset, weld_geometry
 from celld.seam.workpiece import Workpiece
 from celld.sim.scene import SceneObject, box
 
@@ -79,3 +81,12 @@ def seam_error(points_base: Array, true_seam_base: Array) -> Array:
 
     proj = project_to_polyline(points_base, true_seam_base, step=5e-5)
     return np.linalg.norm(points_base - proj.point, axis=1)
+
+
+def true_wall(workpiece: Workpiece, T_base_obj: Array, tip_height: float, finger_wall: str = "left") -> WeldGeometry:
+    """The finger wall of a part at its true pose (the simulated SRM's wall)."""
+    offset = wall_offset(workpiece, tip_height, finger_wall)
+    P, T, N = model_seam_frames(workpiece, finger_wall)
+    R = np.asarray(T_base_obj, dtype=np.float64)[:3, :3]
+    a = R @ np.asarray(workpiece.approach, dtype=np.float64)
+    return weld_geometry(se3.apply(T_base_obj, P), T @ R.T, N @ R.T, a, offset, tip_height)
