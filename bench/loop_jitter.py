@@ -54,7 +54,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from celld.config import TactileConfig, parse  # noqa: E402
+from celld.config import TactileConfig, ToolConfig, parse  # noqa: E402
 from celld.errors import LinkLost  # noqa: E402
 from celld.log import configure  # noqa: E402
 from celld.motion.core import Action  # noqa: E402
@@ -152,7 +152,7 @@ def make_tactile(host: str) -> Any:
 
     cfg = TactileConfig(kind="sim", fps=60.0)
     wall = np.array([[-1.0, 0.5], [1.0, 0.5]])  # far from the finger: frames render and detect, no contact
-    return TactileProcess(cfg, f"celld-bench-{os.getpid()}", SimSrmSource(host, wall, 1.0, np.eye(4)), nice=0)
+    return TactileProcess(cfg, ToolConfig(), f"celld-bench-{os.getpid()}", SimSrmSource(host, wall, 1.0, np.eye(4)), nice=0)
 
 
 def figures(records: np.ndarray, fifo: bool, cpu: int, extra: dict[str, Any]) -> dict[str, Any]:

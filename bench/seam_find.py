@@ -53,7 +53,8 @@ from celld import se3
 from celld.errors import SeamError
 from celld.log import configure
 from celld.sim import workpiece as simscene
-from celld.seam.pipeline import SeamParams, find_seam, prepare
+from celld.seam.params import SeamParams
+from celld.seam.pipeline import find_seam, prepare
 from celld.seam.workpiece import example, resample_polyline
 from celld.sim.scanner import SCANNER_MODELS, SimScanner
 

@@ -61,7 +61,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from celld.config import MotionLimits, TactileConfig  # noqa: E402
+from celld.config import Config, MotionLimits  # noqa: E402
 from celld.motion.commands import start_servo  # noqa: E402
 from celld.motion.core import Action, CoreParams, CycleInput, Mode, MotionCore  # noqa: E402
 from celld.motion.limits import CartesianLimits, sequence_peaks  # noqa: E402
@@ -129,14 +129,14 @@ def to_base(P2: np.ndarray, z: float | np.ndarray = 0.0) -> np.ndarray:
     return P3 @ T_BASE_PLANE[:3, :3].T + T_BASE_PLANE[:3, 3]
 
 
-def start_pose(plan_base: np.ndarray, cfg: TactileConfig, clearance: float = 0.004, lead: int = 5) -> np.ndarray:
+def start_pose(plan_base: np.ndarray, cfg: Config, clearance: float = 0.004, lead: int = 5) -> np.ndarray:
     """TCP pose at the start: over the plan ``lead`` points (mm) in, backed off from the wall, facing along the plan."""
     t = plan_base[lead + 5] - plan_base[lead]
     t[2] = 0.0
     t /= np.linalg.norm(t)
     z_up = T_BASE_PLANE[:3, 2]
     n = np.cross(z_up, t)
-    side = 1.0 if cfg.wall_side == "left" else -1.0
+    side = 1.0 if cfg.tool.wall_side == "left" else -1.0
     p = plan_base[lead] - side * clearance * n
     # Default tool: TCP x = t_d, TCP z down the finger.
     R = np.column_stack([t, np.cross(-z_up, t), -z_up])
@@ -189,13 +189,13 @@ class SrmFrameTruth(NamedTuple):
     in_contact: bool
 
 
-def direct_sample(delta_true: np.ndarray, rng: np.random.Generator, cfg: TactileConfig, stamp: int, seq: int, prev: ContactState):
+def direct_sample(delta_true: np.ndarray, rng: np.random.Generator, cfg: Config, stamp: int, seq: int, prev: ContactState):
     """A sample straight from the simulator's truth plus 3 um of noise (development only, no rendering)."""
     from celld.tactile.deformation import contact_state
     from celld.tactile.sample import TactileSample
 
     d = delta_true + rng.normal(0.0, 3e-6, 3)
-    return TactileSample(stamp, seq, d, contact_state(d, prev, cfg.contact_threshold, cfg.overload), 1.0, True, 2_000_000)
+    return TactileSample(stamp, seq, d, contact_state(d, prev, cfg.tactile.contact_threshold, cfg.tactile.overload), 1.0, True, 2_000_000)
 
 
 class RunResult(NamedTuple):
@@ -223,31 +223,31 @@ def _arc(P: np.ndarray) -> np.ndarray:
     return _ARC[key]
 
 
-def run_kinematic(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: bool, seed: int, direct: bool = False) -> RunResult:
+def run_kinematic(kind: str, cfg: Config, motion: MotionLimits, quick: bool, seed: int, direct: bool = False) -> RunResult:
     """One seam in simulated time; ``direct`` skips rendering (truth plus 3 um noise; development only)."""
     rng = np.random.default_rng(seed)
     P_true = seam(kind, quick)
-    side = 1.0 if cfg.wall_side == "left" else -1.0
+    side = 1.0 if cfg.tool.wall_side == "left" else -1.0
     # The plan misses the wall by 3 mm on the free side (the worst case for the approach).
     P_plan2 = planned(P_true, rng, away=-side)
     P_plan = to_base(P_plan2, rng.normal(0.0, 0.0003, len(P_plan2)))
-    plan = algorithm2_plan(P_plan, cfg, motion, T_base_plane=T_BASE_PLANE)
+    plan = algorithm2_plan(P_plan, cfg.servo, cfg.tool, motion, T_base_plane=T_BASE_PLANE)
     limits = CartesianLimits.from_config(motion)
     core = MotionCore(
         CoreParams(limits, PERIOD, (-1.5, -1.5, -0.5), (1.5, 1.5, 1.5), state_stale=0.05, tactile_stale=motion.tactile_stale),
         {NAME: make_algorithm2},
     )
-    srm = SimSrm(cfg, Wall(P_true, free=-side), T_BASE_PLANE, SrmSimParams(seed=seed, fps=cfg.fps))
-    detector = TagDetector.from_config(cfg)
-    dparams = DeformationParams.from_config(cfg)
+    srm = SimSrm(cfg.tactile, cfg.tool, Wall(P_true, free=-side), T_BASE_PLANE, SrmSimParams(seed=seed, fps=cfg.tactile.fps))
+    detector = TagDetector.from_config(cfg.tactile)
+    dparams = DeformationParams.from_config(cfg.tactile, cfg.tool)
     arm = Arm(start_pose(P_plan, cfg))
     # Tare with the finger free at the start pose.
     cv2.setNumThreads(1)
     rest = tare(
         np.array([detector.detect(srm.frame(0, arm.T, np.zeros(3), 0.0).image).p_cam for _ in range(10)]),
-        cfg.tare_max_spread, 10,
+        cfg.tactile.tare_max_spread, 10,
     )
-    frame_ns = int(round(1e9 / cfg.fps))
+    frame_ns = int(round(1e9 / cfg.tactile.fps))
     next_frame = 0
     pending: list[tuple[int, Any]] = []
     latest = None
@@ -258,7 +258,7 @@ def run_kinematic(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: bo
     servo: Algorithm2Servo | None = None
     t_ns = 0
     status = ControlStatus.OK
-    tool = ToolGeometry.from_config(cfg)
+    tool = ToolGeometry.from_config(cfg.tool)
     for _ in range(int(600.0 / PERIOD)):
         arm.record(t_ns)
         # Camera frames captured up to now: rendered at their capture pose.
@@ -308,7 +308,7 @@ def run_kinematic(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: bo
             continue
         T_tool = arm.T @ tool.T_tcp_tool
         cyc["t"].append(t_ns * 1e-9)
-        cyc["torch"].append(_plane((T_tool @ np.array([-cfg.torch_offset, 0.0, 0.0, 1.0]))[:3]))
+        cyc["torch"].append(_plane((T_tool @ np.array([-cfg.tool.torch_offset, 0.0, 0.0, 1.0]))[:3]))
         cyc["tip"].append(_plane(T_tool[:3, 3]))
         cyc["t_d"].append(T_tool[:3, 0] @ T_BASE_PLANE[:3, :2])
         cyc["twist"].append(out.twist.copy() if out.action == Action.SPEED else np.zeros(6))
@@ -356,14 +356,14 @@ class Trace(NamedTuple):
     guard_cycles: int | None  # counted by the law (kinematic) or None when not observable
 
 
-def summarise(kind: str, cfg: TactileConfig, motion: MotionLimits, tr: Trace, P_true: np.ndarray, P_plan2: np.ndarray) -> dict[str, Any]:
-    side = 1.0 if cfg.wall_side == "left" else -1.0
+def summarise(kind: str, cfg: Config, motion: MotionLimits, tr: Trace, P_true: np.ndarray, P_plan2: np.ndarray) -> dict[str, Any]:
+    side = 1.0 if cfg.tool.wall_side == "left" else -1.0
     near = [lateral(P_true, q) for q in tr.torch]
     e_all = np.array([n[0] for n in near])
     s_torch = np.array([n[1] for n in near])
     beside = np.array([n[2] for n in near], dtype=bool)
     # The weld starts where the tip first settled on the wall: the torch runs the refined path from there.
-    settled = tr.frame_contact & (np.abs(tr.frame_dn_true - side * cfg.delta_d) < 0.3 * cfg.delta_d)
+    settled = tr.frame_contact & (np.abs(tr.frame_dn_true - side * cfg.servo.delta_d) < 0.3 * cfg.servo.delta_d)
     if np.any(settled):
         t0 = tr.frame_stamp[np.argmax(settled)]
         s0 = lateral(P_true, tr.tip[min(np.searchsorted(tr.t, t0), len(tr.t) - 1)])[1]
@@ -373,11 +373,11 @@ def summarise(kind: str, cfg: TactileConfig, motion: MotionLimits, tr: Trace, P_
     e = e_all[weld]
     lead = beside & (s_torch < s0)
     # Plan alone: the smoothed plan's distance to the seam where it runs beside it.
-    smooth = prepare_plan(np.column_stack([P_plan2, np.zeros(len(P_plan2))]), np.eye(4), cfg.plan_smoothing).P
+    smooth = prepare_plan(np.column_stack([P_plan2, np.zeros(len(P_plan2))]), np.eye(4), cfg.servo.plan_smoothing).P
     e_plan = np.array([lateral(P_true, q)[0] for q in smooth[::4] if lateral(P_true, q)[2]])
     # delta_n while tracking: frames in contact after the first settled one.
     track = tr.frame_contact & (np.cumsum(settled) > 0)
-    dn = tr.frame_dn_true[track] - side * cfg.delta_d
+    dn = tr.frame_dn_true[track] - side * cfg.servo.delta_d
     valid = np.all(np.isfinite(tr.frame_err), axis=1)
     err_c = tr.frame_err[valid & tr.frame_contact]
     err_v = tr.frame_err[valid]
@@ -408,7 +408,7 @@ def summarise(kind: str, cfg: TactileConfig, motion: MotionLimits, tr: Trace, P_
         "omega_peak_rad_s": r(np.nanmax(np.abs(tr.omega))) if len(tr.omega) else None,
         "guard_cycles": tr.guard_cycles,
         "min_nd_dot_nt": r(cos_dt[weld].min()) if np.any(weld) else None,
-        "guard_band_cycles_truth": int(np.sum(cos_dt[weld] < cfg.guard_cos)),
+        "guard_band_cycles_truth": int(np.sum(cos_dt[weld] < cfg.servo.guard_cos)),
         "cycles": int(len(tr.t)),
         "limit_ratio_max": r(max(ratios)),
         "limit_ratios": {k: r(v) for k, v in ratios._asdict().items()},
@@ -433,7 +433,7 @@ def summarise(kind: str, cfg: TactileConfig, motion: MotionLimits, tr: Trace, P_
 HOST = "127.0.99.61"
 
 
-def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: bool, seed: int, host: str = HOST,
+def run_closed_loop(kind: str, cfg: Config, motion: MotionLimits, quick: bool, seed: int, host: str = HOST,
                     camera_sched: str = "daemon") -> RunResult:
     """One seam in wall-clock time through the cell's own processes.
 
@@ -460,17 +460,18 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
 
     rng = np.random.default_rng(seed)
     P_true = seam(kind, quick)
-    side = 1.0 if cfg.wall_side == "left" else -1.0
+    side = 1.0 if cfg.tool.wall_side == "left" else -1.0
     P_plan2 = planned(P_true, rng, away=-side)
     P_plan = to_base(P_plan2, rng.normal(0.0, 0.0003, len(P_plan2)))
-    plan = algorithm2_plan(P_plan, cfg, motion, T_base_plane=T_BASE_PLANE)
+    plan = algorithm2_plan(P_plan, cfg.servo, cfg.tool, motion, T_base_plane=T_BASE_PLANE)
     # The simulator (a Python process on a loaded, shared 2-core machine) can
     # miss its tick by tens of ms; the motion process's own integration tests
     # allow 25 cycles of state age, this long run allows 50 (100 ms) and a
     # link silent for 0.5 s. A real controller does not stall like that.
     config = parse({"robot": {"workspace_min": [-1.2, -1.2, 0.02], "workspace_max": [1.2, 1.2, 1.2]}})
-    config = dataclasses.replace(config, tactile=cfg, motion=dataclasses.replace(motion, state_stale_cycles=50))
-    tool = ToolGeometry.from_config(cfg)
+    config = dataclasses.replace(config, tactile=cfg.tactile, tool=cfg.tool, servo=cfg.servo,
+                                 motion=dataclasses.replace(motion, state_stale_cycles=50))
+    tool = ToolGeometry.from_config(cfg.tool)
     T_start = start_pose(P_plan, cfg)
     records: list[np.ndarray] = []
     truth: dict[int, np.ndarray] = {}
@@ -485,7 +486,7 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
             pass
         name = f"bench-{uuid.uuid4().hex[:8]}"
         truth_slot = SeqlockSlot.create(f"{name}-srm-truth", SRM_TRUTH_DTYPE)
-        spec = SimSrmSource(host, P_true, -side, T_BASE_PLANE, SrmSimParams(seed=seed, fps=cfg.fps), truth_slot=f"{name}-srm-truth")
+        spec = SimSrmSource(host, P_true, -side, T_BASE_PLANE, cfg.tool, SrmSimParams(seed=seed, fps=cfg.tactile.fps), truth_slot=f"{name}-srm-truth")
         # The simulator runs at FIFO 50 on CPU 0 (as in the motion tests), the
         # motion loop at FIFO 80 on CPU 1, the camera process as the daemon
         # starts it: FIFO 40 (below both) on any CPU, so best-effort work never
@@ -493,8 +494,8 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
         # two FIFO processes hit the kernel's real-time throttling and frames
         # waited up to 100 ms; best effort (``nice``) the frames queued behind
         # other work (latency median 10.6-11.4 ms, p99 up to 38 ms).
-        sched = {"daemon": {"fifo_priority": cfg.rt_priority}, "fifo-pinned": {"cpus": (1,), "fifo_priority": 40}}.get(camera_sched, {})
-        tactile = TactileProcess(cfg, name, spec, **sched)
+        sched = {"daemon": {"fifo_priority": cfg.tactile.rt_priority}, "fifo-pinned": {"cpus": (1,), "fifo_priority": 40}}.get(camera_sched, {})
+        tactile = TactileProcess(cfg.tactile, cfg.tool, name, spec, **sched)
         reader = TruthReader(host)
 
         def poll() -> None:
@@ -569,7 +570,7 @@ def run_closed_loop(kind: str, cfg: TactileConfig, motion: MotionLimits, quick: 
     # Per cycle, from the truth (500 Hz) after the servo started.
     stamps = np.array(sorted(t for t in truth if outcome["t0"] and t >= outcome["t0"]), dtype=np.int64)
     Ts = np.array([truth[t] for t in stamps]).reshape(-1, 4, 4) @ tool.T_tcp_tool
-    torch_h = np.array([-cfg.torch_offset, 0.0, 0.0, 1.0])
+    torch_h = np.array([-cfg.tool.torch_offset, 0.0, 0.0, 1.0])
     rec = np.concatenate([r for r in records if len(r)]) if any(len(r) for r in records) else np.zeros(0, STATE_DTYPE)
     mine = rec[rec["command_id"] == outcome["cid"]] if outcome["cid"] else rec[:0]
     sent = np.where((mine["action"] == int(Action.SPEED))[:, None], mine["twist"], 0.0)
@@ -621,9 +622,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="closed loop: camera process as the daemon runs it (SCHED_FIFO tactile.rt_priority = 40, any "
                          "CPU; default), best effort at nice -10 (nice), or SCHED_FIFO 40 pinned to the loop's CPU")
     args = ap.parse_args(argv)
-    cfg = TactileConfig()
+    cfg = Config()
     if args.camera_fps:
-        cfg = dataclasses.replace(cfg, fps=args.camera_fps)
+        cfg = dataclasses.replace(cfg, tactile=dataclasses.replace(cfg.tactile, fps=args.camera_fps))
     motion = MotionLimits()
     if args.tactile_stale_ms:
         motion = dataclasses.replace(motion, tactile_stale=args.tactile_stale_ms * 1e-3)
@@ -638,7 +639,7 @@ def main(argv: list[str] | None = None) -> int:
         results.append(r)
         if not args.json:
             print(json.dumps(r.figures))
-    figures = {"mode": args.mode + ("-direct" if args.direct else ""), "quick": args.quick, "camera_fps": cfg.fps,
+    figures = {"mode": args.mode + ("-direct" if args.direct else ""), "quick": args.quick, "camera_fps": cfg.tactile.fps,
                "tactile_stale_ms": round(motion.tactile_stale * 1e3, 1),
                "camera_sched": args.camera_sched if args.mode == "closed-loop" else None, "seams": [r.figures for r in results], "targets": TARGETS}
     if not args.quick:

@@ -22,10 +22,38 @@ def test_shipped_configs_load(name: str) -> None:
 
 
 def test_units_are_converted_at_the_boundary() -> None:
-    cfg = config.parse({"calibration": {"e_required_mm": 0.3, "max_tilt_deg": 18.0}, "tactile": {"delta_d_mm": 1.5}})
+    cfg = config.parse({"calibration": {"e_required_mm": 0.3, "max_tilt_deg": 18.0, "settle_s": 0.5}, "servo": {"delta_d_mm": 1.5}})
     assert cfg.calibration.e_required == pytest.approx(0.0003)
     assert cfg.calibration.max_tilt == pytest.approx(math.radians(18.0))
-    assert cfg.tactile.delta_d == pytest.approx(0.0015)
+    assert cfg.calibration.settle == pytest.approx(0.5)
+    assert cfg.servo.delta_d == pytest.approx(0.0015)
+
+
+@pytest.mark.parametrize(
+    ("data", "key", "new"),
+    [
+        ({"calibration": {"settle": 0.3}}, "calibration.settle", "calibration.settle_s"),
+        ({"robot": {"connect_timeout": 3}}, "robot.connect_timeout", "robot.connect_timeout_s"),
+        ({"scanner": {"capture_timeout": 3}}, "scanner.capture_timeout", "scanner.capture_timeout_s"),
+        ({"bus": {"query_timeout": 3}}, "bus.query_timeout", "bus.query_timeout_s"),
+        ({"tactile": {"delta_d_mm": 1.5}}, "tactile.delta_d_mm", "[servo] delta_d_mm"),
+        ({"tactile": {"tip_tcp_mm": [0, 0, 200]}}, "tactile.tip_tcp_mm", "[tool] tip_tcp_mm"),
+        ({"seam": {"finger_wall": "left"}}, "seam.finger_wall", "[tool] wall_side"),
+    ],
+)
+def test_renamed_and_moved_keys_are_refused_naming_the_new_key(data: dict, key: str, new: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        config.parse(data, "old.toml")
+    assert info.value.key == key
+    assert f"this key is now {new}" in info.value.reason
+
+
+def test_the_seam_finder_takes_the_scanner_preset_and_the_tool_wall() -> None:
+    cfg = config.parse({"scanner": {"model": "azure-kinect"}, "tool": {"wall_side": "right"}, "seam": {"spacing_mm": 2}})
+    assert cfg.seam.finger_wall == "right"
+    assert cfg.seam.spacing == pytest.approx(0.002)
+    assert cfg.seam.registration.voxel == pytest.approx(0.005)  # the Azure Kinect preset
+    assert config.parse({}).seam.registration.voxel == pytest.approx(0.004)
 
 
 def test_values_are_frozen() -> None:
@@ -81,3 +109,16 @@ def test_includes_merge_and_cycles_are_refused(tmp_path: Path) -> None:
     (tmp_path / "b.toml").write_text('include = ["a.toml"]\n')
     with pytest.raises(ConfigError, match="include cycle"):
         config.load(tmp_path / "a.toml")
+
+
+def test_a_jobs_servo_overrides_are_held_to_the_configs_rules() -> None:
+    cfg = config.parse({})
+    servo, tool = config.with_overrides(cfg.servo, cfg.tactile, cfg.tool, "weld job", delta_d=0.002, v_const=None, torch_offset=0.04)
+    assert (servo.delta_d, servo.v_const, tool.torch_offset) == (0.002, cfg.servo.v_const, 0.04)
+    # 20 mm is inside the field's own range but beyond the sensor's 4 mm overload level.
+    with pytest.raises(ConfigError, match="delta_d_mm < tactile.overload_mm") as info:
+        config.with_overrides(cfg.servo, cfg.tactile, cfg.tool, "weld job", delta_d=0.020)
+    assert info.value.key == "servo.delta_d_mm"
+    with pytest.raises(ConfigError, match="0 < value <= 500") as info:
+        config.with_overrides(cfg.servo, cfg.tactile, cfg.tool, "weld job", v_const=0.0)
+    assert info.value.key == "servo.v_const_mm_s"

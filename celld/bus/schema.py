@@ -51,6 +51,7 @@ import numpy as np
 
 from celld import fsutil
 from celld.bus.checker import check_schema, describe, validate
+from celld.config.tactile import SERVO_BOUNDS, servo_key
 from celld.errors import JobError
 
 # Largest request payload accepted, bytes (1000 calibration poses fit in ~130 KiB).
@@ -86,6 +87,14 @@ def _number(desc: str, lo: float | None = None, hi: float | None = None, *, open
     if hi is not None:
         s["maximum"] = hi
     return s
+
+
+def _servo_number(name: str, desc: str) -> dict[str, Any]:
+    """A job's override of a servo (or tool) value: the config's key, unit and bound (celld.config.SERVO_BOUNDS)."""
+    key, scale = servo_key(name)
+    b = SERVO_BOUNDS[name]
+    section = "tool" if name == "torch_offset" else "servo"
+    return _number(f"{desc} (default: {section}.{key}).", b.lo / scale, b.hi / scale, open_lo=b.open_lo)
 
 
 def _integer(desc: str, lo: int | None = None, hi: int | None = None) -> dict[str, Any]:
@@ -178,10 +187,10 @@ _WELD = _submit_branch(
             "pattern": r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$",
             "description": "A workpiece model known to the cell (an example or a model in weld.workpiece_dir); absent: the cell's weld.workpiece.",
         },
-        "delta_d_mm": _number("Desired normal deformation of the SRM, mm (default: tactile.delta_d_mm).", 0.0, 20.0, open_lo=True),
-        "k_p": _number("Normal gain of Eq. 16, 1/s (default: tactile.k_p).", 0.0, 1000.0, open_lo=True),
-        "v_const_mm_s": _number("Tangential speed V_const, mm/s (default: tactile.v_const_mm_s).", 0.0, 500.0, open_lo=True),
-        "torch_offset_mm": _number("|d| of Eq. 14, mm (default: tactile.torch_offset_mm).", 0.0, 500.0, open_lo=True),
+        "delta_d_mm": _servo_number("delta_d", "Desired normal deformation of the SRM, mm; between the sensor's contact and overload levels"),
+        "k_p": _servo_number("k_p", "Normal gain of Eq. 16, 1/s"),
+        "v_const_mm_s": _servo_number("v_const", "Tangential speed V_const, mm/s"),
+        "torch_offset_mm": _servo_number("torch_offset", "|d| of Eq. 14, mm"),
         "arc": {"type": "boolean", "default": True, "description": "Switch the arc on while tracking; false: a dry run."},
     },
 )

@@ -93,7 +93,7 @@ def make_tactile(config: Config, camera: FrameSourceFactory | None = None) -> Ta
                 "'sim' is the simulated cell's SRM camera: run this config with `celld sim run`, or use 'opencv'",
             )
         camera = opencv_camera
-    return TactileProcess(config.tactile, f"celld-{uuid.uuid4().hex[:8]}", camera, fifo_priority=config.tactile.rt_priority)
+    return TactileProcess(config.tactile, config.tool, f"celld-{uuid.uuid4().hex[:8]}", camera, fifo_priority=config.tactile.rt_priority)
 
 
 class CellDevices:

@@ -28,7 +28,6 @@ with the tracking figures; the paths are also written to
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import hashlib
 from pathlib import Path
 from typing import Any, Mapping
@@ -37,10 +36,10 @@ import numpy as np
 
 from celld import fsutil, se3
 from celld.bus.schema import WeldJob
-from celld.config import Config
+from celld.config import Config, ServoConfig, with_overrides
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import CalibrationStore, JobContext
-from celld.errors import CelldError, InputError, JobError, WorkpieceError
+from celld.errors import CelldError, ConfigError, InputError, JobError, WorkpieceError
 from celld.log import get_logger
 from celld.motion.servo import algorithm2_plan
 from celld.seam.weldpath import WeldGeometry, in_plane, start_pose, wall_offset, weld_geometry
@@ -52,7 +51,7 @@ log = get_logger(__name__)
 # The tool starts this far along the wall line (m) ...
 LEAD_IN = 0.005
 # ... and this far off the wall on the free side (m); the servo's touch then
-# travels it at touch_speed (bounded by tactile.touch_distance).
+# travels it at touch_speed (bounded by servo.touch_distance).
 CLEARANCE = 0.004
 # Seconds between progress events while tracking.
 PROGRESS_PERIOD = 0.5
@@ -159,15 +158,15 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     motion = devices.require_motion()
     wc = config.weld
     seam_params = config.seam
-    from celld.seam.pipeline import SeamParams, find_seam, prepare
+    from celld.seam.pipeline import find_seam, prepare
 
-    if seam_params is None:
-        seam_params = SeamParams.for_scanner(config.scanner.model)
-    if seam_params.finger_wall != config.tactile.wall_side:
-        raise JobError("$", f"seam.finger_wall ({seam_params.finger_wall}) and tactile.wall_side ({config.tactile.wall_side}) must name the same wall")
-    overrides = {k: v for k, v in (("delta_d", job.delta_d), ("k_p", job.k_p), ("v_const", job.v_const), ("torch_offset", job.torch_offset)) if v is not None}
-    tactile = dataclasses.replace(config.tactile, **overrides)
-    tool = ToolGeometry.from_config(tactile)
+    try:
+        servo, tool_cfg = with_overrides(config.servo, config.tactile, config.tool, "weld job", delta_d=job.delta_d, k_p=job.k_p,
+                                         v_const=job.v_const, torch_offset=job.torch_offset)
+    except ConfigError as exc:
+        # The job's field of the refused value: its key in the section (delta_d_mm, ...).
+        raise JobError("$." + exc.key.rsplit(".", 1)[-1], exc.reason) from exc
+    tool = ToolGeometry.from_config(tool_cfg)
     T_base_cam, cal_job = current_T_base_cam(ctx.state_dir)
     workpiece = resolve_workpiece(job.workpiece, config)
     # Prepared models by content (a user's model edited on disk is prepared again).
@@ -212,7 +211,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
 
     # 4. touch and track
     plan = algorithm2_plan(
-        geometry.wall_base, tactile, config.motion, T_base_plane=geometry.T_base_plane,
+        geometry.wall_base, servo, tool_cfg, config.motion, T_base_plane=geometry.T_base_plane,
         process=bool(job.arc) and config.robot.arc_output >= 0, seam_offset=offset,
     )
     collector = _Collector()
@@ -272,7 +271,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         raise failure
 
     records = collector.records()
-    result = _summarise(records, geometry, tool, tactile, seam, offset, ctx.result_dir(), rec)
+    result = _summarise(records, geometry, tool, servo, seam, offset, ctx.result_dir(), rec)
     result["workpiece"] = workpiece.name
     result["calibration_job"] = cal_job
     if retract_error:
@@ -300,7 +299,7 @@ def _quality(seam: Any) -> dict[str, Any]:
     return {k: q[k] for k in ("source", "fitness", "inlier_rmse", "coverage") if k in q}
 
 
-def _summarise(records: np.ndarray | None, geometry: WeldGeometry, tool: ToolGeometry, tactile: Any, seam: Any,
+def _summarise(records: np.ndarray | None, geometry: WeldGeometry, tool: ToolGeometry, servo: ServoConfig, seam: Any,
                offset: float, out_dir: Path, rec: Any) -> dict[str, Any]:
     """The paths and tracking figures of a finished track, written to paths.json."""
     if records is None or len(records) == 0:
@@ -317,7 +316,7 @@ def _summarise(records: np.ndarray | None, geometry: WeldGeometry, tool: ToolGeo
     torch_weld = _thin(torch[records["process_on"]] if records["process_on"].any() else torch[tracking], TORCH_STEP)
     delta_n = records["delta_n"][tracking]
     delta_n = delta_n[np.isfinite(delta_n)]
-    e_delta = np.abs(np.abs(delta_n) - tactile.delta_d) if len(delta_n) else np.zeros(0)
+    e_delta = np.abs(np.abs(delta_n) - servo.delta_d) if len(delta_n) else np.zeros(0)
     corr = _lateral(geometry, refined, geometry.seam_base) if len(refined) > 1 else np.zeros(0)
     paths = {
         "frame": "base", "units": "m",

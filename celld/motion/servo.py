@@ -73,7 +73,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy.signal import savgol_filter
 
-from celld.config import MotionLimits, TactileConfig
+from celld.config import SERVO_BOUNDS, MotionLimits, ServoConfig, ToolConfig
 from celld.errors import InputError
 from celld.motion.types import ControlStatus, RobotState, ServoInput, ServoPlan, ServoTelemetry
 from celld.se3 import check_points, check_transform
@@ -326,7 +326,7 @@ def prepare_plan(P_base: Array, T_base_plane: Array, smoothing: float, spacing: 
 
 
 class Algorithm2Params(NamedTuple):
-    """Tuning of the law, SI units (from :class:`TactileConfig` and :class:`MotionLimits`)."""
+    """Tuning of the law, SI units (from the servo, tool and motion sections of the config)."""
 
     delta_d: float  # m, desired normal deformation (unsigned)
     side: float  # +1: wall on the tool's +y side, -1: on its -y side
@@ -350,26 +350,26 @@ class Algorithm2Params(NamedTuple):
     seam_offset: float = 0.0  # m, seam's distance from the wall, on the free side (module docstring)
 
     @classmethod
-    def from_config(cls, tactile: TactileConfig, motion: MotionLimits) -> "Algorithm2Params":
+    def from_config(cls, servo: ServoConfig, tool: ToolConfig, motion: MotionLimits) -> Algorithm2Params:
         return cls(
-            delta_d=tactile.delta_d,
-            side=1.0 if tactile.wall_side == "left" else -1.0,
-            k_p=tactile.k_p,
-            v_const=tactile.v_const,
-            torch_offset=tactile.torch_offset,
-            k_torch=tactile.k_torch,
-            max_correction_speed=tactile.max_correction_speed,
-            omega_max=min(tactile.omega_max, motion.max_angular_speed),
-            guard_cos=tactile.guard_cos,
-            plan_smoothing=tactile.plan_smoothing,
-            refine_window=tactile.refine_window,
-            tip_radius=tactile.tip_radius,
-            contact_loss_samples=tactile.contact_loss_samples,
-            search_distance=tactile.search_distance,
-            touch_speed=tactile.touch_speed,
-            touch_distance=tactile.touch_distance,
+            delta_d=servo.delta_d,
+            side=1.0 if tool.wall_side == "left" else -1.0,
+            k_p=servo.k_p,
+            v_const=servo.v_const,
+            torch_offset=tool.torch_offset,
+            k_torch=servo.k_torch,
+            max_correction_speed=servo.max_correction_speed,
+            omega_max=min(servo.omega_max, motion.max_angular_speed),
+            guard_cos=servo.guard_cos,
+            plan_smoothing=servo.plan_smoothing,
+            refine_window=servo.refine_window,
+            tip_radius=tool.tip_radius,
+            contact_loss_samples=servo.contact_loss_samples,
+            search_distance=servo.search_distance,
+            touch_speed=servo.touch_speed,
+            touch_distance=servo.touch_distance,
             tactile_stale=motion.tactile_stale,
-            k_height=tactile.k_p,
+            k_height=servo.k_p,
         )
 
     @classmethod
@@ -394,15 +394,14 @@ class Algorithm2Params(NamedTuple):
                 raise InputError(f"algorithm2 plan: parameter {name!r} must be a finite number, got {v!r}")
             values[name] = int(v) if name == "contact_loss_samples" else float(v)
         p = cls(**values)
-        positive = ("delta_d", "k_p", "torch_offset", "max_correction_speed", "omega_max", "guard_cos",
-                    "refine_window", "touch_speed", "touch_distance", "tactile_stale")
-        for name in positive:
-            if getattr(p, name) <= 0.0:
-                raise InputError(f"algorithm2 plan: {name} must be > 0, got {getattr(p, name)}")
+        # The config's bounds (celld.config.SERVO_BOUNDS), checked again where the plan enters the motion process.
+        for name, bound in SERVO_BOUNDS.items():
+            if not bound.holds(getattr(p, name)):
+                raise InputError(f"algorithm2 plan: {name} must be {bound.text()}, got {getattr(p, name)}")
         if p.side not in (1.0, -1.0):
             raise InputError(f"algorithm2 plan: side must be +1 or -1, got {p.side}")
-        if p.contact_loss_samples < 1 or min(p.v_const, p.k_torch, p.search_distance, p.tip_radius, p.plan_smoothing, p.k_height) < 0.0:
-            raise InputError("algorithm2 plan: v_const, k_torch, search_distance, tip_radius, plan_smoothing and k_height must be >= 0")
+        if p.tactile_stale <= 0.0 or min(p.tip_radius, p.k_height) < 0.0:
+            raise InputError("algorithm2 plan: tactile_stale must be > 0, tip_radius and k_height >= 0")
         if not 0.0 <= p.seam_offset < p.torch_offset:
             # The torch trails the tip by |d|: it cannot reach a seam |d| or more off the wall.
             raise InputError(
@@ -413,7 +412,8 @@ class Algorithm2Params(NamedTuple):
 
 def algorithm2_plan(
     P_base: Array,
-    tactile: TactileConfig,
+    servo: ServoConfig,
+    tool: ToolConfig,
     motion: MotionLimits,
     T_base_plane: Array | None = None,
     normal_hint: Array = np.array([0.0, 0.0, 1.0]),
@@ -435,10 +435,10 @@ def algorithm2_plan(
     """
     P = check_points(P_base, "P_base", min_points=2)
     plane = welding_plane(P, normal_hint) if T_base_plane is None else check_transform(T_base_plane, "T_base_plane")
-    tool = ToolGeometry.from_config(tactile)
-    params = Algorithm2Params.from_config(tactile, motion)._replace(process=bool(process), seam_offset=float(seam_offset))
+    geometry = ToolGeometry.from_config(tool)
+    params = Algorithm2Params.from_config(servo, tool, motion)._replace(process=bool(process), seam_offset=float(seam_offset))
     Algorithm2Params.from_plan(dict(params._asdict()))  # refuse a bad plan where it is made
-    return ServoPlan(NAME, {"P_base": P, "T_base_plane": plane, "T_tcp_tool": tool.T_tcp_tool}, dict(params._asdict()))
+    return ServoPlan(NAME, {"P_base": P, "T_base_plane": plane, "T_tcp_tool": geometry.T_tcp_tool}, dict(params._asdict()))
 
 
 def make_algorithm2(plan: ServoPlan) -> "Algorithm2Servo":

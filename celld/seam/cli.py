@@ -81,7 +81,8 @@ def _find(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> Any:
     # Imported here so `celld --help` stays fast.
-    from celld.seam.pipeline import SeamParams, find_seam
+    from celld.seam.params import SeamParams
+    from celld.seam.pipeline import find_seam
     from celld.seam.workpiece import EXAMPLES, example, load_workpiece
 
     if args.model in EXAMPLES:

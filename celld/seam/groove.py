@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from celld.seam.params import GrooveParams
 from celld.seam.workpiece import LEFT_WALL, RIGHT_WALL, project_to_polyline, resample_polyline
 
 Array = NDArray[np.float64]
@@ -38,29 +39,6 @@ _TRIM_SIGMAS = 3.0
 _TRIM_ITERATIONS = 4
 # 1.4826 * MAD is the standard deviation of a Gaussian.
 _MAD_TO_SIGMA = 1.4826
-
-
-@dataclass(frozen=True)
-class GrooveParams:
-    """Tuning of the groove measurement (SI units).
-
-    window : seam length per pair of wall fits, m
-    max_window : a wall with fewer than ``min_points`` in ``window`` is fitted
-        over a window doubled up to this length, m
-    step : distance between window centres, m
-    min_points : fewest points on each wall in a window
-    max_normal_deviation : largest angle (rad) between a fitted wall and the model's
-    min_wall_angle : smallest angle (rad) between the two walls for a usable apex
-    max_apex_sigma : largest 1-sigma apex uncertainty (m) a window may have
-    """
-
-    window: float = 0.010
-    max_window: float = 0.040
-    step: float = 0.002
-    min_points: int = 15
-    max_normal_deviation: float = math.radians(12.0)
-    min_wall_angle: float = math.radians(20.0)
-    max_apex_sigma: float = 0.25e-3
 
 
 @dataclass(frozen=True)

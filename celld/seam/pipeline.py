@@ -52,157 +52,16 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from celld import se3
-from celld.config import TableReader
 from celld.errors import GrooveError, InputError, RegistrationError, ScanError
 from celld.log import get_logger
-from celld.seam.groove import CONTRADICTS, GrooveFit, GrooveParams, fit_groove, lateral_offsets, smooth_offsets
-from celld.seam.register import PreparedModel, RegistrationParams, prepare_model, register
+from celld.seam.groove import CONTRADICTS, GrooveFit, fit_groove, lateral_offsets, smooth_offsets
+from celld.seam.params import SeamParams
+from celld.seam.register import PreparedModel, prepare_model, register
 from celld.seam.workpiece import NO_WALL, Projection, Workpiece, project_to_polyline, resample_polyline
 
 log = get_logger(__name__)
 
 Array = NDArray[np.float64]
-
-SEAM_SOURCES = ("auto", "groove", "model")
-
-
-@dataclass(frozen=True)
-class SeamParams:
-    """Everything :func:`find_seam` can be tuned by (SI units).
-
-    Attributes
-    ----------
-    registration, groove : parameters of the two stages
-    spacing : output point spacing along the seam, m
-    table_z : height of the table top in the base frame, m, or None to
-        measure the table plane in each scan (the largest near-horizontal
-        plane in the region of interest); points up to ``table_margin``
-        above the table are the table and are dropped
-    table_tolerance : inlier distance of the table plane fit, m
-    outlier_radius, outlier_neighbours : a point with fewer neighbours than
-        this within the radius (m) is dropped; radius 0 keeps all
-    roi_min, roi_max : base-frame box where the part may be, m
-    max_range : a camera-frame range beyond this is taken as wrong units, m
-    min_points : fewest part points a usable scan has
-    label_distance : a scan point within this of a model wall sample counts
-        as on that wall, m
-    view_cos : a model wall sample facing the camera more than this cosine
-        should be seen by it
-    support_distance : such a sample is seen when a scan point lies this close, m
-    min_coverage : share of seam stations that must have scan points near them
-    min_wall_support : share of the should-be-seen wall samples that must be seen
-    min_across_support : share of the scan points near the seam that must lie
-        on faces facing across it (else the registration cannot place it sideways)
-    min_visible_wall : fewest wall samples (0.5 mm apart) the camera must be
-        able to see for the joint to count as visible
-    seam_source : ``"auto"`` (groove where measured, else the registered
-        model), ``"groove"`` (refuse unless measured) or ``"model"``
-    min_groove_coverage : share of stations the groove must be measured at
-        for it to be the seam
-    max_gap : longest stretch (m) of seam without a groove window that is
-        bridged by interpolation
-    max_contradicting : share of groove windows that may contradict the
-        model before the scan is refused
-    max_model_deviation : largest distance between the measured and the
-        registered seam accepted, m
-    deviation_span : the groove's offsets from the model are smoothed along
-        the seam over this length, m
-    deviation_sigmas : in ``"auto"``, the measured seam replaces the model's
-        only where somewhere it differs by more than this many of its own
-        standard errors; otherwise the (more precise) registered seam stands,
-        confirmed by the groove
-    tangent_span : length over which tangents are taken, m
-    finger_wall : ``"left"`` or ``"right"`` of travel; the normals point to it
-    """
-
-    registration: RegistrationParams = field(default_factory=RegistrationParams)
-    groove: GrooveParams = field(default_factory=GrooveParams)
-    spacing: float = 0.001
-    table_z: float | None = None
-    table_margin: float = 0.002
-    table_tolerance: float = 0.001
-    outlier_radius: float = 0.0
-    outlier_neighbours: int = 8
-    roi_min: tuple[float, float, float] = (-0.2, -1.0, -0.1)
-    roi_max: tuple[float, float, float] = (1.4, 1.0, 0.6)
-    max_range: float = 4.0
-    min_points: int = 500
-    label_distance: float = 0.002
-    view_cos: float = 0.34  # cos 70 deg: the scanners return up to 75-80 deg of incidence
-    support_distance: float = 0.0015
-    min_coverage: float = 0.95
-    min_wall_support: float = 0.5
-    min_across_support: float = 0.02
-    min_visible_wall: int = 200
-    seam_source: str = "auto"
-    min_groove_coverage: float = 0.9
-    max_gap: float = 0.010
-    max_contradicting: float = 0.2
-    max_model_deviation: float = 0.003
-    deviation_span: float = 0.030
-    deviation_sigmas: float = 3.5
-    tangent_span: float = 0.004
-    finger_wall: str = "left"
-
-    def __post_init__(self) -> None:
-        if self.seam_source not in SEAM_SOURCES:
-            raise InputError(f"seam_source: expected one of {', '.join(SEAM_SOURCES)}, got {self.seam_source!r}")
-        if self.finger_wall not in ("left", "right"):
-            raise InputError(f"finger_wall: expected 'left' or 'right', got {self.finger_wall!r}")
-        if not 0.0 < self.spacing <= 0.05:
-            raise InputError(f"spacing: expected 0 < spacing <= 0.05 m, got {self.spacing}")
-        if self.registration.attempts < 1:
-            raise InputError(f"registration.attempts: expected at least 1, got {self.registration.attempts}")
-        if not all(a < b for a, b in zip(self.roi_min, self.roi_max)):
-            raise InputError(f"roi_min {self.roi_min} must be below roi_max {self.roi_max} on every axis")
-
-    @classmethod
-    def read(cls, r: TableReader, scanner_model: str = "phoxi-m") -> SeamParams:
-        """Read a ``[seam]`` config table (celld.config conventions): the
-        scanner's preset with ``seam_source``, ``spacing_mm``, ``finger_wall``,
-        ``table_z`` (omit to measure the table), ``max_model_deviation_mm``
-        and ``seed`` over it."""
-        base = cls.for_scanner(r.str("preset", scanner_model, choices=tuple(_PRESETS)))
-        table_z = r.float("table_z", 0.0, lo=-2.0, hi=2.0) if r.has("table_z") else None
-        return replace(
-            base,
-            seam_source=r.str("seam_source", base.seam_source, choices=SEAM_SOURCES),
-            spacing=r.float("spacing_mm", base.spacing * 1e3, lo=0.1, hi=50.0, scale=1e-3),
-            finger_wall=r.str("finger_wall", base.finger_wall, choices=("left", "right")),
-            table_z=table_z,
-            max_model_deviation=r.float("max_model_deviation_mm", base.max_model_deviation * 1e3, lo=0.0, hi=50.0, open_lo=True, scale=1e-3),
-            registration=replace(base.registration, seed=r.int("seed", base.registration.seed, lo=0)),
-        )
-
-    @classmethod
-    def for_scanner(cls, model: str, **overrides: Any) -> SeamParams:
-        """Defaults tuned for a scanner model (``phoxi-s``, ``phoxi-m``, ``azure-kinect``)."""
-        if model not in _PRESETS:
-            raise InputError(f"no seam preset for scanner {model!r}; known: {', '.join(_PRESETS)}")
-        return replace(_PRESETS[model], **overrides)
-
-
-_PRESETS: dict[str, SeamParams] = {
-    "phoxi-s": SeamParams(),
-    "phoxi-m": SeamParams(),
-    # Millimetres of noise and flying pixels: coarser voxels, wider gates, long
-    # groove windows; the groove is used only where its apex is measured well.
-    "azure-kinect": SeamParams(
-        registration=RegistrationParams(voxel=0.005, icp_points=10_000, icp_distance=0.008, gate_distance=0.008, min_fitness=0.8),
-        groove=GrooveParams(window=0.040, step=0.005, min_points=25, max_normal_deviation=math.radians(20.0), max_apex_sigma=0.8e-3),
-        table_margin=0.006,
-        table_tolerance=0.006,
-        outlier_radius=0.008,
-        outlier_neighbours=10,
-        label_distance=0.006,
-        support_distance=0.008,
-        min_wall_support=0.3,
-        max_gap=0.04,
-        max_model_deviation=0.006,
-        tangent_span=0.010,
-    ),
-}
-
 
 @dataclass(frozen=True)
 class SeamQuality:

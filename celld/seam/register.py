@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 
 from celld import se3
 from celld.errors import RegistrationError
+from celld.seam.params import RegistrationParams
 from celld.seam.workpiece import Workpiece, sample_surface
 
 Array = NDArray[np.float64]
@@ -47,33 +48,6 @@ reg = o3d.pipelines.registration
 # Faces whose normal points more than this far below the approach plane
 # (cosine) are never seen by a scanner above the part.
 _HIDDEN_COS = -0.5
-
-
-@dataclass(frozen=True)
-class RegistrationParams:
-    """Tuning of the registration (SI units).
-
-    ``voxel`` sets the scale of the global step: FPFH radius ``5 voxel``,
-    normals ``2 voxel``, RANSAC correspondences ``1.5 voxel``. ``icp_points``
-    (scan points kept) and ``icp_distance`` set the fine ICP; ``gate_distance`` and
-    ``min_fitness`` set the gate. RANSAC rejects samples whose matched normals
-    differ by more than ``max_normal_angle`` and, given a nominal pose, poses
-    turned more than ``max_rotation`` from it about any axis.
-    """
-
-    voxel: float = 0.004
-    icp_points: int = 20_000
-    icp_distance: float = 0.001
-    gate_distance: float = 0.001
-    min_fitness: float = 0.97
-    attempts: int = 6
-    ransac_iterations: int = 20_000
-    max_normal_angle: float = math.radians(30.0)
-    max_rotation: float = math.radians(45.0)
-    ransac_confidence: float = 0.999
-    model_spacing: float = 0.0005
-    edge_margin: float = 0.0015
-    seed: int = 0
 
 
 @dataclass(frozen=True, eq=False)

@@ -66,19 +66,18 @@ def sim_workpiece(config: Config) -> SimWorkpiece | None:
     except WorkpieceError as exc:
         raise ConfigError(config.source, "sim.workpiece", str(exc)) from exc
     T = se3.from_ur_pose(config.sim.workpiece_pose) if config.sim.workpiece_pose else nominal_pose(wp)
-    finger = config.seam.finger_wall if config.seam is not None else config.tactile.wall_side
-    return SimWorkpiece(wp, T, true_wall(wp, T, config.weld.tip_height, finger))
+    return SimWorkpiece(wp, T, true_wall(wp, T, config.weld.tip_height, config.tool.wall_side))
 
 
 def srm_source(config: Config, part: SimWorkpiece | None) -> SimSrmSource:
     """The simulated SRM camera on the true finger wall of ``part`` (:func:`sim_workpiece`), in its plane."""
-    side = 1.0 if config.tactile.wall_side == "left" else -1.0
+    side = 1.0 if config.tool.wall_side == "left" else -1.0
     params = SrmSimParams(fps=config.tactile.fps)
     if part is None:
         wall = np.array([[_FAR, _FAR], [_FAR + 1.0, _FAR]])
-        return SimSrmSource(config.robot.host, wall, -side, np.eye(4), params)
+        return SimSrmSource(config.robot.host, wall, -side, np.eye(4), config.tool, params)
     g = part.wall
-    return SimSrmSource(config.robot.host, in_plane(g, g.wall_base), -side, g.T_base_plane, params)
+    return SimSrmSource(config.robot.host, in_plane(g, g.wall_base), -side, g.T_base_plane, config.tool, params)
 
 
 class _CellScanner:

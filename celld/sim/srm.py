@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from celld.config import TactileConfig
+from celld.config import TactileConfig, ToolConfig
 from celld.errors import InputError
 from celld.se3 import invert, transform_from
 from celld.shm import SeqlockSlot
@@ -349,7 +349,9 @@ class SimSrm:
     Parameters
     ----------
     cfg : TactileConfig
-        Camera, tag and tool geometry (tip radius, wall side).
+        Camera and tag.
+    tool : ToolConfig
+        The tool's geometry (tip, tip radius, the camera's mount).
     wall : Wall
         The true seam wall in the plane of ``T_base_plane``.
     T_base_plane : (4, 4)
@@ -357,12 +359,12 @@ class SimSrm:
     params : SrmSimParams
     """
 
-    def __init__(self, cfg: TactileConfig, wall: Wall, T_base_plane: Array, params: SrmSimParams = SrmSimParams()) -> None:
+    def __init__(self, cfg: TactileConfig, tool: ToolConfig, wall: Wall, T_base_plane: Array, params: SrmSimParams = SrmSimParams()) -> None:
         from celld.tactile.tool import ToolGeometry
 
         self.cfg = cfg
         self.wall = wall
-        self.tool = ToolGeometry.from_config(cfg)
+        self.tool = ToolGeometry.from_config(tool)
         self.T_base_plane = np.asarray(T_base_plane, dtype=np.float64)
         self.params = params
         self._T_cam_tool = invert(self.tool.T_tool_cam)
@@ -555,7 +557,7 @@ class SimSrmSource:
 
     ``wall`` (n, 2) and ``free`` describe the seam wall in the plane
     ``T_base_plane``; ``robot_host`` is the simulated controller whose true
-    TCP pose drives the finger. With ``truth_slot`` (a :data:`SRM_TRUTH_DTYPE`
+    TCP pose drives the finger; ``tool`` the finger's geometry. With ``truth_slot`` (a :data:`SRM_TRUTH_DTYPE`
     slot the caller created) each frame's true deformation is shared there,
     for benchmarks; the estimator never reads it.
     """
@@ -564,6 +566,7 @@ class SimSrmSource:
     wall: Array
     free: float
     T_base_plane: Array
+    tool: ToolConfig = ToolConfig()
     params: SrmSimParams | None = None
     truth_slot: str = ""
 
@@ -571,5 +574,5 @@ class SimSrmSource:
         from celld.sim.robot.truth import TruthReader
 
         reader = TruthReader(self.robot_host)
-        srm = SimSrm(cfg, Wall(np.asarray(self.wall), self.free), self.T_base_plane, self.params or SrmSimParams(fps=cfg.fps))
+        srm = SimSrm(cfg, self.tool, Wall(np.asarray(self.wall), self.free), self.T_base_plane, self.params or SrmSimParams(fps=cfg.fps))
         return _TruthSharingCamera(SimSrmCamera(srm, _pose_at(reader.history)), reader.close, self.truth_slot)

@@ -32,7 +32,7 @@ from typing import Any, Callable, Protocol
 import cv2
 import numpy as np
 
-from celld.config import TactileConfig
+from celld.config import TactileConfig, ToolConfig
 from celld.errors import DeviceError, TactileError
 from celld.log import get_logger
 from celld.shm import SeqlockSlot
@@ -146,14 +146,16 @@ class FrameEstimator:
     Parameters
     ----------
     cfg : TactileConfig
+    tool : ToolConfig
+        Where the camera sits in the tool (the deformation is in the tool frame).
     rest : Tare or None
         The tared rest position; None until a tare.
     """
 
-    def __init__(self, cfg: TactileConfig, rest: Tare | None = None) -> None:
+    def __init__(self, cfg: TactileConfig, tool: ToolConfig, rest: Tare | None = None) -> None:
         self.cfg = cfg
         self.detector = TagDetector.from_config(cfg)
-        self.params = DeformationParams.from_config(cfg)
+        self.params = DeformationParams.from_config(cfg, tool)
         self.rest = rest
         self.seq = 0
         self.contact = ContactState.NONE
@@ -324,6 +326,7 @@ def opencv_camera(cfg: TactileConfig) -> FrameSource:
 
 def tactile_main(
     cfg: TactileConfig,
+    tool: ToolConfig,
     slot_name: str,
     counters_name: str,
     stop: Event,
@@ -362,7 +365,7 @@ def tactile_main(
     source = source_factory(cfg)
     try:
         source.open()
-        est = FrameEstimator(cfg)
+        est = FrameEstimator(cfg, tool)
         est.counters[0]["pid"] = os.getpid()
         ready.set()
 
@@ -387,6 +390,7 @@ class TactileProcess:
     Parameters
     ----------
     cfg : TactileConfig
+    tool : ToolConfig
     name : str
         Prefix of the shared-memory names (unique per cell instance).
     source_factory : FrameSourceFactory
@@ -408,6 +412,7 @@ class TactileProcess:
     def __init__(
         self,
         cfg: TactileConfig,
+        tool: ToolConfig,
         name: str,
         source_factory: FrameSourceFactory = opencv_camera,
         nice: int = -10,
@@ -426,7 +431,7 @@ class TactileProcess:
         self._stop = ctx.Event()
         self._tare = ctx.Event()
         self._ready = ctx.Event()
-        self._args = (cfg, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, source_factory, nice,
+        self._args = (cfg, tool, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, source_factory, nice,
                       tuple(cpus), fifo_priority, self.preview_name)
         self._proc = self._new_process()
         self.restarts = 0

@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from celld.config import TactileConfig
+from celld.config import TactileConfig, ToolConfig
 from celld.errors import InputError, TactileError
 from celld.tactile.aruco import TagDetection
 from celld.tactile.sample import ContactState, TactileSample, TactileStatus
@@ -55,7 +55,7 @@ class Tare(NamedTuple):
 
 
 class DeformationParams(NamedTuple):
-    """What turns a detection into a sample (from :class:`TactileConfig`)."""
+    """What turns a detection into a sample (from the sensor's and the tool's config)."""
 
     R_tool_cam: Array
     contact_threshold: float
@@ -64,8 +64,8 @@ class DeformationParams(NamedTuple):
     max_reprojection_px: float
 
     @classmethod
-    def from_config(cls, cfg: TactileConfig) -> "DeformationParams":
-        return cls(cfg.R_tool_cam(), cfg.contact_threshold, cfg.overload, cfg.min_sharpness, cfg.max_reprojection_px)
+    def from_config(cls, cfg: TactileConfig, tool: ToolConfig) -> DeformationParams:
+        return cls(tool.R_tool_cam(), cfg.contact_threshold, cfg.overload, cfg.min_sharpness, cfg.max_reprojection_px)
 
 
 def tare(p_cam: Array, max_spread: float, min_frames: int = 1) -> Tare:

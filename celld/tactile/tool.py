@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from celld.config import TactileConfig
+from celld.config import ToolConfig
 from celld.se3 import check_transform, transform_from
 
 Array = np.ndarray
@@ -68,13 +68,13 @@ class ToolGeometry:
     side: float
 
     @classmethod
-    def from_config(cls, cfg: TactileConfig) -> "ToolGeometry":
+    def from_config(cls, cfg: ToolConfig) -> ToolGeometry:
         x = np.asarray(cfg.tool_x_tcp, dtype=np.float64)
         z = np.asarray(cfg.tool_z_tcp, dtype=np.float64)
         R_tcp_tool = np.column_stack([x, np.cross(z, x), z])
         return cls(
             T_tcp_tool=transform_from(R_tcp_tool, cfg.tip_tcp),
-            T_tool_cam=check_transform(cfg.T_tool_cam, "tactile.T_tool_cam"),
+            T_tool_cam=check_transform(cfg.T_tool_cam, "tool.T_tool_cam"),
             torch_offset=cfg.torch_offset,
             tip_radius=cfg.tip_radius,
             side=1.0 if cfg.wall_side == "left" else -1.0,

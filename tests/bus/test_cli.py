@@ -22,7 +22,7 @@ def _unconfigured_logging():
 def write_config(tmp_path: Path, cell) -> str:
     path = tmp_path / "cell.toml"
     listen = ", ".join(f'"{e}"' for e in cell.bus.listen)
-    path.write_text(f'[cell]\nname = "{cell.keys.cell}"\n\n[bus]\nlisten = [{listen}]\nconnect_timeout = 2.0\nquery_timeout = 3.0\n')
+    path.write_text(f'[cell]\nname = "{cell.keys.cell}"\n\n[bus]\nlisten = [{listen}]\nconnect_timeout_s = 2.0\nquery_timeout_s = 3.0\n')
     return str(path)
 
 

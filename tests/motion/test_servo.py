@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from celld.config import MotionLimits, TactileConfig
+from celld.config import MotionLimits, ServoConfig, TactileConfig, ToolConfig
 from celld.errors import InputError
 from celld.motion.commands import start_servo
 from celld.motion.core import CoreParams, CycleInput, Mode, MotionCore
@@ -199,11 +199,11 @@ def test_plan_is_smoothed_and_its_plane_found() -> None:
 
 
 def test_plan_message_is_checked() -> None:
-    cfg, motion = TactileConfig(), MotionLimits()
-    plan = algorithm2_plan(np.column_stack([np.linspace(0, 0.1, 50), np.zeros(50), np.zeros(50)]), cfg, motion)
+    servo, tool, motion = ServoConfig(), ToolConfig(), MotionLimits()
+    plan = algorithm2_plan(np.column_stack([np.linspace(0, 0.1, 50), np.zeros(50), np.zeros(50)]), servo, tool, motion)
     assert plan.name == NAME
     law = make_algorithm2(plan)
-    assert law.p == Algorithm2Params.from_config(cfg, motion)
+    assert law.p == Algorithm2Params.from_config(servo, tool, motion)
     bad = plan._replace(params={**plan.params, "k_p": -1.0})
     with pytest.raises(InputError, match="k_p"):
         make_algorithm2(bad)
@@ -228,9 +228,9 @@ class Loop:
     """
 
     def __init__(self, length: float = 0.06, gap: tuple[float, float] | None = None, plan_offset: float = -0.002,
-                 fps: float = 60.0, latency: float = 0.006, cfg: TactileConfig | None = None,
+                 fps: float = 60.0, latency: float = 0.006,
                  process: bool = False, seam_offset: float = 0.0) -> None:
-        self.cfg = cfg or TactileConfig()
+        self.sensor, self.servo_cfg, self.tool = TactileConfig(), ServoConfig(), ToolConfig()
         self.motion = MotionLimits()
         self.limits = CartesianLimits.from_config(self.motion)
         x = np.arange(0.0, length, 0.0002)
@@ -240,7 +240,7 @@ class Loop:
         self.walls = [Wall(w, free=-1.0) for w in walls]
         plan2 = np.column_stack([np.arange(0.0, length, 0.001), np.full(len(np.arange(0.0, length, 0.001)), plan_offset)])
         P_plan = np.column_stack([plan2, np.zeros(len(plan2))]) @ T_PLANE[:3, :3].T + T_PLANE[:3, 3]
-        self.plan = algorithm2_plan(P_plan, self.cfg, self.motion, T_base_plane=T_PLANE, process=process,
+        self.plan = algorithm2_plan(P_plan, self.servo_cfg, self.tool, self.motion, T_base_plane=T_PLANE, process=process,
                                     seam_offset=seam_offset)
         self.core = MotionCore(
             CoreParams(self.limits, PERIOD, (-1.5, -1.5, -0.5), (1.5, 1.5, 1.5), 0.05, self.motion.tactile_stale),
@@ -273,14 +273,14 @@ class Loop:
         v = self.v[:2]
         shift = np.zeros(2)
         for w in self.walls:
-            c = finger_contact(p, v, w, self.cfg.tip_radius, ContactParams())
+            c = finger_contact(p, v, w, self.tool.tip_radius, ContactParams())
             if c.in_contact:
                 shift = c.tip_shift_plane
         t_d = T_bt[:2, 0] / np.linalg.norm(T_bt[:2, 0])
         n_d = np.array([-t_d[1], t_d[0]])
         delta = np.array([-shift @ t_d, -shift @ n_d, 0.0]) + self.rng.normal(0, 3e-6, 3)
         self.seq += 1
-        state = contact_state(delta, self.contact, self.cfg.contact_threshold, self.cfg.overload)
+        state = contact_state(delta, self.contact, self.sensor.contact_threshold, self.sensor.overload)
         self.contact = state
         return TactileSample(stamp, self.seq, delta, state, 1.0, True, 1_000_000)
 
@@ -322,7 +322,7 @@ class Loop:
 
     def torch_error(self) -> float:
         """Lateral distance (m) of the torch to the wall line y = 0."""
-        torch = self.T[:3, 3] - self.cfg.torch_offset * self.T[:3, 0]
+        torch = self.T[:3, 3] - self.tool.torch_offset * self.T[:3, 0]
         return float(torch[1] - T_PLANE[1, 3])
 
 
@@ -420,7 +420,7 @@ def test_the_process_is_asked_for_only_while_the_torch_tracks_the_refined_path_a
     assert on[first_on:tracking[-1] + 1].all()
     # The torch moves at about V_const: it takes about (|d| - refine_window) / V_const to get there.
     dt = (first_on - tracking[0]) * 0.002
-    assert dt == pytest.approx((loop.cfg.torch_offset - loop.cfg.refine_window) / loop.cfg.v_const, rel=0.3)
+    assert dt == pytest.approx((loop.tool.torch_offset - loop.servo_cfg.refine_window) / loop.servo_cfg.v_const, rel=0.3)
     assert not on[phases == Phase.DONE].any()
     assert not any(o.process_on for o in loop.outs if o.mode != Mode.ACTIVE)
     # The telemetry the core passes on is the law's.
@@ -428,7 +428,7 @@ def test_the_process_is_asked_for_only_while_the_torch_tracks_the_refined_path_a
     assert [t.phase for t in tel[:-1]] == [int(p) for p in phases[:-1]]
     track = [t for t, p in zip(tel, phases) if p == Phase.TRACK]
     assert np.all(np.isfinite([t.refined_base for t in track[-100:]]))
-    assert np.median([t.delta_n for t in track]) == pytest.approx(loop.cfg.delta_d, abs=1e-4)
+    assert np.median([t.delta_n for t in track]) == pytest.approx(loop.servo_cfg.delta_d, abs=1e-4)
 
 
 def test_without_the_process_in_the_plan_it_is_never_asked_for() -> None:
@@ -461,10 +461,10 @@ def test_a_tactile_fault_mid_seam_drops_the_process() -> None:
 def _scripted_refined_path(seam_offset: float, process: bool = False) -> tuple[np.ndarray, list]:
     """Algorithm 2 fed a fixed script: the tip slides along +x at 10 mm/s, 3 mm off the plan, pressed
     into the wall by exactly delta_d each cycle. Returns the refined path and the telemetry per cycle."""
-    cfg, motion = TactileConfig(), MotionLimits()
+    servo, tool, motion = ServoConfig(), ToolConfig(), MotionLimits()
     x = np.arange(0.0, 0.06, 0.001)
     P_plan = np.column_stack([x, np.full(len(x), -0.002), np.zeros(len(x))]) @ T_PLANE[:3, :3].T + T_PLANE[:3, 3]
-    law = make_algorithm2(algorithm2_plan(P_plan, cfg, motion, T_base_plane=T_PLANE, process=process,
+    law = make_algorithm2(algorithm2_plan(P_plan, servo, tool, motion, T_base_plane=T_PLANE, process=process,
                                           seam_offset=seam_offset))
     T = np.eye(4)
     T[:3, :3] = np.diag([1.0, -1.0, -1.0])
@@ -473,7 +473,7 @@ def _scripted_refined_path(seam_offset: float, process: bool = False) -> tuple[n
     tel = []
     for k in range(1, 500):
         T[0, 3] += 0.01 * PERIOD
-        sample = TactileSample(k * 2_000_000, k, np.array([0.0, cfg.delta_d, 0.0]), ContactState.CONTACT, 1.0, True, 0)
+        sample = TactileSample(k * 2_000_000, k, np.array([0.0, servo.delta_d, 0.0]), ContactState.CONTACT, 1.0, True, 0)
         law.step(ServoInput(RobotState(k * 2_000_000, np.zeros(6), np.zeros(6), T.copy(), np.zeros(6)), sample, 0.0))
         tel.append(law.telemetry())
     return law.refined_plane, tel
@@ -489,7 +489,7 @@ def test_seam_offset_moves_the_refined_path_by_exactly_the_offset_on_a_straight_
     np.testing.assert_allclose(tel1[-1].refined_base, [R1[-1, 0] + T_PLANE[0, 3], R1[-1, 1] + T_PLANE[1, 3], T_PLANE[2, 3]],
                                atol=1e-12)
     assert np.all(np.isnan(tel0[0].refined_base)) and tel0[-1].phase == Phase.TRACK
-    assert tel0[-1].delta_n == pytest.approx(TactileConfig().delta_d, abs=1e-12)
+    assert tel0[-1].delta_n == pytest.approx(ServoConfig().delta_d, abs=1e-12)
     # process is False in these plans: never asked for, whatever the phase.
     assert not any(t.process_on for t in tel0 + tel1)
     # With the process asked for: the torch, |d| = 30 mm behind the tip, never
@@ -510,12 +510,12 @@ def test_with_a_seam_offset_the_torch_follows_the_seam_not_the_wall() -> None:
 
 
 def test_the_new_plan_parameters_are_checked() -> None:
-    cfg, motion = TactileConfig(), MotionLimits()
+    servo, tool, motion = ServoConfig(), ToolConfig(), MotionLimits()
     P = np.column_stack([np.linspace(0, 0.1, 50), np.zeros(50), np.zeros(50)])
-    for bad in (-0.001, cfg.torch_offset):
+    for bad in (-0.001, tool.torch_offset):
         with pytest.raises(InputError, match="seam_offset"):
-            algorithm2_plan(P, cfg, motion, seam_offset=bad)
-    plan = algorithm2_plan(P, cfg, motion, process=True, seam_offset=0.002)
+            algorithm2_plan(P, servo, tool, motion, seam_offset=bad)
+    plan = algorithm2_plan(P, servo, tool, motion, process=True, seam_offset=0.002)
     law = make_algorithm2(plan)
     assert law.p.process is True and law.p.seam_offset == 0.002
     with pytest.raises(InputError, match="process"):

@@ -25,7 +25,7 @@ def test_scanner_options_are_read_with_units_converted() -> None:
                 "depth_intrinsics_px": [504.0, 504.5, 319.5, 287.5],
                 "depth_min_mm": 250,
                 "depth_max_mm": 3860,
-                "capture_timeout": 2.5,
+                "capture_timeout_s": 2.5,
                 "replay_units": "mm",
                 "resolution_scale": 0.25,
             }

@@ -16,7 +16,8 @@ from celld import se3
 from celld.cli import main as celld_main
 from celld.errors import GrooveError, RegistrationError, ScanError, SeamError
 from celld.sim import workpiece as simscene
-from celld.seam.pipeline import SeamParams, find_seam, prepare
+from celld.seam.params import SeamParams
+from celld.seam.pipeline import find_seam, prepare
 from celld.seam import workpiece as wpm
 from celld.seam.workpiece import Workpiece, example, resample_polyline
 from celld.sim.scanner import SimScanner
@@ -213,13 +214,14 @@ def test_cli_prints_one_json_object(vgroove_scan, tmp_path, capsys) -> None:
 
 def test_seam_config_table_is_read_and_checked() -> None:
     from celld.config import TableReader
+    from celld.config.sections import read_seam
     from celld.errors import ConfigError
 
-    r = TableReader({"preset": "azure-kinect", "spacing_mm": 2, "seam_source": "groove", "finger_wall": "right"}, "cell.toml", "seam")
-    params = SeamParams.read(r)
+    r = TableReader({"preset": "azure-kinect", "spacing_mm": 2, "seam_source": "groove"}, "cell.toml", "seam")
+    params = read_seam(r, "phoxi-m", "right")
     r.done()
     assert params.spacing == pytest.approx(0.002)
     assert (params.seam_source, params.finger_wall, params.table_z) == ("groove", "right", None)
     assert params.registration.voxel == SeamParams.for_scanner("azure-kinect").registration.voxel
     with pytest.raises(ConfigError, match="seam.seam_source"):
-        SeamParams.read(TableReader({"seam_source": "cad"}, "cell.toml", "seam"))
+        read_seam(TableReader({"seam_source": "cad"}, "cell.toml", "seam"), "phoxi-m", "left")

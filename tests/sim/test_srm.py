@@ -61,11 +61,11 @@ def _tool_pose(y: float) -> np.ndarray:
 
 
 def test_a_frame_carries_the_contact_truth_in_the_tool_frame() -> None:
-    from celld.config import TactileConfig
+    from celld.config import TactileConfig, ToolConfig
     from celld.sim.srm import SimSrm
 
     # A wall on the tool's left (+y of the plane) along +x; the tip is 0.5 mm into it.
-    srm = SimSrm(TactileConfig(), Wall(np.array([[-0.05, 0.0], [0.05, 0.0]]), free=-1.0), np.eye(4))
+    srm = SimSrm(TactileConfig(), ToolConfig(), Wall(np.array([[-0.05, 0.0], [0.05, 0.0]]), free=-1.0), np.eye(4))
     f = srm.frame(0, _tool_pose(-0.0005), np.array([0.01, 0.0, 0.0]), 0.0)
     assert f.in_contact and not f.bottomed
     # Eq. 15's delta: 0.5 mm towards the wall (normal), friction drag along the motion (tangential).
@@ -77,11 +77,11 @@ def test_a_frame_carries_the_contact_truth_in_the_tool_frame() -> None:
 
 
 def test_the_simulated_camera_keeps_its_frame_rate_and_skips_frames_it_missed() -> None:
-    from celld.config import TactileConfig
+    from celld.config import TactileConfig, ToolConfig
     from celld.sim.srm import SimSrm, SimSrmCamera
 
     now = [0]
-    srm = SimSrm(TactileConfig(), Wall(np.array([[-0.05, 0.0], [0.05, 0.0]]), free=-1.0), np.eye(4))
+    srm = SimSrm(TactileConfig(), ToolConfig(), Wall(np.array([[-0.05, 0.0], [0.05, 0.0]]), free=-1.0), np.eye(4))
     cam = SimSrmCamera(srm, lambda t: (_tool_pose(-0.003), np.zeros(6)), lambda: now[0],
                        lambda s: now.__setitem__(0, now[0] + int(s * 1e9)))
     cam.open()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from celld.config import TactileConfig
+from celld.config import TactileConfig, ToolConfig
 from celld.se3 import invert
 from celld.sim.srm import Imaging, TagRenderer, tag_pose_tool
 from celld.tactile.aruco import TagDetector
@@ -17,7 +17,8 @@ class Scene:
 
     def __init__(self, cfg: TactileConfig, seed: int = 1, tag_id: int | None = None) -> None:
         self.cfg = cfg
-        self.tool = ToolGeometry.from_config(cfg)
+        self.tool_cfg = ToolConfig()
+        self.tool = ToolGeometry.from_config(self.tool_cfg)
         self.renderer = TagRenderer(
             cfg.tag_dictionary, cfg.tag_id if tag_id is None else tag_id, cfg.tag_size, cfg.intrinsics_px,
             (cfg.width_px, cfg.height_px), seed=seed,

@@ -8,7 +8,7 @@ import uuid
 import numpy as np
 import pytest
 
-from celld.config import TactileConfig
+from celld.config import TactileConfig, ToolConfig
 from celld.errors import DeviceError
 from celld.shm import SeqlockSlot
 from celld.sim.srm import SimSrm, SimSrmCamera, SrmSimParams, Wall
@@ -48,13 +48,13 @@ class Rig:
         self.cfg = TactileConfig(tare_frames=10)
         self.clock = FakeClock()
         self.y = y
-        srm = SimSrm(self.cfg, WALL, T_PLANE, SrmSimParams(seed=3, lighting_swing=0.1))
+        srm = SimSrm(self.cfg, ToolConfig(), WALL, T_PLANE, SrmSimParams(seed=3, lighting_swing=0.1))
         self.camera = SimSrmCamera(srm, lambda stamp: (_pose(self.y), np.zeros(6)), self.clock, self.clock.sleep)
         self.camera.open()
         tag = uuid.uuid4().hex[:8]
         self.samples = SeqlockSlot.create(f"t-{tag}-s", TACTILE_DTYPE)
         self.counters = SeqlockSlot.create(f"t-{tag}-c", COUNTERS_DTYPE)
-        self.est = FrameEstimator(self.cfg)
+        self.est = FrameEstimator(self.cfg, ToolConfig())
         self.written = []
         orig = self.samples.write
 
@@ -154,7 +154,7 @@ def test_opencv_camera_that_is_absent_is_refused_then_reads_as_lost() -> None:
 @pytest.mark.slow
 def test_tactile_process_refuses_to_start_without_its_camera() -> None:
     cfg = TactileConfig(kind="opencv", device="/dev/celld-no-such-camera")
-    proc = TactileProcess(cfg, f"t-{uuid.uuid4().hex[:8]}")
+    proc = TactileProcess(cfg, ToolConfig(), f"t-{uuid.uuid4().hex[:8]}")
     try:
         with pytest.raises(DeviceError, match="exited at start"):
             proc.start(timeout=20.0)
@@ -200,7 +200,7 @@ def test_a_killed_tactile_process_restarts_on_the_same_slots(sim_robot) -> None:
 
     cfg = TactileConfig(fps=30.0, tare_frames=5)
     far_wall = np.array([[100.0, 100.0], [101.0, 100.0]])  # the finger touches nothing
-    proc = TactileProcess(cfg, f"t-{uuid.uuid4().hex[:8]}", SimSrmSource(sim_robot.host, far_wall, -1.0, np.eye(4)))
+    proc = TactileProcess(cfg, ToolConfig(), f"t-{uuid.uuid4().hex[:8]}", SimSrmSource(sim_robot.host, far_wall, -1.0, np.eye(4)))
 
     def tared_by(pid_not: int) -> int:
         deadline = time.monotonic() + 30.0

@@ -38,7 +38,7 @@ def test_pressing_a_wall_on_the_left_reads_as_positive_normal_delta(scene: Scene
 
 def test_estimate_gives_a_valid_sample_with_contact_and_confidence(scene: Scene) -> None:
     rest = _tare(scene)
-    params = DeformationParams.from_config(scene.cfg)
+    params = DeformationParams.from_config(scene.cfg, scene.tool_cfg)
     det = scene.detect(np.array([0.0, -1.5e-3, 0.0]))
     s = estimate(det, rest, params, stamp_ns=123, seq=4, previous=ContactState.NONE, detect_ns=1000)
     assert s.valid and s.status == TactileStatus.OK
@@ -52,7 +52,7 @@ def test_estimate_gives_a_valid_sample_with_contact_and_confidence(scene: Scene)
 
 def test_a_failed_detection_never_reads_as_zero_deformation(scene: Scene) -> None:
     rest = _tare(scene)
-    params = DeformationParams.from_config(scene.cfg)
+    params = DeformationParams.from_config(scene.cfg, scene.tool_cfg)
     det = scene.detector.detect(scene.renderer.render(None))
     s = estimate(det, rest, params, 5, 1, ContactState.CONTACT, 0)
     assert not s.valid

@@ -1,0 +1,134 @@
+"""The whole cell config: the sections together, the files and their includes.
+
+A file may ``include = ["robots/ur10e.toml", ...]`` other files (paths relative
+to it); later values override earlier ones, table by table. :func:`load`
+reads a file and its includes, :func:`parse` validates the merged tables into
+a :class:`Config`: every section, then the rules between sections
+(:func:`~celld.config.tactile.check_servo`).
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from celld.config.reader import TableReader
+from celld.config.sections import (
+    BusConfig,
+    CalibrationConfig,
+    CellConfig,
+    MotionLimits,
+    RecordingConfig,
+    RobotConfig,
+    ScannerConfig,
+    SimConfig,
+    WeldConfig,
+    read_seam,
+)
+from celld.config.tactile import ServoConfig, TactileConfig, ToolConfig, check_servo
+from celld.errors import ConfigError
+from celld.seam.params import SeamParams
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole cell configuration; every section validated."""
+
+    source: str = "<defaults>"
+    cell: CellConfig = field(default_factory=CellConfig)
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    motion: MotionLimits = field(default_factory=MotionLimits)
+    scanner: ScannerConfig = field(default_factory=ScannerConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    tactile: TactileConfig = field(default_factory=TactileConfig)
+    tool: ToolConfig = field(default_factory=ToolConfig)
+    servo: ServoConfig = field(default_factory=ServoConfig)
+    bus: BusConfig = field(default_factory=BusConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+    weld: WeldConfig = field(default_factory=WeldConfig)
+    # The seam finder: the scanner's preset, with the file's [seam] table over it.
+    seam: SeamParams = field(default_factory=SeamParams)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+    def T_base_cam_nominal(self) -> np.ndarray:
+        return np.array(self.scanner.T_base_cam, dtype=np.float64)
+
+
+# The sections each read from their own table, in order.
+_SECTIONS: dict[str, Callable[[TableReader], Any]] = {
+    "cell": CellConfig.read,
+    "robot": RobotConfig.read,
+    "motion": MotionLimits.read,
+    "scanner": ScannerConfig.read,
+    "calibration": CalibrationConfig.read,
+    "tactile": TactileConfig.read,
+    "tool": ToolConfig.read,
+    "servo": ServoConfig.read,
+    "bus": BusConfig.read,
+    "recording": RecordingConfig.read,
+    "weld": WeldConfig.read,
+    "sim": SimConfig.read,
+}
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def _read_toml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    source = str(path)
+    if path in seen:
+        raise ConfigError(source, "include", "include cycle: " + " -> ".join(str(p) for p in seen + (path,)))
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise ConfigError(source, "", "file not found") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(source, "", f"cannot read: {exc}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(source, "", f"not valid TOML: {exc}") from exc
+    includes = data.pop("include", [])
+    if not isinstance(includes, list) or not all(isinstance(i, str) for i in includes):
+        raise ConfigError(source, "include", f"expected a list of file paths, got {includes!r}")
+    merged: dict[str, Any] = {}
+    for inc in includes:
+        merged = _merge(merged, _read_toml((path.parent / inc).resolve(), seen + (path,)))
+    return _merge(merged, data)
+
+
+def parse(data: dict[str, Any], source: str = "<dict>") -> Config:
+    """Validate a TOML-shaped dict into a :class:`Config`."""
+    top = TableReader(data, source)
+    values: dict[str, Any] = {"source": source}
+    for name, reader in _SECTIONS.items():
+        sub = top.table(name)
+        values[name] = reader(sub)
+        sub.done()
+    sub = top.table("seam")
+    values["seam"] = read_seam(sub, values["scanner"].model, values["tool"].wall_side)
+    sub.done()
+    top.done()
+    check_servo(values["servo"], values["tactile"], values["tool"], source)
+    return Config(**values)
+
+
+def load(path: str | Path) -> Config:
+    """Load and validate a config file (and its includes).
+
+    Raises
+    ------
+    ConfigError
+        The file, the dotted key and the reason of the first problem found.
+    """
+    path = Path(path).resolve()
+    return parse(_read_toml(path), str(path))

@@ -1,0 +1,439 @@
+"""The cell config's sections other than the welding tool's: one frozen dataclass each, and the seam finder's table.
+
+Each section reads its own TOML table through a
+:class:`~celld.config.reader.TableReader` (types, ranges, unit suffixes
+converted to SI) and refuses keys it does not know, including keys that were
+renamed (the reader names the new key).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import math
+from dataclasses import dataclass, replace
+
+from celld.bus.keys import check_prefix
+from celld.config.reader import TableReader
+from celld.errors import BusError
+from celld.seam.params import PRESETS as SEAM_PRESETS
+from celld.seam.params import SEAM_SOURCES, SeamParams
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    """Identity of the cell and where it keeps its state."""
+
+    name: str = "cell"
+    state_dir: str = "/var/lib/celld"
+
+    @classmethod
+    def read(cls, r: TableReader) -> CellConfig:
+        name = r.str("name", "cell")
+        if not name or not all(c.isalnum() or c in "-_" for c in name):
+            raise r.error("name", f"expected letters, digits, '-' or '_' (it is a zenoh key part), got {name!r}")
+        return cls(name=name, state_dir=r.str("state_dir", "/var/lib/celld"))
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """The robot link: where the controller is and what the cell allows it."""
+
+    model: str = "ur10e"
+    host: str = "127.0.0.1"
+    frequency_hz: float = 500.0
+    connect_timeout: float = 10.0
+    # Workspace box of the TCP in the base frame, metres.
+    workspace_min: tuple[float, float, float] = (-1.2, -1.2, -0.05)
+    workspace_max: tuple[float, float, float] = (1.2, 1.2, 1.4)
+    # Pose of the TCP in the flange frame, UR pose [x, y, z, rx, ry, rz].
+    tcp_offset: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    home_q: tuple[float, ...] = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
+    # Standard digital output (0..7) that switches the process (the welding
+    # arc), driven by the motion loop; -1: the cell has none.
+    arc_output: int = -1
+
+    @classmethod
+    def read(cls, r: TableReader) -> RobotConfig:
+        r.refuse_moved({"connect_timeout": "robot.connect_timeout_s (seconds)"})
+        wmin = r.vector("workspace_min", 3, list(cls.workspace_min))
+        wmax = r.vector("workspace_max", 3, list(cls.workspace_max))
+        if not all(a < b for a, b in zip(wmin, wmax)):
+            raise r.error("workspace_max", f"expected every value above workspace_min {wmin}, got {wmax}")
+        return cls(
+            model=r.str("model", "ur10e", choices=("ur10e", "ur5e", "ur5")),
+            host=r.str("host", "127.0.0.1"),
+            frequency_hz=r.float("frequency_hz", 500.0, lo=1.0, hi=500.0),
+            connect_timeout=r.float("connect_timeout_s", 10.0, lo=0.1, hi=120.0),
+            workspace_min=wmin,  # type: ignore[arg-type]
+            workspace_max=wmax,  # type: ignore[arg-type]
+            tcp_offset=r.vector("tcp_offset", 6, list(cls.tcp_offset)),
+            home_q=r.vector("home_q", 6, list(cls.home_q)),
+            arc_output=r.int("arc_output", cls.arc_output, lo=-1, hi=7),
+        )
+
+
+@dataclass(frozen=True)
+class MotionLimits:
+    """Cartesian limits every command obeys in every cycle (SI)."""
+
+    max_linear_speed: float = 0.25  # m/s
+    max_linear_accel: float = 1.0  # m/s^2
+    max_linear_jerk: float = 10.0  # m/s^3
+    max_angular_speed: float = 1.0  # rad/s
+    max_angular_accel: float = 4.0  # rad/s^2
+    max_angular_jerk: float = 40.0  # rad/s^3
+    # A tactile sample older than this stops a servo, seconds.
+    tactile_stale: float = 0.1
+    # Robot state older than this many cycles stops the loop.
+    state_stale_cycles: int = 3
+    # Without fresh robot state for this long the link counts as lost, s.
+    link_timeout: float = 0.1
+    # RTDE watchdog: the controller stops its program after 1/rate s without a kick.
+    rtde_watchdog_hz: float = 10.0
+
+    @classmethod
+    def read(cls, r: TableReader) -> MotionLimits:
+        return cls(
+            max_linear_speed=r.float("max_linear_speed", cls.max_linear_speed, lo=0.0, hi=1.0, open_lo=True),
+            max_linear_accel=r.float("max_linear_accel", cls.max_linear_accel, lo=0.0, hi=10.0, open_lo=True),
+            max_linear_jerk=r.float("max_linear_jerk", cls.max_linear_jerk, lo=0.0, hi=1000.0, open_lo=True),
+            max_angular_speed=r.float("max_angular_speed", cls.max_angular_speed, lo=0.0, hi=3.14, open_lo=True),
+            max_angular_accel=r.float("max_angular_accel", cls.max_angular_accel, lo=0.0, hi=40.0, open_lo=True),
+            max_angular_jerk=r.float("max_angular_jerk", cls.max_angular_jerk, lo=0.0, hi=4000.0, open_lo=True),
+            tactile_stale=r.float("tactile_stale_ms", cls.tactile_stale * 1e3, lo=1.0, hi=5000.0, scale=1e-3),
+            state_stale_cycles=r.int("state_stale_cycles", cls.state_stale_cycles, lo=1, hi=50),
+            link_timeout=r.float("link_timeout_ms", cls.link_timeout * 1e3, lo=4.0, hi=5000.0, scale=1e-3),
+            rtde_watchdog_hz=r.float("rtde_watchdog_hz", cls.rtde_watchdog_hz, lo=1.0, hi=500.0),
+        )
+
+
+SCANNER_KINDS = ("sim", "replay", "phoxi", "azure-kinect", "realsense")
+SCANNER_MODELS = ("phoxi-s", "phoxi-m", "azure-kinect")
+
+
+@dataclass(frozen=True)
+class ScannerConfig:
+    """The 3D scanner above the table."""
+
+    kind: str = "sim"
+    model: str = "phoxi-m"
+    # Nominal pose of the camera in the base frame. For the simulated scanner it
+    # is the truth the simulator renders with; celld never reads it as an
+    # estimate: calibration starts without it.
+    T_base_cam: tuple[tuple[float, ...], ...] = (
+        (0.0, -1.0, 0.0, 0.6),
+        (-1.0, 0.0, 0.0, -0.0125),
+        (0.0, 0.0, -1.0, 1.0),
+        (0.0, 0.0, 0.0, 1.0),
+    )
+    replay_dir: str = ""
+    # Length unit of the replayed files ("m" or "mm"); converted once when read.
+    replay_units: str = "m"
+    # Start again at the first file after the last one (else the replay ends with an error).
+    replay_loop: bool = False
+    # Serial number (Photoneo), device index (Azure Kinect) or serial (RealSense); "" for the first.
+    device: str = ""
+    seed: int = 0
+    # Image resolution of the simulated scanner relative to the model's (0.01 to 1).
+    resolution_scale: float = 1.0
+    # GenTL producer (.cti) for the Photoneo driver; "" searches GENICAM_GENTL64_PATH.
+    gentl_producer: str = ""
+    # Longest wait for one frame from a real scanner, s.
+    capture_timeout: float = 10.0
+    # Depth-camera intrinsics fx, fy, cx, cy (pixels) where the SDK does not report
+    # them (Azure Kinect through Open3D); () when not given.
+    depth_intrinsics_px: tuple[float, ...] = ()
+    # Depth kept by depth cameras, m: nearer or farther returns become NaN.
+    depth_min: float = 0.1
+    depth_max: float = 6.0
+
+    @classmethod
+    def read(cls, r: TableReader) -> ScannerConfig:
+        r.refuse_moved({"capture_timeout": "scanner.capture_timeout_s (seconds)"})
+        depth_min = r.float("depth_min_mm", cls.depth_min * 1e3, lo=0.0, hi=20_000.0, scale=1e-3)
+        depth_max = r.float("depth_max_mm", cls.depth_max * 1e3, lo=0.0, hi=20_000.0, scale=1e-3, open_lo=True)
+        if not depth_min < depth_max:
+            raise r.error("depth_max_mm", f"expected more than depth_min_mm ({depth_min * 1e3}), got {depth_max * 1e3}")
+        intrinsics: tuple[float, ...] = ()
+        if r.has("depth_intrinsics_px"):
+            intrinsics = r.vector("depth_intrinsics_px", 4)
+            if intrinsics[0] <= 0.0 or intrinsics[1] <= 0.0:
+                raise r.error("depth_intrinsics_px", f"expected positive focal lengths fx, fy, got {intrinsics[:2]}")
+        return cls(
+            kind=r.str("kind", "sim", choices=SCANNER_KINDS),
+            model=r.str("model", "phoxi-m", choices=SCANNER_MODELS),
+            T_base_cam=r.matrix4("T_base_cam", [list(row) for row in cls.T_base_cam]),
+            replay_dir=r.str("replay_dir", ""),
+            replay_units=r.str("replay_units", cls.replay_units, choices=("m", "mm")),
+            replay_loop=r.bool("replay_loop", cls.replay_loop),
+            device=r.str("device", ""),
+            seed=r.int("seed", 0, lo=0),
+            resolution_scale=r.float("resolution_scale", cls.resolution_scale, lo=0.01, hi=1.0),
+            gentl_producer=r.str("gentl_producer", ""),
+            capture_timeout=r.float("capture_timeout_s", cls.capture_timeout, lo=0.1, hi=600.0),
+            depth_intrinsics_px=intrinsics,
+            depth_min=depth_min,
+            depth_max=depth_max,
+        )
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Flange-based hand-eye calibration (Algorithm 1)."""
+
+    flange: str = "ur10e"
+    e_required: float = 0.0005  # m, cost target of Algorithm 1
+    k_max: int = 30
+    n_poses: int = 20
+    cost: str = "translation"  # or "se3" (the 6-vector with the work radius)
+    work_radius: float = 0.5  # m, r of the se3 cost
+    settle: float = 0.3  # s after a move before capture
+    auto_accept: bool = False
+    # Pose generation box around the verification pose, metres, and max tilt.
+    pose_box: tuple[float, float, float] = (0.3, 0.3, 0.2)
+    max_tilt: float = 0.3  # rad
+    verification_pose: tuple[float, ...] = (0.6, 0.0, 0.45, 0.0, 0.0, 0.0)
+    # Estimator of T_base_cam: robust (every consistent pair), svd (all pairs,
+    # Eq. 9-12) or algorithm1 (the optimum pool of Algorithm 1).
+    method: str = "robust"
+    compensate: bool = False  # also report Eq. 21's compensated estimate
+    # e_icp (Eq. 13): ICP correspondence distance (m; about 3x the scanner's
+    # point noise or more), verification points used, model point spacing (m).
+    icp_max_distance: float = 0.003
+    icp_points: int = 1000
+    model_spacing: float = 0.002
+
+    @classmethod
+    def read(cls, r: TableReader) -> CalibrationConfig:
+        r.refuse_moved({"settle": "calibration.settle_s (seconds)"})
+        return cls(
+            flange=r.str("flange", cls.flange),
+            e_required=r.float("e_required_mm", cls.e_required * 1e3, lo=0.0, hi=100.0, scale=1e-3),
+            k_max=r.int("k_max", cls.k_max, lo=1, hi=10_000),
+            n_poses=r.int("n_poses", cls.n_poses, lo=4, hi=1000),
+            cost=r.str("cost", cls.cost, choices=("translation", "se3")),
+            work_radius=r.float("work_radius", cls.work_radius, lo=0.0, hi=10.0, open_lo=True),
+            settle=r.float("settle_s", cls.settle, lo=0.0, hi=10.0),
+            auto_accept=r.bool("auto_accept", False),
+            pose_box=r.vector("pose_box", 3, list(cls.pose_box)),  # type: ignore[arg-type]
+            max_tilt=r.float("max_tilt_deg", math.degrees(cls.max_tilt), lo=0.0, hi=60.0, scale=math.pi / 180),
+            verification_pose=r.vector("verification_pose", 6, list(cls.verification_pose)),
+            method=r.str("method", cls.method, choices=("robust", "svd", "algorithm1")),
+            compensate=r.bool("compensate", False),
+            icp_max_distance=r.float(
+                "icp_max_distance_mm", cls.icp_max_distance * 1e3, lo=0.0, hi=100.0, scale=1e-3, open_lo=True
+            ),
+            icp_points=r.int("icp_points", cls.icp_points, lo=10, hi=1_000_000),
+            model_spacing=r.float("model_spacing_mm", cls.model_spacing * 1e3, lo=0.1, hi=10.0, scale=1e-3),
+        )
+
+
+@dataclass(frozen=True)
+class BusUser:
+    """A user the bus accepts (zenoh user/password authentication) and its role."""
+
+    name: str
+    password: str
+    role: str  # operator: may submit, cancel and accept, and read | viewer: may only read
+
+
+BUS_ROLES = ("operator", "viewer")
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """The zenoh bus: mode, endpoints and access control (see :mod:`celld.bus.session`).
+
+    With no ``users`` the bus is open (loopback development and the simulated
+    cell). With users, every link must authenticate with one of them and
+    zenoh's access control gives each its role's rights.
+    """
+
+    mode: str = "peer"  # peer | client | router
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:0",)
+    connect: tuple[str, ...] = ()
+    prefix: str = "celld"
+    state_rate_hz: float = 20.0
+    users: tuple[BusUser, ...] = ()
+    # The credentials this process presents when it connects (clients, the CLI,
+    # a daemon in client mode or linking to peers that require authentication).
+    user: str = ""
+    password: str = ""
+    # Multicast and gossip scouting: off keeps a loopback bus to the configured endpoints.
+    multicast_scouting: bool = False
+    # How long a client waits for a link to the cell, and for a reply, s.
+    connect_timeout: float = 3.0
+    query_timeout: float = 5.0
+
+    @classmethod
+    def read(cls, r: TableReader) -> BusConfig:
+        r.refuse_moved({"connect_timeout": "bus.connect_timeout_s (seconds)", "query_timeout": "bus.query_timeout_s (seconds)"})
+        listen = r._get("listen", list(cls.listen))
+        connect = r._get("connect", list(cls.connect))
+        for key, value in (("listen", listen), ("connect", connect)):
+            if not isinstance(value, list) or not all(isinstance(v, str) and "/" in v for v in value):
+                raise r.error(key, f"expected a list of zenoh endpoints such as \"tcp/127.0.0.1:7447\", got {value!r}")
+        users_raw = r._get("users", [])
+        if not isinstance(users_raw, list):
+            raise r.error("users", "expected an array of tables [[bus.users]]")
+        users: list[BusUser] = []
+        for i, u in enumerate(users_raw):
+            ur = TableReader(u, r.source, r.key(f"users[{i}]"))
+            user = BusUser(ur.str("name"), ur.str("password"), ur.str("role", choices=BUS_ROLES))
+            if not user.name or any(c in user.name for c in ": \t\r\n"):
+                raise ur.error("name", f"expected a name without ':' or white space, got {user.name!r}")
+            if not user.password or any(c in user.password for c in "\r\n"):
+                raise ur.error("password", "expected a non-empty password on one line")
+            if any(u.name == user.name for u in users):
+                raise ur.error("name", f"user {user.name!r} is given twice")
+            ur.done()
+            users.append(user)
+        prefix = r.str("prefix", cls.prefix)
+        try:
+            check_prefix(prefix)
+        except BusError as exc:
+            raise r.error("prefix", str(exc)) from exc
+        user, password = r.str("user", ""), r.str("password", "")
+        if bool(user) != bool(password):
+            raise r.error("password" if user else "user", "expected user and password together, or neither")
+        return cls(
+            mode=r.str("mode", cls.mode, choices=("peer", "client", "router")),
+            listen=tuple(listen),
+            connect=tuple(connect),
+            prefix=prefix,
+            state_rate_hz=r.float("state_rate_hz", cls.state_rate_hz, lo=0.1, hi=500.0),
+            users=tuple(users),
+            user=user,
+            password=password,
+            multicast_scouting=r.bool("multicast_scouting", False),
+            connect_timeout=r.float("connect_timeout_s", cls.connect_timeout, lo=0.05, hi=120.0),
+            query_timeout=r.float("query_timeout_s", cls.query_timeout, lo=0.05, hi=600.0),
+        )
+
+
+@dataclass(frozen=True)
+class RecordingConfig:
+    """rerun recordings: one .rrd per job, and optional live viewing."""
+
+    enabled: bool = True
+    serve_grpc_port: int = 0  # 0: no live server
+    # Address the live server binds; loopback unless viewers elsewhere must reach it.
+    serve_grpc_host: str = "127.0.0.1"
+    connect_url: str = ""  # a viewer to stream to, e.g. rerun+http://127.0.0.1:9876/proxy
+    # Clouds are thinned to this many points when logged (0: all); the full
+    # clouds belong in the job's dataset, not in the recording.
+    max_cloud_points: int = 200_000
+    # JPEG quality of logged SRM camera frames (0: raw pixels).
+    image_jpeg_quality: int = 85
+
+    @classmethod
+    def read(cls, r: TableReader) -> RecordingConfig:
+        host = r.str("serve_grpc_host", cls.serve_grpc_host)
+        try:
+            ipaddress.ip_address(host)
+        except ValueError as exc:
+            raise r.error("serve_grpc_host", f"expected an IP address such as 127.0.0.1, got {host!r}") from exc
+        url = r.str("connect_url", "")
+        if url and not (url.startswith(("rerun://", "rerun+http://", "rerun+https://")) and url.endswith("/proxy")):
+            raise r.error("connect_url", f"expected rerun+http://<host>:<port>/proxy (or rerun://, rerun+https://), got {url!r}")
+        return cls(
+            enabled=r.bool("enabled", True),
+            serve_grpc_port=r.int("serve_grpc_port", 0, lo=0, hi=65535),
+            serve_grpc_host=host,
+            connect_url=url,
+            max_cloud_points=r.int("max_cloud_points", cls.max_cloud_points, lo=0),
+            image_jpeg_quality=r.int("image_jpeg_quality", cls.image_jpeg_quality, lo=0, hi=100),
+        )
+
+
+@dataclass(frozen=True)
+class WeldConfig:
+    """The weld job: which part, where the arm waits while the scanner looks,
+    and how the SRM finger meets the seam.
+
+    Poses are UR poses of the TCP ``[x, y, z, rx, ry, rz]`` (m, rad). Heights
+    are measured along the seam plane's normal (the approach direction).
+    """
+
+    # The part the cell welds when a job names none: an example name
+    # (v-groove, fillet-t, curved-groove) or a model in workpiece_dir.
+    workpiece: str = ""
+    # Directory of user parts: <name>.stl|.ply|.obj with <name>.seam.json|.csv.
+    workpiece_dir: str = ""
+    workpiece_units: str = "mm"  # units of the user meshes
+    # Where the fixture holds the part (the registration's window is around it);
+    # empty: anywhere the scan shows it.
+    nominal_pose: tuple[float, ...] = ()
+    # TCP pose while the scanner looks at the part: the arm out of its view.
+    scan_pose: tuple[float, ...] = (0.45, -0.35, 0.5, 1.5708, 0.0, 0.0)
+    # SRM tip centre above the seam while tracking, m.
+    tip_height: float = 0.004
+    # The tool comes down onto the seam from this far above the tracking height, m.
+    approach_height: float = 0.03
+    # ... and leaves it this far up when the weld ends (or fails), m.
+    retract_height: float = 0.05
+    # Share of the motion limits used by the moves of a weld job.
+    speed_scale: float = 0.5
+    # The longest a weld may run before it is stopped, s.
+    timeout: float = 600.0
+
+    @classmethod
+    def read(cls, r: TableReader) -> WeldConfig:
+        nominal = r.vector("nominal_pose", 6, list(cls.nominal_pose)) if r.has("nominal_pose") else ()
+        return cls(
+            workpiece=r.str("workpiece", cls.workpiece),
+            workpiece_dir=r.str("workpiece_dir", cls.workpiece_dir),
+            workpiece_units=r.str("workpiece_units", cls.workpiece_units, choices=("mm", "m")),
+            nominal_pose=nominal,
+            scan_pose=r.vector("scan_pose", 6, list(cls.scan_pose)),
+            tip_height=r.float("tip_height_mm", cls.tip_height * 1e3, lo=0.0, hi=50.0, scale=1e-3),
+            approach_height=r.float("approach_height_mm", cls.approach_height * 1e3, lo=1.0, hi=500.0, scale=1e-3),
+            retract_height=r.float("retract_height_mm", cls.retract_height * 1e3, lo=1.0, hi=500.0, scale=1e-3),
+            speed_scale=r.float("speed_scale", cls.speed_scale, lo=0.0, hi=1.0, open_lo=True),
+            timeout=r.float("timeout_s", cls.timeout, lo=1.0, hi=36_000.0),
+        )
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The simulated cell's truth: what the simulated devices show.
+
+    Read only by the simulated devices (the scanner's scene, the SRM's wall);
+    no estimator sees it. ``workpiece`` empty: the table is bare.
+    """
+
+    workpiece: str = ""
+    # The part's true pose on the table (model frame in base), UR pose; empty:
+    # the simulator's nominal place (celld.sim.workpiece).
+    workpiece_pose: tuple[float, ...] = ()
+    # The true V-groove bows sideways by this much at mid-length (tack-weld
+    # distortion) where its model is straight, m.
+    workpiece_bow: float = 0.0
+
+    @classmethod
+    def read(cls, r: TableReader) -> SimConfig:
+        pose = r.vector("workpiece_pose", 6, []) if r.has("workpiece_pose") else ()
+        return cls(
+            workpiece=r.str("workpiece", cls.workpiece),
+            workpiece_pose=pose,
+            workpiece_bow=r.float("workpiece_bow_mm", 0.0, lo=-10.0, hi=10.0, scale=1e-3),
+        )
+
+
+def read_seam(r: TableReader, scanner_model: str, finger_wall: str) -> SeamParams:
+    """Read the ``[seam]`` table: the scanner's preset with ``seam_source``,
+    ``spacing_mm``, ``table_z`` (omit to measure the table),
+    ``max_model_deviation_mm`` and ``seed`` over it. The finger's wall is the
+    tool's (``[tool] wall_side``)."""
+    r.refuse_moved({"finger_wall": "[tool] wall_side (the seam's normals point to the finger's wall)"})
+    base = SeamParams.for_scanner(r.str("preset", scanner_model, choices=tuple(SEAM_PRESETS)))
+    table_z = r.float("table_z", 0.0, lo=-2.0, hi=2.0) if r.has("table_z") else None
+    return replace(
+        base,
+        seam_source=r.str("seam_source", base.seam_source, choices=SEAM_SOURCES),
+        spacing=r.float("spacing_mm", base.spacing * 1e3, lo=0.1, hi=50.0, scale=1e-3),
+        finger_wall=finger_wall,
+        table_z=table_z,
+        max_model_deviation=r.float("max_model_deviation_mm", base.max_model_deviation * 1e3, lo=0.0, hi=50.0, open_lo=True, scale=1e-3),
+        registration=replace(base.registration, seed=r.int("seed", base.registration.seed, lo=0)),
+    )
