@@ -55,7 +55,8 @@ from celld.log import configure
 from celld.sim import workpiece as simscene
 from celld.seam.params import SeamParams
 from celld.seam.pipeline import find_seam, prepare
-from celld.seam.workpiece import example, resample_polyline
+from celld import polyline  # noqa: E402
+from celld.seam.workpiece import example
 from celld.sim.scanner import SCANNER_MODELS, SimScanner
 
 OUT = Path(__file__).resolve().parent / "out" / "seam_find"
@@ -106,7 +107,7 @@ def run_case(variant: str, wp_name: str, n: int, seed: int) -> list[Row]:
     prepared = prepare(wp, params)
     sim = SimScanner(scanner, T_BASE_CAM, seed=seed)
     rng = np.random.default_rng(seed)
-    truth_obj, _ = resample_polyline(wp.seam, 2e-4)
+    truth_obj, _ = polyline.resample(wp.seam, 2e-4)
     rows = []
     for i in range(n):
         T_true = simscene.random_pose(wp, rng, MAX_ANGLE, MAX_OFFSET)
@@ -120,8 +121,8 @@ def run_case(variant: str, wp_name: str, n: int, seed: int) -> list[Row]:
             continue
         dt = time.perf_counter() - t0
         truth = se3.apply(T_true, truth_obj)
-        err = simscene.seam_error(path.points_base, truth)
-        err_model = simscene.seam_error(path.model_points_base, truth)
+        err = polyline.distance(path.points_base, truth)
+        err_model = polyline.distance(path.model_points_base, truth)
         forward = float((path.points_base[-1] - path.points_base[0]) @ (truth[-1] - truth[0])) > 0
         q = path.quality
         wrong = err.max() > WRONG_BOUND[variant] or not forward

@@ -67,7 +67,8 @@ from celld.motion.core import Action, CoreParams, CycleInput, Mode, MotionCore  
 from celld.motion.limits import CartesianLimits, sequence_peaks  # noqa: E402
 from celld.motion.servo import NAME, Algorithm2Servo, algorithm2_plan, make_algorithm2, prepare_plan  # noqa: E402
 from celld.motion.types import ControlStatus, RobotState  # noqa: E402
-from celld.sim.srm import SimSrm, SrmSimParams, Wall, _nearest_on_polyline  # noqa: E402
+from celld import polyline  # noqa: E402
+from celld.sim.srm import SimSrm, SrmSimParams, Wall  # noqa: E402
 from celld.tactile.aruco import TagDetector  # noqa: E402
 from celld.tactile.deformation import DeformationParams, estimate, tare  # noqa: E402
 from celld.tactile.sample import ContactState  # noqa: E402
@@ -205,22 +206,12 @@ class RunResult(NamedTuple):
 
 def lateral(P_true: np.ndarray, q: np.ndarray) -> tuple[float, float, bool]:
     """Signed distance of ``q`` to the seam (left positive), its arc position (m), and whether it is beside it."""
-    X, t, s_idx, inside = _nearest_on_polyline(P_true, q)
-    n = np.array([-t[1], t[0]])
-    i = min(int(s_idx), len(P_true) - 2)
-    seg = float(np.linalg.norm(P_true[i + 1] - P_true[i]))
-    arc = _arc(P_true)[i] + (s_idx - i) * seg
-    return float((q - X) @ n), arc, inside
-
-
-_ARC: dict[int, np.ndarray] = {}
-
-
-def _arc(P: np.ndarray) -> np.ndarray:
-    key = id(P)
-    if key not in _ARC:
-        _ARC[key] = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
-    return _ARC[key]
+    i, u, _ = polyline.nearest(P_true, q)
+    seg = P_true[i + 1] - P_true[i]
+    t = seg / np.linalg.norm(seg)
+    X = P_true[i] + u * seg
+    arc = polyline.arc_length(P_true)[i] + u * float(np.linalg.norm(seg))
+    return float((q - X) @ np.array([-t[1], t[0]])), arc, polyline.is_inside(P_true, i, u)
 
 
 def run_kinematic(kind: str, cfg: Config, motion: MotionLimits, quick: bool, seed: int, direct: bool = False) -> RunResult:
@@ -385,9 +376,9 @@ def summarise(kind: str, cfg: Config, motion: MotionLimits, tr: Trace, P_true: n
     ratios = sequence_peaks(twists if len(twists) else np.zeros((1, 6)), PERIOD, np.zeros((2, 6))).ratios(
         CartesianLimits.from_config(motion))
     # |n_d . n_seam| at the torch, from the truth: where the guard band is.
-    t_seam = np.array([_nearest_on_polyline(P_true, q)[1] for q in tr.torch]).reshape(-1, 2)
+    t_seam = polyline.project(tr.torch.reshape(-1, 2), P_true).tangent if len(tr.torch) else np.zeros((0, 2))
     cos_dt = np.abs(np.einsum("ij,ij->i", tr.t_d.reshape(-1, 2), t_seam))  # n_d . n_t = t_d . t_t in the plane
-    length = float(_arc(P_true)[-1])
+    length = float(polyline.arc_length(P_true)[-1])
 
     def r(x: float | None, k: int = 4) -> float | None:
         return None if x is None or not math.isfinite(x) else round(float(x), k)

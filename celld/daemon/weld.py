@@ -34,7 +34,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from celld import fsutil, se3
+from celld import fsutil, polyline, se3
 from celld.bus.schema import WeldJob
 from celld.config import Config, ServoConfig, with_overrides
 from celld.daemon.devices import CellDevices
@@ -42,7 +42,8 @@ from celld.daemon.jobs import CalibrationStore, JobContext
 from celld.errors import CelldError, ConfigError, InputError, JobError, WorkpieceError
 from celld.log import get_logger
 from celld.motion.servo import algorithm2_plan
-from celld.seam.weldpath import WeldGeometry, in_plane, start_pose, wall_offset, weld_geometry
+from celld.seam.figures import track_summary
+from celld.seam.weldpath import WeldGeometry, start_pose, wall_offset, weld_geometry
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
 from celld.tactile.tool import ToolGeometry
 
@@ -57,8 +58,6 @@ CLEARANCE = 0.004
 PROGRESS_PERIOD = 0.5
 # Seconds between SRM camera frames logged to the recording while tracking.
 PREVIEW_PERIOD = 0.2
-# Torch path points are kept at least this far apart (m).
-TORCH_STEP = 0.0005
 
 
 def resolve_workpiece(name: str, config: Config) -> Workpiece:
@@ -111,40 +110,6 @@ class _Collector:
 
     def records(self) -> np.ndarray | None:
         return np.concatenate(self.batches) if self.batches else None
-
-
-def _arc_length(P: np.ndarray) -> np.ndarray:
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
-
-
-def _thin(P: np.ndarray, step: float) -> np.ndarray:
-    """Points at least ``step`` apart along the path (first and last kept)."""
-    if len(P) < 3:
-        return P
-    keep = [0]
-    for i in range(1, len(P)):
-        if np.linalg.norm(P[i] - P[keep[-1]]) >= step:
-            keep.append(i)
-    if keep[-1] != len(P) - 1:
-        keep.append(len(P) - 1)
-    return P[keep]
-
-
-def _lateral(geometry: WeldGeometry, P_base: np.ndarray, line_base: np.ndarray) -> np.ndarray:
-    """Signed in-plane distance (m) of points from a polyline, positive towards the finger wall."""
-    Q = in_plane(geometry, P_base)
-    L = in_plane(geometry, line_base)
-    a, ab = L[:-1], np.diff(L, axis=0)
-    out = np.empty(len(Q))
-    for k, q in enumerate(Q):
-        u = np.clip(np.einsum("ij,ij->i", q - a, ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
-        X = a + u[:, None] * ab
-        i = int(np.argmin(np.einsum("ij,ij->i", X - q, X - q)))
-        n = np.array([-ab[i, 1], ab[i, 0]]) / np.linalg.norm(ab[i])
-        out[k] = float((q - X[i]) @ n)
-    # Plane y is left of the first tangent; the normals point to the finger wall.
-    side = 1.0 if float(geometry.normals[0] @ geometry.T_base_plane[:3, 1]) > 0.0 else -1.0
-    return side * out
 
 
 async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache: dict[str, Any]) -> Mapping[str, Any]:
@@ -223,7 +188,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         collector.command_id = cid
         ctx.progress("track", 0.0, "touching the seam, then tracking" + (" with the arc on" if plan.params.get("process") else " (dry run, arc off)"))
         waiting = asyncio.ensure_future(motion.wait(cid, timeout=wc.timeout))
-        s_wall = _arc_length(geometry.wall_base)
+        s_wall = polyline.arc_length(geometry.wall_base)
         try:
             last_progress = 0.0
             last_frame = 0
@@ -301,60 +266,24 @@ def _quality(seam: Any) -> dict[str, Any]:
 
 def _summarise(records: np.ndarray | None, geometry: WeldGeometry, tool: ToolGeometry, servo: ServoConfig, seam: Any,
                offset: float, out_dir: Path, rec: Any) -> dict[str, Any]:
-    """The paths and tracking figures of a finished track, written to paths.json."""
+    """The paths and tracking figures of a finished track, written to paths.json and the recording."""
     if records is None or len(records) == 0:
         raise CelldError("the servo ran but no motion record of it was read")
-    T_tcp = np.array([se3.from_ur_pose(p) for p in records["tcp_pose"]])
-    T_tool = T_tcp @ tool.T_tcp_tool
-    torch = np.einsum("nij,j->ni", T_tool[:, :3, :3], tool.torch_tool()) + T_tool[:, :3, 3]
-    refined = records["refined_base"]
-    refined = refined[np.all(np.isfinite(refined), axis=1)]
-    if len(refined):
-        keep = np.concatenate([[True], np.any(np.diff(refined, axis=0) != 0.0, axis=1)])
-        refined = refined[keep]
-    tracking = records["servo_phase"] == 1
-    torch_weld = _thin(torch[records["process_on"]] if records["process_on"].any() else torch[tracking], TORCH_STEP)
-    delta_n = records["delta_n"][tracking]
-    delta_n = delta_n[np.isfinite(delta_n)]
-    e_delta = np.abs(np.abs(delta_n) - servo.delta_d) if len(delta_n) else np.zeros(0)
-    corr = _lateral(geometry, refined, geometry.seam_base) if len(refined) > 1 else np.zeros(0)
+    track = track_summary(records, geometry, tool, servo.delta_d)
     paths = {
         "frame": "base", "units": "m",
         "planned": geometry.seam_base.tolist(),
         "planned_wall": geometry.wall_base.tolist(),
-        "refined": refined.tolist(),
-        "torch": torch_weld.tolist(),
+        "refined": track.refined.tolist(),
+        "torch": track.torch.tolist(),
     }
     path_file = fsutil.write_json(out_dir / "paths.json", paths)
     if rec is not None:
-        if len(refined) > 1:
-            rec.log_path_base("refined", refined)
-        if len(torch_weld) > 1:
-            rec.log_path_base("torch", torch_weld)
-    t = (records["t_ns"] - records["t_ns"][0]) * 1e-9
-    # Frame to command: the cycle that first used a frame sent its command work_ns after
-    # waking, and the frame was tactile_age_ns old at the wake-up.
-    fresh = np.concatenate([[False], np.diff(records["tactile_seq"]) != 0]) & (records["tactile_age_ns"] >= 0)
-    latency_ms = (records["tactile_age_ns"][fresh] + records["work_ns"][fresh]) * 1e-6
-    omega = np.abs(records["twist"][:, 3:]).max() if len(records) else 0.0
-    figures = {
-        "duration_s": round(float(t[-1]), 3),
-        "tracked_mm": round(float(_arc_length(refined)[-1]) * 1e3, 2) if len(refined) > 1 else 0.0,
-        "arc_on_s": round(float(records["process_on"].sum()) * float(np.median(np.diff(t))) if len(t) > 1 else 0.0, 3),
-        "delta_n_error_rms_mm": round(float(np.sqrt(np.mean(e_delta**2))) * 1e3, 4) if len(e_delta) else None,
-        "correction_rms_mm": round(float(np.sqrt(np.mean(corr**2))) * 1e3, 4) if len(corr) else None,
-        "correction_max_mm": round(float(np.abs(corr).max()) * 1e3, 4) if len(corr) else None,
-        "omega_peak": round(float(omega), 5),
-        "wall_offset_mm": round(offset * 1e3, 4),
-        # The motion loop while the servo ran: wake-up lateness (ms) and cycles more than 2 ms late.
-        "loop_late_p99_ms": round(float(np.percentile(records["late_ns"], 99)) * 1e-6, 3),
-        "loop_late_max_ms": round(float(records["late_ns"].max()) * 1e-6, 3),
-        "loop_cycles_late_2ms": int(np.count_nonzero(records["late_ns"] > 2_000_000)),
-        "loop_cycles": int(len(records)),
-        "frame_to_command_median_ms": round(float(np.median(latency_ms)), 3) if len(latency_ms) else None,
-        "frame_to_command_p99_ms": round(float(np.percentile(latency_ms, 99)), 3) if len(latency_ms) else None,
-        "seam_length_mm": round(seam.length * 1e3, 2),
-    }
+        if len(track.refined) > 1:
+            rec.log_path_base("refined", track.refined)
+        if len(track.torch) > 1:
+            rec.log_path_base("torch", track.torch)
+    figures = {**track.figures, "wall_offset_mm": round(offset * 1e3, 4), "seam_length_mm": round(seam.length * 1e3, 2)}
     return {
         "figures": figures,
         "paths": str(path_file),

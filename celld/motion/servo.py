@@ -73,6 +73,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy.signal import savgol_filter
 
+from celld import polyline
 from celld.config import SERVO_BOUNDS, MotionLimits, ServoConfig, ToolConfig
 from celld.errors import InputError
 from celld.motion.types import ControlStatus, RobotState, ServoInput, ServoPlan, ServoTelemetry
@@ -200,28 +201,6 @@ def omega_line13(
     return omega, guarded
 
 
-def nearest_on_polyline(P: Array, q: Array, lo: int, hi: int) -> tuple[int, float, float]:
-    """Nearest point to ``q`` on the segments ``P[lo:hi]`` (lines 10, 22).
-
-    Returns the segment index ``i``, the fraction ``u`` in [0, 1] along it,
-    and the distance. The caller's window keeps the search local, so a path
-    that comes back near itself is not mistaken for its other pass.
-    """
-    lo = max(lo, 0)
-    hi = min(hi, len(P))
-    if hi - lo < 2:
-        return lo, 0.0, float(np.linalg.norm(P[lo] - q))
-    a = P[lo : hi - 1]
-    ab = P[lo + 1 : hi] - a
-    L2 = np.einsum("ij,ij->i", ab, ab)
-    L2 = np.where(L2 > 0.0, L2, 1e-30)
-    u = np.clip(np.einsum("ij,ij->i", q - a, ab) / L2, 0.0, 1.0)
-    X = a + u[:, None] * ab
-    d2 = np.einsum("ij,ij->i", X - q, X - q)
-    k = int(np.argmin(d2))
-    return lo + k, float(u[k]), math.sqrt(float(d2[k]))
-
-
 def _unit(v: Array) -> Array:
     n = float(np.hypot(v[0], v[1]))
     return v / n if n > 0.0 else np.array([1.0, 0.0])
@@ -302,7 +281,7 @@ def prepare_plan(P_base: Array, T_base_plane: Array, smoothing: float, spacing: 
     step = np.linalg.norm(np.diff(Q, axis=0), axis=1)
     keep = np.concatenate([[True], step > 1e-9])
     Q = Q[keep]
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(Q, axis=0), axis=1))])
+    s = polyline.arc_length(Q)
     if len(Q) < 2 or s[-1] < 4 * spacing:
         raise InputError(f"planned path: expected at least {4 * spacing * 1e3:.1f} mm of travel in the plane, got {s[-1] * 1e3:.3f} mm")
     m = max(int(math.ceil(s[-1] / spacing)) + 1, 5)
@@ -318,7 +297,7 @@ def prepare_plan(P_base: Array, T_base_plane: Array, smoothing: float, spacing: 
         Tg = np.gradient(R, axis=0)
     Tg /= np.linalg.norm(Tg, axis=1)[:, None]
     N = np.column_stack([-Tg[:, 1], Tg[:, 0]])
-    sR = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(R, axis=0), axis=1))])
+    sR = polyline.arc_length(R)
     return PlannedPath(T_bp, R, Tg, N, sR)
 
 
@@ -606,7 +585,7 @@ class Algorithm2Servo:
     def _plan_at(self, q: Array) -> tuple[Array, Array, Array, float, bool]:
         """Line 22-23: nearest planned point to ``q``, its t_v, n_v, arc position, and whether past the end."""
         path = self.path
-        i, u, _ = nearest_on_polyline(path.P, q, self._i_plan - self._plan_window, self._i_plan + self._plan_window + 2)
+        i, u, _ = polyline.nearest(path.P, q, self._i_plan - self._plan_window, self._i_plan + self._plan_window + 2)
         self._i_plan = i
         j = min(i + 1, len(path.P) - 1)
         P_v = (1 - u) * path.P[i] + u * path.P[j]
@@ -626,7 +605,7 @@ class Algorithm2Servo:
         if n < 2 or self._ref_s[n - 1] < self.p.refine_window:
             return None
         R, S = self._ref, self._ref_s
-        i, u, _ = nearest_on_polyline(R[:n], P_t, self._i_torch - _REFINED_WINDOW, self._i_torch + _REFINED_WINDOW)
+        i, u, _ = polyline.nearest(R[:n], P_t, self._i_torch - _REFINED_WINDOW, self._i_torch + _REFINED_WINDOW)
         self._i_torch = i
         j = min(i + 1, n - 1)
         s_near = (1 - u) * S[i] + u * S[j]
@@ -666,7 +645,7 @@ class Algorithm2Servo:
         self._P_prev = P_r
         self._P_touch0 = P_r
         self._start_ns = state.stamp_ns
-        self._i_plan = nearest_on_polyline(self.path.P, P_r, 0, len(self.path.P))[0]
+        self._i_plan = polyline.nearest(self.path.P, P_r, 0, len(self.path.P))[0]
         self._remember(state.stamp_ns, P_r, t_d)
 
     def _fault(self, status: ControlStatus, reason: str) -> None:
@@ -813,7 +792,7 @@ class Algorithm2Servo:
         # Lines 10-11 on the refined path; on the plan until it is long enough.
         near = self._refined_at(P_t)
         if near is None:
-            i, _, _ = nearest_on_polyline(self.path.P, P_t, 0, len(self.path.P))
+            i, _, _ = polyline.nearest(self.path.P, P_t, 0, len(self.path.P))
             n_t, e, torch_done = self.path.N[i], 0.0, False
             self._torch_on_path = False
         else:

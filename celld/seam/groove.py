@@ -23,8 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from celld import polyline
 from celld.seam.params import GrooveParams
-from celld.seam.workpiece import LEFT_WALL, RIGHT_WALL, project_to_polyline, resample_polyline
+from celld.seam.workpiece import LEFT_WALL, RIGHT_WALL
 
 Array = NDArray[np.float64]
 
@@ -148,7 +149,7 @@ def _offset_variance(p: _Plane, x: Array) -> float:
 def window_centres(seam: Array, step: float) -> tuple[Array, Array, Array]:
     """Arc lengths (w,), points (w, 3) and unit tangents (w, 3) of window centres
     every ``step`` along the seam polyline, both ends included."""
-    D, actual = resample_polyline(seam, step)
+    D, actual = polyline.resample(seam, step)
     arc = np.arange(len(D)) * actual
     T = np.gradient(D, axis=0)
     T /= np.linalg.norm(T, axis=1, keepdims=True)
@@ -200,7 +201,7 @@ def fit_groove(
     on_wall = (labels == LEFT_WALL) | (labels == RIGHT_WALL)
     P, labels = P[on_wall], labels[on_wall]
     if len(P):
-        proj = project_to_polyline(P, seam)
+        proj = polyline.project(P, seam)
         radial = np.linalg.norm(P - proj.point, axis=1)
         keep = (radial >= band[0]) & (radial <= band[1])
         P, labels, s = P[keep], labels[keep], proj.arc[keep]

@@ -51,13 +51,13 @@ import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from celld import se3
+from celld import polyline, se3
 from celld.errors import GrooveError, InputError, RegistrationError, ScanError
 from celld.log import get_logger
 from celld.seam.groove import CONTRADICTS, GrooveFit, fit_groove, lateral_offsets, smooth_offsets
 from celld.seam.params import SeamParams
 from celld.seam.register import PreparedModel, prepare_model, register
-from celld.seam.workpiece import NO_WALL, Projection, Workpiece, project_to_polyline, resample_polyline
+from celld.seam.workpiece import NO_WALL, Workpiece
 
 log = get_logger(__name__)
 
@@ -199,7 +199,7 @@ def prepare(workpiece: Workpiece, params: SeamParams | None = None) -> PreparedW
     if workpiece.has_walls:
         prior = fit_groove(model.points, model.labels, workpiece.seam, workpiece.approach, workpiece.wall_band, params.groove)
     walls = model.labels != NO_WALL
-    proj = project_to_polyline(model.points[walls], workpiece.seam)
+    proj = polyline.project(model.points[walls], workpiece.seam)
     radial = np.linalg.norm(model.points[walls] - proj.point, axis=1)
     band = (radial >= workpiece.wall_band[0]) & (radial <= workpiece.wall_band[1])
     scene = o3d.t.geometry.RaycastingScene()
@@ -343,13 +343,13 @@ def find_seam(
 
     # Scan points near the seam, in the model frame.
     band_out = wp.wall_band[1]
-    stations, spacing = resample_polyline(wp.seam, params.spacing)
+    stations, spacing = polyline.resample(wp.seam, params.spacing)
     P_obj = se3.apply(T_obj_base, P_base)
     # Exact projection only for points the stations' k-d tree finds near the seam.
     reach = band_out + 0.005
     d_st, _ = cKDTree(stations).query(P_obj, distance_upper_bound=reach + spacing)
     P_obj = P_obj[np.isfinite(d_st)]
-    proj = project_to_polyline(P_obj, wp.seam)
+    proj = polyline.project(P_obj, wp.seam)
     near = np.linalg.norm(P_obj - proj.point, axis=1) <= reach
     P_near = P_obj[near]
     figures = {"fitness": registration.fitness, "inlier_rmse": registration.inlier_rmse, "attempts": float(registration.attempts)}
@@ -359,7 +359,7 @@ def find_seam(
     points_obj, source, reason, gq = _seam_points(prepared, P_near, stations, params, figures)
     along = _along_shift(P_obj[near], proj, near, wp, params)
     if math.isfinite(along):
-        points_obj = _slide(points_obj, along)
+        points_obj = polyline.slide(points_obj, along)
 
     # Order: follow the nominal travel direction if one is given.
     reversed_ = False
@@ -400,7 +400,7 @@ def find_seam(
 def _check_seam_seen(
     prepared: PreparedWorkpiece,
     P_near: Array,
-    proj: Projection,
+    proj: polyline.Projection,
     near: NDArray[np.bool_],
     stations: Array,
     reach: float,
@@ -602,20 +602,6 @@ def _along_shift(P: Array, proj: Projection, near: NDArray[np.bool_], wp: Workpi
     if abs((hi - lo) - L) > params.max_model_deviation:
         return math.nan
     return float(((lo - 0.0) + (hi - L)) / 2.0)
-
-
-def _slide(S: Array, ds: float) -> Array:
-    """Move the points of a polyline ``ds`` along it (extrapolating at the ends)."""
-    seg = np.linalg.norm(np.diff(S, axis=0), axis=1)
-    arc = np.concatenate([[0.0], np.cumsum(seg)])
-    target = arc + ds
-    out = np.column_stack([np.interp(target, arc, S[:, i]) for i in range(3)])
-    t0 = (S[1] - S[0]) / seg[0]
-    t1 = (S[-1] - S[-2]) / seg[-1]
-    lo, hi = target < 0.0, target > arc[-1]
-    out[lo] = S[0] + target[lo, None] * t0
-    out[hi] = S[-1] + (target[hi] - arc[-1])[:, None] * t1
-    return out
 
 
 def _tangents(P: Array, k: int) -> Array:

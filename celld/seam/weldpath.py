@@ -27,9 +27,9 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
-from celld import se3
+from celld import polyline, se3
 from celld.errors import WorkpieceError
-from celld.seam.workpiece import LEFT_WALL, RIGHT_WALL, Workpiece, resample_polyline
+from celld.seam.workpiece import LEFT_WALL, RIGHT_WALL, Workpiece
 
 Array = NDArray[np.float64]
 
@@ -77,7 +77,7 @@ def model_seam_frames(workpiece: Workpiece, finger_wall: str = "left", spacing: 
     towards the finger wall (model frame; the conventions of
     :class:`~celld.seam.pipeline.SeamPath`)."""
     _side_label(finger_wall)
-    P, _ = resample_polyline(workpiece.seam, spacing)
+    P, _ = polyline.resample(workpiece.seam, spacing)
     T = np.gradient(P, axis=0)
     T /= np.linalg.norm(T, axis=1)[:, None]
     a = np.asarray(workpiece.approach, dtype=np.float64)
@@ -169,7 +169,7 @@ def start_pose(geometry: WeldGeometry, T_tcp_tool: Array, lead: float, clearance
     ``clearance`` (m) off the wall on the free side, the tool's x along the
     travel and its z (the finger, up) along the plane normal."""
     W = geometry.wall_base
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(W, axis=0), axis=1))])
+    s = polyline.arc_length(W)
     if s[-1] <= lead:
         raise WorkpieceError(f"the seam ({s[-1] * 1e3:.1f} mm) is shorter than the lead-in of {lead * 1e3:.1f} mm")
     i = int(np.searchsorted(s, lead))

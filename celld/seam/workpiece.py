@@ -43,6 +43,7 @@ import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from celld import polyline
 from celld.errors import WorkpieceError
 
 Array = NDArray[np.float64]
@@ -544,7 +545,7 @@ def label_walls(
     no candidate.
     """
     samples, normals, tri = sample_surface(vertices, triangles, spacing=0.5e-3 if band[1] < 0.05 else band[1] / 100.0, seed=0)
-    near = project_to_polyline(samples, seam)
+    near = polyline.project(samples, seam)
     a = approach / np.linalg.norm(approach)
     left_dir = np.cross(a, near.tangent)
     radial = np.linalg.norm(samples - near.point, axis=1)
@@ -566,7 +567,7 @@ def label_walls(
     return labels
 
 
-# -- sampling and projection (used by registration and groove measurement) ---------
+# -- sampling (used by registration and groove measurement) ------------------------
 
 
 def sample_surface(vertices: Array, triangles: NDArray[np.int64], spacing: float, seed: int = 0) -> tuple[Array, Array, NDArray[np.int64]]:
@@ -592,56 +593,3 @@ def sample_surface(vertices: Array, triangles: NDArray[np.int64], spacing: float
     s = np.sqrt(r1)
     P = (1 - s)[:, None] * A[tri] + (s * (1 - r2))[:, None] * B[tri] + (s * r2)[:, None] * C[tri]
     return P, normals[tri], tri
-
-
-@dataclass(frozen=True)
-class Projection:
-    """Nearest points on a polyline for a set of query points."""
-
-    point: Array  # (n, 3) nearest point on the polyline
-    tangent: Array  # (n, 3) unit tangent of the polyline there
-    arc: Array  # (n,) arc length of the nearest point from the start, m
-    inside: NDArray[np.bool_]  # (n,) False where the nearest point is an end of the polyline
-
-
-def resample_polyline(S: Array, spacing: float) -> tuple[Array, float]:
-    """Resample a polyline (m, 3) at equal arc-length steps close to ``spacing``.
-
-    Returns the points (k, 3), first and last kept, and the actual step (m).
-    """
-    seg_len = np.linalg.norm(np.diff(S, axis=0), axis=1)
-    arc = np.concatenate([[0.0], np.cumsum(seg_len)])
-    n = max(1, int(round(arc[-1] / spacing)))
-    s = np.linspace(0.0, arc[-1], n + 1)
-    out = np.column_stack([np.interp(s, arc, S[:, i]) for i in range(3)])
-    return out, float(arc[-1] / n)
-
-
-def project_to_polyline(P: Array, S: Array, step: float = 2e-4) -> Projection:
-    """Project points ``P`` (n, 3) onto the polyline ``S`` (m, 3), exactly.
-
-    The polyline is resampled every ``step`` m and searched with a k-d tree;
-    the exact foot is then taken on the segments of the nearest sample and of
-    its two neighbours (which covers a nearest point past a vertex).
-    """
-    D, _ = resample_polyline(S, step)
-    seg = np.diff(S, axis=0)
-    seg_len = np.linalg.norm(seg, axis=1)
-    T = seg / seg_len[:, None]
-    arc_S = np.concatenate([[0.0], np.cumsum(seg_len)])
-    arc_D = np.linspace(0.0, arc_S[-1], len(D))
-    seg_of = np.clip(np.searchsorted(arc_S, arc_D, side="right") - 1, 0, len(seg) - 1)
-    _, idx = cKDTree(D).query(P)
-    best_d = np.full(len(P), np.inf)
-    best_s = np.zeros(len(P), dtype=np.int64)
-    best_u = np.zeros(len(P))
-    for shift in (-1, 0, 1):
-        s = seg_of[np.clip(idx + shift, 0, len(D) - 1)]
-        u = np.clip(np.einsum("ij,ij->i", P - S[s], T[s]), 0.0, seg_len[s])
-        d = np.linalg.norm(P - (S[s] + u[:, None] * T[s]), axis=1)
-        better = d < best_d
-        best_d[better], best_s[better], best_u[better] = d[better], s[better], u[better]
-    point = S[best_s] + best_u[:, None] * T[best_s]
-    arc = arc_S[best_s] + best_u
-    inside = (arc > 1e-9) & (arc < arc_S[-1] - 1e-9)
-    return Projection(point, T[best_s], arc, inside)

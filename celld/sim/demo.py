@@ -39,32 +39,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def tracking_error(torch_base: np.ndarray, seam_base: np.ndarray, T_base_plane: np.ndarray) -> dict[str, float]:
-    """Lateral distance (mm) of path points from the true seam in the welding plane.
-
-    Only points alongside the seam count (a point beyond either end of it has
-    no lateral error); ``outside`` says how many were left out.
-    """
-    from celld.seam.workpiece import project_to_polyline
-
-    R, o = T_base_plane[:3, :3], T_base_plane[:3, 3]
-
-    def flat(P: np.ndarray) -> np.ndarray:
-        Q = (np.asarray(P, dtype=np.float64).reshape(-1, 3) - o) @ R
-        Q[:, 2] = 0.0
-        return Q
-
-    P = flat(torch_base)
-    proj = project_to_polyline(P, flat(seam_base), step=5e-5)
-    e = np.linalg.norm(P - proj.point, axis=1)[proj.inside]
-    if len(e) == 0:
-        return {"rms_mm": float("nan"), "max_mm": float("nan"), "points": 0, "outside": int(len(P))}
-    return {"rms_mm": float(np.sqrt(np.mean(e**2))) * 1e3, "max_mm": float(e.max()) * 1e3,
-            "points": int(len(e)), "outside": int(len(P) - len(e))}
-
-
 def run(args: argparse.Namespace) -> int:
     from celld.errors import CelldError
+    from celld.seam.figures import lateral_error
     from celld.sim.cell import run_cell, sim_workpiece
 
     cfg = config_mod.load(args.config)
@@ -100,9 +77,9 @@ def run(args: argparse.Namespace) -> int:
                 return _failed(weld, say)
             res = json.loads(Path(weld["result"]).read_text())  # the record names the result file
             g = part.wall
-            torch = tracking_error(np.array(res["torch_path"]), g.seam_base, g.T_base_plane)
-            refined = tracking_error(np.array(res["refined_path"]), g.seam_base, g.T_base_plane)
-            planned = tracking_error(np.array(res["planned_path"]), g.seam_base, g.T_base_plane)
+            torch = lateral_error(np.array(res["torch_path"]), g.seam_base, g.T_base_plane)
+            refined = lateral_error(np.array(res["refined_path"]), g.seam_base, g.T_base_plane)
+            planned = lateral_error(np.array(res["planned_path"]), g.seam_base, g.T_base_plane)
             figures["weld"] = {"job": weld["id"], "torch_error": torch, "refined_error": refined, "planned_error": planned,
                                "figures": res["figures"], "recording": res.get("recording"), "paths": res.get("paths")}
     except CelldError as exc:

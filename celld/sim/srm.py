@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from celld import polyline
 from celld.config import TactileConfig, ToolConfig
 from celld.errors import InputError
 from celld.se3 import invert, transform_from
@@ -107,20 +108,6 @@ class FingerContact(NamedTuple):
     bottomed: bool
 
 
-def _nearest_on_polyline(P: Array, q: Array) -> tuple[Array, Array, float, bool]:
-    """Nearest point of polyline ``P`` (n, 2) to ``q``: point, unit tangent, arc position, inside."""
-    a = P[:-1]
-    ab = P[1:] - a
-    L2 = np.einsum("ij,ij->i", ab, ab)
-    u = np.clip(np.einsum("ij,ij->i", q - a, ab) / L2, 0.0, 1.0)
-    X = a + u[:, None] * ab
-    d2 = np.einsum("ij,ij->i", X - q, X - q)
-    i = int(np.argmin(d2))
-    t = ab[i] / math.sqrt(L2[i])
-    inside = not ((i == 0 and u[i] <= 0.0) or (i == len(ab) - 1 and u[i] >= 1.0))
-    return X[i], t, float(i + u[i]), inside
-
-
 def finger_contact(p_rest: Array, v_rest: Array, wall: Wall, tip_radius: float, params: ContactParams) -> FingerContact:
     """Deflection of the finger tip against the wall.
 
@@ -140,10 +127,12 @@ def finger_contact(p_rest: Array, v_rest: Array, wall: Wall, tip_radius: float, 
     FingerContact
         No contact beyond the ends of the wall: the wall stops there.
     """
-    X, t, _, inside = _nearest_on_polyline(wall.P, p_rest)
-    n_free = wall.free * np.array([-t[1], t[0]])
-    if not inside:
+    i, u, _ = polyline.nearest(wall.P, p_rest)
+    if not polyline.is_inside(wall.P, i, u):
         return FingerContact(np.zeros(2), 0.0, False, False)
+    X = wall.P[i] + u * (wall.P[i + 1] - wall.P[i])
+    t = (wall.P[i + 1] - wall.P[i]) / np.linalg.norm(wall.P[i + 1] - wall.P[i])
+    n_free = wall.free * np.array([-t[1], t[0]])
     clearance = float(np.dot(p_rest - X, n_free))
     penetration = tip_radius - clearance
     if penetration <= 0.0:

@@ -75,14 +75,6 @@ def workpiece_scene(workpiece: Workpiece, T_base_obj: Array, table: bool = True,
     return objects
 
 
-def seam_error(points_base: Array, true_seam_base: Array) -> Array:
-    """Distance (m) from each found seam point to the true seam polyline (both base frame)."""
-    from celld.seam.workpiece import project_to_polyline
-
-    proj = project_to_polyline(points_base, true_seam_base, step=5e-5)
-    return np.linalg.norm(points_base - proj.point, axis=1)
-
-
 def true_wall(workpiece: Workpiece, T_base_obj: Array, tip_height: float, finger_wall: str = "left") -> WeldGeometry:
     """The finger wall of a part at its true pose (the simulated SRM's wall)."""
     offset = wall_offset(workpiece, tip_height, finger_wall)

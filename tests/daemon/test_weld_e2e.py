@@ -21,7 +21,7 @@ import pytest
 
 from celld import se3
 from celld.bus import schema
-from celld.sim.demo import tracking_error
+from celld.seam.figures import lateral_error
 from celld.journal import Journal
 from celld.recording.readback import read_entities
 from celld.sim.cell import run_cell, sim_workpiece
@@ -100,7 +100,7 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
             assert stage in stages, stages
         result = json.loads(Path(weld["result"]).read_text())
         g = part.wall
-        torch = tracking_error(np.array(result["torch_path"]), g.seam_base, g.T_base_plane)
+        torch = lateral_error(np.array(result["torch_path"]), g.seam_base, g.T_base_plane)
         # The tactile issue's targets, on the seam the finger found with the scanner's plan.
         assert torch["rms_mm"] <= 0.2 and torch["max_mm"] <= 0.5, torch
         assert result["figures"]["tracked_mm"] > 120.0, result["figures"]  # most of the 150 mm seam

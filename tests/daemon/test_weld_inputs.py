@@ -10,7 +10,7 @@ import pytest
 
 from celld import fsutil
 from celld.config import parse
-from celld.daemon.weld import _lateral, _thin, current_T_base_cam, resolve_workpiece
+from celld.daemon.weld import current_T_base_cam, resolve_workpiece
 from celld.errors import JobError
 from celld.seam.workpiece import v_groove_butt
 from celld.sim.workpiece import nominal_pose, true_wall
@@ -56,18 +56,3 @@ def test_a_weld_needs_a_usable_current_calibration(tmp_path: Path) -> None:
     fsutil.write_json(tmp_path / "calibration.json", {"job": "j2", "T_base_cam": T.tolist()})
     T_read, job = current_T_base_cam(tmp_path)
     assert job == "j2" and np.allclose(T_read, T)
-
-
-def test_lateral_distances_are_signed_towards_the_finger_wall_and_paths_thin() -> None:
-    wp = v_groove_butt()
-    g = true_wall(wp, nominal_pose(wp), 0.004, "left")
-    # Points 1 mm towards the wall and 2 mm away from it, beside the middle of the seam.
-    mid = g.seam_base[len(g.seam_base) // 2]
-    n = g.normals[len(g.seam_base) // 2]
-    d = _lateral(g, np.array([mid + 0.001 * n, mid - 0.002 * n]), g.seam_base)
-    np.testing.assert_allclose(d, [0.001, -0.002], atol=1e-9)
-    P = np.column_stack([np.linspace(0, 0.01, 101), np.zeros(101), np.zeros(101)])
-    T = _thin(P, 0.0005)
-    gaps = np.linalg.norm(np.diff(T, axis=0), axis=1)
-    assert np.allclose(T[[0, -1]], P[[0, -1]]) and 19 <= len(T) <= 21
-    assert np.all(gaps[:-1] >= 0.0005 - 1e-12) and np.all(gaps <= 0.0006 + 1e-12)

@@ -28,7 +28,6 @@ from celld.motion.servo import (
     algorithm2_plan,
     deformation_in_plane,
     make_algorithm2,
-    nearest_on_polyline,
     omega_line13,
     prepare_plan,
     refine_point,
@@ -158,15 +157,6 @@ def test_omega_is_bounded_for_any_geometry(vx, vy, a_d, a_t, d, e, k, guard, ome
     if perpendicular:
         assert guarded
         assert abs(omega) <= (abs(vx) + abs(vy) + k * 0.003) * abs(float(n_d @ n_t)) / (d * guard * guard) + 1e-12
-
-
-def test_lines10_22_nearest_point_on_a_polyline() -> None:
-    P = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]])
-    assert nearest_on_polyline(P, np.array([0.4, 0.3]), 0, 3) == (0, pytest.approx(0.4), pytest.approx(0.3))
-    i, u, dist = nearest_on_polyline(P, np.array([1.2, 0.7]), 0, 3)
-    assert (i, u, dist) == (1, pytest.approx(0.7), pytest.approx(0.2))
-    # The window keeps the search local.
-    assert nearest_on_polyline(P, np.array([1.2, 0.7]), 0, 2)[0] == 0
 
 
 # -- the plan ----------------------------------------------------------------------

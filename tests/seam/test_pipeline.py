@@ -19,7 +19,8 @@ from celld.sim import workpiece as simscene
 from celld.seam.params import SeamParams
 from celld.seam.pipeline import find_seam, prepare
 from celld.seam import workpiece as wpm
-from celld.seam.workpiece import Workpiece, example, resample_polyline
+from celld import polyline
+from celld.seam.workpiece import Workpiece, example
 from celld.sim.scanner import SimScanner
 from celld.sim.scene import box
 
@@ -36,8 +37,8 @@ def _pose(wp: Workpiece, seed: int, angle_deg: float = 15.0) -> np.ndarray:
 
 
 def _error(path, wp: Workpiece, T_true: np.ndarray) -> np.ndarray:
-    truth = se3.apply(T_true, resample_polyline(wp.seam, 2e-4)[0])
-    return simscene.seam_error(path.points_base, truth)
+    truth = se3.apply(T_true, polyline.resample(wp.seam, 2e-4)[0])
+    return polyline.distance(path.points_base, truth)
 
 
 @pytest.mark.slow
@@ -103,9 +104,9 @@ def test_groove_finds_the_actual_seam_where_the_part_differs_from_its_model() ->
     cloud = _scan(built, T_true)
     nominal = simscene.nominal_pose(model)
     path = find_seam(cloud, model, T_BASE_CAM, SeamParams(seam_source="groove"), T_base_obj_nominal=nominal)
-    truth = se3.apply(T_true, resample_polyline(built.seam, 2e-4)[0])
-    err_groove = simscene.seam_error(path.points_base, truth)
-    err_model = simscene.seam_error(path.model_points_base, truth)
+    truth = se3.apply(T_true, polyline.resample(built.seam, 2e-4)[0])
+    err_groove = polyline.distance(path.points_base, truth)
+    err_model = polyline.distance(path.model_points_base, truth)
     assert path.quality.source == "groove"
     assert math.sqrt(np.mean(err_groove**2)) < 0.06e-3
     # A rigid fit of the straight model cannot follow the bow.

@@ -57,21 +57,6 @@ def test_curved_groove_seam_is_the_arc() -> None:
     assert wp.seam_length == pytest.approx(R * math.radians(40.0), rel=1e-4)
 
 
-def test_projection_onto_a_polyline_matches_brute_force() -> None:
-    wp = wpm.curved_groove(radius=0.15, segments=60)
-    rng = np.random.default_rng(0)
-    P = rng.uniform([-0.08, -0.01, -0.005], [0.08, 0.05, 0.01], (300, 3))
-    proj = wpm.project_to_polyline(P, wp.seam)
-    # Brute force: the foot of the perpendicular on every segment, the nearest kept.
-    A, B = wp.seam[:-1], wp.seam[1:]
-    AB = B - A
-    u = np.clip(np.einsum("nsk,sk->ns", P[:, None, :] - A[None], AB) / np.einsum("sk,sk->s", AB, AB), 0.0, 1.0)
-    feet = A[None] + u[..., None] * AB[None]
-    best = np.argmin(np.linalg.norm(P[:, None, :] - feet, axis=2), axis=1)
-    np.testing.assert_allclose(proj.point, feet[np.arange(len(P)), best], atol=1e-9)
-    arc0 = np.concatenate([[0.0], np.cumsum(np.linalg.norm(AB, axis=1))])
-    np.testing.assert_allclose(proj.arc, arc0[best] + u[np.arange(len(P)), best] * np.linalg.norm(AB[best], axis=1), atol=1e-9)
-
 
 def _write_mesh_mm(wp: Workpiece, path: Path) -> None:
     m = wp.mesh()

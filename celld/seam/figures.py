@@ -1,0 +1,117 @@
+"""What a weld did along its seam: the refined and torch paths and the tracking figures (pure).
+
+:func:`track_summary` reads the motion loop's records of one Algorithm 2 run
+(:data:`celld.motion.channels.STATE_DTYPE`) and returns the paths (base
+frame, m) and the figures a weld job reports: how far it tracked, how long
+the arc was on, the deformation's error from ``delta_d``, how far the refined
+path lies from the planned seam (the tactile correction), the loop's timing
+and the frame-to-command latency. :func:`lateral_error` scores a path
+against a seam in the welding plane (the demo and benchmarks score the torch
+path against the simulator's true seam with it).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from celld import polyline, se3
+from celld.seam.weldpath import WeldGeometry, in_plane
+from celld.tactile.tool import ToolGeometry
+
+Array = NDArray[np.float64]
+
+# Torch path points are kept at least this far apart (m).
+TORCH_STEP = 0.0005
+
+
+class TrackSummary(NamedTuple):
+    """The paths (base frame, m) and the figures of one track."""
+
+    refined: Array  # (n, 3) the refined path, as Algorithm 2 recorded it
+    torch: Array  # (m, 3) the torch while the arc was on (or while tracking, on a dry run)
+    figures: dict[str, Any]
+
+
+def lateral_offsets(geometry: WeldGeometry, P_base: Array, line_base: Array) -> Array:
+    """Signed in-plane distance (m) of points from a polyline, positive towards the finger wall."""
+    d, _ = polyline.signed_offset(in_plane(geometry, P_base), in_plane(geometry, line_base))
+    # Plane y is left of the first tangent; the normals point to the finger wall.
+    side = 1.0 if float(geometry.normals[0] @ geometry.T_base_plane[:3, 1]) > 0.0 else -1.0
+    return side * d
+
+
+def lateral_error(P_base: Array, seam_base: Array, T_base_plane: Array) -> dict[str, float]:
+    """Distance (mm) of path points from a seam in the welding plane ``T_base_plane``: RMS and max.
+
+    Heights along the plane normal are left out; only points alongside the
+    seam count (a point beyond either end of it has no lateral error), and
+    ``outside`` says how many were left out.
+    """
+    R, o = T_base_plane[:3, :3], T_base_plane[:3, 3]
+
+    def flat(P: Array) -> Array:
+        return ((np.asarray(P, dtype=np.float64).reshape(-1, 3) - o) @ R)[:, :2]
+
+    Q = flat(P_base)
+    d, inside = polyline.signed_offset(Q, flat(seam_base))
+    e = np.abs(d[inside])
+    if len(e) == 0:
+        return {"rms_mm": float("nan"), "max_mm": float("nan"), "points": 0, "outside": int(len(Q))}
+    return {"rms_mm": float(np.sqrt(np.mean(e**2))) * 1e3, "max_mm": float(e.max()) * 1e3,
+            "points": int(len(e)), "outside": int(len(Q) - len(e))}
+
+
+def track_summary(records: np.ndarray, geometry: WeldGeometry, tool: ToolGeometry, delta_d: float) -> TrackSummary:
+    """The paths and figures of a finished track from the motion loop's records of it.
+
+    Parameters
+    ----------
+    records : structured array
+        The state records of the servo's command, in order (at least one).
+    geometry : WeldGeometry
+        The planned weld (the seam line the torch should follow).
+    tool : ToolGeometry
+        Where the torch is on the tool.
+    delta_d : float
+        The deformation the servo held, m.
+    """
+    T_tcp = np.array([se3.from_ur_pose(p) for p in records["tcp_pose"]])
+    T_tool = T_tcp @ tool.T_tcp_tool
+    torch = np.einsum("nij,j->ni", T_tool[:, :3, :3], tool.torch_tool()) + T_tool[:, :3, 3]
+    refined = records["refined_base"]
+    refined = refined[np.all(np.isfinite(refined), axis=1)]
+    if len(refined):
+        keep = np.concatenate([[True], np.any(np.diff(refined, axis=0) != 0.0, axis=1)])
+        refined = refined[keep]
+    tracking = records["servo_phase"] == 1
+    torch_weld = polyline.thin(torch[records["process_on"]] if records["process_on"].any() else torch[tracking], TORCH_STEP)
+    delta_n = records["delta_n"][tracking]
+    delta_n = delta_n[np.isfinite(delta_n)]
+    e_delta = np.abs(np.abs(delta_n) - delta_d) if len(delta_n) else np.zeros(0)
+    corr = lateral_offsets(geometry, refined, geometry.seam_base) if len(refined) > 1 else np.zeros(0)
+    t = (records["t_ns"] - records["t_ns"][0]) * 1e-9
+    # Frame to command: the cycle that first used a frame sent its command work_ns after
+    # waking, and the frame was tactile_age_ns old at the wake-up.
+    fresh = np.concatenate([[False], np.diff(records["tactile_seq"]) != 0]) & (records["tactile_age_ns"] >= 0)
+    latency_ms = (records["tactile_age_ns"][fresh] + records["work_ns"][fresh]) * 1e-6
+    omega = np.abs(records["twist"][:, 3:]).max()
+    figures = {
+        "duration_s": round(float(t[-1]), 3),
+        "tracked_mm": round(float(polyline.arc_length(refined)[-1]) * 1e3, 2) if len(refined) > 1 else 0.0,
+        "arc_on_s": round(float(records["process_on"].sum()) * float(np.median(np.diff(t))) if len(t) > 1 else 0.0, 3),
+        "delta_n_error_rms_mm": round(float(np.sqrt(np.mean(e_delta**2))) * 1e3, 4) if len(e_delta) else None,
+        "correction_rms_mm": round(float(np.sqrt(np.mean(corr**2))) * 1e3, 4) if len(corr) else None,
+        "correction_max_mm": round(float(np.abs(corr).max()) * 1e3, 4) if len(corr) else None,
+        "omega_peak": round(float(omega), 5),
+        # The motion loop while the servo ran: wake-up lateness (ms) and cycles more than 2 ms late.
+        "loop_late_p99_ms": round(float(np.percentile(records["late_ns"], 99)) * 1e-6, 3),
+        "loop_late_max_ms": round(float(records["late_ns"].max()) * 1e-6, 3),
+        "loop_cycles_late_2ms": int(np.count_nonzero(records["late_ns"] > 2_000_000)),
+        "loop_cycles": int(len(records)),
+        "frame_to_command_median_ms": round(float(np.median(latency_ms)), 3) if len(latency_ms) else None,
+        "frame_to_command_p99_ms": round(float(np.percentile(latency_ms, 99)), 3) if len(latency_ms) else None,
+    }
+    return TrackSummary(refined, torch_weld, figures)
