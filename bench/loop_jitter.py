@@ -9,7 +9,7 @@ speedL. Four cases:
 - ``rt-loaded``: the same while the main process solves calibrations
   (numpy/scipy SVD and ICP-like nearest-neighbour iterations, in a worker
   thread as the daemon runs them) and the tactile process
-  (:class:`celld.tactile.camera.TactileProcess`, the simulated SRM camera:
+  (:class:`celld.tactile.process.TactileProcess`, the simulated SRM camera:
   OpenCV renders and detects the ArUco tag) runs at 60 fps;
 - ``best-effort-idle`` / ``best-effort-loaded``: the same without asking for
   real time (no FIFO, no pinning).
@@ -59,7 +59,7 @@ from celld.errors import LinkLost  # noqa: E402
 from celld.log import configure  # noqa: E402
 from celld.motion.core import Action  # noqa: E402
 from celld.motion.handle import MotionHandle  # noqa: E402
-from celld.motion.process import RealtimeOptions  # noqa: E402
+from celld.realtime import RealtimeOptions  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "loop_jitter"
 PERIOD_MS = 2.0
@@ -99,7 +99,7 @@ def bare_timer(seconds: float, rt: bool, out: Any) -> None:
     """The loop's wait (sleep to 300 us before the deadline, then spin) with no work: the platform's share."""
     import gc
 
-    from celld.motion.process import make_realtime
+    from celld.realtime import make_realtime
 
     make_realtime(RealtimeOptions(enabled=rt))
     gc.disable()
@@ -148,11 +148,12 @@ def run_bare(seconds: float, rt: bool) -> dict[str, Any]:
 def make_tactile(host: str) -> Any:
     """The tactile process (not started) on the simulated SRM camera at 60 fps, facing a wall it does not touch."""
     from celld.sim.srm import SimSrmSource
-    from celld.tactile.camera import TactileProcess
+    from celld.tactile.process import TactileProcess
 
     cfg = TactileConfig(kind="sim", fps=60.0)
     wall = np.array([[-1.0, 0.5], [1.0, 0.5]])  # far from the finger: frames render and detect, no contact
-    return TactileProcess(cfg, ToolConfig(), f"celld-bench-{os.getpid()}", SimSrmSource(host, wall, 1.0, np.eye(4)), nice=0)
+    return TactileProcess(cfg, ToolConfig(), f"celld-bench-{os.getpid()}", SimSrmSource(host, wall, 1.0, np.eye(4)),
+                          RealtimeOptions(enabled=False))
 
 
 def figures(records: np.ndarray, fifo: bool, cpu: int, extra: dict[str, Any]) -> dict[str, Any]:

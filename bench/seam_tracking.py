@@ -440,13 +440,14 @@ def run_closed_loop(kind: str, cfg: Config, motion: MotionLimits, quick: bool, s
     from celld.config import parse
     from celld.motion.channels import STATE_DTYPE
     from celld.motion.handle import MotionHandle
-    from celld.motion.supervisor import Backoff
+    from celld.supervision import Backoff
     from celld.errors import CelldError, LinkLost
     from celld.sim.robot import launch
     from celld.sim.robot.truth import TruthReader
     from celld.shm import SeqlockSlot
     from celld.sim.srm import SRM_TRUTH_DTYPE, SimSrmSource
-    from celld.tactile.camera import TactileProcess
+    from celld.realtime import RealtimeOptions
+    from celld.tactile.process import CAMERA_REALTIME, TactileProcess
     from celld.tactile.sample import from_record
 
     rng = np.random.default_rng(seed)
@@ -485,8 +486,11 @@ def run_closed_loop(kind: str, cfg: Config, motion: MotionLimits, quick: bool, s
         # two FIFO processes hit the kernel's real-time throttling and frames
         # waited up to 100 ms; best effort (``nice``) the frames queued behind
         # other work (latency median 10.6-11.4 ms, p99 up to 38 ms).
-        sched = {"daemon": {"fifo_priority": cfg.tactile.rt_priority}, "fifo-pinned": {"cpus": (1,), "fifo_priority": 40}}.get(camera_sched, {})
-        tactile = TactileProcess(cfg.tactile, cfg.tool, name, spec, **sched)
+        sched = {
+            "daemon": dataclasses.replace(CAMERA_REALTIME, priority=cfg.tactile.rt_priority),
+            "fifo-pinned": RealtimeOptions(priority=40, cpu=1, lock_memory=False),
+        }.get(camera_sched, RealtimeOptions(priority=0, cpu=None, lock_memory=False, nice=-10))
+        tactile = TactileProcess(cfg.tactile, cfg.tool, name, spec, sched)
         reader = TruthReader(host)
 
         def poll() -> None:

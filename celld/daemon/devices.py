@@ -22,7 +22,7 @@ import asyncio
 import math
 import time
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -33,7 +33,9 @@ from celld.log import get_logger
 from celld.motion.handle import MotionHandle
 from celld.scanner.base import OrganizedCloud, Scanner
 from celld.scanner.factory import open_scanner
-from celld.tactile.camera import FrameSourceFactory, TactileProcess, opencv_camera
+from celld.supervision import Backoff
+from celld.tactile.camera import FrameSourceFactory, opencv_camera
+from celld.tactile.process import CAMERA_REALTIME, TactileProcess
 from celld.tactile.sample import TactileSample
 
 log = get_logger(__name__)
@@ -42,10 +44,9 @@ log = get_logger(__name__)
 SERVO_LAWS = {"algorithm2": "celld.motion.servo:make_algorithm2"}
 # Longest a stop may take before the daemon gives up waiting, s.
 STOP_TIMEOUT = 5.0
-# Least time between two restarts of a dying tactile process, s; it doubles
-# after each failed restart, up to the longest.
-TACTILE_RESTART_DELAY = 2.0
-TACTILE_RESTART_DELAY_MAX = 60.0
+# Least time between two restarts of a dying tactile process, s: it doubles
+# after each failed restart, up to a minute.
+TACTILE_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 32.0, 60.0))
 
 
 @dataclass(frozen=True)
@@ -93,7 +94,8 @@ def make_tactile(config: Config, camera: FrameSourceFactory | None = None) -> Ta
                 "'sim' is the simulated cell's SRM camera: run this config with `celld sim run`, or use 'opencv'",
             )
         camera = opencv_camera
-    return TactileProcess(config.tactile, config.tool, f"celld-{uuid.uuid4().hex[:8]}", camera, fifo_priority=config.tactile.rt_priority)
+    realtime = replace(CAMERA_REALTIME, priority=config.tactile.rt_priority)
+    return TactileProcess(config.tactile, config.tool, f"celld-{uuid.uuid4().hex[:8]}", camera, realtime)
 
 
 class CellDevices:
@@ -211,7 +213,7 @@ class CellDevices:
     # -- tactile --------------------------------------------------------------------
 
     async def supervise_tactile(self) -> None:
-        """Restart the tactile process if it died (at most every TACTILE_RESTART_DELAY s).
+        """Restart the tactile process if it died, waiting between attempts as TACTILE_BACKOFF says.
 
         The daemon calls this periodically. While the process is down the
         motion loop sees no fresh sample, so a running servo stops on a stale
@@ -222,7 +224,7 @@ class CellDevices:
         if tactile is None or tactile.alive():
             return
         now = time.monotonic()
-        delay = min(TACTILE_RESTART_DELAY * 2.0 ** self._tactile_failures, TACTILE_RESTART_DELAY_MAX)
+        delay = TACTILE_BACKOFF.delay(self._tactile_failures + 1)
         if now - self._tactile_restart_at < delay:
             return
         self._tactile_restart_at = now
@@ -235,7 +237,7 @@ class CellDevices:
         except CelldError as exc:
             self._tactile_failures += 1
             self.tactile_error = str(exc)
-            log.error("tactile process restart failed", error=str(exc), next_try_s=min(TACTILE_RESTART_DELAY * 2.0 ** self._tactile_failures, TACTILE_RESTART_DELAY_MAX))
+            log.error("tactile process restart failed", error=str(exc), next_try_s=TACTILE_BACKOFF.delay(self._tactile_failures + 1))
 
     def tactile_sample(self) -> TactileSample | None:
         return None if self.tactile is None else self.tactile.latest()

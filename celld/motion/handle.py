@@ -47,8 +47,10 @@ from celld.motion.controllers import MoveParams
 from celld.motion.core import CoreParams, Mode
 from celld.motion.limits import CartesianLimits, check_twist
 from celld.motion.loop import LoopParams
-from celld.motion.process import MotionSpec, RealtimeOptions, servo_laws_from
-from celld.motion.supervisor import Backoff, LinkState, MotionSupervisor, ProcessExit
+from celld.motion.process import MotionSpec, servo_laws_from
+from celld.motion.supervisor import LinkState, MotionSupervisor, ProcessExit
+from celld.realtime import RealtimeOptions
+from celld.supervision import Backoff
 from celld.motion.types import ControlStatus, RobotState, ServoPlan
 from celld.log import get_logger
 from celld.se3 import from_ur_pose

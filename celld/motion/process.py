@@ -22,15 +22,13 @@ receive threads, created while connecting, keep the default policy.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import gc
 import importlib
 import os
 import sys
 import time
 from dataclasses import dataclass
-from typing import Mapping, NamedTuple
+from typing import Mapping
 
 import numpy as np
 
@@ -40,6 +38,7 @@ from celld.motion.channels import STATUS_DTYPE, ChannelNames, Channels, Phase, e
 from celld.motion.core import CoreParams, MotionCore
 from celld.motion.loop import LoopExit, LoopParams, MotionLoop
 from celld.motion.types import ControlStatus, ServoFactory
+from celld.realtime import RealtimeOptions, RealtimeReport, make_realtime
 
 # Exit code of the process for each way the loop ends; anything else is a crash.
 EXIT_CODES = {
@@ -48,21 +47,6 @@ EXIT_CODES = {
     ControlStatus.SAFETY: 4,
     ControlStatus.FAULT: 5,
 }
-_MCL_CURRENT = 1
-_MCL_FUTURE = 2
-_PR_SET_TIMERSLACK = 29
-
-
-@dataclass(frozen=True)
-class RealtimeOptions:
-    """How the loop thread asks for real time."""
-
-    priority: int = 80  # SCHED_FIFO priority, 1..99
-    cpu: int = -1  # CPU to pin to; -1: the last CPU the process may use
-    lock_memory: bool = True  # mlockall, so the loop never waits on a page fault
-    enabled: bool = True  # False: run best effort without asking
-
-
 @dataclass(frozen=True)
 class MotionSpec:
     """Everything the motion process needs; picklable, built by the supervisor."""
@@ -78,44 +62,6 @@ class MotionSpec:
     servo_laws: tuple[tuple[str, str], ...] = ()
     log_level: str = "info"
     log_json: bool = False
-
-
-class RealtimeReport(NamedTuple):
-    fifo: bool
-    cpu: int  # -1 when not pinned
-    memory_locked: bool
-    refused: str  # what the OS refused, "" when everything was granted
-
-
-def make_realtime(opts: RealtimeOptions) -> RealtimeReport:
-    """Pin the calling thread, raise it to SCHED_FIFO, lock memory; report what was granted."""
-    refused: list[str] = []
-    cpu = -1
-    fifo = False
-    locked = False
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-    # Wake-ups of a SCHED_OTHER fallback get the kernel's default 50 µs slack otherwise.
-    libc.prctl(_PR_SET_TIMERSLACK, 1, 0, 0, 0)
-    if not opts.enabled:
-        return RealtimeReport(False, -1, False, "real time disabled by the options")
-    allowed = sorted(os.sched_getaffinity(0))
-    want = allowed[-1] if opts.cpu < 0 else opts.cpu
-    try:
-        os.sched_setaffinity(0, {want})
-        cpu = want
-    except OSError as exc:
-        refused.append(f"CPU affinity {want}: {exc.strerror}")
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(opts.priority))
-        fifo = True
-    except (OSError, PermissionError) as exc:
-        refused.append(f"SCHED_FIFO {opts.priority}: {exc.strerror or exc} (needs root, CAP_SYS_NICE or LimitRTPRIO)")
-    if opts.lock_memory:
-        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
-            locked = True
-        else:
-            refused.append(f"mlockall: {os.strerror(ctypes.get_errno())} (needs LimitMEMLOCK)")
-    return RealtimeReport(fifo, cpu, locked, "; ".join(refused))
 
 
 def load_factories(servo_laws: tuple[tuple[str, str], ...]) -> dict[str, ServoFactory]:

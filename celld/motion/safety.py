@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
-from ruckig import ControlInterface, InputParameter, OutputParameter, Ruckig, RuckigError, Trajectory
+from ruckig import ControlInterface, InputParameter, Ruckig, RuckigError, Trajectory
 
 from celld.motion.limits import CartesianLimits
 from celld.motion.types import ControlStatus

@@ -35,6 +35,7 @@ from celld.log import get_logger
 from celld.motion.channels import CONTROL_DTYPE, STATUS_DTYPE, Channels, Phase, decode_reason
 from celld.motion.process import EXIT_CODES, MotionSpec, main
 from celld.motion.types import ControlStatus
+from celld.supervision import Backoff
 
 log = get_logger(__name__)
 
@@ -52,15 +53,6 @@ class LinkState(str, Enum):
     RUNNING = "running"  # the loop runs
     RESTARTING = "restarting"  # waiting out the back-off before the next start
     STOPPED = "stopped"  # shut down
-
-
-@dataclass(frozen=True)
-class Backoff:
-    """Delays between restarts, s: each failure takes the next, up to the last."""
-
-    delays: tuple[float, ...] = (0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
-    # A process that ran this long resets the sequence.
-    stable_after: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -271,8 +263,8 @@ class MotionSupervisor:
                 callback(end)
             if self._closing:
                 break
-            self._failures = 0 if end.ran_for >= self.backoff.stable_after else self._failures + 1
-            delay = self.backoff.delays[min(max(self._failures - 1, 0), len(self.backoff.delays) - 1)]
+            self._failures = self.backoff.failures_after(self._failures, end.ran_for)
+            delay = self.backoff.delay(self._failures)
             self.state = LinkState.RESTARTING
             self.restarts += 1
             await asyncio.sleep(delay)

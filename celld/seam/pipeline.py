@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -52,7 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from celld import polyline, se3
-from celld.errors import GrooveError, InputError, RegistrationError, ScanError
+from celld.errors import GrooveError, RegistrationError, ScanError
 from celld.log import get_logger
 from celld.seam.groove import CONTRADICTS, GrooveFit, fit_groove, lateral_offsets, smooth_offsets
 from celld.seam.params import SeamParams
@@ -456,7 +456,7 @@ def _coverage(P_near: Array, stations: Array, radius: float) -> float:
     return float(np.mean(np.asarray(counts) > 0))
 
 
-def _across_support(prepared: PreparedWorkpiece, P_near: Array, proj: Projection, near: NDArray[np.bool_], params: SeamParams) -> float:
+def _across_support(prepared: PreparedWorkpiece, P_near: Array, proj: polyline.Projection, near: NDArray[np.bool_], params: SeamParams) -> float:
     """Share of the scan points near the seam that lie on faces facing across it.
 
     Only such faces (bevels, a web) fix the part sideways; flat tops do not.
@@ -574,7 +574,7 @@ def _seam_points(
     return stations + Dst, "groove", "", gq
 
 
-def _along_shift(P: Array, proj: Projection, near: NDArray[np.bool_], wp: Workpiece, params: SeamParams) -> float:
+def _along_shift(P: Array, proj: polyline.Projection, near: NDArray[np.bool_], wp: Workpiece, params: SeamParams) -> float:
     """How far along the seam the joint's two ends in the scan lie from the model's.
 
     Registration fixes the part across the seam well but along it only through

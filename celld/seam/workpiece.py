@@ -41,7 +41,6 @@ from typing import Callable
 import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
 from celld import polyline
 from celld.errors import WorkpieceError

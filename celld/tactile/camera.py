@@ -1,9 +1,8 @@
-"""The tactile process: SRM camera -> tag detection -> deformation -> shared memory.
+"""The camera loop of the tactile process: SRM camera -> tag detection -> deformation -> shared memory.
 
-The process reads frames from a :class:`FrameSource` that a picklable
-factory builds inside it (:func:`opencv_camera` on the cell; the simulated
-cell hands its own), 
-detects the tag (:mod:`celld.tactile.aruco`), turns it into a
+The loop reads frames from a :class:`FrameSource` that a picklable factory
+builds inside the tactile process (:func:`opencv_camera` on the cell; the
+simulated cell hands its own), detects the tag (:mod:`celld.tactile.aruco`), turns it into a
 :class:`~celld.tactile.sample.TactileSample` (:mod:`celld.tactile.deformation`)
 stamped with the frame's capture time, and writes it into a seqlock slot that
 the motion process reads every cycle. Every frame gives a sample: a failed
@@ -16,17 +15,15 @@ At start (and on request) the process tares: it averages ``tare_frames``
 detections with the finger free; until a tare succeeds it writes
 ``NOT_TARED`` samples.
 
-:class:`TactileProcess` starts the process from the main process and owns
-both slots. OpenCV runs single-threaded in it, so detection does not take the
-second core from the motion loop.
+The process around the loop (its entry point, real-time set-up and its
+handle in the daemon) is :mod:`celld.tactile.process`. OpenCV runs
+single-threaded in it, so detection does not take the second core from the
+motion loop.
 """
 
 from __future__ import annotations
 
-import multiprocessing as mp
-import os
 import time
-from multiprocessing.synchronize import Event
 from typing import Any, Callable, Protocol
 
 import cv2
@@ -38,7 +35,7 @@ from celld.log import get_logger
 from celld.shm import SeqlockSlot
 from celld.tactile.aruco import TagDetector
 from celld.tactile.deformation import DeformationParams, Tare, estimate, invalid_sample, tare
-from celld.tactile.sample import TACTILE_DTYPE, ContactState, TactileSample, TactileStatus, to_record
+from celld.tactile.sample import ContactState, TactileSample, TactileStatus, to_record
 
 log = get_logger(__name__)
 
@@ -46,8 +43,6 @@ log = get_logger(__name__)
 _REOPEN_INTERVAL = 1.0
 # Frames a tare may look at before it gives up and starts again.
 _TARE_PATIENCE = 3
-# How long the parent waits for the process to come up, s.
-_START_TIMEOUT = 20.0
 
 # Counters the process publishes: frames per outcome (index = TactileStatus).
 COUNTERS_DTYPE = np.dtype(
@@ -310,7 +305,7 @@ def run_camera(
             preview.offer(frame[0], frame[1], est.last_corners)
 
 
-# -- the process ----------------------------------------------------------------------
+# -- what the process builds its camera with --------------------------------------------
 
 
 # Builds the camera inside the tactile process from the tactile config. It is
@@ -322,216 +317,3 @@ FrameSourceFactory = Callable[[TactileConfig], FrameSource]
 def opencv_camera(cfg: TactileConfig) -> FrameSource:
     """The cell's camera: :class:`OpenCvCamera` (``tactile.kind = "opencv"``)."""
     return OpenCvCamera(cfg)
-
-
-def tactile_main(
-    cfg: TactileConfig,
-    tool: ToolConfig,
-    slot_name: str,
-    counters_name: str,
-    stop: Event,
-    tare_request: Event,
-    ready: Event,
-    source_factory: FrameSourceFactory = opencv_camera,
-    nice: int = 0,
-    cpus: tuple[int, ...] = (),
-    fifo_priority: int = 0,
-    preview_slot: str = "",
-) -> None:
-    """Entry point of the tactile process (``multiprocessing`` spawn target)."""
-    cv2.setNumThreads(1)
-    if fifo_priority > 0:
-        # Below the motion loop's priority: the loop preempts it, everything best-effort waits for it.
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo_priority))
-            nice = 0
-        except OSError as exc:
-            log.warning("tactile process cannot run at SCHED_FIFO", priority=fifo_priority, reason=str(exc))
-    if cpus:
-        try:
-            os.sched_setaffinity(0, set(cpus))
-        except (OSError, ValueError) as exc:
-            log.warning("tactile process not pinned", cpus=list(cpus), reason=str(exc))
-    if nice:
-        # Ahead of the main process's and other best-effort work, behind the motion loop (FIFO).
-        try:
-            os.setpriority(os.PRIO_PROCESS, 0, nice)
-        except OSError as exc:
-            log.warning("tactile process runs at normal priority", wanted_nice=nice, reason=str(exc))
-    samples = SeqlockSlot.attach(slot_name, TACTILE_DTYPE)
-    counters = SeqlockSlot.attach(counters_name, COUNTERS_DTYPE)
-    preview_shm = SeqlockSlot.attach(preview_slot, preview_dtype(cfg)) if preview_slot else None
-    preview = PreviewWriter(preview_shm, cfg) if preview_shm is not None else None
-    source = source_factory(cfg)
-    try:
-        source.open()
-        est = FrameEstimator(cfg, tool)
-        est.counters[0]["pid"] = os.getpid()
-        ready.set()
-
-        def requested() -> bool:
-            if tare_request.is_set():
-                tare_request.clear()
-                return True
-            return False
-
-        run_camera(source, est, samples, counters, stop.is_set, requested, preview)
-    finally:
-        source.close()
-        samples.close()
-        counters.close()
-        if preview_shm is not None:
-            preview_shm.close()
-
-
-class TactileProcess:
-    """Starts and stops the tactile process; owns its sample and counter slots.
-
-    Parameters
-    ----------
-    cfg : TactileConfig
-    tool : ToolConfig
-    name : str
-        Prefix of the shared-memory names (unique per cell instance).
-    source_factory : FrameSourceFactory
-        Builds the camera inside the process (picklable); the cell's OpenCV
-        camera unless the simulated cell hands its own.
-    nice : int
-        Scheduling niceness of the process (negative: ahead of best-effort
-        work; needs CAP_SYS_NICE). A camera frame must be read within its
-        period, so on a busy cell PC the tactile process should not queue
-        behind the main process's scan processing.
-    cpus : tuple of int
-        CPUs to pin the process to (empty: any).
-    fifo_priority : int
-        Run at SCHED_FIFO with this priority (0: do not), below the motion
-        loop's. The process sleeps between frames, so it takes what detection
-        costs, but it gets it on time.
-    """
-
-    def __init__(
-        self,
-        cfg: TactileConfig,
-        tool: ToolConfig,
-        name: str,
-        source_factory: FrameSourceFactory = opencv_camera,
-        nice: int = -10,
-        cpus: tuple[int, ...] = (),
-        fifo_priority: int = 0,
-    ) -> None:
-        self.cfg = cfg
-        self.slot_name = f"{name}-tactile"
-        self.counters_name = f"{name}-tactile-counters"
-        self.samples = SeqlockSlot.create(self.slot_name, TACTILE_DTYPE)
-        self.counters = SeqlockSlot.create(self.counters_name, COUNTERS_DTYPE)
-        self.preview_name = f"{name}-tactile-preview"
-        self.preview = SeqlockSlot.create(self.preview_name, preview_dtype(cfg))
-        ctx = mp.get_context("spawn")
-        self._ctx = ctx
-        self._stop = ctx.Event()
-        self._tare = ctx.Event()
-        self._ready = ctx.Event()
-        self._args = (cfg, tool, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, source_factory, nice,
-                      tuple(cpus), fifo_priority, self.preview_name)
-        self._proc = self._new_process()
-        self.restarts = 0
-
-    def _new_process(self) -> Any:
-        return self._ctx.Process(target=tactile_main, args=self._args, name="celld-tactile", daemon=True)
-
-    def restart(self, timeout: float = _START_TIMEOUT) -> int | None:
-        """Start a new process on the same slots after this one died; returns the dead one's exit code.
-
-        The motion process keeps reading the same sample slot, so it sees the
-        new camera process's samples (after its tare) without a restart of its own.
-        """
-        if self._proc.is_alive():
-            raise DeviceError("the tactile process is running; stop it before a restart")
-        code = self._proc.exitcode
-        self._stop.clear()
-        self._ready.clear()
-        self._proc = self._new_process()
-        self.restarts += 1
-        self.start(timeout)
-        return code
-
-    def start(self, timeout: float = _START_TIMEOUT) -> None:
-        self._proc.start()
-        deadline = time.monotonic() + timeout
-        while not self._ready.wait(0.1):
-            if not self._proc.is_alive():
-                raise DeviceError(f"the tactile process exited at start (exit code {self._proc.exitcode})")
-            if time.monotonic() > deadline:
-                # End the process, keep the slots: a restart may use them (stop() releases them).
-                self._proc.terminate()
-                self._proc.join(1.0)
-                if self._proc.is_alive():
-                    self._proc.kill()
-                    self._proc.join(1.0)
-                raise DeviceError(f"the tactile process did not come up within {timeout} s")
-
-    def request_tare(self) -> None:
-        self._tare.set()
-
-    def tare(self, timeout: float = 10.0) -> None:
-        """Tare now (the finger must be free) and wait until it is done (blocking).
-
-        Raises
-        ------
-        DeviceError
-            The process is not running, or no tare succeeded within ``timeout``.
-        """
-        if not self.alive():
-            raise DeviceError("the tactile process is not running")
-        before = self.read_counters()
-        done = int(before["tares"]) if before is not None else 0
-        self.request_tare()
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            c = self.read_counters()
-            if c is not None and int(c["tares"]) > done:
-                return
-            time.sleep(0.02)
-        raise DeviceError(f"the SRM did not tare within {timeout:g} s (is the tag in view and the finger free?)")
-
-    def latest(self) -> TactileSample | None:
-        from celld.tactile.sample import from_record
-
-        rec, _ = self.samples.read()
-        return None if rec is None or int(rec["seq"]) == 0 else from_record(rec)
-
-    def latest_preview(self) -> tuple[int, np.ndarray, np.ndarray | None] | None:
-        """The latest frame shared for viewing: (capture stamp, grey image, tag corners or None), or None."""
-        rec, _ = self.preview.read()
-        if rec is None or int(rec["stamp_ns"]) <= 0:
-            return None
-        corners = np.array(rec["corners_px"]) if bool(rec["has_tag"]) else None
-        return int(rec["stamp_ns"]), np.array(rec["image"]), corners
-
-    def read_counters(self) -> np.void | None:
-        rec, _ = self.counters.read()
-        return rec
-
-    @property
-    def exitcode(self) -> int | None:
-        return self._proc.exitcode
-
-    def running(self) -> bool:
-        """Started and reading its camera (not merely alive: a process starting may still fail)."""
-        return self._proc.is_alive() and self._ready.is_set()
-
-    def alive(self) -> bool:
-        return self._proc.is_alive()
-
-    def stop(self, timeout: float = 5.0) -> int | None:
-        """Stop the process (if it was started) and release the slots."""
-        self._stop.set()
-        if self._proc.pid is not None:
-            self._proc.join(timeout)
-            if self._proc.is_alive():
-                self._proc.terminate()
-                self._proc.join(1.0)
-        for slot in (self.samples, self.counters, self.preview):
-            slot.close()
-            slot.unlink()
-        return self._proc.exitcode

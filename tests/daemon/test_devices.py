@@ -6,6 +6,7 @@ import asyncio
 
 from celld.config import Config
 from celld.daemon import devices as devices_mod
+from celld.supervision import Backoff
 from celld.daemon.devices import CellDevices
 from celld.errors import DeviceError
 
@@ -41,10 +42,10 @@ def test_a_dead_tactile_process_is_restarted_with_a_delay_between_attempts(monke
         failing = FakeTactile(fail=True)
         failing.up = False
         dev.tactile = failing
-        monkeypatch.setattr(devices_mod, "TACTILE_RESTART_DELAY", 3600.0)
+        monkeypatch.setattr(devices_mod, "TACTILE_BACKOFF", Backoff(delays=(3600.0,)))
         await dev.supervise_tactile()  # restarted just before: waits
         assert failing.restarts == 0
-        monkeypatch.setattr(devices_mod, "TACTILE_RESTART_DELAY", 0.0)
+        monkeypatch.setattr(devices_mod, "TACTILE_BACKOFF", Backoff(delays=(0.0,)))
         await dev.supervise_tactile()
         await dev.supervise_tactile()  # a failed restart is logged and tried again, never raised
         assert failing.restarts == 2 and not failing.alive()

@@ -13,7 +13,6 @@ from celld.config import parse
 from celld.daemon.weld import current_T_base_cam, resolve_workpiece
 from celld.errors import JobError
 from celld.seam.workpiece import v_groove_butt
-from celld.sim.workpiece import nominal_pose, true_wall
 
 
 def test_parts_resolve_from_the_examples_or_the_workpiece_dir(tmp_path: Path) -> None:

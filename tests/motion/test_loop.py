@@ -11,7 +11,7 @@ import pytest
 from celld.config import MotionLimits
 from celld.motion import commands as cmd
 from celld.motion.channels import CONTROL_DTYPE, SETPOINT_DTYPE, ChannelNames, Channels, decode_reason
-from celld.motion.core import Action, CoreParams, Mode, MotionCore
+from celld.motion.core import CoreParams, Mode, MotionCore
 from celld.motion.limits import CartesianLimits
 from celld.motion.loop import LoopParams, MotionLoop
 from celld.motion.types import ControlStatus, ServoPlan
@@ -325,6 +325,7 @@ def test_the_motion_process_switches_the_output_off_when_the_link_drops(
     channels: Channels, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from celld.motion import process
+    from celld.realtime import RealtimeOptions
     from celld.robot import link
 
     class Port(FakePort):
@@ -345,7 +346,7 @@ def test_the_motion_process_switches_the_output_off_when_the_link_drops(
     spec = process.MotionSpec(
         host="fake", channels=channels.names, core=CORE._replace(tactile_stale=60.0),
         loop=LoopParams(PERIOD_NS, speed_accel=8.0, process_output=ARC),
-        realtime=process.RealtimeOptions(enabled=False), servo_laws=(("probe", "tests.motion.laws:make_probe"),),
+        realtime=RealtimeOptions(enabled=False), servo_laws=(("probe", "tests.motion.laws:make_probe"),),
     )
     end = process.run(spec)
     assert end.status == ControlStatus.LINK_LOST

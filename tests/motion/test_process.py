@@ -34,7 +34,8 @@ from celld.motion.channels import STATE_DTYPE
 from celld.motion.core import Action, Mode
 from celld.motion.handle import MotionHandle
 from celld.motion.limits import CartesianLimits, sequence_peaks
-from celld.motion.supervisor import Backoff, LinkState
+from celld.motion.supervisor import LinkState
+from celld.supervision import Backoff
 from celld.motion.types import ServoPlan
 from celld.se3 import error
 from celld.tactile.sample import ContactState, TactileSample, to_record

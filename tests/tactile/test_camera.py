@@ -12,7 +12,8 @@ from celld.config import TactileConfig, ToolConfig
 from celld.errors import DeviceError
 from celld.shm import SeqlockSlot
 from celld.sim.srm import SimSrm, SimSrmCamera, SrmSimParams, Wall
-from celld.tactile.camera import COUNTERS_DTYPE, FrameEstimator, OpenCvCamera, TactileProcess, run_camera
+from celld.tactile.camera import COUNTERS_DTYPE, FrameEstimator, OpenCvCamera, run_camera
+from celld.tactile.process import TactileProcess
 from celld.tactile.sample import TACTILE_DTYPE, ContactState, TactileStatus, from_record
 
 # A wall along +x at y = 0 of a horizontal plane; the default tool faces +x

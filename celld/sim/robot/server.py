@@ -29,6 +29,7 @@ from typing import Any
 
 from celld.errors import InputError
 from celld.log import get_logger
+from celld.realtime import RealtimeOptions, make_realtime
 from celld.robot import kinematics as kin
 from celld.sim.robot import geometry as g
 from celld.sim.robot import links as L
@@ -53,6 +54,8 @@ PERIOD_NS = int(PERIOD * 1e9)
 SPIN_NS = 100_000
 # Timer slack of the process, ns (the kernel's default is 50 us).
 _TIMER_SLACK_NS = 1_000
+# SCHED_FIFO priority of the simulated controller where allowed.
+_FIFO_PRIORITY = 50
 # More cycles behind than this (0.5 s) and the schedule is reset instead of caught up:
 # below it, simulated time keeps pace with the clock even when the OS stalls the process.
 MAX_CATCHUP = 250
@@ -364,27 +367,13 @@ def serve(options: SimOptions) -> int:
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
-    _set_timer_slack(_TIMER_SLACK_NS)
+    # Below the motion loop (80), above the tactile process (40); memory and CPU left as they are.
+    rt = make_realtime(RealtimeOptions(priority=_FIFO_PRIORITY if options.realtime else 0, cpu=None, lock_memory=False,
+                                       timer_slack_ns=_TIMER_SLACK_NS))
     if options.realtime:
-        _make_realtime()
+        if rt.fifo:
+            log.info("sim_robot_realtime", policy="SCHED_FIFO", priority=_FIFO_PRIORITY)
+        else:
+            log.warning("sim_robot_realtime_refused", error=rt.refused)
     server.run()
     return 0
-
-
-def _set_timer_slack(ns: int) -> None:
-    """prctl(PR_SET_TIMERSLACK): let sleeps end closer to their deadline (Linux only)."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(29, ctypes.c_ulong(ns), 0, 0, 0)  # 29 = PR_SET_TIMERSLACK
-    except (OSError, AttributeError):
-        pass
-
-
-def _make_realtime() -> None:
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
-        log.info("sim_robot_realtime", policy="SCHED_FIFO", priority=50)
-    except (PermissionError, OSError) as exc:
-        log.warning("sim_robot_realtime_refused", error=str(exc))
