@@ -427,10 +427,9 @@ E2E_SETUPS = {
 
 def realization_3(job: tuple[int, str, int, float]) -> dict[str, Any]:
     """Benchmark 3, one seed: ray-cast captures, the detector, the session solve."""
-    from celld.calib.detect import PARAMS_BY_SCANNER, detect_flange
-    from celld.calib.robust import RejectedPair
+    from celld.calib.detect_params import PARAMS_BY_SCANNER
+    from celld.calib.pairs import PairCollector
     from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
-    from celld.errors import DetectionError
     from celld.sim.scanner import SimScanner
     from celld.sim.scene import robot_scene
 
@@ -444,26 +443,19 @@ def realization_3(job: tuple[int, str, int, float]) -> dict[str, Any]:
     T_bf = tilted_poses(rng, P_base)
     T_v = transform_from(np.eye(3), centre)
     t0 = time.perf_counter()
-    ids, Pb, Pc, pre = [], [], [], []
-    for i, T in enumerate(T_bf):
-        cloud = scanner.capture(robot_scene(T, flange)).points
-        try:
-            det = detect_flange(cloud, flange, dparams)
-        except DetectionError as exc:
-            pre.append(RejectedPair(str(i), -1, math.nan, f"detection failed at {exc.stage}: {exc.reason}"))
-            continue
-        ids.append(str(i))
-        Pb.append(T[:3, 3])
-        Pc.append(det.center)
+    pairs = PairCollector(flange, dparams)
+    for T in T_bf:
+        pairs.capture(T, scanner.capture(robot_scene(T, flange)).points)
+    found = pairs.detections()
     params = SolveParams(method="robust", compensate=True, e_required=0.0)
-    out: dict[str, Any] = {"seed": seed, "setup": setup, "detected": len(ids), "poses": n_poses}
+    out: dict[str, Any] = {"seed": seed, "setup": setup, "detected": pairs.n_pairs, "poses": n_poses}
     try:
         verifier = verifier_from_cloud(scanner.capture(robot_scene(T_v, flange)).points, T_v, flange, params, dparams)
     except CalibrationError as exc:
         verifier = None
         out["verification_error"] = str(exc)
     try:
-        res = solve_pairs(ids, np.reshape(Pb, (-1, 3)), np.reshape(Pc, (-1, 3)), params, verifier, pre)
+        res = solve_pairs(found.ids, found.P_base, found.P_cam, params, verifier, found.rejected)
     except CalibrationError as exc:
         out["error"] = str(exc)
         for m in ("robust", "svd_all", "algorithm1", "robust_eq21"):
@@ -471,7 +463,7 @@ def realization_3(job: tuple[int, str, int, float]) -> dict[str, Any]:
         return out
     out["robust"] = errors(res.T_base_cam)
     out["robust_eq21"] = errors(res.T_base_cam_compensated)
-    out["svd_all"] = errors(solve_rigid(np.array(Pb), np.array(Pc)).T_dst_src)
+    out["svd_all"] = errors(solve_rigid(found.P_base, found.P_cam).T_dst_src)
     out["algorithm1"] = errors(None if res.algorithm1 is None else res.algorithm1.T_base_cam)
     out["rejected"] = len(res.rejected)
     out["predicted_t_mm"] = res.uncertainty.translation_error * 1e3

@@ -40,7 +40,8 @@ from typing import Any
 import numpy as np
 
 from celld import se3
-from celld.calib.detect import PARAMS_BY_SCANNER, detect_flange
+from celld.calib.detect import detect_flange  # noqa: E402
+from celld.calib.detect_params import PARAMS_BY_SCANNER
 from celld.calib.flange import preset
 from celld.errors import DetectionError
 from celld.sim.scanner import SimScanner, robot_scene

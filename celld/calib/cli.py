@@ -119,7 +119,8 @@ def _read_any_cloud(path: Path, units: str) -> np.ndarray:
 
 
 def _detect(args: argparse.Namespace) -> int:
-    from celld.calib.detect import PARAMS_BY_SCANNER, detect_flange
+    from celld.calib.detect import detect_flange
+    from celld.calib.detect_params import PARAMS_BY_SCANNER
     from celld.calib.flange import preset
 
     try:

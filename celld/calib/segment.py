@@ -23,17 +23,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Iterator, NamedTuple
+from typing import Iterator, NamedTuple
 
 import numpy as np
 import open3d as o3d
 from scipy import ndimage
 
 from celld.calib.circle import CircleFit, angular_coverage, fit_plane, plane_basis, ransac_circle
+from celld.calib.detect_params import DetectParams
 from celld.calib.flange import FlangeModel
-
-if TYPE_CHECKING:
-    from celld.calib.detect import DetectParams
 
 # Fewest points a plane or a cluster needs to be considered.
 MIN_POINTS = 12

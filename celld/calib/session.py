@@ -31,7 +31,9 @@ from numpy.typing import ArrayLike
 
 from celld.calib.algorithm1 import Algorithm1Result, run_algorithm1
 from celld.calib.dataset import Session
-from celld.calib.detect import PARAMS_BY_SCANNER, DetectParams, detect_flange
+from celld.calib.detect import detect_flange
+from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
+from celld.calib.pairs import Detections, PairCollector
 from celld.calib.flange import FlangeModel
 from celld.calib.metrics import IcpMetric, IcpParams, IcpVerifier, compensate, cost_function, model_cloud_with_normals
 from celld.calib.rigid import Array, Uncertainty, check_pairs, pair_residuals, solve_rigid
@@ -278,44 +280,20 @@ def solve_pairs(
     )
 
 
-@dataclass(frozen=True)
-class Detections:
-    """Centres of the pairs of a session, and the pairs without one."""
-
-    ids: tuple[str, ...]
-    P_base: Array
-    P_cam: Array
-    rejected: tuple[RejectedPair, ...]
-
-
 def detect_pairs(
     session: Session, flange: FlangeModel | None, detect_params: DetectParams | None = None, redetect: bool = False
 ) -> Detections:
-    """Flange centres of every pair: recorded ones (reference sessions), else detected in the cloud.
+    """Flange centres of every pair: recorded ones (reference sessions) unless ``redetect``, else detected in the cloud.
 
     A pair whose detection fails, or that has neither a centre nor a cloud,
-    is rejected with the reason.
+    is rejected with the reason (:class:`~celld.calib.pairs.PairCollector`).
     """
-    ids, P_base, P_cam, rejected = [], [], [], []
+    collector = PairCollector(flange, detect_params)
     for rec in session.pairs:
         p_cam = None if redetect else rec.p_cam
-        if p_cam is None:
-            if rec.cloud_path is None:
-                rejected.append(RejectedPair(rec.id, -1, float("nan"), "no flange centre recorded and no cloud to detect it in"))
-                continue
-            if flange is None:
-                raise InputError(f"pair {rec.id!r}: a flange preset is needed to detect the centre in its cloud (--flange)")
-            try:
-                det = detect_flange(session.cloud(rec), flange, detect_params)
-            except DetectionError as exc:
-                log.info("calib.detection_failed", pair=rec.id, stage=exc.stage, reason=exc.reason)
-                rejected.append(RejectedPair(rec.id, -1, float("nan"), f"detection failed at {exc.stage}: {exc.reason}"))
-                continue
-            p_cam = det.center
-        ids.append(rec.id)
-        P_base.append(rec.p_base)
-        P_cam.append(p_cam)
-    return Detections(tuple(ids), np.reshape(P_base, (-1, 3)), np.reshape(P_cam, (-1, 3)), tuple(rejected))
+        cloud = session.cloud(rec) if p_cam is None and rec.cloud_path is not None else None
+        collector.add(rec.id, rec.p_base, cloud=cloud, p_cam=p_cam)
+    return collector.detections()
 
 
 def verifier_from_cloud(

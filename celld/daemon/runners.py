@@ -32,16 +32,16 @@ from celld import se3
 from celld.bus.schema import CalibrateJob, HealthJob, MoveJob
 from celld.calib.algorithm1 import Algorithm1
 from celld.calib.dataset import SessionWriter
-from celld.calib.detect import PARAMS_BY_SCANNER, DetectParams, detect_flange
+from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
 from celld.calib.metrics import cost_function
 from celld.calib.poses import calibration_poses
-from celld.calib.robust import RejectedPair
+from celld.calib.pairs import PairCollector
 from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext, Runner
-from celld.errors import CalibrationError, CelldError, DetectionError, JobError
+from celld.errors import CalibrationError, CelldError, JobError
 from celld.log import get_logger
 from celld.robot.kinematics import forward
 
@@ -121,33 +121,27 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     verifier = await asyncio.to_thread(verifier_from_cloud, cloud_v.points, T_v_robot, flange, params, dparams)
     alg = Algorithm1(verifier, cost_function(params.cost, params.work_radius), e_required=params.e_required, k_max=params.k_max or len(poses))
 
-    ids: list[str] = []
-    P_base: list[np.ndarray] = []
-    P_cam: list[np.ndarray] = []
-    rejected: list[RejectedPair] = []
+    pairs = PairCollector(flange, dparams, writer)
     early = False
     for i, T in enumerate(poses):
         T_bf = await _settled_flange_pose(devices, T, cal.settle)
         cloud = await devices.capture()
-        pid = await asyncio.to_thread(writer.add_pair, T_bf, cloud.points)
-        try:
-            det = await asyncio.to_thread(detect_flange, cloud.points, flange, dparams)
-        except DetectionError as exc:
-            rejected.append(RejectedPair(pid, i, math.nan, f"detection failed at {exc.stage}: {exc.reason}"))
-            ctx.progress("pair", (i + 1) / len(poses), f"pair {pid}: no flange ({exc.reason})", pair=pid, detected=False)
+        got = await asyncio.to_thread(pairs.capture, T_bf, cloud.points)
+        pid, det = got.id, got.detection
+        if got.rejected is not None or det is None:
+            reason = got.rejected.reason if got.rejected is not None else "no detection"
+            ctx.progress("pair", (i + 1) / len(poses), f"pair {pid}: no flange ({reason})", pair=pid, detected=False)
             continue
-        ids.append(pid)
-        P_base.append(T_bf[:3, 3].copy())
-        P_cam.append(det.center)
         if rec is not None:
             rec.log_cloud_cam("pair", cloud.points)
             rec.log_circle_cam("flange", det.center, det.normal, det.radius)
             rec.log_tcp(T_bf)
         data: dict[str, Any] = {"pair": pid, "detected": True, "radius_mm": det.radius * 1e3, "inliers": det.inliers}
-        if len(ids) == 4:
-            step = await asyncio.to_thread(alg.start, ids, np.array(P_base), np.array(P_cam))
-        elif len(ids) > 4:
-            step = await asyncio.to_thread(alg.add, pid, P_base[-1], P_cam[-1])
+        found = pairs.detections()
+        if pairs.n_pairs == 4:
+            step = await asyncio.to_thread(alg.start, list(found.ids), found.P_base, found.P_cam)
+        elif pairs.n_pairs > 4:
+            step = await asyncio.to_thread(alg.add, pid, found.P_base[-1], found.P_cam[-1])
         else:
             step = None
         if step is not None:
@@ -160,11 +154,12 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
             early = alg.reached
             break
 
-    if len(ids) < 4:
-        raise CalibrationError(f"only {len(ids)} of {len(poses)} captures showed the flange; at least 4 are needed")
-    ctx.progress("solve", None, f"solving from {len(ids)} pairs")
+    found = pairs.detections()
+    if pairs.n_pairs < 4:
+        raise CalibrationError(f"only {pairs.n_pairs} of {len(poses)} captures showed the flange; at least 4 are needed")
+    ctx.progress("solve", None, f"solving from {pairs.n_pairs} pairs")
     result = await asyncio.to_thread(
-        solve_pairs, ids, np.array(P_base), np.array(P_cam), params, verifier, rejected, len(ids) + len(rejected)
+        solve_pairs, found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, pairs.n_captures
     )
     report = result.as_dict()
     a1 = alg.result() if alg.started else None
@@ -182,7 +177,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         "calibration": calibration,
         "report": report,
         "early_stop": early,
-        "poses_captured": len(ids) + len(rejected),
+        "poses_captured": pairs.n_captures,
         "poses_planned": len(poses),
         "dataset": str(dataset),
     }

@@ -22,12 +22,11 @@ import numpy as np
 from celld import config as config_mod
 from celld import se3
 from celld.calib.dataset import SessionWriter
-from celld.calib.detect import PARAMS_BY_SCANNER, DetectParams, detect_flange
+from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
 from celld.calib.poses import calibration_poses
-from celld.calib.robust import RejectedPair
+from celld.calib.pairs import PairCollector
 from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
-from celld.errors import DetectionError
 from celld.sim.scanner import SimScanner
 from celld.sim.scene import robot_scene
 
@@ -66,24 +65,19 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     P_v = scanner.capture(robot_scene(T_v, flange)).points
     writer.set_verification(T_v, P_v)
-    ids, P_base, P_cam, rejected = [], [], [], []
-    for i, T in enumerate(poses):
-        cloud = scanner.capture(robot_scene(T, flange)).points
-        pid = writer.add_pair(T, cloud)
-        try:
-            det = detect_flange(cloud, flange, dparams)
-        except DetectionError as exc:
-            rejected.append(RejectedPair(pid, i, math.nan, f"detection failed at {exc.stage}: {exc.reason}"))
-            say(f"  pair {pid}: no flange ({exc.reason})")
+    pairs = PairCollector(flange, dparams, writer)
+    for T in poses:
+        got = pairs.capture(T, scanner.capture(robot_scene(T, flange)).points)
+        det = got.detection
+        if got.rejected is not None or det is None:
+            say(f"  pair {got.id}: no flange ({got.rejected.reason if got.rejected else 'no detection'})")
             continue
-        ids.append(pid)
-        P_base.append(T[:3, 3])
-        P_cam.append(det.center)
-        say(f"  pair {pid}: centre found, radius {det.radius * 1e3:.2f} mm, {det.inliers} rim points, "
+        say(f"  pair {got.id}: centre found, radius {det.radius * 1e3:.2f} mm, {det.inliers} rim points, "
             f"residual {det.residual * 1e6:.0f} um")
     params = SolveParams.from_config(cal)
     verifier = verifier_from_cloud(P_v, T_v, flange, params, dparams)
-    result = solve_pairs(ids, np.array(P_base), np.array(P_cam), params, verifier, rejected, n_pairs=n)
+    found = pairs.detections()
+    result = solve_pairs(found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, n_pairs=n)
     seconds = time.perf_counter() - t0
 
     dt, dr = se3.error(result.T_base_cam, T_base_cam_true)

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.calib.detect import PARAMS_BY_SCANNER, DetectParams, FlangeDetection, detect_flange, to_metres
+from celld.calib.detect import FlangeDetection, detect_flange, to_metres
+from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import FlangeModel, preset
 from celld.errors import DetectionError, InputError
 from celld.sim.scanner import SCANNER_MODELS, OrganizedCloud, SceneObject, SimScanner, robot_scene

@@ -1,0 +1,140 @@
+"""Calibration pairs: each capture becomes a (flange position, flange centre) pair or a rejection with its reason.
+
+:class:`PairCollector` is the one place where a calibration capture meets
+the detector, for every path that gathers pairs: the daemon's calibrate job,
+the simulated cell's offline calibration, a saved session solved again
+(:func:`celld.calib.session.detect_pairs`) and the calibration benchmark. A
+pair is the robot's flange position ``p_base`` (the paper's Base p_i, the
+TCP with a zero TCP offset) and the flange centre ``p_cam`` found in the
+cloud (Cam p_i); a capture whose flange is not found is kept as a
+:class:`~celld.calib.robust.RejectedPair` whose reason names the detector's
+stage, so a report can say which poses gave nothing and why.
+
+The collector stores each capture first when it is given a session writer,
+so a dataset holds every capture, found or not.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from celld.calib.detect import FlangeDetection, detect_flange
+from celld.calib.detect_params import DetectParams
+from celld.calib.flange import FlangeModel
+from celld.calib.robust import RejectedPair
+from celld.errors import DetectionError, InputError
+from celld.log import get_logger
+
+log = get_logger(__name__)
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Detections:
+    """The pairs of a session (ids, flange positions and centres, (n, 3) m) and the captures rejected."""
+
+    ids: tuple[str, ...]
+    P_base: Array
+    P_cam: Array
+    rejected: tuple[RejectedPair, ...]
+
+
+@dataclass(frozen=True)
+class PairOutcome:
+    """What became of one capture: a pair (``detection`` set, unless its centre was recorded) or a rejection."""
+
+    id: str
+    index: int
+    detection: FlangeDetection | None
+    rejected: RejectedPair | None
+
+    @property
+    def kept(self) -> bool:
+        return self.rejected is None
+
+
+class PairCollector:
+    """Turns captures into calibration pairs.
+
+    Parameters
+    ----------
+    flange : FlangeModel or None
+        The flange to find; None when every pair brings its recorded centre.
+    detect_params : DetectParams, optional
+        The detector's parameters (the scanner's preset).
+    writer : celld.calib.dataset.SessionWriter, optional
+        Stores each capture (pose and cloud) before it is detected; the
+        writer names the pair.
+    """
+
+    def __init__(self, flange: FlangeModel | None, detect_params: DetectParams | None = None, writer: Any = None) -> None:
+        self.flange = flange
+        self.detect_params = detect_params
+        self.writer = writer
+        self._ids: list[str] = []
+        self._P_base: list[Array] = []
+        self._P_cam: list[Array] = []
+        self._rejected: list[RejectedPair] = []
+        self._count = 0
+
+    def capture(self, T_base_flange: ArrayLike, cloud: ArrayLike) -> PairOutcome:
+        """A capture at the flange pose ``T_base_flange`` (4, 4): stored (with a writer) and detected."""
+        T = np.asarray(T_base_flange, dtype=np.float64)
+        pair_id = self.writer.add_pair(T, cloud) if self.writer is not None else str(self._count)
+        return self.add(pair_id, T[:3, 3], cloud=cloud)
+
+    def add(self, pair_id: str, p_base: ArrayLike, cloud: ArrayLike | None = None, p_cam: ArrayLike | None = None) -> PairOutcome:
+        """One pair: its recorded centre ``p_cam`` if given, else the flange found in ``cloud``.
+
+        Raises
+        ------
+        InputError
+            The flange must be detected but no flange model was given.
+        """
+        index = self._count
+        self._count += 1
+        detection = None
+        if p_cam is None:
+            if cloud is None:
+                return self.reject(pair_id, "no flange centre recorded and no cloud to detect it in", index)
+            if self.flange is None:
+                raise InputError(f"pair {pair_id!r}: a flange preset is needed to detect the centre in its cloud")
+            try:
+                detection = detect_flange(cloud, self.flange, self.detect_params)
+            except DetectionError as exc:
+                log.info("calib.detection_failed", pair=pair_id, stage=exc.stage, reason=exc.reason)
+                return self.reject(pair_id, f"detection failed at {exc.stage}: {exc.reason}", index)
+            p_cam = detection.center
+        self._ids.append(pair_id)
+        self._P_base.append(np.asarray(p_base, dtype=np.float64).reshape(3))
+        self._P_cam.append(np.asarray(p_cam, dtype=np.float64).reshape(3))
+        return PairOutcome(pair_id, index, detection, None)
+
+    def reject(self, pair_id: str, reason: str, index: int | None = None) -> PairOutcome:
+        """Count a capture that gives no pair, with the reason."""
+        if index is None:
+            index = self._count
+            self._count += 1
+        rejected = RejectedPair(pair_id, index, math.nan, reason)
+        self._rejected.append(rejected)
+        return PairOutcome(pair_id, index, None, rejected)
+
+    @property
+    def n_pairs(self) -> int:
+        return len(self._ids)
+
+    @property
+    def n_captures(self) -> int:
+        return self._count
+
+    def detections(self) -> Detections:
+        """The pairs kept so far and the captures rejected."""
+        return Detections(
+            tuple(self._ids), np.reshape(self._P_base, (-1, 3)), np.reshape(self._P_cam, (-1, 3)), tuple(self._rejected)
+        )
