@@ -65,7 +65,9 @@ from celld.config import Config, MotionLimits  # noqa: E402
 from celld.motion.commands import start_servo  # noqa: E402
 from celld.motion.core import Action, CoreParams, CycleInput, Mode, MotionCore  # noqa: E402
 from celld.motion.limits import CartesianLimits, sequence_peaks  # noqa: E402
-from celld.motion.servo import NAME, Algorithm2Servo, algorithm2_plan, make_algorithm2, prepare_plan  # noqa: E402
+from celld.motion.algorithm2 import NAME, Algorithm2Servo, algorithm2_plan, make_algorithm2  # noqa: E402
+from celld.motion.plan import prepare_plan  # noqa: E402
+from celld.daemon.devices import SERVO_LAWS as CELL_SERVO_LAWS  # noqa: E402
 from celld.motion.types import ControlStatus, RobotState  # noqa: E402
 from celld import polyline  # noqa: E402
 from celld.sim.srm import SimSrm, SrmSimParams, Wall  # noqa: E402
@@ -78,7 +80,6 @@ OUT = ROOT / "bench" / "out" / "seam_tracking"
 PERIOD = 0.002
 # The welding plane: a horizontal table plane on the side of the robot's home pose.
 T_BASE_PLANE = np.array([[1.0, 0, 0, -0.78], [0, 1.0, 0, -0.22], [0, 0, 1.0, 0.30], [0, 0, 0, 1.0]])
-SERVO_LAWS = {NAME: "celld.motion.servo:make_algorithm2"}
 TARGETS = {"lateral_rms_mm": 0.2, "lateral_max_mm": 0.5, "detect_median_ms": 3.0, "deformation_error_mm": 0.02, "latency_ms": 10.0}
 
 
@@ -508,7 +509,7 @@ def run_closed_loop(kind: str, cfg: Config, motion: MotionLimits, quick: bool, s
 
         async def main() -> None:
             handle = await MotionHandle.open(
-                config, host=host, servo_laws=SERVO_LAWS, tactile_slot=tactile.slot_name,
+                config, host=host, servo_laws=CELL_SERVO_LAWS, tactile_slot=tactile.slot_name,
                 connect_timeout=60.0, link_timeout=0.5, backoff=Backoff(delays=(0.2, 0.5)),
             )
             handle.add_listener(records.append)

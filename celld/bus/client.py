@@ -156,10 +156,6 @@ class CellClient:
         schema.parse_submit(schema.encode(message))
         return self.request("submit", message)
 
-    def submit_job(self, job: schema.Job) -> dict[str, Any]:
-        """Submit a job value; returns submit-reply."""
-        return self.request("submit", schema.job_to_message(job))
-
     def status(self, job: str | None = None) -> dict[str, Any]:
         """The cell's status-reply, or with ``job`` that job's record (job-reply ``record``)."""
         if job is None:

@@ -96,10 +96,6 @@ class CellKeys:
         return f"{self.base}/state/tactile"
 
     @property
-    def state_all(self) -> str:
-        return f"{self.base}/state/*"
-
-    @property
     def alive(self) -> str:
         return f"{self.base}/alive"
 

@@ -30,6 +30,7 @@ import numpy as np
 from celld.config import Config
 from celld.errors import CelldError, ConfigError, DeviceError
 from celld.log import get_logger
+from celld.motion.algorithm2 import NAME as ALGORITHM2
 from celld.motion.handle import MotionHandle
 from celld.scanner.base import OrganizedCloud, Scanner
 from celld.scanner.factory import open_scanner
@@ -41,7 +42,7 @@ from celld.tactile.sample import TactileSample
 log = get_logger(__name__)
 
 # Servo laws the motion process may be asked to run, by name.
-SERVO_LAWS = {"algorithm2": "celld.motion.servo:make_algorithm2"}
+SERVO_LAWS = {ALGORITHM2: "celld.motion.algorithm2:make_algorithm2"}
 # Longest a stop may take before the daemon gives up waiting, s.
 STOP_TIMEOUT = 5.0
 # Least time between two restarts of a dying tactile process, s: it doubles

@@ -41,7 +41,7 @@ from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import CalibrationStore, JobContext
 from celld.errors import CelldError, ConfigError, InputError, JobError, WorkpieceError
 from celld.log import get_logger
-from celld.motion.servo import algorithm2_plan
+from celld.motion.algorithm2 import algorithm2_plan
 from celld.seam.figures import track_summary
 from celld.seam.weldpath import WeldGeometry, start_pose, wall_offset, weld_geometry
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece

@@ -258,12 +258,15 @@ class ServoSlot:
 
     The law gets the robot state and the latest tactile sample; its twist is
     shaped by the limiter like any other demand. A law that raises or returns
-    a twist that is not 6 finite numbers is a fault, never a crash of the loop.
+    a twist that is not 6 finite numbers is a fault, never a crash of the loop;
+    a fault the law reports carries the law's own ``reason``.
 
-    :meth:`telemetry` passes on the law's optional ``telemetry()``; a law
-    without one, or whose telemetry raises or is malformed, reports
-    :data:`~celld.motion.types.NO_TELEMETRY` (process off), and the first
-    failure is kept in ``telemetry_error``.
+    The law's protocol is checked once, when it starts (:func:`check_telemetry`
+    on its first telemetry, and a ``reason`` string): a law that fails it
+    faults at its first step with the reason. After that :meth:`telemetry`
+    passes the law's telemetry on unchecked, every cycle; should it raise,
+    the slot reports :data:`~celld.motion.types.NO_TELEMETRY` (process off)
+    and keeps the first failure in ``telemetry_error``.
     """
 
     name = "servo"
@@ -274,14 +277,14 @@ class ServoSlot:
         self.reason = ""
         self.telemetry_error = ""
         self._failed = ""
-        self._telemetry = getattr(law, "telemetry", None)
-        if not callable(self._telemetry):
-            self._telemetry = None
 
     def start(self, state: RobotState, twist: Array, accel: Array) -> None:
         self.reason = ""
         try:
             self.law.start(state)
+            if not isinstance(getattr(self.law, "reason", None), str):
+                raise TypeError("the law has no reason string")
+            check_telemetry(self.law.telemetry())
             self._failed = ""
         except Exception as exc:  # a law must not take the loop down
             self._failed = f"servo law {self.law_name!r} failed to start: {exc!r}"
@@ -302,28 +305,32 @@ class ServoSlot:
             return Demand(_ZERO6), ControlStatus.FAULT
         if status >= ControlStatus.WORKSPACE:
             # The law's own reason says what it saw (e.g. the last tag status).
-            detail = getattr(self.law, "reason", "")
+            detail = self.law.reason
             self.reason = f"servo law {self.law_name!r} reported {status.name}" + (f": {detail}" if detail else "")
         return Demand(twist), status
 
     def telemetry(self) -> ServoTelemetry:
         """The law's :class:`~celld.motion.types.ServoTelemetry`, or the fallback (class docstring)."""
-        fn = self._telemetry
-        if fn is None or self._failed:
+        if self._failed:
             return NO_TELEMETRY
         try:
-            t = fn()
-            # Checked, not copied: this runs every cycle.
-            if not isinstance(t, ServoTelemetry):
-                raise TypeError(f"expected a ServoTelemetry, got {type(t).__name__}")
-            if not -1 <= t.phase <= 127:  # the state record holds it in an int8
-                raise ValueError(f"phase {t.phase}, expected -1..127")
-            if not isinstance(t.delta_n, float):
-                raise TypeError(f"delta_n {t.delta_n!r}, expected a float")
-            if np.shape(t.refined_base) != (3,):
-                raise ValueError(f"refined_base of shape {np.shape(t.refined_base)}, expected (3,)")
-            return t
+            return self.law.telemetry()
         except Exception as exc:  # a law must not take the loop down
             if not self.telemetry_error:
                 self.telemetry_error = f"servo law {self.law_name!r}: telemetry failed: {exc!r}"
             return NO_TELEMETRY
+
+
+def check_telemetry(t: object) -> ServoTelemetry:
+    """``t`` if it is a well-formed :class:`~celld.motion.types.ServoTelemetry`, else raise naming what is wrong."""
+    if not isinstance(t, ServoTelemetry):
+        raise TypeError(f"expected a ServoTelemetry, got {type(t).__name__}")
+    if not isinstance(t.phase, int) or not -1 <= t.phase <= 127:  # the state record holds it in an int8
+        raise ValueError(f"phase {t.phase!r}, expected an integer -1..127")
+    if not isinstance(t.delta_n, float):
+        raise TypeError(f"delta_n {t.delta_n!r}, expected a float")
+    if np.shape(t.refined_base) != (3,):
+        raise ValueError(f"refined_base of shape {np.shape(t.refined_base)}, expected (3,)")
+    if not isinstance(t.process_on, (bool, np.bool_)):
+        raise TypeError(f"process_on {t.process_on!r}, expected a bool")
+    return t

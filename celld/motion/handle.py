@@ -63,10 +63,6 @@ RING_SECONDS = 8.0
 DRAIN_PERIOD = 0.02
 # Loop timing statistics cover this many recent cycles.
 STATS_WINDOW = 30_000
-# The servo laws the daemon registers: plan name -> "module:factory", imported
-# by the motion process at start (never in the loop).
-DEFAULT_SERVO_LAWS = {"algorithm2": "celld.motion.servo:make_algorithm2"}
-
 _SAFETY = {ControlStatus.SAFETY, ControlStatus.WORKSPACE, ControlStatus.LIMIT}
 _LINK = {ControlStatus.LINK_LOST, ControlStatus.STALE_STATE}
 

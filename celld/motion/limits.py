@@ -85,11 +85,6 @@ class CartesianLimits(NamedTuple):
     def speeds(self) -> tuple[float, float]:
         return self.linear_speed, self.angular_speed
 
-    def accels(self) -> tuple[float, float]:
-        return self.linear_accel, self.angular_accel
-
-    def jerks(self) -> tuple[float, float]:
-        return self.linear_jerk, self.angular_jerk
 
 
 class LimiterResult(IntEnum):

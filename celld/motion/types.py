@@ -73,7 +73,7 @@ class ServoTelemetry(NamedTuple):
     Attributes
     ----------
     phase : int
-        The law's own phase (for Algorithm 2 :class:`celld.motion.servo.Phase`); -1: no servo.
+        The law's own phase, -1..127 (for Algorithm 2 :class:`celld.motion.algorithm2.Phase`); -1: no servo.
     delta_n : float
         Normal deformation the law used this cycle, m; NaN: none.
     refined_base : np.ndarray, shape (3,)
@@ -95,17 +95,20 @@ def _nan3() -> np.ndarray:
     return v
 
 
-# What is recorded when no servo runs, or a law has no telemetry (or its telemetry failed).
+# What is recorded when no servo runs, or its law's telemetry failed.
 NO_TELEMETRY = ServoTelemetry(-1, math.nan, _nan3(), False)
 
 
 class ServoLaw(Protocol):
     """A seam-tracking law stepped in the motion loop's servo slot.
 
-    A law may also have ``telemetry() -> ServoTelemetry``, its state after its
-    last step (cheap: it is called every cycle); the slot records
-    :data:`NO_TELEMETRY` for a law without one.
+    Besides ``start`` and ``step`` a law has ``reason``, what it saw when it
+    last reported a fault ("" otherwise), and ``telemetry()``, its state after
+    its last step (cheap: it is called every cycle). The slot checks both once,
+    when the law starts, and refuses a law that lacks them.
     """
+
+    reason: str
 
     def start(self, state: RobotState) -> None:
         """Called once, in the loop, when the servo takes over."""
@@ -116,6 +119,10 @@ class ServoLaw(Protocol):
         The loop shapes the twist with its jerk-limited velocity limiter and
         applies its own safety checks; the law must not raise.
         """
+        ...
+
+    def telemetry(self) -> ServoTelemetry:
+        """The law's state after its last step (before the first: its state at start)."""
         ...
 
 

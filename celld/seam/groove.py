@@ -34,7 +34,6 @@ OK = 0
 UNSEEN = 1  # a wall has too few points in the window
 ILL_CONDITIONED = 2  # walls near parallel, or the apex is too uncertain
 CONTRADICTS = 3  # a wall's plane disagrees with the model's wall
-STATUS_NAMES = {OK: "ok", UNSEEN: "unseen", ILL_CONDITIONED: "ill-conditioned", CONTRADICTS: "contradicts"}
 # Robust plane fit: residual cut in robust sigmas, and its iterations.
 _TRIM_SIGMAS = 3.0
 _TRIM_ITERATIONS = 4

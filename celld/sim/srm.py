@@ -235,12 +235,6 @@ class TagRenderer:
     def K(self) -> Array:
         return self._K.copy()
 
-    def project_corners(self, T_cam_tag: Array, tag_size: float) -> Array:
-        """Image positions (4, 2) of the tag's black-square corners, ArUco order."""
-        h = tag_size / 2
-        P = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
-        return self._project(T_cam_tag, P)
-
     def _project(self, T_cam_tag: Array, P_tag: Array) -> Array:
         P_cam = P_tag @ T_cam_tag[:3, :3].T + T_cam_tag[:3, 3]
         uvw = P_cam @ self._K.T

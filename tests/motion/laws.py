@@ -25,6 +25,7 @@ class Probe:
         self.seen: list[int] = []
         self.count = 0
         self.ended = False
+        self.reason = ""
 
     def start(self, state: RobotState) -> None:
         self.count = 0

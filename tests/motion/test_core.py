@@ -10,7 +10,7 @@ from celld.motion.commands import move_to, start_servo, stream
 from celld.motion.core import Action, CoreParams, Mode, MotionCore
 from celld.motion.limits import CartesianLimits, sequence_peaks
 from celld.motion.safety import Fault
-from celld.motion.types import NO_TELEMETRY, ControlStatus, RobotState, ServoInput, ServoPlan
+from celld.motion.types import NO_TELEMETRY, ControlStatus, RobotState, ServoInput, ServoPlan, ServoTelemetry
 from celld.se3 import error, from_ur_pose
 from celld.tactile.sample import ContactState, TactileSample
 from tests.motion.laws import Probe, make_probe
@@ -176,6 +176,7 @@ class _Law:
     def __init__(self, plan: ServoPlan) -> None:
         self.speed = float(plan.params["speed"])
         self.started: RobotState | None = None
+        self.reason = ""
 
     def start(self, state: RobotState) -> None:
         self.started = state
@@ -184,6 +185,9 @@ class _Law:
         if inp.tactile is not None and inp.tactile.contact == ContactState.OVERLOAD:
             return np.zeros(6), ControlStatus.OVERLOAD
         return np.array([0.0, self.speed, 0.0, 0.0, 0.0, 0.0]), ControlStatus.OK
+
+    def telemetry(self) -> ServoTelemetry:
+        return NO_TELEMETRY
 
 
 def _sample(contact: ContactState) -> TactileSample:
@@ -310,10 +314,12 @@ def test_another_command_taking_over_switches_the_process_off() -> None:
     assert outs[100].telemetry.phase == -1
 
 
-def test_a_law_whose_telemetry_raises_runs_on_with_the_process_off() -> None:
+def test_a_law_whose_telemetry_raises_once_running_runs_on_with_the_process_off() -> None:
     class Broken(Probe):
         def telemetry(self):
-            raise RuntimeError("no telemetry")
+            if self.count >= 1:  # well-formed at start (the slot checks it then), broken from the first step on
+                raise RuntimeError("no telemetry")
+            return super().telemetry()
 
     laws: list[Broken] = []
 
@@ -325,3 +331,13 @@ def test_a_law_whose_telemetry_raises_runs_on_with_the_process_off() -> None:
     assert all(o.mode == Mode.ACTIVE for o in outs[:99]) and outs[-1].status == ControlStatus.DONE
     assert all(o.telemetry is NO_TELEMETRY and not o.process_on for o in outs)
     assert laws[0].count == 100  # the law ran to its end
+
+
+def test_a_law_whose_telemetry_is_malformed_at_start_is_refused_with_the_reason() -> None:
+    class Malformed(Probe):
+        def telemetry(self):
+            return (1, 2)
+
+    outs = _run_probe(_probe_plan(cycles=100), 20, factory=Malformed)
+    assert outs[-1].mode == Mode.IDLE and outs[-1].status == ControlStatus.FAULT
+    assert not any(o.process_on for o in outs)

@@ -24,6 +24,9 @@ class StaleLaw:
         self.reason = "no valid tactile sample for 102 ms (last: WRONG_ID)"
         return np.zeros(6), ControlStatus.STALE_TACTILE
 
+    def telemetry(self) -> ServoTelemetry:
+        return NO_TELEMETRY
+
 
 class QuietLaw(StaleLaw):
     def step(self, inp: ServoInput) -> tuple[np.ndarray, ControlStatus]:
@@ -52,6 +55,7 @@ def test_a_law_without_a_reason_still_names_its_status() -> None:
 
 class ReportingLaw(QuietLaw):
     def __init__(self, telemetry) -> None:
+        self.reason = ""
         self._t = telemetry
 
     def telemetry(self):
@@ -77,10 +81,26 @@ def test_a_law_with_telemetry_is_passed_on() -> None:
     assert type(t.phase) is int and type(t.process_on) is bool
 
 
-def test_a_law_without_telemetry_reports_no_servo_values() -> None:
-    t = _slot(QuietLaw()).telemetry()
-    assert t is NO_TELEMETRY
-    assert t.phase == -1 and math.isnan(t.delta_n) and np.all(np.isnan(t.refined_base)) and t.process_on is False
+def test_a_law_without_telemetry_or_reason_is_refused_at_start() -> None:
+    class NoTelemetry:
+        reason = ""
+
+        def start(self, state: RobotState) -> None:
+            pass
+
+        def step(self, inp: ServoInput) -> tuple[np.ndarray, ControlStatus]:
+            return np.zeros(6), ControlStatus.OK
+
+    class NoReason(ReportingLaw):
+        def start(self, state: RobotState) -> None:
+            self.reason = None
+
+    for law, why in ((NoTelemetry(), "telemetry"), (NoReason(GOOD), "no reason string")):
+        slot = _slot(law)
+        assert slot.telemetry() is NO_TELEMETRY
+        demand, status = slot.step(INPUT)
+        assert status == ControlStatus.FAULT and np.all(demand.twist == 0.0)
+        assert slot.reason.startswith("servo law 'algorithm2' failed to start") and why in slot.reason
 
 
 @pytest.mark.parametrize(
@@ -94,8 +114,18 @@ def test_a_law_without_telemetry_reports_no_servo_values() -> None:
     ],
     ids=["raises", "bad shape", "phase out of range", "not a number", "not telemetry"],
 )
-def test_a_law_whose_telemetry_fails_gets_the_fallback_and_the_slot_keeps_stepping(bad) -> None:
+def test_telemetry_is_checked_once_at_start_and_a_bad_one_refuses_the_law(bad) -> None:
     slot = _slot(ReportingLaw(bad))
+    assert slot.telemetry() is NO_TELEMETRY
+    _, status = slot.step(INPUT)
+    assert status == ControlStatus.FAULT and "failed to start" in slot.reason
+
+
+def test_telemetry_that_raises_later_gets_the_fallback_and_the_slot_keeps_stepping() -> None:
+    law = ReportingLaw(GOOD)
+    slot = _slot(law)
+    assert slot.telemetry() is GOOD
+    law._t = ZeroDivisionError("boom")
     assert slot.telemetry() is NO_TELEMETRY
     assert slot.telemetry_error.startswith("servo law 'algorithm2': telemetry failed")
     first = slot.telemetry_error
