@@ -23,8 +23,9 @@ import io
 import json
 import os
 import secrets
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, BinaryIO, Iterator
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -111,7 +112,7 @@ def write_npy(path: str | os.PathLike[str], array: np.ndarray, mode: int = DEFAU
 def write_npz(path: str | os.PathLike[str], mode: int = DEFAULT_MODE, **arrays: np.ndarray) -> Path:
     """Atomically write named arrays in ``.npz`` format (compressed)."""
     buf = io.BytesIO()
-    np.savez_compressed(buf, **{k: np.asarray(v) for k, v in arrays.items()})
+    np.savez_compressed(buf, **{k: np.asarray(v) for k, v in arrays.items()})  # type: ignore[arg-type]  # numpy's stub reads **kwds as allow_pickle
     return write_bytes(path, buf.getvalue(), mode)
 
 

@@ -30,10 +30,11 @@ import os
 import secrets
 import sqlite3
 import threading
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any
 
 from celld.errors import JournalError
 
@@ -73,12 +74,12 @@ _COLUMNS = "id, kind, params, ref, state, reason, created, started, ended, resul
 
 def utc_now() -> str:
     """The wall clock in the journal's format."""
-    return datetime.now(timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def new_job_id() -> str:
     """A fresh job id: ``<UTC yyyymmdd-HHMMSS>-<6 hex>``."""
-    return f"{datetime.now(timezone.utc):%Y%m%d-%H%M%S}-{secrets.token_hex(3)}"
+    return f"{datetime.now(UTC):%Y%m%d-%H%M%S}-{secrets.token_hex(3)}"
 
 
 @dataclass(frozen=True)
@@ -219,7 +220,7 @@ class Journal:
             self._db.close()
             self._release_lock()
 
-    def __enter__(self) -> "Journal":
+    def __enter__(self) -> Journal:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -38,7 +38,7 @@ from celld.errors import InputError
 _LINE = 64
 
 
-def _register_all_but_shm(name: str, rtype: str) -> None:
+def _register_all_but_shm(name: Any, rtype: str) -> None:
     if rtype != "shared_memory":
         _register(name, rtype)
 
@@ -85,7 +85,7 @@ class _Segment:
         self._data_offset = n_counters * _LINE
         self._shm = _open(name, self._data_offset + data_bytes, create)
         buf = self._shm.buf
-        self._counters = [np.ndarray((1,), np.uint64, buf, i * _LINE) for i in range(n_counters)]
+        self._counters: list[np.ndarray] = [np.ndarray((1,), np.uint64, buf, i * _LINE) for i in range(n_counters)]
         if create:
             for c in self._counters:
                 c[0] = 0
@@ -94,7 +94,10 @@ class _Segment:
         return np.ndarray((count,), dtype, self._shm.buf, self._data_offset)
 
     def raw(self, nbytes: int) -> memoryview:
-        return self._shm.buf[self._data_offset : self._data_offset + nbytes]
+        buf = self._shm.buf
+        if buf is None:
+            raise InputError(f"shared memory {self.name!r}: used after close")
+        return buf[self._data_offset : self._data_offset + nbytes]
 
     def close(self) -> None:
         self._counters = []
@@ -127,11 +130,11 @@ class SeqlockSlot:
         self.torn_count = 0
 
     @classmethod
-    def create(cls, name: str, dtype: Any) -> "SeqlockSlot":
+    def create(cls, name: str, dtype: Any) -> SeqlockSlot:
         return cls(name, dtype, create=True)
 
     @classmethod
-    def attach(cls, name: str, dtype: Any) -> "SeqlockSlot":
+    def attach(cls, name: str, dtype: Any) -> SeqlockSlot:
         return cls(name, dtype, create=False)
 
     @property
@@ -202,11 +205,11 @@ class Ring:
         self._recs = self._slots["rec"]
 
     @classmethod
-    def create(cls, name: str, dtype: Any, capacity: int) -> "Ring":
+    def create(cls, name: str, dtype: Any, capacity: int) -> Ring:
         return cls(name, dtype, capacity, create=True)
 
     @classmethod
-    def attach(cls, name: str, dtype: Any, capacity: int) -> "Ring":
+    def attach(cls, name: str, dtype: Any, capacity: int) -> Ring:
         return cls(name, dtype, capacity, create=False)
 
     @property
@@ -279,14 +282,14 @@ class Mailbox:
         self._seg = _Segment(name, 2, self._stride * slots, create)
         self._head, self._tail = self._seg._counters
         self._buf = self._seg.raw(self._stride * slots)
-        self._lengths = [np.ndarray((1,), np.uint64, self._buf, i * self._stride) for i in range(slots)]
+        self._lengths: list[np.ndarray] = [np.ndarray((1,), np.uint64, self._buf, i * self._stride) for i in range(slots)]
 
     @classmethod
-    def create(cls, name: str, slots: int = 8, slot_size: int = 256 * 1024) -> "Mailbox":
+    def create(cls, name: str, slots: int = 8, slot_size: int = 256 * 1024) -> Mailbox:
         return cls(name, slots, slot_size, create=True)
 
     @classmethod
-    def attach(cls, name: str, slots: int = 8, slot_size: int = 256 * 1024) -> "Mailbox":
+    def attach(cls, name: str, slots: int = 8, slot_size: int = 256 * 1024) -> Mailbox:
         return cls(name, slots, slot_size, create=False)
 
     @property

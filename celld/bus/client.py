@@ -20,7 +20,8 @@ from __future__ import annotations
 import json
 import queue
 import time
-from typing import Any, Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any
 
 import zenoh
 
@@ -56,7 +57,7 @@ def _decode_reply(data: bytes, where: str) -> dict[str, Any]:
 def _describe_reply_error(reply: Any) -> str:
     try:
         return reply.err.payload.to_string()
-    except Exception:  # an error without a text payload
+    except Exception:  # an error without a text payload  # noqa: BLE001
         return "error"
 
 
@@ -97,7 +98,7 @@ class CellClient:
         if self._owns_session and not self.session.is_closed():
             self.session.close()
 
-    def __enter__(self) -> "CellClient":
+    def __enter__(self) -> CellClient:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -189,7 +190,7 @@ class CellClient:
 
     # -- publications -----------------------------------------------------------------
 
-    def watch_progress(self, job: str | None = None) -> "ProgressWatch":
+    def watch_progress(self, job: str | None = None) -> ProgressWatch:
         """Subscribe to the progress events of ``job`` (all jobs if None). Use as a context manager."""
         return ProgressWatch(self, job)
 
@@ -251,7 +252,7 @@ class ProgressWatch:
         except zenoh.ZError:
             pass
 
-    def __enter__(self) -> "ProgressWatch":
+    def __enter__(self) -> ProgressWatch:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -67,7 +67,7 @@ class CellKeys:
     cell: str
 
     @classmethod
-    def of(cls, prefix: str, cell: str) -> "CellKeys":
+    def of(cls, prefix: str, cell: str) -> CellKeys:
         return cls(check_prefix(prefix), check_chunk(cell, "cell name"))
 
     @property

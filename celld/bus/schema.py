@@ -43,9 +43,10 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Mapping, Union
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -150,7 +151,7 @@ _JOINTS = _vector("Joint positions, rad.", 6, -2 * math.pi, 2 * math.pi)
 
 def _submit_branch(kind: str, desc: str, properties: dict[str, Any], required: tuple[str, ...] = ()) -> dict[str, Any]:
     props = {"kind": {"const": kind, "description": "The job kind."}, **properties, "ref": _REF}
-    return _object(desc, props, ("kind",) + required)
+    return _object(desc, props, ("kind", *required))
 
 
 _CALIBRATE = _submit_branch(
@@ -238,7 +239,7 @@ _ERROR = _object(
 
 def _reply(desc: str, properties: dict[str, Any], required: tuple[str, ...] = ()) -> dict[str, Any]:
     ok = {"ok": {"const": True}}
-    return _object(desc, {**ok, **properties}, ("ok",) + required)
+    return _object(desc, {**ok, **properties}, ("ok", *required))
 
 
 _JOB_RECORD = _object(
@@ -442,7 +443,7 @@ class HealthJob:
     kind: ClassVar[str] = "health"
 
 
-Job = Union[CalibrateJob, WeldJob, MoveJob, HealthJob]
+Job = CalibrateJob | WeldJob | MoveJob | HealthJob
 
 
 @dataclass(frozen=True)
@@ -473,7 +474,7 @@ class CalibrationRequest:
     pass
 
 
-Request = Union[Job, StatusRequest, CancelRequest, ListRequest, AcceptRequest, CalibrationRequest]
+Request = Job | StatusRequest | CancelRequest | ListRequest | AcceptRequest | CalibrationRequest
 
 
 # -- decoding ------------------------------------------------------------------------
@@ -500,7 +501,7 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in pairs:
         if key in out:
-            raise JobError("$", f"duplicate field {ascii(key)}")
+            raise JobError("$", f"duplicate field {key!a}")
         out[key] = value
     return out
 

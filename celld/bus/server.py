@@ -50,8 +50,9 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Awaitable, Callable, Mapping, Protocol
+from typing import Any, Protocol
 
 import zenoh
 
@@ -228,7 +229,7 @@ class BusServer:
         except zenoh.ZError as exc:  # the session may already be closed
             log.debug("undeclare failed", error=str(exc))
 
-    async def __aenter__(self) -> "BusServer":
+    async def __aenter__(self) -> BusServer:
         await self.start()
         return self
 
@@ -241,7 +242,7 @@ class BusServer:
         def on_query(query: zenoh.Query) -> None:  # on a zenoh thread
             try:
                 self._enqueue(name, query)
-            except Exception as exc:  # nothing a client sends may kill zenoh's thread
+            except Exception as exc:  # nothing a client sends may kill zenoh's thread  # noqa: BLE001
                 log.error("bus callback failed", request=name, error=repr(exc))
 
         return on_query
@@ -333,7 +334,7 @@ class BusServer:
             return schema.error_reply("", str(exc))
         except asyncio.CancelledError:
             raise
-        except Exception:
+        except Exception:  # a handler's own bug gets an internal-error reply, the bus stays up
             self._count("internal_errors")
             log.exception("bus handler failed", request=name)
             return schema.error_reply("", f"internal error while handling {name}")

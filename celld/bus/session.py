@@ -237,7 +237,7 @@ class ServerSession:
         if not self.session.is_closed():
             self.session.close()
 
-    def __enter__(self) -> "ServerSession":
+    def __enter__(self) -> ServerSession:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -21,8 +21,8 @@ this module never sees a cloud nor a ground truth.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -154,8 +154,8 @@ class Algorithm1:
         self.k_max = int(k_max)
         self._with_scale = with_scale
         self._pool_ids: list[str] = []
-        self._P_base = np.zeros((0, 3))
-        self._P_cam = np.zeros((0, 3))
+        self._P_base: np.ndarray = np.zeros((0, 3))
+        self._P_cam: np.ndarray = np.zeros((0, 3))
         self._steps: list[Algorithm1Step] = []
         self._seen: set[str] = set()
 

@@ -165,10 +165,10 @@ def ransac_circle(
             needed = drawn if w >= 1.0 else math.ceil(math.log(1 - _CONFIDENCE) / math.log(1 - w**3))
     if best is None:
         return None
-    c, nrm, r = best
-    dist = circle_distances(P, c[None], nrm[None], np.array([r]))[0]
+    c_best, n_best, r_best = best
+    dist = circle_distances(P, c_best[None], n_best[None], np.array([r_best]))[0]
     inl = dist <= e_d
-    return CircleFit(c, nrm, r, inl, float(np.sqrt(np.mean(dist[inl] ** 2))), drawn)
+    return CircleFit(c_best, n_best, r_best, inl, float(np.sqrt(np.mean(dist[inl] ** 2))), drawn)
 
 
 def fit_plane(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -191,6 +191,11 @@ def plane_basis(normal: np.ndarray) -> np.ndarray:
     u /= np.linalg.norm(u)
     return np.stack([u, np.cross(n, u)])
 
+
+
+def _circle_residuals(x: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Distances of the 2D points ``Q`` from the circle ``x = (cu, cv, r)``."""
+    return np.hypot(Q[:, 0] - x[0], Q[:, 1] - x[1]) - x[2]
 
 def refine_circle(
     P: np.ndarray, init: CircleFit, plane_point: np.ndarray, plane_normal: np.ndarray, e_d: float, iterations: int = 3
@@ -219,12 +224,7 @@ def refine_circle(
     for _ in range(iterations):
         if inl.sum() < 3:
             break
-        Q = uv[inl]
-
-        def residuals(x: np.ndarray) -> np.ndarray:
-            return np.hypot(Q[:, 0] - x[0], Q[:, 1] - x[1]) - x[2]
-
-        sol = least_squares(residuals, np.array([centre_uv[0], centre_uv[1], r]), method="lm")
+        sol = least_squares(_circle_residuals, np.array([centre_uv[0], centre_uv[1], r]), method="lm", args=(uv[inl],))
         centre_uv, r = sol.x[:2], float(sol.x[2])
         centre = plane_point + centre_uv @ E
         dist = circle_distances(P, centre[None], nrm[None], np.array([r]))[0]

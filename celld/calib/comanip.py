@@ -25,8 +25,8 @@ calibrated to the camera by Eq. 9-12 and (c) becomes
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike

@@ -40,10 +40,11 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -217,7 +218,7 @@ class SessionWriter:
             "units": "m",
             "flange": flange,
             "scanner": scanner,
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z"),
+            "created": datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
             "verification": None,
             "pairs": [],
         }

@@ -35,8 +35,10 @@ relying on a model for a real robot.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -241,7 +243,7 @@ def _revolve(profile: list[tuple[float, float]], n: int, centre: tuple[float, fl
     c, s = np.cos(theta), np.sin(theta)
     verts, faces = [], []
     base = 0
-    for (r0, z0), (r1, z1) in zip(profile[:-1], profile[1:]):
+    for (r0, z0), (r1, z1) in itertools.pairwise(profile):
         if r0 == r1 and z0 == z1:
             continue
         ring0 = np.column_stack([centre[0] + r0 * c, centre[1] + r0 * s, np.full(n, z0)])
@@ -314,7 +316,7 @@ def _flange_mesh_arrays(model: FlangeModel) -> tuple[np.ndarray, np.ndarray]:
 
 # -- presets ------------------------------------------------------------------
 
-_ISO_50_4_M6 = dict(
+_ISO_50_4_M6: dict[str, Any] = dict(
     pitch_diameter=0.050,
     outer_diameter=0.063,
     bore_diameter=0.0315,

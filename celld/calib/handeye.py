@@ -27,8 +27,8 @@ Eq. 9-12. Results carry per-pose residuals and the covariance of
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike

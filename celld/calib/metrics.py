@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Callable
 
 import numpy as np
 import open3d as o3d
@@ -84,7 +84,7 @@ class IcpParams:
     point_to_plane: bool = True
     relative_change: float = 1e-6
 
-    def strict(self) -> "IcpParams":
+    def strict(self) -> IcpParams:
         """The same registration run to convergence (for Eq. 21 and reports)."""
         return replace(self, relative_change=1e-9, max_iterations=max(self.max_iterations, 100))
 
@@ -124,7 +124,7 @@ class IcpMetric:
     reason: str = ""
 
     @classmethod
-    def failed(cls, reason: str, fitness: float = 0.0, rmse: float = math.inf) -> "IcpMetric":
+    def failed(cls, reason: str, fitness: float = 0.0, rmse: float = math.inf) -> IcpMetric:
         return cls(np.full((4, 4), np.nan), False, fitness, rmse, reason)
 
     @property
@@ -259,7 +259,7 @@ class IcpVerifier:
             relative_fitness=params.relative_change, relative_rmse=params.relative_change, max_iteration=params.max_iterations
         )
 
-    def strict(self) -> "IcpVerifier":
+    def strict(self) -> IcpVerifier:
         """A verifier on the same clouds whose ICP runs to convergence (:meth:`IcpParams.strict`)."""
         other = copy.copy(self)
         other.params = self.params.strict()

@@ -106,7 +106,7 @@ class PairCollector:
             if self.flange is None:
                 raise InputError(f"pair {pair_id!r}: a flange preset is needed to detect the centre in its cloud")
             try:
-                detection = detect_flange(cloud, self.flange, self.detect_params)
+                detection = detect_flange(np.asarray(cloud), self.flange, self.detect_params)
             except DetectionError as exc:
                 log.info("calib.detection_failed", pair=pair_id, stage=exc.stage, reason=exc.reason)
                 return self.reject(pair_id, f"detection failed at {exc.stage}: {exc.reason}", index)

@@ -55,7 +55,7 @@ def calibration_poses(
     rng = np.random.default_rng(seed)
     # A grid with about n cells, each pose jittered inside its cell.
     k = max(2, math.ceil(n ** (1.0 / 3.0)))
-    cells = np.stack(np.meshgrid(*(np.arange(k),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    cells: np.ndarray = np.stack(np.meshgrid(*(np.arange(k),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
     cells = cells[rng.permutation(len(cells))[:n]] if len(cells) >= n else cells[rng.integers(0, len(cells), n)]
     u = (cells + rng.uniform(0.2, 0.8, (n, 3))) / k - 0.5
     P_base = T_v[:3, 3] + u * box

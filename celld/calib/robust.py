@@ -27,9 +27,9 @@ rejected pair is reported with its residual and the threshold it failed.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import combinations
-from typing import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike

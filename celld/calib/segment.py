@@ -22,8 +22,9 @@ segmented, so the caller can stop at the first one its fine pass verifies.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Iterator, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import open3d as o3d
@@ -285,7 +286,7 @@ def coarse_candidates(
     if len(remaining) < MIN_POINTS:
         return
     _, keep = pcd(P[remaining]).remove_statistical_outlier(params.outlier_neighbours, params.outlier_std)
-    remaining = remaining[np.asarray(keep, dtype=np.int64)]
+    remaining = remaining[np.asarray(keep, dtype=np.int64)].reshape(-1)
     for i in range(params.max_planes):
         if pending is not None:
             normal, inl = pending

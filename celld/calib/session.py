@@ -23,8 +23,9 @@ detector first.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -33,9 +34,9 @@ from celld.calib.algorithm1 import Algorithm1Result, run_algorithm1
 from celld.calib.dataset import Session
 from celld.calib.detect import detect_flange
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
-from celld.calib.pairs import Detections, PairCollector
 from celld.calib.flange import FlangeModel
 from celld.calib.metrics import IcpMetric, IcpParams, IcpVerifier, compensate, cost_function, model_cloud_with_normals
+from celld.calib.pairs import Detections, PairCollector
 from celld.calib.rigid import Array, Uncertainty, check_pairs, pair_residuals, solve_rigid
 from celld.calib.robust import RejectedPair, RobustParams, solve_robust
 from celld.config import CalibrationConfig
@@ -88,7 +89,7 @@ class SolveParams:
     with_scale: bool = False
 
     @classmethod
-    def from_config(cls, cal: CalibrationConfig, **overrides: Any) -> "SolveParams":
+    def from_config(cls, cal: CalibrationConfig, **overrides: Any) -> SolveParams:
         """The parameters of a cell's ``[calibration]`` section; ``overrides`` win."""
         values: dict[str, Any] = {
             "method": cal.method,

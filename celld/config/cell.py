@@ -10,9 +10,10 @@ a :class:`Config`: every section, then the rules between sections
 from __future__ import annotations
 
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -88,7 +89,7 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 def _read_toml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     source = str(path)
     if path in seen:
-        raise ConfigError(source, "include", "include cycle: " + " -> ".join(str(p) for p in seen + (path,)))
+        raise ConfigError(source, "include", "include cycle: " + " -> ".join(str(p) for p in (*seen, path)))
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError as exc:
@@ -102,7 +103,7 @@ def _read_toml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
         raise ConfigError(source, "include", f"expected a list of file paths, got {includes!r}")
     merged: dict[str, Any] = {}
     for inc in includes:
-        merged = _merge(merged, _read_toml((path.parent / inc).resolve(), seen + (path,)))
+        merged = _merge(merged, _read_toml((path.parent / inc).resolve(), (*seen, path)))
     return _merge(merged, data)
 
 

@@ -15,8 +15,10 @@ once, here.
 
 from __future__ import annotations
 
+import builtins
 import math
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from celld.errors import ConfigError, InputError
 from celld.se3 import check_transform
@@ -31,7 +33,7 @@ class TableReader:
     and the dotted key. :meth:`done` refuses any key that no getter asked for.
     """
 
-    def __init__(self, table: dict[str, Any], source: str, prefix: str = "") -> None:
+    def __init__(self, table: dict[builtins.str, Any], source: builtins.str, prefix: builtins.str = "") -> None:
         if not isinstance(table, dict):
             raise ConfigError(source, prefix, f"expected a table, got {type(table).__name__}")
         self._table = table
@@ -39,16 +41,16 @@ class TableReader:
         self.prefix = prefix
         self._used: set[str] = set()
 
-    def key(self, name: str) -> str:
+    def key(self, name: builtins.str) -> builtins.str:
         return f"{self.prefix}.{name}" if self.prefix else name
 
-    def error(self, name: str, reason: str) -> ConfigError:
+    def error(self, name: builtins.str, reason: builtins.str) -> ConfigError:
         return ConfigError(self.source, self.key(name), reason)
 
-    def has(self, name: str) -> bool:
+    def has(self, name: builtins.str) -> builtins.bool:
         return name in self._table
 
-    def refuse_moved(self, moved: Mapping[str, str]) -> None:
+    def refuse_moved(self, moved: Mapping[builtins.str, builtins.str]) -> None:
         """Refuse keys that were renamed or moved, naming where each went.
 
         ``moved`` maps an old key to its new place, e.g. ``{"settle":
@@ -59,7 +61,7 @@ class TableReader:
             if old in self._table:
                 raise self.error(old, f"this key is now {new}")
 
-    def _get(self, name: str, default: Any) -> Any:
+    def _get(self, name: builtins.str, default: Any) -> Any:
         self._used.add(name)
         if name in self._table:
             return self._table[name]
@@ -67,7 +69,7 @@ class TableReader:
             raise self.error(name, "required key is missing")
         return default
 
-    def str(self, name: str, default: Any = None, choices: Sequence[str] | None = None) -> str:
+    def str(self, name: builtins.str, default: Any = None, choices: Sequence[builtins.str] | None = None) -> builtins.str:
         value = self._get(name, _REQUIRED if default is None else default)
         if not isinstance(value, str):
             raise self.error(name, f"expected a string, got {value!r}")
@@ -75,13 +77,13 @@ class TableReader:
             raise self.error(name, f"expected one of {', '.join(choices)}, got {value!r}")
         return value
 
-    def bool(self, name: str, default: Any = None) -> bool:
+    def bool(self, name: builtins.str, default: Any = None) -> builtins.bool:
         value = self._get(name, _REQUIRED if default is None else default)
         if not isinstance(value, bool):
             raise self.error(name, f"expected true or false, got {value!r}")
         return value
 
-    def int(self, name: str, default: Any = None, lo: float = -math.inf, hi: float = math.inf) -> int:
+    def int(self, name: builtins.str, default: Any = None, lo: builtins.float = -math.inf, hi: builtins.float = math.inf) -> builtins.int:
         value = self._get(name, _REQUIRED if default is None else default)
         if isinstance(value, bool) or not isinstance(value, int):
             raise self.error(name, f"expected an integer, got {value!r}")
@@ -91,13 +93,13 @@ class TableReader:
 
     def float(
         self,
-        name: str,
+        name: builtins.str,
         default: Any = None,
-        lo: float = -math.inf,
-        hi: float = math.inf,
-        scale: float = 1.0,
-        open_lo: bool = False,
-    ) -> float:
+        lo: builtins.float = -math.inf,
+        hi: builtins.float = math.inf,
+        scale: builtins.float = 1.0,
+        open_lo: builtins.bool = False,
+    ) -> builtins.float:
         """A finite number in [lo, hi] (bounds in the file's units), times ``scale``."""
         value = self._get(name, _REQUIRED if default is None else default)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -110,7 +112,7 @@ class TableReader:
             raise self.error(name, f"expected {lo} {op} value <= {hi}, got {value}")
         return value * scale
 
-    def vector(self, name: str, length: int, default: Any = None, scale: float = 1.0) -> tuple[float, ...]:
+    def vector(self, name: builtins.str, length: builtins.int, default: Any = None, scale: builtins.float = 1.0) -> tuple[builtins.float, ...]:
         value = self._get(name, _REQUIRED if default is None else default)
         if not isinstance(value, (list, tuple)) or len(value) != length:
             raise self.error(name, f"expected a list of {length} numbers, got {value!r}")
@@ -121,7 +123,7 @@ class TableReader:
             out.append(float(v) * scale)
         return tuple(out)
 
-    def matrix4(self, name: str, default: Any = None) -> tuple[tuple[float, ...], ...]:
+    def matrix4(self, name: builtins.str, default: Any = None) -> tuple[tuple[builtins.float, ...], ...]:
         """A (4, 4) rigid transform given as 4 rows of 4 numbers (metres)."""
         value = self._get(name, _REQUIRED if default is None else default)
         try:
@@ -130,7 +132,7 @@ class TableReader:
             raise self.error(name, f"expected a 4x4 rigid transform: {exc}") from exc
         return tuple(tuple(float(x) for x in row) for row in T)
 
-    def table(self, name: str, required: bool = False) -> "TableReader":
+    def table(self, name: builtins.str, required: builtins.bool = False) -> TableReader:
         value = self._get(name, _REQUIRED if required else {})
         return TableReader(value, self.source, self.key(name))
 

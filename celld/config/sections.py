@@ -55,8 +55,8 @@ class RobotConfig:
     @classmethod
     def read(cls, r: TableReader) -> RobotConfig:
         r.refuse_moved({"connect_timeout": "robot.connect_timeout_s (seconds)"})
-        wmin = r.vector("workspace_min", 3, list(cls.workspace_min))
-        wmax = r.vector("workspace_max", 3, list(cls.workspace_max))
+        wmin: tuple[float, ...] = r.vector("workspace_min", 3, list(cls.workspace_min))
+        wmax: tuple[float, ...] = r.vector("workspace_max", 3, list(cls.workspace_max))
         if not all(a < b for a, b in zip(wmin, wmax)):
             raise r.error("workspace_max", f"expected every value above workspace_min {wmin}, got {wmax}")
         return cls(
@@ -293,9 +293,9 @@ class BusConfig:
             check_prefix(prefix)
         except BusError as exc:
             raise r.error("prefix", str(exc)) from exc
-        user, password = r.str("user", ""), r.str("password", "")
-        if bool(user) != bool(password):
-            raise r.error("password" if user else "user", "expected user and password together, or neither")
+        own_user, password = r.str("user", ""), r.str("password", "")
+        if bool(own_user) != bool(password):
+            raise r.error("password" if own_user else "user", "expected user and password together, or neither")
         return cls(
             mode=r.str("mode", cls.mode, choices=("peer", "client", "router")),
             listen=tuple(listen),
@@ -303,7 +303,7 @@ class BusConfig:
             prefix=prefix,
             state_rate_hz=r.float("state_rate_hz", cls.state_rate_hz, lo=0.1, hi=500.0),
             users=tuple(users),
-            user=user,
+            user=own_user,
             password=password,
             multicast_scouting=r.bool("multicast_scouting", False),
             connect_timeout=r.float("connect_timeout_s", cls.connect_timeout, lo=0.05, hi=120.0),

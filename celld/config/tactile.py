@@ -123,7 +123,7 @@ class ToolConfig:
     @classmethod
     def read(cls, r: TableReader) -> ToolConfig:
         def unit(name: str, default: tuple[float, float, float]) -> tuple[float, float, float]:
-            v = np.array(r.vector(name, 3, list(default)))
+            v: np.ndarray = np.array(r.vector(name, 3, list(default)))
             if np.linalg.norm(v) < 1e-9:
                 raise r.error(name, f"expected a non-zero direction, got {v.tolist()}")
             return tuple(float(x) for x in v / np.linalg.norm(v))  # type: ignore[return-value]
@@ -259,7 +259,7 @@ def check_servo(servo: ServoConfig, tactile: TactileConfig, tool: ToolConfig, so
 def with_overrides(servo: ServoConfig, tactile: TactileConfig, tool: ToolConfig, source: str,
                    **overrides: float | None) -> tuple[ServoConfig, ToolConfig]:
     """The servo and tool with a job's overrides (None: keep), checked as the config is (:func:`check_servo`)."""
-    given = {k: v for k, v in overrides.items() if v is not None}
+    given: dict[str, Any] = {k: v for k, v in overrides.items() if v is not None}
     tool_new = replace(tool, torch_offset=given.pop("torch_offset")) if "torch_offset" in given else tool
     servo_new = replace(servo, **given)
     check_servo(servo_new, tactile, tool_new, source)

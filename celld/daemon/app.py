@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import asyncio
 import signal
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from celld import fsutil, sdnotify
 from celld.bus.keys import CellKeys
@@ -140,7 +141,7 @@ class Daemon:
         log.info("celld stopping")
         try:
             await self.devices.stop_robot()
-        except Exception as exc:
+        except Exception as exc:  # the shutdown goes on whatever stopped the robot  # noqa: BLE001
             log.error("robot stop at shutdown failed", error=str(exc))
         if self.manager is not None:
             await self.manager.close()

@@ -24,8 +24,9 @@ import math
 import signal
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from celld import config
 from celld.bus.keys import CellKeys

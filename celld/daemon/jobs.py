@@ -25,9 +25,10 @@ from __future__ import annotations
 import asyncio
 import time
 from collections import deque
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Awaitable, Callable, Mapping, Protocol
+from typing import Any, Protocol
 
 from celld import __version__, fsutil
 from celld.bus import schema
@@ -40,7 +41,7 @@ from celld.bus.schema import (
     StatusRequest,
 )
 from celld.errors import CelldError, JobError
-from celld.journal import Journal, JobRecord
+from celld.journal import JobRecord, Journal
 from celld.log import get_logger
 
 log = get_logger(__name__)
@@ -362,7 +363,7 @@ class JobManager:
     async def _stop_robot_safely(self, job_id: str) -> None:
         try:
             await asyncio.shield(self.stop_robot())
-        except Exception as exc:  # the job's end must still be recorded
+        except Exception as exc:  # the job's end must still be recorded  # noqa: BLE001
             log.error("stop after the job failed", job=job_id, error=str(exc))
 
     def _end(self, job_id: str, job: Job, state: str, reason: str, result: str | None = None) -> None:

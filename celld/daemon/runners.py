@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import asyncio
 import math
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -35,8 +36,8 @@ from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
 from celld.calib.metrics import cost_function
-from celld.calib.poses import calibration_poses
 from celld.calib.pairs import PairCollector
+from celld.calib.poses import calibration_poses
 from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
 from celld.config import Config
 from celld.daemon.devices import CellDevices

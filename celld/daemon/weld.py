@@ -29,8 +29,9 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -89,7 +90,7 @@ def current_T_base_cam(state_dir: Path) -> tuple[np.ndarray, str]:
     if cal is None:
         raise JobError("$", "the cell has no current calibration: run a calibrate job and accept it first")
     try:
-        T = se3.check_transform(cal.get("T_base_cam"), "calibration.T_base_cam")
+        T = se3.check_transform(cal.get("T_base_cam", []), "calibration.T_base_cam")
     except (InputError, ValueError, TypeError) as exc:
         raise JobError("$", f"the current calibration is unusable: {exc}") from exc
     return T, str(cal.get("job", ""))

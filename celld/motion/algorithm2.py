@@ -262,7 +262,7 @@ class Algorithm2Params(NamedTuple):
         )
 
     @classmethod
-    def from_plan(cls, params: dict[str, Any]) -> "Algorithm2Params":
+    def from_plan(cls, params: dict[str, Any]) -> Algorithm2Params:
         """Read and check the parameters carried by a :class:`ServoPlan`.
 
         Parameters with a default (``process``, ``seam_offset``) may be left out.
@@ -330,7 +330,7 @@ def algorithm2_plan(
     return ServoPlan(NAME, {"P_base": P, "T_base_plane": plane, "T_tcp_tool": geometry.T_tcp_tool}, dict(params._asdict()))
 
 
-def make_algorithm2(plan: ServoPlan) -> "Algorithm2Servo":
+def make_algorithm2(plan: ServoPlan) -> Algorithm2Servo:
     """The servo factory registered under ``"algorithm2"`` in the motion process."""
     for key in ("P_base", "T_base_plane", "T_tcp_tool"):
         if key not in plan.arrays:
@@ -643,7 +643,7 @@ class Algorithm2Servo:
             return self._out(_ZERO6, self._status, latency)
 
         delta_d = self.p.side * self.p.delta_d
-        P_v, t_v, n_v, s_tip, past_end = self._plan_at(P_r)
+        _, t_v, n_v, s_tip, past_end = self._plan_at(P_r)
         # The wall stands still: the normal deformation grows by how far the
         # tip has moved towards it since the frame was captured.
         delta_n = float(self._delta_meas @ n_v) + float((P_r - self._P_r_cap) @ n_v) if self._last_valid else 0.0

@@ -134,7 +134,7 @@ class ChannelNames(NamedTuple):
     state_capacity: int
 
     @classmethod
-    def unique(cls, state_capacity: int, tactile: str | None = None) -> "ChannelNames":
+    def unique(cls, state_capacity: int, tactile: str | None = None) -> ChannelNames:
         """Fresh names for one supervisor; ``tactile`` names an existing tactile slot to read."""
         tag = f"celld-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         return cls(
@@ -171,11 +171,11 @@ class Channels:
             self.status = SeqlockSlot.attach(n.status, STATUS_DTYPE)
 
     @classmethod
-    def create(cls, names: ChannelNames, create_tactile: bool = True) -> "Channels":
+    def create(cls, names: ChannelNames, create_tactile: bool = True) -> Channels:
         return cls(names, create=True, create_tactile=create_tactile)
 
     @classmethod
-    def attach(cls, names: ChannelNames) -> "Channels":
+    def attach(cls, names: ChannelNames) -> Channels:
         return cls(names, create=False, create_tactile=False)
 
     def _all(self) -> list:

@@ -25,7 +25,7 @@ import json
 import math
 import struct
 from enum import IntEnum
-from typing import Any, NamedTuple, Union
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -71,7 +71,7 @@ class StartServo(NamedTuple):
     plan: ServoPlan
 
 
-Command = Union[MoveTo, Stream, StartServo]
+Command = MoveTo | Stream | StartServo
 
 
 def _positive(name: str, value: Any, hi: float = math.inf) -> float:

@@ -286,7 +286,7 @@ class ServoSlot:
                 raise TypeError("the law has no reason string")
             check_telemetry(self.law.telemetry())
             self._failed = ""
-        except Exception as exc:  # a law must not take the loop down
+        except Exception as exc:  # a law must not take the loop down  # noqa: BLE001
             self._failed = f"servo law {self.law_name!r} failed to start: {exc!r}"
 
     def step(self, inp: ControlInput) -> tuple[Demand, ControlStatus]:
@@ -297,7 +297,7 @@ class ServoSlot:
             twist, status = self.law.step(ServoInput(inp.state, inp.tactile, inp.tactile_age))
             twist = np.asarray(twist, dtype=np.float64)
             status = ControlStatus(status)
-        except Exception as exc:  # a law must not take the loop down
+        except Exception as exc:  # a law must not take the loop down  # noqa: BLE001
             self.reason = f"servo law {self.law_name!r} raised {exc!r}"
             return Demand(_ZERO6), ControlStatus.FAULT
         if twist.shape != (6,) or not np.all(np.isfinite(twist)):
@@ -315,7 +315,7 @@ class ServoSlot:
             return NO_TELEMETRY
         try:
             return self.law.telemetry()
-        except Exception as exc:  # a law must not take the loop down
+        except Exception as exc:  # a law must not take the loop down  # noqa: BLE001
             if not self.telemetry_error:
                 self.telemetry_error = f"servo law {self.law_name!r}: telemetry failed: {exc!r}"
             return NO_TELEMETRY

@@ -34,8 +34,9 @@ still learns how it ended.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from enum import IntEnum
-from typing import Mapping, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -212,7 +213,7 @@ class MotionCore:
         except InputError as exc:  # a servo factory refused its plan
             self._refuse(cid, ControlStatus.BAD_COMMAND, str(exc))
             return
-        except Exception as exc:  # a servo factory must not take the loop down
+        except Exception as exc:  # a servo factory must not take the loop down  # noqa: BLE001
             self._refuse(cid, ControlStatus.BAD_COMMAND, f"building the controller failed: {exc!r}")
             return
         if self.mode == Mode.IDLE:
@@ -252,7 +253,8 @@ class MotionCore:
         if inp.command is not None or inp.command_error:
             self._accept(inp, faults)
 
-        twist, guarded = _ZERO6, False
+        twist: Array = _ZERO6
+        guarded = False
         if self.mode == Mode.ACTIVE:
             cinp = ControlInput(inp.state, inp.tactile, inp.tactile_age, inp.setpoint, inp.setpoint_age)
             demand, status = self.controller.step(cinp)

@@ -28,13 +28,15 @@ import asyncio
 import math
 import time
 from collections import deque
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from celld.config import Config
 from celld.errors import CelldError, InputError, LinkLost, MotionError, SafetyStop
+from celld.log import get_logger
 from celld.motion import commands as cmd
 from celld.motion.channels import (
     SETPOINT_DTYPE,
@@ -49,11 +51,10 @@ from celld.motion.limits import CartesianLimits, check_twist
 from celld.motion.loop import LoopParams
 from celld.motion.process import MotionSpec, servo_laws_from
 from celld.motion.supervisor import LinkState, MotionSupervisor, ProcessExit
-from celld.realtime import RealtimeOptions
-from celld.supervision import Backoff
 from celld.motion.types import ControlStatus, RobotState, ServoPlan
-from celld.log import get_logger
+from celld.realtime import RealtimeOptions
 from celld.se3 import from_ur_pose
+from celld.supervision import Backoff
 
 log = get_logger(__name__)
 
@@ -192,7 +193,7 @@ class MotionHandle:
         watchdog_hz: float = 10.0,
         backoff: Backoff = Backoff(),
         wait: bool = True,
-    ) -> "MotionHandle":
+    ) -> MotionHandle:
         """Create the channels, start the motion process and (by default) wait for its loop.
 
         ``tactile_slot`` names the tactile process's seqlock slot; without it
@@ -246,7 +247,7 @@ class MotionHandle:
         self.ch.close()
         self.ch.unlink()
 
-    async def __aenter__(self) -> "MotionHandle":
+    async def __aenter__(self) -> MotionHandle:
         return self
 
     async def __aexit__(self, *exc: object) -> None:
@@ -310,7 +311,7 @@ class MotionHandle:
         fut = self._track(cid)
         try:
             status = await asyncio.wait_for(asyncio.shield(fut), timeout)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             self.stop()
             raise MotionError(f"move_to did not arrive within {timeout} s; the robot was stopped") from None
         if status != ControlStatus.DONE:

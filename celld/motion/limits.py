@@ -31,8 +31,9 @@ Pure: arrays in, arrays out; no clock, no I/O.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from enum import IntEnum
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -66,7 +67,7 @@ class CartesianLimits(NamedTuple):
     angular_jerk: float
 
     @classmethod
-    def from_config(cls, m: MotionLimits) -> "CartesianLimits":
+    def from_config(cls, m: MotionLimits) -> CartesianLimits:
         return cls(
             m.max_linear_speed,
             m.max_linear_accel,
@@ -76,7 +77,7 @@ class CartesianLimits(NamedTuple):
             m.max_angular_jerk,
         )
 
-    def scaled(self, factor: float) -> "CartesianLimits":
+    def scaled(self, factor: float) -> CartesianLimits:
         """Return every limit times ``factor`` (0 < factor <= 1)."""
         if not 0.0 < factor <= 1.0:
             raise InputError(f"limit scale: expected 0 < factor <= 1, got {factor}")
@@ -269,7 +270,7 @@ class TwistLimiter:
                 box_j[i] = jmax * max(abs(a[i]) / na if na > _TINY_A else 0.0, _JERK_FLOOR)
         return self._run(target, self._zeros, box_a, box_j, Synchronization.No)
 
-    def step(self, target_twist: ArrayLike, target_accel: ArrayLike | None = None) -> tuple[Array, LimiterResult]:
+    def step(self, target_twist: Sequence[float] | Array, target_accel: Sequence[float] | Array | None = None) -> tuple[Array, LimiterResult]:
         """Advance one period towards ``target_twist`` (6,), optionally arriving with ``target_accel``.
 
         Returns the twist to send (a new (6,) array) and how the step went.
@@ -311,7 +312,7 @@ class SequencePeaks(NamedTuple):
     angular_accel: float
     angular_jerk: float
 
-    def ratios(self, limits: CartesianLimits) -> "SequencePeaks":
+    def ratios(self, limits: CartesianLimits) -> SequencePeaks:
         """Each peak divided by its limit: every value <= 1 means the limits held."""
         return SequencePeaks(*(p / lim for p, lim in zip(self, limits)))
 

@@ -34,7 +34,8 @@ with its reason; the supervisor restarts the process.
 from __future__ import annotations
 
 import time
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -143,7 +144,7 @@ class MotionLoop:
         idx = self.params.process_output
         try:
             ok = bool(self.port.set_digital_out(idx, on))
-        except Exception:  # a port must not take the loop down; RtdeLink never raises here
+        except Exception:  # a port must not take the loop down; RtdeLink never raises here  # noqa: BLE001
             ok = False
         if ok:
             self._output_on = on

@@ -27,8 +27,8 @@ import importlib
 import os
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 
@@ -150,7 +150,7 @@ def main(spec: MotionSpec) -> None:
     _report(ch, Phase.STARTING)
     try:
         end = run(spec)
-    except Exception as exc:  # report any crash to the supervisor before dying
+    except Exception as exc:  # report any crash to the supervisor before dying  # noqa: BLE001
         end = LoopExit(ControlStatus.FAULT, f"motion process failed: {exc!r}")
         get_logger(__name__).exception("motion process failed")
     _report(ch, Phase.EXITED, None, end.status, end.reason)

@@ -18,8 +18,8 @@ motion in a jerk-limited stop with a status the job sees:
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from enum import IntFlag
-from typing import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -94,7 +94,7 @@ def describe(faults: Fault) -> str:
     return ", ".join(f.name.lower().replace("_", " ") for f in Fault if f and f in faults and f.name) or "none"
 
 
-def inside(p: Sequence[float], lo: Sequence[float], hi: Sequence[float]) -> bool:
+def inside(p: Sequence[float] | np.ndarray, lo: Sequence[float], hi: Sequence[float]) -> bool:
     """True when the point ``p`` (3,) lies in the box ``[lo, hi]``."""
     return all(lo[i] <= p[i] <= hi[i] for i in range(3))
 
@@ -178,7 +178,7 @@ class SequenceMonitor:
         self._prev1 = [0.0] * 6
         self._prev2 = [0.0] * 6
 
-    def check(self, twist: Sequence[float]) -> Fault:
+    def check(self, twist: Sequence[float] | np.ndarray) -> Fault:
         """Record ``twist`` (6,) as sent this cycle and return the limits it breaks."""
         lim = self.limits
         dt = self.period

@@ -25,9 +25,9 @@ import multiprocessing
 import os
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from enum import Enum
-from typing import Callable
+from enum import StrEnum
 
 import numpy as np
 
@@ -46,7 +46,7 @@ _EXIT_TIMEOUT = 5.0
 _CODE_STATUS = {code: status for status, code in EXIT_CODES.items()}
 
 
-class LinkState(str, Enum):
+class LinkState(StrEnum):
     """The robot link as the main process sees it."""
 
     STARTING = "starting"  # the process is starting or connecting
@@ -140,7 +140,7 @@ class MotionSupervisor:
         try:
             await asyncio.wait_for(self._running.wait(), timeout)
             return True
-        except asyncio.TimeoutError:
+        except TimeoutError:
             return False
 
     def status(self) -> np.void:

@@ -186,7 +186,7 @@ class JobRecording:
     @classmethod
     def for_job(
         cls, state_dir: str | Path, job_id: str, kind: str = "other", config: RecordingConfig | None = None
-    ) -> "JobRecording":
+    ) -> JobRecording:
         """Open the recording of ``job_id`` at :func:`recording_path` under ``state_dir``."""
         return cls(recording_path(state_dir, job_id), job_id, kind, config)
 
@@ -519,7 +519,7 @@ class JobRecording:
         self._rec.disconnect()
         self._log.info("recording_closed", path=str(self.path) if self.path else None)
 
-    def __enter__(self) -> "JobRecording":
+    def __enter__(self) -> JobRecording:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:

@@ -18,7 +18,8 @@ Third-party errors are translated here into :class:`~celld.errors.LinkLost`.
 
 from __future__ import annotations
 
-from typing import NamedTuple, Protocol, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple, Protocol
 
 from celld.errors import LinkLost
 
@@ -82,7 +83,7 @@ class RtdeLink:
         self.io = io  # RTDEIOInterface, for digital outputs and registers outside the loop
 
     @classmethod
-    def connect(cls, host: str, frequency_hz: float = 500.0) -> "RtdeLink":
+    def connect(cls, host: str, frequency_hz: float = 500.0) -> RtdeLink:
         """Open the control, receive and IO interfaces (blocking; holds the GIL while it waits).
 
         Raises
@@ -172,7 +173,7 @@ class RtdeLink:
             try:
                 self._c.speedStop(_SHUTDOWN_DECEL)  # type: ignore[attr-defined]
                 self._c.stopScript()  # type: ignore[attr-defined]
-            except Exception:  # the link may already be gone
+            except Exception:  # the link may already be gone  # noqa: BLE001
                 pass
         for iface in (self.io, self._r, self._c):
             _disconnect(iface)
@@ -183,5 +184,5 @@ def _disconnect(iface: object | None) -> None:
         return
     try:
         iface.disconnect()  # type: ignore[attr-defined]
-    except Exception:  # the link may already be gone
+    except Exception:  # the link may already be gone  # noqa: BLE001
         pass

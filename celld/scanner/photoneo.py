@@ -18,8 +18,9 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -229,5 +230,5 @@ class PhotoneoScanner:
         for name, step in steps:
             try:
                 step()
-            except Exception as exc:  # closing must not raise; the device may already be gone
+            except Exception as exc:  # closing must not raise; the device may already be gone  # noqa: BLE001
                 log.warning("photoneo_close_failed", step=name, error=str(exc))

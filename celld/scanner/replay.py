@@ -21,8 +21,9 @@ from __future__ import annotations
 import re
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -129,9 +130,10 @@ def _read_ply(path: Path) -> np.ndarray:
                 table = np.loadtxt(f, dtype=np.float64, max_rows=n, ndmin=2)
             except ValueError as exc:
                 raise InputError(f"{path}: unreadable ASCII vertex data: {exc}") from exc
-        if table.shape != (n, len(h.vertex_dtype.names)):
-            raise InputError(f"{path}: expected {n} vertex rows of {len(h.vertex_dtype.names)} values, got {table.shape}")
-        cols = {name: table[:, i] for i, name in enumerate(h.vertex_dtype.names)}
+        names = h.vertex_dtype.names or ()
+        if table.shape != (n, len(names)):
+            raise InputError(f"{path}: expected {n} vertex rows of {len(names)} values, got {table.shape}")
+        cols = {name: table[:, i] for i, name in enumerate(names)}
         xyz = np.column_stack([cols["x"], cols["y"], cols["z"]])
     else:
         need = n * h.vertex_dtype.itemsize

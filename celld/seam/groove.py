@@ -123,8 +123,8 @@ def intersect(p1: _Plane, p2: _Plane, near: Array) -> tuple[Array, Array, float]
     N = np.vstack([p1.normal, p2.normal])
     d = np.array([p1.offset, p2.offset])
     pinv = N.T @ np.linalg.inv(N @ N.T)
-    x = near + pinv @ (d - N @ near)
-    direction = np.cross(p1.normal, p2.normal)
+    x: Array = near + pinv @ (d - N @ near)
+    direction: np.ndarray = np.cross(p1.normal, p2.normal)
     direction /= np.linalg.norm(direction)
     cov = pinv @ np.diag([_offset_variance(p1, x), _offset_variance(p2, x)]) @ pinv.T
     return x, direction, float(math.sqrt(np.trace(cov)))
@@ -149,8 +149,8 @@ def window_centres(seam: Array, step: float) -> tuple[Array, Array, Array]:
     """Arc lengths (w,), points (w, 3) and unit tangents (w, 3) of window centres
     every ``step`` along the seam polyline, both ends included."""
     D, actual = polyline.resample(seam, step)
-    arc = np.arange(len(D)) * actual
-    T = np.gradient(D, axis=0)
+    arc: np.ndarray = np.arange(len(D)) * actual
+    T: np.ndarray = np.gradient(D, axis=0)
     T /= np.linalg.norm(T, axis=1, keepdims=True)
     return arc, D, T
 
@@ -281,11 +281,11 @@ def lateral_offsets(scan: GrooveFit, model: GrooveFit, seam: Array, approach: Ar
     1-sigma (w,); and the mask of windows where both fits are OK.
     """
     _, C, T = window_centres(seam, step)
-    left = np.cross(approach, T)
+    left: np.ndarray = np.cross(approach, T)
     left /= np.linalg.norm(left, axis=1, keepdims=True)
     valid = scan.ok & model.ok
     shift = np.full(len(C), np.nan)
-    sigma = np.full(len(C), np.nan)
+    sigma: np.ndarray = np.full(len(C), np.nan)
     for k in np.flatnonzero(valid):
         m_scan, g_scan = _bisector_distance(scan, k, C[k])
         _, g_model = _bisector_distance(model, k, C[k])
@@ -309,7 +309,7 @@ def _bisector_distance(fit: GrooveFit, k: int, x: Array) -> tuple[Array, float]:
 
 
 def smooth_offsets(
-    arc_w: Array, shift: Array, sigma: Array, length: Array, valid: NDArray[np.bool_], arc: Array, span: float, step: float
+    arc_w: Array, shift: Array, sigma: Array, length: np.ndarray, valid: NDArray[np.bool_], arc: np.ndarray, span: float, step: float
 ) -> tuple[Array, Array]:
     """Shifts at seam stations: a local linear fit over the windows within
     ``span / 2`` of each station, weighted by 1 / sigma^2.

@@ -54,6 +54,7 @@ from scipy.spatial import cKDTree
 from celld import polyline, se3
 from celld.errors import GrooveError, RegistrationError, ScanError
 from celld.log import get_logger
+from celld.scanner.base import OrganizedCloud
 from celld.seam.groove import CONTRADICTS, GrooveFit, fit_groove, lateral_offsets, smooth_offsets
 from celld.seam.params import SeamParams
 from celld.seam.register import PreparedModel, prepare_model, register
@@ -207,7 +208,7 @@ def prepare(workpiece: Workpiece, params: SeamParams | None = None) -> PreparedW
     return PreparedWorkpiece(workpiece, model, prior, model.points[walls][band], model.normals[walls][band], scene, params)
 
 
-def crop_cloud(cloud_cam: ArrayLike, T_base_cam: Array, params: SeamParams) -> Array:
+def crop_cloud(cloud_cam: ArrayLike | OrganizedCloud, T_base_cam: Array, params: SeamParams) -> Array:
     """Check a camera-frame cloud and cut it to what may be the part, in the base frame.
 
     Accepts an organized (H, W, 3) or flat (n, 3) array (NaN = no return), or
@@ -296,7 +297,7 @@ def _table_plane(thin_cam: NDArray, T_base_cam: Array, params: SeamParams) -> tu
 
 
 def find_seam(
-    cloud_cam: ArrayLike,
+    cloud_cam: ArrayLike | OrganizedCloud,
     model: Workpiece | PreparedWorkpiece,
     T_base_cam: ArrayLike,
     params: SeamParams | None = None,
@@ -373,7 +374,7 @@ def find_seam(
         points_base, model_base = points_base[::-1], model_base[::-1]
     plane_normal = se3.rotate(T_base_obj, wp.approach)
     tangents = _tangents(points_base, max(1, int(round(params.tangent_span / 2.0 / spacing))))
-    normals = np.cross(plane_normal, tangents)
+    normals: np.ndarray = np.cross(plane_normal, tangents)
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     if params.finger_wall == "right":
         normals = -normals
@@ -609,5 +610,5 @@ def _tangents(P: Array, k: int) -> Array:
     n = len(P)
     hi = np.minimum(np.arange(n) + k, n - 1)
     lo = np.maximum(np.arange(n) - k, 0)
-    T = P[hi] - P[lo]
+    T: Array = P[hi] - P[lo]
     return T / np.linalg.norm(T, axis=1, keepdims=True)

@@ -74,7 +74,7 @@ class PreparedModel:
     edge: NDArray[np.bool_]
     tree: cKDTree
     coarse: o3d.geometry.PointCloud
-    coarse_fpfh: reg.Feature
+    coarse_fpfh: o3d.pipelines.registration.Feature
     fine: o3d.geometry.PointCloud
 
 
@@ -134,13 +134,13 @@ def _cloud(P: Array, N: Array | None = None) -> o3d.geometry.PointCloud:
     return pc
 
 
-def _fpfh(pc: o3d.geometry.PointCloud, voxel: float) -> reg.Feature:
+def _fpfh(pc: o3d.geometry.PointCloud, voxel: float) -> o3d.pipelines.registration.Feature:
     return reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100))
 
 
 def scan_clouds(
     P_base: Array, cam_position_base: Array, params: RegistrationParams
-) -> tuple[o3d.geometry.PointCloud, reg.Feature, o3d.geometry.PointCloud]:
+) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature, o3d.geometry.PointCloud]:
     """The scan (base frame) cut down for RANSAC (voxels, normals facing the
     camera, FPFH) and for ICP (every k-th point, about ``icp_points``).
 

@@ -34,9 +34,9 @@ from __future__ import annotations
 import csv
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import open3d as o3d
@@ -62,7 +62,7 @@ _UNITS = {"m": 1.0, "mm": 1e-3}
 
 
 def _readonly(a: ArrayLike, dtype: type = np.float64) -> NDArray:
-    out = np.array(a, dtype=dtype)  # a copy: the caller's array stays theirs
+    out: NDArray = np.array(a, dtype=dtype)  # a copy: the caller's array stays theirs
     out.setflags(write=False)
     return out
 
@@ -474,11 +474,10 @@ def _seam_from_csv(path: Path, text: str) -> SeamFile:
     if not rows:
         raise WorkpieceError(f"{path}: empty seam file (no seam)")
     header = [h.strip().lower() for h in rows[0]]
-    for units, scale in _UNITS.items():
-        if header == [f"x_{units}", f"y_{units}", f"z_{units}"]:
-            break
-    else:
+    units = next((u for u in _UNITS if header == [f"x_{u}", f"y_{u}", f"z_{u}"]), None)
+    if units is None:
         raise WorkpieceError(f"{path}: first row must name the columns with their unit, 'x_mm,y_mm,z_mm' or 'x_m,y_m,z_m', got {rows[0]!r}")
+    scale = _UNITS[units]
     try:
         values = [[float(v) for v in r] for r in rows[1:]]
     except ValueError as exc:

@@ -24,8 +24,8 @@ from celld import se3
 from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
-from celld.calib.poses import calibration_poses
 from celld.calib.pairs import PairCollector
+from celld.calib.poses import calibration_poses
 from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
 from celld.sim.scanner import SimScanner
 from celld.sim.scene import robot_scene

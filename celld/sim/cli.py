@@ -48,7 +48,7 @@ def add_parser(sub: Any) -> None:
 
     fault = sim_sub.add_parser("fault", help="play a fault on a running simulated robot")
     fault.add_argument("--host", required=True, help="address the simulator listens on, 127.x.y.z")
-    names = sorted(f.replace("_", "-") for f in FAULTS) + ["clear", "status"]
+    names = [*sorted(f.replace("_", "-") for f in FAULTS), "clear", "status"]
     fault.add_argument("fault", choices=names, help="the fault, or clear / status")
     fault.add_argument("--ms", type=float, help="duration of stall, delay of latency, in milliseconds")
     fault.add_argument("--down-ms", type=float, help="how long dropped ports stay closed, milliseconds")

@@ -29,8 +29,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -222,9 +223,9 @@ class TagRenderer:
         self._w, self._h = size_px
         rng = np.random.default_rng(seed)
         # The inside of the finger: dark, softly textured.
-        bg = rng.normal(0.0, 1.0, (self._h // 8 + 1, self._w // 8 + 1)).astype(np.float32)
+        bg: np.ndarray = rng.normal(0.0, 1.0, (self._h // 8 + 1, self._w // 8 + 1)).astype(np.float32)
         bg = cv2.resize(cv2.GaussianBlur(bg, (0, 0), 1.5), (self._w, self._h), interpolation=cv2.INTER_CUBIC)
-        self._background = np.clip(55.0 + 25.0 * bg, 0, 255).astype(np.float32)
+        self._background: np.ndarray = np.clip(55.0 + 25.0 * bg, 0, 255).astype(np.float32)
         self._noise = rng.standard_normal((_NOISE_BANK, self._h + _NOISE_PAD, self._w + _NOISE_PAD), dtype=np.float32)
         self._rng = rng
         yy, xx = np.mgrid[0 : self._h, 0 : self._w].astype(np.float32)

@@ -270,7 +270,7 @@ class TagDetector:
         self.max_reprojection_px = max_reprojection_px
 
     @classmethod
-    def from_config(cls, cfg: TactileConfig) -> "TagDetector":
+    def from_config(cls, cfg: TactileConfig) -> TagDetector:
         return cls(
             cfg.tag_dictionary,
             cfg.tag_id,

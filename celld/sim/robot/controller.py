@@ -17,8 +17,10 @@ Text messages for RTDE clients collect in :attr:`Controller.outbox`.
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from celld.robot import kinematics as kin
 from celld.sim.robot import geometry as g
@@ -331,7 +333,7 @@ class Controller:
     @staticmethod
     def input_plan(names: Sequence[str]) -> InputPlan:
         """How to apply a data package of an input recipe with ``names``."""
-        plan = []
+        plan: list[tuple[int, Any, int]] = []
         for name in names:
             width = P.TYPE_WIDTH.get(P.INPUT_FIELDS[name], 1)
             if name.startswith("input_int_register_"):
@@ -405,16 +407,13 @@ class Controller:
             ("input_double_register_", self.in_double),
         ):
             if name.startswith(prefix):
-                i = int(name[len(prefix) :])
-                return lambda regs=regs, i=i: (regs[i],)
+                return functools.partial(_register_value, regs, int(name[len(prefix) :]))
         for prefix, bits in (("output_bit_register_", self.out_bits), ("input_bit_register_", self.in_bits)):
             if name.startswith(prefix):
-                i = int(name[len(prefix) :]) - 64
-                return lambda bits=bits, i=i: (bool(bits[1] >> i & 1),)
+                return functools.partial(_bit_value, bits, int(name[len(prefix) :]) - 64)
         for prefix, bits in (("output_bit_registers", self.out_bits), ("input_bit_registers", self.in_bits)):
             if name.startswith(prefix):
-                shift = 0 if name.endswith("0_to_31") else 32
-                return lambda bits=bits, shift=shift: ((bits[0] >> shift) & 0xFFFFFFFF,)
+                return functools.partial(_bit_word, bits, 0 if name.endswith("0_to_31") else 32)
         zeros6 = (0.0,) * 6
         getters: dict[str, Callable[[], Sequence[Any]]] = {
             "timestamp": lambda: (self.time,),
@@ -476,3 +475,17 @@ class Controller:
     def elbow_position(self) -> list[float]:
         T = kin.forward_all_rows(self.arm.q, self.arm.dh)[1]  # frame 2: the elbow joint
         return [T[3], T[7], T[11]]
+
+
+def _register_value(regs: Sequence[Any], i: int) -> tuple[Any]:
+    return (regs[i],)
+
+
+def _bit_value(bits: Sequence[int], i: int) -> tuple[bool]:
+    """Bit ``i`` of the upper 64-bit word (the registers 64..127)."""
+    return (bool(bits[1] >> i & 1),)
+
+
+def _bit_word(bits: Sequence[int], shift: int) -> tuple[int]:
+    """32 bits of the lower word from ``shift``."""
+    return ((bits[0] >> shift) & 0xFFFFFFFF,)

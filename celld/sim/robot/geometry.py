@@ -9,7 +9,7 @@ Functions never modify their inputs.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 from celld.robot.kinematics import Rows
 

@@ -16,7 +16,8 @@ import socket
 import subprocess
 import sys
 import time
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -141,7 +142,7 @@ class SimRobotHandle:
                 self.process.wait(_STOP_TIMEOUT)
         return int(self.process.returncode)
 
-    def __enter__(self) -> "SimRobotHandle":
+    def __enter__(self) -> SimRobotHandle:
         return self
 
     def __exit__(self, *exc: object) -> None:

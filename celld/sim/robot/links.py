@@ -10,7 +10,8 @@ import collections
 import json
 import socket
 import time
-from typing import TYPE_CHECKING, Any, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from celld.errors import InputError
 from celld.log import get_logger
@@ -43,7 +44,8 @@ class Link:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.tx = bytearray()
         self.closed = False
-        self.peer = "%s:%d" % sock.getpeername()[:2]
+        host, port = sock.getpeername()[:2]
+        self.peer = f"{host}:{port}"
 
     def fileno(self) -> int:
         return self.sock.fileno()
@@ -99,7 +101,7 @@ class Link:
 class OutputStream:
     """One output recipe of an RTDE session and how to fill it."""
 
-    __slots__ = ("recipe", "every", "getters")
+    __slots__ = ("every", "getters", "recipe")
 
     def __init__(self, recipe: P.Recipe, every: int, getters: list[Callable[[], Any]]) -> None:
         self.recipe = recipe
@@ -118,7 +120,7 @@ class RtdeLink(Link):
 
     kind = "rtde"
 
-    def __init__(self, sock: socket.socket, ctrl: "Controller", owners: dict[str, "RtdeLink"], faults: Any) -> None:
+    def __init__(self, sock: socket.socket, ctrl: Controller, owners: dict[str, RtdeLink], faults: Any) -> None:
         super().__init__(sock)
         self.ctrl = ctrl
         self.owners = owners
@@ -127,7 +129,7 @@ class RtdeLink(Link):
         self.protocol = 1
         self.outputs: list[OutputStream] = []
         self.input_recipes: dict[int, P.Recipe] = {}
-        self.input_plans: dict[int, "InputPlan"] = {}
+        self.input_plans: dict[int, InputPlan] = {}
         self.started = False
         self.dropped_packages = 0
         # Packages held back by the latency fault: (due ns, type, payload) in, (due ns, bytes) out.
@@ -253,7 +255,7 @@ class DashboardLink(Link):
 
     kind = "dashboard"
 
-    def __init__(self, sock: socket.socket, ctrl: "Controller") -> None:
+    def __init__(self, sock: socket.socket, ctrl: Controller) -> None:
         super().__init__(sock)
         self.ctrl = ctrl
         self.buf = bytearray()
@@ -280,7 +282,7 @@ class ScriptLink(Link):
 
     kind = "script"
 
-    def __init__(self, sock: socket.socket, ctrl: "Controller") -> None:
+    def __init__(self, sock: socket.socket, ctrl: Controller) -> None:
         super().__init__(sock)
         self.ctrl = ctrl
         self.buf = b""

@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 from celld.robot import kinematics as kin
 from celld.robot.kinematics import Rows
@@ -116,10 +117,10 @@ class Motion:
     fault: str | None = None
     cartesian = False
 
-    def advance(self, arm: "Arm", dt: float) -> list[float] | None:  # pragma: no cover - interface
+    def advance(self, arm: Arm, dt: float) -> list[float] | None:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def target_pose(self, arm: "Arm") -> Rows | None:
+    def target_pose(self, arm: Arm) -> Rows | None:
         """``T_base_tcp`` this motion heads for, if it has one."""
         return None
 
@@ -130,7 +131,7 @@ class CartesianVelocity(Motion):
     cartesian = True
 
     def __init__(
-        self, arm: "Arm", target: Sequence[float], acc: float, acc_rot: float | None = None, stopping: bool = False
+        self, arm: Arm, target: Sequence[float], acc: float, acc_rot: float | None = None, stopping: bool = False
     ) -> None:
         self.v = list(arm.current_twist())
         self.T = list(arm.T_tcp)
@@ -142,7 +143,7 @@ class CartesianVelocity(Motion):
         self.acc = acc
         self.acc_rot = acc if acc_rot is None else acc_rot
 
-    def advance(self, arm: "Arm", dt: float) -> list[float] | None:
+    def advance(self, arm: Arm, dt: float) -> list[float] | None:
         v0 = self.v
         v1 = _ramp3(v0[0:3], self.target[0:3], self.acc * dt) + _ramp3(v0[3:6], self.target[3:6], self.acc_rot * dt)
         T = self.T
@@ -163,7 +164,7 @@ class CartesianVelocity(Motion):
 class JointVelocity(Motion):
     """Joint speeds (rad/s) ramped at ``acc`` (rad/s^2, leading joint)."""
 
-    def __init__(self, arm: "Arm", target: Sequence[float], acc: float, stopping: bool = False) -> None:
+    def __init__(self, arm: Arm, target: Sequence[float], acc: float, stopping: bool = False) -> None:
         self.qd = list(arm.qd)
         self.stopping = stopping
         self.set_target(target, acc)
@@ -172,7 +173,7 @@ class JointVelocity(Motion):
         self.target = [float(x) for x in target]
         self.acc = acc
 
-    def advance(self, arm: "Arm", dt: float) -> list[float] | None:
+    def advance(self, arm: Arm, dt: float) -> list[float] | None:
         qd0 = self.qd
         d = [t - v for t, v in zip(self.target, qd0)]
         m = max(abs(x) for x in d)
@@ -188,7 +189,7 @@ class JointVelocity(Motion):
 class JointTrajectory(Motion):
     """``movej``: straight line in joint space, trapezoid on the leading joint."""
 
-    def __init__(self, arm: "Arm", q_goal: Sequence[float], speed: float, acc: float) -> None:
+    def __init__(self, arm: Arm, q_goal: Sequence[float], speed: float, acc: float) -> None:
         self.q0 = list(arm.q)
         self.q1 = [float(x) for x in q_goal]
         delta = [b - a for a, b in zip(self.q0, self.q1)]
@@ -200,7 +201,7 @@ class JointTrajectory(Motion):
         self.profile = Trapezoid(length, v0, speed, acc)
         self.t = 0.0
 
-    def advance(self, arm: "Arm", dt: float) -> list[float] | None:
+    def advance(self, arm: Arm, dt: float) -> list[float] | None:
         self.t += dt
         if self.t >= self.profile.duration:
             self.done = True
@@ -208,7 +209,7 @@ class JointTrajectory(Motion):
         s, _ = self.profile.sample(self.t)
         return [a + u * s for a, u in zip(self.q0, self.u)]
 
-    def target_pose(self, arm: "Arm") -> Rows | None:
+    def target_pose(self, arm: Arm) -> Rows | None:
         return arm.fk_tcp(self.q1)
 
 
@@ -217,7 +218,7 @@ class LinearTrajectory(Motion):
 
     cartesian = True
 
-    def __init__(self, arm: "Arm", T_goal: Rows, speed: float, acc: float) -> None:
+    def __init__(self, arm: Arm, T_goal: Rows, speed: float, acc: float) -> None:
         self.T0 = list(arm.T_tcp)
         self.T1 = list(T_goal)
         self.dp = [self.T1[3] - self.T0[3], self.T1[7] - self.T0[7], self.T1[11] - self.T0[11]]
@@ -244,7 +245,7 @@ class LinearTrajectory(Motion):
         R = g.rot_mul(g.rot_from_rotvec(s * self.rv[0], s * self.rv[1], s * self.rv[2]), self.R0)
         return g.with_rotation(R, p)
 
-    def advance(self, arm: "Arm", dt: float) -> list[float] | None:
+    def advance(self, arm: Arm, dt: float) -> list[float] | None:
         self.t += dt
         if self.t >= self.profile.duration:
             T = self.T1
@@ -257,21 +258,21 @@ class LinearTrajectory(Motion):
             self.done = False
         return q
 
-    def target_pose(self, arm: "Arm") -> Rows | None:
+    def target_pose(self, arm: Arm) -> Rows | None:
         return list(self.T1)
 
 
 class JointServo(Motion):
     """``servoj``: first-order lag towards the latest target, joint speeds within limits."""
 
-    def __init__(self, arm: "Arm", q_target: Sequence[float], lookahead_time: float, gain: float) -> None:
+    def __init__(self, arm: Arm, q_target: Sequence[float], lookahead_time: float, gain: float) -> None:
         self.set_target(q_target, lookahead_time, gain)
 
     def set_target(self, q_target: Sequence[float], lookahead_time: float, gain: float) -> None:
         self.q_target = [float(x) for x in q_target]
         self.tau = max(lookahead_time, 0.0) + 1.0 / max(gain, 1.0)
 
-    def advance(self, arm: "Arm", dt: float) -> list[float] | None:
+    def advance(self, arm: Arm, dt: float) -> list[float] | None:
         k = min(1.0, dt / self.tau)
         q = []
         for qi, ti, vmax in zip(arm.q, self.q_target, arm.limits.joints.qd_max):
@@ -280,7 +281,7 @@ class JointServo(Motion):
             q.append(qi + max(-bound, min(bound, step)))
         return q
 
-    def target_pose(self, arm: "Arm") -> Rows | None:
+    def target_pose(self, arm: Arm) -> Rows | None:
         return arm.fk_tcp(self.q_target)
 
 

@@ -11,8 +11,9 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
-from typing import Any, Sequence
+from typing import Any
 
 from celld.errors import ConfigError
 
@@ -87,7 +88,7 @@ class SimOptions:
         if not self.serial_number.isdigit():
             raise ConfigError(_SOURCE, "serial_number", f"expected digits only, got {self.serial_number!r}")
 
-    def with_(self, **changes: Any) -> "SimOptions":
+    def with_(self, **changes: Any) -> SimOptions:
         """A copy with ``changes`` applied (and checked)."""
         unknown = set(changes) - {f.name for f in fields(self)}
         if unknown:
@@ -164,8 +165,8 @@ def from_args(args: argparse.Namespace) -> SimOptions:
         host=args.host,
         q0=tuple(args.q0),
         tcp_offset=tuple(args.tcp_offset),
-        workspace_min=tuple(args.workspace[:3]),  # type: ignore[arg-type]
-        workspace_max=tuple(args.workspace[3:]),  # type: ignore[arg-type]
+        workspace_min=tuple(args.workspace[:3]),
+        workspace_max=tuple(args.workspace[3:]),
         tcp_speed_limit=args.tcp_speed_limit,
         tcp_acc_limit=args.tcp_acc_limit,
         joint_acc_limit=args.joint_acc_limit,

@@ -13,8 +13,8 @@ and ignores the types the server returns, so these types must be right.
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 from celld.errors import InputError
 

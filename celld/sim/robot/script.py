@@ -24,8 +24,9 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 from celld.robot import kinematics as kin
 from celld.sim.robot import geometry as g
@@ -97,7 +98,7 @@ def find_programs(buffer: bytes) -> tuple[list[Program], bytes]:
 class CustomProgram:
     """A program that is not ur-rtde's control script: applies its register writes, then ends."""
 
-    def __init__(self, ctrl: "Controller", program: Program) -> None:
+    def __init__(self, ctrl: Controller, program: Program) -> None:
         self.ctrl = ctrl
         self.program = program
 
@@ -137,7 +138,7 @@ class IdleProgram:
 class ControlScript:
     """ur-rtde's ``rtde_control`` script, run on the controller's registers."""
 
-    def __init__(self, ctrl: "Controller", program: Program) -> None:
+    def __init__(self, ctrl: Controller, program: Program) -> None:
         self.ctrl = ctrl
         self.program = program
         self.ioff = program.int_offset

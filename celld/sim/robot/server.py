@@ -36,8 +36,8 @@ from celld.sim.robot import links as L
 from celld.sim.robot import rtde_protocol as P
 from celld.sim.robot.controller import (
     PERIOD,
-    RUNTIME_NAMES,
     ROBOT_MODE_NAMES,
+    RUNTIME_NAMES,
     SAFETY_NAMES,
     Controller,
 )
@@ -150,10 +150,10 @@ class SimServer:
             if what == "listen":
                 self._accept(obj)
                 continue
-            link: L.Link = obj
-            data = link.read()
+            peer: L.Link = obj
+            data = peer.read()
             if data:
-                link.on_data(data)
+                peer.on_data(data)
             if link.closed:
                 self._drop(link)
         for link in [lk for lk in self.links if lk.tx or lk.closed]:

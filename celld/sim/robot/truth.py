@@ -17,7 +17,8 @@ so simulators on different loopback addresses never share them. Readers use
 from __future__ import annotations
 
 import time
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
