@@ -231,11 +231,12 @@ class PathCheck:
 
 @dataclass(frozen=True)
 class PoseCheck:
-    """One pose of a plan: its joints when accepted, or the refusal."""
+    """One pose of a plan: its joints when accepted, or the refusal; ``samples`` checked on the way."""
 
     index: int
     q: tuple[float, ...] | None
     refusal: Refusal | None
+    samples: int
 
     @property
     def ok(self) -> bool:
@@ -523,9 +524,9 @@ class Checker:
             check = self.check_cartesian_path(q, T)
             if check.ok:
                 q = check.q_end
-                poses.append(PoseCheck(i, tuple(q.tolist()), None))
+                poses.append(PoseCheck(i, tuple(q.tolist()), None, len(check.q)))
             else:
-                poses.append(PoseCheck(i, None, check.refusal))
+                poses.append(PoseCheck(i, None, check.refusal, len(check.q)))
         return PlanCheck(tuple(poses))
 
     def _line(self, q0: Array, T_goal: Array) -> _Line:
