@@ -87,6 +87,8 @@ _MAX_HALVINGS = 10
 _NO_MOTION = 1e-9
 # A joint moving this much between two samples a hair apart has changed IK branch, rad.
 _BRANCH_JUMP = 0.5
+# No joint limits: to tell a joint at its limit from a branch switch.
+_UNLIMITED = kin.JointLimits((-math.inf,) * 6, (math.inf,) * 6, (math.inf,) * 6)  # type: ignore[arg-type]
 
 
 class PathParams(NamedTuple):
@@ -582,7 +584,7 @@ class Checker:
                 elif ds > ds_min:
                     ds /= 2.0
                 else:
-                    failure = _jump(jumps, moved, s1, q1, ds)
+                    failure = _jump(sols, q, q1, moved, s1, ds, limits, p.max_joint_step)
                     break
         F, C = np.asarray(Fs), np.asarray(Cs)
         Q, S = np.asarray(Qs), np.asarray(Ss)
@@ -611,14 +613,34 @@ def _first_collision(collisions: Sequence[Collision | None]) -> tuple[int, Colli
     return next(((i, c) for i, c in enumerate(collisions) if c is not None), None)
 
 
-def _jump(jumps: Array, moved: float, s: float, q: Sequence[float], ds: float) -> _Failure:
-    """The failure when the step cannot be met even on the smallest share ``ds`` of the path."""
+def _jump(
+    sols: Sequence[Sequence[float]],
+    q: Sequence[float],
+    q1: Sequence[float],
+    moved: float,
+    s: float,
+    ds: float,
+    limits: kin.JointLimits,
+    max_joint_step: float,
+) -> _Failure:
+    """Why the step cannot be met even on the smallest share ``ds`` of the path, from joints ``q`` to ``q1``.
+
+    A continuous solution outside the joint ranges means a joint reached its
+    limit (the nearest one inside them is elsewhere); else a large jump is a
+    branch switch and a small one joints racing near a singularity.
+    """
+    free = kin.nearest_solution(sols, q, _UNLIMITED)
+    if free is not None and max(abs(a - b) for a, b in zip(free, q)) <= max_joint_step:
+        j = max(range(6), key=lambda i: max(free[i] - limits.q_max[i], limits.q_min[i] - free[i]))
+        bound = limits.q_max[j] if free[j] > limits.q_max[j] else limits.q_min[j]
+        return _Failure("joint_limits", f"joint {j + 1} ({JOINT_NAMES[j]}) reaches its limit ({bound:.3f} rad)", s, tuple(q))
+    jumps = np.abs(np.subtract(q1, q))
     j = int(np.argmax(jumps))
     joint = f"joint {j + 1} ({JOINT_NAMES[j]})"
     if jumps[j] > _BRANCH_JUMP:
-        return _Failure("branch_switch", f"IK branch switch ({joint} jumps {jumps[j]:.2f} rad)", s, tuple(q))
+        return _Failure("branch_switch", f"IK branch switch ({joint} jumps {jumps[j]:.2f} rad)", s, tuple(q1))
     detail = (
         f"singular passage (the joints race: {joint} turns {jumps[j]:.3f} rad and the arm moves "
         f"{moved * 1e3:.1f} mm within {ds * 100:.4f} % of the path)"
     )
-    return _Failure("singular", detail, s, tuple(q))
+    return _Failure("singular", detail, s, tuple(q1))

@@ -189,6 +189,20 @@ def test_a_passage_by_the_wrist_singularity_is_refused(checker: Checker) -> None
     assert "singular passage (smallest singular value of the Jacobian 0.0" in r.message
 
 
+def test_a_turn_past_a_joint_limit_is_refused_naming_the_joint(checker: Checker) -> None:
+    # Wrist 3 at 6.0 rad, the TCP turned 0.6 rad about its own axis: wrist 3 would pass 2 pi.
+    q_start = HOME_DOWN + [0.0, 0.0, 0.0, 0.0, 0.0, 6.0]
+    T_goal = kin.forward(q_start) @ se3.from_ur_pose([0.0, 0.0, 0.0, 0.0, 0.0, 0.6])
+    check = checker.check_cartesian_path(q_start, T_goal)
+    r = check.refusal
+    assert r is not None and r.reason == "joint_limits"
+    assert "joint 6 (wrist 3) reaches its limit (6.283 rad)" in r.message
+    assert r.fraction == pytest.approx((2 * math.pi - 6.0) / 0.6, abs=0.02)
+    assert check.q[:, 5].max() <= 2 * math.pi
+    # Turned the other way it is free to go.
+    assert checker.check_cartesian_path(q_start, kin.forward(q_start) @ se3.from_ur_pose([0, 0, 0, 0, 0, -0.6])).ok
+
+
 def test_the_tool_folded_into_the_forearm_is_a_self_collision(checker: Checker) -> None:
     q = np.array([0.0, -math.pi / 2, math.pi / 2, math.pi / 4, -3 * math.pi / 4, 0.0])
     col = checker.check_configuration(q)
