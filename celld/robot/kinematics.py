@@ -147,8 +147,10 @@ def _limits(base_shoulder_deg_s: float, elbow_deg_s: float, wrist_deg_s: float) 
 # manual of each model (every joint +-360 deg; the UR3's and UR3e's wrist 3
 # turns without end, kept at +-360 deg here as on the others). Shoulder and elbow
 # offsets: UR's ROS 2 description (physical_parameters.yaml, "measured from
-# model"). Radii: enclosing capsules from the models' drawings (base: the
-# mounting-flange diameter), rounded up by a few mm.
+# model"). Radii: estimates of capsules enclosing each part from the models'
+# outer sizes (base: the foot's diameter, e.g. 190 mm on the UR10e; wrists: the
+# 90 mm UR10e wrist), rounded up by a few mm, not measured: a cell that needs
+# tighter clearances should measure its arm.
 MODELS: dict[str, URModel] = {
     m.name: m
     for m in (
