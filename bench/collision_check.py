@@ -39,19 +39,17 @@ import numpy as np
 
 from celld import se3
 from celld.calib.poses import calibration_poses
-from celld.config import TableReader
+from celld.config import TableReader, load
 from celld.robot import kinematics as kin
 from celld.robot.cellmodel import Box, CellModel, CellObject
 from celld.robot.collision import Checker
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "out" / "collision_check"
-# configs/sim-cell.toml: the simulated robot's home; the calibration defaults.
-SIM_HOME = np.array([2.847, -1.401, 2.311, -2.481, 1.571, -1.276])
-VERIFICATION_POSE = [0.6, 0.0, 0.45, 0.0, 0.0, 0.0]
-POSE_BOX = (0.3, 0.3, 0.2)
-MAX_TILT = 0.3
-N_POSES = 20
+# The simulated cell: its robot's home and its calibration set-up (20 poses).
+SIM_CELL = load(ROOT / "configs" / "sim-cell.toml")
+SIM_HOME = np.array(SIM_CELL.robot.home_q)
+N_POSES = SIM_CELL.calibration.n_poses
 # The weld line: 150 mm along y at x = 0.6 m, the tip 50 mm above the table.
 WELD_LENGTH = 0.150
 WELD_HEIGHT = 0.05
@@ -74,8 +72,9 @@ def cell_model() -> CellModel:
 
 
 def run_plan(checker: Checker, seed: int) -> Row:
-    T_v = se3.from_ur_pose(VERIFICATION_POSE)
-    targets = np.concatenate([T_v[None], calibration_poses(T_v, POSE_BOX, N_POSES, MAX_TILT, seed=seed)])
+    cal = SIM_CELL.calibration
+    T_v = se3.from_ur_pose(cal.verification_pose)
+    targets = np.concatenate([T_v[None], calibration_poses(T_v, cal.pose_box, N_POSES, cal.max_tilt, seed=seed)])
     t0 = time.perf_counter()
     plan = checker.check_plan(SIM_HOME, targets)
     seconds = time.perf_counter() - t0

@@ -11,20 +11,19 @@ import pytest
 
 from celld import se3
 from celld.calib.poses import calibration_poses
-from celld.config import TableReader
+from celld.config import TableReader, load
 from celld.errors import InputError
 from celld.robot import kinematics as kin
 from celld.robot.cellmodel import Box, CellModel, CellObject
 from celld.robot.collision import Checker, PathParams, arm_capsules, capsule_spheres
 
 ROOT = Path(__file__).resolve().parents[2]
-# configs/sim-cell.toml: the simulated robot's home, and the default calibration set-up.
-SIM_HOME = np.array([2.847, -1.401, 2.311, -2.481, 1.571, -1.276])
+# The simulated cell: its robot's home and its calibration set-up.
+SIM_CELL = load(ROOT / "configs" / "sim-cell.toml")
+SIM_HOME = np.array(SIM_CELL.robot.home_q)
 # The robot config's default home turned to face the table (q1 = pi): elbow up, the tool pointing down.
 HOME_DOWN = np.array([math.pi, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0])
-VERIFICATION_POSE = [0.6, 0.0, 0.45, 0.0, 0.0, 0.0]
-POSE_BOX = (0.3, 0.3, 0.2)
-MAX_TILT = 0.3
+VERIFICATION_POSE = SIM_CELL.calibration.verification_pose
 # The forearm rising through the scanner: the arm turned towards +x (q1 = pi),
 # the upper arm 60 degrees up, the forearm 48 degrees up, so the forearm's
 # axis crosses x = 0.6 m at z = 1.04 m, the middle of the scanner's body.
@@ -159,10 +158,11 @@ def test_a_joint_move_through_the_table_is_refused(checker: Checker) -> None:
 
 
 def test_the_simulated_cells_calibration_plan_is_mostly_accepted(checker: Checker) -> None:
-    T_v = se3.from_ur_pose(VERIFICATION_POSE)
-    targets = np.concatenate([T_v[None], calibration_poses(T_v, POSE_BOX, 20, MAX_TILT, seed=0)])
+    cal = SIM_CELL.calibration
+    T_v = se3.from_ur_pose(cal.verification_pose)
+    targets = np.concatenate([T_v[None], calibration_poses(T_v, cal.pose_box, cal.n_poses, cal.max_tilt, seed=0)])
     plan = checker.check_plan(SIM_HOME, targets)
-    assert len(plan.poses) == 21 and plan.poses[0].ok
+    assert cal.n_poses == 20 and len(plan.poses) == 21 and plan.poses[0].ok
     assert len(plan.accepted) >= 19
     for p in plan.poses:
         if p.ok:
