@@ -1,4 +1,4 @@
-"""UR10e kinematics: known poses, inverse/forward round trips, Jacobian."""
+"""UR kinematics: known poses, inverse/forward round trips, Jacobian, every model and its limits."""
 
 from __future__ import annotations
 
@@ -93,3 +93,97 @@ def test_limits_and_validation() -> None:
         kin.forward([0.0, 1.0])
     with pytest.raises(InputError, match="NaN"):
         kin.forward([0, 0, math.nan, 0, 0, 0])
+
+
+# -- every UR model ----------------------------------------------------------------
+
+# Universal Robots' published DH lengths (d1, a2, a3, d4, d5, d6), m, typed here
+# apart from the module's table so that a typo in either shows.
+PUBLISHED = {
+    "ur3": (0.1519, -0.24365, -0.21325, 0.11235, 0.08535, 0.0819),
+    "ur5": (0.089159, -0.425, -0.39225, 0.10915, 0.09465, 0.0823),
+    "ur10": (0.1273, -0.612, -0.5723, 0.163941, 0.1157, 0.0922),
+    "ur3e": (0.15185, -0.24355, -0.2132, 0.13105, 0.08535, 0.0921),
+    "ur5e": (0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996),
+    "ur10e": (0.1807, -0.6127, -0.57155, 0.17415, 0.11985, 0.11655),
+    "ur16e": (0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655),
+    "ur20": (0.2363, -0.862, -0.7287, 0.201, 0.1593, 0.1543),
+    "ur30": (0.2363, -0.637, -0.5037, 0.201, 0.1593, 0.1543),
+}
+# Joint speeds from the user manuals, deg/s: base, shoulder, elbow, wrists.
+SPEEDS_DEG_S = {
+    "ur3": (180, 180, 180, 360), "ur3e": (180, 180, 180, 360),
+    "ur5": (180, 180, 180, 180), "ur5e": (180, 180, 180, 180),
+    "ur10": (120, 120, 180, 180), "ur10e": (120, 120, 180, 180), "ur16e": (120, 120, 180, 180),
+    "ur20": (120, 120, 150, 210), "ur30": (120, 120, 150, 210),
+}  # fmt: skip
+
+
+def test_every_model_the_config_accepts_is_known() -> None:
+    for name in ("ur10e", "ur5e", "ur5"):
+        assert kin.model(name).name == name
+    assert set(kin.MODELS) == set(PUBLISHED)
+    with pytest.raises(InputError, match="expected one of ur3, .*got 'ur11'"):
+        kin.model("ur11")
+
+
+def test_defaults_stay_the_ur10e() -> None:
+    assert kin.UR10E == kin.model("ur10e").dh
+    assert kin.UR10E_LIMITS == kin.model("ur10e").limits
+
+
+@pytest.mark.parametrize("name", sorted(PUBLISHED))
+def test_zero_joints_stretch_the_arm_by_the_published_lengths(name: str) -> None:
+    d1, a2, a3, d4, d5, d6 = PUBLISHED[name]
+    T = kin.forward(np.zeros(6), kin.model(name).dh)
+    # Along -x by the two link lengths, offset by d4 + d6 in -y, wrist 2 down by d5.
+    np.testing.assert_allclose(T[:3, 3], [a2 + a3, -(d4 + d6), d1 - d5], atol=1e-12)
+    np.testing.assert_allclose(T[:3, :3], [[1, 0, 0], [0, 0, -1], [0, 1, 0]], atol=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(PUBLISHED))
+def test_round_trip_for_every_model(name: str, rng: np.random.Generator) -> None:
+    dh = kin.model(name).dh
+    done = 0
+    while done < 100:
+        q = rng.uniform(-math.pi, math.pi, 6)
+        if abs(math.sin(q[2])) < 0.1 or abs(math.sin(q[4])) < 0.1:
+            continue  # near the elbow or wrist singularity the joints are not defined to 1e-7 by the pose
+        done += 1
+        T = kin.forward(q, dh)
+        sols = kin.inverse_all(T, dh, q6_seed=q[5])
+        for s in sols:
+            np.testing.assert_allclose(kin.forward(s, dh), T, atol=1e-9)
+        q_back = kin.inverse(T, q + rng.normal(0.0, 0.02, 6), dh, kin.model(name).limits)
+        assert q_back is not None
+        np.testing.assert_allclose(q_back, q, atol=1e-7)
+
+
+@pytest.mark.parametrize("name", sorted(PUBLISHED))
+def test_limits_of_every_model(name: str) -> None:
+    limits = kin.model(name).limits
+    np.testing.assert_allclose(limits.q_min, [-2 * math.pi] * 6)
+    np.testing.assert_allclose(limits.q_max, [2 * math.pi] * 6)
+    base, shoulder, elbow, wrist = SPEEDS_DEG_S[name]
+    np.testing.assert_allclose(np.degrees(limits.qd_max), [base, shoulder, elbow, wrist, wrist, wrist])
+    assert kin.within_limits([6.2, 0, 0, 0, 0, -6.2], limits)
+    assert not kin.within_limits([0, 0, 0, 0, 6.3, 0], limits)
+
+
+def test_forward_agrees_with_ur_analytic_ik(rng: np.random.Generator) -> None:
+    # An independent implementation with its own copy of the published tables.
+    ur_analytic_ik = pytest.importorskip("ur_analytic_ik")
+    for name in PUBLISHED:
+        dh = kin.model(name).dh
+        for q in rng.uniform(-math.pi, math.pi, (50, 6)):
+            np.testing.assert_allclose(kin.forward(q, dh), getattr(ur_analytic_ik, name).forward_kinematics(*q), atol=1e-12)
+
+
+def test_batched_jacobian_matches_the_single_one(rng: np.random.Generator) -> None:
+    Q = rng.uniform(-2.0, 2.0, (5, 6))
+    frames = np.array([kin.forward_all_rows(q) for q in Q.tolist()]).reshape(5, 6, 3, 4)
+    J = kin.jacobian_from_frames(frames)
+    for i, q in enumerate(Q):
+        np.testing.assert_allclose(J[i], kin.jacobian(q), atol=1e-12)
+    with pytest.raises(InputError, match=r"expected \(n, 6, 3, 4\)"):
+        kin.jacobian_from_frames(np.zeros((5, 6, 4, 4)))
