@@ -339,7 +339,7 @@ def main_sim_cell(args: argparse.Namespace) -> int:
         cfg_path = work / "cell.toml"
         cfg_path.write_text(
             f'include = ["{ROOT / "configs" / "sim-cell.toml"}"]\n[cell]\nname = "bench-cell"\nstate_dir = "{work / "state"}"\n'
-            f'[robot]\nhost = "{SIM_HOST}"\n[scanner]\nresolution_scale = 0.5\n[calibration]\nn_poses = 6\ne_required_mm = 0.0\n'
+            f'[robot]\nhost = "{SIM_HOST}"\n[sim]\npreset = "ideal"\n[sim.scanner]\nresolution_scale = 0.5\n[calibration]\nn_poses = 6\ne_required_mm = 0.0\n'
             f'[bus]\nlisten = ["tcp/{SIM_HOST}:7447"]\n'
         )
         with run_cell(cfg_path, work / "daemon.log", timeout=120) as cell:

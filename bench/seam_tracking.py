@@ -260,7 +260,7 @@ def run_kinematic(kind: str, cfg: Config, motion: MotionLimits, quick: bool, see
             v_tip = v_c[:3] + np.cross(v_c[3:], r)
             seq += 1
             if direct:
-                c, shift = srm.contact(T_c, v_tip)
+                c, shift, _ = srm.contact(T_c, v_tip)
                 f = SrmFrameTruth(-shift, c.in_contact)
                 d_ns = cpu_ns = 2_000_000
                 sample = direct_sample(f.delta_true, rng, cfg, next_frame, seq, contact)

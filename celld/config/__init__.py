@@ -8,7 +8,9 @@ renamed or moved (the message names the new key).
 
 - :mod:`celld.config.reader`: :class:`TableReader` and the unit-suffix rule;
 - :mod:`celld.config.sections`: cell, robot, motion, scanner, calibration,
-  bus, recording, weld, sim, and the seam finder's table;
+  bus, recording, weld, and the seam finder's table; the ``[sim]`` table is
+  kept raw in :attr:`Config.sim` (only a table is required): the simulator
+  reads and checks it (:mod:`celld.sim.world`), production code never does;
 - :mod:`celld.config.tactile`: the SRM sensor, the tool and the servo, with
   the servo's bounds stated once;
 - :mod:`celld.config.cell`: :class:`Config`, :func:`load` and :func:`parse`.
@@ -30,13 +32,12 @@ from celld.config.sections import (
     RecordingConfig,
     RobotConfig,
     ScannerConfig,
-    SimConfig,
     WeldConfig,
 )
 from celld.config.tactile import SERVO_BOUNDS, Bound, ServoConfig, TactileConfig, ToolConfig, check_servo, with_overrides
 
 __all__ = [
     "BUS_ROLES", "SCANNER_KINDS", "SCANNER_MODELS", "SERVO_BOUNDS", "Bound", "BusConfig", "BusUser", "CalibrationConfig",
-    "CellConfig", "Config", "MotionLimits", "RecordingConfig", "RobotConfig", "ScannerConfig", "ServoConfig", "SimConfig",
+    "CellConfig", "Config", "MotionLimits", "RecordingConfig", "RobotConfig", "ScannerConfig", "ServoConfig",
     "TableReader", "TactileConfig", "ToolConfig", "WeldConfig", "check_servo", "load", "parse", "with_overrides",
 ]

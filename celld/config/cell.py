@@ -9,10 +9,12 @@ a :class:`Config`: every section, then the rules between sections
 
 from __future__ import annotations
 
+import copy
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -26,7 +28,6 @@ from celld.config.sections import (
     RecordingConfig,
     RobotConfig,
     ScannerConfig,
-    SimConfig,
     WeldConfig,
     read_seam,
 )
@@ -53,7 +54,9 @@ class Config:
     weld: WeldConfig = field(default_factory=WeldConfig)
     # The seam finder: the scanner's preset, with the file's [seam] table over it.
     seam: SeamParams = field(default_factory=SeamParams)
-    sim: SimConfig = field(default_factory=SimConfig)
+    # The simulated cell's own description of the true cell ([sim]), kept as
+    # the raw table: only the simulator reads and checks it (celld.sim.world).
+    sim: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
 
     def T_base_cam_nominal(self) -> np.ndarray:
         return np.array(self.scanner.T_base_cam, dtype=np.float64)
@@ -72,7 +75,7 @@ _SECTIONS: dict[str, Callable[[TableReader], Any]] = {
     "bus": BusConfig.read,
     "recording": RecordingConfig.read,
     "weld": WeldConfig.read,
-    "sim": SimConfig.read,
+    "sim": lambda r: MappingProxyType(copy.deepcopy(r.raw())),
 }
 
 

@@ -136,6 +136,11 @@ class TableReader:
         value = self._get(name, _REQUIRED if required else {})
         return TableReader(value, self.source, self.key(name))
 
+    def raw(self) -> dict[builtins.str, Any]:
+        """The whole table as it is, every key counted as read: for a table that another layer validates."""
+        self._used.update(self._table)
+        return self._table
+
     def done(self) -> None:
         """Refuse keys that no getter asked for (typos, stale options)."""
         unknown = sorted(set(self._table) - self._used)

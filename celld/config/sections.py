@@ -117,9 +117,10 @@ class ScannerConfig:
 
     kind: str = "sim"
     model: str = "phoxi-m"
-    # Nominal pose of the camera in the base frame. For the simulated scanner it
-    # is the truth the simulator renders with; celld never reads it as an
-    # estimate: calibration starts without it.
+    # Nominal pose of the camera in the base frame, as the cell was drawn (the
+    # offline seam tools place a scan with it). celld never reads it as an
+    # estimate: calibration starts without it. A simulated scanner is placed
+    # by the simulator's own [sim.scanner], not by this.
     T_base_cam: tuple[tuple[float, ...], ...] = (
         (0.0, -1.0, 0.0, 0.6),
         (-1.0, 0.0, 0.0, -0.0125),
@@ -133,9 +134,6 @@ class ScannerConfig:
     replay_loop: bool = False
     # Serial number (Photoneo), device index (Azure Kinect) or serial (RealSense); "" for the first.
     device: str = ""
-    seed: int = 0
-    # Image resolution of the simulated scanner relative to the model's (0.01 to 1).
-    resolution_scale: float = 1.0
     # GenTL producer (.cti) for the Photoneo driver; "" searches GENICAM_GENTL64_PATH.
     gentl_producer: str = ""
     # Longest wait for one frame from a real scanner, s.
@@ -149,7 +147,11 @@ class ScannerConfig:
 
     @classmethod
     def read(cls, r: TableReader) -> ScannerConfig:
-        r.refuse_moved({"capture_timeout": "scanner.capture_timeout_s (seconds)"})
+        r.refuse_moved({
+            "capture_timeout": "scanner.capture_timeout_s (seconds)",
+            "seed": "[sim.scanner] seed (the simulated scanner belongs to the simulator's world)",
+            "resolution_scale": "[sim.scanner] resolution_scale (the simulated scanner belongs to the simulator's world)",
+        })
         depth_min = r.float("depth_min_mm", cls.depth_min * 1e3, lo=0.0, hi=20_000.0, scale=1e-3)
         depth_max = r.float("depth_max_mm", cls.depth_max * 1e3, lo=0.0, hi=20_000.0, scale=1e-3, open_lo=True)
         if not depth_min < depth_max:
@@ -167,8 +169,6 @@ class ScannerConfig:
             replay_units=r.str("replay_units", cls.replay_units, choices=("m", "mm")),
             replay_loop=r.bool("replay_loop", cls.replay_loop),
             device=r.str("device", ""),
-            seed=r.int("seed", 0, lo=0),
-            resolution_scale=r.float("resolution_scale", cls.resolution_scale, lo=0.01, hi=1.0),
             gentl_producer=r.str("gentl_producer", ""),
             capture_timeout=r.float("capture_timeout_s", cls.capture_timeout, lo=0.1, hi=600.0),
             depth_intrinsics_px=intrinsics,
@@ -391,32 +391,6 @@ class WeldConfig:
             retract_height=r.float("retract_height_mm", cls.retract_height * 1e3, lo=1.0, hi=500.0, scale=1e-3),
             speed_scale=r.float("speed_scale", cls.speed_scale, lo=0.0, hi=1.0, open_lo=True),
             timeout=r.float("timeout_s", cls.timeout, lo=1.0, hi=36_000.0),
-        )
-
-
-@dataclass(frozen=True)
-class SimConfig:
-    """The simulated cell's truth: what the simulated devices show.
-
-    Read only by the simulated devices (the scanner's scene, the SRM's wall);
-    no estimator sees it. ``workpiece`` empty: the table is bare.
-    """
-
-    workpiece: str = ""
-    # The part's true pose on the table (model frame in base), UR pose; empty:
-    # the simulator's nominal place (celld.sim.workpiece).
-    workpiece_pose: tuple[float, ...] = ()
-    # The true V-groove bows sideways by this much at mid-length (tack-weld
-    # distortion) where its model is straight, m.
-    workpiece_bow: float = 0.0
-
-    @classmethod
-    def read(cls, r: TableReader) -> SimConfig:
-        pose = r.vector("workpiece_pose", 6, []) if r.has("workpiece_pose") else ()
-        return cls(
-            workpiece=r.str("workpiece", cls.workpiece),
-            workpiece_pose=pose,
-            workpiece_bow=r.float("workpiece_bow_mm", 0.0, lo=-10.0, hi=10.0, scale=1e-3),
         )
 
 

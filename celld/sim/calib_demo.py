@@ -1,7 +1,10 @@
 """``celld sim calibrate``: flange-based calibration of the simulated scanner, offline.
 
-The robot shows its flange to a ray-cast PhoXi M (the simulated cell of
-``configs/sim-cell.toml``) at generated calibration poses. Each capture goes
+The robot shows its flange to a ray-cast scanner (the simulated cell of
+``configs/sim-cell.toml``, in the world of its ``[sim]`` table: the scanner
+as mounted and measuring, the flange as made, the arm's true kinematics, so
+the flange truly stands where the arm puts it, not where it is commanded) at
+generated calibration poses. Each capture goes
 through the flange detector; the centre pairs are solved by the robust
 estimator, Algorithm 1 runs against the verification cloud with the honest
 e_icp metric (Eq. 13), and the session is saved so that
@@ -27,8 +30,9 @@ from celld.calib.flange import preset
 from celld.calib.pairs import PairCollector
 from celld.calib.poses import calibration_poses
 from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
-from celld.sim.scanner import SimScanner
+from celld.sim.scanner import SimScanner, scanner_model
 from celld.sim.scene import robot_scene
+from celld.sim.world import add_world_arguments, options_from_args, world_of
 
 # The simulated cell the demo runs on, relative to the repository.
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim-cell.toml"
@@ -42,32 +46,47 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="where to save the session (default: <state_dir>/demo/<time>)")
     p.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    add_world_arguments(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from celld.sim.score import true_flange
+
     cfg = config_mod.load(args.config)
     cal = cfg.calibration
-    scanner_model = cfg.scanner.model
-    flange = preset(cal.flange)
+    model_name = cfg.scanner.model  # the controller's scanner: its detector parameters
+    flange = preset(cal.flange)  # the controller's flange model
     n = args.poses if args.poses is not None else cal.n_poses
     # The simulator's truth: it renders the scene, the estimator never reads it.
-    T_base_cam_true = cfg.T_base_cam_nominal()
-    scanner = SimScanner(scanner_model, T_base_cam_true, seed=args.seed)
-    dparams: DetectParams = PARAMS_BY_SCANNER[scanner_model]
+    world = world_of(cfg, options_from_args(args))
+    sc = world.scanner
+    unit = scanner_model(sc.model) if sc.metal_bias is None else replace(scanner_model(sc.model), metal_bias=sc.metal_bias)
+    scanner = SimScanner(unit, sc.T_base_cam, seed=args.seed, resolution_scale=sc.resolution_scale, measure=None if sc.ideal else sc.measure)
+    T_base_cam_true = sc.T_base_cam
+    home = cfg.robot.home_q
+
+    def seen(T_cmd: np.ndarray) -> np.ndarray:
+        """The scene with the flange where the arm truly puts it when told ``T_cmd``."""
+        got = true_flange(world, T_cmd, home)
+        return scanner.capture(robot_scene(T_cmd if got is None else got[0], world.flange)).points
+
+    dparams: DetectParams = PARAMS_BY_SCANNER[model_name]
     out = Path(args.out) if args.out else Path(cfg.cell.state_dir) / "sim-calibrate" / time.strftime("%Y%m%d-%H%M%S")
-    writer = SessionWriter(out, flange=cal.flange, scanner=scanner_model)
+    writer = SessionWriter(out, flange=cal.flange, scanner=model_name)
     say = _printer(args.json)
 
     T_v = se3.from_ur_pose(cal.verification_pose)
     poses = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=args.seed)
-    say(f"celld sim calibrate: {scanner_model} at T_base_cam (simulated), flange {flange.name}, {n} poses")
+    say(f"celld sim calibrate: {sc.model} at T_base_cam (simulated), flange {flange.name}, {n} poses; {world.describe()}")
     t0 = time.perf_counter()
-    P_v = scanner.capture(robot_scene(T_v, flange)).points
+    P_v = seen(T_v)
     writer.set_verification(T_v, P_v)
     pairs = PairCollector(flange, dparams, writer)
     for T in poses:
-        got = pairs.capture(T, scanner.capture(robot_scene(T, flange)).points)
+        got = pairs.capture(T, seen(T))
         det = got.detection
         if got.rejected is not None or det is None:
             say(f"  pair {got.id}: no flange ({got.rejected.reason if got.rejected else 'no detection'})")

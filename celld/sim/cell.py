@@ -1,15 +1,25 @@
-"""The simulated cell: its truth, the devices it hands to the daemon, and a launcher.
+"""The simulated cell: its world, the devices it hands to the daemon, and a launcher.
 
-The truth is read from the cell config's ``[sim]`` table: what the simulated
-devices show and no estimator reads (the workpiece and its true pose on the
-table, the wall the SRM finger touches). :func:`sim_devices` builds the
-simulated scanner (ray casting the scene at the simulated controller's true
-flange pose, read from its shared memory as a camera would see the real
-flange) and the simulated SRM camera, and hands them to the daemon through
-the same :class:`~celld.daemon.devices.DeviceFactories` a real cell uses:
-``celld sim run`` is the daemon on them. :func:`run_cell` starts a whole
-simulated cell (robot and daemon) for the demo, the tests and benchmarks,
-which score results against the truth.
+The truth is the simulator's own :class:`~celld.sim.world.World`, drawn from
+the cell config's ``[sim]`` table (the nominal cell, the preset's error
+budget, the seed; :func:`celld.sim.world.world_of`), never from the
+controller's sections. How it reaches each device:
+
+- the simulated robot process gets the world's physical arm
+  (:attr:`World.arm`) through its options (:func:`robot_options`): it
+  publishes the true pose in shared memory while RTDE reports the
+  controller's nominal kinematics;
+- :func:`sim_devices` builds the simulated scanner (the world's unit at its
+  true pose, ray casting the scene at the arm's true flange pose, read from
+  the robot's shared memory, with the flange as made and the part as placed)
+  and the simulated SRM camera (the tool as built, the finger's mechanics,
+  the true wall of the part), and hands them to the daemon through the same
+  :class:`~celld.daemon.devices.DeviceFactories` a real cell uses: ``celld
+  sim run`` is the daemon on them;
+- :func:`run_cell` starts a whole simulated cell (robot and daemon, both
+  given the same world: it is deterministic from the ``[sim]`` table and the
+  :class:`~celld.sim.world.WorldOptions`) for the demo, the tests and
+  benchmarks, which score results against the truth after the jobs end.
 """
 
 from __future__ import annotations
@@ -20,99 +30,101 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from celld import config as config_mod
-from celld import se3
 from celld.bus.client import CellClient
-from celld.calib.flange import preset
 from celld.config import Config
 from celld.daemon.devices import DeviceFactories, real_devices
 from celld.errors import BusError, CelldError, ConfigError, WorkpieceError
 from celld.scanner.base import Scanner
-from celld.seam.weldpath import WeldGeometry, in_plane
-from celld.seam.workpiece import Workpiece, example, v_groove_butt
 from celld.sim.robot import SimRobotHandle, launch
 from celld.sim.robot.truth import TruthReader
-from celld.sim.scanner import SceneObject, SimulatedScanner, robot_scene_source
-from celld.sim.srm import SimSrmSource, SrmSimParams
-from celld.sim.workpiece import nominal_pose, true_wall, workpiece_scene
+from celld.sim.scanner import SceneObject, SimulatedScanner, robot_scene_source, scanner_model
+from celld.sim.srm import ContactParams, SimSrmSource, SrmSimParams
+from celld.sim.workpiece import SimWorkpiece, true_part, workpiece_scene
+from celld.sim.world import World, WorldOptions, world_of
 
 # A wall this far away (m) stands for "no workpiece": the finger touches nothing.
 _FAR = 100.0
 
 
-class SimWorkpiece(NamedTuple):
-    """The simulated part: model, true pose, and the finger's true wall at the weld's tip height."""
-
-    workpiece: Workpiece
-    T_base_obj: np.ndarray
-    wall: WeldGeometry
-
-
-def sim_workpiece(config: Config) -> SimWorkpiece | None:
-    """The part of ``[sim]`` at its true pose, or None for a bare table."""
-    if not config.sim.workpiece:
+def sim_part(world: World) -> SimWorkpiece | None:
+    """The world's part as made and placed, with the finger's true wall, or None for a bare table."""
+    if world.part is None:
         return None
     try:
-        if config.sim.workpiece_bow != 0.0:
-            if config.sim.workpiece != "v-groove":
-                raise ConfigError(config.source, "sim.workpiece_bow_mm", f"only the v-groove can bow, not {config.sim.workpiece!r}")
-            wp = v_groove_butt(bow=config.sim.workpiece_bow)
-        else:
-            wp = example(config.sim.workpiece)
+        return true_part(world.part, world.tool.config.wall_side)
     except WorkpieceError as exc:
-        raise ConfigError(config.source, "sim.workpiece", str(exc)) from exc
-    T = se3.from_ur_pose(config.sim.workpiece_pose) if config.sim.workpiece_pose else nominal_pose(wp)
-    return SimWorkpiece(wp, T, true_wall(wp, T, config.weld.tip_height, config.tool.wall_side))
+        raise ConfigError("[sim]", "sim.part", str(exc)) from exc
 
 
-def srm_source(config: Config, part: SimWorkpiece | None) -> SimSrmSource:
-    """The simulated SRM camera on the true finger wall of ``part`` (:func:`sim_workpiece`), in its plane."""
-    side = 1.0 if config.tool.wall_side == "left" else -1.0
-    params = SrmSimParams(fps=config.tactile.fps)
+def srm_source(world: World, robot_host: str, part: SimWorkpiece | None) -> SimSrmSource:
+    """The simulated SRM camera: the world's tool and finger on the true wall of ``part``, in its plane."""
+    f = world.finger
+    contact = replace(ContactParams(), stiffening=f.stiffening, static_friction_ratio=f.static_friction_ratio, hysteresis=f.hysteresis)
+    cam = world.camera
+    params = SrmSimParams(contact=contact, fps=0.0, seed=cam.seed, stamp_sigma=cam.stamp_sigma, delivery_jitter=cam.delivery_jitter)
+    tool = world.tool.config
     if part is None:
         wall = np.array([[_FAR, _FAR], [_FAR + 1.0, _FAR]])
-        return SimSrmSource(config.robot.host, wall, -side, np.eye(4), config.tool, params)
-    g = part.wall
-    return SimSrmSource(config.robot.host, in_plane(g, g.wall_base), -side, g.T_base_plane, config.tool, params)
+        side = 1.0 if tool.wall_side == "left" else -1.0
+        return SimSrmSource(robot_host, wall, -side, np.eye(4), tool, params)
+    return SimSrmSource(robot_host, part.wall, part.wall.free, part.T_base_plane, tool, params)
 
 
 class _CellScanner:
-    """Opens the simulated scanner of a cell: the robot scene at the true flange pose, plus the part."""
+    """Opens the simulated scanner of a world: the robot scene at the true flange pose, plus the part."""
 
-    def __init__(self, part: SimWorkpiece | None) -> None:
+    def __init__(self, world: World, part: SimWorkpiece | None) -> None:
+        self.world = world
         self.objects: list[SceneObject] = [] if part is None else workpiece_scene(part.workpiece, part.T_base_obj)
 
     def __call__(self, config: Config) -> Scanner:
-        truth = TruthReader(config.robot.host)
+        truth = TruthReader(config.robot.host)  # the simulated robot on the controller's address
         objects = self.objects
+        sc = self.world.scanner
+        model = scanner_model(sc.model)
+        if sc.metal_bias is not None:
+            model = replace(model, metal_bias=sc.metal_bias)
         return SimulatedScanner(
-            config.scanner.model,
-            config.T_base_cam_nominal(),
-            robot_scene_source(lambda: truth.latest().T_base_tcp, preset(config.calibration.flange), extra=lambda: objects),
-            seed=config.scanner.seed,
-            resolution_scale=config.scanner.resolution_scale,
+            model,
+            sc.T_base_cam,
+            robot_scene_source(lambda: truth.latest().T_base_flange, self.world.flange, extra=lambda: objects),
+            seed=sc.noise_seed,
+            resolution_scale=sc.resolution_scale,
             on_close=truth.close,
+            measure=None if sc.ideal else sc.measure,
+            capture_delay=sc.capture_delay,
         )
 
 
-def sim_devices(config: Config, part: SimWorkpiece | None) -> DeviceFactories:
-    """The simulated scanner and SRM camera of the cell, as the daemon opens devices."""
-    camera = srm_source(config, part) if config.tactile.kind == "sim" else None
-    scanner = _CellScanner(part) if config.scanner.kind == "sim" else real_devices().scanner
+def sim_devices(config: Config, world: World, part: SimWorkpiece | None) -> DeviceFactories:
+    """The simulated scanner and SRM camera of the world, as the daemon opens devices."""
+    camera = srm_source(world, config.robot.host, part) if config.tactile.kind == "sim" else None
+    scanner = _CellScanner(world, part) if config.scanner.kind == "sim" else real_devices().scanner
     return DeviceFactories(scanner=scanner, camera=camera)
 
 
-def serve_daemon(config_path: str | Path) -> int:
-    """``celld sim run``: the daemon of a cell config on the simulated devices (the part built once)."""
+def robot_options(world: World) -> dict[str, Any]:
+    """The simulated robot's options of the world: its model, and its physical arm when it is not the model."""
+    arm = None if world.arm.is_model(world.nominal_dh) else world.arm
+    return {"model": world.nominal.robot, "arm": arm}
+
+
+def serve_daemon(config_path: str | Path, options: WorldOptions = WorldOptions()) -> int:
+    """``celld sim run``: the daemon of a cell config on the simulated devices of its world (the part built once)."""
     from celld.daemon.app import serve
+    from celld.log import get_logger
 
     cfg = config_mod.load(config_path)
-    serve(cfg, sim_devices(cfg, sim_workpiece(cfg)))
+    world = world_of(cfg, options)
+    get_logger(__name__).info("sim_world", world=world.describe())
+    serve(cfg, sim_devices(cfg, world, sim_part(world)))
     return 0
 
 
@@ -126,14 +138,19 @@ class RunningCell(NamedTuple):
     daemon: subprocess.Popen[bytes]  # ``celld sim run``
     config: Config
     robot: SimRobotHandle
+    world: World
 
 
-def run_cell(config_path: str | Path, log_path: str | Path, timeout: float = 90.0) -> contextlib.AbstractContextManager[RunningCell]:
+def run_cell(
+    config_path: str | Path, log_path: str | Path, timeout: float = 90.0, world: WorldOptions = WorldOptions()
+) -> contextlib.AbstractContextManager[RunningCell]:
     """Start the simulated robot of a cell config and ``celld sim run`` on it; a context manager.
 
-    The daemon runs as its own process, as systemd would start it, with its
-    output in ``log_path``; it gets SIGTERM on exit. Yields a
-    :class:`RunningCell` once the bus answers and the robot link is up.
+    Both get the world of the config's ``[sim]`` table with ``world`` over it
+    (the same one: it is drawn deterministically). The daemon runs as its own
+    process, as systemd would start it, with its output in ``log_path``; it
+    gets SIGTERM on exit. Yields a :class:`RunningCell` once the bus answers
+    and the robot link is up.
 
     Raises
     ------
@@ -144,11 +161,12 @@ def run_cell(config_path: str | Path, log_path: str | Path, timeout: float = 90.
     @contextlib.contextmanager
     def _run() -> Iterator[RunningCell]:
         cfg = config_mod.load(config_path)
-        sim_workpiece(cfg)  # a bad [sim] table is refused before anything starts
-        with launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q)) as robot:
+        w = world_of(cfg, world)  # a bad [sim] table is refused before anything starts
+        sim_part(w)
+        with launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(w)) as robot:
             log = open(log_path, "ab")
             proc = subprocess.Popen(
-                [sys.executable, "-m", "celld.cli", "sim", "run", "--config", str(Path(config_path).resolve())],
+                [sys.executable, "-m", "celld.cli", "sim", "run", "--config", str(Path(config_path).resolve()), *world.to_argv()],
                 stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             )
             client = None
@@ -170,7 +188,7 @@ def run_cell(config_path: str | Path, log_path: str | Path, timeout: float = 90.
                 while client.status().get("robot_link") != "up":
                     check("the robot link")
                     time.sleep(0.5)
-                yield RunningCell(client, proc, cfg, robot)
+                yield RunningCell(client, proc, cfg, robot, w)
             finally:
                 if client is not None:
                     client.close()

@@ -3,12 +3,17 @@
 - ``celld sim robot --host 127.0.0.N [options]`` runs the simulated UR10e
   controller in the foreground until interrupted.
 - ``celld sim cell --config CELL.toml`` runs the simulated cell of a cell
-  config: the simulated UR10e on ``robot.host`` at ``robot.home_q``, in real
-  time. The part on the table and its true pose come from the config's
-  ``[sim]`` table.
+  config: the simulated arm on ``robot.host`` at ``robot.home_q``, in real
+  time, as the world of the config's ``[sim]`` table makes it (its true
+  kinematics and noise; :mod:`celld.sim.world`).
 - ``celld sim run --config CELL.toml`` runs the daemon (``celld run``) on the
   simulated cell's devices: the scanner and the SRM camera the simulator
-  builds (``scanner.kind = "sim"``, ``tactile.kind = "sim"``).
+  builds from the same world (``scanner.kind = "sim"``, ``tactile.kind =
+  "sim"``).
+
+Both take ``--preset``, ``--world-seed``, ``--with`` and ``--without`` over
+the ``[sim]`` table; give both the same, or the robot and the devices live in
+different worlds (:func:`celld.sim.cell.run_cell` does it for you).
 - ``celld sim calibrate`` calibrates the simulated scanner offline, without
   robot or daemon (:mod:`celld.sim.calib_demo`).
 - ``celld sim fault --host 127.0.0.N <fault> [--ms N] [--down-ms N]`` plays a
@@ -25,6 +30,7 @@ from typing import Any
 from celld.sim import calib_demo
 from celld.sim.robot.faults import FAULTS
 from celld.sim.robot.options import add_arguments, check_host, from_args
+from celld.sim.world import add_world_arguments, options_from_args
 
 
 def add_parser(sub: Any) -> None:
@@ -38,10 +44,12 @@ def add_parser(sub: Any) -> None:
 
     cell = sim_sub.add_parser("cell", help="run the simulated cell of a cell config (robot at its home pose)")
     cell.add_argument("--config", required=True, help="the cell config (e.g. configs/sim-cell.toml)")
+    add_world_arguments(cell)
     cell.set_defaults(func=_run_cell)
 
     run = sim_sub.add_parser("run", help="run the cell daemon on the simulated cell's scanner and SRM camera")
     run.add_argument("--config", required=True, help="the cell config (e.g. configs/sim-cell.toml)")
+    add_world_arguments(run)
     run.set_defaults(func=_run_daemon)
 
     calib_demo.add_parser(sim_sub)
@@ -65,22 +73,25 @@ def _run_robot(args: argparse.Namespace) -> int:
 
 def _run_cell(args: argparse.Namespace) -> int:
     from celld import config as config_mod
-    from celld.sim.cell import sim_workpiece
+    from celld.sim.cell import robot_options, sim_part
     from celld.sim.robot.options import SimOptions
     from celld.sim.robot.server import serve
+    from celld.sim.world import world_of
 
     cfg = config_mod.load(args.config)
     host = check_host(cfg.robot.host)
-    part = sim_workpiece(cfg)  # refused here if [sim] names no usable part
+    world = world_of(cfg, options_from_args(args))
+    part = sim_part(world)  # refused here if [sim] names no usable part
+    print(f"simulated cell {cfg.cell.name}: {world.describe()}", flush=True)
     if part is not None:
-        print(f"simulated cell {cfg.cell.name}: {part.workpiece.name} at {se3_text(part.T_base_obj)}", flush=True)
-    return serve(SimOptions(host=host).with_(realtime=True, q0=tuple(cfg.robot.home_q)))
+        print(f"  {part.workpiece.name} at {se3_text(part.T_base_obj)}", flush=True)
+    return serve(SimOptions(host=host).with_(realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(world)))
 
 
 def _run_daemon(args: argparse.Namespace) -> int:
     from celld.sim.cell import serve_daemon
 
-    return serve_daemon(args.config)
+    return serve_daemon(args.config, options_from_args(args))
 
 
 def se3_text(T: Any) -> str:

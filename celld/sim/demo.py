@@ -1,16 +1,26 @@
 """``celld demo``: the simulated cell end to end, driven over the bus like an MES.
 
-1. starts the simulated cell of ``configs/sim-cell.toml`` (the UR10e behind
-   real ur-rtde, in real time) and the daemon on it as its own process
-   (``celld sim run``: ``celld run`` on the simulated scanner and camera);
+1. draws the simulated cell's world from ``configs/sim-cell.toml``'s
+   ``[sim]`` table (preset ``realistic`` unless ``--preset ideal``; the robot's
+   true kinematics, the scanner's mount, scale and distortion, the flange as
+   made, the tool as built, the part as placed and distorted), starts the
+   simulated UR10e in it (behind real ur-rtde, in real time) and the daemon on
+   its devices as its own process (``celld sim run``);
 2. submits a calibrate job over zenoh, shows its progress, accepts the result;
 3. submits a weld job: scan, seam, touch, Algorithm 2 with the arc, retract;
-4. prints the calibration error against the simulator's truth, the seam
-   tracking error (the torch path against the true seam) and the paths of
-   the jobs' ``.rrd`` recordings.
+4. prints, side by side against the world's truth: the calibration (its
+   error and where the robot truly lands when sent to points the scanner
+   saw), the weld plan alone (where the torch would go following the plan
+   from scan and calibration without the tactile correction) and the torch as
+   it truly went with Algorithm 2, and the paths of the jobs' ``.rrd``
+   recordings.
 
-Only this script reads the truth (the config's ``[scanner] T_base_cam`` and
-``[sim]`` part), after the jobs have ended; the daemon never sees it.
+Only this script reads the truth, after the jobs have ended (a recorder
+keeps the arm's true states while the weld runs, since the robot's shared
+history holds two seconds); the daemon never sees it. There is no tool
+calibration job yet: the tool's offsets are the configured ones, and the
+``realistic`` world's tool differs from them (``--without tool_offsets``
+shows the weld as if the tool were calibrated).
 """
 
 from __future__ import annotations
@@ -32,74 +42,131 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim-cell.tom
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
+    from celld.sim.world import add_world_arguments
+
     p = sub.add_parser("demo", help="run the simulated cell and its daemon: calibrate, then weld, over the bus")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="a cell config whose devices are simulated")
     p.add_argument("--poses", type=int, default=None, help="calibration poses (default: the config's n_poses)")
     p.add_argument("--json", action="store_true", help="print the figures as one JSON object last")
+    add_world_arguments(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from celld.errors import CelldError
-    from celld.seam.figures import lateral_error
-    from celld.sim.cell import run_cell, sim_workpiece
+    from celld.sim.world import options_from_args, world_of
 
     cfg = config_mod.load(args.config)
-    part = sim_workpiece(cfg)
-    if cfg.scanner.kind != "sim" or cfg.tactile.kind != "sim" or part is None:
-        print("celld demo: the config must simulate the scanner and the SRM and name a [sim] workpiece", file=sys.stderr)
+    options = options_from_args(args)
+    world = world_of(cfg, options)
+    if cfg.scanner.kind != "sim" or cfg.tactile.kind != "sim" or world.part is None:
+        print("celld demo: the config must simulate the scanner and the SRM and name a [sim.part] workpiece", file=sys.stderr)
         return 2
     state = Path(cfg.cell.state_dir)
     state.mkdir(parents=True, exist_ok=True)
     log_path = state / "demo-daemon.log"
     say = (lambda text: print(text, file=sys.stderr, flush=True)) if args.json else (lambda text: print(text, flush=True))
-    figures: dict[str, Any] = {}
     say(f"celld demo: simulated cell {cfg.cell.name!r} on {cfg.robot.host}; daemon log {log_path}")
+    say(world.describe())
     t0 = time.monotonic()
     try:
-        with run_cell(args.config, log_path) as cell:
-            say(f"daemon up, robot link up ({time.monotonic() - t0:.0f} s)")
-            calibrate: dict[str, Any] = {"kind": "calibrate"}
-            if args.poses:
-                calibrate["n_poses"] = args.poses
-            cal = _job(cell.client, calibrate, say)
-            if cal["state"] != "succeeded":
-                return _failed(cal, say)
-            accepted = cell.client.accept(cal["id"])
-            T_est = np.array(accepted["calibration"]["T_base_cam"])
-            dt, dr = se3.error(T_est, cfg.T_base_cam_nominal())
-            cal_result = json.loads(Path(cal["result"]).read_text())
-            figures["calibration"] = {"job": cal["id"], "translation_error_mm": dt * 1e3, "rotation_error_deg": math.degrees(dr),
-                                      "pairs": cal_result["calibration"]["pairs"], "recording": cal_result.get("recording")}
-            say(f"calibration {cal['id']} accepted: error against the simulator's truth {dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg")
-            weld = _job(cell.client, {"kind": "weld"}, say)
-            if weld["state"] != "succeeded":
-                return _failed(weld, say)
-            res = json.loads(Path(weld["result"]).read_text())  # the record names the result file
-            g = part.wall
-            torch = lateral_error(np.array(res["torch_path"]), g.seam_base, g.T_base_plane)
-            refined = lateral_error(np.array(res["refined_path"]), g.seam_base, g.T_base_plane)
-            planned = lateral_error(np.array(res["planned_path"]), g.seam_base, g.T_base_plane)
-            figures["weld"] = {"job": weld["id"], "torch_error": torch, "refined_error": refined, "planned_error": planned,
-                               "figures": res["figures"], "recording": res.get("recording"), "paths": res.get("paths")}
+        figures = run_jobs(args.config, log_path, options, say, n_poses=args.poses)
     except CelldError as exc:
         say(f"celld demo failed: {exc}")
         return 1
-    f = figures["weld"]
-    say("")
-    say(f"calibration: {figures['calibration']['translation_error_mm']:.3f} mm, {figures['calibration']['rotation_error_deg']:.4f} deg from the truth "
-        f"({figures['calibration']['pairs']} pairs)")
-    say(f"seam plan from the scan: {f['planned_error']['rms_mm']:.3f} mm RMS, {f['planned_error']['max_mm']:.3f} mm max from the true seam")
-    say(f"torch path (tactile tracking): {f['torch_error']['rms_mm']:.3f} mm RMS, {f['torch_error']['max_mm']:.3f} mm max from the true seam "
-        f"over {f['figures']['tracked_mm']:.0f} mm, arc on {f['figures']['arc_on_s']:.1f} s")
-    say(f"delta_n tracking error: {f['figures']['delta_n_error_rms_mm']} mm RMS")
+    if "failed" in figures:
+        return 1
+    for line in summary_lines(figures):
+        say(line)
     say("recordings (open with: rerun FILE.rrd):")
     say(f"  {figures['calibration']['recording']}")
-    say(f"  {f['recording']}")
-    say(f"weld paths: {f['paths']}   total {time.monotonic() - t0:.0f} s")
+    say(f"  {figures['weld']['recording']}")
+    say(f"weld paths: {figures['weld']['paths']}   total {time.monotonic() - t0:.0f} s")
     if args.json:
         print(json.dumps(figures))
     return 0
+
+
+def run_jobs(config_path: str | Path, log_path: str | Path, options: Any, say: Any, n_poses: int | None = None,
+             calibrate_seed: int | None = None) -> dict[str, Any]:
+    """Start the cell of ``config_path`` in the world of ``options``, calibrate, accept, weld; score against the truth.
+
+    Returns the figures (``world``, ``calibration``, ``weld``), or ``failed``
+    with the job's record when a job did not succeed. Raises CelldError when
+    the cell does not come up.
+    """
+    from celld.sim.cell import run_cell, sim_part
+    from celld.sim.score import TruthRecorder, lateral, open_loop_torch, targeting, true_torch_path
+
+    figures: dict[str, Any] = {}
+    t0 = time.monotonic()
+    with run_cell(config_path, log_path, world=options) as cell:
+        world, cfg = cell.world, cell.config
+        part = sim_part(world)
+        assert part is not None  # the caller checked the world has a part
+        figures["world"] = {"preset": world.preset, "seed": world.seed, "sources": sorted(world.budget.enabled)}
+        say(f"daemon up, robot link up ({time.monotonic() - t0:.0f} s)")
+        calibrate: dict[str, Any] = {"kind": "calibrate"}
+        if n_poses:
+            calibrate["n_poses"] = n_poses
+        if calibrate_seed is not None:
+            calibrate["seed"] = calibrate_seed
+        cal = _job(cell.client, calibrate, say)
+        if cal["state"] != "succeeded":
+            return {**figures, "failed": _failed(cal, say)}
+        accepted = cell.client.accept(cal["id"])
+        T_est = np.array(accepted["calibration"]["T_base_cam"])
+        dt, dr = se3.error(T_est, world.scanner.T_base_cam)
+        cal_result = json.loads(Path(cal["result"]).read_text())
+        figures["calibration"] = {
+            "job": cal["id"], "translation_error_mm": dt * 1e3, "rotation_error_deg": math.degrees(dr),
+            "pairs": cal_result["calibration"]["pairs"], "recording": cal_result.get("recording"),
+            "targeting": targeting(world, T_est, cfg),
+        }
+        say(f"calibration {cal['id']} accepted: {dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg from the true T_base_cam")
+        with TruthRecorder(cfg.robot.host) as recorder:
+            weld = _job(cell.client, {"kind": "weld"}, say)
+        if weld["state"] != "succeeded":
+            return {**figures, "failed": _failed(weld, say)}
+        res = json.loads(Path(weld["result"]).read_text())  # the record names the result file
+        paths = json.loads(Path(res["paths"]).read_text())
+        planned, planned_wall = np.array(paths["planned"]), np.array(paths["planned_wall"])
+        home = np.asarray(cfg.robot.home_q, dtype=np.float64)
+        torch_true = true_torch_path(world, recorder.records(), cfg.robot.arc_output)
+        figures["weld"] = {
+            "job": weld["id"],
+            # Following the plan without the finger: the controller's torch on the plan, the true arm and tool.
+            "plan_alone_error": lateral(part, open_loop_torch(world, planned, planned_wall, home)),
+            # The plan itself, as the scan and the calibration placed it in the base frame.
+            "plan_error": lateral(part, planned),
+            # The torch as it truly went, Algorithm 2 tracking the wall by touch.
+            "torch_error": lateral(part, torch_true),
+            # The torch as the daemon believes it went (its kinematics and tool config).
+            "torch_believed_error": lateral(part, np.array(res["torch_path"])),
+            "figures": res["figures"], "recording": res.get("recording"), "paths": res.get("paths"),
+        }
+    return figures
+
+
+def summary_lines(figures: dict[str, Any]) -> list[str]:
+    """The demo's figures side by side, as printed."""
+    c, w = figures["calibration"], figures["weld"]
+    tc, tt = c["targeting"]["calibration"], c["targeting"]["table"]
+    pa, pl, to, tb = w["plan_alone_error"], w["plan_error"], w["torch_error"], w["torch_believed_error"]
+    return [
+        "",
+        f"world: preset {figures['world']['preset']}, seed {figures['world']['seed']}",
+        f"calibration: {c['translation_error_mm']:.3f} mm, {c['rotation_error_deg']:.4f} deg from the true T_base_cam ({c['pairs']} pairs)",
+        f"  targeting (the flange sent to points the scanner saw): mean {tc['mean_mm']:.3f} mm, max {tc['max_mm']:.3f} mm "
+        f"in the calibration box; mean {tt['mean_mm']:.3f}, max {tt['max_mm']:.3f} mm over the table",
+        "weld, lateral distance from the true seam        RMS mm   max mm",
+        f"  plan alone (scan + calibration, open loop)   {pa['rms_mm']:7.3f}  {pa['max_mm']:7.3f}",
+        f"  torch, tracked by touch (Algorithm 2)        {to['rms_mm']:7.3f}  {to['max_mm']:7.3f}",
+        f"  (the plan's points as placed                 {pl['rms_mm']:7.3f}  {pl['max_mm']:7.3f})",
+        f"  (the torch as the daemon believes it went    {tb['rms_mm']:7.3f}  {tb['max_mm']:7.3f})",
+        f"tracked {w['figures']['tracked_mm']:.0f} mm, arc on {w['figures']['arc_on_s']:.1f} s, "
+        f"delta_n error {w['figures']['delta_n_error_rms_mm']} mm RMS",
+    ]
 
 
 def _job(client: Any, message: dict[str, Any], say: Any) -> dict[str, Any]:
@@ -116,6 +183,6 @@ def _job(client: Any, message: dict[str, Any], say: Any) -> dict[str, Any]:
     return record
 
 
-def _failed(record: dict[str, Any], say: Any) -> int:
+def _failed(record: dict[str, Any], say: Any) -> dict[str, Any]:
     say(f"job {record['id']} {record['state']}: {record.get('reason') or record}")
-    return 1
+    return {"job": record["id"], "state": record["state"], "reason": record.get("reason")}

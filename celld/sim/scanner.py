@@ -26,7 +26,10 @@ Noise models (:class:`ScannerModel`), applied in this order:
   (multipath makes bright machined metal read long), and flying pixels: a
   pixel next to a depth step larger than ``flying_jump`` takes, with
   probability ``flying_probability``, a depth between its own and its
-  neighbour's.
+  neighbour's;
+- the unit's own measuring error, when it is given one (``measure``, the
+  simulated world's depth scale and smooth distortion,
+  :class:`celld.sim.world.ScannerTruth`): applied to every point last.
 
 Figures: PhoXi M 2064 x 1544, 0.458-1.118 m, about 0.29 mm point spacing at
 0.65 m, sigma 0.1 mm; PhoXi S 0.384-0.520 m, 0.16 mm spacing at 0.442 m,
@@ -210,6 +213,9 @@ class SimScanner:
         Region of interest ``(row0, row1, col0, col1)`` of the (scaled) image:
         only its pixels are cast, the rest of the full-size cloud is NaN, as
         on a scanner with an ROI set. None for the whole image.
+    measure : callable or None
+        The unit's measuring error: maps true points (n, 3) of the camera
+        frame (m, float64) to where the unit measures them; None: exact.
     """
 
     def __init__(
@@ -220,9 +226,11 @@ class SimScanner:
         resolution_scale: float = 1.0,
         clock: Callable[[], int] = time.monotonic_ns,
         roi_px: tuple[int, int, int, int] | None = None,
+        measure: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> None:
         base = scanner_model(model) if isinstance(model, str) else model
         self.model = base.scaled(resolution_scale)
+        self._measure = measure
         self.T_base_cam = se3.check_transform(T_base_cam, "T_base_cam")
         self._T_cam_base = se3.invert(self.T_base_cam)
         self._rng = np.random.default_rng(seed)
@@ -303,6 +311,9 @@ class SimScanner:
         label_img = np.full((m.height_px, m.width_px), -1, dtype=np.int16)
         label_img[self._cast] = labels
         points = depth[..., None] * self._all_dirs
+        if self._measure is not None:
+            ok = np.isfinite(depth)
+            points[ok] = self._measure(points[ok].astype(np.float64)).astype(np.float32)
         return OrganizedCloud(points=points, stamp_ns=int(stamp)), label_img
 
     def _incidence_keep(self, cos_inc: np.ndarray) -> np.ndarray:
@@ -382,8 +393,9 @@ class SimulatedScanner:
 
     Parameters
     ----------
-    model : str
-        Scanner model of :data:`SCANNER_MODELS` (``"phoxi-m"``, ...).
+    model : str or ScannerModel
+        Scanner model of :data:`SCANNER_MODELS` (``"phoxi-m"``, ...), or one
+        changed from it (the world's unit: its own metal bias).
     T_base_cam : array_like
         (4, 4) true pose of the camera in the base frame (the simulator's truth).
     scene : callable
@@ -394,23 +406,37 @@ class SimulatedScanner:
         Image scale in [0.01, 1].
     on_close : callable, optional
         Releases what the scene source holds (the truth reader), at :meth:`close`.
+    measure : callable, optional
+        The unit's measuring error (see :class:`SimScanner`).
+    capture_delay : (float, float)
+        The exposure happens this long (s, uniform in the range, seeded) after
+        the capture is asked for: the scene is what is in view then, not when
+        the caller last read the robot's state.
     """
 
     def __init__(
         self,
-        model: str,
+        model: str | ScannerModel,
         T_base_cam: np.ndarray,
         scene: SceneSource,
         seed: int = 0,
         resolution_scale: float = 1.0,
         clock: Callable[[], int] = time.monotonic_ns,
         on_close: Callable[[], None] | None = None,
+        measure: Callable[[np.ndarray], np.ndarray] | None = None,
+        capture_delay: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         if not callable(scene):
             raise InputError(f"simulated scanner: expected a callable scene source, got {type(scene).__name__}")
-        self.model_name = model
+        lo, hi = capture_delay
+        if not 0.0 <= lo <= hi <= 10.0:
+            raise InputError(f"simulated scanner: capture_delay must be 0 <= lo <= hi <= 10 s, got {capture_delay}")
+        self.model_name = model if isinstance(model, str) else model.name
         self._scene = scene
-        self._sim = SimScanner(model, np.asarray(T_base_cam, dtype=np.float64), seed=seed, resolution_scale=resolution_scale, clock=clock)
+        self._sim = SimScanner(model, np.asarray(T_base_cam, dtype=np.float64), seed=seed, resolution_scale=resolution_scale, clock=clock,
+                               measure=measure)
+        self._delay = (float(lo), float(hi))
+        self._delay_rng = np.random.default_rng([seed, 0xDE1A])
         self._seed = seed
         self._lock = threading.Lock()
         self._stats = CaptureStats()
@@ -423,6 +449,8 @@ class SimulatedScanner:
             if not self._open:
                 raise DeviceError("simulated scanner: capture after close")
             started = time.monotonic_ns()
+            if self._delay[1] > 0.0:
+                time.sleep(self._delay_rng.uniform(*self._delay))
             try:
                 cloud = self._sim.capture(self._scene())
             except InputError as exc:

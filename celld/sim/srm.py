@@ -8,6 +8,12 @@ Three parts, each usable alone:
   tip that would enter the wall is pushed back onto it (normal stiffness; the
   finger bottoms out at ``max_deformation``) and dragged back along the wall by
   friction (``friction * k_normal / k_tangential`` of the normal deflection).
+  A :class:`WallSurface` is the wall at several heights above the seam's root
+  (a V-groove's bevel leans: the higher, the farther); the finger meets it at
+  the height where its tip is. :class:`Finger` adds what a real soft finger
+  does over time: a stiffness that grows with the deflection, stick-slip
+  (static friction above kinetic) and hysteresis between the tip and the tag
+  (the tag follows the tip through a play), all off by default.
 - :class:`TagRenderer`: renders the ArUco tag at a pose in the camera frame as
   an 8-bit grey image with perspective, lens blur, sensor noise and lighting
   changes. The tag is rendered supersampled in a window around it, then
@@ -76,10 +82,21 @@ class ContactParams:
 
     k_normal: float = 400.0  # N/m
     k_tangential: float = 400.0  # N/m
-    friction: float = 0.3  # Coulomb coefficient tip/wall
+    friction: float = 0.3  # Coulomb coefficient tip/wall (kinetic)
     max_deformation: float = 0.005  # m, the finger bottoms out here
     slip_speed: float = 0.0005  # m/s, speed over which the friction force builds up
     finger_length: float = 0.04  # m, bending length: the tag tilts by 1.5 * deflection / length
+    # Normal force k d (1 + (d / stiffening)^2): the finger stiffens as it bends (inf: linear), m.
+    stiffening: float = math.inf
+    # Static over kinetic friction: above 1 the tip sticks to the wall until the
+    # drag reaches the static limit, then slips back to the kinetic drag (:class:`Finger`).
+    static_friction_ratio: float = 1.0
+    # Width of the play between the tip's deflection and the tag's (:class:`Finger`), m.
+    hysteresis: float = 0.0
+
+    def force(self, normal: float) -> float:
+        """The normal force (N) at a normal deflection (m)."""
+        return self.k_normal * normal * (1.0 + (normal / self.stiffening) ** 2)
 
 
 class Wall(NamedTuple):
@@ -139,12 +156,97 @@ def finger_contact(p_rest: Array, v_rest: Array, wall: Wall, tip_radius: float, 
     if penetration <= 0.0:
         return FingerContact(np.zeros(2), 0.0, False, False)
     normal = min(penetration, params.max_deformation)
-    force = params.k_normal * normal
+    force = params.force(normal)
     # Friction drags the tip back against its sliding direction along the wall.
     v_slide = float(np.dot(v_rest, t))
     drag = params.friction * force / params.k_tangential * math.tanh(v_slide / params.slip_speed)
     shift = normal * n_free - drag * t
     return FingerContact(shift, force, True, penetration >= params.max_deformation)
+
+
+class WallSurface(NamedTuple):
+    """A seam wall at several heights: what a finger meets depends on where its tip is.
+
+    ``lines`` (k, n, 2) are the wall's polyline at each of the ``heights``
+    (k,) above the seam's root (m, increasing), in plane coordinates;
+    ``root_z`` (n,) the root's height in the plane at each station; ``free``
+    as :attr:`Wall.free`. A tip below the lowest line or above the highest
+    meets the nearest line (the simulator does not model the root face or a
+    tip riding above the plate).
+    """
+
+    lines: Array
+    heights: Array
+    root_z: Array
+    free: float
+
+    def at(self, p_plane: Array) -> Wall:
+        """The wall line at the height of the plane point ``p_plane`` (3,) above the root beside it."""
+        L, hs = self.lines, self.heights
+        mid = L[len(hs) // 2]
+        i, u, _ = polyline.nearest(mid, p_plane[:2])
+        j = min(i + 1, len(self.root_z) - 1)
+        h = float(p_plane[2]) - ((1.0 - u) * self.root_z[i] + u * self.root_z[j])
+        if h <= hs[0]:
+            return Wall(L[0], self.free)
+        if h >= hs[-1]:
+            return Wall(L[-1], self.free)
+        k = int(np.searchsorted(hs, h))
+        w = (h - hs[k - 1]) / (hs[k] - hs[k - 1])
+        return Wall((1.0 - w) * L[k - 1] + w * L[k], self.free)
+
+
+class Finger:
+    """A finger with a memory: stick-slip along the wall and hysteresis of the tag.
+
+    :meth:`touch` returns the contact and the tag's shift in the plane (the
+    tip's shift seen through the play of width ``hysteresis``). With the
+    default :class:`ContactParams` it is :func:`finger_contact` exactly and the
+    tag follows the tip.
+
+    Stick-slip (``static_friction_ratio > 1``): once in contact the tip sticks
+    to the wall while the finger's base slides on, the drag growing with the
+    travel, until it passes the static limit and slips back to the kinetic
+    drag (quasi-static, one step per frame).
+    """
+
+    def __init__(self, params: ContactParams) -> None:
+        self.params = params
+        self._drag = 0.0  # m, the tip's lag along the wall's direction while in contact
+        self._s_prev: float | None = None  # the undeformed tip's position along the wall at the last frame
+        self._tag = np.zeros(2)  # the play's output
+
+    def touch(self, p_rest: Array, v_rest: Array, wall: Wall, tip_radius: float) -> tuple[FingerContact, Array]:
+        p = self.params
+        c = finger_contact(p_rest, v_rest, wall, tip_radius, p)
+        if p.static_friction_ratio > 1.0:
+            c = self._stick_slip(c, p_rest, v_rest, wall)
+        if p.hysteresis > 0.0:
+            half = p.hysteresis / 2.0
+            self._tag = np.clip(self._tag, c.tip_shift_plane - half, c.tip_shift_plane + half)
+            return c, self._tag.copy()
+        return c, c.tip_shift_plane
+
+    def _stick_slip(self, c: FingerContact, p_rest: Array, v_rest: Array, wall: Wall) -> FingerContact:
+        if not c.in_contact:
+            self._drag, self._s_prev = 0.0, None
+            return c
+        p = self.params
+        i, _, _ = polyline.nearest(wall.P, p_rest)
+        t = (wall.P[i + 1] - wall.P[i]) / np.linalg.norm(wall.P[i + 1] - wall.P[i])
+        s = float(np.dot(p_rest, t))
+        n_free = wall.free * np.array([-t[1], t[0]])
+        normal = float(np.dot(c.tip_shift_plane, n_free))
+        kinetic = p.friction * c.force / p.k_tangential
+        if self._s_prev is None:
+            # First touch: the drag builds up from the kinetic drag of the motion so far.
+            self._drag = kinetic * math.tanh(float(np.dot(v_rest, t)) / p.slip_speed)
+        else:
+            self._drag += s - self._s_prev  # stuck: the tip stays, the base moves on
+            if abs(self._drag) > p.static_friction_ratio * kinetic:
+                self._drag = math.copysign(kinetic, self._drag)  # slip back to the kinetic drag
+        self._s_prev = s
+        return c._replace(tip_shift_plane=normal * n_free - self._drag * t)
 
 
 def tag_pose_tool(tip_shift_tool: Array, finger_length: float) -> Array:
@@ -315,6 +417,10 @@ class SrmSimParams:
     fps: float = 60.0
     latency: float = 0.002  # s from the end of exposure to the frame's delivery
     seed: int = 0
+    # Timing errors: the exposure is off its stamp by this (1 sigma), and a
+    # frame arrives up to this much later than ``latency`` (uniform), s.
+    stamp_sigma: float = 0.0
+    delivery_jitter: float = 0.0
 
 
 class SrmFrame(NamedTuple):
@@ -335,15 +441,19 @@ class SimSrm:
     cfg : TactileConfig
         Camera and tag.
     tool : ToolConfig
-        The tool's geometry (tip, tip radius, the camera's mount).
-    wall : Wall
-        The true seam wall in the plane of ``T_base_plane``.
+        The tool's geometry (tip, tip radius, the camera's mount) in the frame
+        of the poses it is given (the TCP, or the flange with the simulated
+        cell's true tool).
+    wall : Wall or WallSurface
+        The true seam wall in the plane of ``T_base_plane`` (a surface: at the
+        tip's height).
     T_base_plane : (4, 4)
         The welding plane (z along the finger, away from the work).
     params : SrmSimParams
     """
 
-    def __init__(self, cfg: TactileConfig, tool: ToolConfig, wall: Wall, T_base_plane: Array, params: SrmSimParams = SrmSimParams()) -> None:
+    def __init__(self, cfg: TactileConfig, tool: ToolConfig, wall: Wall | WallSurface, T_base_plane: Array,
+                 params: SrmSimParams = SrmSimParams()) -> None:
         from celld.tactile.tool import ToolGeometry
 
         self.cfg = cfg
@@ -351,6 +461,7 @@ class SimSrm:
         self.tool = ToolGeometry.from_config(tool)
         self.T_base_plane = np.asarray(T_base_plane, dtype=np.float64)
         self.params = params
+        self.finger = Finger(params.contact)
         self._T_cam_tool = invert(self.tool.T_tool_cam)
         size = (cfg.width_px, cfg.height_px)
         self.renderer = TagRenderer(cfg.tag_dictionary, cfg.tag_id, cfg.tag_size, cfg.intrinsics_px, size, params.seed)
@@ -359,15 +470,16 @@ class SimSrm:
         # Fault injection: "" | "wrong_id" | "no_tag" | "blur".
         self.fault = ""
 
-    def contact(self, T_base_tcp: Array, v_base_tip: Array) -> tuple[FingerContact, Array]:
-        """The finger's contact and the tip shift in the tool frame (3,), for a TCP pose and tip velocity."""
+    def contact(self, T_base_tcp: Array, v_base_tip: Array) -> tuple[FingerContact, Array, Array]:
+        """The finger's contact, the tip's shift and the tag's shift in the tool frame (3,) each, for a pose and tip velocity."""
         R_bp, o_bp = self.T_base_plane[:3, :3], self.T_base_plane[:3, 3]
         T_bt = np.asarray(T_base_tcp, dtype=np.float64) @ self.tool.T_tcp_tool
-        p_rest = (T_bt[:3, 3] - o_bp) @ R_bp[:, :2]
+        p_plane = (T_bt[:3, 3] - o_bp) @ R_bp
         v_rest = np.asarray(v_base_tip, dtype=np.float64) @ R_bp[:, :2]
-        c = finger_contact(p_rest, v_rest, self.wall, self.tool.tip_radius, self.params.contact)
-        shift_base = R_bp[:, :2] @ c.tip_shift_plane
-        return c, T_bt[:3, :3].T @ shift_base
+        wall = self.wall.at(p_plane) if isinstance(self.wall, WallSurface) else self.wall
+        c, tag_plane = self.finger.touch(p_plane[:2], v_rest, wall, self.tool.tip_radius)
+        R_tb = T_bt[:3, :3].T
+        return c, R_tb @ (R_bp[:, :2] @ c.tip_shift_plane), R_tb @ (R_bp[:, :2] @ tag_plane)
 
     def imaging(self, t: float) -> Imaging:
         """The image conditions at time ``t`` (s): a slow change of the light."""
@@ -385,8 +497,8 @@ class SimSrm:
 
     def frame(self, stamp_ns: int, T_base_tcp: Array, v_base_tip: Array, t: float) -> SrmFrame:
         """Render the frame captured at ``stamp_ns`` for the TCP pose and tip velocity of that instant."""
-        c, shift_tool = self.contact(T_base_tcp, v_base_tip)
-        T_cam_tag = self._T_cam_tool @ tag_pose_tool(shift_tool, self.params.contact.finger_length)
+        c, shift_tool, tag_tool = self.contact(T_base_tcp, v_base_tip)
+        T_cam_tag = self._T_cam_tool @ tag_pose_tool(tag_tool, self.params.contact.finger_length)
         imaging = self.imaging(t)
         if self.fault == "no_tag":
             image = self.renderer.render(None, imaging)
@@ -406,7 +518,9 @@ class SimSrmCamera:
 
     Frames come at ``params.fps``; each is rendered for the pose at its
     capture time and handed over ``params.latency`` after it (or later, when
-    rendering took longer). ``unplug()`` makes :meth:`read` fail as a camera
+    rendering took longer). With ``params.stamp_sigma`` the exposure is off
+    the stamp the frame carries, and ``params.delivery_jitter`` delays some
+    frames more than others. ``unplug()`` makes :meth:`read` fail as a camera
     pulled from its socket does; ``extra_latency`` delays frames further.
 
     Parameters
@@ -438,6 +552,7 @@ class SimSrmCamera:
         self.extra_latency = 0.0
         self.truth: list[tuple[int, Array, bool]] = []  # (stamp_ns, delta_true, in_contact), for benchmarks
         self.keep_truth = True
+        self._timing = np.random.default_rng([srm.params.seed, 0x7157])
 
     def open(self) -> None:
         self._t0_ns = self._clock()
@@ -460,14 +575,17 @@ class SimSrmCamera:
             self._next_ns += missed * self._period_ns
         stamp = self._next_ns
         self._next_ns += self._period_ns
-        T, v = self.pose_at(stamp)
+        p = self.srm.params
+        exposure = stamp + (int(self._timing.normal(0.0, p.stamp_sigma) * 1e9) if p.stamp_sigma > 0.0 else 0)
+        T, v = self.pose_at(exposure)
         T_bt = T @ self.srm.tool.T_tcp_tool
         r = T_bt[:3, 3] - T[:3, 3]
         v_tip = v[:3] + np.cross(v[3:], r)
         f = self.srm.frame(stamp, T, v_tip, (stamp - self._t0_ns) * 1e-9)
         if self.keep_truth:
             self.truth.append((stamp, f.delta_true, f.in_contact))
-        due = stamp + int((self.srm.params.latency + self.extra_latency) * 1e9)
+        jitter = self._timing.uniform(0.0, p.delivery_jitter) if p.delivery_jitter > 0.0 else 0.0
+        due = stamp + int((p.latency + self.extra_latency + jitter) * 1e9)
         now = self._clock()
         if now < due:
             self._sleep((due - now) * 1e-9)
@@ -484,7 +602,13 @@ SRM_TRUTH_DTYPE = np.dtype([("stamp_ns", np.int64), ("delta_true", np.float64, (
 
 
 def _pose_at(history: Callable[[], np.ndarray]) -> PoseAt:
-    """:data:`PoseAt` over the simulated controller's ~2 s truth history (``TruthReader.history``)."""
+    """:data:`PoseAt` of the true *flange* over the simulated controller's ~2 s truth history (``TruthReader.history``).
+
+    The flange, not the TCP: the simulated cell's tool is given in the flange
+    frame, whatever TCP offset the controller was told (with a zero TCP offset
+    the two are the same).
+    """
+    from celld.sim.robot.truth import flange_of
 
     def pose_at(stamp_ns: int) -> tuple[Array, Array]:
         # One copy of the history per frame; position interpolated, rotation
@@ -492,15 +616,16 @@ def _pose_at(history: Callable[[], np.ndarray]) -> PoseAt:
         recs = history()
         stamps = recs["stamp_ns"]
         i = min(max(int(np.searchsorted(stamps, stamp_ns)), 1), len(recs) - 1)
+        j = max(i - 2, 0)
+        F = flange_of(recs["T_base_tcp"][[j, i - 1, i]], recs["T_flange_tcp"][[j, i - 1, i]])
         t0, t1 = int(stamps[i - 1]), int(stamps[i])
         w = min(max((stamp_ns - t0) / max(t1 - t0, 1), 0.0), 1.0)
-        T = np.array(recs["T_base_tcp"][i if w >= 0.5 else i - 1])
-        T[:3, 3] = (1 - w) * recs["T_base_tcp"][i - 1][:3, 3] + w * recs["T_base_tcp"][i][:3, 3]
-        j = max(i - 2, 0)
+        T = np.array(F[2 if w >= 0.5 else 1])
+        T[:3, 3] = (1 - w) * F[1][:3, 3] + w * F[2][:3, 3]
         v = np.zeros(6)
         dt = (t1 - int(stamps[j])) * 1e-9
         if dt > 0:
-            v[:3] = (recs["T_base_tcp"][i][:3, 3] - recs["T_base_tcp"][j][:3, 3]) / dt
+            v[:3] = (F[2][:3, 3] - F[0][:3, 3]) / dt
         return T, v
 
     return pose_at
@@ -540,14 +665,17 @@ class SimSrmSource:
     """The simulated SRM camera as the tactile process builds it (a picklable frame-source factory).
 
     ``wall`` (n, 2) and ``free`` describe the seam wall in the plane
-    ``T_base_plane``; ``robot_host`` is the simulated controller whose true
-    TCP pose drives the finger; ``tool`` the finger's geometry. With ``truth_slot`` (a :data:`SRM_TRUTH_DTYPE`
-    slot the caller created) each frame's true deformation is shared there,
-    for benchmarks; the estimator never reads it.
+    ``T_base_plane``, or ``wall`` is a :class:`WallSurface` (the wall at the
+    tip's height); ``robot_host`` is the simulated controller whose true
+    flange pose drives the finger; ``tool`` the finger's geometry in the
+    flange frame (the tool as built, in the simulated cell). ``params`` with
+    ``fps`` 0 takes the camera's configured rate. With ``truth_slot`` (a
+    :data:`SRM_TRUTH_DTYPE` slot the caller created) each frame's true
+    deformation is shared there, for benchmarks; the estimator never reads it.
     """
 
     robot_host: str
-    wall: Array
+    wall: Array | WallSurface
     free: float
     T_base_plane: Array
     tool: ToolConfig = ToolConfig()
@@ -555,8 +683,14 @@ class SimSrmSource:
     truth_slot: str = ""
 
     def __call__(self, cfg: TactileConfig) -> _TruthSharingCamera:
+        from dataclasses import replace
+
         from celld.sim.robot.truth import TruthReader
 
         reader = TruthReader(self.robot_host)
-        srm = SimSrm(cfg, self.tool, Wall(np.asarray(self.wall), self.free), self.T_base_plane, self.params or SrmSimParams(fps=cfg.fps))
+        wall = self.wall if isinstance(self.wall, WallSurface) else Wall(np.asarray(self.wall), self.free)
+        params = self.params or SrmSimParams(fps=cfg.fps)
+        if params.fps <= 0.0:
+            params = replace(params, fps=cfg.fps)
+        srm = SimSrm(cfg, self.tool, wall, self.T_base_plane, params)
         return _TruthSharingCamera(SimSrmCamera(srm, _pose_at(reader.history)), reader.close, self.truth_slot)

@@ -47,7 +47,6 @@ rtde_watchdog_hz = 5
 [scanner]
 kind = "sim"
 model = "phoxi-m"
-resolution_scale = 0.5
 T_base_cam = {T_BASE_CAM_TRUE}
 [calibration]
 flange = "ur10e"
@@ -58,6 +57,12 @@ e_required_mm = 0.0
 kind = "none"
 [bus]
 listen = ["tcp/{host}:7447"]
+[sim]
+# The simulator's world: the ideal cell (its truth is its drawing), the scanner where T_BASE_CAM_TRUE says.
+preset = "ideal"
+[sim.scanner]
+resolution_scale = 0.5
+T_base_cam = {T_BASE_CAM_TRUE}
 """
     )
     return path

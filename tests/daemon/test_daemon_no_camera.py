@@ -23,7 +23,7 @@ name = "no-camera"
 state_dir = "{tmp_path / 'state'}"
 [robot]
 host = "{loopback_host}"
-[scanner]
+[sim.scanner]
 resolution_scale = 0.25
 [tactile]
 kind = "opencv"

@@ -63,15 +63,3 @@ def test_a_bowed_groove_keeps_its_wall_beside_its_seam() -> None:
     assert wall_offset(bowed, 0.004) == pytest.approx(wall_offset(straight, 0.004), abs=2e-5)
     with pytest.raises(WorkpieceError, match="bow"):
         v_groove_butt(bow=0.1)
-
-
-def test_the_simulated_cell_bows_only_a_v_groove() -> None:
-    from celld.config import parse
-    from celld.errors import ConfigError
-    from celld.sim.cell import sim_workpiece
-
-    part = sim_workpiece(parse({"sim": {"workpiece": "v-groove", "workpiece_bow_mm": 1.0}}))
-    assert part is not None and np.ptp(part.workpiece.seam[:, 1]) == pytest.approx(0.001, abs=1e-6)
-    with pytest.raises(ConfigError, match="only the v-groove"):
-        sim_workpiece(parse({"sim": {"workpiece": "fillet-t", "workpiece_bow_mm": 1.0}}))
-    assert sim_workpiece(parse({})) is None

@@ -82,3 +82,25 @@ def test_simulator_publishes_the_pose_it_streams(sim_robot: SimRobotHandle) -> N
         c.stopScript()
         c.disconnect()
         r.disconnect()
+
+
+@pytest.mark.slow
+def test_the_simulator_reports_its_model_and_publishes_the_physical_arm(loopback_host: str) -> None:
+    from celld.sim.robot import launch
+    from celld.sim.world import PRESETS, NominalCell, draw_world
+
+    arm = draw_world(NominalCell(), PRESETS["realistic"], 1).arm
+    with launch(loopback_host, realtime=True, arm=arm) as sim:
+        r = rtde_receive.RTDEReceiveInterface(sim.host)
+        try:
+            time.sleep(0.2)
+            q_rep, T_rep = np.array(r.getActualQ()), se3.from_ur_pose(r.getActualTCPPose())
+            _, T_true, q_true = sim.truth()
+        finally:
+            r.disconnect()
+    # RTDE: the controller's nominal kinematics of the joints its encoders read (with their noise).
+    np.testing.assert_allclose(T_rep, kin.forward(q_rep), atol=1e-9)
+    # The truth: the arm's own kinematics of the physical joints, which are the encoders' plus the joint zeros.
+    np.testing.assert_allclose(T_true, kin.forward(q_true, arm.dh), atol=1e-12)
+    assert np.abs(q_true - q_rep - np.array(arm.joint_offsets)).max() < 1e-4
+    assert 0.05e-3 < np.linalg.norm(T_true[:3, 3] - T_rep[:3, 3]) < 3e-3

@@ -55,3 +55,31 @@ def test_a_bad_pose_from_the_source_is_refused(flange) -> None:  # type: ignore[
     with pytest.raises(InputError, match="T_base_flange"):
         scanner.capture()
     assert scanner.health()["failures"] == 1
+
+
+def test_the_units_own_error_and_exposure_delay(flange) -> None:  # type: ignore[no-untyped-def]
+    import time
+
+    from celld.sim.world import NominalCell, PRESETS, draw_world
+
+    T = se3.from_xyz_rpy([0.6, 0.0, 0.45], [0.0, 0.0, 0.0])
+    exact = SimScanner("phoxi-m", T_BASE_CAM, seed=2, resolution_scale=SCALE).capture(robot_scene(T, flange)).points
+    # The realistic world's unit: a depth scale and a smooth distortion, tenths of a millimetre.
+    sc = draw_world(NominalCell(), PRESETS["realistic"], 3).scanner
+    off = SimScanner("phoxi-m", T_BASE_CAM, seed=2, resolution_scale=SCALE, measure=sc.measure).capture(robot_scene(T, flange)).points
+    ok = np.isfinite(exact[..., 2])
+    np.testing.assert_array_equal(ok, np.isfinite(off[..., 2]))
+    d = np.linalg.norm(off[ok] - exact[ok], axis=1)
+    np.testing.assert_allclose(off[ok], sc.measure(exact[ok].astype(np.float64)), atol=2e-7)
+    assert 1e-6 < np.median(d) < 0.5e-3
+    # The exposure comes a while after the capture is asked for: the scene is what is in view then.
+    pose = {"T": T}
+    scanner = SimulatedScanner("phoxi-m", T_BASE_CAM, robot_scene_source(lambda: pose["T"], flange), seed=1, resolution_scale=SCALE,
+                               capture_delay=(0.2, 0.2))
+    timer = __import__("threading").Timer(0.1, lambda: pose.__setitem__("T", se3.from_xyz_rpy([0.55, 0.08, 0.40], [0.0, 0.0, 0.0])))
+    t0 = time.monotonic()
+    timer.start()
+    cloud = scanner.capture()
+    assert time.monotonic() - t0 >= 0.2
+    reference = SimScanner("phoxi-m", T_BASE_CAM, seed=1, resolution_scale=SCALE).capture(robot_scene(pose["T"], flange)).points
+    np.testing.assert_array_equal(cloud.points, reference)

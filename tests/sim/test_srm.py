@@ -95,3 +95,83 @@ def test_the_simulated_camera_keeps_its_frame_rate_and_skips_frames_it_missed() 
     assert late > stamps[-1] + 4 * period and (late - stamps[0]) % period == 0
     cam.unplug()
     assert cam.read() is None
+
+
+def test_a_default_finger_is_the_stateless_contact() -> None:
+    from celld.sim.srm import Finger
+
+    finger = Finger(PARAMS)
+    for y in (0.0005, 0.0008, -0.002):
+        c, tag = finger.touch(np.array([0.05, y]), np.array([0.01, 0.0]), WALL, R_TIP)
+        ref = finger_contact(np.array([0.05, y]), np.array([0.01, 0.0]), WALL, R_TIP, PARAMS)
+        np.testing.assert_array_equal(c.tip_shift_plane, ref.tip_shift_plane)
+        np.testing.assert_array_equal(tag, ref.tip_shift_plane)
+
+
+def test_the_finger_stiffens_as_it_bends() -> None:
+    from dataclasses import replace
+
+    stiff = replace(PARAMS, stiffening=0.0015)
+    assert stiff.force(0.0015) == pytest.approx(2.0 * PARAMS.force(0.0015))
+    c = finger_contact(np.array([0.05, 0.0005]), np.array([0.01, 0.0]), WALL, R_TIP, stiff)
+    # The same normal deflection, twice the force, twice the friction drag.
+    assert c.tip_shift_plane[1] == pytest.approx(-0.0015)
+    assert c.tip_shift_plane[0] == pytest.approx(-2 * 0.3 * 0.0015, rel=1e-3)
+
+
+def test_the_tip_sticks_and_slips_along_the_wall() -> None:
+    from dataclasses import replace
+
+    from celld.sim.srm import Finger
+
+    finger = Finger(replace(PARAMS, static_friction_ratio=1.5))
+    kinetic = 0.3 * 0.0015
+    drags = []
+    for k in range(60):  # the base slides 0.1 mm per frame, 1.5 mm into the wall
+        c, _ = finger.touch(np.array([0.02 + 1e-4 * k, 0.0005]), np.array([0.01, 0.0]), WALL, R_TIP)
+        drags.append(-c.tip_shift_plane[0])
+        assert c.tip_shift_plane[1] == pytest.approx(-0.0015)
+    drags = np.array(drags[1:])
+    # A saw tooth between the kinetic drag and the static limit.
+    assert drags.min() == pytest.approx(kinetic, rel=1e-6) and kinetic * 1.4 < drags.max() <= kinetic * 1.5 + 1e-12
+    assert np.sum(np.diff(drags) < 0) >= 10  # it slipped many times
+    c, _ = finger.touch(np.array([0.05, -0.003]), np.zeros(2), WALL, R_TIP)  # off the wall: the drag is gone
+    assert not c.in_contact and finger.touch(np.array([0.05, 0.0005]), np.zeros(2), WALL, R_TIP)[0].tip_shift_plane[0] == 0.0
+
+
+def test_the_tag_follows_the_tip_through_a_play() -> None:
+    from dataclasses import replace
+
+    from celld.sim.srm import Finger
+
+    finger = Finger(replace(PARAMS, hysteresis=0.00006))
+    _, tag = finger.touch(np.array([0.05, 0.0005]), np.zeros(2), WALL, R_TIP)  # pressed 1.5 mm
+    assert tag[1] == pytest.approx(-0.0015 + 0.00003)  # lags by half the play
+    c, tag = finger.touch(np.array([0.05, -0.003]), np.zeros(2), WALL, R_TIP)  # released
+    assert not c.in_contact and tag[1] == pytest.approx(-0.00003)  # does not quite come back
+
+
+def test_the_camera_stamps_are_off_the_exposure_and_frames_arrive_late() -> None:
+    from dataclasses import replace
+
+    from celld.config import TactileConfig, ToolConfig
+    from celld.sim.srm import SimSrm, SimSrmCamera, SrmSimParams
+
+    now = [0]
+    params = replace(SrmSimParams(), stamp_sigma=0.0005, delivery_jitter=0.004)
+    srm = SimSrm(TactileConfig(), ToolConfig(), Wall(np.array([[-0.05, 0.0], [0.05, 0.0]]), free=-1.0), np.eye(4), params)
+    asked: list[int] = []
+
+    def pose_at(t: int):
+        asked.append(t)
+        return _tool_pose(-0.003), np.zeros(6)
+
+    cam = SimSrmCamera(srm, pose_at, lambda: now[0], lambda s: now.__setitem__(0, now[0] + int(s * 1e9)))
+    cam.open()
+    late = []
+    for _ in range(50):
+        stamp, _ = cam.read()
+        late.append(now[0] - stamp)
+    off = np.array(asked) - (np.arange(50) * int(round(1e9 / 60.0)))
+    assert 0.0002 < np.std(off) * 1e-9 < 0.001
+    assert min(late) >= 2_000_000 and max(late) > 4_000_000 and max(late) <= 6_000_000

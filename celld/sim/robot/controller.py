@@ -28,6 +28,7 @@ from celld.sim.robot import model as m
 from celld.sim.robot import rtde_protocol as P
 from celld.sim.robot.options import SimOptions
 from celld.sim.robot.script import ControlScript, CustomProgram, IdleProgram, Program, ScriptError
+from celld.sim.robot.truearm import TrueArm
 
 # Controller cycle, s (500 Hz).
 PERIOD = 0.002
@@ -91,9 +92,10 @@ class Controller:
 
     def __init__(self, options: SimOptions) -> None:
         self.options = options
+        model = kin.model(options.model)
         self.arm = m.Arm(
             m.ArmLimits(
-                joints=kin.UR10E_LIMITS,
+                joints=model.limits,
                 tcp_speed=options.tcp_speed_limit,
                 tcp_acc=options.tcp_acc_limit,
                 joint_acc=options.joint_acc_limit,
@@ -102,7 +104,10 @@ class Controller:
             ),
             options.q0,
             options.tcp_offset,
+            model.dh,
         )
+        # The physical arm when it differs from the model (celld.sim.robot.truearm); None: it is the model.
+        self.true_arm = TrueArm(options.arm) if options.arm is not None and not options.arm.is_model(model.dh) else None
         self.ticks = 0
         self.time = 0.0  # controller time, s: ticks * PERIOD
         self.robot_mode = ROBOT_MODE_RUNNING if options.boot == "running" else ROBOT_MODE_POWER_OFF
@@ -135,6 +140,13 @@ class Controller:
         self.refuse_upload = False
         self.last_stop_reason = ""
         self.outbox: list[tuple[str, int]] = []
+        # What the controller reports as its actual joints and TCP (encoder readings), and
+        # the physical arm's joints and TCP (the truth); see sense().
+        self.q_actual: list[float] = list(self.arm.q)
+        self.T_tcp_actual = list(self.arm.T_tcp)
+        self.q_true: list[float] = list(self.arm.q)
+        self.T_tcp_true = list(self.arm.T_tcp)
+        self.sense()
 
     # --- messages -----------------------------------------------------------------
 
@@ -323,10 +335,37 @@ class Controller:
         if self.robot_mode != ROBOT_MODE_RUNNING or self.safety_mode != SAFETY_NORMAL:
             if not self.arm.steady:
                 self.arm.halt()
+            self.sense()
             return
         fault = self.arm.step(PERIOD * self.speed_fraction)
         if fault is not None:
             self.protective_stop(fault)
+        self.sense()
+
+    def sense(self) -> None:
+        """The joints and TCP the controller reports, and the physical arm's, for the arm as it is now.
+
+        Without a physical arm of its own (:attr:`true_arm` None) all three are
+        the controller's model. With one, the physical joints and the true TCP
+        come from :class:`~celld.sim.robot.truearm.TrueArm`, and the reported
+        joints carry its encoder noise, the reported TCP being the model's
+        forward kinematics of them (as a UR controller computes it).
+        """
+        arm = self.arm
+        ta = self.true_arm
+        if ta is None:
+            self.q_actual = self.q_true = arm.q
+            self.T_tcp_actual = self.T_tcp_true = arm.T_tcp
+            return
+        ta.update(arm.q, arm.qd, self.time)
+        self.q_true = ta.q
+        self.T_tcp_true = kin.compose_rows(ta.T_flange, arm.T_flange_tcp)
+        if ta.truth.encoder_noise:
+            self.q_actual = ta.q_reported
+            self.T_tcp_actual = arm.fk_tcp(ta.q_reported)
+        else:
+            self.q_actual = arm.q
+            self.T_tcp_actual = arm.T_tcp
 
     # --- inputs -------------------------------------------------------------------
 
@@ -418,11 +457,11 @@ class Controller:
         getters: dict[str, Callable[[], Sequence[Any]]] = {
             "timestamp": lambda: (self.time,),
             "target_q": lambda: arm.q,
-            "actual_q": lambda: arm.q,
+            "actual_q": lambda: self.q_actual,
             "target_qd": lambda: arm.qd,
             "actual_qd": lambda: arm.qd,
             "target_qdd": lambda: arm.qdd,
-            "actual_TCP_pose": lambda: g.pose_from_rows(arm.T_tcp),
+            "actual_TCP_pose": lambda: g.pose_from_rows(self.T_tcp_actual),
             "target_TCP_pose": lambda: g.pose_from_rows(arm.T_tcp),
             "actual_TCP_speed": lambda: arm.tcp_speed,
             "target_TCP_speed": lambda: arm.tcp_speed,

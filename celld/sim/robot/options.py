@@ -16,6 +16,8 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 
 from celld.errors import ConfigError
+from celld.robot import kinematics as kin
+from celld.sim.robot.truearm import ArmTruth
 
 # UR ports: dashboard, primary/secondary/real-time script interfaces, RTDE.
 DASHBOARD_PORT = 29999
@@ -32,6 +34,11 @@ class SimOptions:
     """What the simulated UR10e controller is and allows (SI units)."""
 
     host: str = "127.0.0.2"
+    # The UR model the controller is (its nominal DH table and joint limits).
+    model: str = "ur10e"
+    # How the physical arm differs from the controller's model (celld.sim.world
+    # draws it); None: the arm is the model exactly.
+    arm: ArmTruth | None = None
     # Initial joint vector, rad.
     q0: tuple[float, ...] = (0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0)
     # TCP in the flange frame, UR pose [x, y, z, rx, ry, rz].
@@ -62,6 +69,10 @@ class SimOptions:
 
     def __post_init__(self) -> None:
         check_host(self.host)
+        if self.model not in kin.MODELS:
+            raise ConfigError(_SOURCE, "model", f"expected one of {', '.join(kin.MODELS)}, got {self.model!r}")
+        if self.arm is not None and not isinstance(self.arm, ArmTruth):
+            raise ConfigError(_SOURCE, "arm", f"expected an ArmTruth or None, got {type(self.arm).__name__}")
         _check_vector("q0", self.q0, 6)
         _check_vector("tcp_offset", self.tcp_offset, 6)
         _check_vector("workspace_min", self.workspace_min, 3)
@@ -98,7 +109,9 @@ class SimOptions:
 
     def to_argv(self) -> list[str]:
         """Command-line arguments that :func:`from_args` turns back into these options."""
-        argv = ["--host", self.host]
+        argv = ["--host", self.host, "--model", self.model]
+        if self.arm is not None:
+            argv += ["--arm-truth", self.arm.to_json()]
         argv += ["--q0", *map(repr, self.q0), "--tcp-offset", *map(repr, self.tcp_offset)]
         argv += ["--workspace", *map(repr, self.workspace_min), *map(repr, self.workspace_max)]
         argv += ["--tcp-speed-limit", repr(self.tcp_speed_limit), "--tcp-acc-limit", repr(self.tcp_acc_limit)]
@@ -134,6 +147,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The simulator's options as command-line arguments (defaults from :class:`SimOptions`)."""
     d = SimOptions()
     parser.add_argument("--host", required=True, help="loopback address to bind, 127.x.y.z")
+    parser.add_argument("--model", default=d.model, choices=sorted(kin.MODELS), help="the UR model the controller is")
+    parser.add_argument("--arm-truth", default=None, metavar="JSON",
+                        help="how the physical arm differs from the controller's model (celld.sim.robot.truearm.ArmTruth as JSON)")
     parser.add_argument("--q0", nargs=6, type=float, default=d.q0, metavar="RAD", help="initial joints")
     parser.add_argument(
         "--tcp-offset", nargs=6, type=float, default=d.tcp_offset, metavar="V", help="TCP pose in the flange [m, rad]"
@@ -161,8 +177,11 @@ def from_args(args: argparse.Namespace) -> SimOptions:
         version = tuple(int(v) for v in args.version_number.split("."))
     except ValueError as exc:
         raise ConfigError(_SOURCE, "version", f"expected a.b.c.d, got {args.version_number!r}") from exc
+    arm = ArmTruth.from_json(args.arm_truth) if args.arm_truth else None
     return SimOptions(
         host=args.host,
+        model=args.model,
+        arm=arm,
         q0=tuple(args.q0),
         tcp_offset=tuple(args.tcp_offset),
         workspace_min=tuple(args.workspace[:3]),

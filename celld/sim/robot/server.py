@@ -228,10 +228,11 @@ class SimServer:
 
     def _publish_truth(self, stamp_ns: int) -> None:
         if self.truth is not None:
-            arm = self.ctrl.arm
             c = self.ctrl
+            arm = c.arm
+            # The physical arm (its joints and true TCP), not the controller's belief.
             self.truth.publish(
-                stamp_ns, arm.q, arm.qd, arm.T_tcp, arm.T_flange_tcp, c.digital_out,
+                stamp_ns, c.q_true, arm.qd, c.T_tcp_true, arm.T_flange_tcp, c.digital_out,
                 (c.robot_mode, c.safety_mode, c.runtime_state),
             )  # fmt: skip
 
@@ -286,6 +287,7 @@ class SimServer:
             if not kin.within_limits(q_checked):
                 raise InputError(f"set_q: joints {q} outside the joint range [-2 pi, 2 pi]")
             self.ctrl.arm.set_q(q_checked.tolist())
+            self.ctrl.sense()
             return {}
         if op == "set_digital_in":
             bits = args.get("bits")

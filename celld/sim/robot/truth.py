@@ -1,7 +1,10 @@
 """True state of the simulated arm in shared memory, for the other simulated devices.
 
 The simulated scanner and SRM camera need the TCP pose at their own capture
-times, without going through RTDE. Every 2 ms cycle the simulator writes one
+times, without going through RTDE. What is published is the physical arm
+(:mod:`celld.sim.robot.truearm`): its joints and its true TCP, which differ
+from what the controller reports over RTDE by the world's kinematic error,
+repeatability, settling and encoder noise (identical when the world has none). Every 2 ms cycle the simulator writes one
 :data:`TRUTH_DTYPE` record, stamped with the ``time.monotonic_ns()`` instant
 the state belongs to (CLOCK_MONOTONIC is shared by all processes), to
 
@@ -30,9 +33,9 @@ from celld.shm import Ring, SeqlockSlot
 TRUTH_DTYPE = np.dtype(
     [
         ("stamp_ns", "<i8"),  # time.monotonic_ns() of this state
-        ("q", "<f8", (6,)),  # joints, rad
+        ("q", "<f8", (6,)),  # physical joints, rad
         ("qd", "<f8", (6,)),  # joint speeds, rad/s
-        ("T_base_tcp", "<f8", (4, 4)),  # TCP pose in the base frame
+        ("T_base_tcp", "<f8", (4, 4)),  # true TCP pose in the base frame (true flange x the TCP offset)
         ("T_flange_tcp", "<f8", (4, 4)),  # TCP offset in force at that cycle
         ("digital_out", "<u8"),  # actual_digital_output_bits (bit 0-7 standard outputs)
         ("robot_mode", "<i4"),
@@ -52,6 +55,23 @@ class TruthSample(NamedTuple):
     q: NDArray[np.float64]  # (6,) rad
     qd: NDArray[np.float64]  # (6,) rad/s
     digital_out: int
+    T_flange_tcp: NDArray[np.float64] = np.eye(4)  # (4, 4) the controller's TCP offset at that cycle
+
+    @property
+    def T_base_flange(self) -> NDArray[np.float64]:
+        """The true flange pose (4, 4)."""
+        return flange_of(self.T_base_tcp, self.T_flange_tcp)
+
+
+def flange_of(T_base_tcp: NDArray[np.float64], T_flange_tcp: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``T_base_flange`` of TCP poses and TCP offsets, (4, 4) or (n, 4, 4) each."""
+    R, t = T_flange_tcp[..., :3, :3], T_flange_tcp[..., :3, 3]
+    inv = np.zeros(np.broadcast_shapes(T_flange_tcp.shape, (4, 4)))
+    Rt = np.swapaxes(R, -1, -2)
+    inv[..., :3, :3] = Rt
+    inv[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    inv[..., 3, 3] = 1.0
+    return T_base_tcp @ inv
 
 
 def segment_names(host: str) -> tuple[str, str]:
@@ -159,7 +179,7 @@ class TruthReader:
         T[:3, :3] = Slerp([0.0, 1.0], rots)([w]).as_matrix()[0]
         q = (1 - w) * a["q"] + w * b["q"]
         qd = (1 - w) * a["qd"] + w * b["qd"]
-        return TruthSample(int(stamp_ns), T, q, qd, int(a["digital_out"]))
+        return TruthSample(int(stamp_ns), T, q, qd, int(a["digital_out"]), np.array(a["T_flange_tcp"]))
 
     def close(self) -> None:
         self._slot.close()
@@ -173,4 +193,5 @@ def _sample(rec: np.void) -> TruthSample:
         np.array(rec["q"]),
         np.array(rec["qd"]),
         int(rec["digital_out"]),
+        np.array(rec["T_flange_tcp"]),
     )

@@ -1,0 +1,209 @@
+"""Scoring a simulated cell's jobs against its world: where things truly went.
+
+Only the demo, the tests and the benchmarks call this, after the jobs have
+ended (the truth recorder gathers the arm's true states while a job runs and
+is read afterwards); the daemon never sees the world.
+
+- :func:`targeting_errors`: the calibration as a cell uses it. For a true
+  point ``p`` the scanner sees (at ``measure(p_cam)``), the daemon sends the
+  flange to ``T_base_cam_est @ p_cam`` through the controller's nominal
+  inverse kinematics; the flange lands at the arm's true forward kinematics of
+  those joints. The error is the distance from ``p`` (no robot motion needed).
+- :func:`open_loop_torch`: where the torch would go if the robot followed the
+  weld plan from the scan without the tactile correction: the plan's torch
+  line, the nominal tool, nominal IK, the true arm and the true tool.
+- :class:`TruthRecorder` and :func:`true_torch_path`: the torch as it truly
+  went during a weld (the true flange x the true torch point).
+- :func:`lateral`: a path's lateral distance from the part's true seam in the
+  welding plane (RMS and max, mm; :func:`celld.seam.figures.lateral_error`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from celld import polyline, se3
+from celld.robot import kinematics as kin
+from celld.seam.figures import TORCH_STEP, lateral_error
+from celld.sim.robot.truth import TRUTH_DTYPE, TruthReader, flange_of
+from celld.sim.world import World
+from celld.tactile.tool import ToolGeometry
+
+Array = NDArray[np.float64]
+
+
+def true_flange(world: World, T_base_flange_cmd: ArrayLike, q_near: ArrayLike) -> tuple[Array, Array] | None:
+    """Where the flange truly is when the controller puts it at ``T_base_flange_cmd`` (its belief).
+
+    Returns ``(T_base_flange_true (4, 4), q (6,))`` with ``q`` the controller's
+    joints (nominal IK nearest ``q_near``), or None when the pose is out of reach.
+    """
+    q = kin.inverse(np.asarray(T_base_flange_cmd, dtype=np.float64), q_near, world.nominal_dh)
+    if q is None:
+        return None
+    return kin.forward(q + np.asarray(world.arm.joint_offsets), world.arm.dh), q
+
+
+def measured_in_camera(world: World, P_base: ArrayLike, metal: bool = True) -> Array:
+    """Where the world's scanner measures true base points (n, 3), in its camera frame (no noise)."""
+    from celld.sim.scanner import scanner_model
+
+    sc = world.scanner
+    P_cam = se3.apply(se3.invert(sc.T_base_cam), np.asarray(P_base, dtype=np.float64).reshape(-1, 3))
+    M = sc.measure(P_cam)
+    bias = sc.metal_bias if sc.metal_bias is not None else scanner_model(sc.model).metal_bias
+    if metal and bias:
+        M = M * (1.0 + bias / np.linalg.norm(P_cam, axis=1))[:, None]
+    return M
+
+
+def targeting_errors(world: World, T_base_cam_est: ArrayLike, P_base: ArrayLike, R_base_flange: ArrayLike, q_near: ArrayLike) -> Array:
+    """Distances (n,) between true points and where the flange lands when sent to them through the calibration, m.
+
+    ``R_base_flange`` (3, 3) is the flange's orientation for every target;
+    points out of reach give NaN.
+    """
+    P = np.asarray(P_base, dtype=np.float64).reshape(-1, 3)
+    targets = se3.apply(np.asarray(T_base_cam_est, dtype=np.float64), measured_in_camera(world, P))
+    out = np.full(len(P), np.nan)
+    q = np.asarray(q_near, dtype=np.float64)
+    for i, (p, t) in enumerate(zip(P, targets)):
+        got = true_flange(world, se3.transform_from(R_base_flange, t), q)
+        if got is not None:
+            out[i] = float(np.linalg.norm(got[0][:3, 3] - p))
+            q = got[1]
+    return out
+
+
+def box_grid(centre: ArrayLike, size: ArrayLike, n: Sequence[int] = (5, 5, 3)) -> Array:
+    """Points (prod(n), 3) on a regular grid filling a box of ``size`` (m) about ``centre``."""
+    c, s = np.asarray(centre, dtype=np.float64), np.asarray(size, dtype=np.float64)
+    axes = [np.linspace(c[k] - s[k] / 2.0, c[k] + s[k] / 2.0, n[k]) for k in range(3)]
+    return np.array(list(itertools.product(*axes)))
+
+
+def targeting(world: World, T_base_cam_est: ArrayLike, config: Any) -> dict[str, Any]:
+    """The calibration's targeting error (mm) over two workspaces of a cell config.
+
+    ``calibration``: the box the calibration poses span about the verification
+    pose, the flange as at the verification pose (facing the scanner); ``table``:
+    a 300 x 300 x 150 mm box over the part's place, 150-300 mm above the
+    table, the flange facing down, as when the tool works on the table.
+    Joints near the robot's home.
+    """
+    cal = config.calibration
+    T_v = se3.from_ur_pose(cal.verification_pose)
+    home = np.asarray(config.robot.home_q, dtype=np.float64)
+    e_cal = targeting_errors(world, T_base_cam_est, box_grid(T_v[:3, 3], cal.pose_box), T_v[:3, :3], home)
+    R_down = se3.from_xyz_rpy([0.0, 0.0, 0.0], [math.pi, 0.0, math.pi / 2])[:3, :3]
+    e_tab = targeting_errors(world, T_base_cam_est, box_grid([0.6, 0.0, 0.225], [0.3, 0.3, 0.15]), R_down, home)
+
+    def stats(e: Array) -> dict[str, Any]:
+        ok = e[np.isfinite(e)]
+        return {"mean_mm": float(ok.mean()) * 1e3, "max_mm": float(ok.max()) * 1e3, "points": int(len(ok))}
+
+    return {"calibration": stats(e_cal), "table": stats(e_tab)}
+
+
+def _plan_frames(seam: Array, wall: Array) -> tuple[Array, Array, Array]:
+    """Travel, finger-wall side and up directions (n, 3) of a plan's torch line and wall line."""
+    t = np.gradient(seam, axis=0)
+    t /= np.linalg.norm(t, axis=1)[:, None]
+    n = wall - seam
+    n -= np.sum(n * t, axis=1)[:, None] * t
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    z = np.cross(t, n)
+    z *= np.where(z[:, 2] < 0.0, -1.0, 1.0)[:, None]
+    return t, n, z
+
+
+def open_loop_torch(world: World, planned: ArrayLike, planned_wall: ArrayLike, q_near: ArrayLike) -> Array:
+    """The true torch positions (n, 3) if the robot followed the plan alone.
+
+    ``planned`` (n, 3) is the weld's torch line (the seam at the tip height, as
+    the scan and the calibration placed it) and ``planned_wall`` (n, 3) the
+    wall line beside it (the weld job's ``paths.json``). The controller puts
+    the nominal tool's torch on each point, the tool's x along the travel and
+    its z out of the joint; the arm and the tool are the world's.
+    """
+    S = np.asarray(planned, dtype=np.float64)
+    t, _, z = _plan_frames(S, np.asarray(planned_wall, dtype=np.float64))
+    nominal = ToolGeometry.from_config(world.tool.nominal)
+    T_tool_flange = se3.invert(nominal.T_tcp_tool)  # the simulated cell's TCP is the flange
+    q = np.asarray(q_near, dtype=np.float64)
+    out = np.full_like(S, np.nan)
+    p_torch = np.append(world.tool.p_flange_torch, 1.0)
+    for i in range(len(S)):
+        x = t[i] - float(t[i] @ z[i]) * z[i]
+        x /= np.linalg.norm(x)
+        R = np.column_stack([x, np.cross(z[i], x), z[i]])
+        T_base_tool = se3.transform_from(R, S[i] + nominal.torch_offset * x)
+        got = true_flange(world, T_base_tool @ T_tool_flange, q)
+        if got is not None:
+            out[i] = (got[0] @ p_torch)[:3]
+            q = got[1]
+    return out[np.all(np.isfinite(out), axis=1)]
+
+
+class TruthRecorder:
+    """Gathers the simulated arm's true states while a job runs (the shared history holds only ~2 s).
+
+    Use as a context manager around the job; :meth:`records` afterwards.
+    """
+
+    def __init__(self, host: str, period: float = 0.2) -> None:
+        self._reader = TruthReader(host)
+        self._period = period
+        self._chunks: list[np.ndarray] = []
+        self._last = -1
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="truth-recorder", daemon=True)
+
+    def _poll(self) -> None:
+        recs = self._reader.history()
+        new = recs[recs["stamp_ns"] > self._last]
+        if len(new):
+            self._chunks.append(new.copy())
+            self._last = int(new["stamp_ns"][-1])
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period):
+            self._poll()
+
+    def __enter__(self) -> TruthRecorder:
+        self._poll()
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+        self._poll()
+        self._reader.close()
+
+    def records(self) -> np.ndarray:
+        """Every true state gathered, oldest first (:data:`celld.sim.robot.truth.TRUTH_DTYPE`)."""
+        return np.concatenate(self._chunks) if self._chunks else np.zeros(0, TRUTH_DTYPE)
+
+
+def true_torch_path(world: World, records: np.ndarray, arc_output: int) -> Array:
+    """The torch's true path (m, 3) while the arc was on (digital output ``arc_output``), thinned as the weld's own."""
+    on = (records["digital_out"].astype(np.int64) >> arc_output) & 1 == 1 if arc_output >= 0 else np.ones(len(records), bool)
+    recs = records[on]
+    if len(recs) == 0:
+        return np.zeros((0, 3))
+    F = flange_of(recs["T_base_tcp"], recs["T_flange_tcp"])
+    P = np.einsum("nij,j->ni", F[:, :3, :3], world.tool.p_flange_torch) + F[:, :3, 3]
+    return polyline.thin(P, TORCH_STEP)
+
+
+def lateral(part: Any, P_base: ArrayLike) -> dict[str, float]:
+    """Lateral distance (RMS, max mm) of a path from the part's true seam in its welding plane."""
+    return lateral_error(np.asarray(P_base, dtype=np.float64), part.seam_base, part.T_base_plane)
