@@ -90,6 +90,9 @@ class MotionLimits:
     link_timeout: float = 0.1
     # RTDE watchdog: the controller stops its program after 1/rate s without a kick.
     rtde_watchdog_hz: float = 10.0
+    # The motion and camera processes stop the robot and end when the daemon's
+    # heartbeat is older than this (the daemon hangs), s; a dead daemon is seen at once.
+    parent_timeout: float = 0.5
 
     @classmethod
     def read(cls, r: TableReader) -> MotionLimits:
@@ -104,6 +107,7 @@ class MotionLimits:
             state_stale_cycles=r.int("state_stale_cycles", cls.state_stale_cycles, lo=1, hi=50),
             link_timeout=r.float("link_timeout_ms", cls.link_timeout * 1e3, lo=4.0, hi=5000.0, scale=1e-3),
             rtde_watchdog_hz=r.float("rtde_watchdog_hz", cls.rtde_watchdog_hz, lo=1.0, hi=500.0),
+            parent_timeout=r.float("parent_timeout_ms", cls.parent_timeout * 1e3, lo=50.0, hi=10_000.0, scale=1e-3),
         )
 
 

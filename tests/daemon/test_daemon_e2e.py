@@ -172,11 +172,21 @@ def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(dae
     assert record["state"] == "succeeded", record["reason"]
 
 
-def test_kill_9_of_the_daemon_during_a_job_leaves_it_interrupted(daemon) -> None:
-    client, proc, cfg, _ = daemon
+def test_kill_9_of_the_daemon_mid_calibration_stops_the_arm_and_the_next_daemon_runs_jobs(daemon, tmp_path: Path) -> None:
+    from celld.sim.cell import start_daemon, stop_daemon
+    from tests.daemon.orphans import after_kill, wait_moving
+
+    client, proc, cfg, robot = daemon
     job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 4}, "pair")
+    wait_moving(robot)  # on its way to the next calibration pose
+    t_kill = time.monotonic_ns()
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)
+    seen = after_kill(robot, t_kill, arc_output=0)
+    # The orphaned motion process saw its daemon go, stopped the arm jerk-limited and ended.
+    assert seen.moving_at_kill > 0.002, seen
+    assert seen.at_rest_s < 0.5, seen
+
     state_dir = Path(cfg.cell.state_dir)
     journal = Journal(state_dir / "journal.db")  # what the next start does
     try:
@@ -188,3 +198,15 @@ def test_kill_9_of_the_daemon_during_a_job_leaves_it_interrupted(daemon) -> None
     for poses in state_dir.rglob("poses.json"):
         json.loads(poses.read_text())
     assert not (state_dir / "results" / f"{job}.json").exists()
+
+    # The next daemon cleans up what the killed one recorded and runs the next job.
+    with open(tmp_path / "daemon2.log", "ab") as log:
+        second = start_daemon(Path(cfg.source), log, timeout=60)
+        try:
+            move = {"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 0.45, 0.0, 0.0, 0.0]}}
+            _, record = second.client.submit_and_wait(move, timeout=90)
+            assert record["state"] == "succeeded", record["reason"]
+            assert {p.name for p in (state_dir / "run").glob("*.json")} == {"motion.json"}  # this daemon's own child
+        finally:
+            second.client.close()
+            stop_daemon(second.process)

@@ -38,6 +38,7 @@ class FakePort:
         self.sent: list[tuple[str, list[float]]] = []
         self.outputs: list[tuple[int, bool]] = []  # every set_digital_out call
         self.output_ok = True  # what set_digital_out returns
+        self.output_bits = 0  # the controller's actual outputs
         self.reads_left = -1  # >= 0: the link drops after this many reads
         self.watchdog_hz = 0.0
         self.closed = False
@@ -66,7 +67,12 @@ class FakePort:
 
     def set_digital_out(self, index: int, value: bool) -> bool:
         self.outputs.append((index, value))
+        if self.output_ok:
+            self.output_bits = self.output_bits | (1 << index) if value else self.output_bits & ~(1 << index)
         return self.output_ok
+
+    def digital_outputs(self) -> int:
+        return self.output_bits
 
     def set_watchdog(self, min_frequency_hz: float) -> None:
         self.watchdog_hz = min_frequency_hz
