@@ -102,7 +102,7 @@ class ParentWatch:
     handlers only set a flag. Build it in the child, in its main thread.
     """
 
-    def __init__(self, parent_pid: int, heartbeat: str = "", timeout_ns: int = 500_000_000, signals: bool = True) -> None:
+    def __init__(self, parent_pid: int, heartbeat: str = "", timeout_ns: int = 3_000_000_000, signals: bool = True) -> None:
         self.parent_pid = parent_pid
         self.timeout_ns = timeout_ns
         self._slot = SeqlockSlot.attach(heartbeat, HEARTBEAT_DTYPE) if heartbeat else None

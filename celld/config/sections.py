@@ -91,8 +91,10 @@ class MotionLimits:
     # RTDE watchdog: the controller stops its program after 1/rate s without a kick.
     rtde_watchdog_hz: float = 10.0
     # The motion and camera processes stop the robot and end when the daemon's
-    # heartbeat is older than this (the daemon hangs), s; a dead daemon is seen at once.
-    parent_timeout: float = 0.5
+    # heartbeat is older than this (the daemon hangs), s; a dead daemon is seen
+    # at once. Above the event loop's worst hold-ups (a scan holding the GIL on a
+    # loaded PC: about 1 s measured) and above systemd's WatchdogSec.
+    parent_timeout: float = 3.0
 
     @classmethod
     def read(cls, r: TableReader) -> MotionLimits:

@@ -67,7 +67,7 @@ class MotionSpec:
     # its pid, its heartbeat slot ("" for none) and the heartbeat's timeout, ns.
     parent_pid: int = 0
     heartbeat: str = ""
-    parent_timeout_ns: int = 500_000_000
+    parent_timeout_ns: int = 3_000_000_000
 
 
 def load_factories(servo_laws: tuple[tuple[str, str], ...]) -> dict[str, ServoFactory]:

@@ -59,7 +59,7 @@ def tactile_main(
     preview_slot: str = "",
     parent_pid: int = 0,
     heartbeat: str = "",
-    parent_timeout_ns: int = 500_000_000,
+    parent_timeout_ns: int = 3_000_000_000,
 ) -> None:
     """Entry point of the tactile process (``multiprocessing`` spawn target).
 
@@ -145,7 +145,7 @@ class TactileProcess:
         source_factory: FrameSourceFactory = opencv_camera,
         realtime: RealtimeOptions = CAMERA_REALTIME,
         heartbeat: str = "",
-        parent_timeout: float = 0.5,
+        parent_timeout: float = 3.0,
         records: ChildRecords | None = None,
     ) -> None:
         self.cfg = cfg
