@@ -65,7 +65,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--k-max", type=int, help="most iterations of Algorithm 1")
     c.add_argument("--poses-file", help="JSON file: a list of UR poses [x, y, z, rx, ry, rz] (m, rad)")
     c.add_argument("--verification-pose", **_floats(6, "V"), help="UR pose of the verification capture")
-    c.add_argument("--compensate", action="store_true", help="apply the error compensation of Eq. 21")
+    c.add_argument("--compensate", action="store_true", help="store the estimate compensated by Eq. 21")
     c.add_argument("--seed", type=int, help="seed of the pose generator")
 
     w = kinds.add_parser("weld", parents=[job_common], help="scan, find the seam, touch and track it")
@@ -109,6 +109,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     a = sub.add_parser("accept", parents=[common], help="make a calibrate job's result the current calibration")
     a.add_argument("job")
+    a.add_argument("--force", action="store_true", help="accept even though the calibration failed its quality gate")
     a.set_defaults(func=_accept)
 
     b = sub.add_parser("bus", help="bus tools")
@@ -337,11 +338,12 @@ def _cancel(args: argparse.Namespace) -> int:
 
 def _accept(args: argparse.Namespace) -> int:
     with _client(args) as cell:
-        reply = cell.accept(args.job)
+        reply = cell.accept(args.job, force=args.force)
     if args.json:
         _print_json(reply)
     else:
-        print(f"calibration of {reply['job']} is current")
+        forced = " (forced past a failed quality verdict)" if reply["calibration"].get("forced") else ""
+        print(f"calibration of {reply['job']} is current{forced}")
     return 0
 
 

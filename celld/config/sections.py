@@ -202,7 +202,7 @@ class CalibrationConfig:
     # Estimator of T_base_cam: robust (every consistent pair), svd (all pairs,
     # Eq. 9-12) or algorithm1 (the optimum pool of Algorithm 1).
     method: str = "robust"
-    compensate: bool = False  # also report Eq. 21's compensated estimate
+    compensate: bool = False  # store Eq. 21's compensated estimate as the calibration
     # e_icp (Eq. 13): ICP correspondence distance (m; about 3x the scanner's
     # point noise or more), verification points used, model point spacing (m).
     icp_max_distance: float = 0.003

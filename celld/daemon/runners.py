@@ -12,7 +12,10 @@ worker threads so the event loop keeps answering the bus.
   ``e_required``. The dataset is saved as it is captured, so the session can
   be solved again offline (``celld calib solve``). The final estimate is the
   robust solve over every consistent pair, reported with Algorithm 1's
-  history and the e_icp of Eq. 13.
+  history, the e_icp of Eq. 13 and the quality gate's verdict (accept
+  refuses a failed one unless forced). With ``compensate`` the calibration
+  stored is Eq. 21's compensated estimate, and ``stored`` says so.
+  The early stop waits until the gate has its minimum of pairs.
 - **move**: a jerk-limited move to a TCP pose, or to joint positions through
   the forward kinematics.
 - **health**: the robot link and loop timing, the scanner (one capture), the
@@ -141,7 +144,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         found = pairs.detections()
         if pairs.n_pairs == 4:
             step = await asyncio.to_thread(alg.start, list(found.ids), found.P_base, found.P_cam)
-        elif pairs.n_pairs > 4:
+        elif pairs.n_pairs > 4 and not alg.done:
             step = await asyncio.to_thread(alg.add, pid, found.P_base[-1], found.P_cam[-1])
         else:
             step = None
@@ -151,7 +154,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
             if rec is not None:
                 rec.log_e_icp(step.k, step.cost_optimal)
         ctx.progress("pair", (i + 1) / len(poses), f"pair {pid}", **data)
-        if alg.started and alg.done:
+        if alg.started and alg.done and pairs.n_pairs >= params.quality.min_pairs:
             early = alg.reached
             break
 
@@ -167,13 +170,18 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     cost_mm = a1.cost * 1e3 if a1 is not None and math.isfinite(a1.cost) else None
     calibration = {
         "job": ctx.job_id,
-        "T_base_cam": result.T_base_cam.tolist(),
+        "T_base_cam": result.T_base_cam_stored.tolist(),
+        "stored": result.stored,
         "cost_mm": cost_mm,
         "pairs": len(result.pair_ids),
         "dataset": str(dataset),
         "method": result.method,
+        "quality": report["quality"],
     }
-    log.info("calibration solved", job=ctx.job_id, pairs=len(result.pair_ids), cost_mm=cost_mm, early_stop=early)
+    log.info(
+        "calibration solved", job=ctx.job_id, pairs=len(result.pair_ids), cost_mm=cost_mm, early_stop=early,
+        verdict=result.quality.verdict, stored=result.stored,
+    )
     return {
         "calibration": calibration,
         "report": report,
