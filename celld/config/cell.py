@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from celld.config.cell_model import read_cell_model
 from celld.config.reader import TableReader
 from celld.config.sections import (
     BusConfig,
@@ -32,6 +33,7 @@ from celld.config.sections import (
 )
 from celld.config.tactile import ServoConfig, TactileConfig, ToolConfig, check_servo
 from celld.errors import ConfigError
+from celld.robot.cellmodel import CellModel
 from celld.seam.params import SeamParams
 
 
@@ -53,6 +55,8 @@ class Config:
     weld: WeldConfig = field(default_factory=WeldConfig)
     # The seam finder: the scanner's preset, with the file's [seam] table over it.
     seam: SeamParams = field(default_factory=SeamParams)
+    # What the arm and its tool must not hit: the cell's objects, the tool, the margin.
+    cell_model: CellModel = field(default_factory=CellModel.default)
     sim: SimConfig = field(default_factory=SimConfig)
 
     def T_base_cam_nominal(self) -> np.ndarray:
@@ -117,6 +121,9 @@ def parse(data: dict[str, Any], source: str = "<dict>") -> Config:
         sub.done()
     sub = top.table("seam")
     values["seam"] = read_seam(sub, values["scanner"].model, values["tool"].wall_side)
+    sub.done()
+    sub = top.table("cell_model")
+    values["cell_model"] = read_cell_model(sub)
     sub.done()
     top.done()
     check_servo(values["servo"], values["tactile"], values["tool"], source)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 from celld.bus.keys import check_prefix
 from celld.config.reader import TableReader
 from celld.errors import BusError
+from celld.robot.kinematics import MODELS as UR_MODELS
 from celld.seam.params import PRESETS as SEAM_PRESETS
 from celld.seam.params import SEAM_SOURCES, SeamParams
 
@@ -60,7 +61,7 @@ class RobotConfig:
         if not all(a < b for a, b in zip(wmin, wmax)):
             raise r.error("workspace_max", f"expected every value above workspace_min {wmin}, got {wmax}")
         return cls(
-            model=r.str("model", "ur10e", choices=("ur10e", "ur5e", "ur5")),
+            model=r.str("model", "ur10e", choices=tuple(UR_MODELS)),
             host=r.str("host", "127.0.0.1"),
             frequency_hz=r.float("frequency_hz", 500.0, lo=1.0, hi=500.0),
             connect_timeout=r.float("connect_timeout_s", 10.0, lo=0.1, hi=120.0),

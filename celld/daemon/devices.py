@@ -30,10 +30,12 @@ from typing import Any
 import numpy as np
 
 from celld.config import Config
+from celld.daemon.planning import MotionPlanner
 from celld.errors import CelldError, ConfigError, DeviceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import NAME as ALGORITHM2
 from celld.motion.handle import MotionHandle
+from celld.motion.types import RobotState
 from celld.scanner.base import OrganizedCloud, Scanner
 from celld.scanner.factory import open_scanner
 from celld.supervision import Backoff, ChildRecords, Heartbeat
@@ -133,6 +135,7 @@ class CellDevices:
         self._tactile_restart_at = -math.inf
         self._tactile_failures = 0
         self.tactile_error = ""  # why the tactile process is not running, "" while it is
+        self.planner = MotionPlanner(config)
         self.heartbeat: Heartbeat | None = None
         self._beating: asyncio.Task[None] | None = None
         self.leftovers: list[str] = []  # what was cleaned up after a previous daemon
@@ -217,6 +220,26 @@ class CellDevices:
     async def wait_robot(self, timeout: float) -> bool:
         """Wait until the motion loop runs and has read the robot; False on timeout."""
         return await self.require_motion().wait_ready(timeout)
+
+    async def move_to(self, T_base_tcp: np.ndarray, speed_scale: float = 1.0, *, tool: bool = True) -> RobotState:
+        """A jerk-limited straight move of the TCP, checked against the cell first (:class:`MotionPlanner`).
+
+        Raises
+        ------
+        PathRefused
+            The move would hit the cell or cannot be reached; the robot did not move.
+        """
+        motion = self.require_motion()
+        q = self.current_q()
+        await asyncio.to_thread(self.planner.check_move, q, T_base_tcp, tool)
+        return await motion.move_to(T_base_tcp, speed_scale=speed_scale)
+
+    def current_q(self) -> np.ndarray:
+        """The robot's joints now; DeviceError without robot state."""
+        state = self.require_motion().state()
+        if state is None:
+            raise DeviceError("no robot state: the robot link is not up")
+        return np.asarray(state.q, dtype=np.float64)
 
     def require_motion(self) -> MotionHandle:
         if self.motion is None:

@@ -78,9 +78,10 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
 
 
 async def _settled_flange_pose(devices: CellDevices, T_target: np.ndarray, settle: float) -> np.ndarray:
-    """Move to ``T_target``, let the arm settle, and return the flange pose the robot reports."""
+    """Move to ``T_target`` (the tool is off: the scanner must see the flange), let the arm settle, and
+    return the flange pose the robot reports."""
     motion = devices.require_motion()
-    await motion.move_to(T_target)
+    await devices.move_to(T_target, tool=False)
     await asyncio.sleep(settle)
     state = motion.state()
     if state is None:
@@ -106,11 +107,27 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         overrides["compensate"] = True
     params = SolveParams.from_config(cal, **overrides)
     T_v = se3.from_ur_pose(job.verification_pose if job.verification_pose is not None else cal.verification_pose)
+    # The plan, checked against the cell before the robot moves: the verification
+    # pose, then the poses; generated ones that fail are replaced, given ones refuse the job.
+    planner = devices.planner
+    to_v = await asyncio.to_thread(planner.check_move, devices.current_q(), T_v, False)
+    seed = job.seed or 0
     if job.poses:
-        poses = np.array([se3.from_ur_pose(p) for p in job.poses])
+        candidates = np.array([se3.from_ur_pose(p) for p in job.poses])
+        plan = await asyncio.to_thread(planner.plan_calibration, to_v.q_end, candidates, len(candidates))
     else:
         n = job.n_poses if job.n_poses is not None else cal.n_poses
-        poses = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=job.seed or 0)
+
+        def more(count: int, rnd: int) -> np.ndarray:
+            return calibration_poses(T_v, cal.pose_box, count, cal.max_tilt, seed=seed + 1000 * (rnd + 1))
+
+        candidates = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=seed)
+        plan = await asyncio.to_thread(planner.plan_calibration, to_v.q_end, candidates, n, more)
+    poses = np.array(plan.poses)
+    for r in plan.refused:
+        log.warning("calibration pose replaced", job=ctx.job_id, reason=r.message)
+    ctx.progress("plan", 0.0, f"{len(poses)} poses planned, {len(plan.refused)} replaced (they would hit the cell or are out of reach)",
+                 replaced=[r.message for r in plan.refused])
     dataset = ctx.result_dir() / "dataset"
     writer = SessionWriter(dataset, flange=cal.flange, scanner=config.scanner.model)
     rec = ctx.recording
@@ -199,11 +216,10 @@ async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
     job = ctx.job
     if not isinstance(job, MoveJob):
         raise JobError("$.kind", "not a move job")
-    motion = devices.require_motion()
     target = np.asarray(job.target, dtype=np.float64)
     T = forward(target) if job.space == "joint" else se3.from_ur_pose(target)
     ctx.progress("move", 0.0, f"moving to {np.round(se3.to_ur_pose(T), 4).tolist()}")
-    state = await motion.move_to(T, speed_scale=job.speed_scale)
+    state = await devices.move_to(T, speed_scale=job.speed_scale)
     dt, dr = se3.error(state.T_base_tcp, T)
     return {"tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(), "error_mm": dt * 1e3, "error_deg": math.degrees(dr)}
 

@@ -44,7 +44,7 @@ from celld.errors import CelldError, ConfigError, InputError, JobError, Workpiec
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
 from celld.seam.figures import track_summary
-from celld.seam.weldpath import WeldGeometry, start_pose, wall_offset, weld_geometry
+from celld.seam.weldpath import WeldGeometry, start_pose, tool_poses, wall_offset, weld_geometry
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
 from celld.tactile.tool import ToolGeometry
 
@@ -55,6 +55,8 @@ LEAD_IN = 0.005
 # ... and this far off the wall on the free side (m); the servo's touch then
 # travels it at touch_speed (bounded by servo.touch_distance).
 CLEARANCE = 0.004
+# The weld's path check looks at the tool every this much along the seam, m.
+PATH_STEP = 0.01
 # Seconds between progress events while tracking.
 PROGRESS_PERIOD = 0.5
 # Seconds between SRM camera frames logged to the recording while tracking.
@@ -149,7 +151,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
 
     # 1. scan
     ctx.progress("scan", 0.0, "arm to the scan pose, scanning")
-    await motion.move_to(T_scan, speed_scale=speed)
+    await devices.move_to(T_scan, speed_scale=speed)
     cloud = await devices.capture()
     if rec is not None:
         rec.log_camera_pose(T_base_cam)
@@ -164,14 +166,19 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         rec.log_path_base("planned", geometry.seam_base)
     ctx.progress("seam", None, f"seam found: {seam.length * 1e3:.1f} mm", length_mm=seam.length * 1e3, **_quality(seam))
 
-    # 3. approach
+    # 3. the whole path, checked against the cell before the tool moves to it:
+    # above the start, down, along the seam, up and back to the scan pose.
     T_start = start_pose(geometry, tool.T_tcp_tool, LEAD_IN, CLEARANCE)
     z = geometry.T_base_plane[:3, 2]
     T_above = T_start.copy()
     T_above[:3, 3] += wc.approach_height * z
+    path = weld_path(geometry, tool.T_tcp_tool, T_above, T_start, T_scan, wc.retract_height)
+    if rec is not None:
+        rec.log_path_base("plan/tcp", path[:, :3, 3])
+    await asyncio.to_thread(devices.planner.check_path, devices.current_q(), path)
     ctx.progress("approach", None, "tool to the seam's start")
-    await motion.move_to(T_above, speed_scale=speed)
-    await motion.move_to(T_start, speed_scale=min(speed, 0.2))
+    await devices.move_to(T_above, speed_scale=speed)
+    await devices.move_to(T_start, speed_scale=min(speed, 0.2))
     ctx.progress("tare", None, "taring the SRM, finger free")
     await asyncio.to_thread(devices.tactile.tare)
 
@@ -228,8 +235,8 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
                 T_up = state.T_base_tcp.copy()
                 T_up[:3, 3] += wc.retract_height * z
                 ctx.progress("retract", None, "tool up and away")
-                await motion.move_to(T_up, speed_scale=min(speed, 0.2))
-                await motion.move_to(T_scan, speed_scale=speed)
+                await devices.move_to(T_up, speed_scale=min(speed, 0.2))
+                await devices.move_to(T_scan, speed_scale=speed)
         except CelldError as exc:
             retract_error = str(exc)
             log.error("retract after the weld failed", job=ctx.job_id, error=retract_error)
@@ -243,6 +250,17 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     if retract_error:
         result["retract_error"] = retract_error
     return result
+
+
+def weld_path(geometry: WeldGeometry, T_tcp_tool: np.ndarray, T_above: np.ndarray, T_start: np.ndarray,
+              T_scan: np.ndarray, retract_height: float) -> np.ndarray:
+    """The TCP poses (n, 4, 4) a weld passes through: above the start, the start, along the wall line
+    (every PATH_STEP), up by the retract height at the end, back to the scan pose."""
+    length = float(polyline.arc_length(geometry.wall_base)[-1])
+    track = tool_poses(geometry, T_tcp_tool, np.arange(LEAD_IN + PATH_STEP, length, PATH_STEP))
+    T_up = track[-1].copy() if len(track) else T_start.copy()
+    T_up[:3, 3] += retract_height * geometry.T_base_plane[:3, 2]
+    return np.concatenate([T_above[None], T_start[None], track, T_up[None], T_scan[None]])
 
 
 def _log_preview(devices: CellDevices, rec: Any, last_stamp: int) -> int:

@@ -32,7 +32,7 @@ T_BASE_CAM_TRUE = [[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, 
 def _write_config(path: Path, host: str, state_dir: Path) -> Path:
     path.write_text(
         f"""
-include = ["{ROOT / 'configs' / 'robots' / 'ur10e.toml'}"]
+include = ["{ROOT / 'configs' / 'robots' / 'ur10e.toml'}", "{ROOT / 'configs' / 'cell-models' / 'sim-cell.toml'}"]
 [cell]
 name = "e2e"
 state_dir = "{state_dir}"
@@ -109,7 +109,7 @@ def test_calibrate_over_the_bus_then_accept(daemon) -> None:
 
 
 def test_move_and_health_and_a_refused_job(daemon) -> None:
-    client, _, _, _ = daemon
+    client, _, _, robot = daemon
     _, record = client.submit_and_wait({"kind": "health", "check": "all"}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
     target = [0.62, 0.02, 0.46, 0.0, 0.0, 0.0]
@@ -118,9 +118,22 @@ def test_move_and_health_and_a_refused_job(daemon) -> None:
     moved = json.loads(Path(record["result"]).read_text())
     assert moved["error_mm"] < 0.1
     # Outside the workspace box: refused with the reason, the daemon stays up.
-    _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 1.3, 0, 0, 0]}}, timeout=60)
+    _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": [1.05, 0.0, 0.5, 0, 0, 0]}}, timeout=60)
     assert record["state"] == "failed" and "workspace" in record["reason"]
     assert client.status()["state"] in ("idle", "fault")
+    # Into the table, into the scanner, out of reach (each inside the workspace box): refused
+    # before any motion, naming the part, the object or the reason.
+    refused = {
+        "table": ([0.6, 0.0, 0.025, math.pi, 0.0, 0.0], ("tool part 'torch'", "'table'")),
+        "scanner": ([0.6, -0.0125, 0.97, 0.0, 0.0, 0.0], ("'scanner'",)),
+        "out of reach": ([0.95, 0.95, 1.1, 0.0, 0.0, 0.0], ("unreachable",)),
+    }
+    for what, (pose, words) in refused.items():
+        q_before = robot.truth()[2]
+        _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": pose}}, timeout=60)
+        assert record["state"] == "failed", (what, record)
+        assert "refused" in record["reason"] and all(w in record["reason"] for w in words), (what, record["reason"])
+        assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, f"the arm moved for the refused move into the {what}"
 
 
 def _submit_and_wait_for(client: CellClient, message: dict, stage: str, timeout: float = 120) -> str:
