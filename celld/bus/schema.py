@@ -156,6 +156,13 @@ def _submit_branch(kind: str, desc: str, properties: dict[str, Any], required: t
     return _object(desc, props, ("kind", *required))
 
 
+_DRY_RUN = {
+    "type": "boolean",
+    "default": False,
+    "description": "Plan everything and check it against the cell without moving the robot; the plan (poses, "
+    "joints, paths, what was refused and why) is in the result and the job's recording.",
+}
+
 _CALIBRATE = _submit_branch(
     "calibrate",
     "Eye-on-base calibration of the scanner from the robot's flange (Algorithm 1): the "
@@ -180,6 +187,7 @@ _CALIBRATE = _submit_branch(
             "description": "Store the estimate compensated by Eq. 21 (it is then what accept makes current); the calibration's stored field says which was stored.",
         },
         "seed": _integer("Seed of the pose generator (default: a fresh one).", 0, 2**32 - 1),
+        "dry_run": _DRY_RUN,
     },
 )
 
@@ -198,7 +206,8 @@ _WELD = _submit_branch(
         "k_p": _servo_number("k_p", "Normal gain of Eq. 16, 1/s"),
         "v_const_mm_s": _servo_number("v_const", "Tangential speed V_const, mm/s"),
         "torch_offset_mm": _servo_number("torch_offset", "|d| of Eq. 14, mm"),
-        "arc": {"type": "boolean", "default": True, "description": "Switch the arc on while tracking; false: a dry run."},
+        "arc": {"type": "boolean", "default": True, "description": "Switch the arc on while tracking; false: track without it."},
+        "dry_run": _DRY_RUN,
     },
 )
 
@@ -468,6 +477,7 @@ class CalibrateJob:
     verification_pose: Pose6 | None = None
     compensate: bool = False
     seed: int | None = None
+    dry_run: bool = False
     ref: str = ""
     kind: ClassVar[str] = "calibrate"
 
@@ -482,6 +492,7 @@ class WeldJob:
     v_const: float | None = None  # m/s
     torch_offset: float | None = None  # m
     arc: bool = True
+    dry_run: bool = False
     ref: str = ""
     kind: ClassVar[str] = "weld"
 
@@ -661,6 +672,7 @@ def _build_calibrate(m: Mapping[str, Any]) -> CalibrateJob:
         verification_pose=_pose6(m["verification_pose"]) if "verification_pose" in m else None,
         compensate=bool(m.get("compensate", False)),
         seed=_int_or_none(m.get("seed")),
+        dry_run=bool(m.get("dry_run", False)),
         ref=m.get("ref", ""),
     )
 
@@ -674,6 +686,7 @@ def _build_weld(m: Mapping[str, Any]) -> WeldJob:
         v_const=_mm(m.get("v_const_mm_s")),
         torch_offset=_mm(m.get("torch_offset_mm")),
         arc=bool(m.get("arc", True)),
+        dry_run=bool(m.get("dry_run", False)),
         ref=m.get("ref", ""),
     )
 
@@ -783,6 +796,8 @@ def job_to_message(job: Job) -> dict[str, Any]:
             m["verification_pose"] = list(job.verification_pose)
         if job.compensate:
             m["compensate"] = True
+        if job.dry_run:
+            m["dry_run"] = True
         if job.seed is not None:
             m["seed"] = job.seed
     elif isinstance(job, WeldJob):
@@ -795,6 +810,8 @@ def job_to_message(job: Job) -> dict[str, Any]:
             m["k_p"] = job.k_p
         if not job.arc:
             m["arc"] = False
+        if job.dry_run:
+            m["dry_run"] = True
     elif isinstance(job, MoveJob):
         key = "q" if job.space == "joint" else "pose"
         m["target"] = {"space": job.space, key: list(job.target)}

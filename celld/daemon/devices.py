@@ -47,6 +47,8 @@ log = get_logger(__name__)
 
 # Servo laws the motion process may be asked to run, by name.
 SERVO_LAWS = {ALGORITHM2: "celld.motion.algorithm2:make_algorithm2"}
+# Longest a job waits for the robot's first state, s.
+STATE_WAIT = 5.0
 # Longest a stop may take before the daemon gives up waiting, s.
 STOP_TIMEOUT = 5.0
 # How often the daemon's heartbeat beats, s (its children wait motion.parent_timeout for it).
@@ -230,15 +232,18 @@ class CellDevices:
             The move would hit the cell or cannot be reached; the robot did not move.
         """
         motion = self.require_motion()
-        q = self.current_q()
+        q = await self.current_q()
         await asyncio.to_thread(self.planner.check_move, q, T_base_tcp, tool)
         return await motion.move_to(T_base_tcp, speed_scale=speed_scale)
 
-    def current_q(self) -> np.ndarray:
-        """The robot's joints now; DeviceError without robot state."""
-        state = self.require_motion().state()
+    async def current_q(self, timeout: float = STATE_WAIT) -> np.ndarray:
+        """The robot's joints now, waiting up to ``timeout`` s for the first state; DeviceError without one."""
+        motion = self.require_motion()
+        state = motion.state()
+        if state is None and await motion.wait_ready(timeout):
+            state = motion.state()
         if state is None:
-            raise DeviceError("no robot state: the robot link is not up")
+            raise DeviceError(f"no robot state within {timeout:g} s: the robot link is not up")
         return np.asarray(state.q, dtype=np.float64)
 
     def require_motion(self) -> MotionHandle:

@@ -23,8 +23,9 @@ move (bench/collision_check.py); the daemon runs them in a worker thread.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,6 +34,7 @@ from celld import se3
 from celld.config import Config
 from celld.errors import PathRefused
 from celld.robot import kinematics as kin
+from celld.robot.cellmodel import Box
 from celld.robot.collision import Checker, PathCheck, Refusal
 
 Array = NDArray[np.float64]
@@ -130,3 +132,19 @@ class MotionPlanner:
             first = "; ".join(r.message for r in refused[:3])
             raise PathRefused(f"only {len(poses)} of {n} calibration poses can be reached without touching the cell: {first}")
         return CalibrationPlan(tuple(poses), tuple(joints), tuple(refused))
+
+
+def record_plan(rec: Any, checker: Checker, joints: Sequence[Sequence[float]], name: str = "pose") -> None:
+    """Draw a plan in a job recording: the cell's box objects and the arm with its tool at each joint vector.
+
+    ``rec`` is a :class:`~celld.recording.job.JobRecording` (or None: nothing
+    to do). Objects other than boxes are not drawn yet (the checks use them all).
+    """
+    if rec is None:
+        return
+    for obj in checker.cell.objects:
+        if isinstance(obj.shape, Box):
+            rec.log_boxes(obj.name, obj.T_base_obj[None], np.asarray(obj.shape.size)[None])
+    for i, q in enumerate(joints):
+        _, ends, radii = checker.segments(np.asarray(q, dtype=np.float64))
+        rec.log_capsules(f"{name}_{i + 1:02d}", ends, radii)

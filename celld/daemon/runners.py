@@ -45,6 +45,7 @@ from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext, Runner
+from celld.daemon.planning import record_plan
 from celld.errors import CalibrationError, CelldError, JobError
 from celld.log import get_logger
 from celld.robot.kinematics import forward
@@ -110,7 +111,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     # The plan, checked against the cell before the robot moves: the verification
     # pose, then the poses; generated ones that fail are replaced, given ones refuse the job.
     planner = devices.planner
-    to_v = await asyncio.to_thread(planner.check_move, devices.current_q(), T_v, False)
+    to_v = await asyncio.to_thread(planner.check_move, await devices.current_q(), T_v, False)
     seed = job.seed or 0
     if job.poses:
         candidates = np.array([se3.from_ur_pose(p) for p in job.poses])
@@ -128,6 +129,17 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         log.warning("calibration pose replaced", job=ctx.job_id, reason=r.message)
     ctx.progress("plan", 0.0, f"{len(poses)} poses planned, {len(plan.refused)} replaced (they would hit the cell or are out of reach)",
                  replaced=[r.message for r in plan.refused])
+    if job.dry_run:
+        record_plan(ctx.recording, planner.bare, [tuple(to_v.q_end), *plan.q])
+        return {
+            "dry_run": True,
+            "plan": {
+                "verification_pose": se3.to_ur_pose(T_v).tolist(),
+                "poses": [se3.to_ur_pose(T).tolist() for T in plan.poses],
+                "joints": [list(to_v.q_end), *[list(q) for q in plan.q]],
+                "refused": [{"pose": list(r.target), "reason": r.reason, "message": r.message} for r in plan.refused],
+            },
+        }
     dataset = ctx.result_dir() / "dataset"
     writer = SessionWriter(dataset, flange=cal.flange, scanner=config.scanner.model)
     rec = ctx.recording

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,7 @@ from celld.bus.schema import WeldJob
 from celld.config import Config, ServoConfig, with_overrides
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import CalibrationStore, JobContext
+from celld.daemon.planning import record_plan
 from celld.errors import CelldError, ConfigError, InputError, JobError, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
@@ -55,6 +57,11 @@ LEAD_IN = 0.005
 # ... and this far off the wall on the free side (m); the servo's touch then
 # travels it at touch_speed (bounded by servo.touch_distance).
 CLEARANCE = 0.004
+# A dry run scans only with the arm this close to the scan pose (m, rad).
+DRY_RUN_AT_SCAN = 0.002
+DRY_RUN_AT_SCAN_ANGLE = 0.01
+# A dry run draws the arm at this many configurations along the checked path.
+DRY_RUN_ROBOTS = 12
 # The weld's path check looks at the tool every this much along the seam, m.
 PATH_STEP = 0.01
 # Seconds between progress events while tracking.
@@ -150,8 +157,17 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     T_scan = se3.from_ur_pose(wc.scan_pose)
 
     # 1. scan
-    ctx.progress("scan", 0.0, "arm to the scan pose, scanning")
-    await devices.move_to(T_scan, speed_scale=speed)
+    if job.dry_run:
+        # A dry run moves nothing: it scans from the scan pose, so the arm must be there already.
+        here = motion.state()
+        dt, dr = se3.error(here.T_base_tcp, T_scan) if here is not None else (math.inf, math.inf)
+        if dt > DRY_RUN_AT_SCAN or dr > DRY_RUN_AT_SCAN_ANGLE:
+            raise JobError("$.dry_run", f"a dry run scans from the scan pose and moves nothing: the arm is {dt * 1e3:.1f} mm "
+                                        f"from weld.scan_pose; move it there first (celld submit move --pose ...)")
+        ctx.progress("scan", 0.0, "scanning (dry run: the arm stays where it is)")
+    else:
+        ctx.progress("scan", 0.0, "arm to the scan pose, scanning")
+        await devices.move_to(T_scan, speed_scale=speed)
     cloud = await devices.capture()
     if rec is not None:
         rec.log_camera_pose(T_base_cam)
@@ -174,8 +190,20 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     T_above[:3, 3] += wc.approach_height * z
     path = weld_path(geometry, tool.T_tcp_tool, T_above, T_start, T_scan, wc.retract_height)
     if rec is not None:
-        rec.log_path_base("plan/tcp", path[:, :3, 3])
-    await asyncio.to_thread(devices.planner.check_path, devices.current_q(), path)
+        rec.log_path_base("plan", path[:, :3, 3])
+    check = await asyncio.to_thread(devices.planner.check_path, await devices.current_q(), path)
+    if job.dry_run:
+        stations = np.linspace(0, len(check.q) - 1, min(len(check.q), DRY_RUN_ROBOTS)).round().astype(int)
+        record_plan(rec, devices.planner.with_tool, [tuple(check.q[i]) for i in stations])
+        return {
+            "dry_run": True,
+            "workpiece": workpiece.name,
+            "calibration_job": cal_job,
+            "planned_path": geometry.seam_base.tolist(),
+            "tcp_path": [se3.to_ur_pose(T).tolist() for T in path],
+            "min_clearance_mm": round(check.min_clearance * 1e3, 2),
+            "seam_length_mm": round(seam.length * 1e3, 2),
+        }
     ctx.progress("approach", None, "tool to the seam's start")
     await devices.move_to(T_above, speed_scale=speed)
     await devices.move_to(T_start, speed_scale=min(speed, 0.2))

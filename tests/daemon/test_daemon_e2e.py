@@ -136,6 +136,25 @@ def test_move_and_health_and_a_refused_job(daemon) -> None:
         assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, f"the arm moved for the refused move into the {what}"
 
 
+def test_a_calibration_dry_run_plans_and_checks_without_moving(daemon) -> None:
+    client, _, _, robot = daemon
+    q_before = robot.truth()[2]
+    _, record = client.submit_and_wait({"kind": "calibrate", "n_poses": 6, "seed": 2, "dry_run": True}, timeout=120)
+    assert record["state"] == "succeeded", record["reason"]
+    result = json.loads(Path(record["result"]).read_text())
+    plan = result["plan"]
+    assert result["dry_run"] and len(plan["poses"]) == 6 and len(plan["joints"]) == 7  # the verification pose first
+    assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, "a dry run moved the arm"
+    # The plan's joints reach the planned poses (the controller's own kinematics).
+    from celld.robot import kinematics as kin
+
+    for q, pose in zip(plan["joints"][1:], plan["poses"]):
+        np.testing.assert_allclose(kin.forward(q), se3.from_ur_pose(pose), atol=1e-6)
+    entities = read_entities(Path(result["recording"]))
+    assert "/world/cell/table" in entities and "/world/cell/scanner" in entities, entities
+    assert "/world/robot/pose_01" in entities and "/world/robot/pose_07" in entities, entities
+
+
 def _submit_and_wait_for(client: CellClient, message: dict, stage: str, timeout: float = 120) -> str:
     """Submit a job and wait for its first progress event in ``stage``; returns the job id."""
     with client.watch_progress() as events:

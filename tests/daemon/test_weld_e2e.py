@@ -111,6 +111,15 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
         paths = json.loads(Path(result["paths"]).read_text())
         assert len(paths["refined"]) > 100 and len(paths["torch"]) > 100
 
+        # The arm is back at the scan pose: a dry run scans, plans and checks the weld, and moves nothing.
+        q_before = robot.truth()[2]
+        _, dry = client.submit_and_wait({"kind": "weld", "dry_run": True}, timeout=300)
+        assert dry["state"] == "succeeded", dry["reason"]
+        planned = json.loads(Path(dry["result"]).read_text())
+        assert planned["dry_run"] and len(planned["tcp_path"]) > 10 and planned["min_clearance_mm"] > 5.0, planned
+        assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, "a dry run moved the arm"
+        assert "/world/robot/pose_01" in read_entities(Path(planned["recording"]))
+
         entities = read_entities(Path(result["recording"]))
         for name in ("planned", "refined", "torch"):
             assert any(e.endswith(name) and e.startswith("/world") for e in entities), (name, entities)
