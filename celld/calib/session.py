@@ -47,6 +47,7 @@ from celld.calib.pairs import Detections, PairCollector
 from celld.calib.quality import CalibrationQuality, QualityParams, assess_calibration
 from celld.calib.rigid import Array, Uncertainty, check_pairs, pair_residuals, solve_rigid
 from celld.calib.robust import RejectedPair, RobustParams, solve_robust
+from celld import se3
 from celld.config import CalibrationConfig
 from celld.errors import CalibrationError, DetectionError, InputError
 from celld.log import get_logger
@@ -308,7 +309,10 @@ def solve_pairs(
     # The verification flange's axis in the camera frame, by the estimate: e_icp's
     # turn about it is fixed only by the flange's holes (quality module).
     T_base_flan_v = getattr(verifier, "T_base_flan_v", None)
-    axis_cam = None if T_base_flan_v is None else T[:3, :3].T @ np.asarray(T_base_flan_v)[:3, 2]
+    axis_cam = centre_cam = None
+    if T_base_flan_v is not None:
+        T_cam_flan_v = se3.invert(T) @ np.asarray(T_base_flan_v)
+        axis_cam, centre_cam = T_cam_flan_v[:3, 2], T_cam_flan_v[:3, 3]
     quality = assess_calibration(
         ids_t,
         P_b,
@@ -321,6 +325,7 @@ def solve_pairs(
         rejected=rejected,
         e_icp=e_final,
         flange_axis_cam=axis_cam,
+        flange_centre_cam=centre_cam,
         compensated=T_comp is not None,
         notes=notes,
         params=params.quality,

@@ -206,6 +206,29 @@ def test_the_turn_about_the_flange_axis_judges_only_a_compensation(rng: np.rando
     assert d["e_icp_turn_deg"] == pytest.approx(1.2) and d["e_icp_tilt_deg"] == pytest.approx(0.1)
 
 
+def test_e_icp_translation_is_judged_at_the_verification_flange(rng: np.random.Generator) -> None:
+    # The verification flange sits a metre in front of the camera and 0.47 m
+    # off its axis. ICP turns it 0.4 deg about its own axis (which it cannot
+    # fix), tilts it 0.05 deg about its centre and shifts it 0.2 mm: 3.0 mm
+    # at the camera's origin, 0.2 mm at the flange.
+    centre = np.array([0.4, -0.25, 1.0])
+    axis = np.array([0.0, 0.0, -1.0])
+    R = Rotation.from_rotvec(np.radians(0.4) * axis + np.radians(0.05) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    t = centre - R @ centre + np.array([0.0002, 0.0, 0.0])
+    e = IcpMetric(transform_from(R, t), True, 0.95, 1e-4)
+    P_base, P_cam = box_pairs(rng, 10)
+    at_origin = assess_fit(P_base, P_cam, e, flange_axis_cam=axis)
+    assert at_origin.verdict == "poor_data"
+    assert at_origin.reasons[0].startswith("e_icp (Eq. 13) of the estimate is ")
+    at_flange = assess_fit(P_base, P_cam, e, flange_axis_cam=axis, flange_centre_cam=centre)
+    assert at_flange.verdict == "ok", at_flange.reasons
+    # A real offset at the flange still fails, and the reason says where it was judged.
+    shifted = IcpMetric(transform_from(R, t + np.array([0.0, 0.0025, 0.0])), True, 0.95, 1e-4)
+    q = assess_fit(P_base, P_cam, shifted, flange_axis_cam=axis, flange_centre_cam=centre)
+    assert q.verdict == "poor_data"
+    assert q.reasons == ("e_icp (Eq. 13) of the estimate moves the verification flange's centre 2.508 mm, above 2.000 mm",)
+
+
 def test_verdicts_follow_their_order_and_list_every_reason(rng: np.random.Generator) -> None:
     P_base, P_cam = strip_pairs(rng, 4, 0.01)
     q = assess_fit(P_base, P_cam, IcpMetric.failed("no verification point within 3 mm of the placed model"))
