@@ -1,6 +1,6 @@
 """Collision checks before motion: time to check a calibration plan and a weld line.
 
-The simulated cell of configs/cell-model.example.toml (table, PhoXi M and its
+The simulated cell of configs/cell-models/sim-cell.toml (table, PhoXi M and its
 mount, the SRM finger and torch on the flange) with a UR10e at the simulated
 robot's home (configs/sim-cell.toml), through celld.robot.collision.Checker:
 
@@ -40,6 +40,7 @@ import numpy as np
 from celld import se3
 from celld.calib.poses import calibration_poses
 from celld.config import TableReader, load
+from celld.config.cell_model import read_cell_model
 from celld.robot import kinematics as kin
 from celld.robot.cellmodel import Box, CellModel, CellObject
 from celld.robot.collision import Checker
@@ -67,8 +68,8 @@ class Row:
 
 
 def cell_model() -> CellModel:
-    table = tomllib.loads((ROOT / "configs" / "cell-model.example.toml").read_text())["cell_model"]
-    return CellModel.read(TableReader(table, "cell-model.example.toml", "cell_model"))
+    table = tomllib.loads((ROOT / "configs" / "cell-models" / "sim-cell.toml").read_text())["cell_model"]
+    return read_cell_model(TableReader(table, "cell-models/sim-cell.toml", "cell_model"))
 
 
 def run_plan(checker: Checker, seed: int) -> Row:

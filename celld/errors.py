@@ -22,6 +22,7 @@ caller never has to know which library failed::
     │   ├── LinkLost           the RTDE link dropped or went stale
     │   └── SafetyStop         a protective stop, e-stop or limit breach
     ├── MotionError            the motion process failed or refused a command
+    │   └── PathRefused        a move would hit the cell or cannot be reached (checked before it starts)
     ├── BusError               the zenoh bus failed or refused a request
     ├── JournalError           the job journal refused a change or is damaged
     └── RecordingError         a job recording cannot be written
@@ -138,6 +139,11 @@ class SafetyStop(RobotError):
 
 class MotionError(CelldError):
     """The motion process failed, or refused a command."""
+
+
+class PathRefused(MotionError):
+    """A move, a calibration pose or a weld path was refused before the robot moved: it would hit
+    the cell (which part, which object), is out of reach, crosses a singularity or leaves the IK branch."""
 
 
 class BusError(CelldError):

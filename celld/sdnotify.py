@@ -131,8 +131,9 @@ async def run_watchdog(
     Parameters
     ----------
     healthy : callable
-        True while the motion process's heartbeat is fresh (and whatever else
-        the daemon needs to be alive). It must be quick: it runs on the loop.
+        True while the daemon and its supervision are alive (the daemon: the
+        motion process is supervised, link up or not). It must be quick: it
+        runs on the loop, so a hung loop also leaves the watchdog unkicked.
     interval : float, optional
         Default: half of ``WATCHDOG_USEC``. Without a watchdog this returns at once.
     on_unhealthy : callable, optional

@@ -76,6 +76,21 @@ def _open(name: str, size: int, create: bool) -> shared_memory.SharedMemory:
     return shm
 
 
+def unlink_segment(name: str) -> bool:
+    """Remove the named segment a dead process left behind; True if there was one.
+
+    For a daemon cleaning up after its killed predecessor: nothing attaches
+    to the segment and no resource tracker is told.
+    """
+    import _posixshmem  # the module multiprocessing.shared_memory itself uses
+
+    try:
+        _posixshmem.shm_unlink("/" + name)
+    except FileNotFoundError:
+        return False
+    return True
+
+
 class _Segment:
     """A named segment with uint64 counters on their own lines and a data area."""
 

@@ -65,8 +65,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--k-max", type=int, help="most iterations of Algorithm 1")
     c.add_argument("--poses-file", help="JSON file: a list of UR poses [x, y, z, rx, ry, rz] (m, rad)")
     c.add_argument("--verification-pose", **_floats(6, "V"), help="UR pose of the verification capture")
-    c.add_argument("--compensate", action="store_true", help="apply the error compensation of Eq. 21")
+    c.add_argument("--compensate", action="store_true", help="store the estimate compensated by Eq. 21")
     c.add_argument("--seed", type=int, help="seed of the pose generator")
+    c.add_argument("--dry-run", action="store_true", help="plan and check the poses against the cell, do not move")
 
     w = kinds.add_parser("weld", parents=[job_common], help="scan, find the seam, touch and track it")
     w.add_argument("--workpiece", help="workpiece model known to the cell (default: the config's weld.workpiece)")
@@ -74,7 +75,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     w.add_argument("--k-p", type=float, help="normal gain of Eq. 16, 1/s")
     w.add_argument("--v-const-mm-s", type=float, help="tangential speed, mm/s")
     w.add_argument("--torch-offset-mm", type=float, help="|d| of Eq. 14, mm")
-    w.add_argument("--no-arc", action="store_true", help="dry run: track without the arc")
+    w.add_argument("--no-arc", action="store_true", help="track without the arc")
+    w.add_argument("--dry-run", action="store_true", help="scan (the arm at the scan pose), plan and check the weld, do not move")
 
     m = kinds.add_parser("move", parents=[job_common], help="jerk-limited move to joint positions or a TCP pose")
     target = m.add_mutually_exclusive_group(required=True)
@@ -109,6 +111,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     a = sub.add_parser("accept", parents=[common], help="make a calibrate job's result the current calibration")
     a.add_argument("job")
+    a.add_argument("--force", action="store_true", help="accept even though the calibration failed its quality gate")
     a.set_defaults(func=_accept)
 
     b = sub.add_parser("bus", help="bus tools")
@@ -164,6 +167,8 @@ def _job_message(args: argparse.Namespace) -> dict[str, Any]:
             m["verification_pose"] = args.verification_pose
         if args.compensate:
             m["compensate"] = True
+        if args.dry_run:
+            m["dry_run"] = True
     elif kind == "weld":
         _put(m, "workpiece", args.workpiece)
         _put(m, "delta_d_mm", args.delta_d_mm)
@@ -172,6 +177,8 @@ def _job_message(args: argparse.Namespace) -> dict[str, Any]:
         _put(m, "torch_offset_mm", args.torch_offset_mm)
         if args.no_arc:
             m["arc"] = False
+        if args.dry_run:
+            m["dry_run"] = True
     elif kind == "move":
         m["target"] = {"space": "joint", "q": args.joints} if args.joints else {"space": "cartesian", "pose": args.pose}
         _put(m, "speed_scale", args.speed_scale)
@@ -337,11 +344,12 @@ def _cancel(args: argparse.Namespace) -> int:
 
 def _accept(args: argparse.Namespace) -> int:
     with _client(args) as cell:
-        reply = cell.accept(args.job)
+        reply = cell.accept(args.job, force=args.force)
     if args.json:
         _print_json(reply)
     else:
-        print(f"calibration of {reply['job']} is current")
+        forced = " (forced past a failed quality verdict)" if reply["calibration"].get("forced") else ""
+        print(f"calibration of {reply['job']} is current{forced}")
     return 0
 
 

@@ -179,9 +179,9 @@ class CellClient:
             message["kind"] = kind
         return list(self.request("list", message)["jobs"])
 
-    def accept(self, job: str) -> dict[str, Any]:
-        """Make calibrate job ``job``'s result current; returns accept-reply."""
-        return self.request("accept", {"job": job})
+    def accept(self, job: str, force: bool = False) -> dict[str, Any]:
+        """Make calibrate job ``job``'s result current (``force``: despite a failed quality verdict); returns accept-reply."""
+        return self.request("accept", {"job": job, "force": True} if force else {"job": job})
 
     def calibration(self) -> dict[str, Any] | None:
         """The current calibration, or None."""

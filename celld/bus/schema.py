@@ -16,7 +16,7 @@ queryable                 payload                                       parsed i
 ``status``                ``{}`` or ``{"job": ID}``                     :class:`StatusRequest`
 ``cancel``                ``{"job": ID}``                               :class:`CancelRequest`
 ``list``                  ``{"limit": N, "state": S, "kind": K}``       :class:`ListRequest`
-``accept``                ``{"job": ID}`` (a calibrate job)             :class:`AcceptRequest`
+``accept``                ``{"job": ID, "force": B}`` (a calibrate job) :class:`AcceptRequest`
 ``calibration``           ``{}``                                        :class:`CalibrationRequest`
 ========================  ============================================  ===========================
 
@@ -74,6 +74,8 @@ JOB_KINDS = ("calibrate", "weld", "move", "health")
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
 TERMINAL_STATES = ("succeeded", "failed", "cancelled", "interrupted")
 HEALTH_CHECKS = ("all", "robot", "scanner", "tactile")
+# Verdicts of the calibration quality gate (celld.calib.quality.VERDICTS; only "ok" passes).
+CALIBRATION_VERDICTS = ("ok", "too_few_pairs", "poor_data", "insufficient_rotation")
 
 Pose6 = tuple[float, float, float, float, float, float]
 
@@ -154,6 +156,13 @@ def _submit_branch(kind: str, desc: str, properties: dict[str, Any], required: t
     return _object(desc, props, ("kind", *required))
 
 
+_DRY_RUN = {
+    "type": "boolean",
+    "default": False,
+    "description": "Plan everything and check it against the cell without moving the robot; the plan (poses, "
+    "joints, paths, what was refused and why) is in the result and the job's recording.",
+}
+
 _CALIBRATE = _submit_branch(
     "calibrate",
     "Eye-on-base calibration of the scanner from the robot's flange (Algorithm 1): the "
@@ -172,8 +181,13 @@ _CALIBRATE = _submit_branch(
             "description": "Calibration poses to visit instead of generated ones.",
         },
         "verification_pose": _pose("Where the verification cloud is taken (default: calibration.verification_pose)."),
-        "compensate": {"type": "boolean", "default": False, "description": "Apply the error compensation of Eq. 21."},
+        "compensate": {
+            "type": "boolean",
+            "default": False,
+            "description": "Store the estimate compensated by Eq. 21 (it is then what accept makes current); the calibration's stored field says which was stored.",
+        },
         "seed": _integer("Seed of the pose generator (default: a fresh one).", 0, 2**32 - 1),
+        "dry_run": _DRY_RUN,
     },
 )
 
@@ -192,7 +206,8 @@ _WELD = _submit_branch(
         "k_p": _servo_number("k_p", "Normal gain of Eq. 16, 1/s"),
         "v_const_mm_s": _servo_number("v_const", "Tangential speed V_const, mm/s"),
         "torch_offset_mm": _servo_number("torch_offset", "|d| of Eq. 14, mm"),
-        "arc": {"type": "boolean", "default": True, "description": "Switch the arc on while tracking; false: a dry run."},
+        "arc": {"type": "boolean", "default": True, "description": "Switch the arc on while tracking; false: track without it."},
+        "dry_run": _DRY_RUN,
     },
 )
 
@@ -259,6 +274,56 @@ _JOB_RECORD = _object(
     ("id", "kind", "state", "reason", "params", "created", "started", "ended", "result"),
 )
 
+_NUMBER_OR_NULL = {"type": ["number", "null"]}
+_TEXTS = {"type": "array", "items": {"type": "string"}}
+
+_QUALITY = _object(
+    "The quality gate's view of a calibration (celld.calib.quality): a verdict and why, per-pair "
+    "residuals and outliers, the uncertainty at the workspace centre, e_icp of the estimate.",
+    {
+        "verdict": {"enum": list(CALIBRATION_VERDICTS), "description": "Only ok passes; accept refuses the others unless forced."},
+        "passed": {"type": "boolean"},
+        "reasons": {**_TEXTS, "description": "Why the verdict is not ok."},
+        "warnings": {**_TEXTS, "description": "What does not fail the gate but should be known."},
+        "pairs": {
+            "type": "array",
+            "description": "Every pair: residual against the estimate, used, outlier, and why.",
+            "items": _object(
+                "One pair.",
+                {
+                    "id": {"type": "string"},
+                    "residual_mm": {**_NUMBER_OR_NULL, "description": "Null when the pair has no flange centre."},
+                    "used": {"type": "boolean"},
+                    "outlier": {"type": "boolean"},
+                    "reason": {"type": "string", "description": "Why it is an outlier, not used, or without a centre."},
+                },
+                ("id", "residual_mm", "used", "outlier", "reason"),
+            ),
+        },
+        "outliers": {"type": "array", "items": {"type": "string"}, "description": "Ids of the outliers."},
+        "n_used": {"type": "integer", "minimum": 0},
+        "rms_mm": {**_NUMBER_OR_NULL, "description": "RMS residual of the pairs used."},
+        "sigma_mm": {**_NUMBER_OR_NULL, "description": "Noise per axis the uncertainty uses."},
+        "sigma_source": {"enum": ["residuals", "floor"]},
+        "workspace_centre": _vector("Centroid of the positions used, base frame, m.", 3),
+        "translation_std_mm": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3, "description": "1-sigma at the workspace centre, base x, y, z."},
+        "rotation_std_deg": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3, "description": "1-sigma about base x, y, z."},
+        "rotation_axes": {
+            "type": "array",
+            "description": "Principal axes of the rotation covariance, the worst fixed first.",
+            "items": _object(
+                "One axis.",
+                {"axis": {"type": "string"}, "direction": _vector("Unit direction, base frame.", 3), "std_deg": _NUMBER_OR_NULL},
+                ("axis", "direction", "std_deg"),
+            ),
+        },
+        "e_icp": {"type": ["object", "null"], "description": "e_icp (Eq. 13) of the estimate; null without a verification cloud."},
+        "e_icp_tilt_deg": {**_NUMBER_OR_NULL, "description": "e_icp's rotation across the verification flange's axis."},
+        "e_icp_turn_deg": {**_NUMBER_OR_NULL, "description": "e_icp's rotation about the verification flange's axis (fixed only by its holes)."},
+    },
+    ("verdict", "passed", "reasons", "warnings", "pairs"),
+)
+
 _CALIBRATION = _object(
     "A calibration of the scanner: T_base_cam, the pose of the camera in the robot base frame.",
     {
@@ -275,6 +340,9 @@ _CALIBRATION = _object(
         "accepted": {"type": "string", "description": "When it became current, UTC ISO 8601."},
         "dataset": {"type": "string", "description": "Path of the saved dataset."},
         "method": {"type": "string", "description": "The estimator that gave T_base_cam (robust, svd, algorithm1)."},
+        "stored": {"enum": ["estimate", "compensated"], "description": "T_base_cam is the estimate, or the estimate compensated by Eq. 21."},
+        "quality": _QUALITY,
+        "forced": {"type": "boolean", "description": "Accepted with force despite a failed quality verdict."},
     },
     ("job", "T_base_cam", "accepted"),
 )
@@ -334,7 +402,11 @@ _BODIES: dict[str, dict[str, Any]] = {
             "kind": {"enum": list(JOB_KINDS)},
         },
     ),
-    "accept": _object("Make a finished calibrate job's result the current calibration.", {"job": _JOB_ID}, ("job",)),
+    "accept": _object(
+        "Make a finished calibrate job's result the current calibration. A result whose quality verdict is not ok is refused unless force is true.",
+        {"job": _JOB_ID, "force": {"type": "boolean", "default": False, "description": "Accept even though the quality verdict is not ok."}},
+        ("job",),
+    ),
     "calibration": _object("The current calibration.", {}),
     # replies
     "error-reply": _object("A refused request.", {"ok": {"const": False}, "error": _ERROR}, ("ok", "error")),
@@ -405,6 +477,7 @@ class CalibrateJob:
     verification_pose: Pose6 | None = None
     compensate: bool = False
     seed: int | None = None
+    dry_run: bool = False
     ref: str = ""
     kind: ClassVar[str] = "calibrate"
 
@@ -419,6 +492,7 @@ class WeldJob:
     v_const: float | None = None  # m/s
     torch_offset: float | None = None  # m
     arc: bool = True
+    dry_run: bool = False
     ref: str = ""
     kind: ClassVar[str] = "weld"
 
@@ -467,6 +541,7 @@ class ListRequest:
 @dataclass(frozen=True)
 class AcceptRequest:
     job: str
+    force: bool = False  # accept despite a failed quality verdict
 
 
 @dataclass(frozen=True)
@@ -597,6 +672,7 @@ def _build_calibrate(m: Mapping[str, Any]) -> CalibrateJob:
         verification_pose=_pose6(m["verification_pose"]) if "verification_pose" in m else None,
         compensate=bool(m.get("compensate", False)),
         seed=_int_or_none(m.get("seed")),
+        dry_run=bool(m.get("dry_run", False)),
         ref=m.get("ref", ""),
     )
 
@@ -610,6 +686,7 @@ def _build_weld(m: Mapping[str, Any]) -> WeldJob:
         v_const=_mm(m.get("v_const_mm_s")),
         torch_offset=_mm(m.get("torch_offset_mm")),
         arc=bool(m.get("arc", True)),
+        dry_run=bool(m.get("dry_run", False)),
         ref=m.get("ref", ""),
     )
 
@@ -646,7 +723,7 @@ _BUILDERS: dict[str, Callable[[Mapping[str, Any]], Any]] = {
     "status": lambda m: StatusRequest(job=m.get("job")),
     "cancel": lambda m: CancelRequest(job=m["job"], reason=m.get("reason", "")),
     "list": lambda m: ListRequest(limit=int(m.get("limit", 50)), state=m.get("state"), kind=m.get("kind")),
-    "accept": lambda m: AcceptRequest(job=m["job"]),
+    "accept": lambda m: AcceptRequest(job=m["job"], force=bool(m.get("force", False))),
     "calibration": lambda m: CalibrationRequest(),
 }
 
@@ -719,6 +796,8 @@ def job_to_message(job: Job) -> dict[str, Any]:
             m["verification_pose"] = list(job.verification_pose)
         if job.compensate:
             m["compensate"] = True
+        if job.dry_run:
+            m["dry_run"] = True
         if job.seed is not None:
             m["seed"] = job.seed
     elif isinstance(job, WeldJob):
@@ -731,6 +810,8 @@ def job_to_message(job: Job) -> dict[str, Any]:
             m["k_p"] = job.k_p
         if not job.arc:
             m["arc"] = False
+        if job.dry_run:
+            m["dry_run"] = True
     elif isinstance(job, MoveJob):
         key = "q" if job.space == "joint" else "pose"
         m["target"] = {"space": job.space, key: list(job.target)}

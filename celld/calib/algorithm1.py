@@ -202,7 +202,8 @@ class Algorithm1:
         """Lines 1-3: the initial pool of four pairs, its estimate and e_icp."""
         if self._steps:
             raise CalibrationError("Algorithm 1 has already started")
-        P_b, P_c = check_pairs(P_base, P_cam, min_pairs=1)
+        # A degenerate pool is scored (infinite cost, with the reason), not refused.
+        P_b, P_c = check_pairs(P_base, P_cam, min_pairs=1, determined=False)
         if len(P_b) != POOL_SIZE or len(ids) != POOL_SIZE:
             raise InputError(f"initial pool: expected {POOL_SIZE} pairs and ids, got {len(P_b)} pairs and {len(ids)} ids")
         ids_t = tuple(str(i) for i in ids)
@@ -242,7 +243,7 @@ class Algorithm1:
         pid = str(pair_id)
         if pid in self._seen:
             raise InputError(f"pair {pid!r}: already given to this run")
-        pb, pc = check_pairs(np.reshape(p_base, (1, 3)), np.reshape(p_cam, (1, 3)), min_pairs=1)
+        pb, pc = check_pairs(np.reshape(p_base, (1, 3)), np.reshape(p_cam, (1, 3)), min_pairs=1, determined=False)
         self._seen.add(pid)
         candidates = []
         for slot in range(POOL_SIZE):

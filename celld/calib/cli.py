@@ -3,9 +3,13 @@
 ``celld calib solve DIR [--json] [--flange PRESET] [--method robust|svd|algorithm1]``
 solves a saved session again, offline (this project's ``poses.json`` or the
 reference toolbox's ``calib_data.json``). With ``--json`` it prints one JSON
-object with ``T_base_cam`` (4 x 4, metres), ``residuals_mm`` (one per used
-pair, aligned with ``pairs``), ``rejected`` (ids) and ``pairs`` (ids used),
-plus the details of :meth:`~celld.calib.session.CalibrationResult.as_dict`.
+object with ``T_base_cam`` (4 x 4, metres; the compensated one of Eq. 21 with
+``--compensate``, as ``stored`` says), ``residuals_mm`` (one per used pair,
+aligned with ``pairs``), ``rejected`` (ids), ``pairs`` (ids used) and
+``quality`` (the gate's verdict, reasons, warnings, per-pair residuals and
+outliers, uncertainty at the workspace centre, e_icp), plus the details of
+:meth:`~celld.calib.session.CalibrationResult.as_dict`. A failed verdict is a
+result, not an error: the exit code stays 0.
 
 ``celld calib detect CLOUD --flange PRESET --units mm|m [--json]`` finds the
 flange in one cloud (PLY or PCD, or a ``.npy`` array (n, 3) or (H, W, 3)) and
@@ -40,7 +44,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--flange", help="flange preset (default: the session's); needed to detect centres in clouds")
     s.add_argument("--method", choices=("robust", "svd", "algorithm1"), help="estimator (default: the config's, robust)")
     s.add_argument("--config", help="cell config whose [calibration] section sets the method, e_icp and Algorithm 1")
-    s.add_argument("--compensate", action="store_true", help="also report the estimate compensated by Eq. 21")
+    s.add_argument("--compensate", action="store_true", help="report the estimate compensated by Eq. 21 as T_base_cam (needs a verification cloud)")
     s.add_argument("--redetect", action="store_true", help="detect every centre in its cloud, ignoring recorded centres")
     s.add_argument("--scale", action="store_true", help="estimate the scale c of Eq. 11")
     s.set_defaults(func=_solve)
@@ -69,15 +73,22 @@ def _solve(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(out, allow_nan=False))
         return 0
-    print(f"T_base_cam ({out['method']}, {len(out['pairs'])} of {out['n_pairs']} pairs, rms {out['rms_mm']:.3f} mm):")
+    print(f"T_base_cam ({out['method']}, {out['stored']}, {len(out['pairs'])} of {out['n_pairs']} pairs, rms {out['rms_mm']:.3f} mm):")
     for row in out["T_base_cam"]:
         print("  " + "  ".join(f"{x:+.6f}" for x in row))
     for r in out["rejected_detail"]:
         print(f"rejected {r['id']}: {r['reason']}")
-    unc = out["uncertainty"]
-    print(f"uncertainty: translation {unc['translation_error_mm']} mm, rotation {unc['rotation_error_deg']} deg (1 sigma RMS)")
+    q = out["quality"]
+    t = ", ".join("-" if x is None else f"{x:.3f}" for x in q["translation_std_mm"])
+    r = ", ".join("-" if x is None else f"{x:.3f}" for x in q["rotation_std_deg"])
+    print(f"uncertainty (1 sigma): translation ({t}) mm at the workspace centre, rotation about x, y, z ({r}) deg")
     if out["e_icp"] is not None:
         print(f"e_icp: {json.dumps(out['e_icp'])}")
+    print(f"quality: {q['verdict']}")
+    for reason in q["reasons"]:
+        print(f"  fails: {reason}")
+    for warning in q["warnings"]:
+        print(f"  warning: {warning}")
     return 0
 
 

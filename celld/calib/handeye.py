@@ -323,7 +323,7 @@ def solve_eye_on_arm(
     ------
     InputError, CalibrationError
         As :func:`~celld.calib.rigid.solve_rigid` (the flange positions in the
-        arm frame must not be collinear or coplanar).
+        arm frame must not be collinear; coplanar ones are fine).
     """
     Ta = _check_poses(T_base_arm, "T_base_arm")
     Tf = _check_poses(T_base_flan, "T_base_flan")

@@ -2,7 +2,8 @@
 
 Pure: a verification pose, a workspace box around it and a tilt bound in,
 flange poses ``T_base_flan`` out. Positions fill the box on a jittered grid
-(so they are never coplanar or collinear, Eq. 9-12 need that); orientations
+(never collinear, which Eq. 9-12 cannot solve, and spread in all three
+directions, which fixes every rotation of the solution well); orientations
 tilt the flange face, which looks up at a scanner above the table, by up to
 ``max_tilt`` about the base x and y axes and turn it about its own axis by up
 to ``max_spin``. Deterministic for a seed.

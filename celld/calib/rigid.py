@@ -1,10 +1,18 @@
 """Rigid registration of point pairs: the closed form of Eq. 9-12 (SVD / Umeyama).
 
 Owns the validation of point pairs where they enter a solver (shape, NaN,
-count, mismatched lengths, collinear or coplanar positions), the closed-form
-least-squares transform between two point sets, the per-pair residuals, and
-the first-order uncertainty of a fitted transform (:class:`Uncertainty`,
-shared by every solver of :mod:`celld.calib`).
+count, mismatched lengths, positions that leave the rotation undetermined),
+the closed-form least-squares transform between two point sets, the per-pair
+residuals, and the first-order uncertainty of a fitted transform
+(:class:`Uncertainty`, shared by every solver of :mod:`celld.calib`).
+
+What the positions must be: Eq. 10-12 fix a rotation from any three
+positions off one line; coplanar positions are fine (the determinant
+correction of Eq. 12 picks the proper rotation when the third singular value
+of Sigma is zero). Only a rank defect is refused here: positions that
+coincide or lie on one line leave the rotation about that line free. How well
+a solvable set fixes the rotation is a matter of degree, read from the
+covariance of the solution (:mod:`celld.calib.quality`), not a refusal.
 
 Uncertainty convention, used by every solver result of the package: a fitted
 ``T_a_b`` carries a (6, 6) covariance of the perturbation
@@ -36,10 +44,9 @@ Array = NDArray[np.float64]
 
 # Eq. 9-12 need at least four pairs (paper, section 2.1.3, after [42]).
 MIN_PAIRS = 4
-# A point set whose second (third) singular value of the centred positions is
-# below this fraction of the first is refused as collinear (coplanar).
-DEGENERACY_RATIO = 1e-3
-# Below this spread (m) every position counts as the same point.
+# RMS spread (m) below which positions carry no direction: no scanner or robot
+# resolves a micron, so positions within 1 um of a point coincide and positions
+# within 1 um of a line are collinear (the rotation about it is undetermined).
 MIN_SPREAD = 1e-6
 
 
@@ -132,15 +139,31 @@ def check_pairs(
     *,
     names: tuple[str, str] = ("P_base", "P_cam"),
     min_pairs: int = MIN_PAIRS,
+    determined: bool = True,
 ) -> tuple[Array, Array]:
     """Validate two (n, 3) point sets as pairs; return them as float64 arrays.
+
+    The one validation of pairs in :mod:`celld.calib`: every solver calls it
+    where its pairs enter.
+
+    Parameters
+    ----------
+    P_dst, P_src : (n, 3) arrays
+    names : (str, str)
+        Names of the two sets in error messages.
+    min_pairs : int
+    determined : bool
+        Also refuse positions that leave a rigid fit undetermined
+        (:func:`geometry_defect`, on each set). Off only for callers that take
+        pairs one at a time (Algorithm 1's online feed).
 
     Raises
     ------
     InputError
         Wrong shape, mismatched lengths, NaN or infinite values.
     CalibrationError
-        Fewer than ``min_pairs`` pairs.
+        Fewer than ``min_pairs`` pairs, or (``determined``) coincident or
+        collinear positions.
     """
     out = []
     for P, name in zip((P_dst, P_src), names):
@@ -156,42 +179,41 @@ def check_pairs(
         raise InputError(f"{names[0]} and {names[1]}: expected the same number of pairs, got {len(out[0])} and {len(out[1])}")
     if len(out[0]) < min_pairs:
         raise CalibrationError(f"expected at least {min_pairs} pairs, got {len(out[0])}")
+    if determined:
+        for arr, name in zip(out, names):
+            defect = geometry_defect(arr)
+            if defect is not None:
+                raise CalibrationError(f"{name}: {defect}")
     return out[0], out[1]
 
 
-def geometry_defect(P: Array, ratio: float = DEGENERACY_RATIO) -> str | None:
-    """Say why the positions ``P`` (n, 3) cannot fix a transform, or None if they can.
+def geometry_defect(P: Array) -> str | None:
+    """Say why the positions ``P`` (n, 3) leave a rigid fit undetermined, or None.
 
-    The singular values ``s0 >= s1 >= s2`` of the centred positions measure
-    their spread along the principal axes: ``s1 <= ratio s0`` is a line,
-    ``s2 <= ratio s0`` a plane (Eq. 12's sign test is then undetermined, and
-    the paper asks for four non-coplanar points).
+    A rank test: the RMS spread of the centred positions along their principal
+    axes, ``s0 >= s1``, against :data:`MIN_SPREAD`. ``s0`` below it: the
+    positions coincide (fewer than two distinct points); ``s1`` below it: they
+    lie on one line (fewer than three distinct points off it), and no
+    rotation about that line changes the fit. Coplanar positions pass: a plane
+    spanning two directions fixes every rotation (how well is a matter of the
+    covariance, :mod:`celld.calib.quality`).
     """
+    P = np.asarray(P, dtype=np.float64)
+    if len(P) == 0:
+        return "no positions"
     centred = P - P.mean(axis=0)
     s = np.linalg.svd(centred, compute_uv=False)
-    if len(s) < 3:
-        s = np.concatenate([s, np.zeros(3 - len(s))])
+    s = np.concatenate([s, np.zeros(3 - len(s))]) if len(s) < 3 else s
     spread = s / np.sqrt(len(P))
     if spread[0] < MIN_SPREAD:
-        return f"all {len(P)} positions coincide (spread {spread[0] * 1e3:.3g} mm)"
-    if s[1] <= ratio * s[0]:
+        return f"all {len(P)} positions coincide (spread {spread[0] * 1e3:.3g} mm); the transform is undetermined"
+    if spread[1] < MIN_SPREAD:
         return (
             f"the {len(P)} positions are collinear (spread {spread[0] * 1e3:.3g} mm along the line, "
-            f"{spread[1] * 1e3:.3g} mm across it)"
-        )
-    if s[2] <= ratio * s[0]:
-        return (
-            f"the {len(P)} positions are coplanar (spread {spread[0] * 1e3:.3g} mm in the plane, "
-            f"{spread[2] * 1e3:.3g} mm out of it); at least four non-coplanar positions are needed"
+            f"{spread[1] * 1e3:.3g} mm across it): the rotation about the line is undetermined; "
+            "at least three positions off one line are needed"
         )
     return None
-
-
-def check_geometry(P: Array, name: str, ratio: float = DEGENERACY_RATIO) -> None:
-    """Raise CalibrationError if the positions ``P`` are collinear, coplanar or coincide."""
-    defect = geometry_defect(P, ratio)
-    if defect is not None:
-        raise CalibrationError(f"{name}: {defect}")
 
 
 def umeyama(P_dst: Array, P_src: Array, with_scale: bool = False) -> tuple[Array, Array, float]:
@@ -263,20 +285,30 @@ def _skew_rows(V: Array) -> Array:
     return Z
 
 
-def rigid_uncertainty(T_dst_src: Array, P_dst: Array, P_src: Array, scale: float = 1.0, with_scale: bool = False) -> Uncertainty:
-    """First-order covariance of the pose of a fitted ``T_dst_src`` (module docstring)."""
+def rigid_jacobian(T_dst_src: Array, P_dst: Array, P_src: Array, scale: float = 1.0, with_scale: bool = False) -> tuple[Array, Array]:
+    """Jacobian (3n, 6 or 7) of the stacked residuals of Eq. 9 at ``T_dst_src``, and the residuals (3n,).
+
+    Columns: the perturbation ``[rx, ry, rz, tx, ty, tz]`` of the module
+    convention, then the scale when ``with_scale``. ``(J^T J)^-1`` is the
+    covariance per unit noise variance: the geometry's part of it.
+    """
     R = T_dst_src[:3, :3]
     q = scale * P_src @ R.T  # c R p_src, in the dst frame
     r = (q + T_dst_src[:3, 3] - P_dst).reshape(-1)
     n = len(P_dst)
-    n_params = 7 if with_scale else 6
-    J = np.zeros((3 * n, n_params))
+    J = np.zeros((3 * n, 7 if with_scale else 6))
     # d(c exp([w]x) R p)/dw = -[c R p]x ; d/dt = I ; d/dc = R p
     J[:, :3] = (-_skew_rows(q)).reshape(-1, 3)
     J[:, 3:6] = np.tile(np.eye(3), (n, 1))
     if with_scale:
         J[:, 6] = (P_src @ R.T).reshape(-1)
-    cov, sigma, dof = covariance_from_jacobian(J, r, n_params)
+    return J, r
+
+
+def rigid_uncertainty(T_dst_src: Array, P_dst: Array, P_src: Array, scale: float = 1.0, with_scale: bool = False) -> Uncertainty:
+    """First-order covariance of the pose of a fitted ``T_dst_src`` (module docstring)."""
+    J, r = rigid_jacobian(T_dst_src, P_dst, P_src, scale, with_scale)
+    cov, sigma, dof = covariance_from_jacobian(J, r, J.shape[1])
     return Uncertainty(covariance=cov[:6, :6], sigma=sigma, dof=dof)
 
 
@@ -285,7 +317,6 @@ def solve_rigid(
     P_cam: ArrayLike,
     *,
     with_scale: bool = False,
-    degeneracy_ratio: float = DEGENERACY_RATIO,
     names: tuple[str, str] = ("P_base", "P_cam"),
 ) -> RigidFit:
     """Least-squares ``T_base_cam`` from flange-centre pairs, Eq. 9-12.
@@ -299,8 +330,6 @@ def solve_rigid(
     with_scale : bool
         Estimate the scale ``c`` of Eq. 11 (off by default: both sides are
         metric, and a free scale absorbs a range error of the scanner).
-    degeneracy_ratio : float
-        Refuse collinear or coplanar positions below this spread ratio.
     names : (str, str)
         Names of the two sets in error messages (other frames use this solver too).
 
@@ -314,11 +343,10 @@ def solve_rigid(
     InputError
         Bad shape, NaN, mismatched lengths.
     CalibrationError
-        Fewer than four pairs, or collinear / coplanar positions.
+        Fewer than four pairs, or coincident / collinear positions
+        (coplanar ones are solved; their conditioning is in ``uncertainty``).
     """
     P_dst, P_src = check_pairs(P_base, P_cam, names=names)
-    check_geometry(P_dst, names[0], degeneracy_ratio)
-    check_geometry(P_src, names[1], degeneracy_ratio)
     R, t, c = umeyama(P_dst, P_src, with_scale)
     if with_scale and not c > 0.0:
         raise CalibrationError(f"scale c of Eq. 11 came out {c:.3g}: the pairs do not describe a similarity")

@@ -36,11 +36,10 @@ from numpy.typing import ArrayLike
 from scipy.stats import chi2
 
 from celld.calib.rigid import (
-    DEGENERACY_RATIO,
     MIN_PAIRS,
+    MIN_SPREAD,
     Array,
     RigidFit,
-    check_geometry,
     check_pairs,
     pair_residuals,
     solve_rigid,
@@ -51,7 +50,9 @@ from celld.se3 import transform_from
 # Median of the chi-square distribution with 3 degrees of freedom: the median
 # of |r|^2 / sigma^2 for a 3-D isotropic Gaussian residual.
 _CHI2_3_MEDIAN = float(chi2.median(3))
-# Triangles thinner than this (second / first singular value) make no hypothesis.
+# Triangles thinner than this (second / first singular value) make no
+# hypothesis while fatter ones exist (a thin triangle's rotation about its long
+# side is mostly noise).
 _MIN_TRIANGLE_RATIO = 0.05
 
 
@@ -191,9 +192,13 @@ def least_median_of_squares(P_base: Array, P_cam: Array, params: RobustParams = 
     idx = _samples(len(P_base), params)
     A = P_base[idx]
     B = P_cam[idx]
-    # Thin triangles (in the robot's positions) fix no rotation: skip them.
+    # Thin triangles (in the robot's positions) fix the rotation poorly: skip
+    # them, unless every triangle is thin (an elongated set), then keep every
+    # one that spans a triangle at all (the same rank test as check_pairs).
     s = np.linalg.svd(A - A.mean(axis=1, keepdims=True), compute_uv=False)
     keep = s[:, 1] > _MIN_TRIANGLE_RATIO * s[:, 0]
+    if not np.any(keep):
+        keep = s[:, 1] / np.sqrt(3.0) >= MIN_SPREAD
     if not np.any(keep):
         raise CalibrationError("no three pairs span a triangle: the positions are collinear")
     R, t = _kabsch_batch(A[keep], B[keep])
@@ -208,7 +213,6 @@ def solve_robust(
     P_cam: ArrayLike,
     ids: Sequence[str] | None = None,
     params: RobustParams = RobustParams(),
-    degeneracy_ratio: float = DEGENERACY_RATIO,
 ) -> RobustFit:
     """Robust ``T_base_cam`` from flange-centre pairs (see the module docstring).
 
@@ -225,8 +229,9 @@ def solve_robust(
     InputError
         Bad shapes, NaN, mismatched lengths or ids.
     CalibrationError
-        Fewer than four pairs, degenerate positions, or fewer than four
-        mutually consistent pairs.
+        Fewer than four pairs, coincident or collinear positions
+        (:func:`~celld.calib.rigid.check_pairs`), or fewer than four mutually
+        consistent pairs.
     """
     P_dst, P_src = check_pairs(P_base, P_cam)
     n = len(P_dst)
@@ -235,8 +240,6 @@ def solve_robust(
         raise InputError(f"ids: expected {n} pair ids, got {len(ids_t)}")
     if len(set(ids_t)) != n:
         raise InputError("ids: pair ids must be unique")
-    check_geometry(P_dst, "P_base", degeneracy_ratio)
-    check_geometry(P_src, "P_cam", degeneracy_ratio)
 
     T0, med2 = least_median_of_squares(P_dst, P_src, params)
     sigma = math.sqrt(med2 / _CHI2_3_MEDIAN)
@@ -258,7 +261,7 @@ def solve_robust(
             raise CalibrationError(
                 f"only {m} of {n} pairs agree within {threshold * 1e3:.3g} mm; at least {MIN_PAIRS} consistent pairs are needed"
             )
-        fit = solve_rigid(P_dst[inlier], P_src[inlier], with_scale=params.with_scale, degeneracy_ratio=degeneracy_ratio)
+        fit = solve_rigid(P_dst[inlier], P_src[inlier], with_scale=params.with_scale)
         residuals = pair_residuals(fit.T_dst_src, P_dst, P_src, fit.scale)
         # Noise scale from the inliers' residual sum of squares (dof taken out).
         if fit.uncertainty.dof > 0:

@@ -7,7 +7,14 @@ centres are solved by the chosen method, Algorithm 1 runs over the pairs in
 their captured order when a verification cloud is there, the final estimate
 is scored by e_icp (Eq. 13, run to convergence) and, on request, compensated
 by Eq. 21. The result says which pairs were used, which were rejected and
-why, the residual of each pair and the uncertainty.
+why, the residual of each pair and the uncertainty, and carries the quality
+gate's verdict (:mod:`celld.calib.quality`).
+
+Compensation: with ``compensate`` set and a finite e_icp, the transform to
+store (and accept) is the compensated one, ``T_base_cam e_icp`` (Eq. 21);
+:attr:`CalibrationResult.stored` says which one it is. Without a verification
+cloud, or with an infinite e_icp, nothing can compensate: the estimate is
+stored and the quality report says why.
 
 Methods:
 
@@ -37,8 +44,10 @@ from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import FlangeModel
 from celld.calib.metrics import IcpMetric, IcpParams, IcpVerifier, compensate, cost_function, model_cloud_with_normals
 from celld.calib.pairs import Detections, PairCollector
+from celld.calib.quality import CalibrationQuality, QualityParams, assess_calibration
 from celld.calib.rigid import Array, Uncertainty, check_pairs, pair_residuals, solve_rigid
 from celld.calib.robust import RejectedPair, RobustParams, solve_robust
+from celld import se3
 from celld.config import CalibrationConfig
 from celld.errors import CalibrationError, DetectionError, InputError
 from celld.log import get_logger
@@ -72,9 +81,11 @@ class SolveParams:
     k_max : int | None
         Algorithm 1's bound on new pairs (None: all of them).
     compensate : bool
-        Also report the estimate compensated by Eq. 21.
+        Store the estimate compensated by Eq. 21 (needs a verification cloud).
     with_scale : bool
         Estimate the scale of Eq. 11.
+    quality : QualityParams
+        Thresholds of the quality gate.
     """
 
     method: str = "robust"
@@ -87,6 +98,7 @@ class SolveParams:
     k_max: int | None = None
     compensate: bool = False
     with_scale: bool = False
+    quality: QualityParams = field(default_factory=QualityParams)
 
     @classmethod
     def from_config(cls, cal: CalibrationConfig, **overrides: Any) -> SolveParams:
@@ -117,7 +129,8 @@ class CalibrationResult:
     Attributes
     ----------
     T_base_cam : (4, 4) array
-        The estimate of the chosen method, metres.
+        The estimate of the chosen method, metres (before Eq. 21; the
+        transform to store is :attr:`T_base_cam_stored`).
     method : str
     pair_ids : tuple of str
         The pairs the estimate uses, in pair order.
@@ -138,6 +151,10 @@ class CalibrationResult:
         Algorithm 1 over the pairs in order, when a verification cloud is there.
     n_pairs : int
         Pairs in the session.
+    quality : CalibrationQuality
+        The quality gate's verdict on the estimate.
+    stored : str
+        ``"compensated"`` when the transform to store is Eq. 21's, else ``"estimate"``.
     """
 
     T_base_cam: Array
@@ -151,11 +168,27 @@ class CalibrationResult:
     T_base_cam_compensated: Array | None
     algorithm1: Algorithm1Result | None
     n_pairs: int
+    quality: CalibrationQuality
+    stored: str = "estimate"
+
+    @property
+    def T_base_cam_stored(self) -> Array:
+        """The transform to store and accept: Eq. 21's when :attr:`stored` is ``"compensated"``."""
+        if self.stored == "compensated" and self.T_base_cam_compensated is not None:
+            return self.T_base_cam_compensated
+        return self.T_base_cam
 
     def as_dict(self) -> dict[str, Any]:
-        """JSON-ready report: transforms in metres, residuals in mm."""
+        """JSON-ready report: transforms in metres, residuals in mm.
+
+        ``T_base_cam`` is the transform to store (:attr:`T_base_cam_stored`),
+        ``stored`` says which one it is and ``T_base_cam_estimate`` is the
+        estimate before Eq. 21.
+        """
         out: dict[str, Any] = {
-            "T_base_cam": self.T_base_cam.tolist(),
+            "T_base_cam": self.T_base_cam_stored.tolist(),
+            "stored": self.stored,
+            "T_base_cam_estimate": self.T_base_cam.tolist(),
             "method": self.method,
             "pairs": list(self.pair_ids),
             "residuals_mm": (self.residuals * 1e3).tolist(),
@@ -169,6 +202,7 @@ class CalibrationResult:
             "n_pairs": self.n_pairs,
             "e_icp": None if self.e_icp is None else self.e_icp.as_dict(),
             "T_base_cam_compensated": None if self.T_base_cam_compensated is None else self.T_base_cam_compensated.tolist(),
+            "quality": self.quality.as_dict(),
         }
         if self.algorithm1 is not None:
             a = self.algorithm1
@@ -222,8 +256,10 @@ def solve_pairs(
     Raises
     ------
     InputError, CalibrationError
-        Malformed or too few pairs, degenerate positions, no consistent set,
-        or ``algorithm1`` without a verification cloud.
+        Malformed or too few pairs, coincident or collinear positions (the
+        rotation is undetermined; coplanar ones are solved and their
+        conditioning reported by the quality gate), no consistent set, or
+        ``algorithm1`` without a verification cloud.
     """
     P_b, P_c = check_pairs(P_base, P_cam)
     ids_t = tuple(str(i) for i in ids)
@@ -262,10 +298,38 @@ def solve_pairs(
 
     e_final = None
     T_comp = None
+    notes = []
     if verifier is not None:
         e_final = verifier.strict()(T)
         if params.compensate and e_final.ok:
             T_comp = compensate(T, e_final)
+    if params.compensate and T_comp is None:
+        why = "no verification cloud" if e_final is None else f"e_icp is infinite ({e_final.reason})"
+        notes.append(f"compensation (Eq. 21) was asked for but not applied: {why}; the estimate is stored")
+    # The verification flange's axis in the camera frame, by the estimate: e_icp's
+    # turn about it is fixed only by the flange's holes (quality module).
+    T_base_flan_v = getattr(verifier, "T_base_flan_v", None)
+    axis_cam = centre_cam = None
+    if T_base_flan_v is not None:
+        T_cam_flan_v = se3.invert(T) @ np.asarray(T_base_flan_v)
+        axis_cam, centre_cam = T_cam_flan_v[:3, 2], T_cam_flan_v[:3, 3]
+    quality = assess_calibration(
+        ids_t,
+        P_b,
+        P_c,
+        T,
+        used=used,
+        uncertainty=unc,
+        scale=scale,
+        with_scale=params.with_scale,
+        rejected=rejected,
+        e_icp=e_final,
+        flange_axis_cam=axis_cam,
+        flange_centre_cam=centre_cam,
+        compensated=T_comp is not None,
+        notes=notes,
+        params=params.quality,
+    )
     return CalibrationResult(
         T_base_cam=T,
         method=params.method,
@@ -278,6 +342,8 @@ def solve_pairs(
         T_base_cam_compensated=T_comp,
         algorithm1=a1,
         n_pairs=n_pairs if n_pairs is not None else len(P_b) + len(pre_rejected),
+        quality=quality,
+        stored="compensated" if T_comp is not None else "estimate",
     )
 
 
@@ -373,5 +439,9 @@ def calibrate_session(
         pairs=len(result.pair_ids),
         rejected=len(result.rejected),
         rms_mm=round(float(np.sqrt(np.mean(result.residuals**2))) * 1e3, 4),
+        verdict=result.quality.verdict,
+        stored=result.stored,
     )
+    for warning in result.quality.warnings:
+        log.warning("calib.quality", warning=warning)
     return result

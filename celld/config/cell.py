@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from celld.config.cell_model import read_cell_model
 from celld.config.reader import TableReader
 from celld.config.sections import (
     BusConfig,
@@ -33,6 +34,7 @@ from celld.config.sections import (
 )
 from celld.config.tactile import ServoConfig, TactileConfig, ToolConfig, check_servo
 from celld.errors import ConfigError
+from celld.robot.cellmodel import CellModel
 from celld.seam.params import SeamParams
 
 
@@ -54,6 +56,8 @@ class Config:
     weld: WeldConfig = field(default_factory=WeldConfig)
     # The seam finder: the scanner's preset, with the file's [seam] table over it.
     seam: SeamParams = field(default_factory=SeamParams)
+    # What the arm and its tool must not hit: the cell's objects, the tool, the margin.
+    cell_model: CellModel = field(default_factory=CellModel.default)
     # The simulated cell's own description of the true cell ([sim]), kept as
     # the raw table: only the simulator reads and checks it (celld.sim.world).
     sim: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
@@ -120,6 +124,9 @@ def parse(data: dict[str, Any], source: str = "<dict>") -> Config:
         sub.done()
     sub = top.table("seam")
     values["seam"] = read_seam(sub, values["scanner"].model, values["tool"].wall_side)
+    sub.done()
+    sub = top.table("cell_model")
+    values["cell_model"] = read_cell_model(sub)
     sub.done()
     top.done()
     check_servo(values["servo"], values["tactile"], values["tool"], source)

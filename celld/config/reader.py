@@ -132,6 +132,20 @@ class TableReader:
             raise self.error(name, f"expected a 4x4 rigid transform: {exc}") from exc
         return tuple(tuple(float(x) for x in row) for row in T)
 
+    def tables(self, name: builtins.str) -> list[TableReader]:
+        """An array of tables ``[[name]]`` (empty when absent), a reader each."""
+        raw = self._get(name, [])
+        if not isinstance(raw, list):
+            raise self.error(name, f"expected an array of tables [[{self.key(name)}]], got {type(raw).__name__}")
+        return [TableReader(t, self.source, self.key(f"{name}[{i}]")) for i, t in enumerate(raw)]
+
+    def names(self, name: builtins.str) -> tuple[builtins.str, ...]:
+        """A list of non-empty strings (empty when absent)."""
+        value = self._get(name, [])
+        if not isinstance(value, list) or not all(isinstance(v, builtins.str) and v for v in value):
+            raise self.error(name, f"expected a list of names, got {value!r}")
+        return tuple(value)
+
     def table(self, name: builtins.str, required: builtins.bool = False) -> TableReader:
         value = self._get(name, _REQUIRED if required else {})
         return TableReader(value, self.source, self.key(name))

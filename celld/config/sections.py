@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 from celld.bus.keys import check_prefix
 from celld.config.reader import TableReader
 from celld.errors import BusError
+from celld.robot.kinematics import MODELS as UR_MODELS
 from celld.seam.params import PRESETS as SEAM_PRESETS
 from celld.seam.params import SEAM_SOURCES, SeamParams
 
@@ -60,7 +61,7 @@ class RobotConfig:
         if not all(a < b for a, b in zip(wmin, wmax)):
             raise r.error("workspace_max", f"expected every value above workspace_min {wmin}, got {wmax}")
         return cls(
-            model=r.str("model", "ur10e", choices=("ur10e", "ur5e", "ur5")),
+            model=r.str("model", "ur10e", choices=tuple(UR_MODELS)),
             host=r.str("host", "127.0.0.1"),
             frequency_hz=r.float("frequency_hz", 500.0, lo=1.0, hi=500.0),
             connect_timeout=r.float("connect_timeout_s", 10.0, lo=0.1, hi=120.0),
@@ -90,6 +91,11 @@ class MotionLimits:
     link_timeout: float = 0.1
     # RTDE watchdog: the controller stops its program after 1/rate s without a kick.
     rtde_watchdog_hz: float = 10.0
+    # The motion and camera processes stop the robot and end when the daemon's
+    # heartbeat is older than this (the daemon hangs), s; a dead daemon is seen
+    # at once. Above the event loop's worst hold-ups (a scan holding the GIL on a
+    # loaded PC: about 1 s measured) and above systemd's WatchdogSec.
+    parent_timeout: float = 3.0
 
     @classmethod
     def read(cls, r: TableReader) -> MotionLimits:
@@ -104,6 +110,7 @@ class MotionLimits:
             state_stale_cycles=r.int("state_stale_cycles", cls.state_stale_cycles, lo=1, hi=50),
             link_timeout=r.float("link_timeout_ms", cls.link_timeout * 1e3, lo=4.0, hi=5000.0, scale=1e-3),
             rtde_watchdog_hz=r.float("rtde_watchdog_hz", cls.rtde_watchdog_hz, lo=1.0, hi=500.0),
+            parent_timeout=r.float("parent_timeout_ms", cls.parent_timeout * 1e3, lo=50.0, hi=10_000.0, scale=1e-3),
         )
 
 
@@ -196,7 +203,7 @@ class CalibrationConfig:
     # Estimator of T_base_cam: robust (every consistent pair), svd (all pairs,
     # Eq. 9-12) or algorithm1 (the optimum pool of Algorithm 1).
     method: str = "robust"
-    compensate: bool = False  # also report Eq. 21's compensated estimate
+    compensate: bool = False  # store Eq. 21's compensated estimate as the calibration
     # e_icp (Eq. 13): ICP correspondence distance (m; about 3x the scanner's
     # point noise or more), verification points used, model point spacing (m).
     icp_max_distance: float = 0.003

@@ -9,8 +9,10 @@ Start-up, in order, each step refusing to go on when it fails:
    supervises and restarts it) and the tactile camera process;
 4. the scanner;
 5. the zenoh session, the bus server and the cell's liveliness token;
-6. ``READY=1`` to systemd once the robot link is up, then ``WATCHDOG=1`` only
-   while the motion loop's heartbeat is fresh.
+6. ``READY=1`` to systemd once the robot link is up, then ``WATCHDOG=1``
+   while the event loop runs and the motion process is supervised (its
+   supervisor makes progress), link up or not: a protective stop or a lost
+   link is the supervisor's to handle, a hung daemon is systemd's.
 
 SIGTERM or SIGINT: the robot stops first (jerk-limited), queued and running
 jobs end as cancelled, then the bus, the devices and the motion process close.
@@ -103,7 +105,7 @@ class Daemon:
         self._tasks.append(loop.create_task(self._publish_state(), name="celld-state"))
         self._tasks.append(
             loop.create_task(
-                sdnotify.run_watchdog(self.notifier, self._healthy, on_unhealthy=self._unhealthy),
+                sdnotify.run_watchdog(self.notifier, self.devices.supervised, on_unhealthy=self._unsupervised),
                 name="celld-watchdog",
             )
         )
@@ -173,14 +175,12 @@ class Daemon:
         self.devices.attach_recording(recording)
         return recording
 
-    def _healthy(self) -> bool:
+    def _link_up(self) -> bool:
         age = self.devices.heartbeat_age()
         return age is not None and age < HEARTBEAT_FRESH
 
-    def _unhealthy(self) -> None:
-        self.notifier.status("robot link down or motion loop stalled: watchdog not kicked")
-        if self.manager is not None:
-            self.manager.set_fault("robot link down or motion loop stalled")
+    def _unsupervised(self) -> None:
+        self.notifier.status("the motion process is not supervised: watchdog not kicked")
 
     async def _publish_state(self) -> None:
         while True:
@@ -194,8 +194,8 @@ class Daemon:
             if tactile is not None:
                 self.bus.publish_tactile_state(tactile)
             await self.devices.supervise_tactile()
-            if self.manager is not None and self._healthy():
-                self.manager.set_fault("")
+            if self.manager is not None:
+                self.manager.set_fault("" if self._link_up() else "robot link down or motion loop stalled")
 
 
 def serve(config: Config, factories: DeviceFactories) -> None:

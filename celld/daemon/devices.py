@@ -24,18 +24,21 @@ import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from celld.config import Config
+from celld.daemon.planning import MotionPlanner
 from celld.errors import CelldError, ConfigError, DeviceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import NAME as ALGORITHM2
 from celld.motion.handle import MotionHandle
+from celld.motion.types import RobotState
 from celld.scanner.base import OrganizedCloud, Scanner
 from celld.scanner.factory import open_scanner
-from celld.supervision import Backoff
+from celld.supervision import Backoff, ChildRecords, Heartbeat
 from celld.tactile.camera import FrameSourceFactory, opencv_camera
 from celld.tactile.process import CAMERA_REALTIME, TactileProcess
 from celld.tactile.sample import TactileSample
@@ -44,8 +47,14 @@ log = get_logger(__name__)
 
 # Servo laws the motion process may be asked to run, by name.
 SERVO_LAWS = {ALGORITHM2: "celld.motion.algorithm2:make_algorithm2"}
+# Longest a job waits for the robot's first state, s.
+STATE_WAIT = 5.0
 # Longest a stop may take before the daemon gives up waiting, s.
 STOP_TIMEOUT = 5.0
+# How often the daemon's heartbeat beats, s (its children wait motion.parent_timeout for it).
+HEARTBEAT_PERIOD = 0.02
+# A beat this much later than the last one is logged (s).
+STALL_WARNING = 0.2
 # Least time between two restarts of a dying tactile process, s: it doubles
 # after each failed restart, up to a minute.
 TACTILE_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 32.0, 60.0))
@@ -77,8 +86,12 @@ def real_devices() -> DeviceFactories:
     return DeviceFactories(scanner=_open_configured_scanner)
 
 
-def make_tactile(config: Config, camera: FrameSourceFactory | None = None) -> TactileProcess | None:
+def make_tactile(
+    config: Config, camera: FrameSourceFactory | None = None, heartbeat: str = "", records: ChildRecords | None = None
+) -> TactileProcess | None:
     """The tactile process of a cell (not started), or None when ``tactile.kind = "none"``.
+
+    It watches this process and the ``heartbeat`` slot, and is recorded in ``records``.
 
     Raises
     ------
@@ -97,7 +110,8 @@ def make_tactile(config: Config, camera: FrameSourceFactory | None = None) -> Ta
             )
         camera = opencv_camera
     realtime = replace(CAMERA_REALTIME, priority=config.tactile.rt_priority)
-    return TactileProcess(config.tactile, config.tool, f"celld-{uuid.uuid4().hex[:8]}", camera, realtime)
+    return TactileProcess(config.tactile, config.tool, f"celld-{uuid.uuid4().hex[:8]}", camera, realtime,
+                          heartbeat=heartbeat, parent_timeout=config.motion.parent_timeout, records=records)
 
 
 class CellDevices:
@@ -123,12 +137,23 @@ class CellDevices:
         self._tactile_restart_at = -math.inf
         self._tactile_failures = 0
         self.tactile_error = ""  # why the tactile process is not running, "" while it is
+        self.planner = MotionPlanner(config)
+        self.heartbeat: Heartbeat | None = None
+        self._beating: asyncio.Task[None] | None = None
+        self.leftovers: list[str] = []  # what was cleaned up after a previous daemon
 
     # -- life cycle ----------------------------------------------------------------
 
     async def open(self) -> None:
         cfg = self.config
-        self.tactile = make_tactile(cfg, self._factories.camera)
+        # A daemon that was killed may have left children that still drive the
+        # robot (they stop on their own within the heartbeat timeout) and
+        # shared memory: clean up before starting our own.
+        records = ChildRecords(Path(cfg.cell.state_dir) / "run")
+        self.leftovers = await asyncio.to_thread(records.reap)
+        self.heartbeat = Heartbeat(f"celld-{uuid.uuid4().hex[:8]}-heartbeat")
+        self._beating = asyncio.get_running_loop().create_task(self._beat(self.heartbeat), name="celld-heartbeat")
+        self.tactile = make_tactile(cfg, self._factories.camera, self.heartbeat.name, records)
         if self.tactile is not None:
             try:
                 await asyncio.to_thread(self.tactile.start)
@@ -145,6 +170,8 @@ class CellDevices:
             link_timeout=cfg.motion.link_timeout,
             watchdog_hz=cfg.motion.rtde_watchdog_hz,
             wait=False,  # the supervisor keeps (re)connecting; see wait_robot()
+            heartbeat=self.heartbeat.name,
+            records=records,
         )
         self.motion.add_listener(self._on_state_batch)
         self.scanner = await asyncio.to_thread(self._factories.scanner, cfg)
@@ -165,12 +192,59 @@ class CellDevices:
         if self.tactile is not None:
             await asyncio.to_thread(self.tactile.stop)
             self.tactile = None
+        if self._beating is not None:
+            self._beating.cancel()
+            await asyncio.gather(self._beating, return_exceptions=True)
+            self._beating = None
+        if self.heartbeat is not None:
+            self.heartbeat.close()
+            self.heartbeat = None
+
+    @staticmethod
+    async def _beat(heartbeat: Heartbeat) -> None:
+        """The daemon's heartbeat for its children, from the event loop: a hung loop stops the robot.
+
+        A beat that comes much later than asked for says the event loop was
+        held up (work that should run in a thread, or a library holding the
+        GIL): logged, as the children see it too.
+        """
+        last = time.monotonic()
+        while True:
+            heartbeat.beat()
+            now = time.monotonic()
+            if now - last > STALL_WARNING:
+                log.warning("the event loop was held up", ms=round((now - last) * 1e3))
+            last = now
+            await asyncio.sleep(HEARTBEAT_PERIOD)
 
     # -- robot ----------------------------------------------------------------------
 
     async def wait_robot(self, timeout: float) -> bool:
         """Wait until the motion loop runs and has read the robot; False on timeout."""
         return await self.require_motion().wait_ready(timeout)
+
+    async def move_to(self, T_base_tcp: np.ndarray, speed_scale: float = 1.0, *, tool: bool = True) -> RobotState:
+        """A jerk-limited straight move of the TCP, checked against the cell first (:class:`MotionPlanner`).
+
+        Raises
+        ------
+        PathRefused
+            The move would hit the cell or cannot be reached; the robot did not move.
+        """
+        motion = self.require_motion()
+        q = await self.current_q()
+        await asyncio.to_thread(self.planner.check_move, q, T_base_tcp, tool)
+        return await motion.move_to(T_base_tcp, speed_scale=speed_scale)
+
+    async def current_q(self, timeout: float = STATE_WAIT) -> np.ndarray:
+        """The robot's joints now, waiting up to ``timeout`` s for the first state; DeviceError without one."""
+        motion = self.require_motion()
+        state = motion.state()
+        if state is None and await motion.wait_ready(timeout):
+            state = motion.state()
+        if state is None:
+            raise DeviceError(f"no robot state within {timeout:g} s: the robot link is not up")
+        return np.asarray(state.q, dtype=np.float64)
 
     def require_motion(self) -> MotionHandle:
         if self.motion is None:
@@ -191,6 +265,18 @@ class CellDevices:
         if self.motion is None:
             return "unknown"
         return "up" if self.motion.link_running() else "down"
+
+    def supervised(self, max_age: float = 1.0) -> bool:
+        """The motion process is supervised: its supervisor runs and made progress within ``max_age`` s.
+
+        True through link losses, protective stops and restarts (the
+        supervisor keeps trying); False when the supervision itself has
+        stopped or hangs.
+        """
+        if self.motion is None:
+            return False
+        sup = self.motion.supervisor
+        return sup.running() and time.monotonic() - sup.last_tick < max_age
 
     def heartbeat_age(self) -> float | None:
         if self.motion is None:

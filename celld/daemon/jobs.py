@@ -89,6 +89,9 @@ class CalibrationStore:
 
     The current one is ``<state_dir>/calibration.json``; a candidate is
     ``<state_dir>/calibrations/<job>.json``. Both are written atomically.
+    A candidate whose quality verdict (``quality.verdict``) is not ``ok`` is
+    accepted only with ``force``, and is then marked ``forced``; a candidate
+    without a verdict (written before the gate existed) is accepted as before.
     """
 
     def __init__(self, state_dir: Path) -> None:
@@ -110,13 +113,23 @@ class CalibrationStore:
     def add_candidate(self, job_id: str, calibration: Mapping[str, Any]) -> Path:
         return fsutil.write_json(self.candidates / f"{job_id}.json", dict(calibration))
 
-    def accept(self, job_id: str) -> dict[str, Any]:
+    def accept(self, job_id: str, force: bool = False) -> dict[str, Any]:
         import json
 
         path = self.candidates / f"{job_id}.json"
         if not path.exists():
             raise JobError("$.job", f"job {job_id} left no calibration to accept (not a finished calibrate job)")
         calibration = json.loads(path.read_text())
+        quality = calibration.get("quality")
+        verdict = quality.get("verdict") if isinstance(quality, dict) else None
+        if verdict is not None and verdict != "ok":
+            if not force:
+                reasons = "; ".join(str(r) for r in quality.get("reasons", []))
+                raise JobError(
+                    "$.job",
+                    f"the calibration of job {job_id} failed its quality gate ({verdict}: {reasons}); accept it with force to override",
+                )
+            calibration["forced"] = True
         calibration["accepted"] = _utc_now()
         fsutil.write_json(self.current_path, calibration)
         return calibration
@@ -284,8 +297,8 @@ class JobManager:
             raise JobError("$.job", f"job {req.job} is a {record.state} {record.kind} job; only a succeeded calibrate job can be accepted")
         if self._running is not None:
             raise JobError("$", f"refused: job {self._running[0]} is running; accept a calibration between jobs")
-        calibration = self.calibrations.accept(req.job)
-        log.info("calibration accepted", job=req.job)
+        calibration = self.calibrations.accept(req.job, force=req.force)
+        log.info("calibration accepted", job=req.job, forced=bool(calibration.get("forced")))
         return {"job": req.job, "calibration": calibration}
 
     async def on_calibration(self, req: CalibrationRequest) -> Mapping[str, Any]:
@@ -339,7 +352,10 @@ class JobManager:
             if job.kind == "calibrate" and "calibration" in result:
                 self.calibrations.add_candidate(job_id, result["calibration"])
                 if self.auto_accept:
-                    self.calibrations.accept(job_id)
+                    try:
+                        self.calibrations.accept(job_id)
+                    except JobError as exc:  # a failed quality verdict waits for an operator
+                        log.warning("calibration not accepted automatically", job=job_id, reason=str(exc))
             state = "succeeded"
         except asyncio.CancelledError:
             state, reason = "cancelled", "cancelled by request"

@@ -12,7 +12,10 @@ worker threads so the event loop keeps answering the bus.
   ``e_required``. The dataset is saved as it is captured, so the session can
   be solved again offline (``celld calib solve``). The final estimate is the
   robust solve over every consistent pair, reported with Algorithm 1's
-  history and the e_icp of Eq. 13.
+  history, the e_icp of Eq. 13 and the quality gate's verdict (accept
+  refuses a failed one unless forced). With ``compensate`` the calibration
+  stored is Eq. 21's compensated estimate, and ``stored`` says so.
+  The early stop waits until the gate has its minimum of pairs.
 - **move**: a jerk-limited move to a TCP pose, or to joint positions through
   the forward kinematics.
 - **health**: the robot link and loop timing, the scanner (one capture), the
@@ -42,6 +45,7 @@ from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext, Runner
+from celld.daemon.planning import record_plan
 from celld.errors import CalibrationError, CelldError, JobError
 from celld.log import get_logger
 from celld.robot.kinematics import forward
@@ -75,9 +79,10 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
 
 
 async def _settled_flange_pose(devices: CellDevices, T_target: np.ndarray, settle: float) -> np.ndarray:
-    """Move to ``T_target``, let the arm settle, and return the flange pose the robot reports."""
+    """Move to ``T_target`` (the tool is off: the scanner must see the flange), let the arm settle, and
+    return the flange pose the robot reports."""
     motion = devices.require_motion()
-    await motion.move_to(T_target)
+    await devices.move_to(T_target, tool=False)
     await asyncio.sleep(settle)
     state = motion.state()
     if state is None:
@@ -103,11 +108,38 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         overrides["compensate"] = True
     params = SolveParams.from_config(cal, **overrides)
     T_v = se3.from_ur_pose(job.verification_pose if job.verification_pose is not None else cal.verification_pose)
+    # The plan, checked against the cell before the robot moves: the verification
+    # pose, then the poses; generated ones that fail are replaced, given ones refuse the job.
+    planner = devices.planner
+    to_v = await asyncio.to_thread(planner.check_move, await devices.current_q(), T_v, False)
+    seed = job.seed or 0
     if job.poses:
-        poses = np.array([se3.from_ur_pose(p) for p in job.poses])
+        candidates = np.array([se3.from_ur_pose(p) for p in job.poses])
+        plan = await asyncio.to_thread(planner.plan_calibration, to_v.q_end, candidates, len(candidates))
     else:
         n = job.n_poses if job.n_poses is not None else cal.n_poses
-        poses = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=job.seed or 0)
+
+        def more(count: int, rnd: int) -> np.ndarray:
+            return calibration_poses(T_v, cal.pose_box, count, cal.max_tilt, seed=seed + 1000 * (rnd + 1))
+
+        candidates = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=seed)
+        plan = await asyncio.to_thread(planner.plan_calibration, to_v.q_end, candidates, n, more)
+    poses = np.array(plan.poses)
+    for r in plan.refused:
+        log.warning("calibration pose replaced", job=ctx.job_id, reason=r.message)
+    ctx.progress("plan", 0.0, f"{len(poses)} poses planned, {len(plan.refused)} replaced (they would hit the cell or are out of reach)",
+                 replaced=[r.message for r in plan.refused])
+    if job.dry_run:
+        record_plan(ctx.recording, planner.bare, [tuple(to_v.q_end), *plan.q])
+        return {
+            "dry_run": True,
+            "plan": {
+                "verification_pose": se3.to_ur_pose(T_v).tolist(),
+                "poses": [se3.to_ur_pose(T).tolist() for T in plan.poses],
+                "joints": [list(to_v.q_end), *[list(q) for q in plan.q]],
+                "refused": [{"pose": list(r.target), "reason": r.reason, "message": r.message} for r in plan.refused],
+            },
+        }
     dataset = ctx.result_dir() / "dataset"
     writer = SessionWriter(dataset, flange=cal.flange, scanner=config.scanner.model)
     rec = ctx.recording
@@ -141,7 +173,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         found = pairs.detections()
         if pairs.n_pairs == 4:
             step = await asyncio.to_thread(alg.start, list(found.ids), found.P_base, found.P_cam)
-        elif pairs.n_pairs > 4:
+        elif pairs.n_pairs > 4 and not alg.done:
             step = await asyncio.to_thread(alg.add, pid, found.P_base[-1], found.P_cam[-1])
         else:
             step = None
@@ -151,7 +183,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
             if rec is not None:
                 rec.log_e_icp(step.k, step.cost_optimal)
         ctx.progress("pair", (i + 1) / len(poses), f"pair {pid}", **data)
-        if alg.started and alg.done:
+        if alg.started and alg.done and pairs.n_pairs >= params.quality.min_pairs:
             early = alg.reached
             break
 
@@ -167,13 +199,18 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     cost_mm = a1.cost * 1e3 if a1 is not None and math.isfinite(a1.cost) else None
     calibration = {
         "job": ctx.job_id,
-        "T_base_cam": result.T_base_cam.tolist(),
+        "T_base_cam": result.T_base_cam_stored.tolist(),
+        "stored": result.stored,
         "cost_mm": cost_mm,
         "pairs": len(result.pair_ids),
         "dataset": str(dataset),
         "method": result.method,
+        "quality": report["quality"],
     }
-    log.info("calibration solved", job=ctx.job_id, pairs=len(result.pair_ids), cost_mm=cost_mm, early_stop=early)
+    log.info(
+        "calibration solved", job=ctx.job_id, pairs=len(result.pair_ids), cost_mm=cost_mm, early_stop=early,
+        verdict=result.quality.verdict, stored=result.stored,
+    )
     return {
         "calibration": calibration,
         "report": report,
@@ -191,11 +228,10 @@ async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
     job = ctx.job
     if not isinstance(job, MoveJob):
         raise JobError("$.kind", "not a move job")
-    motion = devices.require_motion()
     target = np.asarray(job.target, dtype=np.float64)
     T = forward(target) if job.space == "joint" else se3.from_ur_pose(target)
     ctx.progress("move", 0.0, f"moving to {np.round(se3.to_ur_pose(T), 4).tolist()}")
-    state = await motion.move_to(T, speed_scale=job.speed_scale)
+    state = await devices.move_to(T, speed_scale=job.speed_scale)
     dt, dr = se3.error(state.T_base_tcp, T)
     return {"tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(), "error_mm": dt * 1e3, "error_deg": math.degrees(dr)}
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -40,11 +41,12 @@ from celld.bus.schema import WeldJob
 from celld.config import Config, ServoConfig, with_overrides
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import CalibrationStore, JobContext
+from celld.daemon.planning import record_plan
 from celld.errors import CelldError, ConfigError, InputError, JobError, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
 from celld.seam.figures import track_summary
-from celld.seam.weldpath import WeldGeometry, start_pose, wall_offset, weld_geometry
+from celld.seam.weldpath import WeldGeometry, start_pose, tool_poses, wall_offset, weld_geometry
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
 from celld.tactile.tool import ToolGeometry
 
@@ -55,6 +57,13 @@ LEAD_IN = 0.005
 # ... and this far off the wall on the free side (m); the servo's touch then
 # travels it at touch_speed (bounded by servo.touch_distance).
 CLEARANCE = 0.004
+# A dry run scans only with the arm this close to the scan pose (m, rad).
+DRY_RUN_AT_SCAN = 0.002
+DRY_RUN_AT_SCAN_ANGLE = 0.01
+# A dry run draws the arm at this many configurations along the checked path.
+DRY_RUN_ROBOTS = 12
+# The weld's path check looks at the tool every this much along the seam, m.
+PATH_STEP = 0.01
 # Seconds between progress events while tracking.
 PROGRESS_PERIOD = 0.5
 # Seconds between SRM camera frames logged to the recording while tracking.
@@ -148,8 +157,17 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     T_scan = se3.from_ur_pose(wc.scan_pose)
 
     # 1. scan
-    ctx.progress("scan", 0.0, "arm to the scan pose, scanning")
-    await motion.move_to(T_scan, speed_scale=speed)
+    if job.dry_run:
+        # A dry run moves nothing: it scans from the scan pose, so the arm must be there already.
+        here = motion.state()
+        dt, dr = se3.error(here.T_base_tcp, T_scan) if here is not None else (math.inf, math.inf)
+        if dt > DRY_RUN_AT_SCAN or dr > DRY_RUN_AT_SCAN_ANGLE:
+            raise JobError("$.dry_run", f"a dry run scans from the scan pose and moves nothing: the arm is {dt * 1e3:.1f} mm "
+                                        f"from weld.scan_pose; move it there first (celld submit move --pose ...)")
+        ctx.progress("scan", 0.0, "scanning (dry run: the arm stays where it is)")
+    else:
+        ctx.progress("scan", 0.0, "arm to the scan pose, scanning")
+        await devices.move_to(T_scan, speed_scale=speed)
     cloud = await devices.capture()
     if rec is not None:
         rec.log_camera_pose(T_base_cam)
@@ -164,14 +182,31 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         rec.log_path_base("planned", geometry.seam_base)
     ctx.progress("seam", None, f"seam found: {seam.length * 1e3:.1f} mm", length_mm=seam.length * 1e3, **_quality(seam))
 
-    # 3. approach
+    # 3. the whole path, checked against the cell before the tool moves to it:
+    # above the start, down, along the seam, up and back to the scan pose.
     T_start = start_pose(geometry, tool.T_tcp_tool, LEAD_IN, CLEARANCE)
     z = geometry.T_base_plane[:3, 2]
     T_above = T_start.copy()
     T_above[:3, 3] += wc.approach_height * z
+    path = weld_path(geometry, tool.T_tcp_tool, T_above, T_start, T_scan, wc.retract_height)
+    if rec is not None:
+        rec.log_path_base("plan", path[:, :3, 3])
+    check = await asyncio.to_thread(devices.planner.check_path, await devices.current_q(), path)
+    if job.dry_run:
+        stations = np.linspace(0, len(check.q) - 1, min(len(check.q), DRY_RUN_ROBOTS)).round().astype(int)
+        record_plan(rec, devices.planner.with_tool, [tuple(check.q[i]) for i in stations])
+        return {
+            "dry_run": True,
+            "workpiece": workpiece.name,
+            "calibration_job": cal_job,
+            "planned_path": geometry.seam_base.tolist(),
+            "tcp_path": [se3.to_ur_pose(T).tolist() for T in path],
+            "min_clearance_mm": round(check.min_clearance * 1e3, 2),
+            "seam_length_mm": round(seam.length * 1e3, 2),
+        }
     ctx.progress("approach", None, "tool to the seam's start")
-    await motion.move_to(T_above, speed_scale=speed)
-    await motion.move_to(T_start, speed_scale=min(speed, 0.2))
+    await devices.move_to(T_above, speed_scale=speed)
+    await devices.move_to(T_start, speed_scale=min(speed, 0.2))
     ctx.progress("tare", None, "taring the SRM, finger free")
     await asyncio.to_thread(devices.tactile.tare)
 
@@ -228,8 +263,8 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
                 T_up = state.T_base_tcp.copy()
                 T_up[:3, 3] += wc.retract_height * z
                 ctx.progress("retract", None, "tool up and away")
-                await motion.move_to(T_up, speed_scale=min(speed, 0.2))
-                await motion.move_to(T_scan, speed_scale=speed)
+                await devices.move_to(T_up, speed_scale=min(speed, 0.2))
+                await devices.move_to(T_scan, speed_scale=speed)
         except CelldError as exc:
             retract_error = str(exc)
             log.error("retract after the weld failed", job=ctx.job_id, error=retract_error)
@@ -243,6 +278,17 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     if retract_error:
         result["retract_error"] = retract_error
     return result
+
+
+def weld_path(geometry: WeldGeometry, T_tcp_tool: np.ndarray, T_above: np.ndarray, T_start: np.ndarray,
+              T_scan: np.ndarray, retract_height: float) -> np.ndarray:
+    """The TCP poses (n, 4, 4) a weld passes through: above the start, the start, along the wall line
+    (every PATH_STEP), up by the retract height at the end, back to the scan pose."""
+    length = float(polyline.arc_length(geometry.wall_base)[-1])
+    track = tool_poses(geometry, T_tcp_tool, np.arange(LEAD_IN + PATH_STEP, length, PATH_STEP))
+    T_up = track[-1].copy() if len(track) else T_start.copy()
+    T_up[:3, 3] += retract_height * geometry.T_base_plane[:3, 2]
+    return np.concatenate([T_above[None], T_start[None], track, T_up[None], T_scan[None]])
 
 
 def _log_preview(devices: CellDevices, rec: Any, last_stamp: int) -> int:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import os
 import time
 from collections import deque
 from collections.abc import Callable
@@ -54,7 +55,7 @@ from celld.motion.supervisor import LinkState, MotionSupervisor, ProcessExit
 from celld.motion.types import ControlStatus, RobotState, ServoPlan
 from celld.realtime import RealtimeOptions
 from celld.se3 import from_ur_pose
-from celld.supervision import Backoff
+from celld.supervision import Backoff, ChildRecords
 
 log = get_logger(__name__)
 
@@ -103,12 +104,14 @@ def error_for(status: ControlStatus, reason: str) -> CelldError:
 def spec_from_config(config: Config, names: ChannelNames, host: str | None = None,
                      servo_laws: dict[str, str] | None = None, realtime: RealtimeOptions = RealtimeOptions(),
                      move: MoveParams = MoveParams(), link_timeout: float = 0.1, watchdog_hz: float = 10.0,
-                     log_level: str = "info") -> MotionSpec:
+                     log_level: str = "info", heartbeat: str = "") -> MotionSpec:
     """Build the motion process's spec from a validated config.
 
     ``link_timeout`` (s without fresh robot state before the link counts as
     lost) and ``watchdog_hz`` (the robot stops its program 1/watchdog_hz s
-    after the last write) are the link's bounds.
+    after the last write) are the link's bounds. The process watches this
+    one (its parent) and, with ``heartbeat``, that heartbeat slot
+    (``motion.parent_timeout``), and stops the robot and ends without them.
     """
     robot, motion = config.robot, config.motion
     period = 1.0 / robot.frequency_hz
@@ -137,6 +140,9 @@ def spec_from_config(config: Config, names: ChannelNames, host: str | None = Non
         realtime=realtime,
         servo_laws=servo_laws_from(servo_laws or {}),
         log_level=log_level,
+        parent_pid=os.getpid(),
+        heartbeat=heartbeat,
+        parent_timeout_ns=int(motion.parent_timeout * 1e9),
     )
 
 
@@ -193,20 +199,25 @@ class MotionHandle:
         watchdog_hz: float = 10.0,
         backoff: Backoff = Backoff(),
         wait: bool = True,
+        heartbeat: str = "",
+        records: ChildRecords | None = None,
     ) -> MotionHandle:
         """Create the channels, start the motion process and (by default) wait for its loop.
 
         ``tactile_slot`` names the tactile process's seqlock slot; without it
-        the handle creates one (tests write samples into it). Raises LinkLost
-        when the loop does not run within the connect timeout.
+        the handle creates one (tests write samples into it). ``heartbeat``
+        names the daemon's heartbeat slot the process watches, ``records``
+        where the daemon records its children. Raises LinkLost when the loop
+        does not run within the connect timeout.
         """
         capacity = int(math.ceil(RING_SECONDS * config.robot.frequency_hz))
         names = ChannelNames.unique(capacity, tactile_slot)
         channels = Channels.create(names, create_tactile=tactile_slot is None)
         try:
-            spec = spec_from_config(config, names, host, servo_laws, realtime, move, link_timeout, watchdog_hz)
+            spec = spec_from_config(config, names, host, servo_laws, realtime, move, link_timeout, watchdog_hz,
+                                    heartbeat=heartbeat)
             timeout = connect_timeout if connect_timeout is not None else config.robot.connect_timeout
-            sup = MotionSupervisor(spec, channels, timeout, hang_timeout, backoff)
+            sup = MotionSupervisor(spec, channels, timeout, hang_timeout, backoff, records)
             handle = cls(sup, channels, spec.core.limits, (spec.core.workspace_min, spec.core.workspace_max))
             sup.start()
             handle._task = asyncio.get_running_loop().create_task(handle._drain_forever(), name="celld-motion-drain")

@@ -47,9 +47,14 @@ from celld.motion.core import Action, CycleInput, Mode, MotionCore
 from celld.motion.safety import describe, robot_faults
 from celld.motion.types import ControlStatus, RobotState
 from celld.robot.link import RUNTIME_PLAYING, RobotPort
+from celld.supervision import ParentWatch
 from celld.tactile.sample import TACTILE_DTYPE, TactileSample, from_record
 
 _INF = float("inf")
+# The start of the loop's event when it finds the process output left on (the arc interlock is not set up).
+INTERLOCK_MISSING = "arc interlock missing"
+# The loop looks for its daemon every this many cycles (10 ms at 500 Hz).
+_PARENT_CHECK_CYCLES = 5
 
 
 class LoopParams(NamedTuple):
@@ -83,6 +88,10 @@ class MotionLoop:
     params : LoopParams
     clock : callable returning int ns
         ``time.monotonic_ns`` except in tests.
+    parent : ParentWatch, optional
+        The daemon this loop must not outlive: when it is gone (or hangs) the
+        loop stops the robot (jerk-limited, the process output off at once)
+        and ends, as on a shutdown request.
     """
 
     def __init__(
@@ -92,8 +101,11 @@ class MotionLoop:
         channels: Channels,
         params: LoopParams,
         clock: Callable[[], int] = time.monotonic_ns,
+        parent: ParentWatch | None = None,
     ) -> None:
         self.port = port
+        self.parent = parent
+        self.orphaned = ""  # why the loop took its daemon for gone, "" while it is there
         self.core = core
         self.ch = channels
         self.params = params
@@ -156,6 +168,26 @@ class MotionLoop:
                 f"process output {idx}: switching it {'on' if on else 'off'} failed; retrying every cycle",
             )
         return ok
+
+    def _check_interlock(self) -> None:
+        """At the first write: was the process output left on by whatever ran before this process?
+
+        A motion process that ended without switching it off (killed, or its
+        link lost) leaves that to the robot's own I/O set-up: the output must
+        go low when the program stops (the RTDE watchdog stops it). Finding it
+        on here means the set-up does not do it; say so, loudly, once.
+        """
+        idx = self.params.process_output
+        try:
+            left_on = bool(self.port.digital_outputs() >> idx & 1)
+        except Exception:  # a port must not take the loop down  # noqa: BLE001
+            return
+        if left_on:
+            self._event(
+                0, ControlStatus.FAULT,
+                f"{INTERLOCK_MISSING}: process output {idx} was still on when this motion process started; set it to "
+                "go low when the program stops (robot Installation > I/O Setup)",
+            )
 
     @property
     def output_on(self) -> bool | None:
@@ -253,6 +285,8 @@ class MotionLoop:
 
         stop = False
         shutdown = False
+        if self.parent is not None and not self.orphaned and self.cycles % _PARENT_CHECK_CYCLES == 0:
+            self.orphaned = self.parent.check(t_wake)
         if ch.control.read_into(self._ctl):
             epoch = int(self._ctl["stop_epoch"][0])
             if epoch != self._stop_epoch:
@@ -261,6 +295,8 @@ class MotionLoop:
                 stop = True
             shutdown = bool(self._ctl["shutdown"][0])
             stop = stop or shutdown
+        if self.orphaned:
+            stop = shutdown = True
 
         command: Command | None = None
         command_error = ""
@@ -293,6 +329,8 @@ class MotionLoop:
             port.kick()
         t_sent = self.clock()
         if p.process_output >= 0 and out.process_on != self._output_on:
+            if self._output_on is None:
+                self._check_interlock()
             self._switch_output(out.process_on)
 
         if out.event:
@@ -332,5 +370,7 @@ class MotionLoop:
         self._prev_wake = t_wake
 
         if shutdown and out.mode == Mode.IDLE:
+            if self.orphaned:
+                return LoopExit(ControlStatus.OK, f"{self.orphaned}: the robot is stopped, the motion process ends")
             return LoopExit(ControlStatus.OK, "shutdown requested")
         return None

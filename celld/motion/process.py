@@ -39,6 +39,7 @@ from celld.motion.core import CoreParams, MotionCore
 from celld.motion.loop import LoopExit, LoopParams, MotionLoop
 from celld.motion.types import ControlStatus, ServoFactory
 from celld.realtime import RealtimeOptions, RealtimeReport, make_realtime
+from celld.supervision import ParentWatch
 
 # Exit code of the process for each way the loop ends; anything else is a crash.
 EXIT_CODES = {
@@ -62,6 +63,11 @@ class MotionSpec:
     servo_laws: tuple[tuple[str, str], ...] = ()
     log_level: str = "info"
     log_json: bool = False
+    # The daemon this process must not outlive (celld.supervision.ParentWatch):
+    # its pid, its heartbeat slot ("" for none) and the heartbeat's timeout, ns.
+    parent_pid: int = 0
+    heartbeat: str = ""
+    parent_timeout_ns: int = 3_000_000_000
 
 
 def load_factories(servo_laws: tuple[tuple[str, str], ...]) -> dict[str, ServoFactory]:
@@ -94,6 +100,8 @@ def run(spec: MotionSpec) -> LoopExit:
     from celld.robot.link import RtdeLink
 
     log = get_logger(__name__).bind(host=spec.host, pid=os.getpid())
+    # Watch the daemon from the start: a SIGTERM while connecting is remembered, not fatal.
+    parent = ParentWatch(spec.parent_pid, spec.heartbeat, spec.parent_timeout_ns) if spec.parent_pid else None
     ch = Channels.attach(spec.channels)
     link = None
     loop: MotionLoop | None = None
@@ -108,7 +116,7 @@ def run(spec: MotionSpec) -> LoopExit:
             return end
         factories = load_factories(spec.servo_laws)
         core = MotionCore(spec.core, factories)
-        loop = MotionLoop(link, core, ch, spec.loop)
+        loop = MotionLoop(link, core, ch, spec.loop, parent=parent)
         rt = make_realtime(spec.realtime)
         if rt.refused:
             log.warning("motion loop runs without full real-time privileges", refused=rt.refused,

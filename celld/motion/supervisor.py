@@ -35,7 +35,7 @@ from celld.log import get_logger
 from celld.motion.channels import CONTROL_DTYPE, STATUS_DTYPE, Channels, Phase, decode_reason
 from celld.motion.process import EXIT_CODES, MotionSpec, main
 from celld.motion.types import ControlStatus
-from celld.supervision import Backoff
+from celld.supervision import Backoff, ChildRecords
 
 log = get_logger(__name__)
 
@@ -91,6 +91,9 @@ class MotionSupervisor:
     hang_timeout : float
         s the state ring may stand still while the loop should run.
     backoff : Backoff
+    records : ChildRecords, optional
+        Where the daemon records its children, so that a successor can clean
+        up after a killed daemon.
     """
 
     def __init__(
@@ -100,8 +103,12 @@ class MotionSupervisor:
         connect_timeout: float = 10.0,
         hang_timeout: float = 0.5,
         backoff: Backoff = Backoff(),
+        records: ChildRecords | None = None,
     ) -> None:
         self.spec = spec
+        self.records = records
+        # When the supervision last made progress (monotonic s): the systemd watchdog asks.
+        self.last_tick = time.monotonic()
         self.ch = channels
         self.connect_timeout = connect_timeout
         self.hang_timeout = hang_timeout
@@ -124,6 +131,10 @@ class MotionSupervisor:
     @property
     def pid(self) -> int | None:
         return self._proc.process.pid if self._proc else None
+
+    def running(self) -> bool:
+        """The supervision task runs (started and not finished)."""
+        return self._task is not None and not self._task.done()
 
     def on_exit(self, callback: Callable[[ProcessExit], None]) -> None:
         """Call ``callback(exit)`` in the event loop whenever a motion process ends."""
@@ -185,6 +196,9 @@ class MotionSupervisor:
         self._write_control(stop=False, shutdown=False)
         process = self._ctx.Process(target=main, args=(self.spec,), name="celld-motion", daemon=True)
         process.start()
+        if self.records is not None and process.pid is not None:
+            n = self.spec.channels
+            self.records.add("motion", process.pid, [n.state, n.events, n.commands, n.setpoint, n.control, n.status])
         log.info("motion process started", pid=process.pid, host=self.spec.host)
         return _Proc(process, time.monotonic())
 
@@ -251,8 +265,11 @@ class MotionSupervisor:
             proc = self._proc = self._spawn()
             while proc.process.is_alive():
                 self._check(proc)
+                self.last_tick = time.monotonic()
                 await asyncio.sleep(_WATCH_PERIOD)
             proc.process.join()
+            if self.records is not None:
+                self.records.remove("motion")
             end = self._exit_of(proc)
             self.last_exit = end
             self._running.clear()
@@ -267,6 +284,9 @@ class MotionSupervisor:
             delay = self.backoff.delay(self._failures)
             self.state = LinkState.RESTARTING
             self.restarts += 1
-            await asyncio.sleep(delay)
+            restart_at = time.monotonic() + delay
+            while time.monotonic() < restart_at and not self._closing:
+                self.last_tick = time.monotonic()
+                await asyncio.sleep(min(_WATCH_PERIOD, max(restart_at - time.monotonic(), 0.0)))
         self._proc = None
         self.state = LinkState.STOPPED

@@ -384,6 +384,49 @@ class JobRecording:
             rr.LineStrips3D([P.astype(np.float32)], colors=[layout.PATH_COLORS[name]], radii=rr.Radius.ui_points(2.0)),
         )
 
+    # -- plans: the cell, the robot, poses -------------------------------------
+
+    def log_boxes(self, name: str, T_base_box: ArrayLike, sizes: ArrayLike, stamp_ns: int | None = None) -> None:
+        """Log boxes (the cell model's objects) at ``/world/cell/<name>``: poses (k, 4, 4), edge lengths (k, 3), m."""
+        T = np.asarray(T_base_box, dtype=np.float64).reshape(-1, 4, 4)
+        size = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
+        if len(T) != len(size) or not np.all(np.isfinite(T)) or not np.all(size > 0.0):
+            raise InputError(f"boxes: expected matching poses (k, 4, 4) and positive sizes (k, 3), got {T.shape}, {size.shape}")
+        if not self._active():
+            return
+        self._at(stamp_ns)
+        quats = Rotation.from_matrix(T[:, :3, :3]).as_quat()  # x, y, z, w
+        self._rec.log(
+            f"{layout.CELL}/{_check_name(name, 'cell object name')}",
+            rr.Boxes3D(centers=T[:, :3, 3], half_sizes=size / 2.0, quaternions=quats, colors=[(150, 150, 160)],
+                       fill_mode=rr.components.FillMode.Solid),
+        )
+
+    def log_capsules(self, name: str, ends_base: ArrayLike, radii: ArrayLike, stamp_ns: int | None = None) -> None:
+        """Log capsules (the robot's links and tool at a pose) at ``/world/robot/<name>``: ends (k, 2, 3), radii (k,), m."""
+        E = np.asarray(ends_base, dtype=np.float64).reshape(-1, 2, 3)
+        r = np.asarray(radii, dtype=np.float64).reshape(-1)
+        if len(E) != len(r) or not np.all(np.isfinite(E)) or not np.all(r > 0.0):
+            raise InputError(f"capsules: expected ends (k, 2, 3) and positive radii (k,), got {E.shape}, {r.shape}")
+        if not self._active():
+            return
+        self._at(stamp_ns)
+        axis = E[:, 1] - E[:, 0]
+        length = np.linalg.norm(axis, axis=1)
+        # Capsules3D run along their local +z: rotate z onto each segment.
+        z = np.array([0.0, 0.0, 1.0])
+        rots = []
+        for a, n in zip(axis, length):
+            if n < 1e-12:
+                rots.append(Rotation.identity())
+            else:
+                rots.append(Rotation.align_vectors([a / n], [z])[0])
+        quats = np.array([q.as_quat() for q in rots])
+        self._rec.log(
+            f"{layout.ROBOT}/{_check_name(name, 'robot name')}",
+            rr.Capsules3D(lengths=length, radii=r, translations=E[:, 0], quaternions=quats, colors=[(90, 140, 230)]),
+        )
+
     # -- SRM camera -----------------------------------------------------------
 
     def log_camera_image(self, image: ArrayLike, corners_px: ArrayLike | None = None, stamp_ns: int | None = None) -> None:

@@ -41,6 +41,8 @@ CLOUDS_CAM = "/world/camera/clouds"
 CIRCLES = "/world/circles"
 TCP = "/world/tcp"
 PATHS = "/world/paths"
+CELL = "/world/cell"  # the cell model's objects
+ROBOT = "/world/robot"  # the arm and its tool at planned poses
 SRM_CAMERA = "/srm/camera"
 SRM_TAG = "/srm/camera/tag"
 SERVO = "/servo"
@@ -57,6 +59,7 @@ EVENTS = "/events"
 # The paths a welding job draws, and their colours (RGB).
 PATH_COLORS: dict[str, tuple[int, int, int]] = {
     "planned": (80, 160, 255),
+    "plan": (170, 170, 170),  # the TCP's planned path (a weld's checked waypoints)
     "refined": (255, 170, 0),
     "torch": (230, 40, 40),
 }

@@ -18,7 +18,8 @@ Each shape answers its own signed distance (negative inside), in its own
 frame, in metres: closed forms for the primitives, Open3D's ray-casting scene
 for meshes (a mesh must be closed, or inside and outside are not defined).
 
-The ``[cell_model]`` table of a cell's TOML (lengths in metres, poses as UR
+The ``[cell_model]`` table of a cell's TOML (read by
+:func:`celld.config.cell_model.read_cell_model`) (lengths in metres, poses as UR
 poses ``[x, y, z, rx, ry, rz]`` of the object frame in the base frame)::
 
     [cell_model]
@@ -70,7 +71,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from celld import se3
-from celld.config import TableReader
 from celld.errors import InputError
 
 if TYPE_CHECKING:
@@ -302,7 +302,7 @@ class CellModel:
 
     def with_object(self, obj: CellObject) -> CellModel:
         """A new model with ``obj`` added (e.g. the registered workpiece before a weld)."""
-        return replace(self, objects=self.objects + (obj,))
+        return replace(self, objects=(*self.objects, obj))
 
     def without_tool(self) -> CellModel:
         """A new model with no tool on the flange (e.g. a calibration with the tool taken off)."""
@@ -314,77 +314,3 @@ class CellModel:
         size = _DEFAULT_TABLE
         table = CellObject("table", Box(size), se3.transform_from(np.eye(3), [0.0, 0.0, -size[2] / 2]), allow=("base",))
         return cls(objects=(table,))
-
-    @classmethod
-    def read(cls, r: TableReader) -> CellModel:
-        """Validate a ``[cell_model]`` table (module docstring); ConfigError names the key and the reason."""
-        margin = r.float("margin_mm", DEFAULT_MARGIN * 1e3, lo=0.0, hi=500.0, scale=1e-3)
-        if r.has("objects"):
-            objects = tuple(_read_object(sub) for sub in _array_of_tables(r, "objects"))
-        else:
-            objects = cls.default().objects
-        tool = tuple(_read_tool_part(sub) for sub in _array_of_tables(r, "tool"))
-        try:
-            return cls(objects=objects, tool=tool, margin=margin)
-        except InputError as exc:
-            raise r.error("objects", str(exc)) from exc
-
-
-def _array_of_tables(r: TableReader, name: str) -> list[TableReader]:
-    # TableReader has no getter for arrays of tables; BusConfig.read reads its [[bus.users]] the same way.
-    raw = r._get(name, [])
-    if not isinstance(raw, list):
-        raise r.error(name, f"expected an array of tables [[{r.key(name)}]], got {type(raw).__name__}")
-    return [TableReader(t, r.source, r.key(f"{name}[{i}]")) for i, t in enumerate(raw)]
-
-
-def _names(r: TableReader, key: str) -> tuple[str, ...]:
-    value = r._get(key, [])
-    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
-        raise r.error(key, f"expected a list of names, got {value!r}")
-    return tuple(value)
-
-
-def _length(r: TableReader, key: str) -> float:
-    return r.float(key, lo=0.0, hi=100.0, open_lo=True)
-
-
-def _name(r: TableReader) -> str:
-    name = r.str("name")
-    if not name or any(c.isspace() for c in name):
-        raise r.error("name", f"expected a name without white space, got {name!r}")
-    return name
-
-
-def _read_object(r: TableReader) -> CellObject:
-    name = _name(r)
-    kind = r.str("shape", choices=("box", "cylinder", "sphere", "mesh"))
-    shape: Shape
-    if kind == "box":
-        size = r.vector("size", 3)
-        if not all(v > 0.0 for v in size):
-            raise r.error("size", f"expected 3 positive edge lengths (m), got {list(size)}")
-        shape = Box(size)  # type: ignore[arg-type]
-    elif kind == "cylinder":
-        shape = Cylinder(_length(r, "radius"), _length(r, "length"))
-    elif kind == "sphere":
-        shape = Sphere(_length(r, "radius"))
-    else:
-        units = r.str("units", choices=tuple(MESH_UNITS))
-        path = Path(r.str("path"))
-        if not path.is_absolute():
-            path = Path(r.source).parent / path
-        try:
-            shape = Mesh.load(path, units)
-        except InputError as exc:
-            raise r.error("path", str(exc)) from exc
-    pose = r.vector("pose", 6)
-    allow = _names(r, "allow")
-    r.done()
-    return CellObject(name, shape, se3.from_ur_pose(pose), allow)
-
-
-def _read_tool_part(r: TableReader) -> ToolPart:
-    part = ToolPart(_name(r), r.vector("from", 3), r.vector("to", 3), _length(r, "radius"), _names(r, "allow"))  # type: ignore[arg-type]
-    r.done()
-    return part

@@ -364,6 +364,16 @@ class Checker:
         ]
         self._pairs = np.array(pairs, dtype=np.int64).reshape(-1, 2)
 
+    def segments(self, q: ArrayLike) -> tuple[tuple[str, ...], Array, Array]:
+        """The arm's and tool's capsules at joints ``q`` (6,): names, ends (k, 2, 3) in the base frame, radii (k,).
+
+        For drawing the robot (a plan's preview); the checks use the same capsules.
+        """
+        F = self._frames(kin.check_q(q)[None])[0]
+        G = F[self._part_frame]
+        ends = np.einsum("kij,kej->kei", G[..., :3], self._ends_local) + G[:, None, :, 3]
+        return tuple(p.name for p in self.parts), ends, self._part_radius.copy()
+
     # -- geometry of a batch of configurations ------------------------------------
 
     def _frames(self, Q: Array) -> Array:

@@ -67,6 +67,10 @@ class RobotPort(Protocol):
         """Set standard digital output ``index`` (0..7); False when it could not be sent."""
         ...
 
+    def digital_outputs(self) -> int:
+        """The controller's actual digital outputs (bits 0-7 standard, 8-15 configurable, 16-17 tool)."""
+        ...
+
     def close(self, stop_script: bool = False) -> None: ...
 
 
@@ -160,6 +164,10 @@ class RtdeLink:
             return bool(self.io.setStandardDigitalOut(index, value))  # type: ignore[attr-defined]
         except RuntimeError:
             return False
+
+    def digital_outputs(self) -> int:
+        """actual_digital_output_bits as the controller last reported them."""
+        return int(self._r.getActualDigitalOutputBits())  # type: ignore[attr-defined]
 
     def close(self, stop_script: bool = False) -> None:
         """Disconnect every interface; never raises.

@@ -168,14 +168,27 @@ def start_pose(geometry: WeldGeometry, T_tcp_tool: Array, lead: float, clearance
     """TCP pose where the finger starts: ``lead`` (m) along the wall line,
     ``clearance`` (m) off the wall on the free side, the tool's x along the
     travel and its z (the finger, up) along the plane normal."""
-    W = geometry.wall_base
-    s = polyline.arc_length(W)
+    s = polyline.arc_length(geometry.wall_base)
     if s[-1] <= lead:
         raise WorkpieceError(f"the seam ({s[-1] * 1e3:.1f} mm) is shorter than the lead-in of {lead * 1e3:.1f} mm")
-    i = int(np.searchsorted(s, lead))
+    return tool_poses(geometry, T_tcp_tool, np.array([lead]), clearance)[0]
+
+
+def tool_poses(geometry: WeldGeometry, T_tcp_tool: Array, leads: np.ndarray, clearance: float = 0.0) -> Array:
+    """TCP poses (n, 4, 4) with the finger ``leads`` (m, along the wall line) in and ``clearance`` off the wall.
+
+    As :func:`start_pose` at each lead: the tool's x along the travel there,
+    its z along the plane normal (what the weld's path check moves through).
+    """
+    W = geometry.wall_base
+    s = polyline.arc_length(W)
     z = geometry.T_base_plane[:3, 2]
-    t = geometry.tangents[i] - float(geometry.tangents[i] @ z) * z
-    t /= np.linalg.norm(t)
-    p = W[i] - clearance * geometry.normals[i]
-    T_base_tool = se3.transform_from(np.column_stack([t, np.cross(z, t), z]), p)
-    return T_base_tool @ se3.invert(np.asarray(T_tcp_tool, dtype=np.float64))
+    T_tool_tcp = se3.invert(np.asarray(T_tcp_tool, dtype=np.float64))
+    out = np.empty((len(leads), 4, 4))
+    for k, lead in enumerate(np.asarray(leads, dtype=np.float64)):
+        i = min(int(np.searchsorted(s, lead)), len(W) - 1)
+        t = geometry.tangents[i] - float(geometry.tangents[i] @ z) * z
+        t /= np.linalg.norm(t)
+        p = W[i] - clearance * geometry.normals[i]
+        out[k] = se3.transform_from(np.column_stack([t, np.cross(z, t), z]), p) @ T_tool_tcp
+    return out

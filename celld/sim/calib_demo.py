@@ -121,6 +121,8 @@ def run(args: argparse.Namespace) -> int:
     unc = result.uncertainty
     say(f"predicted 1-sigma error: {unc.translation_error * 1e3:.3f} mm, {math.degrees(unc.rotation_error):.4f} deg")
     say(f"error against the simulator's truth: {dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg")
+    q = result.quality
+    say(f"quality gate: {q.verdict}" + "".join(f"\n  fails: {r}" for r in q.reasons) + "".join(f"\n  warning: {w}" for w in q.warnings))
     say(f"session saved to {out}; solve it again with: celld calib solve {out} --json")
     return 0
 

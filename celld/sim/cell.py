@@ -32,7 +32,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import IO, Any, NamedTuple
 
 import numpy as np
 
@@ -141,6 +141,65 @@ class RunningCell(NamedTuple):
     world: World
 
 
+class DaemonProcess(NamedTuple):
+    """``celld sim run`` as its own process, and a bus client to it."""
+
+    process: subprocess.Popen[bytes]
+    client: CellClient
+
+
+def start_daemon(config_path: str | Path, log: IO[bytes], timeout: float = 90.0, world: WorldOptions = WorldOptions()) -> DaemonProcess:
+    """Start ``celld sim run`` on a cell config (its robot must be up, in the same ``world``) and wait for its bus and robot link.
+
+    Raises
+    ------
+    CelldError
+        The daemon exited, or the bus or the robot link did not come up in ``timeout`` s
+        (the daemon is then stopped).
+    """
+    cfg = config_mod.load(config_path)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "celld.cli", "sim", "run", "--config", str(Path(config_path).resolve()), *world.to_argv()],
+        stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+    )
+    client = None
+    deadline = time.monotonic() + timeout
+
+    def check(what: str) -> None:
+        if proc.poll() is not None:
+            raise CelldError(f"the daemon exited with code {proc.returncode}; see {log.name}")
+        if time.monotonic() > deadline:
+            raise CelldError(f"{what} did not come up within {timeout:g} s; see {log.name}")
+
+    try:
+        while client is None:
+            check("the daemon's bus")
+            try:
+                client = CellClient(cfg.bus, cfg.cell.name, timeout=20.0)
+            except BusError:
+                time.sleep(0.5)
+        while client.status().get("robot_link") != "up":
+            check("the robot link")
+            time.sleep(0.5)
+    except BaseException:
+        if client is not None:
+            client.close()
+        stop_daemon(proc)
+        raise
+    return DaemonProcess(proc, client)
+
+
+def stop_daemon(proc: subprocess.Popen[bytes], timeout: float = 30.0) -> None:
+    """SIGTERM, as systemd stops it; SIGKILL after ``timeout`` s."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
 def run_cell(
     config_path: str | Path, log_path: str | Path, timeout: float = 90.0, world: WorldOptions = WorldOptions()
 ) -> contextlib.AbstractContextManager[RunningCell]:
@@ -163,42 +222,12 @@ def run_cell(
         cfg = config_mod.load(config_path)
         w = world_of(cfg, world)  # a bad [sim] table is refused before anything starts
         sim_part(w)
-        with launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(w)) as robot:
-            log = open(log_path, "ab")
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "celld.cli", "sim", "run", "--config", str(Path(config_path).resolve()), *world.to_argv()],
-                stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            )
-            client = None
+        with launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(w)) as robot, open(log_path, "ab") as log:
+            daemon = start_daemon(config_path, log, timeout, world)
             try:
-                deadline = time.monotonic() + timeout
-
-                def check(what: str) -> None:
-                    if proc.poll() is not None:
-                        raise CelldError(f"the daemon exited with code {proc.returncode}; see {log_path}")
-                    if time.monotonic() > deadline:
-                        raise CelldError(f"{what} did not come up within {timeout:g} s; see {log_path}")
-
-                while client is None:
-                    check("the daemon's bus")
-                    try:
-                        client = CellClient(cfg.bus, cfg.cell.name, timeout=20.0)
-                    except BusError:
-                        time.sleep(0.5)
-                while client.status().get("robot_link") != "up":
-                    check("the robot link")
-                    time.sleep(0.5)
-                yield RunningCell(client, proc, cfg, robot, w)
+                yield RunningCell(daemon.client, daemon.process, cfg, robot, w)
             finally:
-                if client is not None:
-                    client.close()
-                if proc.poll() is None:
-                    proc.send_signal(signal.SIGTERM)
-                    try:
-                        proc.wait(30)
-                    except subprocess.TimeoutExpired:
-                        proc.kill()
-                        proc.wait()
-                log.close()
+                daemon.client.close()
+                stop_daemon(daemon.process)
 
     return _run()

@@ -25,6 +25,7 @@ from celld.errors import DeviceError
 from celld.log import get_logger
 from celld.realtime import RealtimeOptions, make_realtime
 from celld.shm import SeqlockSlot
+from celld.supervision import ChildRecords, ParentWatch
 from celld.tactile.camera import (
     COUNTERS_DTYPE,
     FrameEstimator,
@@ -56,8 +57,17 @@ def tactile_main(
     source_factory: FrameSourceFactory = opencv_camera,
     realtime: RealtimeOptions = CAMERA_REALTIME,
     preview_slot: str = "",
+    parent_pid: int = 0,
+    heartbeat: str = "",
+    parent_timeout_ns: int = 3_000_000_000,
 ) -> None:
-    """Entry point of the tactile process (``multiprocessing`` spawn target)."""
+    """Entry point of the tactile process (``multiprocessing`` spawn target).
+
+    The process ends when told to (``stop``) and when its daemon is gone or
+    hangs (:class:`~celld.supervision.ParentWatch`): a camera without its
+    daemon has nobody to serve.
+    """
+    parent = ParentWatch(parent_pid, heartbeat, parent_timeout_ns) if parent_pid else None
     cv2.setNumThreads(1)
     rt = make_realtime(realtime)
     if rt.refused:
@@ -79,13 +89,23 @@ def tactile_main(
                 return True
             return False
 
-        run_camera(source, est, samples, counters, stop.is_set, requested, preview)
+        def stopped() -> bool:
+            if stop.is_set():
+                return True
+            why = parent.check() if parent is not None else ""
+            if why:
+                log.warning("tactile process ends", reason=why)
+            return bool(why)
+
+        run_camera(source, est, samples, counters, stopped, requested, preview)
     finally:
         source.close()
         samples.close()
         counters.close()
         if preview_shm is not None:
             preview_shm.close()
+        if parent is not None:
+            parent.close()
 
 
 class TactileProcess:
@@ -100,6 +120,13 @@ class TactileProcess:
     source_factory : FrameSourceFactory
         Builds the camera inside the process (picklable); the cell's OpenCV
         camera unless the simulated cell hands its own.
+    heartbeat : str
+        The daemon's heartbeat slot the process watches ("" for none); it
+        also watches this process, its parent.
+    parent_timeout : float
+        s the heartbeat may stand still before the process ends.
+    records : ChildRecords, optional
+        Where the daemon records its children.
     realtime : RealtimeOptions
         How the process asks for real time (:data:`CAMERA_REALTIME` unless
         given): SCHED_FIFO below the motion loop's priority (the process
@@ -117,6 +144,9 @@ class TactileProcess:
         name: str,
         source_factory: FrameSourceFactory = opencv_camera,
         realtime: RealtimeOptions = CAMERA_REALTIME,
+        heartbeat: str = "",
+        parent_timeout: float = 3.0,
+        records: ChildRecords | None = None,
     ) -> None:
         self.cfg = cfg
         self.slot_name = f"{name}-tactile"
@@ -131,7 +161,8 @@ class TactileProcess:
         self._tare = ctx.Event()
         self._ready = ctx.Event()
         self._args = (cfg, tool, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, source_factory, realtime,
-                      self.preview_name)
+                      self.preview_name, os.getpid(), heartbeat, int(parent_timeout * 1e9))
+        self._records = records
         self._proc = self._new_process()
         self.restarts = 0
 
@@ -156,6 +187,8 @@ class TactileProcess:
 
     def start(self, timeout: float = _START_TIMEOUT) -> None:
         self._proc.start()
+        if self._records is not None and self._proc.pid is not None:
+            self._records.add("tactile", self._proc.pid, [self.slot_name, self.counters_name, self.preview_name])
         deadline = time.monotonic() + timeout
         while not self._ready.wait(0.1):
             if not self._proc.is_alive():
@@ -223,6 +256,8 @@ class TactileProcess:
     def stop(self, timeout: float = 5.0) -> int | None:
         """Stop the process (if it was started) and release the slots."""
         self._stop.set()
+        if self._records is not None:
+            self._records.remove("tactile")
         if self._proc.pid is not None:
             self._proc.join(timeout)
             if self._proc.is_alive():

@@ -77,6 +77,17 @@ def test_bad_parameters_are_refused_before_sending(served, tmp_path: Path, capsy
     assert cell.server.stats.requests == 0 and cell.journal.jobs() == []
 
 
+def test_accept_with_force(served, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # The dummy cell's calibration carries no quality verdict: accepted as before; --force is sent and taken.
+    cell = served()
+    cfg = write_config(tmp_path, cell)
+    assert main(["submit", "calibrate", "--config", cfg, "--wait"]) == 0
+    job = capsys.readouterr().out.split()[0]
+    assert main(["accept", job, "--force", "--config", cfg, "--json"]) == 0
+    reply = json.loads(capsys.readouterr().out)
+    assert reply["ok"] and reply["calibration"]["job"] == job and "forced" not in reply["calibration"]
+
+
 def test_viewer_credentials_cannot_submit(served, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cell = served(users=(BusUser("vic", "view-secret", "viewer"),))
     cfg = write_config(tmp_path, cell)

@@ -126,6 +126,8 @@ def test_other_requests() -> None:
     assert parse("cancel", b'{"job": "j1", "reason": "wrong part"}') == schema.CancelRequest("j1", "wrong part")
     assert parse("list", b'{"limit": 5, "state": "failed", "kind": "weld"}') == schema.ListRequest(5, "failed", "weld")
     assert parse("accept", b'{"job": "j1"}') == schema.AcceptRequest("j1")
+    assert parse("accept", b'{"job": "j1", "force": true}') == schema.AcceptRequest("j1", force=True)
+    assert refusal({"job": "j1", "force": "yes"}, "accept").field == "$.force"
     assert refusal({"job": "a/b"}, "cancel").field == "$.job"  # not one key chunk
     assert refusal({"job": "*"}, "status").field == "$.job"
     assert refusal({"limit": 0}, "list").field == "$.limit"

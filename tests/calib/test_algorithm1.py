@@ -99,17 +99,23 @@ def test_stops_at_k_max_and_refuses_more_pairs() -> None:
 
 
 def test_degenerate_pools_cost_infinity_with_the_reason() -> None:
-    # Three coincident pairs: the initial pool cannot be solved.
+    # Three coincident pairs: two distinct points, the initial pool cannot be solved.
     P_b = np.array([P_BASE[0], P_BASE[0], P_BASE[0], P_BASE[1]])
     P_c = apply(invert(T_BASE_CAM), P_b)
     alg = Algorithm1(FakeMetric(), translation_cost, e_required=0.0, k_max=5)
     step = alg.start(list("abcd"), P_b, P_c)
     assert step.T_base_cam is None and step.cost_optimal == math.inf
     assert "collinear" in step.candidates[0].reason
-    # Replacing one of the duplicates still leaves three collinear points... so
-    # every candidate stays infinite and the pool is kept.
+    # A third point in place of a duplicate: three points off one line (a plane)
+    # fix the rotation (Eq. 10-12), the candidate is solved and beats infinity.
     step = alg.add("e", P_BASE[2], P_CAM[2])
-    assert step.accepted_slot is None and step.cost_optimal == math.inf
+    assert step.accepted_slot in (0, 1, 2) and step.cost_optimal < 1e-12
+    # Putting a point of the line P0-P1 in place of that third point leaves the
+    # pool on one line again: that candidate is infinite, with the reason.
+    slot = step.accepted_slot
+    on_line = 2 * P_BASE[1] - P_BASE[0]
+    step = alg.add("f", on_line, apply(invert(T_BASE_CAM), on_line[None])[0])
+    assert step.candidates[slot].cost == math.inf and "collinear" in step.candidates[slot].reason
 
 
 def test_online_interface_validates_its_input() -> None:

@@ -14,6 +14,8 @@ from celld.calib.flange import preset
 from celld.cli import main
 from celld.se3 import apply, error, invert, transform_from
 
+# The authors' public sample (tests/calib/data/.../README.md): six PhoXi captures of a Franka flange, coplanar poses.
+SAMPLE = Path(__file__).parent / "data" / "flange_handeye_sample_2019-06-14"
 T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
 # Workspace of the calibration poses (the camera is 1 m above the base).
 BOX_CENTRE = np.array([0.6, 0.0, 0.35])
@@ -104,6 +106,18 @@ def test_solve_a_saved_simulated_session_end_to_end(sim_session: Path, capsys) -
     assert dt < 0.5e-3 and np.degrees(dr) < 0.1
     assert out["e_icp"]["ok"] is True
     assert out["algorithm1"]["steps"][0]["k"] == 0 and len(out["algorithm1"]["pool"]) == 4
+    # A session of poses spread in a box passes the quality gate; ICP leaves the
+    # flange's turn about its own axis loose on this sparse cloud, and says so.
+    assert out["quality"]["verdict"] == "ok", out["quality"]["reasons"]
+    assert out["quality"]["e_icp"]["ok"] is True and max(out["quality"]["rotation_std_deg"]) < 0.1
+    # Compensating with that turn would rotate a 0.02 deg estimate by more than a
+    # degree: the stored transform is the compensated one, and the gate fails it.
+    code, comp = run(capsys, "calib", "solve", str(sim_session), "--json", "--compensate")
+    assert code == 0 and comp["stored"] == "compensated" and comp["T_base_cam"] == comp["T_base_cam_compensated"]
+    loose = abs(comp["quality"]["e_icp_turn_deg"]) > 0.5  # 1.36 deg with this seed and resolution
+    assert any("turns" in w for w in out["quality"]["warnings"]) == loose
+    assert comp["quality"]["verdict"] == ("poor_data" if loose else "ok")
+    assert any("the compensation (Eq. 21) turns the stored transform" in r for r in comp["quality"]["reasons"]) == loose
     code, out = run(capsys, "calib", "solve", str(sim_session), "--json", "--method", "algorithm1")
     assert code == 0 and len(out["pairs"]) == 4
     assert len(out["rejected"]) == 4 + sum("detection" in r["reason"] for r in out["rejected_detail"])
@@ -147,3 +161,62 @@ def test_solve_takes_the_method_from_the_cell_config(tmp_path: Path, rng: np.ran
     (tmp_path / "bad.toml").write_text('[calibration]\nmethod = "magic"\n')
     code, out = run(capsys, "calib", "solve", str(tmp_path / "ref"), "--json", "--config", str(tmp_path / "bad.toml"))
     assert code == 2 and "calibration.method" in out["error"]
+
+
+def authors_T_base_cam() -> np.ndarray:
+    H = np.array(json.loads((SAMPLE / "calib_result.json").read_text())["H"]).reshape(4, 4)
+    H[:3, 3] *= 1e-3  # mm in their file
+    return H
+
+
+def test_the_authors_coplanar_sample_solves_with_its_recorded_centres(capsys) -> None:
+    code, out = run(capsys, "calib", "solve", str(SAMPLE), "--json")
+    assert code == 0 and out["format"] == "reference" and out["stored"] == "estimate"
+    assert out["pairs"] == ["0", "1", "2", "3", "4", "5"] and out["rejected"] == []
+    assert out["rms_mm"] == pytest.approx(0.305, abs=0.001)  # the authors' centres, as the issue measured
+    q = out["quality"]
+    # Six poses in one plane, 98 x 14 mm RMS: solvable, but the rotation about
+    # the plane's long direction (base X) is fixed to a third of a degree only.
+    assert q["rotation_axes"][0]["axis"] == "X" and q["rotation_axes"][0]["std_deg"] == pytest.approx(0.355, abs=0.005)
+    assert "rotation about X poorly fixed: 0.35 deg 1-sigma; add poses off the plane" in q["warnings"]
+    assert q["verdict"] == "insufficient_rotation" and q["passed"] is False
+    assert q["reasons"] == ["rotation about X poorly fixed: 0.35 deg 1-sigma, above 0.25 deg; add poses off the plane"]
+    # The other rotations are fixed to 0.05 deg, and a point at the workspace
+    # centre to sigma / sqrt(6) (0.22 mm / 2.45).
+    assert max(a["std_deg"] for a in q["rotation_axes"][1:]) < 0.06
+    assert q["translation_std_mm"] == pytest.approx([0.088] * 3, abs=0.001)
+    assert q["outliers"] == [] and q["e_icp"] is None
+    # The authors' own result on the same data lies within the estimate's uncertainty.
+    dt, dr = error(np.array(out["T_base_cam"]), authors_T_base_cam())
+    assert dt * 1e3 < 2 * out["uncertainty"]["translation_error_mm"] and np.degrees(dr) < 2 * out["uncertainty"]["rotation_error_deg"]
+
+
+def test_the_authors_coplanar_sample_solves_with_redetected_centres(capsys) -> None:
+    code, out = run(capsys, "calib", "solve", str(SAMPLE), "--json", "--redetect", "--flange", "franka")
+    assert code == 0 and out["flange"] == "franka"
+    assert out["pairs"] == ["0", "1", "2", "3", "4", "5"] and out["rejected"] == []
+    assert out["rms_mm"] == pytest.approx(0.239, abs=0.01)  # this detector's centres fit better than the authors'
+    q = out["quality"]
+    worst = q["rotation_axes"][0]
+    assert worst["axis"] == "X" and 0.2 < worst["std_deg"] < 0.35
+    assert any(w.startswith("rotation about X poorly fixed") and w.endswith("add poses off the plane") for w in q["warnings"])
+    # Same answer as the recorded centres, within the uncertainty.
+    _, rec = run(capsys, "calib", "solve", str(SAMPLE), "--json")
+    dt, dr = error(np.array(out["T_base_cam"]), np.array(rec["T_base_cam"]))
+    assert dt * 1e3 < 2 * rec["uncertainty"]["translation_error_mm"] and np.degrees(dr) < 2 * rec["uncertainty"]["rotation_error_deg"]
+
+
+def test_solve_prints_the_verdict_and_its_reasons(capsys) -> None:
+    assert main(["calib", "solve", str(SAMPLE)]) == 0
+    out = capsys.readouterr().out
+    assert "quality: insufficient_rotation" in out
+    assert "  fails: rotation about X poorly fixed: 0.35 deg 1-sigma, above 0.25 deg; add poses off the plane" in out
+    assert "mm at the workspace centre" in out
+
+
+def test_compensate_offline_without_a_verification_cloud_stores_the_estimate(tmp_path: Path, rng: np.random.Generator, capsys) -> None:
+    reference_session(tmp_path / "ref", rng, 8, 0.0002, {})
+    code, out = run(capsys, "calib", "solve", str(tmp_path / "ref"), "--json", "--compensate")
+    assert code == 0 and out["stored"] == "estimate" and out["T_base_cam_compensated"] is None
+    assert out["T_base_cam"] == out["T_base_cam_estimate"]
+    assert any("not applied: no verification cloud" in w for w in out["quality"]["warnings"])

@@ -124,11 +124,17 @@ def test_eye_on_arm_with_noise_is_within_its_uncertainty() -> None:
     assert dr < 4 * fit.uncertainty.rotation_error
 
 
-def test_eye_on_arm_refuses_coplanar_flange_positions(rng: np.random.Generator) -> None:
-    Ta, Tf, P, _ = eye_on_arm_data(rng, 6, 0.0)
+def test_eye_on_arm_solves_coplanar_and_refuses_collinear_flange_positions(rng: np.random.Generator) -> None:
+    Ta, Tf, _, _ = eye_on_arm_data(rng, 6, 0.0)
     Ta[:] = np.eye(4)
-    Tf[:, 2, 3] = 0.3  # every flange at the same height in the (fixed) arm frame
-    with pytest.raises(CalibrationError, match="coplanar"):
+    Tf[:, 2, 3] = 0.3  # every flange at the same height in the (fixed) arm frame: a plane fixes the rotation
+    P = np.array([(invert(T_ARM_CAM) @ F)[:3, 3] for F in Tf])
+    fit = solve_eye_on_arm(Ta, Tf, P)
+    dt, dr = error(fit.T_link_cam, T_ARM_CAM)
+    assert dt < 1e-9 and dr < 1e-9
+    Tf[:, 1, 3] = 0.05  # and on one line: the rotation about it is undetermined
+    P = np.array([(invert(T_ARM_CAM) @ F)[:3, 3] for F in Tf])
+    with pytest.raises(CalibrationError, match="collinear"):
         solve_eye_on_arm(Ta, Tf, P)
     with pytest.raises(InputError, match="same number of poses"):
         solve_eye_on_arm(Ta[:5], Tf, P)

@@ -114,16 +114,58 @@ def test_fewer_than_four_pairs_are_refused(n: int) -> None:
         solve_rigid(apply(T_BASE_CAM, TETRA_CAM[:n]), TETRA_CAM[:n])
 
 
-def test_coplanar_positions_are_refused_with_the_reason() -> None:
+def test_coplanar_positions_are_solved_exactly() -> None:
+    # Eq. 10-12 with the determinant correction: Sigma has rank 2, and the sign
+    # of its third direction is fixed by det(U) det(V), not left to chance.
     P_cam = np.array([[0.0, 0.0, 0.5], [0.1, 0.0, 0.5], [0.0, 0.1, 0.5], [0.1, 0.1, 0.5], [0.05, 0.02, 0.5]])
-    with pytest.raises(CalibrationError, match="coplanar"):
-        solve_rigid(apply(T_BASE_CAM, P_cam), P_cam)
+    assert geometry_defect(P_cam) is None
+    fit = solve_rigid(apply(T_BASE_CAM, P_cam), P_cam)
+    np.testing.assert_allclose(fit.T_dst_src, T_BASE_CAM, atol=1e-12)
+    np.testing.assert_allclose(fit.residuals, 0.0, atol=1e-12)
+
+
+def test_three_distinct_points_off_a_line_are_enough() -> None:
+    P_cam = np.array([[0.0, 0.0, 0.5], [0.1, 0.0, 0.5], [0.0, 0.1, 0.5], [0.1, 0.0, 0.5]])  # one point twice
+    fit = solve_rigid(apply(T_BASE_CAM, P_cam), P_cam)
+    np.testing.assert_allclose(fit.T_dst_src, T_BASE_CAM, atol=1e-12)
+
+
+def test_covariance_predicts_the_spread_of_a_coplanar_estimate() -> None:
+    # A strip in a plane, 300 x 60 mm: rotation about the strip's long axis is
+    # fixed five times worse than the others, and the covariance says so.
+    rng = np.random.default_rng(2)
+    sigma = 0.0002
+    P_base = np.column_stack([rng.uniform(0.45, 0.75, 12), rng.uniform(-0.03, 0.03, 12), np.full(12, 0.45)])
+    P_cam_true = apply(invert(T_BASE_CAM), P_base)
+    xis, predicted = [], []
+    for _ in range(400):
+        fit = solve_rigid(P_base, P_cam_true + rng.normal(0.0, sigma, P_base.shape))
+        xis.append(perturbation(fit.T_dst_src, T_BASE_CAM))
+        predicted.append(np.sqrt(np.diag(fit.uncertainty.covariance)))
+    empirical = np.std(xis, axis=0)
+    np.testing.assert_allclose(empirical, np.mean(predicted, axis=0), rtol=0.15)
+    rot = np.mean(predicted, axis=0)[:3]
+    assert rot[0] > 3 * rot[1] and rot[0] > 3 * rot[2]  # about base x, the strip's long axis
 
 
 def test_collinear_positions_are_refused_with_the_reason() -> None:
     P_cam = np.outer(np.linspace(0.0, 0.2, 5), [1.0, 0.5, 0.2]) + [0, 0, 0.5]
-    with pytest.raises(CalibrationError, match="collinear"):
+    with pytest.raises(CalibrationError, match="collinear.*rotation about the line is undetermined"):
         solve_rigid(apply(T_BASE_CAM, P_cam), P_cam)
+    # Two distinct points are a line too.
+    P_two = np.array([[0.0, 0.0, 0.5], [0.1, 0.0, 0.5], [0.0, 0.0, 0.5], [0.1, 0.0, 0.5]])
+    with pytest.raises(CalibrationError, match="collinear"):
+        solve_rigid(apply(T_BASE_CAM, P_two), P_two)
+
+
+def test_a_set_a_few_microns_off_a_line_is_solved_with_its_true_conditioning(rng: np.random.Generator) -> None:
+    # 5 um across a 200 mm line is not a rank defect: it solves, and the
+    # covariance puts the rotation about the line tens of degrees loose.
+    P_cam = np.outer(np.linspace(-0.1, 0.1, 6), [1.0, 0.0, 0.0]) + [0.0, 0.0, 0.5]
+    P_cam[:, 1] += rng.uniform(-5e-6, 5e-6, 6)
+    P_base = apply(T_BASE_CAM, P_cam) + rng.normal(0.0, 1e-4, (6, 3))
+    fit = solve_rigid(P_base, P_cam)
+    assert np.degrees(fit.uncertainty.rotation_error) > 5.0
 
 
 def test_coincident_positions_are_refused() -> None:

@@ -87,10 +87,35 @@ def test_bad_input_is_refused(rng: np.random.Generator) -> None:
     P_cam[0, 0] = np.nan
     with pytest.raises(InputError, match="NaN"):
         solve_robust(P_base, P_cam)
-    flat = P_base.copy()
-    flat[:, 2] = 0.4
-    with pytest.raises(CalibrationError, match="coplanar"):
-        solve_robust(flat, flat)
+    line = P_base.copy()
+    line[:, 1:] = [0.0, 0.4]
+    with pytest.raises(CalibrationError, match="collinear"):
+        solve_robust(line, line)
+
+
+def test_coplanar_pairs_are_solved_and_the_false_detection_rejected(rng: np.random.Generator) -> None:
+    # Every pose at one height (a robot taught poses in a plane), 0.03 mm out of
+    # it, one false detection 8 mm off.
+    P_base, _ = pairs(rng, 10, 0.0)
+    P_base[:, 2] = 0.45 + rng.uniform(-0.03e-3, 0.03e-3, 10)
+    P_cam = apply(invert(T_BASE_CAM), P_base) + rng.normal(0.0, 0.1e-3, (10, 3))
+    P_cam[6] += [0.008, 0.0, 0.0]
+    fit = solve_robust(P_base, P_cam)
+    assert [r.index for r in fit.rejected] == [6]
+    dt, dr = error(fit.T_base_cam, T_BASE_CAM)
+    # Within 4 sigma of the covariance's prediction: the plane fixes every rotation.
+    assert dt < 4 * fit.fit.uncertainty.translation_error
+    assert dr < 4 * fit.fit.uncertainty.rotation_error
+    assert np.degrees(fit.fit.uncertainty.rotation_error) < 0.1
+
+
+def test_an_elongated_set_of_thin_triangles_still_has_hypotheses(rng: np.random.Generator) -> None:
+    # 300 mm along x, 3 mm across: every triangle is thinner than the sampler's
+    # 5 % ratio, but the set is not a line, so it solves.
+    P_base = np.column_stack([np.linspace(0.45, 0.75, 8), 0.003 * rng.uniform(-0.5, 0.5, 8), 0.45 + 0.003 * rng.uniform(-0.5, 0.5, 8)])
+    fit = solve_robust(P_base, apply(invert(T_BASE_CAM), P_base))
+    assert fit.rejected == ()
+    assert error(fit.T_base_cam, T_BASE_CAM)[0] < 1e-9
 
 
 def test_params_are_validated() -> None:

@@ -32,7 +32,7 @@ T_BASE_CAM_TRUE = [[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, 
 def _write_config(path: Path, host: str, state_dir: Path) -> Path:
     path.write_text(
         f"""
-include = ["{ROOT / 'configs' / 'robots' / 'ur10e.toml'}"]
+include = ["{ROOT / 'configs' / 'robots' / 'ur10e.toml'}", "{ROOT / 'configs' / 'cell-models' / 'sim-cell.toml'}"]
 [cell]
 name = "e2e"
 state_dir = "{state_dir}"
@@ -114,7 +114,7 @@ def test_calibrate_over_the_bus_then_accept(daemon) -> None:
 
 
 def test_move_and_health_and_a_refused_job(daemon) -> None:
-    client, _, _, _ = daemon
+    client, _, _, robot = daemon
     _, record = client.submit_and_wait({"kind": "health", "check": "all"}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
     target = [0.62, 0.02, 0.46, 0.0, 0.0, 0.0]
@@ -123,9 +123,41 @@ def test_move_and_health_and_a_refused_job(daemon) -> None:
     moved = json.loads(Path(record["result"]).read_text())
     assert moved["error_mm"] < 0.1
     # Outside the workspace box: refused with the reason, the daemon stays up.
-    _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 1.3, 0, 0, 0]}}, timeout=60)
+    _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": [1.05, 0.0, 0.5, 0, 0, 0]}}, timeout=60)
     assert record["state"] == "failed" and "workspace" in record["reason"]
     assert client.status()["state"] in ("idle", "fault")
+    # Into the table, into the scanner, out of reach (each inside the workspace box): refused
+    # before any motion, naming the part, the object or the reason.
+    refused = {
+        "table": ([0.6, 0.0, 0.025, math.pi, 0.0, 0.0], ("tool part 'torch'", "'table'")),
+        "scanner": ([0.6, -0.0125, 0.97, 0.0, 0.0, 0.0], ("'scanner'",)),
+        "out of reach": ([0.95, 0.95, 1.1, 0.0, 0.0, 0.0], ("unreachable",)),
+    }
+    for what, (pose, words) in refused.items():
+        q_before = robot.truth()[2]
+        _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": pose}}, timeout=60)
+        assert record["state"] == "failed", (what, record)
+        assert "refused" in record["reason"] and all(w in record["reason"] for w in words), (what, record["reason"])
+        assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, f"the arm moved for the refused move into the {what}"
+
+
+def test_a_calibration_dry_run_plans_and_checks_without_moving(daemon) -> None:
+    client, _, _, robot = daemon
+    q_before = robot.truth()[2]
+    _, record = client.submit_and_wait({"kind": "calibrate", "n_poses": 6, "seed": 2, "dry_run": True}, timeout=120)
+    assert record["state"] == "succeeded", record["reason"]
+    result = json.loads(Path(record["result"]).read_text())
+    plan = result["plan"]
+    assert result["dry_run"] and len(plan["poses"]) == 6 and len(plan["joints"]) == 7  # the verification pose first
+    assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, "a dry run moved the arm"
+    # The plan's joints reach the planned poses (the controller's own kinematics).
+    from celld.robot import kinematics as kin
+
+    for q, pose in zip(plan["joints"][1:], plan["poses"]):
+        np.testing.assert_allclose(kin.forward(q), se3.from_ur_pose(pose), atol=1e-6)
+    entities = read_entities(Path(result["recording"]))
+    assert "/world/cell/table" in entities and "/world/cell/scanner" in entities, entities
+    assert "/world/robot/pose_01" in entities and "/world/robot/pose_07" in entities, entities
 
 
 def _submit_and_wait_for(client: CellClient, message: dict, stage: str, timeout: float = 120) -> str:
@@ -177,11 +209,21 @@ def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(dae
     assert record["state"] == "succeeded", record["reason"]
 
 
-def test_kill_9_of_the_daemon_during_a_job_leaves_it_interrupted(daemon) -> None:
-    client, proc, cfg, _ = daemon
+def test_kill_9_of_the_daemon_mid_calibration_stops_the_arm_and_the_next_daemon_runs_jobs(daemon, tmp_path: Path) -> None:
+    from celld.sim.cell import start_daemon, stop_daemon
+    from tests.daemon.orphans import after_kill, wait_moving
+
+    client, proc, cfg, robot = daemon
     job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 4}, "pair")
+    wait_moving(robot, min_speed=0.03)  # on its way to the next calibration pose
+    t_kill = time.monotonic_ns()
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)
+    seen = after_kill(robot, t_kill, arc_output=0)
+    # The orphaned motion process saw its daemon go, stopped the arm jerk-limited and ended.
+    assert seen.moving_at_kill > 0.02, seen
+    assert seen.at_rest_s < 0.5, seen
+
     state_dir = Path(cfg.cell.state_dir)
     journal = Journal(state_dir / "journal.db")  # what the next start does
     try:
@@ -193,3 +235,15 @@ def test_kill_9_of_the_daemon_during_a_job_leaves_it_interrupted(daemon) -> None
     for poses in state_dir.rglob("poses.json"):
         json.loads(poses.read_text())
     assert not (state_dir / "results" / f"{job}.json").exists()
+
+    # The next daemon cleans up what the killed one recorded and runs the next job.
+    with open(tmp_path / "daemon2.log", "ab") as log:
+        second = start_daemon(Path(cfg.source), log, timeout=60)
+        try:
+            move = {"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 0.45, 0.0, 0.0, 0.0]}}
+            _, record = second.client.submit_and_wait(move, timeout=90)
+            assert record["state"] == "succeeded", record["reason"]
+            assert {p.name for p in (state_dir / "run").glob("*.json")} == {"motion.json"}  # this daemon's own child
+        finally:
+            second.client.close()
+            stop_daemon(second.process)

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from celld.bus.schema import CancelRequest, HealthJob, ListRequest, MoveJob, StatusRequest, AcceptRequest
+from celld.bus.schema import AcceptRequest, CalibrateJob, CancelRequest, HealthJob, ListRequest, MoveJob, StatusRequest
 from celld.daemon.jobs import JobContext, JobManager
 from celld.errors import JobError, MotionError
 from celld.journal import Journal
@@ -132,4 +132,76 @@ async def test_unknown_jobs_and_bad_accepts_are_refused(tmp_path: Path) -> None:
     await h.manager.wait(job, timeout=5)
     with pytest.raises(JobError, match="only a succeeded calibrate job"):
         await h.manager.on_accept(AcceptRequest(job=job))
+    await h.manager.close()
+
+
+# -- the calibration quality gate at accept ------------------------------------------
+
+
+def _calibration(verdict_ok: bool) -> dict[str, Any]:
+    """A calibrate job's calibration with a real quality report: a wide or a narrow plane of poses."""
+    import numpy as np
+
+    from celld.calib.session import solve_pairs
+    from celld.se3 import apply, invert
+
+    T = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(3)
+    width = 0.3 if verdict_ok else 0.02
+    P_base = np.column_stack([rng.uniform(0.45, 0.75, 8), rng.uniform(-width / 2, width / 2, 8), np.full(8, 0.45)])
+    P_cam = apply(invert(T), P_base) + rng.normal(0.0, 2e-4, (8, 3))
+    result = solve_pairs([f"p{i}" for i in range(8)], P_base, P_cam)
+    return {"T_base_cam": result.T_base_cam_stored.tolist(), "stored": result.stored, "method": result.method, "quality": result.quality.as_dict()}
+
+
+def _calibrating_harness(tmp_path: Path, verdict_ok: bool, auto_accept: bool = False) -> Harness:
+    h = Harness(tmp_path)
+    calibration = _calibration(verdict_ok)
+
+    async def calibrate(ctx: JobContext) -> dict[str, Any]:
+        return {"calibration": {"job": ctx.job_id, **calibration}}
+
+    h.manager = JobManager(
+        h.journal, tmp_path, {"calibrate": calibrate}, lambda *a, **k: None, h.manager.stop_robot, cell="test", auto_accept=auto_accept
+    )
+    return h
+
+
+@run
+async def test_accept_refuses_a_failed_quality_verdict_unless_forced(tmp_path: Path) -> None:
+    from celld.bus import schema
+
+    h = _calibrating_harness(tmp_path, verdict_ok=False)
+    h.manager.start()
+    job = (await h.manager.on_submit(CalibrateJob()))["job"]
+    assert (await h.manager.wait(job, timeout=5)).state == "succeeded"
+    with pytest.raises(JobError, match=r"failed its quality gate \(insufficient_rotation: rotation about X poorly fixed"):
+        await h.manager.on_accept(AcceptRequest(job=job))
+    assert (await h.manager.on_calibration(None))["calibration"] is None
+    reply = await h.manager.on_accept(AcceptRequest(job=job, force=True))
+    assert reply["calibration"]["forced"] is True and reply["calibration"]["quality"]["verdict"] == "insufficient_rotation"
+    schema.check_message("accept-reply", {"ok": True, **reply})
+    assert (await h.manager.on_calibration(None))["calibration"]["job"] == job
+    await h.manager.close()
+
+
+@run
+async def test_accept_takes_a_passed_verdict_and_auto_accept_skips_a_failed_one(tmp_path: Path) -> None:
+    from celld.bus import schema
+
+    h = _calibrating_harness(tmp_path / "ok", verdict_ok=True)
+    h.manager.start()
+    job = (await h.manager.on_submit(CalibrateJob()))["job"]
+    await h.manager.wait(job, timeout=5)
+    reply = await h.manager.on_accept(AcceptRequest(job=job))
+    assert "forced" not in reply["calibration"] and reply["calibration"]["quality"]["verdict"] == "ok"
+    schema.check_message("accept-reply", {"ok": True, **reply})
+    await h.manager.close()
+
+    h = _calibrating_harness(tmp_path / "auto", verdict_ok=False, auto_accept=True)
+    h.manager.start()
+    job = (await h.manager.on_submit(CalibrateJob()))["job"]
+    # The job itself succeeds; its calibration waits for an operator.
+    assert (await h.manager.wait(job, timeout=5)).state == "succeeded"
+    assert (await h.manager.on_calibration(None))["calibration"] is None
     await h.manager.close()

@@ -5,13 +5,14 @@ simulated UR10e in real time, the ray-cast PhoXi M with a V-groove on the
 table (placed off its nominal place), the simulated SRM camera read by the
 real ArUco detector. The test talks to ``celld run`` only over the bus and
 scores the results against the simulator's truth, which the daemon never
-reads. Slow (about 3 minutes): a full calibration and two welds.
+reads. Slow (about 5 minutes): a full calibration, three welds and a kill -9 of the daemon mid-weld.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import signal
 import threading
 import time
 from pathlib import Path
@@ -24,7 +25,8 @@ from celld.bus import schema
 from celld.seam.figures import lateral_error
 from celld.journal import Journal
 from celld.recording.readback import read_entities
-from celld.sim.cell import run_cell, sim_workpiece
+from celld.sim.cell import run_cell, sim_workpiece, start_daemon, stop_daemon
+from tests.daemon.orphans import after_kill
 
 pytestmark = pytest.mark.slow
 
@@ -109,6 +111,15 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
         paths = json.loads(Path(result["paths"]).read_text())
         assert len(paths["refined"]) > 100 and len(paths["torch"]) > 100
 
+        # The arm is back at the scan pose: a dry run scans, plans and checks the weld, and moves nothing.
+        q_before = robot.truth()[2]
+        _, dry = client.submit_and_wait({"kind": "weld", "dry_run": True}, timeout=300)
+        assert dry["state"] == "succeeded", dry["reason"]
+        planned = json.loads(Path(dry["result"]).read_text())
+        assert planned["dry_run"] and len(planned["tcp_path"]) > 10 and planned["min_clearance_mm"] > 5.0, planned
+        assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, "a dry run moved the arm"
+        assert "/world/robot/pose_01" in read_entities(Path(planned["recording"]))
+
         entities = read_entities(Path(result["recording"]))
         for name in ("planned", "refined", "torch"):
             assert any(e.endswith(name) and e.startswith("/world") for e in entities), (name, entities)
@@ -128,8 +139,34 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
         time.sleep(0.3)
         assert np.max(np.abs(robot.truth()[2] - q0)) < 1e-4
         assert int(robot.status()["digital_out"]) & (1 << ARC) == 0, "the arc goes off with the stop"
-        state_dir = Path(cfg.cell.state_dir)
-    journal = Journal(state_dir / "journal.db")
-    assert journal.get(job).state == "cancelled"
-    assert journal.check() == []
-    journal.close()
+
+        # kill -9 of the daemon mid-weld, the arc on: its orphaned motion process stops
+        # the arm (jerk-limited) with the arc off at once, and ends; the next daemon welds.
+        with client.watch_progress() as events:
+            killed = client.submit({"kind": "weld", "ref": "killed"})["job"]
+            events.wait_stage(killed, "track", timeout=240)
+        deadline = time.monotonic() + 60
+        while not int(robot.status()["digital_out"]) & (1 << ARC):
+            assert time.monotonic() < deadline, "the arc never came on"
+            time.sleep(0.02)
+        time.sleep(0.5)
+        t_kill = time.monotonic_ns()
+        cell.daemon.send_signal(signal.SIGKILL)
+        cell.daemon.wait(10)
+        seen = after_kill(robot, t_kill, arc_output=ARC)
+        assert seen.moving_at_kill > 0.002, seen  # tracking at V_const (10 mm/s)
+        assert seen.arc_off_s < 0.1, seen
+        assert seen.at_rest_s < 0.5, seen
+        journal = Journal(Path(cfg.cell.state_dir) / "journal.db")  # the killed daemon held it
+        assert journal.get(job).state == "cancelled"
+        assert journal.check() == []
+        journal.close()
+        with open(tmp_path / "daemon2.log", "ab") as log:
+            second = start_daemon(cfg_path, log, timeout=120)
+            try:
+                _, weld = second.client.submit_and_wait({"kind": "weld", "ref": "after the kill"}, timeout=600)
+                assert weld["state"] == "succeeded", (weld["reason"], robot.status())
+                assert second.client.status(killed)["state"] == "interrupted"
+            finally:
+                second.client.close()
+                stop_daemon(second.process)

@@ -38,6 +38,7 @@ class FakePort:
         self.sent: list[tuple[str, list[float]]] = []
         self.outputs: list[tuple[int, bool]] = []  # every set_digital_out call
         self.output_ok = True  # what set_digital_out returns
+        self.output_bits = 0  # the controller's actual outputs
         self.reads_left = -1  # >= 0: the link drops after this many reads
         self.watchdog_hz = 0.0
         self.closed = False
@@ -66,7 +67,12 @@ class FakePort:
 
     def set_digital_out(self, index: int, value: bool) -> bool:
         self.outputs.append((index, value))
+        if self.output_ok:
+            self.output_bits = self.output_bits | (1 << index) if value else self.output_bits & ~(1 << index)
         return self.output_ok
+
+    def digital_outputs(self) -> int:
+        return self.output_bits
 
     def set_watchdog(self, min_frequency_hz: float) -> None:
         self.watchdog_hz = min_frequency_hz
@@ -370,3 +376,53 @@ def test_the_handle_reports_loop_events_about_no_command_and_resolves_nothing_wi
     handle._drain()
     assert list(handle.loop_events) == ["process output 0: switching it on failed; retrying every cycle"]
     assert handle.loop_event_count == 1 and 0 not in handle._reasons  # no command is ended by it
+
+
+class _Watch:
+    """A ParentWatch stand-in: the daemon goes at cycle ``gone_at``."""
+
+    def __init__(self, loop_cycles, gone_at: int) -> None:  # type: ignore[no-untyped-def]
+        self.cycles, self.gone_at = loop_cycles, gone_at
+
+    def check(self, now_ns: int | None = None) -> str:
+        return "the daemon (pid 1234) is gone" if self.cycles() >= self.gone_at else ""
+
+
+def test_without_its_daemon_the_loop_stops_the_servo_drops_the_output_and_ends(channels: Channels) -> None:
+    port, clock = FakePort(), Clock()
+    loop = _loop(channels, port, clock, process_output=ARC)
+    loop.parent = _Watch(lambda: loop.cycles, gone_at=60)  # type: ignore[assignment]
+    channels.commands.post(cmd.encode(_probe(cycles=10_000, process_from=20)))
+    at = _touching(loop, channels, clock, 60, port)
+    assert port.outputs == [(ARC, False), (ARC, True)] and at == [1, 20]
+    end = None
+    for _ in range(500):
+        clock.t += PERIOD_NS
+        end = loop.cycle(clock.t, clock.t)
+        if end is not None:
+            break
+    assert end is not None and end.status == ControlStatus.OK and "is gone" in end.reason, end
+    # The arc went off on the first cycle the loop looked (every 5 cycles), the stop began then.
+    assert port.outputs[-1] == (ARC, False)
+    recs, _, _ = channels.state.read_since(0)
+    off = int(recs["cycle"][np.flatnonzero(~recs["process_on"] & (recs["cycle"] > 20))[0]])
+    assert off <= 61 + 5
+    # The stop was a ramp to rest, not a jump: the last twists fall to zero.
+    assert np.all(recs["twist"][-1] == 0.0) and recs["mode"][-1] == int(Mode.IDLE)
+    speeds = np.linalg.norm(recs["twist"][recs["cycle"] >= off][:, :3], axis=1)
+    assert speeds[0] > 0.0 and np.all(np.diff(speeds) <= 1e-12)
+
+
+def test_an_output_left_on_by_the_previous_process_is_reported_as_a_missing_interlock(channels: Channels) -> None:
+    port, clock = FakePort(), Clock()
+    port.output_bits = 1 << ARC  # the robot's program stopped, and the output stayed on
+    loop = _loop(channels, port, clock, process_output=ARC)
+    _cycles(loop, clock, 3)
+    assert port.outputs == [(ARC, False)] and port.output_bits == 0
+    [(cid, status, reason)] = _events(channels)
+    assert cid == 0 and status == ControlStatus.FAULT and reason.startswith(f"arc interlock missing: process output {ARC} was still on")
+    # A well set-up robot (the output went low at program stop): nothing to say.
+    port2 = FakePort()
+    loop2 = _loop(channels, port2, Clock(), process_output=ARC)
+    _cycles(loop2, Clock(), 3)
+    assert len(_events(channels)) == 1

@@ -350,3 +350,58 @@ def test_cli_status_reports_the_robot_and_the_loop(sim: Any) -> None:
     assert len(report["tcp_pose"]) == 6 and len(report["q"]) == 6
     assert report["health"]["cycles"] > 100
     assert report["health"]["link"] in ("running", "restarting", "starting")
+
+
+@pytest.mark.parametrize("interlock", [True, False], ids=["outputs-low-at-stop", "no-interlock"])
+def test_kill_9_of_the_motion_process_with_the_arc_on(loopback_host: str, interlock: bool) -> None:
+    """With the robot's I/O set up to drop outputs at program stop, the watchdog (5 Hz here) drops the
+    arc within its period; without it the arc stays on, and the next motion process says so."""
+    from celld.sim.robot import launch
+
+    arc = 0
+    config = _config()
+    config = dataclasses.replace(config, robot=dataclasses.replace(config.robot, arc_output=arc),
+                                 motion=dataclasses.replace(config.motion, tactile_stale=0.5))
+    seen: dict[str, Any] = {}
+
+    async def scenario(motion: MotionHandle) -> None:
+        async def feed() -> None:
+            seq = 0
+            while True:
+                seq += 1
+                motion.ch.tactile.write(to_record(TactileSample(time.monotonic_ns(), seq, np.zeros(3), ContactState.CONTACT,
+                                                                1.0, True, 0)))
+                await asyncio.sleep(1 / 60)
+
+        feeder = asyncio.ensure_future(feed())
+        try:
+            plan = ServoPlan("probe", {"direction": np.array([0.0, 1.0, 0.0])},
+                             {"speed": 0.005, "cycles": 100_000, "process": True, "process_from": 10})
+            await motion.start_servo(plan)
+            deadline = time.monotonic() + 10
+            while not int(sim.status()["digital_out"]) & (1 << arc):
+                assert time.monotonic() < deadline, "the arc never came on"
+                await asyncio.sleep(0.01)
+            os.kill(motion.supervisor.pid, signal.SIGKILL)
+            t_kill = time.monotonic_ns()
+            await asyncio.sleep(1.0)
+            h = sim.truth_history()
+            after = h[h["stamp_ns"] > t_kill]
+            on = after["stamp_ns"][(after["digital_out"] >> arc) & 1 == 1]
+            seen["arc_off_s"] = ((int(on[-1]) - t_kill) * 1e-9 + 0.002) if len(on) else 0.0
+            seen["arc_on_at_end"] = bool(after["digital_out"][-1] >> arc & 1)
+            assert await motion.wait_ready(20.0)
+            await asyncio.sleep(0.2)
+            seen["events"] = list(motion.loop_events)
+        finally:
+            feeder.cancel()
+
+    with launch(loopback_host, realtime=True, outputs_low_at_stop=interlock) as sim:
+        _run(sim, scenario, config=config, servo_laws={"probe": "tests.motion.laws:make_probe"})
+    missing = [e for e in seen["events"] if "arc interlock missing" in e]
+    if interlock:
+        assert seen["arc_off_s"] <= 1 / 5.0 + 0.05, seen  # one watchdog period, and a few cycles
+        assert not seen["arc_on_at_end"] and not missing, seen
+    else:
+        assert seen["arc_on_at_end"], seen
+        assert missing, seen  # the next process found the output on and said why

@@ -13,6 +13,7 @@ import pytest
 
 from celld import se3
 from celld.config import TableReader
+from celld.config.cell_model import read_cell_model
 from celld.errors import ConfigError, InputError
 from celld.robot.cellmodel import (
     ARM_LINKS,
@@ -25,12 +26,12 @@ from celld.robot.cellmodel import (
     ToolPart,
 )
 
-EXAMPLE = Path(__file__).resolve().parents[2] / "configs" / "cell-model.example.toml"
+EXAMPLE = Path(__file__).resolve().parents[2] / "configs" / "cell-models" / "sim-cell.toml"
 
 
 def read(table: dict[str, Any], source: str = "cell.toml") -> CellModel:
     r = TableReader(table, source, "cell_model")
-    model = CellModel.read(r)
+    model = read_cell_model(r)
     r.done()
     return model
 
@@ -88,7 +89,7 @@ def test_an_open_mesh_is_refused(tmp_path: Path) -> None:
 def test_the_example_is_the_simulated_cell() -> None:
     model = read(tomllib.loads(EXAMPLE.read_text())["cell_model"], str(EXAMPLE))
     assert [o.name for o in model.objects] == ["table", "scanner", "scanner_mount"]
-    assert [p.name for p in model.tool] == ["srm_finger", "torch"]
+    assert [p.name for p in model.tool] == ["srm_finger", "srm_tip", "torch"]
     assert model.margin == pytest.approx(0.005)
     objects = {o.name: o for o in model.objects}
     # The table top is z = 0 over x in [0, 1.2], y in [-0.5, 0.5].
@@ -98,7 +99,8 @@ def test_the_example_is_the_simulated_cell() -> None:
     d = objects["scanner"].signed_distance(np.array([[0.6, -0.0125, 1.001], [0.6, -0.0125, 0.99]]))
     np.testing.assert_allclose(d, [-0.001, 0.01], atol=1e-12)
     assert model.allows("base", "table") and not model.allows("wrist3", "table")
-    assert model.allows("srm_finger", "workpiece") and not model.allows("torch", "workpiece")
+    assert model.allows("srm_tip", "workpiece") and model.allows("srm_tip", "table")
+    assert not model.allows("srm_finger", "workpiece") and not model.allows("torch", "workpiece")
 
 
 def test_no_table_means_the_default_cell() -> None:

@@ -1,4 +1,4 @@
-"""Collision and reachability checks in the simulated cell (configs/cell-model.example.toml) with a UR10e."""
+"""Collision and reachability checks in the simulated cell (configs/cell-models/sim-cell.toml) with a UR10e."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import pytest
 from celld import se3
 from celld.calib.poses import calibration_poses
 from celld.config import TableReader, load
+from celld.config.cell_model import read_cell_model
 from celld.errors import InputError
 from celld.robot import kinematics as kin
 from celld.robot.cellmodel import Box, CellModel, CellObject
@@ -32,8 +33,8 @@ Q_FOREARM_IN_SCANNER = np.array([math.pi, -math.pi / 3, math.pi / 3 - 0.838, -1.
 
 @pytest.fixture(scope="module")
 def cell() -> CellModel:
-    table = tomllib.loads((ROOT / "configs" / "cell-model.example.toml").read_text())["cell_model"]
-    return CellModel.read(TableReader(table, "cell-model.example.toml", "cell_model"))
+    table = tomllib.loads((ROOT / "configs" / "cell-models" / "sim-cell.toml").read_text())["cell_model"]
+    return read_cell_model(TableReader(table, "cell-models/sim-cell.toml", "cell_model"))
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +93,8 @@ def test_a_tool_through_the_table_is_refused_naming_the_tool_and_the_table(check
     # At the goal itself the finger is 175 mm into the table.
     at_goal = checker.check_configuration(kin.inverse(T_goal, HOME_DOWN))
     assert at_goal is not None and at_goal.obstacle == "table"
-    assert at_goal.clearance == pytest.approx(-0.175 - 0.012, abs=0.002)
+    # The tip may touch the table (it works at the part on it); the torch, ending 190 mm out with an 8 mm radius, may not.
+    assert at_goal.part == "torch" and at_goal.clearance == pytest.approx(0.025 - 0.19 - 0.008, abs=0.002)
 
 
 def test_the_forearm_through_the_scanner_is_refused_naming_both(checker: Checker) -> None:
@@ -220,7 +222,7 @@ def test_the_tool_folded_into_the_forearm_is_a_self_collision(checker: Checker) 
 
 
 def test_an_allowed_contact_is_not_a_collision(cell: CellModel) -> None:
-    # The finger may touch the workpiece; the torch, whose nozzle ends 10 mm above the finger's tip, may not.
+    # The finger's tip may touch the workpiece; the torch, whose nozzle ends 10 mm above the tip's centre, may not.
     workpiece = CellObject("workpiece", Box((0.3, 0.2, 0.02)), se3.transform_from(np.eye(3), [0.6, 0.0, 0.01]))
     checker = Checker(kin.model("ur10e"), cell.with_object(workpiece))
 
@@ -229,12 +231,12 @@ def test_an_allowed_contact_is_not_a_collision(cell: CellModel) -> None:
         assert q is not None
         return q
 
-    # Lowest points (capsule ends minus the 12 mm radius): finger flange_z - 0.212, torch flange_z - 0.202; plate top 0.02.
+    # Lowest points (capsule ends minus their radii): tip flange_z - 0.204, torch flange_z - 0.198; plate top 0.02.
     assert checker.check_configuration(at(0.24)) is None  # both clear of the plate
-    assert checker.check_configuration(at(0.229)) is None  # the finger 3 mm into it, the torch 7 mm above
-    col = checker.check_configuration(at(0.21))  # the torch 12 mm into it
+    assert checker.check_configuration(at(0.2235)) is None  # the tip 0.5 mm into it, the torch 5.5 mm above
+    col = checker.check_configuration(at(0.21))  # the torch 8 mm into it
     assert col is not None and (col.part, col.obstacle) == ("torch", "workpiece")
-    assert col.clearance == pytest.approx(-0.012, abs=0.001)
+    assert col.clearance == pytest.approx(-0.008, abs=0.001)
 
 
 def test_a_tcp_offset_moves_the_targets_to_the_tip(cell: CellModel) -> None:
@@ -244,7 +246,8 @@ def test_a_tcp_offset_moves_the_targets_to_the_tip(cell: CellModel) -> None:
     check = checker.check_cartesian_path(HOME_DOWN, tool_down(0.6, 0.0, 0.03))
     assert check.ok
     assert kin.forward(check.q_end)[2, 3] == pytest.approx(0.23, abs=1e-9)
-    assert check.min_clearance == pytest.approx(0.03 - 0.012, abs=0.001)
+    # The nearest part to the table that may not touch it: the torch, 190 mm out with an 8 mm radius.
+    assert check.min_clearance == pytest.approx(0.23 - 0.19 - 0.008, abs=0.001)
 
 
 def test_a_weld_line_is_checked_through_its_waypoints(cell: CellModel) -> None:

@@ -215,10 +215,16 @@ class Controller:
         self.runtime_state = RUNTIME_PLAYING
 
     def stop_program(self, reason: str, brake: bool = True) -> None:
-        """End the running program; the arm stops (at once when ``brake`` is False)."""
+        """End the running program; the arm stops (at once when ``brake`` is False).
+
+        With the I/O set-up ``outputs_low_at_stop`` (the default, as a cell's
+        arc interlock needs) the standard digital outputs go low.
+        """
         if self.program is not None:
             self.program.stop()
         self.program = None
+        if self.runtime_state != RUNTIME_STOPPED and self.options.outputs_low_at_stop:
+            self.digital_out &= ~0xFF
         self.runtime_state = RUNTIME_STOPPED
         self.watchdog = None
         self.last_stop_reason = reason

@@ -66,6 +66,9 @@ class SimOptions:
     parent_pid: int = 0
     # Text messages to RTDE clients: script errors, watchdog, protective stops.
     text_messages: bool = True
+    # The I/O set-up "standard outputs go low when the program stops" (on in a
+    # correctly set-up cell: it is the arc's interlock); False keeps them.
+    outputs_low_at_stop: bool = True
 
     def __post_init__(self) -> None:
         check_host(self.host)
@@ -124,6 +127,8 @@ class SimOptions:
             argv.append("--realtime")
         if not self.text_messages:
             argv.append("--no-text-messages")
+        if not self.outputs_low_at_stop:
+            argv.append("--keep-outputs-at-stop")
         return argv
 
 
@@ -168,6 +173,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-truth", action="store_true", help="do not publish the true state in shared memory")
     parser.add_argument("--realtime", action="store_true", help="run the tick at SCHED_FIFO where allowed")
     parser.add_argument("--no-text-messages", action="store_true", help="send no RTDE text messages")
+    parser.add_argument("--keep-outputs-at-stop", action="store_true",
+                        help="model a cell whose standard outputs stay as they are when the program stops (no arc interlock)")
     parser.add_argument("--parent-pid", type=int, default=0, help=argparse.SUPPRESS)
 
 
@@ -197,4 +204,5 @@ def from_args(args: argparse.Namespace) -> SimOptions:
         realtime=args.realtime,
         parent_pid=args.parent_pid,
         text_messages=not args.no_text_messages,
+        outputs_low_at_stop=not args.keep_outputs_at_stop,
     )

@@ -154,8 +154,8 @@ class SimServer:
             data = peer.read()
             if data:
                 peer.on_data(data)
-            if link.closed:
-                self._drop(link)
+            if peer.closed:
+                self._drop(peer)
         for link in [lk for lk in self.links if lk.tx or lk.closed]:
             link.flush()
             if link.closed:

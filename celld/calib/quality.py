@@ -1,0 +1,559 @@
+"""The quality gate of an eye-on-base calibration: may this ``T_base_cam`` be accepted?
+
+Owns the verdict on a solved calibration, computed from what the solve
+already holds (pairs, residuals, the estimate, e_icp): no cloud, no ground
+truth. :func:`assess_calibration` returns a frozen :class:`CalibrationQuality`:
+
+- every pair with its residual against the estimate, whether the estimate
+  used it, whether it is an outlier and why (or why it has no centre);
+- the noise per axis (from the residuals, never below a floor) and the
+  first-order uncertainty of the estimate (:mod:`celld.calib.rigid`'s
+  convention) with that noise: translation 1-sigma at the workspace centre
+  (the centroid of the positions used, where the cell works; the camera's
+  own position, a metre away, carries the rotation's lever arm), rotation
+  1-sigma about the base axes and about the principal axes of the rotation
+  covariance, the worst named in the base frame;
+- the e_icp (Eq. 13) of the estimate against the verification cloud, run to
+  convergence, when the session has one. Its rotation is split into the turn
+  about the verification flange's own axis and the tilt across it: the disc
+  of a flange fixes the tilt, only its holes and pin fix the turn, and ICP
+  leaves that turn loose (a degree and more on a sparse cloud). The tilt
+  judges the estimate; the turn judges a compensated transform (Eq. 21
+  applies it whole), and is a warning otherwise;
+- a verdict, one of :data:`VERDICTS`, with the reasons, and warnings that do
+  not fail the gate.
+
+How well the positions fix the rotation is read here from the covariance,
+axis by axis: Eq. 10-12 solve any set of positions off one line (coplanar
+ones included), and a set that fixes one rotation poorly gets a warning with
+the figure and, past :attr:`QualityParams.max_rotation_std`, the verdict
+``insufficient_rotation``; only a rank defect is refused, by
+:func:`celld.calib.rigid.check_pairs`.
+
+The noise floor matters when the residuals are small by chance (few pairs:
+with four, the fit residual is about 0.7 of the true localisation error,
+Fitzpatrick et al. 1998) or by construction (exact synthetic data): the
+conditioning of the geometry is then still judged at a realistic noise.
+
+Verdicts, in the order they are decided (the first that applies wins; every
+reason is listed):
+
+- ``too_few_pairs``: fewer pairs with a flange centre than
+  :attr:`QualityParams.min_pairs`;
+- ``poor_data``: a pair the estimate uses is an outlier, too many pairs are
+  outliers, the residuals of the pairs used are too large, e_icp of the
+  estimate is infinite or too large, or a stored compensation turns the
+  estimate too far about the flange's axis;
+- ``insufficient_rotation``: a rotation of the estimate is fixed worse than
+  :attr:`QualityParams.max_rotation_std` (1-sigma);
+- ``ok``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from celld.calib.metrics import IcpMetric
+from celld.calib.rigid import (
+    Array,
+    Uncertainty,
+    check_pairs,
+    pair_residuals,
+    rigid_jacobian,
+)
+from celld.calib.robust import RejectedPair
+from celld.errors import InputError
+
+# The verdicts; only "ok" passes the gate.
+VERDICTS = ("ok", "too_few_pairs", "poor_data", "insufficient_rotation")
+# Median of |r|^2 / sigma^2 for a 3-D isotropic Gaussian residual (chi-square, 3 dof).
+_CHI2_3_MEDIAN = float(chi2.median(3))
+# A principal axis within this angle of a base axis is named after it (X, Y, Z).
+_AXIS_NAME_TOLERANCE = math.radians(20.0)
+# Positions whose second (third) principal spread is below this fraction of the
+# first (second) are called a line (a plane) in the advice of a warning; the
+# advice only, never a refusal.
+_THIN = 0.1
+
+
+@dataclass(frozen=True)
+class QualityParams:
+    """Thresholds of the gate (SI units). The defaults and why:
+
+    Attributes
+    ----------
+    min_pairs : int
+        Pairs with a flange centre needed (5): four for Eq. 9-12 and one to
+        spare. With four, every pair is needed to solve and a false detection
+        (paper section 3.2.2) cannot be told from the others; with five it can
+        be outvoted and rejected.
+    max_rms : float
+        RMS residual of the pairs used, metres (1 mm): about three times what
+        good PhoXi data gives (0.24-0.31 mm on the authors' Franka sample);
+        the paper's false segmentations sit tens of millimetres off. A noisier
+        scanner (a ToF camera) needs a higher value.
+    max_outlier_fraction : float
+        Share of the pairs with a centre that may be outliers (1/3): beyond
+        it the detector or the robot poses are suspect as a whole, and the
+        robust estimator (breakdown at one half) is close to its limit.
+    outlier_alpha : float
+        Probability that a good pair is flagged as an outlier (1e-4, the
+        robust estimator's default; threshold 4.59 sigma on the residual norm).
+    sigma_floor : float
+        Lowest noise per axis the uncertainty is computed with, metres
+        (0.05 mm): the repeatability of a UR10e (+-0.05 mm) and about the
+        centre noise of a PhoXi, below which no real session goes.
+    warn_rotation_std : float
+        A rotation 1-sigma above this is a warning, rad (0.1 deg: three sigma
+        then exceed the paper's 0.25 deg rotation error).
+    max_rotation_std : float
+        A rotation 1-sigma above this fails the gate, rad (0.25 deg: one sigma
+        alone is the paper's whole rotation error; at 0.5 m from the workspace
+        centre it is 2 mm).
+    max_e_icp_translation : float
+        Largest offset e_icp (Eq. 13) of the estimate puts on the verification
+        flange's centre, metres (2 mm; the paper reaches 0.28 mm). Judged at
+        the flange, not at e_icp's own origin (the camera's, about a metre
+        away, where every 0.1 deg of rotation, including the turn about the
+        flange's axis that ICP does not fix, adds about 1.7 mm); at the
+        camera's origin only when the flange's centre is not known.
+    max_e_icp_rotation : float
+        Largest tilt of e_icp of the estimate (its rotation across the
+        verification flange's axis), and largest turn about that axis a
+        stored compensation may apply, rad (0.5 deg: twice the paper's
+        0.25 deg).
+    """
+
+    min_pairs: int = 5
+    max_rms: float = 1.0e-3
+    max_outlier_fraction: float = 1.0 / 3.0
+    outlier_alpha: float = 1e-4
+    sigma_floor: float = 0.05e-3
+    warn_rotation_std: float = math.radians(0.1)
+    max_rotation_std: float = math.radians(0.25)
+    max_e_icp_translation: float = 2.0e-3
+    max_e_icp_rotation: float = math.radians(0.5)
+
+    def __post_init__(self) -> None:
+        if self.min_pairs < 4:
+            raise InputError(f"min_pairs: expected at least 4 (Eq. 9-12), got {self.min_pairs}")
+        if not 0.0 < self.outlier_alpha < 0.5:
+            raise InputError(f"outlier_alpha: expected 0 < alpha < 0.5, got {self.outlier_alpha}")
+        if not 0.0 <= self.max_outlier_fraction < 1.0:
+            raise InputError(f"max_outlier_fraction: expected a fraction in [0, 1), got {self.max_outlier_fraction}")
+        for name in ("max_rms", "sigma_floor", "warn_rotation_std", "max_rotation_std", "max_e_icp_translation", "max_e_icp_rotation"):
+            if not getattr(self, name) > 0.0:
+                raise InputError(f"{name}: expected a positive value (SI units), got {getattr(self, name)}")
+        if self.warn_rotation_std > self.max_rotation_std:
+            raise InputError(f"warn_rotation_std: expected at most max_rotation_std {self.max_rotation_std}, got {self.warn_rotation_std}")
+
+    @property
+    def outlier_k(self) -> float:
+        """Outlier threshold in units of the noise per axis."""
+        return float(math.sqrt(chi2.isf(self.outlier_alpha, 3)))
+
+
+@dataclass(frozen=True)
+class PairQuality:
+    """One pair as the gate sees it.
+
+    Attributes
+    ----------
+    id : str
+    residual : float
+        ``|R p_cam + t - p_base|`` against the estimate, metres; NaN when the
+        pair has no flange centre.
+    used : bool
+        The estimate uses the pair.
+    outlier : bool
+        The residual exceeds the outlier threshold.
+    reason : str
+        Why it is an outlier, why it is not used, or why it has no centre
+        (``""`` for a used, consistent pair).
+    """
+
+    id: str
+    residual: float
+    used: bool
+    outlier: bool
+    reason: str
+
+    def as_dict(self) -> dict[str, Any]:
+        r = self.residual * 1e3 if math.isfinite(self.residual) else None
+        return {"id": self.id, "residual_mm": r, "used": self.used, "outlier": self.outlier, "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class RotationAxis:
+    """A principal axis of the rotation covariance: unit ``direction`` in the base frame, 1-sigma ``std`` (rad)."""
+
+    name: str
+    direction: Array
+    std: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"axis": self.name, "direction": self.direction.tolist(), "std_deg": _finite(math.degrees(self.std))}
+
+
+@dataclass(frozen=True)
+class CalibrationQuality:
+    """The gate's view of one calibration (module docstring); SI units.
+
+    Attributes
+    ----------
+    verdict : str
+        One of :data:`VERDICTS`.
+    reasons : tuple of str
+        Why the verdict is not ``ok`` (every failed check, in verdict order);
+        empty when it is.
+    warnings : tuple of str
+        What an operator should know that does not fail the gate.
+    pairs : tuple of PairQuality
+        Every pair of the session: first those with a centre in pair order,
+        then those without.
+    rms : float
+        RMS residual of the pairs used, metres.
+    sigma : float
+        Noise per axis the uncertainty uses, metres.
+    sigma_source : str
+        ``"residuals"`` (the fit's estimate) or ``"floor"``
+        (:attr:`QualityParams.sigma_floor`, the estimate was lower).
+    workspace_centre : (3,) array
+        Centroid of the positions used, base frame, metres.
+    translation_std : (3,) array
+        1-sigma of a point at the workspace centre mapped by the estimate,
+        along base x, y, z, metres.
+    rotation_std : (3,) array
+        1-sigma of the rotation about base x, y, z, rad.
+    rotation_axes : tuple of RotationAxis
+        Principal axes of the rotation covariance, the worst fixed first.
+    e_icp : IcpMetric | None
+        e_icp (Eq. 13) of the estimate; None without a verification cloud.
+    e_icp_tilt : float
+        Rotation angle of e_icp across the verification flange's axis (all of
+        it when the axis is not known), rad; NaN without a finite e_icp.
+    e_icp_turn : float
+        Rotation of e_icp about the verification flange's axis, rad (signed,
+        right-handed about the flange's +z); NaN when not known.
+    """
+
+    verdict: str
+    reasons: tuple[str, ...]
+    warnings: tuple[str, ...]
+    pairs: tuple[PairQuality, ...]
+    rms: float
+    sigma: float
+    sigma_source: str
+    workspace_centre: Array
+    translation_std: Array
+    rotation_std: Array
+    rotation_axes: tuple[RotationAxis, ...]
+    e_icp: IcpMetric | None
+    e_icp_tilt: float = math.nan
+    e_icp_turn: float = math.nan
+
+    @property
+    def passed(self) -> bool:
+        """True when the verdict is ``ok``: the estimate may be accepted without force."""
+        return self.verdict == "ok"
+
+    @property
+    def outliers(self) -> tuple[str, ...]:
+        """Ids of the pairs flagged as outliers."""
+        return tuple(p.id for p in self.pairs if p.outlier)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready (mm and deg at this boundary; None where not finite)."""
+        return {
+            "verdict": self.verdict,
+            "passed": self.passed,
+            "reasons": list(self.reasons),
+            "warnings": list(self.warnings),
+            "pairs": [p.as_dict() for p in self.pairs],
+            "outliers": list(self.outliers),
+            "n_used": sum(p.used for p in self.pairs),
+            "rms_mm": _finite(self.rms * 1e3),
+            "sigma_mm": _finite(self.sigma * 1e3),
+            "sigma_source": self.sigma_source,
+            "workspace_centre": self.workspace_centre.tolist(),
+            "translation_std_mm": [_finite(x * 1e3) for x in self.translation_std],
+            "rotation_std_deg": [_finite(math.degrees(x)) for x in self.rotation_std],
+            "rotation_axes": [a.as_dict() for a in self.rotation_axes],
+            "e_icp": None if self.e_icp is None else self.e_icp.as_dict(),
+            "e_icp_tilt_deg": _finite(math.degrees(self.e_icp_tilt)),
+            "e_icp_turn_deg": _finite(math.degrees(self.e_icp_turn)),
+        }
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def axis_name(v: ArrayLike) -> str:
+    """Name a direction of the base frame: ``X``, ``Y`` or ``Z`` when it is within 20 deg of one, else its components."""
+    v = np.asarray(v, dtype=np.float64)
+    k = int(np.argmax(np.abs(v)))
+    if abs(v[k]) >= math.cos(_AXIS_NAME_TOLERANCE):
+        return "XYZ"[k]
+    v = v if v[k] > 0 else -v
+    return f"({v[0]:+.2f}, {v[1]:+.2f}, {v[2]:+.2f})"
+
+
+def _advice(axis: Array, P: Array) -> str:
+    """Where to add poses so that rotation about ``axis`` is fixed better, from the positions used ``P``."""
+    centred = P - P.mean(axis=0)
+    _, s, Vt = np.linalg.svd(centred, full_matrices=True)
+    s = np.concatenate([s, np.zeros(3 - len(s))]) if len(s) < 3 else s
+    if s[1] < _THIN * s[0]:
+        return "add poses off the line"
+    # The lever arm about the axis is the spread across it: add poses along the
+    # direction across the axis in which the positions spread least.
+    across = centred - np.outer(centred @ axis, axis)
+    _, V = np.linalg.eigh(across.T @ across)  # ascending; the axis itself has eigenvalue 0
+    d = V[:, 1]
+    if s[2] < _THIN * s[1] and abs(float(d @ Vt[2])) >= math.cos(_AXIS_NAME_TOLERANCE):
+        return "add poses off the plane"
+    return f"add poses spread further along {axis_name(d)}"
+
+
+def assess_calibration(
+    ids: Sequence[str],
+    P_base: ArrayLike,
+    P_cam: ArrayLike,
+    T_base_cam: ArrayLike,
+    *,
+    used: Sequence[int],
+    uncertainty: Uncertainty,
+    scale: float = 1.0,
+    with_scale: bool = False,
+    rejected: Sequence[RejectedPair] = (),
+    e_icp: IcpMetric | None = None,
+    flange_axis_cam: ArrayLike | None = None,
+    flange_centre_cam: ArrayLike | None = None,
+    compensated: bool = False,
+    notes: Sequence[str] = (),
+    params: QualityParams = QualityParams(),
+) -> CalibrationQuality:
+    """The quality gate of one estimate (module docstring). Pure: arrays in, a value out.
+
+    Parameters
+    ----------
+    ids : sequence of str
+        The pairs with a flange centre, in pair order.
+    P_base, P_cam : (n, 3) arrays
+        Their centres in the base and camera frames, metres.
+    T_base_cam : (4, 4) array
+        The estimate (before any compensation by Eq. 21).
+    used : sequence of int
+        Indices (into ``ids``) of the pairs the estimate uses.
+    uncertainty : Uncertainty
+        The estimate's, for the noise estimated from its residuals.
+    scale : float
+        ``c`` of Eq. 11 the estimate was solved with.
+    with_scale : bool
+        The scale was estimated (it then takes a degree of freedom).
+    rejected : sequence of RejectedPair
+        Why pairs were left out: the solver's rejections, and pairs without a
+        centre (failed detections), which are reported after the others.
+    e_icp : IcpMetric | None
+        e_icp (Eq. 13) of the estimate, None without a verification cloud.
+    flange_axis_cam : (3,) array, optional
+        The verification flange's +z in the camera frame (by the estimate),
+        to split e_icp's rotation; without it all of it counts as tilt.
+    flange_centre_cam : (3,) array, optional
+        The verification flange's centre in the camera frame (by the
+        estimate), metres, where e_icp's translation is judged; without it
+        e_icp's translation at the camera's origin is.
+    compensated : bool
+        The transform stored is the estimate compensated by e_icp (Eq. 21).
+    notes : sequence of str
+        Warnings the caller adds (e.g. a compensation that could not be applied).
+    params : QualityParams
+
+    Raises
+    ------
+    InputError
+        Malformed pairs, ids or indices.
+    """
+    P_b, P_c = check_pairs(P_base, P_cam, min_pairs=1, determined=False)
+    ids_t = tuple(str(i) for i in ids)
+    n = len(P_b)
+    if len(ids_t) != n:
+        raise InputError(f"ids: expected {n} pair ids, got {len(ids_t)}")
+    used_idx = sorted({int(i) for i in used})
+    if not used_idx or used_idx[0] < 0 or used_idx[-1] >= n:
+        raise InputError(f"used: expected indices of pairs in 0..{n - 1}, got {list(used)}")
+    T = np.asarray(T_base_cam, dtype=np.float64)
+    is_used = np.zeros(n, dtype=bool)
+    is_used[used_idx] = True
+    why_rejected = {r.id: r.reason for r in rejected}
+    no_centre = [r for r in rejected if r.id not in ids_t]
+    n_session = n + len(no_centre)
+
+    # Noise per axis: the fit's estimate, never below the floor.
+    sigma_fit = uncertainty.sigma if uncertainty.dof > 0 and math.isfinite(uncertainty.sigma) else math.nan
+    if math.isfinite(sigma_fit) and sigma_fit >= params.sigma_floor:
+        sigma, source = sigma_fit, "residuals"
+    else:
+        sigma, source = params.sigma_floor, "floor"
+
+    # Covariance of the estimate at that noise: sigma^2 (J^T J)^-1 on the pairs used.
+    J, _ = rigid_jacobian(T, P_b[is_used], P_c[is_used], scale, with_scale)
+    try:
+        cov = np.linalg.inv(J.T @ J)[:6, :6] * sigma**2
+    except np.linalg.LinAlgError:
+        cov = np.full((6, 6), np.inf)
+    P_used = P_b[is_used]
+    centre = P_used.mean(axis=0)
+    if np.all(np.isfinite(cov)):
+        # A point p at the centre maps as exp([r]x) R p_cam + t + dt: d = -[centre - t]x r + dt.
+        lever = centre - T[:3, 3]
+        G = np.hstack([-_skew(lever), np.eye(3)])
+        translation_std = np.sqrt(np.clip(np.diag(G @ cov @ G.T), 0.0, None))
+        rotation_std = np.sqrt(np.clip(np.diag(cov[:3, :3]), 0.0, None))
+        w, V = np.linalg.eigh(cov[:3, :3])
+        order = np.argsort(w)[::-1]
+        axes = tuple(RotationAxis(axis_name(V[:, k]), _canonical(V[:, k]), float(np.sqrt(max(w[k], 0.0)))) for k in order)
+    else:
+        translation_std = np.full(3, np.inf)
+        rotation_std = np.full(3, np.inf)
+        axes = tuple(RotationAxis("XYZ"[k], np.eye(3)[k], math.inf) for k in range(3))
+
+    # Outliers: residual norm beyond k sigma, sigma from the median residual of
+    # every pair (robust to up to half of them being false), never below the floor.
+    residuals = pair_residuals(T, P_b, P_c, scale)
+    sigma_med = math.sqrt(float(np.median(residuals**2)) / _CHI2_3_MEDIAN)
+    sigma_ref = max(sigma_med, params.sigma_floor)
+    k = params.outlier_k
+    threshold = k * sigma_ref
+    is_outlier = residuals > threshold
+    pairs = []
+    for i, pid in enumerate(ids_t):
+        why = []
+        if is_outlier[i]:
+            why.append(
+                f"residual {residuals[i] * 1e3:.3f} mm exceeds the outlier threshold {threshold * 1e3:.3f} mm "
+                f"({k:.2f} x noise {sigma_ref * 1e3:.3f} mm per axis, from the median residual)"
+            )
+        if not is_used[i]:
+            why.append(why_rejected.get(pid, "not used by the estimate"))
+        pairs.append(PairQuality(pid, float(residuals[i]), bool(is_used[i]), bool(is_outlier[i]), "; ".join(why)))
+    pairs += [PairQuality(r.id, math.nan, False, False, r.reason) for r in no_centre]
+
+    rms = float(np.sqrt(np.mean(residuals[is_used] ** 2)))
+    too_few: list[str] = []
+    poor: list[str] = []
+    rotation: list[str] = []
+    warnings: list[str] = []
+
+    if n < params.min_pairs:
+        too_few.append(
+            f"only {n} of {n_session} captures gave a flange centre; at least {params.min_pairs} are needed "
+            "(four for Eq. 9-12, one more to outvote a false detection)"
+        )
+    used_outliers = [ids_t[i] for i in np.flatnonzero(is_outlier & is_used)]
+    if used_outliers:
+        poor.append(f"the estimate uses pairs that are outliers: {', '.join(used_outliers)} (residual above {threshold * 1e3:.3f} mm)")
+    n_out = int(np.count_nonzero(is_outlier))
+    if n_out > params.max_outlier_fraction * n:
+        poor.append(
+            f"{n_out} of the {n} pairs with a centre are outliers (more than {params.max_outlier_fraction:.0%}): "
+            "the flange detections or the robot poses are suspect"
+        )
+    if rms > params.max_rms:
+        poor.append(f"the RMS residual of the {len(used_idx)} pairs used is {rms * 1e3:.3f} mm, above {params.max_rms * 1e3:.3f} mm")
+    turn = tilt = math.nan
+    if e_icp is None:
+        warnings.append("no verification cloud: e_icp (Eq. 13) was not computed; the estimate is checked against its own pairs only")
+    elif not e_icp.ok:
+        poor.append(f"e_icp (Eq. 13) of the estimate is infinite: {e_icp.reason}")
+    else:
+        T_e = e_icp.T_camhat_cam
+        where = "of the estimate is"
+        if flange_centre_cam is None:
+            dt = float(np.linalg.norm(T_e[:3, 3]))
+        else:
+            c = np.asarray(flange_centre_cam, dtype=np.float64)
+            dt = float(np.linalg.norm(T_e[:3, :3] @ c + T_e[:3, 3] - c))
+            where = "of the estimate moves the verification flange's centre"
+        rotvec = Rotation.from_matrix(e_icp.T_camhat_cam[:3, :3]).as_rotvec()
+        if flange_axis_cam is not None:
+            a = np.asarray(flange_axis_cam, dtype=np.float64)
+            a = a / np.linalg.norm(a)
+            turn = float(rotvec @ a)
+            tilt = float(np.linalg.norm(rotvec - turn * a))
+        else:
+            turn, tilt = math.nan, float(np.linalg.norm(rotvec))
+        limit = math.degrees(params.max_e_icp_rotation)
+        if dt > params.max_e_icp_translation:
+            poor.append(f"e_icp (Eq. 13) {where} {dt * 1e3:.3f} mm, above {params.max_e_icp_translation * 1e3:.3f} mm")
+        if tilt > params.max_e_icp_rotation:
+            poor.append(f"e_icp (Eq. 13) of the estimate tilts {math.degrees(tilt):.3f} deg, above {limit:.3f} deg")
+        if abs(turn) > params.max_e_icp_rotation:
+            turned = f"{abs(math.degrees(turn)):.2f} deg about the verification flange's axis, a rotation only the flange's holes fix"
+            if compensated:
+                poor.append(
+                    f"the compensation (Eq. 21) turns the stored transform {turned} (above {limit:.2f} deg); "
+                    "solve without compensation or check the verification capture"
+                )
+            else:
+                warnings.append(f"e_icp (Eq. 13) turns {turned}; it does not judge the estimate (not compensated)")
+
+    for axis in axes:
+        if not axis.std > params.warn_rotation_std:
+            continue
+        figure = f"{math.degrees(axis.std):.2f} deg 1-sigma" if math.isfinite(axis.std) else "not fixed at all"
+        advice = _advice(axis.direction, P_used)
+        warnings.append(f"rotation about {axis.name} poorly fixed: {figure}; {advice}")
+        if axis.std > params.max_rotation_std:
+            rotation.append(
+                f"rotation about {axis.name} poorly fixed: {figure}, above {math.degrees(params.max_rotation_std):.2f} deg; {advice}"
+            )
+    if source == "floor" and math.isfinite(sigma_fit):
+        warnings.append(
+            f"the noise estimated from the residuals ({sigma_fit * 1e3:.3f} mm per axis) is below the floor "
+            f"{params.sigma_floor * 1e3:.3f} mm; the uncertainty uses the floor"
+        )
+    if no_centre:
+        warnings.append(f"{len(no_centre)} of {n_session} captures gave no flange centre: {', '.join(r.id for r in no_centre)}")
+    warnings += [str(x) for x in notes]
+
+    verdict = "ok"
+    for name, found in (("too_few_pairs", too_few), ("poor_data", poor), ("insufficient_rotation", rotation)):
+        if found:
+            verdict = name
+            break
+    return CalibrationQuality(
+        verdict=verdict,
+        reasons=tuple(too_few + poor + rotation),
+        warnings=tuple(warnings),
+        pairs=tuple(pairs),
+        rms=rms,
+        sigma=float(sigma),
+        sigma_source=source,
+        workspace_centre=centre,
+        translation_std=translation_std,
+        rotation_std=rotation_std,
+        rotation_axes=axes,
+        e_icp=e_icp,
+        e_icp_tilt=tilt,
+        e_icp_turn=turn,
+    )
+
+
+def _skew(v: Array) -> Array:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _canonical(v: Array) -> Array:
+    """A unit direction with its largest component positive (an axis has no sign)."""
+    v = v / np.linalg.norm(v)
+    return v if v[int(np.argmax(np.abs(v)))] > 0 else -v

@@ -1,0 +1,114 @@
+"""solve_pairs: coplanar sessions solve, the quality gate is in the result, compensate stores Eq. 21's transform."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from celld.calib.flange import preset
+from celld.calib.metrics import IcpMetric, IcpParams, IcpVerifier, model_cloud_with_normals
+from celld.calib.session import SolveParams, solve_pairs
+from celld.errors import CalibrationError
+from celld.se3 import apply, error, invert, transform_from
+
+T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
+T_BASE_FLAN_V = transform_from(Rotation.from_rotvec([0.1, -0.05, 0.3]).as_matrix(), [0.6, 0.02, 0.45])
+# What e_icp reports in the fake verifier: 0.5 mm and 0.05 deg.
+E_FAKE = transform_from(Rotation.from_rotvec(np.radians([0.03, -0.04, 0.0])).as_matrix(), [0.0003, -0.0004, 0.0])
+
+
+class FakeVerifier:
+    """e_icp double that always reports ``E_FAKE`` (or a failure)."""
+
+    def __init__(self, ok: bool = True) -> None:
+        self.ok = ok
+
+    def strict(self) -> "FakeVerifier":
+        return self
+
+    def __call__(self, T_base_cam: np.ndarray) -> IcpMetric:
+        return IcpMetric(E_FAKE, True, 0.95, 1e-4) if self.ok else IcpMetric.failed("fitness 0.10 below 0.50 at 3 mm")
+
+
+def box_pairs(rng: np.random.Generator, n: int, sigma: float, bias_cam=(0.0, 0.0, 0.0)) -> tuple[list[str], np.ndarray, np.ndarray]:
+    P_base = rng.uniform(-0.5, 0.5, (n, 3)) * [0.3, 0.3, 0.2] + [0.6, 0.0, 0.45]
+    P_cam = apply(invert(T_BASE_CAM), P_base) + rng.normal(0.0, sigma, (n, 3)) + bias_cam
+    return [f"p{i:02d}" for i in range(n)], P_base, P_cam
+
+
+def test_compensate_stores_eq21_and_says_so(rng: np.random.Generator) -> None:
+    ids, P_base, P_cam = box_pairs(rng, 8, 0.05e-3)
+    plain = solve_pairs(ids, P_base, P_cam, SolveParams(), FakeVerifier())
+    assert plain.stored == "estimate" and plain.T_base_cam_compensated is None
+    np.testing.assert_array_equal(plain.T_base_cam_stored, plain.T_base_cam)
+
+    comp = solve_pairs(ids, P_base, P_cam, SolveParams(compensate=True), FakeVerifier())
+    assert comp.stored == "compensated"
+    np.testing.assert_array_equal(comp.T_base_cam, plain.T_base_cam)  # the estimate itself is unchanged
+    np.testing.assert_allclose(comp.T_base_cam_stored, comp.T_base_cam @ E_FAKE, atol=1e-15)  # Eq. 21
+    out = comp.as_dict()
+    assert out["stored"] == "compensated"
+    assert out["T_base_cam"] == comp.T_base_cam_stored.tolist() == out["T_base_cam_compensated"]
+    assert out["T_base_cam_estimate"] == comp.T_base_cam.tolist()
+    assert out["quality"]["verdict"] == "ok" and out["quality"]["e_icp"]["ok"] is True
+
+
+def test_compensate_without_a_finite_e_icp_stores_the_estimate_and_says_why(rng: np.random.Generator) -> None:
+    ids, P_base, P_cam = box_pairs(rng, 8, 0.05e-3)
+    offline = solve_pairs(ids, P_base, P_cam, SolveParams(compensate=True), None)
+    assert offline.stored == "estimate"
+    assert "compensation (Eq. 21) was asked for but not applied: no verification cloud; the estimate is stored" in offline.quality.warnings
+    failed = solve_pairs(ids, P_base, P_cam, SolveParams(compensate=True), FakeVerifier(ok=False))
+    assert failed.stored == "estimate" and failed.quality.verdict == "poor_data"
+    assert any("e_icp is infinite (fitness 0.10" in w for w in failed.quality.warnings)
+
+
+@pytest.fixture(scope="module")
+def verifier() -> IcpVerifier:
+    """e_icp against a ray-free sample of the UR10e flange at the verification pose (0.05 mm noise)."""
+    rng = np.random.default_rng(5)
+    surface = preset("ur10e").model_cloud(0.0007)
+    pts = surface[rng.choice(len(surface), 4000, replace=False)]
+    P_v = apply(invert(T_BASE_CAM) @ T_BASE_FLAN_V, pts) + rng.normal(0.0, 5e-5, (4000, 3))
+    P, N = model_cloud_with_normals(preset("ur10e"), 0.001)
+    return IcpVerifier(P_v, P, T_BASE_FLAN_V, IcpParams(max_points=3000), normals_flan=N)
+
+
+def test_compensation_removes_a_bias_the_pairs_share(rng: np.random.Generator, verifier: IcpVerifier) -> None:
+    # Every centre 1 mm off in the camera frame (a biased detector): the pairs
+    # agree with each other, so only the verification cloud can see it.
+    ids, P_base, P_cam = box_pairs(rng, 10, 0.05e-3, bias_cam=(0.0006, -0.0008, 0.0))
+    result = solve_pairs(ids, P_base, P_cam, SolveParams(compensate=True), verifier)
+    assert result.stored == "compensated"
+    assert error(result.T_base_cam, T_BASE_CAM)[0] == pytest.approx(0.001, abs=2.5e-4)
+    dt, dr = error(result.T_base_cam_stored, T_BASE_CAM)
+    assert dt < 2e-4 and np.degrees(dr) < 0.02
+    # The gate judged the estimate: 1 mm of e_icp is within its 2 mm.
+    assert result.quality.verdict == "ok"
+    assert np.linalg.norm(result.quality.e_icp.T_camhat_cam[:3, 3]) == pytest.approx(0.001, abs=2e-4)
+
+
+def test_coplanar_pairs_solve_with_the_conditioning_in_the_report(rng: np.random.Generator) -> None:
+    # The issue's case: six poses in one plane, 0.03 mm out of it, one orientation.
+    P_base = np.column_stack([rng.uniform(0.3, 0.55, 6), 0.18 + rng.uniform(-0.025, 0.025, 6), 0.46 + rng.uniform(-3e-5, 3e-5, 6)])
+    P_cam = apply(invert(T_BASE_CAM), P_base) + rng.normal(0.0, 0.15e-3, (6, 3))
+    result = solve_pairs([str(i) for i in range(6)], P_base, P_cam)
+    assert len(result.pair_ids) == 6 and result.rejected == ()
+    q = result.quality
+    # Rotation about X, the plane's long direction, is fixed between the warning
+    # and the failure thresholds here: a warning with the figure, not a refusal.
+    params = SolveParams().quality
+    assert q.rotation_axes[0].name == "X" and params.warn_rotation_std < q.rotation_axes[0].std < params.max_rotation_std
+    assert q.verdict == "ok"
+    assert any(w.startswith("rotation about X poorly fixed") and w.endswith("add poses off the plane") for w in q.warnings)
+    _, dr = error(result.T_base_cam, T_BASE_CAM)
+    assert dr < 4 * math.sqrt(sum(a.std**2 for a in q.rotation_axes))
+
+
+def test_collinear_pairs_are_refused_as_undetermined(rng: np.random.Generator) -> None:
+    P_base = np.outer(np.linspace(0.0, 0.3, 6), [1.0, 0.2, 0.0]) + [0.4, 0.0, 0.45]
+    with pytest.raises(CalibrationError, match="collinear.*undetermined"):
+        solve_pairs([str(i) for i in range(6)], P_base, apply(invert(T_BASE_CAM), P_base))

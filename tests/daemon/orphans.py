@@ -1,0 +1,50 @@
+"""What happens to the arm and the arc after the daemon is killed: measured on the simulator's truth."""
+
+from __future__ import annotations
+
+import time
+from typing import NamedTuple
+
+import numpy as np
+
+# A TCP slower than this counts as at rest, m/s.
+REST_SPEED = 1e-4
+
+
+class AfterKill(NamedTuple):
+    moving_at_kill: float  # TCP speed when the daemon died, m/s
+    at_rest_s: float  # from the kill until the TCP stays at rest, s (inf: never within the window)
+    arc_off_s: float  # from the kill until the arc output is off, s (0: it was off already; inf: never)
+
+
+def tcp_speed(robot) -> float:  # type: ignore[no-untyped-def]
+    h = robot.truth_history()[-5:]
+    dt = (int(h["stamp_ns"][-1]) - int(h["stamp_ns"][0])) * 1e-9
+    return float(np.linalg.norm(h["T_base_tcp"][-1][:3, 3] - h["T_base_tcp"][0][:3, 3]) / dt) if dt > 0 else 0.0
+
+
+def wait_moving(robot, min_speed: float = 0.005, timeout: float = 60.0) -> None:  # type: ignore[no-untyped-def]
+    """Wait until the simulated arm's TCP moves faster than ``min_speed`` (m/s)."""
+    deadline = time.monotonic() + timeout
+    while tcp_speed(robot) < min_speed:
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the arm did not move faster than {min_speed} m/s within {timeout} s")
+        time.sleep(0.01)
+
+
+def after_kill(robot, t_kill_ns: int, arc_output: int, window: float = 1.5) -> AfterKill:  # type: ignore[no-untyped-def]
+    """Read the truth of the ``window`` s after the kill (within the simulator's ~2 s history)."""
+    time.sleep(max(0.0, window - (time.monotonic_ns() - t_kill_ns) * 1e-9))
+    h = robot.truth_history()
+    t = (h["stamp_ns"].astype(np.int64) - t_kill_ns) * 1e-9
+    p = h["T_base_tcp"][:, :3, 3]
+    v = np.r_[0.0, np.linalg.norm(np.diff(p, axis=0), axis=1) / np.maximum(np.diff(t), 1e-9)]
+    after = t >= 0.0
+    i0 = int(np.argmax(after))
+    moving_at_kill = float(np.median(v[max(i0 - 5, 1) : i0 + 1]))
+    moving = np.flatnonzero(after & (v > REST_SPEED))
+    at_rest = float(t[moving[-1] + 1]) if len(moving) and moving[-1] + 1 < len(t) else (0.0 if not len(moving) else float("inf"))
+    arc = (h["digital_out"].astype(np.int64) >> arc_output) & 1
+    on_after = np.flatnonzero(after & (arc == 1))
+    arc_off = 0.0 if not len(on_after) else (float(t[on_after[-1] + 1]) if on_after[-1] + 1 < len(t) else float("inf"))
+    return AfterKill(moving_at_kill, at_rest, arc_off)

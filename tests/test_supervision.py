@@ -1,0 +1,108 @@
+"""Supervision both ways: restart back-off, the daemon's heartbeat, a child's watch of its daemon, leftovers."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+from multiprocessing import resource_tracker
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+
+from celld.shm import SeqlockSlot
+from celld.supervision import HEARTBEAT_DTYPE, Backoff, ChildRecords, Heartbeat, ParentWatch
+
+
+def test_backoff_grows_to_its_last_delay_and_a_stable_run_resets_it() -> None:
+    b = Backoff(delays=(0.1, 0.5, 2.0), stable_after=10.0)
+    assert [b.delay(n) for n in (1, 2, 3, 7)] == [0.1, 0.5, 2.0, 2.0]
+    assert b.failures_after(3, ran_for=1.0) == 4 and b.failures_after(3, ran_for=10.0) == 0
+
+
+def test_a_stale_heartbeat_means_the_daemon_hangs() -> None:
+    hb = Heartbeat(f"t-hb-{uuid.uuid4().hex[:8]}")
+    try:
+        # This process stands in for the child: its "parent" is its real parent.
+        watch = ParentWatch(os.getppid(), hb.name, timeout_ns=200_000_000, signals=False)
+        now = time.monotonic_ns()
+        assert watch.check(now) == ""
+        assert "heartbeat is" in watch.check(now + 300_000_000) and "hangs" in watch.check(now + 300_000_000)
+        hb.beat()
+        assert watch.check() == ""
+        watch.close()
+    finally:
+        hb.close()
+
+
+def test_another_parent_or_a_signal_means_the_daemon_is_gone() -> None:
+    watch = ParentWatch(os.getppid() + 1, signals=False)
+    assert f"pid {os.getppid() + 1}" in watch.check()
+    watch = ParentWatch(os.getppid(), signals=False)
+    watch._on_signal(signal.SIGTERM, None)
+    assert watch.check() == "SIGTERM received"
+
+
+def _orphan(parent_ready, result, heartbeat: str) -> None:  # type: ignore[no-untyped-def]
+    """A grandchild: watches its parent (which then dies) and reports how soon it saw it."""
+    watch = ParentWatch(os.getppid(), heartbeat, timeout_ns=10_000_000_000)
+    parent_ready.set()
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 5.0:
+        why = watch.check()
+        if why:
+            result.put((why, time.monotonic()))
+            return
+        time.sleep(0.001)
+    result.put(("", time.monotonic()))
+
+
+def _middle(parent_ready, result, heartbeat: str) -> None:  # type: ignore[no-untyped-def]
+    ctx = mp.get_context("spawn")
+    ctx.Process(target=_orphan, args=(parent_ready, result, heartbeat)).start()
+    parent_ready.wait(20)
+    os._exit(0)  # dies at once, as kill -9 would leave it
+
+
+def test_a_child_sees_its_parent_die_within_milliseconds() -> None:
+    ctx = mp.get_context("spawn")
+    ready, result = ctx.Event(), ctx.Queue()
+    middle = ctx.Process(target=_middle, args=(ready, result, ""))
+    middle.start()
+    middle.join(30)
+    t_dead = time.monotonic()
+    why, t_seen = result.get(timeout=10)
+    assert why in ("the daemon ended",) or "is gone" in why, why
+    assert t_seen - t_dead < 0.1
+
+
+def test_leftover_children_are_stopped_and_their_shared_memory_removed(tmp_path: Path) -> None:
+    records = ChildRecords(tmp_path / "run")
+    # A child that ignores nothing: SIGTERM ends it.
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    stubborn = subprocess.Popen([sys.executable, "-c", "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); time.sleep(60)"])
+    name = f"t-left-{uuid.uuid4().hex[:8]}"
+    slot = SeqlockSlot.create(name, HEARTBEAT_DTYPE)
+    slot.close()  # left behind, not unlinked (as by a killed daemon): not this process's to clean at exit
+    resource_tracker.unregister("/" + name, "shared_memory")
+    try:
+        time.sleep(0.3)  # let the stubborn one install its handler
+        records.add("motion", child.pid, [name])
+        records.add("tactile", stubborn.pid)
+        # A record whose pid was reused by another process (another start time) is not touched.
+        (tmp_path / "run" / "old.json").write_text(f'{{"role": "old", "pid": {os.getpid()}, "start_ticks": 1, "segments": []}}')
+        done = records.reap(grace=1.0)
+        assert child.wait(5) == -signal.SIGTERM and stubborn.wait(5) == -signal.SIGKILL
+        assert any("stopped on SIGTERM" in d for d in done) and any("killed" in d for d in done)
+        assert any(name in d for d in done)
+        with pytest.raises(FileNotFoundError):
+            SeqlockSlot.attach(name, HEARTBEAT_DTYPE)
+        assert list((tmp_path / "run").glob("*.json")) == []
+    finally:
+        for p in (child, stubborn):
+            if p.poll() is None:
+                p.kill()
