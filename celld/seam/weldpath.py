@@ -158,6 +158,15 @@ def weld_geometry(points: Array, tangents: Array, normals: Array, plane_normal: 
     return WeldGeometry(_plane(wall[0], T[0], z), wall, seam_up, T, N, float(offset), float(tip_height))
 
 
+def model_geometry(workpiece: Workpiece, T_base_obj: Array, tip_height: float, finger_wall: str = "left") -> WeldGeometry:
+    """The weld geometry of a part model at a pose: what a perfect scan of the model itself would plan."""
+    offset = wall_offset(workpiece, tip_height, finger_wall)
+    P, T, N = model_seam_frames(workpiece, finger_wall)
+    R = np.asarray(T_base_obj, dtype=np.float64)[:3, :3]
+    a = R @ np.asarray(workpiece.approach, dtype=np.float64)
+    return weld_geometry(se3.apply(T_base_obj, P), T @ R.T, N @ R.T, a, offset, tip_height)
+
+
 def in_plane(geometry: WeldGeometry, P_base: Array) -> Array:
     """Base points (n, 3) as plane coordinates (n, 2) of the welding plane."""
     T = geometry.T_base_plane

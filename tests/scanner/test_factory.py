@@ -27,13 +27,12 @@ def test_scanner_options_are_read_with_units_converted() -> None:
                 "depth_max_mm": 3860,
                 "capture_timeout_s": 2.5,
                 "replay_units": "mm",
-                "resolution_scale": 0.25,
             }
         }
     ).scanner
     assert cfg.depth_intrinsics_px == (504.0, 504.5, 319.5, 287.5)
     assert (cfg.depth_min, cfg.depth_max) == pytest.approx((0.25, 3.86))
-    assert (cfg.capture_timeout, cfg.replay_units, cfg.resolution_scale) == (2.5, "mm", 0.25)
+    assert (cfg.capture_timeout, cfg.replay_units) == (2.5, "mm")
 
 
 @pytest.mark.parametrize(
@@ -43,7 +42,9 @@ def test_scanner_options_are_read_with_units_converted() -> None:
         ({"depth_intrinsics_px": [0.0, 500.0, 1.0, 1.0]}, "scanner.depth_intrinsics_px"),
         ({"depth_intrinsics_px": [500.0, 500.0]}, "scanner.depth_intrinsics_px"),
         ({"replay_units": "inch"}, "scanner.replay_units"),
-        ({"resolution_scale": 0.0}, "scanner.resolution_scale"),
+        # The simulated scanner's image scale and noise belong to the simulator's world now.
+        ({"resolution_scale": 0.25}, "scanner.resolution_scale"),
+        ({"seed": 1}, "scanner.seed"),
     ],
 )
 def test_bad_scanner_options_are_refused_with_their_key(table: dict, key: str) -> None:

@@ -4,15 +4,21 @@ from __future__ import annotations
 
 import numpy as np
 
+from celld import se3
 from celld.seam.figures import lateral_error, lateral_offsets
+from celld.seam.weldpath import model_geometry
 from celld.seam.workpiece import v_groove_butt
-from celld.sim.workpiece import nominal_pose, true_wall
+
+
+def nominal_pose(wp) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """The part on the table at (0.6, 0), its seam along base y."""
+    return se3.from_xyz_rpy([0.6, 0.0, -float(wp.vertices[:, 2].min())], [0.0, 0.0, np.pi / 2])
 
 
 def test_lateral_offsets_are_signed_towards_the_finger_wall() -> None:
     for side in ("left", "right"):
         wp = v_groove_butt()
-        g = true_wall(wp, nominal_pose(wp), 0.004, side)
+        g = model_geometry(wp, nominal_pose(wp), 0.004, side)
         # Points 1 mm towards the wall and 2 mm away from it, beside the middle of the seam.
         mid = g.seam_base[len(g.seam_base) // 2]
         n = g.normals[len(g.seam_base) // 2]
@@ -22,7 +28,7 @@ def test_lateral_offsets_are_signed_towards_the_finger_wall() -> None:
 
 def test_lateral_error_ignores_height_and_points_beyond_the_seam() -> None:
     wp = v_groove_butt()
-    g = true_wall(wp, nominal_pose(wp), 0.004)
+    g = model_geometry(wp, nominal_pose(wp), 0.004)
     z = g.T_base_plane[:3, 2]
     mid = len(g.seam_base) // 2
     P = np.array([g.seam_base[mid] + 0.0003 * g.normals[mid] + 0.01 * z,  # 0.3 mm across, 10 mm up

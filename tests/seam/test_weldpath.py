@@ -9,9 +9,13 @@ import pytest
 
 from celld import se3
 from celld.errors import WorkpieceError
-from celld.seam.weldpath import in_plane, start_pose, wall_offset, weld_geometry
+from celld.seam.weldpath import in_plane, model_geometry, start_pose, wall_offset, weld_geometry
 from celld.seam.workpiece import curved_groove, fillet_t_joint, v_groove_butt
-from celld.sim.workpiece import nominal_pose, true_wall
+
+
+def nominal_pose(wp) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """The part on the table at (0.6, 0), its seam along base y."""
+    return se3.from_xyz_rpy([0.6, 0.0, -float(wp.vertices[:, 2].min())], [0.0, 0.0, np.pi / 2])
 
 
 @pytest.mark.parametrize("h", [0.0, 0.002, 0.005])
@@ -37,7 +41,7 @@ def test_a_wall_out_of_reach_or_a_flange_side_finger_is_refused() -> None:
 
 def test_start_pose_puts_the_tip_off_the_wall_on_the_free_side_facing_along_the_seam() -> None:
     wp = v_groove_butt()
-    g = true_wall(wp, nominal_pose(wp), 0.004)
+    g = model_geometry(wp, nominal_pose(wp), 0.004)
     T_tcp_tool = se3.transform_from(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 0.2])
     T = start_pose(g, T_tcp_tool, lead=0.005, clearance=0.004)
     T_tool = T @ T_tcp_tool
