@@ -48,6 +48,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="a cell config whose devices are simulated")
     p.add_argument("--poses", type=int, default=None, help="calibration poses (default: the config's n_poses)")
     p.add_argument("--json", action="store_true", help="print the figures as one JSON object last")
+    p.add_argument("--force-accept", action="store_true", help="accept a calibration that fails the daemon's quality gate")
     add_world_arguments(p)
     p.set_defaults(func=run)
 
@@ -70,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     say(world.describe())
     t0 = time.monotonic()
     try:
-        figures = run_jobs(args.config, log_path, options, say, n_poses=args.poses)
+        figures = run_jobs(args.config, log_path, options, say, n_poses=args.poses, force_accept=args.force_accept)
     except CelldError as exc:
         say(f"celld demo failed: {exc}")
         return 1
@@ -88,13 +89,16 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_jobs(config_path: str | Path, log_path: str | Path, options: Any, say: Any, n_poses: int | None = None,
-             calibrate_seed: int | None = None) -> dict[str, Any]:
+             calibrate_seed: int | None = None, force_accept: bool = False) -> dict[str, Any]:
     """Start the cell of ``config_path`` in the world of ``options``, calibrate, accept, weld; score against the truth.
 
     Returns the figures (``world``, ``calibration``, ``weld``), or ``failed``
-    with the job's record when a job did not succeed. Raises CelldError when
-    the cell does not come up.
+    with the job's record when a job did not succeed. A calibration that
+    fails the daemon's quality gate is accepted only with ``force_accept``
+    (and the figures say so); otherwise it ends the run. Raises CelldError
+    when the cell does not come up.
     """
+    from celld.errors import JobError
     from celld.sim.cell import run_cell, sim_part
     from celld.sim.score import TruthRecorder, lateral, open_loop_torch, targeting, true_torch_path
 
@@ -114,16 +118,27 @@ def run_jobs(config_path: str | Path, log_path: str | Path, options: Any, say: A
         cal = _job(cell.client, calibrate, say)
         if cal["state"] != "succeeded":
             return {**figures, "failed": _failed(cal, say)}
-        accepted = cell.client.accept(cal["id"])
+        cal_result = json.loads(Path(cal["result"]).read_text())
+        quality = cal_result["calibration"].get("quality") or {}
+        forced = False
+        try:
+            accepted = cell.client.accept(cal["id"])
+        except JobError as exc:
+            say(f"calibration {cal['id']} refused at accept: {exc}")
+            if not force_accept:
+                return {**figures, "failed": {"job": cal["id"], "state": "not accepted", "reason": str(exc),
+                                              "verdict": quality.get("verdict")}}
+            accepted, forced = cell.client.accept(cal["id"], force=True), True
         T_est = np.array(accepted["calibration"]["T_base_cam"])
         dt, dr = se3.error(T_est, world.scanner.T_base_cam)
-        cal_result = json.loads(Path(cal["result"]).read_text())
         figures["calibration"] = {
             "job": cal["id"], "translation_error_mm": dt * 1e3, "rotation_error_deg": math.degrees(dr),
             "pairs": cal_result["calibration"]["pairs"], "recording": cal_result.get("recording"),
+            "verdict": quality.get("verdict"), "forced": forced,
             "targeting": targeting(world, T_est, cfg),
         }
-        say(f"calibration {cal['id']} accepted: {dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg from the true T_base_cam")
+        say(f"calibration {cal['id']} accepted{' (forced past its quality gate)' if forced else ''}: "
+            f"{dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg from the true T_base_cam")
         with TruthRecorder(cfg.robot.host) as recorder:
             weld = _job(cell.client, {"kind": "weld"}, say)
         if weld["state"] != "succeeded":
@@ -156,7 +171,8 @@ def summary_lines(figures: dict[str, Any]) -> list[str]:
     return [
         "",
         f"world: preset {figures['world']['preset']}, seed {figures['world']['seed']}",
-        f"calibration: {c['translation_error_mm']:.3f} mm, {c['rotation_error_deg']:.4f} deg from the true T_base_cam ({c['pairs']} pairs)",
+        f"calibration: {c['translation_error_mm']:.3f} mm, {c['rotation_error_deg']:.4f} deg from the true T_base_cam ({c['pairs']} pairs, "
+        f"quality gate {c['verdict']}{', accepted by force' if c['forced'] else ''})",
         f"  targeting (the flange sent to points the scanner saw): mean {tc['mean_mm']:.3f} mm, max {tc['max_mm']:.3f} mm "
         f"in the calibration box; mean {tt['mean_mm']:.3f}, max {tt['max_mm']:.3f} mm over the table",
         "weld, lateral distance from the true seam        RMS mm   max mm",

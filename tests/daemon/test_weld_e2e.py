@@ -1,11 +1,19 @@
 """Calibrate, then weld, over the bus: the daemon, the simulated cell, real zenoh and real ur-rtde.
 
-The cell is ``configs/sim-cell.toml`` on this test's own loopback address: the
-simulated UR10e in real time, the ray-cast PhoXi M with a V-groove on the
-table (placed off its nominal place), the simulated SRM camera read by the
-real ArUco detector. The test talks to ``celld run`` only over the bus and
-scores the results against the simulator's truth, which the daemon never
-reads. Slow (about 5 minutes): a full calibration, three welds and a kill -9 of the daemon mid-weld.
+The cell is ``configs/sim-cell.toml`` on this test's own loopback address, in
+a realistic world (:mod:`celld.sim.world`): the simulated UR10e in real time
+with its true kinematics off the controller's by 0.3-1 mm, its repeatability
+and noise; the ray-cast PhoXi M off its drawing, with its scale error and
+distortion; the flange as made; a V-groove placed off its place by
+centimetres and degrees, bowed, twisted, tack-kinked and with a varying root
+gap; the simulated SRM camera read by the real ArUco detector, the finger
+with its stiffening, stick-slip and hysteresis. The tool is the one exception:
+its offsets are as configured (``tool_offsets`` off) until a tool-calibration
+job exists to find them; no touch of the finger can. The test talks to
+``celld run`` only over the bus and scores the results against the world's
+truth, which the daemon never reads: the weld plan alone misses the tactile
+targets, the torch tracked by touch meets them. Slow (about 5 minutes): a
+full calibration, three welds and a kill -9 of the daemon mid-weld.
 """
 
 from __future__ import annotations
@@ -22,16 +30,18 @@ import pytest
 
 from celld import se3
 from celld.bus import schema
-from celld.seam.figures import lateral_error
 from celld.journal import Journal
 from celld.recording.readback import read_entities
-from celld.sim.cell import run_cell, sim_workpiece, start_daemon, stop_daemon
+from celld.sim.cell import run_cell, sim_part, start_daemon, stop_daemon
+from celld.sim.score import TruthRecorder, lateral, open_loop_torch, targeting, true_torch_path
 from tests.daemon.orphans import after_kill
 
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[2]
 ARC = 0  # the arc's digital output in configs/sim-cell.toml
+# The realistic world of this test (bench/realistic_cell.py runs many).
+WORLD_SEED = 3
 
 
 def _config(tmp_path: Path, host: str) -> Path:
@@ -46,6 +56,12 @@ state_dir = "{tmp_path / 'state'}"
 host = "{host}"
 [bus]
 listen = ["tcp/{host}:7447"]
+[sim]
+preset = "realistic"
+seed = {WORLD_SEED}
+[sim.errors]
+# Until a tool-calibration job finds them, the tool's offsets are the configured ones.
+tool_offsets = false
 """
     )
     return path
@@ -75,8 +91,9 @@ class ArcWatch:
 def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_path: Path, loopback_host: str) -> None:
     cfg_path = _config(tmp_path, loopback_host)
     with run_cell(cfg_path, tmp_path / "daemon.log", timeout=120) as cell:
-        client, cfg, robot = cell.client, cell.config, cell.robot
-        part = sim_workpiece(cfg)
+        client, cfg, robot, world = cell.client, cell.config, cell.robot, cell.world
+        assert world.preset == "realistic (changed)" and not world.budget.on("tool_offsets") and world.budget.on("kinematics")
+        part = sim_part(world)
 
         # A weld before any calibration is refused with the reason.
         _, record = client.submit_and_wait({"kind": "weld"}, timeout=60)
@@ -88,30 +105,40 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
         # The real daemon's replies match their exported schemas.
         schema.check_message("accept-reply", accepted)
         schema.check_message("calibration-reply", {"ok": True, "calibration": client.calibration()})
-        dt, dr = se3.error(np.array(accepted["calibration"]["T_base_cam"]), cfg.T_base_cam_nominal())
-        # The calibration issue's target for the PhoXi M: 0.15 mm and 0.05 degrees (the cell's 20 poses).
-        assert dt <= 0.15e-3 and math.degrees(dr) <= 0.05, (dt * 1e3, math.degrees(dr))
+        T_est = np.array(accepted["calibration"]["T_base_cam"])
+        # T_base_cam absorbs what it can of the arm's kinematic error, so it is off the true one by
+        # more than the scanner's noise; what counts is where the arm lands when sent to what the
+        # scanner saw: the realistic cell's target, 0.25 mm on average in the calibrated volume.
+        dt, dr = se3.error(T_est, world.scanner.T_base_cam)
+        assert dt <= 2e-3 and math.degrees(dr) <= 0.2, (dt * 1e3, math.degrees(dr))
+        aim = targeting(world, T_est, cfg)
+        assert aim["calibration"]["mean_mm"] <= 0.25, aim
 
         arc = ArcWatch(robot)
         events: list[dict] = []
-        _, weld = client.submit_and_wait({"kind": "weld", "ref": "first"}, on_event=events.append, timeout=600)
+        with TruthRecorder(cfg.robot.host) as truth:
+            _, weld = client.submit_and_wait({"kind": "weld", "ref": "first"}, on_event=events.append, timeout=600)
         arc_seen = arc.close()
         assert weld["state"] == "succeeded", (weld["reason"], robot.status())
         stages = [e["stage"] for e in events]
         for stage in ("scan", "seam", "approach", "tare", "track", "retract"):
             assert stage in stages, stages
         result = json.loads(Path(weld["result"]).read_text())
-        g = part.wall
-        torch = lateral_error(np.array(result["torch_path"]), g.seam_base, g.T_base_plane)
-        # The tactile issue's targets, on the seam the finger found with the scanner's plan.
-        assert torch["rms_mm"] <= 0.2 and torch["max_mm"] <= 0.5, torch
+        paths = json.loads(Path(result["paths"]).read_text())
+        assert len(paths["refined"]) > 100 and len(paths["torch"]) > 100
+        # The plan from scan and calibration alone (the torch following it without the finger, through
+        # the true arm) misses the tactile issue's targets; the torch as it truly went, tracked by
+        # touch with Algorithm 2, meets them.
+        plan_alone = lateral(part, open_loop_torch(world, np.array(paths["planned"]), np.array(paths["planned_wall"]), cfg.robot.home_q))
+        torch = lateral(part, true_torch_path(world, truth.records(), ARC))
+        assert plan_alone["rms_mm"] > 0.2 or plan_alone["max_mm"] > 0.5, plan_alone
+        assert torch["points"] > 100 and torch["rms_mm"] <= 0.2 and torch["max_mm"] <= 0.5, (torch, plan_alone)
         assert result["figures"]["tracked_mm"] > 120.0, result["figures"]  # most of the 150 mm seam
         assert arc_seen and result["figures"]["arc_on_s"] > 5.0, result["figures"]
         assert int(robot.status()["digital_out"]) & (1 << ARC) == 0, "the arc is off after the weld"
-        paths = json.loads(Path(result["paths"]).read_text())
-        assert len(paths["refined"]) > 100 and len(paths["torch"]) > 100
 
         # The arm is back at the scan pose: a dry run scans, plans and checks the weld, and moves nothing.
+        time.sleep(1.0)  # the arm has rung down after its last stop
         q_before = robot.truth()[2]
         _, dry = client.submit_and_wait({"kind": "weld", "dry_run": True}, timeout=300)
         assert dry["state"] == "succeeded", dry["reason"]

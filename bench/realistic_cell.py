@@ -1,0 +1,239 @@
+"""Benchmark: seeded simulated cells end to end through the daemon, scored against each cell's own truth.
+
+For each seed the simulator draws a world (``--preset``, default
+``realistic``: the robot's kinematic error, repeatability and noise, capture
+timing, the scanner's mount, scale and distortion, the flange as made, the
+tool as built, the finger's mechanics, the part's placement and shape;
+celld/sim/world.py) and runs the cell of ``configs/sim-cell.toml`` in it:
+the simulated UR10e behind real ur-rtde and ``celld sim run``, driven over
+the bus (:func:`celld.sim.demo.run_jobs`):
+
+1. calibrate (the cell's 20 poses, Algorithm 1 may stop earlier) and accept;
+2. tool-calibrate: **not run**, there is no such job yet; the daemon welds
+   with the configured tool offsets, which the realistic world's tool misses
+   by up to 1-2 mm (``--without tool_offsets`` is the weld as if the tool
+   were calibrated perfectly);
+3. weld the V-groove: scan, seam, touch, Algorithm 2 with the arc.
+
+Per seed, against the world's truth (read after the jobs):
+
+- calibration targeting error: where the flange truly lands when sent, through
+  the accepted T_base_cam and the controller's nominal kinematics, to points
+  the scanner saw (celld.sim.score.targeting): mean and max over the
+  calibration box (the flange facing the scanner, as calibrated) and over the
+  table (the flange facing down, as when welding);
+- plan alone: the torch following the weld plan from scan and calibration
+  without the tactile correction (open loop through the true arm and tool):
+  lateral RMS / max from the true seam;
+- torch: the torch's true path while the arc was on: lateral RMS / max;
+- success: the weld job succeeded, tracked at least 120 of the 150 mm, and the
+  torch stayed within 0.5 mm of the seam (it did not weld off the seam).
+
+Targets (the issue): targeting mean <= 0.25 mm; torch RMS <= 0.2 mm and max
+<= 0.5 mm in every seed; no seed that welds off the seam. The plan alone is
+expected off by 0.5-3 mm in the realistic preset.
+
+``--quick``: one seed, 6 calibration poses, the scanner at half resolution
+(a cell's start, a calibration and a weld take about two minutes even so).
+``--json`` prints one JSON object of the figures last. A full run writes
+results.json and results.md to bench/out/realistic_cell/<preset>/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from celld.errors import CelldError  # noqa: E402
+from celld.sim.demo import run_jobs  # noqa: E402
+from celld.sim.world import SOURCES, WorldOptions  # noqa: E402
+
+OUT = ROOT / "bench" / "out" / "realistic_cell"
+# The benchmark's own loopback address (the demo uses 127.0.0.2, the tests from 127.0.0.12 up).
+HOST = "127.0.0.7"
+# Targets, mm.
+TARGETING_MEAN = 0.25
+TORCH_RMS, TORCH_MAX = 0.2, 0.5
+TRACKED_MIN = 120.0  # of the 150 mm seam
+
+
+def cell_config(work: Path, quick: bool) -> Path:
+    """The simulated cell of configs/sim-cell.toml on the benchmark's address, its state in ``work``."""
+    path = work / "cell.toml"
+    extra = '[sim.scanner]\nresolution_scale = 0.5\n[calibration]\nn_poses = 6\n' if quick else ""
+    path.write_text(
+        f'include = ["{ROOT / "configs" / "sim-cell.toml"}"]\n[cell]\nname = "bench-realistic"\nstate_dir = "{work / "state"}"\n'
+        f'[robot]\nhost = "{HOST}"\n[bus]\nlisten = ["tcp/{HOST}:7447"]\n{extra}'
+    )
+    return path
+
+
+# Job failures that are the shared machine's, not the cell's: the RTDE watchdog
+# stopped the robot program because the motion process was starved (other
+# real-time processes on the same two cores). A run that ends so is run again.
+INFRASTRUCTURE = ("robot program stopped", "robot link")
+
+
+def run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool, say: Any, retries: int = 1) -> dict[str, Any]:
+    """One seeded cell end to end, run again (up to ``retries`` times) after a starved robot link; its figures."""
+    lost: list[str] = []
+    while True:
+        r = _run_seed(seed, options, quick, force_accept, say)
+        reason = str(r.get("failed", {}).get("reason", ""))
+        if "failed" not in r or not any(k in reason for k in INFRASTRUCTURE) or len(lost) >= retries:
+            if lost:
+                r["retried_after"] = lost
+            return r
+        lost.append(reason)
+        say(f"seed {seed}: {reason}; running it again")
+
+
+def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool, say: Any) -> dict[str, Any]:
+    """One seeded cell end to end; its figures (or why it failed)."""
+    with tempfile.TemporaryDirectory(prefix="celld-realistic-") as tmp:
+        work = Path(tmp)
+        t0 = time.monotonic()
+        try:
+            figures = run_jobs(cell_config(work, quick), work / "daemon.log", WorldOptions(options.preset, seed, options.on, options.off),
+                               say, calibrate_seed=seed, force_accept=force_accept)
+        except CelldError as exc:
+            log = (work / "daemon.log").read_text(errors="replace")[-2000:] if (work / "daemon.log").exists() else ""
+            return {"seed": seed, "success": False, "failed": {"reason": str(exc), "log_tail": log}, "seconds": time.monotonic() - t0}
+    out: dict[str, Any] = {"seed": seed, "seconds": round(time.monotonic() - t0, 1), "tool_calibration": "not run (no tool-calibrate job yet)"}
+    if "calibration" in figures:
+        c = figures["calibration"]
+        out["calibration"] = {k: c[k] for k in ("translation_error_mm", "rotation_error_deg", "pairs", "verdict", "forced", "targeting")}
+    if "failed" in figures:
+        out.update(success=False, failed=figures["failed"])
+        return out
+    w = figures["weld"]
+    out["weld"] = {k: w[k] for k in ("plan_alone_error", "plan_error", "torch_error", "torch_believed_error")}
+    out["weld"]["tracked_mm"] = w["figures"]["tracked_mm"]
+    out["weld"]["arc_on_s"] = w["figures"]["arc_on_s"]
+    torch = w["torch_error"]
+    out["success"] = bool(w["figures"]["tracked_mm"] >= TRACKED_MIN and torch["points"] > 0 and torch["max_mm"] <= TORCH_MAX)
+    return out
+
+
+def summarise(preset: str, sources: list[str], runs: list[dict[str, Any]]) -> dict[str, Any]:
+    ok = [r for r in runs if "weld" in r]
+    cal = [r for r in runs if "calibration" in r]
+
+    def col(rows: list[dict[str, Any]], *keys: str) -> list[float]:
+        vals = []
+        for r in rows:
+            v: Any = r
+            for k in keys:
+                v = v[k]
+            vals.append(float(v))
+        return vals
+
+    tmean = col(cal, "calibration", "targeting", "calibration", "mean_mm")
+    trms, tmax = col(ok, "weld", "torch_error", "rms_mm"), col(ok, "weld", "torch_error", "max_mm")
+    summary = {
+        "preset": preset,
+        "sources": sources,
+        "seeds": [r["seed"] for r in runs],
+        "tool_calibration": "not run (no tool-calibrate job yet)",
+        "targeting_mean_mm": float(np.mean(tmean)) if tmean else None,
+        "targeting_mean_worst_mm": max(tmean) if tmean else None,
+        "targeting_max_mm": max(col(cal, "calibration", "targeting", "calibration", "max_mm")) if cal else None,
+        "targeting_table_mean_mm": float(np.mean(col(cal, "calibration", "targeting", "table", "mean_mm"))) if cal else None,
+        "plan_alone_rms_mm": [round(v, 3) for v in col(ok, "weld", "plan_alone_error", "rms_mm")],
+        "plan_alone_max_mm": [round(v, 3) for v in col(ok, "weld", "plan_alone_error", "max_mm")],
+        "torch_rms_mm": [round(v, 3) for v in trms],
+        "torch_max_mm": [round(v, 3) for v in tmax],
+        "successes": sum(1 for r in runs if r.get("success")),
+        "failures": [{"seed": r["seed"], **r["failed"]} for r in runs if "failed" in r],
+    }
+    summary["targets"] = {
+        "targeting_mean": bool(tmean) and float(np.mean(tmean)) <= TARGETING_MEAN,
+        "torch_every_seed": len(ok) == len(runs) and all(a <= TORCH_RMS and b <= TORCH_MAX for a, b in zip(trms, tmax)),
+        "no_seed_off_the_seam": summary["successes"] == len(runs),
+    }
+    return summary
+
+
+def table(runs: list[dict[str, Any]]) -> list[str]:
+    lines = ["| seed | cal. vs truth mm / deg | targeting mean / max mm (cal. box) | (over the table) | plan alone RMS / max mm | torch RMS / max mm | tracked mm | success |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in runs:
+        c = r.get("calibration")
+        w = r.get("weld")
+        cal = f"{c['translation_error_mm']:.3f} / {c['rotation_error_deg']:.4f}" if c else "-"
+        if c and c.get("forced"):
+            cal += f" ({c['verdict']}, forced)"
+        tc = f"{c['targeting']['calibration']['mean_mm']:.3f} / {c['targeting']['calibration']['max_mm']:.3f}" if c else "-"
+        tt = f"{c['targeting']['table']['mean_mm']:.3f} / {c['targeting']['table']['max_mm']:.3f}" if c else "-"
+        pa = f"{w['plan_alone_error']['rms_mm']:.3f} / {w['plan_alone_error']['max_mm']:.3f}" if w else "-"
+        to = f"{w['torch_error']['rms_mm']:.3f} / {w['torch_error']['max_mm']:.3f}" if w else "-"
+        tr = f"{w['tracked_mm']:.0f}" if w else "-"
+        ok = "yes" if r.get("success") else "no" + (f" ({r['failed'].get('reason', '')[:80]})" if "failed" in r else "")
+        if r.get("retried_after"):
+            ok += f" (run {len(r['retried_after']) + 1}: the robot link was starved before)"
+        lines.append(f"| {r['seed']} | {cal} | {tc} | {tt} | {pa} | {to} | {tr} | {ok} |")
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="one seed, 6 calibration poses, half-resolution scanner")
+    ap.add_argument("--json", action="store_true", help="print one JSON object of the figures last")
+    ap.add_argument("--preset", default="realistic", choices=("ideal", "realistic"))
+    ap.add_argument("--seeds", type=int, default=10, help="how many seeded cells (N)")
+    ap.add_argument("--seed0", type=int, default=1, help="the first seed")
+    ap.add_argument("--with", dest="with_sources", default="", help=f"error sources to switch on ({', '.join(SOURCES)})")
+    ap.add_argument("--without", dest="without_sources", default="", help="error sources to switch off")
+    ap.add_argument("--force-accept", action="store_true", help="accept calibrations that fail the daemon's quality gate")
+    ap.add_argument("--retries", type=int, default=1, help="runs again of a seed whose robot link was starved by the machine")
+    ap.add_argument("--out", default=None, help="directory of a full run's results (default bench/out/realistic_cell/<preset>)")
+    args = ap.parse_args(argv)
+
+    def names(text: str) -> tuple[str, ...]:
+        return tuple(s.strip() for s in text.split(",") if s.strip())
+
+    options = WorldOptions(args.preset, None, names(args.with_sources), names(args.without_sources))
+    seeds = [args.seed0] if args.quick else list(range(args.seed0, args.seed0 + args.seeds))
+    say = (lambda text: print(text, file=sys.stderr, flush=True)) if args.json else (lambda text: print(text, flush=True))
+    label = args.preset + "".join(f" +{s}" for s in options.on) + "".join(f" -{s}" for s in options.off)
+    say(f"realistic_cell: preset {label}, seeds {seeds}; tool calibration: not run (no tool-calibrate job yet)")
+    runs = []
+    quiet = lambda text: None  # noqa: E731  (the jobs' own progress lines)
+    for seed in seeds:
+        say(f"seed {seed} ...")
+        r = run_seed(seed, options, args.quick, args.force_accept, quiet, args.retries)
+        runs.append(r)
+        say("\n".join(table([r])[2:]) + f"   ({r.get('seconds', 0):.0f} s)")
+    sources = sorted(((set(SOURCES) if args.preset == "realistic" else set()) | set(options.on)) - set(options.off))
+    summary = summarise(label, sources, runs)
+    say("")
+    say(f"preset: {label} (sources on: {', '.join(sources) or 'none'})")
+    for line in table(runs):
+        say(line)
+    say(f"targeting mean {summary['targeting_mean_mm']} mm (target <= {TARGETING_MEAN}): "
+        f"{'met' if summary['targets']['targeting_mean'] else 'missed'}; torch within {TORCH_RMS} / {TORCH_MAX} mm in every seed: "
+        f"{'met' if summary['targets']['torch_every_seed'] else 'missed'}; successes {summary['successes']} of {len(runs)}")
+    if not args.quick:
+        out = Path(args.out) if args.out else OUT / label.replace(" ", "_")
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "results.json").write_text(json.dumps({"summary": summary, "runs": runs}, indent=1))
+        (out / "results.md").write_text("\n".join([f"preset {label}", "", *table(runs), ""]))
+        say(f"results in {out}")
+    if args.json:
+        print(json.dumps({"summary": summary, "runs": runs}, default=lambda o: None if isinstance(o, float) and not math.isfinite(o) else str(o)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
