@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from celld import se3
 from celld.calib.algorithm1 import Algorithm1Result, run_algorithm1
 from celld.calib.dataset import Session
 from celld.calib.detect import detect_flange
@@ -47,7 +48,6 @@ from celld.calib.pairs import Detections, PairCollector
 from celld.calib.quality import CalibrationQuality, QualityParams, assess_calibration
 from celld.calib.rigid import Array, Uncertainty, check_pairs, pair_residuals, solve_rigid
 from celld.calib.robust import RejectedPair, RobustParams, solve_robust
-from celld import se3
 from celld.config import CalibrationConfig
 from celld.errors import CalibrationError, DetectionError, InputError
 from celld.log import get_logger

@@ -75,7 +75,7 @@ class RobotConfig:
 
 @dataclass(frozen=True)
 class MotionLimits:
-    """Cartesian limits every command obeys in every cycle (SI)."""
+    """The limits every command obeys in every cycle (SI): Cartesian for the TCP, per joint for joint moves."""
 
     max_linear_speed: float = 0.25  # m/s
     max_linear_accel: float = 1.0  # m/s^2
@@ -83,6 +83,11 @@ class MotionLimits:
     max_angular_speed: float = 1.0  # rad/s
     max_angular_accel: float = 4.0  # rad/s^2
     max_angular_jerk: float = 40.0  # rad/s^3
+    # Every joint in a joint move (the move is also slowed so the TCP keeps
+    # the Cartesian limits above). UR's own movej defaults: 1.05 rad/s, 1.4 rad/s^2.
+    max_joint_speed: float = 1.0  # rad/s
+    max_joint_accel: float = 2.0  # rad/s^2
+    max_joint_jerk: float = 20.0  # rad/s^3
     # A tactile sample older than this stops a servo, seconds.
     tactile_stale: float = 0.1
     # Robot state older than this many cycles stops the loop.
@@ -106,6 +111,9 @@ class MotionLimits:
             max_angular_speed=r.float("max_angular_speed", cls.max_angular_speed, lo=0.0, hi=3.14, open_lo=True),
             max_angular_accel=r.float("max_angular_accel", cls.max_angular_accel, lo=0.0, hi=40.0, open_lo=True),
             max_angular_jerk=r.float("max_angular_jerk", cls.max_angular_jerk, lo=0.0, hi=4000.0, open_lo=True),
+            max_joint_speed=r.float("max_joint_speed", cls.max_joint_speed, lo=0.0, hi=3.14, open_lo=True),
+            max_joint_accel=r.float("max_joint_accel", cls.max_joint_accel, lo=0.0, hi=40.0, open_lo=True),
+            max_joint_jerk=r.float("max_joint_jerk", cls.max_joint_jerk, lo=0.0, hi=4000.0, open_lo=True),
             tactile_stale=r.float("tactile_stale_ms", cls.tactile_stale * 1e3, lo=1.0, hi=5000.0, scale=1e-3),
             state_stale_cycles=r.int("state_stale_cycles", cls.state_stale_cycles, lo=1, hi=50),
             link_timeout=r.float("link_timeout_ms", cls.link_timeout * 1e3, lo=4.0, hi=5000.0, scale=1e-3),

@@ -236,6 +236,23 @@ class CellDevices:
         await asyncio.to_thread(self.planner.check_move, q, T_base_tcp, tool)
         return await motion.move_to(T_base_tcp, speed_scale=speed_scale)
 
+    async def move_joints(self, q_goal: np.ndarray, speed_scale: float = 1.0, *, tool: bool = True) -> RobotState:
+        """A jerk-limited joint move, checked against the cell and the workspace box first, and slowed so the
+        TCP keeps the Cartesian limits (:meth:`MotionPlanner.plan_joint_move`).
+
+        Raises
+        ------
+        PathRefused
+            The move would hit the cell, leave the workspace or cross a joint limit; the robot did not move.
+        """
+        motion = self.require_motion()
+        q = await self.current_q()
+        plan = await asyncio.to_thread(self.planner.plan_joint_move, q, q_goal, speed_scale, tool)
+        if plan.speed_scale < speed_scale:
+            log.info("joint move slowed for the TCP's limits", asked=speed_scale, scale=round(plan.speed_scale, 4),
+                     tcp_speed=round(plan.tcp_speed, 4))
+        return await motion.move_joints(q_goal, speed_scale=plan.speed_scale)
+
     async def current_q(self, timeout: float = STATE_WAIT) -> np.ndarray:
         """The robot's joints now, waiting up to ``timeout`` s for the first state; DeviceError without one."""
         motion = self.require_motion()

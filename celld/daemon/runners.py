@@ -16,8 +16,9 @@ worker threads so the event loop keeps answering the bus.
   refuses a failed one unless forced). With ``compensate`` the calibration
   stored is Eq. 21's compensated estimate, and ``stored`` says so.
   The early stop waits until the gate has its minimum of pairs.
-- **move**: a jerk-limited move to a TCP pose, or to joint positions through
-  the forward kinematics.
+- **move**: a jerk-limited straight move of the TCP to a pose, or a
+  jerk-limited joint move (straight in joint space, sent as speedJ) to joint
+  positions; both checked against the cell first (planning module).
 - **health**: the robot link and loop timing, the scanner (one capture), the
   tactile sensor.
 - **weld**: :mod:`celld.daemon.weld`.
@@ -48,7 +49,6 @@ from celld.daemon.jobs import JobContext, Runner
 from celld.daemon.planning import record_plan
 from celld.errors import CalibrationError, CelldError, JobError
 from celld.log import get_logger
-from celld.robot.kinematics import forward
 
 log = get_logger(__name__)
 
@@ -229,8 +229,17 @@ async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
     if not isinstance(job, MoveJob):
         raise JobError("$.kind", "not a move job")
     target = np.asarray(job.target, dtype=np.float64)
-    T = forward(target) if job.space == "joint" else se3.from_ur_pose(target)
-    ctx.progress("move", 0.0, f"moving to {np.round(se3.to_ur_pose(T), 4).tolist()}")
+    if job.space == "joint":
+        ctx.progress("move", 0.0, f"joint move to {np.round(target, 4).tolist()} rad")
+        state = await devices.move_joints(target, speed_scale=job.speed_scale)
+        err = np.degrees(np.abs(np.asarray(state.q) - target))
+        return {
+            "q": np.asarray(state.q).tolist(),
+            "joint_error_deg": err.tolist(),
+            "tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(),
+        }
+    T = se3.from_ur_pose(target)
+    ctx.progress("move", 0.0, f"moving to {np.round(target, 4).tolist()}")
     state = await devices.move_to(T, speed_scale=job.speed_scale)
     dt, dr = se3.error(state.T_base_tcp, T)
     return {"tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(), "error_mm": dt * 1e3, "error_deg": math.degrees(dr)}

@@ -48,7 +48,7 @@ from celld.motion.channels import (
 )
 from celld.motion.controllers import MoveParams
 from celld.motion.core import CoreParams, Mode
-from celld.motion.limits import CartesianLimits, check_twist
+from celld.motion.limits import CartesianLimits, JointMoveLimits, check_twist
 from celld.motion.loop import LoopParams
 from celld.motion.process import MotionSpec, servo_laws_from
 from celld.motion.supervisor import LinkState, MotionSupervisor, ProcessExit
@@ -116,6 +116,7 @@ def spec_from_config(config: Config, names: ChannelNames, host: str | None = Non
     robot, motion = config.robot, config.motion
     period = 1.0 / robot.frequency_hz
     limits = CartesianLimits.from_config(motion)
+    joint_limits = JointMoveLimits.from_config(motion)
     return MotionSpec(
         host=host or robot.host,
         channels=names,
@@ -127,11 +128,13 @@ def spec_from_config(config: Config, names: ChannelNames, host: str | None = Non
             state_stale=motion.state_stale_cycles * period,
             tactile_stale=motion.tactile_stale,
             move=move,
+            joint_limits=joint_limits,
         ),
         loop=LoopParams(
             period_ns=int(round(period * 1e9)),
             # speedL's own ramp must never clip the limiter's profile.
             speed_accel=2.0 * max(limits.linear_accel, limits.angular_accel),
+            joint_speed_accel=2.0 * joint_limits.accel,
             link_timeout_ns=int(link_timeout * 1e9),
             process_output=robot.arc_output,
         ),
@@ -282,6 +285,22 @@ class MotionHandle:
         self._pending[cid] = _Pending(fut, [""])
         return fut
 
+    async def _arrive(self, command: cmd.Command, what: str, timeout: float | None) -> RobotState:
+        """Post a move, wait for it to end, and return the state on arrival or raise why it did not."""
+        cid = self._post(command)
+        fut = self._track(cid)
+        try:
+            status = await asyncio.wait_for(asyncio.shield(fut), timeout)
+        except TimeoutError:
+            self.stop()
+            raise MotionError(f"{what} did not arrive within {timeout} s; the robot was stopped") from None
+        if status != ControlStatus.DONE:
+            raise error_for(status, self._pending_reason(cid))
+        state = self.state()
+        if state is None:  # cannot happen: a DONE record was read
+            raise MotionError(f"{what} arrived but no robot state was read")
+        return state
+
     async def move_to(
         self,
         target: ArrayLike,
@@ -318,19 +337,33 @@ class MotionHandle:
         if not all(lo[i] <= p[i] <= hi[i] for i in range(3)):
             raise InputError(f"move_to target {np.round(p, 4).tolist()} m lies outside the workspace box "
                              f"{list(lo)} .. {list(hi)}")
-        cid = self._post(command)
-        fut = self._track(cid)
-        try:
-            status = await asyncio.wait_for(asyncio.shield(fut), timeout)
-        except TimeoutError:
-            self.stop()
-            raise MotionError(f"move_to did not arrive within {timeout} s; the robot was stopped") from None
-        if status != ControlStatus.DONE:
-            raise error_for(status, self._pending_reason(cid))
-        state = self.state()
-        if state is None:  # cannot happen: a DONE record was read
-            raise MotionError("move_to arrived but no robot state was read")
-        return state
+        return await self._arrive(command, "move_to", timeout)
+
+    async def move_joints(
+        self,
+        q_goal: ArrayLike,
+        speed_scale: float = 1.0,
+        tolerance: float = 5e-5,
+        timeout: float | None = None,
+        rest_timeout: float = 5.0,
+    ) -> RobotState:
+        """Move the joints straight in joint space to ``q_goal`` (rad) and return the state on arrival.
+
+        A joint move starts from rest: this waits up to ``rest_timeout`` s for
+        the loop to hold still first. The caller checks the path and the
+        goal's TCP against the cell (:class:`celld.daemon.planning.MotionPlanner`);
+        ``speed_scale`` scales every joint limit.
+
+        Raises
+        ------
+        InputError
+            ``q_goal`` is not 6 finite joint positions within +-2 pi.
+        SafetyStop, LinkLost, MotionError
+            The move did not arrive; the message says why.
+        """
+        command = cmd.move_joints(q_goal, speed_scale, tolerance)
+        await self.wait_idle(rest_timeout)
+        return await self._arrive(command, "move_joints", timeout)
 
     def stream(self, twist: ArrayLike, timeout: float = 0.1) -> None:
         """Set the streamed twist (6,) (base frame, m/s and rad/s); starts streaming if needed.

@@ -135,6 +135,22 @@ def test_move_and_health_and_a_refused_job(daemon) -> None:
         assert "refused" in record["reason"] and all(w in record["reason"] for w in words), (what, record["reason"])
         assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, f"the arm moved for the refused move into the {what}"
 
+    # A joint move lands within a hundredth of a degree on every joint of the
+    # robot's true joints, slowed if need be so the TCP keeps the Cartesian limits.
+    q_goal = [2.9, -1.35, 2.2, -2.4, 1.5, -1.1]
+    _, record = client.submit_and_wait({"kind": "move", "target": {"space": "joint", "q": q_goal}}, timeout=60)
+    assert record["state"] == "succeeded", record["reason"]
+    moved = json.loads(Path(record["result"]).read_text())
+    q_true = robot.truth()[2]
+    assert np.degrees(np.abs(q_true - np.array(q_goal))).max() < 0.01, np.degrees(q_true - np.array(q_goal))
+    assert max(moved["joint_error_deg"]) < 0.01
+    # A joint move whose line crosses the table is refused before any motion.
+    q_before = robot.truth()[2]
+    down = [2.9, -0.3, 2.2, -2.4, 1.5, -1.1]
+    _, record = client.submit_and_wait({"kind": "move", "target": {"space": "joint", "q": down}}, timeout=60)
+    assert record["state"] == "failed" and "refused" in record["reason"], record
+    assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6
+
 
 def test_a_calibration_dry_run_plans_and_checks_without_moving(daemon) -> None:
     client, _, _, robot = daemon

@@ -62,6 +62,10 @@ class FakePort:
         self.twist = np.array(twist)
         return True
 
+    def speed_joints(self, qd: Sequence[float], accel: float) -> bool:
+        self.sent.append(("speedJ", list(qd)))
+        return True
+
     def kick(self) -> None:
         self.sent.append(("kick", []))
 
