@@ -97,6 +97,8 @@ class Daemon:
             recording_factory=self._open_recording if cfg.recording.enabled else None,
             link_state=self.devices.link_state,
             auto_accept=cfg.calibration.auto_accept,
+            robot_report=self.devices.robot_report,
+            robot_action=self.devices.robot_action,
         )
         self.bus = BusServer(self._session.session, keys, self.manager, state_rate_hz=cfg.bus.state_rate_hz)
         await self.bus.start()

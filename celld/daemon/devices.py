@@ -31,11 +31,13 @@ import numpy as np
 
 from celld.config import Config
 from celld.daemon.planning import MotionPlanner
-from celld.errors import CelldError, ConfigError, DeviceError
+from celld.errors import CelldError, ConfigError, DeviceError, InputError
 from celld.log import get_logger
 from celld.motion.algorithm2 import NAME as ALGORITHM2
 from celld.motion.handle import MotionHandle
+from celld.motion.loop import INTERLOCK_MISSING
 from celld.motion.types import RobotState
+from celld.robot.dashboard import ACTIONS, Dashboard, RobotCondition, robot_condition
 from celld.scanner.base import OrganizedCloud, Scanner
 from celld.scanner.factory import open_scanner
 from celld.supervision import Backoff, ChildRecords, Heartbeat
@@ -58,6 +60,8 @@ STALL_WARNING = 0.2
 # Least time between two restarts of a dying tactile process, s: it doubles
 # after each failed restart, up to a minute.
 TACTILE_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 32.0, 60.0))
+# The dashboard server is read this often, s.
+DASHBOARD_PERIOD = 0.5
 
 
 @dataclass(frozen=True)
@@ -141,6 +145,8 @@ class CellDevices:
         self.heartbeat: Heartbeat | None = None
         self._beating: asyncio.Task[None] | None = None
         self.leftovers: list[str] = []  # what was cleaned up after a previous daemon
+        self.dashboard = Dashboard(config.robot.host)
+        self._reading: asyncio.Task[None] | None = None
 
     # -- life cycle ----------------------------------------------------------------
 
@@ -174,6 +180,7 @@ class CellDevices:
             records=records,
         )
         self.motion.add_listener(self._on_state_batch)
+        self._reading = asyncio.get_running_loop().create_task(self._read_dashboard(), name="celld-dashboard")
         self.scanner = await asyncio.to_thread(self._factories.scanner, cfg)
         log.info("devices open", robot=cfg.robot.host, scanner=f"{cfg.scanner.kind}/{cfg.scanner.model}",
                  tactile=cfg.tactile.kind if self.tactile is not None else "none")
@@ -192,6 +199,11 @@ class CellDevices:
         if self.tactile is not None:
             await asyncio.to_thread(self.tactile.stop)
             self.tactile = None
+        if self._reading is not None:
+            self._reading.cancel()
+            await asyncio.gather(self._reading, return_exceptions=True)
+            self._reading = None
+            await self.dashboard.close()
         if self._beating is not None:
             self._beating.cancel()
             await asyncio.gather(self._beating, return_exceptions=True)
@@ -277,6 +289,72 @@ class CellDevices:
             await self.motion.wait_idle(STOP_TIMEOUT)
         except CelldError as exc:
             log.warning("robot not confirmed at rest after a stop", error=str(exc))
+
+    async def _read_dashboard(self) -> None:
+        previous = ""
+        while True:
+            await self.dashboard.read()
+            cond = self.robot_condition()
+            if cond.state != previous:
+                (log.info if cond.ready else log.warning)("robot condition", state=cond.state, reason=cond.reason)
+                previous = cond.state
+            await asyncio.sleep(DASHBOARD_PERIOD)
+
+    def robot_condition(self) -> RobotCondition:
+        """Whether the robot can move, and if not why and what clears it (:mod:`celld.robot.dashboard`)."""
+        last = self.motion.supervisor.last_exit if self.motion is not None else None
+        return robot_condition(self.link_state(), self.dashboard.last, last.reason if last is not None else "")
+
+    def robot_report(self) -> dict[str, Any]:
+        """The robot's condition and the dashboard's last reading, for the status reply."""
+        r = self.dashboard.last
+        out: dict[str, Any] = self.robot_condition().as_dict()
+        out["link"] = self.link_state()
+        out["mode"] = r.robot_mode if r is not None and r.reachable else None
+        out["safety"] = r.safety if r is not None and r.reachable else None
+        out["dashboard"] = "reachable" if r is not None and r.reachable else (r.error if r is not None else "not read yet")
+        return out
+
+    async def robot_action(self, action: str) -> dict[str, Any]:
+        """Send an operator's recovery command (:data:`~celld.robot.dashboard.ACTIONS`) through the dashboard.
+
+        The caller refuses it while a job runs. After it, the motion supervisor
+        reconnects at once instead of waiting out its back-off.
+
+        Raises
+        ------
+        InputError
+            Unknown action.
+        RobotError
+            The controller refused it, with its reason.
+        """
+        if action not in ACTIONS:
+            raise InputError(f"robot action: expected one of {', '.join(ACTIONS)}, got {action!r}")
+        reply = await self.dashboard.act(action)
+        if self.motion is not None:
+            self.motion.supervisor.retry_now()
+        await self.dashboard.read()
+        return {"action": action, "reply": reply, "robot": self.robot_report()}
+
+    def interlock_report(self) -> dict[str, Any]:
+        """What celld can say about the arc interlock (standard outputs low when the program stops).
+
+        The I/O setting itself cannot be read over RTDE or the dashboard. What
+        can be seen: each motion process, when it starts, checks whether the
+        arc output was left on by the one before it (killed, or its link lost),
+        which only happens without the setting.
+        """
+        missing = [e for e in (self.motion.loop_events if self.motion is not None else ()) if e.startswith(INTERLOCK_MISSING)]
+        return {
+            "verified": False,
+            "missing_seen": bool(missing),
+            "detail": missing[-1] if missing else "",
+            "note": (
+                "the robot's I/O setting 'standard outputs low when the program stops' cannot be read over RTDE or the "
+                "dashboard; set it on the teach pendant (README). celld checks at every motion process start that the "
+                "arc output was not left on, which would show the setting missing"
+            ),
+        }
 
     def link_state(self) -> str:
         if self.motion is None:

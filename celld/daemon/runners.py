@@ -257,8 +257,15 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
     if job.check in ("all", "robot"):
         h = devices.require_motion().health()
         out["robot"] = h._asdict()
+        condition = devices.robot_condition()
+        out["robot"]["condition"] = condition.as_dict()
         if h.link != "running":
             problems.append(f"robot link {h.link}")
+        if not condition.ready:
+            problems.append(f"robot {condition.state}: {condition.reason} ({condition.remedy})")
+        out["arc_interlock"] = devices.interlock_report()
+        if out["arc_interlock"]["missing_seen"]:
+            problems.append(out["arc_interlock"]["detail"])
     if job.check in ("all", "scanner"):
         try:
             cloud = await devices.capture()

@@ -112,6 +112,11 @@ def test_move_and_health_and_a_refused_job(daemon) -> None:
     client, _, _, robot = daemon
     _, record = client.submit_and_wait({"kind": "health", "check": "all"}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
+    health = json.loads(Path(record["result"]).read_text())
+    assert health["robot"]["condition"]["ready"] and health["problems"] == []
+    # The interlock setting cannot be read; health says so, and that no arc was found left on.
+    assert health["arc_interlock"]["verified"] is False and health["arc_interlock"]["missing_seen"] is False
+    assert "cannot be read" in health["arc_interlock"]["note"]
     target = [0.62, 0.02, 0.46, 0.0, 0.0, 0.0]
     _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": target}}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]

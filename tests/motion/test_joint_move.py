@@ -91,7 +91,7 @@ def test_a_stop_request_brakes_in_joint_space_jerk_limited() -> None:
     assert moving.mode == Mode.ACTIVE and np.abs(moving.twist).max() > 0.5
     idle = next(o for o in outs[300:] if o.mode == Mode.IDLE)
     assert idle.status == ControlStatus.STOPPED and idle.event_id == 5 and "stopped on request" in idle.event
-    speed, accel, jerk = _peaks(plant.sent)
+    _, accel, jerk = _peaks(plant.sent)
     assert accel <= JOINT_LIMITS.accel * (1 + 1e-6) and jerk <= JOINT_LIMITS.jerk * (1 + 1e-6)
     # The brake stays on the move's line in joint space (the checked path).
     u = (Q1 - Q0) / np.linalg.norm(Q1 - Q0)
