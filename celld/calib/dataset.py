@@ -303,8 +303,11 @@ def _record(entry: Any, root: Path, where: str) -> PairRecord:
     pid = entry.get("id")
     if not isinstance(pid, str) or not _ID.match(pid):
         raise InputError(f"{where}.id: expected a pair id string, got {pid!r}")
+    raw_T = entry.get("T_base_flan")
+    if raw_T is None:
+        raise InputError(f"{where}.T_base_flan: missing (the flange pose, a 4x4 transform in metres)")
     try:
-        T = check_transform(entry.get("T_base_flan"), f"{where}.T_base_flan")
+        T = check_transform(raw_T, f"{where}.T_base_flan")
     except (ValueError, TypeError) as exc:
         raise InputError(f"{where}.T_base_flan: expected a 4x4 rigid transform: {exc}") from exc
     cloud = entry.get("cloud")

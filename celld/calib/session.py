@@ -284,7 +284,7 @@ def solve_pairs(
         fit = solve_rigid(P_b, P_c, with_scale=params.with_scale)
         T, used, unc, scale = fit.T_dst_src, list(range(len(P_b))), fit.uncertainty, fit.scale
     else:
-        if a1 is None or a1.fit is None:
+        if a1 is None or a1.fit is None or a1.T_base_cam is None:
             raise CalibrationError("Algorithm 1 found no solvable pool of four pairs")
         used = sorted(ids_t.index(i) for i in a1.pool_ids)
         T, unc, scale = a1.T_base_cam, a1.fit.uncertainty, a1.fit.scale

@@ -127,7 +127,7 @@ def write_reference(root: Path, rng: np.random.Generator, n: int = 5, numbers: l
 
 def test_reference_format_is_read_with_its_units_and_quaternion_order(tmp_path: Path, rng: np.random.Generator) -> None:
     # Numbered with gaps, as the toolbox's sample: the n-th entry takes the n-th cloud.
-    P_base, P_cam = write_reference(tmp_path, rng, 5, numbers=[1, 2, 4, 6, 7])
+    _P_base, P_cam = write_reference(tmp_path, rng, 5, numbers=[1, 2, 4, 6, 7])
     session = load_session(tmp_path)
     assert session.kind == "reference" and session.units == "mm"
     assert session.ids == ("0", "1", "2", "3", "4")

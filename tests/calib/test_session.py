@@ -26,7 +26,7 @@ class FakeVerifier:
     def __init__(self, ok: bool = True) -> None:
         self.ok = ok
 
-    def strict(self) -> "FakeVerifier":
+    def strict(self) -> FakeVerifier:
         return self
 
     def __call__(self, T_base_cam: np.ndarray) -> IcpMetric:

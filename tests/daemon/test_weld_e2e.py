@@ -22,9 +22,9 @@ import pytest
 
 from celld import se3
 from celld.bus import schema
-from celld.seam.figures import lateral_error
 from celld.journal import Journal
 from celld.recording.readback import read_entities
+from celld.seam.figures import lateral_error
 from celld.sim.cell import run_cell, sim_workpiece, start_daemon, stop_daemon
 from tests.daemon.orphans import after_kill
 

@@ -21,4 +21,4 @@ def test_true_wall_runs_beside_the_true_seam_in_its_plane() -> None:
     S = in_plane(g, g.seam_base)
     # Plane y is left of travel; the left wall lies offset to the left, all along.
     assert np.allclose(W[:, 1] - S[:, 1], g.offset, atol=1e-9)
-    assert np.allclose(np.abs(((g.wall_base - g.T_base_plane[:3, 3]) @ g.T_base_plane[:3, 2])), 0.0, atol=1e-9)
+    assert np.allclose(np.abs((g.wall_base - g.T_base_plane[:3, 3]) @ g.T_base_plane[:3, 2]), 0.0, atol=1e-9)
