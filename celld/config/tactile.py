@@ -62,6 +62,9 @@ class TactileConfig:
     max_reprojection_px: float = 0.5  # RMS corner reprojection error above which a pose is refused
     tare_frames: int = 30
     tare_max_spread: float = 2e-5  # m, RMS spread of the rest pose allowed during a tare
+    # m: a tare whose rest lies farther than this from the finger's reference
+    # rest (the first tare, kept in state_dir) is refused: the finger is not free.
+    tare_max_offset: float = 0.3e-3
     # -- contact levels of the normal deformation --
     contact_threshold: float = 0.0003  # m
     overload: float = 0.004  # m
@@ -86,6 +89,7 @@ class TactileConfig:
             max_reprojection_px=r.float("max_reprojection_px", cls.max_reprojection_px, lo=0.0, hi=20.0, open_lo=True),
             tare_frames=r.int("tare_frames", cls.tare_frames, lo=1, hi=10_000),
             tare_max_spread=r.float("tare_max_spread_mm", cls.tare_max_spread * 1e3, lo=0.0, hi=5.0, scale=1e-3, open_lo=True),
+            tare_max_offset=r.float("tare_max_offset_mm", cls.tare_max_offset * 1e3, lo=0.0, hi=10.0, scale=1e-3, open_lo=True),
             contact_threshold=r.float("contact_threshold_mm", cls.contact_threshold * 1e3, lo=0.0, hi=20.0, scale=1e-3),
             overload=r.float("overload_mm", cls.overload * 1e3, lo=0.0, hi=50.0, scale=1e-3),
         )

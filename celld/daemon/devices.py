@@ -115,7 +115,8 @@ def make_tactile(
         camera = opencv_camera
     realtime = replace(CAMERA_REALTIME, priority=config.tactile.rt_priority)
     return TactileProcess(config.tactile, config.tool, f"celld-{uuid.uuid4().hex[:8]}", camera, realtime,
-                          heartbeat=heartbeat, parent_timeout=config.motion.parent_timeout, records=records)
+                          heartbeat=heartbeat, parent_timeout=config.motion.parent_timeout, records=records,
+                          rest_file=Path(config.cell.state_dir) / "tactile" / "rest.json")
 
 
 class CellDevices:

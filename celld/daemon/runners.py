@@ -282,10 +282,19 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
             out["tactile"] = {"ok": False, "error": "no tactile sensor configured"}
         else:
             running = devices.tactile.running()
-            out["tactile"] = {"ok": running and sample is not None and sample.valid, "running": running,
-                              "valid": bool(sample and sample.valid), "error": devices.tactile_error}
+            counters = devices.tactile.read_counters()
+            tared = bool(counters is not None and counters["tared"])
+            refused = bool(counters is not None and counters["tare_refused"])
+            offset = float(counters["tare_offset"]) if counters is not None else math.nan
+            out["tactile"] = {"ok": running and tared and sample is not None and sample.valid, "running": running,
+                              "valid": bool(sample and sample.valid), "tared": tared,
+                              "tare_offset_mm": offset * 1e3, "error": devices.tactile_error}
             if not running:
                 problems.append(f"the tactile process is not running: {devices.tactile_error or 'it ended'}")
+            elif not tared and refused:
+                problems.append(f"the SRM is not tared: the finger is not free ({offset * 1e3:.2f} mm from its reference rest)")
+            elif not tared:
+                problems.append("the SRM is not tared yet")
             elif sample is None or not sample.valid:
                 problems.append("the tactile sensor sees no tag")
     if problems and job.check != "all":

@@ -63,6 +63,8 @@ log = get_logger(__name__)
 RING_SECONDS = 8.0
 # How often the handle drains the ring, s.
 DRAIN_PERIOD = 0.02
+# The link counts as up while the loop's latest record is at most this many cycles old.
+LINK_FRESH_CYCLES = 10
 # Loop timing statistics cover this many recent cycles.
 STATS_WINDOW = 30_000
 _SAFETY = {ControlStatus.SAFETY, ControlStatus.WORKSPACE, ControlStatus.LIMIT}
@@ -169,6 +171,7 @@ class MotionHandle:
         self._cycles = 0
         self._last_record: np.void | None = None
         self._last_record_t = 0.0
+        self._fresh_ns = LINK_FRESH_CYCLES * supervisor.spec.loop.period_ns
         self._periods: deque[np.ndarray] = deque()
         self._period_count = 0
         self._pending: dict[int, _Pending] = {}
@@ -454,8 +457,18 @@ class MotionHandle:
                           from_ur_pose(rec["tcp_pose"]), np.array(rec["tcp_speed"]))
 
     def link_running(self) -> bool:
-        """True while the motion loop runs (cheap: no timing statistics)."""
-        return self.supervisor.state == LinkState.RUNNING
+        """True while the motion loop runs: its process is up and its latest record is fresh (cheap).
+
+        Read from the state ring itself, not from what the drain task last
+        collected, so it follows the loop within :data:`LINK_FRESH_CYCLES`
+        cycles even while the event loop is busy.
+        """
+        if self.supervisor.state != LinkState.RUNNING:
+            return False
+        last = self.ch.state.latest(1)
+        if len(last) == 0:
+            return False
+        return time.monotonic_ns() - int(last["t_ns"][0]) <= self._fresh_ns
 
     def heartbeat_age(self) -> float:
         """Seconds since the last state record arrived (inf before the first); cheap."""

@@ -203,6 +203,26 @@ def test_a_link_drop_fails_the_motion_with_its_reason_and_the_link_comes_back(si
     _run(sim, scenario)
 
 
+def test_the_link_state_follows_the_loop_within_a_few_cycles(sim: Any) -> None:
+    seen: dict[str, Any] = {}
+
+    async def scenario(motion: MotionHandle) -> None:
+        assert motion.link_running()
+        sim.inject("stall", ms=2000)  # no robot state: the loop ends on its link timeout (0.5 s here)
+        deadline = time.monotonic() + 5.0
+        while motion.link_running():
+            assert time.monotonic() < deadline, "the link still reads up"
+            await asyncio.sleep(0.001)
+        t_down = time.monotonic_ns()
+        seen["late_ms"] = (t_down - int(motion.ch.state.latest(1)["t_ns"][0])) * 1e-6
+        # The process is still on its way out: its supervisor has not seen it end yet.
+        seen["supervisor"] = motion.supervisor.state
+
+    _run(sim, scenario)
+    # Down within the fresh window (10 cycles, 20 ms) of the loop's last record, and polling.
+    assert seen["late_ms"] < 40.0, seen
+
+
 def test_stop_ends_the_motion_and_nothing_is_sent_after_it(sim: Any) -> None:
     async def scenario(motion: MotionHandle) -> None:
         start = motion.state()
