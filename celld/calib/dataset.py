@@ -52,6 +52,7 @@ from numpy.typing import ArrayLike
 
 from celld.calib.detect import to_metres
 from celld.calib.rigid import Array
+from celld.cloudfile import check_cloud_file
 from celld.errors import InputError
 from celld.fsutil import atomic_open, write_json
 from celld.se3 import check_transform, from_xyz_quat_wxyz
@@ -144,8 +145,7 @@ def read_cloud(path: str | Path, units: str) -> Array:
         Missing or unreadable file, no points, or data that do not look like ``units``.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: cloud file not found")
+    check_cloud_file(path)  # the header against the file's size, before Open3D allocates what it declares
     shape = _organized_shape(path)
     cloud = o3d.io.read_point_cloud(str(path), remove_nan_points=shape is None, remove_infinite_points=shape is None)
     P = np.asarray(cloud.points, dtype=np.float64)
@@ -297,6 +297,24 @@ def _check_header(doc: Any, path: Path) -> None:
         raise InputError(f"{path}: pairs: expected a list")
 
 
+# No arm reaches farther from its base than this (a UR16e: 0.9 m, a UR20: 1.75 m), m.
+MAX_FLANGE_DISTANCE = 3.0
+# Nor does a cell's scanner sit farther from the robot's base, m.
+MAX_CAMERA_DISTANCE = 10.0
+
+
+def check_reach(p_base: Any, where: str) -> Array:
+    """``p_base`` (3,) metres, or InputError when no arm could put its flange there (a unit mix-up)."""
+    p = np.asarray(p_base, dtype=np.float64)
+    d = float(np.linalg.norm(p))
+    if d > MAX_FLANGE_DISTANCE:
+        raise InputError(
+            f"{where}: the flange lies {d:.3g} m from the robot base, beyond any arm's reach "
+            f"(at most {MAX_FLANGE_DISTANCE:g} m): are the poses in millimetres? They must be in metres"
+        )
+    return p
+
+
 def _record(entry: Any, root: Path, where: str) -> PairRecord:
     if not isinstance(entry, dict):
         raise InputError(f"{where}: expected an object, got {type(entry).__name__}")
@@ -310,6 +328,7 @@ def _record(entry: Any, root: Path, where: str) -> PairRecord:
         T = check_transform(raw_T, f"{where}.T_base_flan")
     except (ValueError, TypeError) as exc:
         raise InputError(f"{where}.T_base_flan: expected a 4x4 rigid transform: {exc}") from exc
+    check_reach(T[:3, 3], f"{where}.T_base_flan")
     cloud = entry.get("cloud")
     if cloud is not None and (not isinstance(cloud, str) or Path(cloud).name != cloud):
         raise InputError(f"{where}.cloud: expected a file name in the session directory, got {cloud!r}")
@@ -364,9 +383,9 @@ def _load_reference(root: Path) -> Session:
         T = None
         if pose is not None:
             T = from_xyz_quat_wxyz(pose[:3], pose[3:])  # [x, y, z, qw, qx, qy, qz], metres
-            p_base = T[:3, 3].copy()
+            p_base = check_reach(T[:3, 3], f"{where}.robot_pose").copy()
         elif p_robot is not None:
-            p_base = p_robot
+            p_base = check_reach(p_robot, f"{where}.p_robot")
         else:
             raise InputError(f"{where}: neither robot_pose nor p_robot is given")
         cloud: Path | None = None

@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike
 
 from celld import se3
 from celld.calib.algorithm1 import Algorithm1Result, run_algorithm1
-from celld.calib.dataset import Session
+from celld.calib.dataset import MAX_CAMERA_DISTANCE, Session
 from celld.calib.detect import detect_flange
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import FlangeModel
@@ -291,6 +291,13 @@ def solve_pairs(
         rejected += [
             RejectedPair(ids_t[i], i, float("nan"), "not in Algorithm 1's final pool") for i in range(len(P_b)) if i not in used
         ]
+    d_cam = float(np.linalg.norm(T[:3, 3]))
+    if d_cam > MAX_CAMERA_DISTANCE:
+        raise CalibrationError(
+            f"the solve puts the camera {d_cam:.3g} m from the robot base, which no cell has (at most "
+            f"{MAX_CAMERA_DISTANCE:g} m): the poses and the clouds are likely in different units (poses must be "
+            "in metres, clouds in the session's declared unit)"
+        )
     res_all = pair_residuals(T, P_b, P_c, scale)
     for k, r in enumerate(rejected):
         if r.id in ids_t and not np.isfinite(r.residual):

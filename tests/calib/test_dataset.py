@@ -97,6 +97,17 @@ def test_malformed_sessions_are_refused_with_the_place(tmp_path: Path, rng: np.r
         load_session(tmp_path / "s")
 
 
+def test_poses_in_millimetres_labelled_metres_are_refused_at_load(tmp_path: Path, rng: np.random.Generator) -> None:
+    save_session(tmp_path / "s", [flange_pose(0), flange_pose(1)], [cloud(rng), cloud(rng)], flange="ur10e", scanner="phoxi-m")
+    doc = json.loads((tmp_path / "s" / "poses.json").read_text())
+    for pair in doc["pairs"]:
+        for row in pair["T_base_flan"][:3]:
+            row[3] *= 1000.0
+    (tmp_path / "s" / "poses.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"pairs\[0\].T_base_flan: the flange lies .* m from the robot base.*millimetres"):
+        load_session(tmp_path / "s")
+
+
 def test_a_cloud_in_the_wrong_units_is_refused(tmp_path: Path, rng: np.random.Generator) -> None:
     write_cloud(tmp_path / "c.ply", cloud(rng) * 1e3)  # millimetres in a metre file
     with pytest.raises(InputError, match="millimetres"):
