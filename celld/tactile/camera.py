@@ -13,12 +13,15 @@ outcome go to a second slot (:data:`COUNTERS_DTYPE`).
 
 At start (and on request) the process tares: it averages ``tare_frames``
 detections with the finger free; until a tare succeeds it writes
-``NOT_TARED`` samples. "Free" is checked, not assumed: the first tare of a
-finger becomes its reference rest (kept by the daemon across restarts), and
-a later tare whose rest lies more than ``tare_max_offset`` from it is refused
-(a camera process restarted while the finger is pressed against the part):
-the samples stay ``NOT_TARED``, the counters say how far off the rest was,
-and the tare is retried until the finger is free.
+``NOT_TARED`` samples. "Free" is checked, not assumed. A tare the daemon
+asks for is taken where it knows the finger is free (the weld's approach
+pose, clear of the part): it is accepted and becomes the finger's reference
+rest (kept across restarts). The process's own tare when it starts (or
+restarts, e.g. in the middle of a weld) is accepted only within
+``tare_max_offset`` of that reference: a camera restarted while the finger
+is pressed against the part stays ``NOT_TARED``, the counters say how far
+off the rest was, and the tare is retried until the finger is free. Without
+a reference yet, the start-up tare is taken but not kept as one.
 
 The process around the loop (its entry point, real-time set-up and its
 handle in the daemon) is :mod:`celld.tactile.process`. OpenCV runs
@@ -28,6 +31,7 @@ motion loop.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -239,11 +243,14 @@ class PreviewWriter:
         self.slot.write(r)
 
 
-def run_tare(source: FrameSource, est: FrameEstimator, publish: Callable[[TactileSample], None]) -> Tare:
-    """Tare with the finger free: average ``tare_frames`` detections.
+def run_tare(source: FrameSource, est: FrameEstimator, publish: Callable[[TactileSample], None], known_free: bool = False) -> Tare:
+    """Tare: average ``tare_frames`` detections.
 
     Every frame read meanwhile is still published (as ``NOT_TARED`` or the
-    detection's failure), so the motion process sees a live camera.
+    detection's failure), so the motion process sees a live camera. With
+    ``known_free`` (the daemon asked, the finger is clear of everything) the
+    rest is taken and becomes the reference; otherwise it must lie within
+    ``tare_max_offset`` of the reference (module docstring).
 
     Raises
     ------
@@ -266,7 +273,8 @@ def run_tare(source: FrameSource, est: FrameEstimator, publish: Callable[[Tactil
                 positions.append(p_cam)
             if len(positions) >= cfg.tare_frames:
                 break
-        rest = tare(np.array(positions).reshape(-1, 3), cfg.tare_max_spread, cfg.tare_frames, est.reference, cfg.tare_max_offset)
+        reference = None if known_free else est.reference
+        rest = tare(np.array(positions).reshape(-1, 3), cfg.tare_max_spread, cfg.tare_frames, reference, cfg.tare_max_offset)
     except TareRefused as exc:
         est.rest = saved
         est.counters[0]["tare_refused"] = True
@@ -277,12 +285,11 @@ def run_tare(source: FrameSource, est: FrameEstimator, publish: Callable[[Tactil
         raise
     est.rest = rest
     est.counters[0]["tare_refused"] = False
-    if est.reference is None:
+    offset = math.nan if est.reference is None else float(np.linalg.norm(rest.p_cam_rest - est.reference))
+    est.counters[0]["tare_offset"] = offset
+    if known_free:
         est.reference = rest.p_cam_rest.copy()
         est.new_reference = True
-        est.counters[0]["tare_offset"] = 0.0
-    else:
-        est.counters[0]["tare_offset"] = float(np.linalg.norm(rest.p_cam_rest - est.reference))
     est.counters[0]["tared"] = True
     est.counters[0]["tares"] += 1
     est.counters[0]["p_cam_rest"] = rest.p_cam_rest
@@ -312,18 +319,21 @@ def run_camera(
             counters.write(est.counters)
 
     need_tare = est.rest is None
+    known_free = False  # the pending tare is the daemon's (a failed one is retried as such)
     last_failure = ""
     while not stop():
-        if need_tare or tare_requested():
+        if tare_requested():
+            known_free = True
+        if need_tare or known_free:
             try:
-                rest = run_tare(source, est, publish)
+                rest = run_tare(source, est, publish, known_free)
                 log.info("SRM tared", p_cam_rest_mm=np.round(rest.p_cam_rest * 1e3, 4).tolist(), spread_um=round(rest.spread * 1e6, 2),
                          offset_mm=round(float(est.counters[0]["tare_offset"]) * 1e3, 4), reference=est.new_reference)
                 if est.new_reference:
                     est.new_reference = False
                     if on_reference is not None:
                         on_reference(rest)
-                need_tare = False
+                need_tare = known_free = False
                 last_failure = ""
             except TactileError as exc:
                 # Logged once per kind of failure: a pressed finger retries every few frames.

@@ -145,13 +145,17 @@ def test_a_moving_finger_fails_the_tare_and_stays_untared() -> None:
 
 
 def test_a_finger_pressed_at_start_is_not_tared_until_it_is_free(tmp_path) -> None:
-    # The finger's reference rest, from a tare with the finger free.
+    # The start-up tare is taken but is no reference; the daemon's tare (the
+    # finger known free) is, and is kept.
     free = Rig()
     kept = []
     try:
+        free.run(free.cfg.tare_frames + 2)
+        assert free.est.rest is not None and free.est.reference is None
+        asked = iter([True])
         target = len(free.written) + free.cfg.tare_frames + 2
         run_camera(free.camera, free.est, free.samples, free.counters, lambda: len(free.written) >= target,
-                   on_reference=kept.append)
+                   lambda: next(asked, False), on_reference=kept.append)
         assert len(kept) == 1 and free.est.reference is not None
         save_reference(tmp_path / "rest.json", kept[0])
     finally:
