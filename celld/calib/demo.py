@@ -22,7 +22,7 @@ import numpy as np
 from celld import config as config_mod
 from celld import se3
 from celld.calib.dataset import SessionWriter
-from celld.calib.detect import PARAMS_BY_SCANNER, DetectParams, detect_flange
+from celld.calib.detect import PARAMS_BY_SCANNER, DetectParams, FlangeDetection, detect_flange
 from celld.calib.flange import preset
 from celld.calib.poses import calibration_poses
 from celld.calib.robust import RejectedPair
@@ -68,12 +68,15 @@ def run(args: argparse.Namespace) -> int:
     ids, P_base, P_cam, rejected = [], [], [], []
     for i, T in enumerate(poses):
         cloud = scanner.capture(robot_scene(T, flange)).points
-        pid = writer.add_pair(T, cloud)
+        det: FlangeDetection | DetectionError
         try:
             det = detect_flange(cloud, flange, dparams)
         except DetectionError as exc:
-            rejected.append(RejectedPair(pid, i, math.nan, f"detection failed at {exc.stage}: {exc.reason}"))
-            say(f"  pair {pid}: no flange ({exc.reason})")
+            det = exc
+        pid = writer.add_pair(T, cloud, detection=det)
+        if isinstance(det, DetectionError):
+            rejected.append(RejectedPair(pid, i, math.nan, f"detection failed at {det.stage}: {det.reason}"))
+            say(f"  pair {pid}: no flange ({det.reason})")
             continue
         ids.append(pid)
         P_base.append(T[:3, 3])

@@ -32,7 +32,7 @@ from celld import se3
 from celld.bus.schema import CalibrateJob, HealthJob, MoveJob
 from celld.calib.algorithm1 import Algorithm1
 from celld.calib.dataset import SessionWriter
-from celld.calib.detect import PARAMS_BY_SCANNER, DetectParams, detect_flange
+from celld.calib.detect import PARAMS_BY_SCANNER, DetectParams, FlangeDetection, detect_flange
 from celld.calib.flange import preset
 from celld.calib.metrics import cost_function
 from celld.calib.poses import calibration_poses
@@ -115,7 +115,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     ctx.progress("verify", 0.0, "verification pose")
     T_v_robot = await _settled_flange_pose(devices, T_v, cal.settle)
     cloud_v = await devices.capture()
-    writer.set_verification(T_v_robot, cloud_v.points)
+    await asyncio.to_thread(writer.set_verification, T_v_robot, cloud_v.points)
     if rec is not None:
         rec.log_cloud_cam("verification", cloud_v.points)
     verifier = await asyncio.to_thread(verifier_from_cloud, cloud_v.points, T_v_robot, flange, params, dparams)
@@ -129,12 +129,16 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     for i, T in enumerate(poses):
         T_bf = await _settled_flange_pose(devices, T, cal.settle)
         cloud = await devices.capture()
-        pid = await asyncio.to_thread(writer.add_pair, T_bf, cloud.points)
+        det: FlangeDetection | DetectionError
         try:
             det = await asyncio.to_thread(detect_flange, cloud.points, flange, dparams)
         except DetectionError as exc:
-            rejected.append(RejectedPair(pid, i, math.nan, f"detection failed at {exc.stage}: {exc.reason}"))
-            ctx.progress("pair", (i + 1) / len(poses), f"pair {pid}: no flange ({exc.reason})", pair=pid, detected=False)
+            det = exc
+        # The writer keeps exact the pixels this detection read.
+        pid = await asyncio.to_thread(writer.add_pair, T_bf, cloud.points, detection=det)
+        if isinstance(det, DetectionError):
+            rejected.append(RejectedPair(pid, i, math.nan, f"detection failed at {det.stage}: {det.reason}"))
+            ctx.progress("pair", (i + 1) / len(poses), f"pair {pid}: no flange ({det.reason})", pair=pid, detected=False)
             continue
         ids.append(pid)
         P_base.append(T_bf[:3, 3].copy())
