@@ -28,6 +28,13 @@ def test_units_are_converted_at_the_boundary() -> None:
     assert cfg.tactile.delta_d == pytest.approx(0.0015)
 
 
+def test_dataset_retention_keys() -> None:
+    cal = config.parse({"calibration": {"keep_sessions": 3, "keep_days": 14}}).calibration
+    assert (cal.keep_sessions, cal.keep_days) == (3, 14.0)
+    default = config.parse({}).calibration
+    assert (default.keep_sessions, default.keep_days) == (10, 0.0)
+
+
 def test_values_are_frozen() -> None:
     cfg = config.parse({})
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -48,6 +55,9 @@ def test_values_are_frozen() -> None:
         ({"tactile": {"intrinsics_px": [1, 2, 3]}}, "tactile.intrinsics_px", "list of 4"),
         ({"bus": {"users": [{"name": "a", "password": "b", "role": "admin"}]}}, "bus.users[0].role", "operator"),
         ({"cell": {"name": "a/b"}}, "cell.name", "zenoh key"),
+        ({"calibration": {"keep_sessions": -1}}, "calibration.keep_sessions", "0 <= value"),
+        ({"calibration": {"keep_days": -0.5}}, "calibration.keep_days", "0.0 <= value"),
+        ({"calibration": {"keep_days": "a week"}}, "calibration.keep_days", "expected a number"),
     ],
 )
 def test_bad_values_are_refused_with_key_and_reason(data: dict, key: str, reason: str) -> None:

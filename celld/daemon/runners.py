@@ -12,7 +12,8 @@ worker threads so the event loop keeps answering the bus.
   ``e_required``. The dataset is saved as it is captured, so the session can
   be solved again offline (``celld calib solve``). The final estimate is the
   robust solve over every consistent pair, reported with Algorithm 1's
-  history and the e_icp of Eq. 13.
+  history and the e_icp of Eq. 13. Old datasets are then pruned by the
+  config's retention rules (:mod:`celld.daemon.retention`).
 - **move**: a jerk-limited move to a TCP pose, or to joint positions through
   the forward kinematics.
 - **health**: the robot link and loop timing, the scanner (one capture), the
@@ -40,7 +41,8 @@ from celld.calib.robust import RejectedPair
 from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
 from celld.config import Config
 from celld.daemon.devices import CellDevices
-from celld.daemon.jobs import JobContext, Runner
+from celld.daemon.jobs import CalibrationStore, JobContext, Runner
+from celld.daemon.retention import prune_sessions
 from celld.errors import CalibrationError, CelldError, DetectionError, JobError
 from celld.log import get_logger
 from celld.robot.kinematics import forward
@@ -182,6 +184,8 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         "method": result.method,
     }
     log.info("calibration solved", job=ctx.job_id, pairs=len(result.pair_ids), cost_mm=cost_mm, early_stop=early)
+    current = CalibrationStore(ctx.state_dir).current() or {}
+    await asyncio.to_thread(prune_sessions, ctx.state_dir / "jobs", cal.keep_sessions, cal.keep_days, (ctx.job_id, current.get("job")))
     return {
         "calibration": calibration,
         "report": report,
