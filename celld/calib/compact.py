@@ -24,8 +24,9 @@ The stated precision is half a count (rounding) in every coordinate; the
 encoder checks the rebuild against it and records the largest error it
 measured elsewhere. :func:`decode` returns the organized cloud: equal to the
 float32 original in the window and on the grid, within the precision
-elsewhere, NaN where the original had no return. The detector therefore
-finds in it what it found in the original, to the bit.
+elsewhere, NaN where the original had no return. The detector (with the
+parameters the grid was taken for, and no crop box) therefore finds in it
+what it found in the original, to the bit.
 
 Files (PNG, PLY, the JSON that ties them) are written by
 :mod:`celld.calib.dataset`.
@@ -41,9 +42,10 @@ from numpy.typing import ArrayLike
 
 from celld.errors import InputError
 
-# Default depth unit, m per count: 0.1 mm, so +- 0.05 mm, below the noise of
-# a PhoXi M (0.1 mm at 0.65 m, 0.24 mm at 1 m). A 16-bit image then reaches
-# 6.5 m; a finer unit costs about 0.4 MB more per PhoXi M image and halving.
+# Default depth unit, m per count: 0.1 mm, so +- 0.05 mm, below the depth noise
+# of a PhoXi M (simulated: 0.1 mm at 0.65 m, 0.24 mm at 1 m). A 16-bit image
+# then reaches 6.5 m; each halving of the unit costs about 0.4 MB more per
+# PhoXi M image (1.8 MB at 0.1 mm).
 DEPTH_UNIT = 1e-4
 # Largest count of a 16-bit image; 0 means no return.
 MAX_COUNT = 65535
