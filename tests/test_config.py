@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 import math
+import os
 from pathlib import Path
 
 import pytest
@@ -57,6 +57,13 @@ def test_the_seam_finder_takes_the_scanner_preset_and_the_tool_wall() -> None:
     assert config.parse({}).seam.registration.voxel == pytest.approx(0.004)
 
 
+def test_dataset_retention_keys() -> None:
+    cal = config.parse({"calibration": {"keep_sessions": 3, "keep_days": 14}}).calibration
+    assert (cal.keep_sessions, cal.keep_days) == (3, 14.0)
+    default = config.parse({}).calibration
+    assert (default.keep_sessions, default.keep_days) == (10, 0.0)
+
+
 def test_values_are_frozen() -> None:
     cfg = config.parse({})
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -88,6 +95,9 @@ def test_values_are_frozen() -> None:
         ({"calibration": {"verification_pose": [3.0, 0, 0.45, 0, 0, 0]}}, "calibration.verification_pose", "inside the workspace box"),
         ({"weld": {"scan_pose": [0.5, 0.0, 1.9, 0, 0, 0]}}, "weld.scan_pose", "inside the workspace box"),
         ({"servo": {"v_const_mm_s": 300}}, "servo.v_const_mm_s", "motion.max_linear_speed (250 mm/s)"),
+        ({"calibration": {"keep_sessions": -1}}, "calibration.keep_sessions", "0 <= value"),
+        ({"calibration": {"keep_days": -0.5}}, "calibration.keep_days", "0.0 <= value"),
+        ({"calibration": {"keep_days": "a week"}}, "calibration.keep_days", "expected a number"),
     ],
 )
 def test_bad_values_are_refused_with_key_and_reason(data: dict, key: str, reason: str) -> None:

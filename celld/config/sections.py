@@ -257,6 +257,12 @@ class CalibrationConfig:
     icp_max_distance: float = 0.003
     icp_points: int = 1000
     model_spacing: float = 0.002
+    # Retention of the calibrate jobs' datasets (<state_dir>/jobs/<job>/dataset,
+    # about 59 MB for 20 PhoXi M poses): keep the newest keep_sessions, and any
+    # younger than keep_days days; 0 turns a rule off, both 0 keep everything.
+    # The current calibration's dataset is always kept (celld.daemon.retention).
+    keep_sessions: int = 10
+    keep_days: float = 0.0
 
     @classmethod
     def read(cls, r: TableReader) -> CalibrationConfig:
@@ -280,6 +286,8 @@ class CalibrationConfig:
             ),
             icp_points=r.int("icp_points", cls.icp_points, lo=10, hi=1_000_000),
             model_spacing=r.float("model_spacing_mm", cls.model_spacing * 1e3, lo=0.1, hi=10.0, scale=1e-3),
+            keep_sessions=r.int("keep_sessions", cls.keep_sessions, lo=0, hi=100_000),
+            keep_days=r.float("keep_days", cls.keep_days, lo=0.0, hi=36_500.0),
         )
 
 

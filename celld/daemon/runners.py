@@ -15,7 +15,9 @@ worker threads so the event loop keeps answering the bus.
   history, the e_icp of Eq. 13 and the quality gate's verdict (accept
   refuses a failed one unless forced). With ``compensate`` the calibration
   stored is Eq. 21's compensated estimate, and ``stored`` says so.
-  The early stop waits until the gate has its minimum of pairs.
+  The early stop waits until the gate has its minimum of pairs. Old
+  datasets are then pruned by the config's retention rules
+  (:mod:`celld.daemon.retention`).
 - **move**: a jerk-limited straight move of the TCP to a pose, or a
   jerk-limited joint move (straight in joint space, sent as speedJ) to joint
   positions; both checked against the cell first (planning module).
@@ -45,8 +47,9 @@ from celld.calib.poses import calibration_poses
 from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
 from celld.config import Config
 from celld.daemon.devices import CellDevices
-from celld.daemon.jobs import JobContext, Runner
+from celld.daemon.jobs import CalibrationStore, JobContext, Runner
 from celld.daemon.planning import record_plan
+from celld.daemon.retention import prune_sessions
 from celld.errors import CalibrationError, CelldError, JobError
 from celld.log import get_logger
 
@@ -148,7 +151,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     ctx.progress("verify", 0.0, "verification pose")
     T_v_robot = await _settled_flange_pose(devices, T_v, cal.settle)
     cloud_v = await devices.capture()
-    writer.set_verification(T_v_robot, cloud_v.points)
+    await asyncio.to_thread(writer.set_verification, T_v_robot, cloud_v.points)
     if rec is not None:
         rec.log_cloud_cam("verification", cloud_v.points)
     verifier = await asyncio.to_thread(verifier_from_cloud, cloud_v.points, T_v_robot, flange, params, dparams)
@@ -211,6 +214,8 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         "calibration solved", job=ctx.job_id, pairs=len(result.pair_ids), cost_mm=cost_mm, early_stop=early,
         verdict=result.quality.verdict, stored=result.stored,
     )
+    current = CalibrationStore(ctx.state_dir).current() or {}
+    await asyncio.to_thread(prune_sessions, ctx.state_dir / "jobs", cal.keep_sessions, cal.keep_days, (ctx.job_id, current.get("job")))
     return {
         "calibration": calibration,
         "report": report,

@@ -87,6 +87,15 @@ def test_calibrate_over_the_bus_then_accept(daemon) -> None:
     # Six half-resolution PhoXi M captures: well under a millimetre and a tenth of a degree.
     assert dt < 0.5e-3 and math.degrees(dr) < 0.1, (dt, math.degrees(dr))
     assert Path(result["dataset"], "poses.json").exists()
+    # The dataset is compact, and solved again offline it gives the job's transform.
+    from celld.calib.dataset import load_session
+    from celld.calib.flange import preset
+    from celld.calib.session import SolveParams, calibrate_session
+
+    session = load_session(result["dataset"])
+    assert [r.cloud_path.name for r in session.pairs] == [f"p{i:03d}.cloud.json" for i in range(6)]
+    offline = calibrate_session(session, preset("ur10e"), SolveParams(e_required=0.0))
+    np.testing.assert_array_equal(offline.T_base_cam, T)
 
     # Not current until the operator accepts it.
     assert client.calibration() is None
