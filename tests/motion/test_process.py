@@ -430,5 +430,7 @@ def test_kill_9_of_the_motion_process_with_the_arc_on(loopback_host: str, interl
         assert seen["arc_off_s"] <= 1 / 5.0 + 0.05, seen  # one watchdog period, and a few cycles
         assert not seen["arc_on_at_end"] and not missing, seen
     else:
-        assert seen["arc_on_at_end"], seen
+        # On long after the watchdog stopped the program: until the next motion
+        # process switched it off (its first write), or past the window.
+        assert seen["arc_on_at_end"] or seen["arc_off_s"] > 0.4, seen
         assert missing, seen  # the next process found the output on and said why
