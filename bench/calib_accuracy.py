@@ -53,7 +53,7 @@ from typing import Any
 # the speed figure is CPU time of one thread.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import cv2  # noqa: E402
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -245,7 +245,7 @@ def realization_2(args: tuple[int, float, int, float]) -> dict[str, Any]:
     T_a1, T_a1c, _ = _algorithm1(ids, P_base, P_cam, P_v, sigma, e_required)
     out["algorithm1"] = errors(T_a1)
     out["algorithm1_eq21"] = errors(T_a1c)
-    T_rob, n_rej = _robust(P_base, P_cam)
+    T_rob, _n_rej = _robust(P_base, P_cam)
     out["robust"] = errors(T_rob)
     # Did the robust estimator reject exactly the false detections?
     if T_rob is not None:

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from celld import se3
-from celld.calib.detect import detect_flange  # noqa: E402
+from celld.calib.detect import detect_flange
 from celld.calib.detect_params import PARAMS_BY_SCANNER
 from celld.calib.flange import preset
 from celld.errors import DetectionError

@@ -49,14 +49,16 @@ from typing import Any
 
 import numpy as np
 
-from celld import se3
+from celld import (
+    polyline,
+    se3,
+)
 from celld.errors import SeamError
 from celld.log import configure
-from celld.sim import workpiece as simscene
 from celld.seam.params import SeamParams
 from celld.seam.pipeline import find_seam, prepare
-from celld import polyline  # noqa: E402
 from celld.seam.workpiece import example
+from celld.sim import workpiece as simscene
 from celld.sim.scanner import SCANNER_MODELS, SimScanner
 
 OUT = Path(__file__).resolve().parent / "out" / "seam_find"

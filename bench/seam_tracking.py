@@ -61,15 +61,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from celld import polyline  # noqa: E402
 from celld.config import Config, MotionLimits  # noqa: E402
+from celld.daemon.devices import SERVO_LAWS as CELL_SERVO_LAWS  # noqa: E402
+from celld.motion.algorithm2 import NAME, Algorithm2Servo, algorithm2_plan, make_algorithm2  # noqa: E402
 from celld.motion.commands import start_servo  # noqa: E402
 from celld.motion.core import Action, CoreParams, CycleInput, Mode, MotionCore  # noqa: E402
 from celld.motion.limits import CartesianLimits, sequence_peaks  # noqa: E402
-from celld.motion.algorithm2 import NAME, Algorithm2Servo, algorithm2_plan, make_algorithm2  # noqa: E402
 from celld.motion.plan import prepare_plan  # noqa: E402
-from celld.daemon.devices import SERVO_LAWS as CELL_SERVO_LAWS  # noqa: E402
 from celld.motion.types import ControlStatus, RobotState  # noqa: E402
-from celld import polyline  # noqa: E402
 from celld.sim.srm import SimSrm, SrmSimParams, Wall  # noqa: E402
 from celld.tactile.aruco import TagDetector  # noqa: E402
 from celld.tactile.deformation import DeformationParams, estimate, tare  # noqa: E402
@@ -439,15 +439,15 @@ def run_closed_loop(kind: str, cfg: Config, motion: MotionLimits, quick: bool, s
     import uuid
 
     from celld.config import parse
+    from celld.errors import CelldError, LinkLost
     from celld.motion.channels import STATE_DTYPE
     from celld.motion.handle import MotionHandle
-    from celld.supervision import Backoff
-    from celld.errors import CelldError, LinkLost
+    from celld.realtime import RealtimeOptions
+    from celld.shm import SeqlockSlot
     from celld.sim.robot import launch
     from celld.sim.robot.truth import TruthReader
-    from celld.shm import SeqlockSlot
     from celld.sim.srm import SRM_TRUTH_DTYPE, SimSrmSource
-    from celld.realtime import RealtimeOptions
+    from celld.supervision import Backoff
     from celld.tactile.process import CAMERA_REALTIME, TactileProcess
     from celld.tactile.sample import from_record
 

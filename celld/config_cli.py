@@ -1,12 +1,19 @@
-"""``celld config check FILE``: validate a cell config without opening a device."""
+"""``celld config check FILE``: validate a cell config without opening a device.
+
+The config on its own (:func:`celld.config.load`), then what it names on this
+machine (:func:`celld.preflight.preflight`): exit code 1 and one line per
+finding when something would stop the cell.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import asdict
 
 from celld import config
+from celld.preflight import preflight
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -20,6 +27,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def _check(args: argparse.Namespace) -> int:
     cfg = config.load(args.file)
+    found = preflight(cfg)
+    if found:
+        for f in found:
+            print(f"{cfg.source}: {f.key}: {f.reason}", file=sys.stderr)
+        return 1
     if args.json:
         print(json.dumps(asdict(cfg)))
     else:

@@ -8,10 +8,11 @@ import os
 import numpy as np
 import pytest
 
-# Each test that needs the network takes its own 127.0.0.N, so fixed ports
-# (RTDE 30004, dashboard 29999) never collide. Start high enough to stay clear
-# of 127.0.0.1 and the demo's 127.0.0.2; the pid spreads parallel runs apart.
-_hosts = itertools.count(10 + (os.getpid() % 20) * 10)
+# Each test that needs the network takes its own 127.0.X.N, so fixed ports
+# (RTDE 30004, dashboard 29999) never collide. Each run takes the block
+# X = 1 + pid % 200 (250 addresses), so parallel runs stay apart and clear of
+# 127.0.0.1 and the demo's 127.0.0.2.
+_hosts = itertools.count((1 + os.getpid() % 200) * 250)
 
 
 @pytest.fixture

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from pathlib import Path
 
 import pytest
@@ -56,6 +57,13 @@ def test_the_seam_finder_takes_the_scanner_preset_and_the_tool_wall() -> None:
     assert config.parse({}).seam.registration.voxel == pytest.approx(0.004)
 
 
+def test_dataset_retention_keys() -> None:
+    cal = config.parse({"calibration": {"keep_sessions": 3, "keep_days": 14}}).calibration
+    assert (cal.keep_sessions, cal.keep_days) == (3, 14.0)
+    default = config.parse({}).calibration
+    assert (default.keep_sessions, default.keep_days) == (10, 0.0)
+
+
 def test_values_are_frozen() -> None:
     cfg = config.parse({})
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -76,6 +84,20 @@ def test_values_are_frozen() -> None:
         ({"tactile": {"intrinsics_px": [1, 2, 3]}}, "tactile.intrinsics_px", "list of 4"),
         ({"bus": {"users": [{"name": "a", "password": "b", "role": "admin"}]}}, "bus.users[0].role", "operator"),
         ({"cell": {"name": "a/b"}}, "cell.name", "zenoh key"),
+        # Semantics: what a cell can physically be.
+        ({"robot": {"workspace_min": [-1e9, -1, 0], "workspace_max": [1, 1, 1]}}, "robot.workspace_min", "within +-5 m"),
+        ({"robot": {"home_q": [0, 0, 100, 0, 0, 0]}}, "robot.home_q", "+-360 deg"),
+        ({"robot": {"tcp_offset": [0, 0, 2.5, 0, 0, 0]}}, "robot.tcp_offset", "within 1 m of the flange"),
+        ({"robot": {"host": "robot controller"}}, "robot.host", "IP address or a host name"),
+        ({"robot": {"host": "999.1.1.1"}}, "robot.host", "IP address or a host name"),
+        ({"cell": {"state_dir": ""}}, "cell.state_dir", "empty path"),
+        ({"cell": {"state_dir": "/proc/celld"}}, "cell.state_dir", "kernel file system"),
+        ({"calibration": {"verification_pose": [3.0, 0, 0.45, 0, 0, 0]}}, "calibration.verification_pose", "inside the workspace box"),
+        ({"weld": {"scan_pose": [0.5, 0.0, 1.9, 0, 0, 0]}}, "weld.scan_pose", "inside the workspace box"),
+        ({"servo": {"v_const_mm_s": 300}}, "servo.v_const_mm_s", "motion.max_linear_speed (250 mm/s)"),
+        ({"calibration": {"keep_sessions": -1}}, "calibration.keep_sessions", "0 <= value"),
+        ({"calibration": {"keep_days": -0.5}}, "calibration.keep_days", "0.0 <= value"),
+        ({"calibration": {"keep_days": "a week"}}, "calibration.keep_days", "expected a number"),
     ],
 )
 def test_bad_values_are_refused_with_key_and_reason(data: dict, key: str, reason: str) -> None:
@@ -109,6 +131,37 @@ def test_includes_merge_and_cycles_are_refused(tmp_path: Path) -> None:
     (tmp_path / "b.toml").write_text('include = ["a.toml"]\n')
     with pytest.raises(ConfigError, match="include cycle"):
         config.load(tmp_path / "a.toml")
+    # A symlink loop is a ConfigError, not a crash.
+    (tmp_path / "l1.toml").symlink_to(tmp_path / "l2.toml")
+    (tmp_path / "l2.toml").symlink_to(tmp_path / "l1.toml")
+    (tmp_path / "loop.toml").write_text('include = ["l1.toml"]\n')
+    with pytest.raises(ConfigError) as info:
+        config.load(tmp_path / "loop.toml")
+    assert info.value.key == "include"
+
+
+def test_preflight_names_unknown_presets_and_unwritable_state(tmp_path: Path) -> None:
+    from celld.preflight import preflight
+
+    good = config.parse({"cell": {"state_dir": str(tmp_path / "state")}})
+    assert preflight(good) == []
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    bad = config.parse({
+        "cell": {"state_dir": str(ro / "state")},
+        "calibration": {"flange": "ur99"},
+        "tactile": {"kind": "opencv", "tag_dictionary": "DICT_9X9_7"},
+    })
+    found = {f.key: f.reason for f in preflight(bad)}
+    assert "known presets" in found["calibration.flange"]
+    assert "DICT_9X9_7" in found["tactile.tag_dictionary"]
+    if os.getuid() != 0:  # root writes anywhere
+        assert "not writable" in found["cell.state_dir"]
+    (tmp_path / "afile").write_text("")
+    on_file = config.parse({"cell": {"state_dir": str(tmp_path / "afile" / "state")}})
+    assert [f.key for f in preflight(on_file)] == ["cell.state_dir"]
+    assert "is not a directory" in preflight(on_file)[0].reason
 
 
 def test_a_jobs_servo_overrides_are_held_to_the_configs_rules() -> None:
@@ -121,4 +174,8 @@ def test_a_jobs_servo_overrides_are_held_to_the_configs_rules() -> None:
     assert info.value.key == "servo.delta_d_mm"
     with pytest.raises(ConfigError, match="0 < value <= 500") as info:
         config.with_overrides(cfg.servo, cfg.tactile, cfg.tool, "weld job", v_const=0.0)
+    assert info.value.key == "servo.v_const_mm_s"
+    # Within the field's range, above the cell's motion limit.
+    with pytest.raises(ConfigError, match=r"at most motion.max_linear_speed \(250 mm/s\)") as info:
+        config.with_overrides(cfg.servo, cfg.tactile, cfg.tool, "weld job", cfg.motion.max_linear_speed, v_const=0.3)
     assert info.value.key == "servo.v_const_mm_s"

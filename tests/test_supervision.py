@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import multiprocessing as mp
-from multiprocessing import resource_tracker
 import os
 import signal
 import subprocess
 import sys
 import time
 import uuid
+from multiprocessing import resource_tracker
 from pathlib import Path
 
 import pytest

@@ -1,4 +1,4 @@
-"""Bus subcommands: ``celld submit``, ``status``, ``jobs``, ``cancel``, ``accept``, ``bus schema``.
+"""Bus subcommands: ``celld submit``, ``status``, ``jobs``, ``cancel``, ``accept``, ``robot``, ``bus schema``.
 
 Every subcommand that talks to a cell reads the bus settings from ``--config``
 (default ``/etc/celld/cell.toml``) and addresses the cell named there, or
@@ -113,6 +113,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     a.add_argument("job")
     a.add_argument("--force", action="store_true", help="accept even though the calibration failed its quality gate")
     a.set_defaults(func=_accept)
+
+    r = sub.add_parser("robot", parents=[common], help="clear a robot fault through its dashboard (refused while a job runs)")
+    r.add_argument("action", choices=schema.ROBOT_ACTIONS,
+                   help="unlock a protective stop, power the arm on, release its brakes, close the safety pop-up")
+    r.set_defaults(func=_robot)
 
     b = sub.add_parser("bus", help="bus tools")
     bsub = b.add_subparsers(dest="bus_command", metavar="ACTION", required=True)
@@ -293,6 +298,9 @@ def _print_status(s: dict[str, Any]) -> None:
         f"{s.get('cell', '?')}: {s.get('state', '?')}  running {s.get('running') or '-'}  queued {queued}  "
         f"robot {s.get('robot_link', '?')}  calibration {s.get('calibration') or '-'}"
     )
+    robot = s.get("robot")
+    if isinstance(robot, dict) and not robot.get("ready", True):
+        _print_robot(robot)
 
 
 def _status_all(args: argparse.Namespace) -> int:
@@ -351,6 +359,26 @@ def _accept(args: argparse.Namespace) -> int:
         forced = " (forced past a failed quality verdict)" if reply["calibration"].get("forced") else ""
         print(f"calibration of {reply['job']} is current{forced}")
     return 0
+
+
+def _robot(args: argparse.Namespace) -> int:
+    with _client(args) as cell:
+        reply = cell.robot(args.action)
+    if args.json:
+        _print_json(reply)
+    else:
+        print(f"{args.action}: {reply['reply'] or 'sent'}")
+        _print_robot(reply["robot"])
+    return 0
+
+
+def _print_robot(robot: dict[str, Any]) -> None:
+    if robot.get("ready"):
+        print(f"robot ready (mode {robot.get('mode') or '?'}, safety {robot.get('safety') or '?'})")
+    else:
+        print(f"robot {robot.get('state')}: {robot.get('reason')}")
+        if robot.get("remedy"):
+            print(f"  to clear it: {robot['remedy']}")
 
 
 def _schema(args: argparse.Namespace) -> int:

@@ -183,6 +183,14 @@ class CellClient:
         """Make calibrate job ``job``'s result current (``force``: despite a failed quality verdict); returns accept-reply."""
         return self.request("accept", {"job": job, "force": True} if force else {"job": job})
 
+    def robot(self, action: str) -> dict[str, Any]:
+        """Send an operator's recovery command (unlock, power-on, brake-release, close-popup); returns robot-reply.
+
+        The cell refuses it while a job runs, and passes on the controller's
+        refusal (e.g. a protective stop unlocked too early) as a JobError.
+        """
+        return self.request("robot", {"action": action})
+
     def calibration(self) -> dict[str, Any] | None:
         """The current calibration, or None."""
         value = self.request("calibration")["calibration"]

@@ -9,6 +9,7 @@ key                                    kind         what
 ``<prefix>/<cell>/list``               queryable    jobs from the journal
 ``<prefix>/<cell>/accept``             queryable    make a calibration result current
 ``<prefix>/<cell>/calibration``        queryable    the current calibration
+``<prefix>/<cell>/robot``              queryable    an operator's recovery command (unlock, power on, ...)
 ``<prefix>/<cell>/progress/<job>``     publication  progress events of one job
 ``<prefix>/<cell>/state/robot``        publication  robot state, decimated
 ``<prefix>/<cell>/state/tactile``      publication  SRM deformation, decimated
@@ -30,9 +31,9 @@ from celld.errors import BusError
 # One key chunk as celld writes it: no wildcards, no '$', '?', '#', no '@' (admin space).
 _CHUNK = re.compile(r"^[A-Za-z0-9_.-]+$")
 # The queryables, in the order a server declares them.
-QUERYABLES = ("submit", "status", "cancel", "list", "accept", "calibration")
+QUERYABLES = ("submit", "status", "cancel", "list", "accept", "calibration", "robot")
 # Queryables that change the cell: an operator may query them, a viewer may not.
-OPERATOR_QUERYABLES = ("submit", "cancel", "accept")
+OPERATOR_QUERYABLES = ("submit", "cancel", "accept", "robot")
 # Queryables that only read.
 VIEWER_QUERYABLES = ("status", "list", "calibration")
 

@@ -18,6 +18,8 @@ queryable                 payload                                       parsed i
 ``list``                  ``{"limit": N, "state": S, "kind": K}``       :class:`ListRequest`
 ``accept``                ``{"job": ID, "force": B}`` (a calibrate job) :class:`AcceptRequest`
 ``calibration``           ``{}``                                        :class:`CalibrationRequest`
+``robot``                 ``{"action": "unlock" | "power-on" |          :class:`RobotRequest`
+                          "brake-release" | "close-popup"}``
 ========================  ============================================  ===========================
 
 An empty payload counts as ``{}``. Replies are ``{"ok": true, ...}`` or
@@ -363,6 +365,25 @@ _PROGRESS = _object(
     ("job", "seq", "state", "stage"),
 )
 
+# The operator's recovery commands (celld.robot.dashboard.ACTIONS).
+ROBOT_ACTIONS = ("unlock", "power-on", "brake-release", "close-popup")
+ROBOT_CONDITIONS = ("ready", "protective_stop", "emergency_stop", "safety_fault", "power_off", "brakes", "booting", "link_lost", "unknown")
+
+_ROBOT_CONDITION = _object(
+    "Whether the robot can move and, if not, why and what clears it (dashboard server, RTDE link, the motion process's last exit).",
+    {
+        "ready": {"type": "boolean"},
+        "state": {"enum": list(ROBOT_CONDITIONS)},
+        "reason": {"type": "string", "description": "Why the robot cannot move; empty when ready."},
+        "remedy": {"type": "string", "description": "What clears it, e.g. `celld robot unlock`."},
+        "link": {"enum": ["up", "down", "unknown"], "description": "The RTDE link."},
+        "mode": {"type": ["string", "null"], "description": "Dashboard robot mode (RUNNING, IDLE, POWER_OFF, ...), null when not read."},
+        "safety": {"type": ["string", "null"], "description": "Dashboard safety status (NORMAL, PROTECTIVE_STOP, ...), null when not read."},
+        "dashboard": {"type": "string", "description": "reachable, or why the dashboard server was not."},
+    },
+    ("ready", "state", "reason", "remedy"),
+)
+
 _STATE_ROBOT = _object(
     "The robot state, decimated to bus.state_rate_hz.",
     {
@@ -408,6 +429,11 @@ _BODIES: dict[str, dict[str, Any]] = {
         ("job",),
     ),
     "calibration": _object("The current calibration.", {}),
+    "robot": _object(
+        "An operator's recovery command through the robot's dashboard server; refused while a job runs.",
+        {"action": {"enum": list(ROBOT_ACTIONS), "description": "unlock a protective stop, power the arm on, release its brakes, close the safety pop-up."}},
+        ("action",),
+    ),
     # replies
     "error-reply": _object("A refused request.", {"ok": {"const": False}, "error": _ERROR}, ("ok", "error")),
     "submit-reply": _reply(
@@ -423,6 +449,7 @@ _BODIES: dict[str, dict[str, Any]] = {
             "running": {"type": ["string", "null"], "description": "Id of the running job."},
             "queued": {"type": "array", "items": _JOB_ID, "description": "Ids of waiting jobs, next first."},
             "robot_link": {"enum": ["up", "down", "unknown"]},
+            "robot": _ROBOT_CONDITION,
             "calibration": {"type": ["string", "null"], "description": "Job id of the current calibration."},
             "uptime_s": {"type": "number", "minimum": 0},
             "version": {"type": "string"},
@@ -438,6 +465,11 @@ _BODIES: dict[str, dict[str, Any]] = {
         "The current calibration, null if there is none.",
         {"calibration": {"type": ["object", "null"], **{k: v for k, v in _CALIBRATION.items() if k != "type"}}},
         ("calibration",),
+    ),
+    "robot-reply": _reply(
+        "The dashboard's reply and the robot's condition after the command.",
+        {"action": {"enum": list(ROBOT_ACTIONS)}, "reply": {"type": "string"}, "robot": _ROBOT_CONDITION},
+        ("action", "reply", "robot"),
     ),
     # publications
     "progress": _PROGRESS,
@@ -460,7 +492,7 @@ def _checked(schemas: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
 SCHEMAS: Mapping[str, dict[str, Any]] = _checked({name: _exported(name, body) for name, body in _BODIES.items()})
 
 # Requests, by queryable name.
-REQUESTS = ("submit", "status", "cancel", "list", "accept", "calibration")
+REQUESTS = ("submit", "status", "cancel", "list", "accept", "calibration", "robot")
 
 
 # -- values ------------------------------------------------------------------------
@@ -549,7 +581,12 @@ class CalibrationRequest:
     pass
 
 
-Request = Job | StatusRequest | CancelRequest | ListRequest | AcceptRequest | CalibrationRequest
+@dataclass(frozen=True)
+class RobotRequest:
+    action: str  # one of ROBOT_ACTIONS
+
+
+Request = Job | StatusRequest | CancelRequest | ListRequest | AcceptRequest | CalibrationRequest | RobotRequest
 
 
 # -- decoding ------------------------------------------------------------------------
@@ -725,6 +762,7 @@ _BUILDERS: dict[str, Callable[[Mapping[str, Any]], Any]] = {
     "list": lambda m: ListRequest(limit=int(m.get("limit", 50)), state=m.get("state"), kind=m.get("kind")),
     "accept": lambda m: AcceptRequest(job=m["job"], force=bool(m.get("force", False))),
     "calibration": lambda m: CalibrationRequest(),
+    "robot": lambda m: RobotRequest(action=m["action"]),
 }
 
 

@@ -13,6 +13,7 @@ Handler interface (:class:`CellHandlers`; the daemon's job manager implements it
     async def on_list(self, req: ListRequest) -> dict      # -> list-reply body
     async def on_accept(self, req: AcceptRequest) -> dict  # -> accept-reply body
     async def on_calibration(self, req: CalibrationRequest) -> dict  # -> calibration-reply body
+    async def on_robot(self, req: RobotRequest) -> dict              # -> robot-reply body
 
 - A handler receives a request already validated and built into a frozen value
   (:mod:`celld.bus.schema`); it never sees raw bytes.
@@ -65,6 +66,7 @@ from celld.bus.schema import (
     CancelRequest,
     Job,
     ListRequest,
+    RobotRequest,
     StatusRequest,
 )
 from celld.errors import BusError, CelldError, JobError
@@ -91,6 +93,7 @@ class CellHandlers(Protocol):
     async def on_list(self, req: ListRequest) -> Mapping[str, Any]: ...
     async def on_accept(self, req: AcceptRequest) -> Mapping[str, Any]: ...
     async def on_calibration(self, req: CalibrationRequest) -> Mapping[str, Any]: ...
+    async def on_robot(self, req: RobotRequest) -> Mapping[str, Any]: ...
 
 
 @dataclass
@@ -170,6 +173,7 @@ class BusServer:
             "list": handlers.on_list,
             "accept": handlers.on_accept,
             "calibration": handlers.on_calibration,
+            "robot": handlers.on_robot,
         }
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lock = threading.Lock()

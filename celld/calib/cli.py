@@ -12,7 +12,8 @@ outliers, uncertainty at the workspace centre, e_icp), plus the details of
 result, not an error: the exit code stays 0.
 
 ``celld calib detect CLOUD --flange PRESET --units mm|m [--json]`` finds the
-flange in one cloud (PLY or PCD, or a ``.npy`` array (n, 3) or (H, W, 3)) and
+flange in one cloud (PLY or PCD, a ``.npy`` array (n, 3) or (H, W, 3), or a
+session's compact ``*.cloud.json``, whose sidecar states its units) and
 prints ``center`` and ``radius`` in the cloud's units, the unit ``normal``
 and the ``inliers`` count, or ``error`` with the reason.
 
@@ -50,7 +51,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s.set_defaults(func=_solve)
 
     d = psub.add_parser("detect", help="find the flange centre and normal in one cloud")
-    d.add_argument("cloud", help="PLY / PCD file, or .npy (n, 3) or (H, W, 3)")
+    d.add_argument("cloud", help="PLY / PCD file, .npy (n, 3) or (H, W, 3), or a session's compact *.cloud.json")
     d.add_argument("--flange", required=True, help="flange preset, e.g. ur10e or ur10e-wrist")
     d.add_argument("--units", required=True, choices=("mm", "m"), help="units of the cloud")
     d.add_argument("--scanner", help="scanner model whose detection tolerances to use (phoxi-s, phoxi-m, azure-kinect)")

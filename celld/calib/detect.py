@@ -119,6 +119,13 @@ class FlangeDetection:
         Points of the face plane in the fine pass.
     n_dropped : int
         NaN points dropped from an unorganized cloud.
+    window_px : tuple of 4 int or None
+        ``(row0, row1, col0, col1)``: the image window (rows row0:row1, cols
+        col0:col1) of the full-resolution pixels the fine pass fitted on, of
+        an organized cloud; None for an unorganized one. The fine pass reads
+        nothing outside it, the coarse pass nothing off :func:`coarse_grid`
+        (finiteness aside): a copy of the cloud exact on both gives the same
+        detection.
     """
 
     center: np.ndarray
@@ -132,6 +139,7 @@ class FlangeDetection:
     plane_rms: float
     n_face: int
     n_dropped: int = 0
+    window_px: tuple[int, int, int, int] | None = None
 
 
 class _Input(NamedTuple):
@@ -275,12 +283,15 @@ def _rim_image(h_img: np.ndarray, region: np.ndarray, sigma: float, e_plane: flo
 
 def _region(
     inp: _Input, cells: np.ndarray | None, stride: int, cand: CoarseCandidate, flange: FlangeModel, params: DetectParams
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int] | None]:
     """Full-resolution points near the coarse circle.
 
     Returns the points as an image window (h, w, 3) float64 (organized) or
-    (n, 1, 3) (unorganized), and the mask (h, w) of those near the circle.
+    (n, 1, 3) (unorganized), the mask (h, w) of those near the circle, and
+    the bounding box ``(row0, row1, col0, col1)`` of the mask in the full
+    image (None when unorganized).
     """
+    lo = None
     if cells is not None:
         rc = cells[cand.idx]
         lo, hi = rc.min(axis=0), rc.max(axis=0)
@@ -297,7 +308,12 @@ def _region(
         h = d @ n0
         rho2 = np.einsum("...i,...i->...", d, d) - h * h
         mask = (np.abs(h) < 2 * params.e_plane_coarse) & (rho2 < reach**2)
-    return window, mask
+    box = None
+    if lo is not None and mask.any():
+        rc = np.argwhere(mask)
+        (r0, c0), (r1, c1) = lo + rc.min(axis=0), lo + rc.max(axis=0) + 1
+        box = (int(r0), int(r1), int(c0), int(c1))
+    return window, mask, box
 
 
 def _fine(
@@ -311,7 +327,7 @@ def _fine(
 ) -> FlangeDetection:
     """Face plane, rim, RANSAC and least squares at full resolution around one coarse candidate."""
     R = flange.circle_radius
-    window, mask = _region(inp, cells, stride, cand, flange, params)
+    window, mask, box = _region(inp, cells, stride, cand, flange, params)
     P = window[mask]
     if len(P) < MIN_POINTS:
         raise DetectionError("plane", f"only {len(P)} points near the coarse circle")
@@ -369,10 +385,35 @@ def _fine(
         plane_rms=face.rms,
         n_face=len(F),
         n_dropped=inp.n_dropped,
+        window_px=box,
     )
 
 
 # -- entry point ----------------------------------------------------------------
+
+
+def coarse_grid(
+    P: np.ndarray, params: DetectParams, roi_center: np.ndarray | None = None
+) -> tuple[tuple[int, int, int, int], int]:
+    """The pixels the coarse pass reads of an organized cloud: ``P[row0:row1:stride, col0:col1:stride]``.
+
+    Returns ``((row0, row1, col0, col1), stride)``: the grid of every
+    ``stride``-th pixel of the whole image (about ``params.coarse_points`` of
+    them); or, when few of those are inside the crop (a scanner ROI, a crop
+    box, a predicted centre), a finer grid over the bounding box of those that
+    are, so the flange keeps its points and the crop stays cheap. Of the first
+    grid only whether a point is finite and inside the crop counts.
+    """
+    H, W = P.shape[:2]
+    stride = max(1, math.ceil(math.sqrt(H * W / params.coarse_points)))
+    mask = crop_mask(P[::stride, ::stride], params, roi_center)
+    n = int(mask.sum())
+    if stride > 1 and 0 < n < params.coarse_points / 4:
+        rc = np.argwhere(mask) * stride
+        r0, c0 = np.maximum(rc.min(axis=0) - stride, 0)
+        r1, c1 = np.minimum(rc.max(axis=0) + stride + 1, (H, W))
+        return (int(r0), int(r1), int(c0), int(c1)), max(1, math.floor(stride * math.sqrt(n / (params.coarse_points / 3))))
+    return (0, H, 0, W), stride
 
 
 def _coarse_cloud(
@@ -380,22 +421,9 @@ def _coarse_cloud(
 ) -> tuple[np.ndarray, np.ndarray | None, int]:
     """Thinned, cropped points (m, 3) float64, their full-resolution pixels (m, 2) (or None), and the stride."""
     if inp.organized:
-        H, W = inp.P.shape[:2]
-        stride = max(1, math.ceil(math.sqrt(H * W / params.coarse_points)))
-        mask = crop_mask(inp.P[::stride, ::stride], params, roi)
-        n = int(mask.sum())
-        origin = np.zeros(2, dtype=np.int64)
-        if stride > 1 and 0 < n < params.coarse_points / 4:
-            # Few returns inside the crop (a scanner ROI, a crop box, a
-            # predicted centre): a finer stride over their bounding box only,
-            # so the flange keeps its points and the crop stays cheap.
-            rc = np.argwhere(mask) * stride
-            origin = np.maximum(rc.min(axis=0) - stride, 0)
-            end = np.minimum(rc.max(axis=0) + stride + 1, (H, W))
-            stride = max(1, math.floor(stride * math.sqrt(n / (params.coarse_points / 3))))
-            mask = crop_mask(inp.P[origin[0] : end[0] : stride, origin[1] : end[1] : stride], params, roi)
-        cells = np.argwhere(mask)
-        pix = origin + cells * stride
+        (r0, r1, c0, c1), stride = coarse_grid(inp.P, params, roi)
+        mask = crop_mask(inp.P[r0:r1:stride, c0:c1:stride], params, roi)
+        pix = np.array([r0, c0]) + np.argwhere(mask) * stride
         return inp.P[pix[:, 0], pix[:, 1]].astype(np.float64), pix, stride
     P = inp.P[crop_mask(inp.P, params, roi)].astype(np.float64)
     if len(P) > params.coarse_points:

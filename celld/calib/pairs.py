@@ -84,10 +84,32 @@ class PairCollector:
         self._count = 0
 
     def capture(self, T_base_flange: ArrayLike, cloud: ArrayLike) -> PairOutcome:
-        """A capture at the flange pose ``T_base_flange`` (4, 4): stored (with a writer) and detected."""
+        """A capture at the flange pose ``T_base_flange`` (4, 4): detected, then stored (with a writer).
+
+        The writer gets the detection, so a compact dataset keeps exact the
+        pixels the detector read (:mod:`celld.calib.dataset`).
+        """
         T = np.asarray(T_base_flange, dtype=np.float64)
-        pair_id = self.writer.add_pair(T, cloud) if self.writer is not None else str(self._count)
-        return self.add(pair_id, T[:3, 3], cloud=cloud)
+        found = self._detect(cloud) if self.flange is not None else None
+        pair_id = self.writer.add_pair(T, cloud, detection=found) if self.writer is not None else str(self._count)
+        if found is None:
+            return self.add(pair_id, T[:3, 3], cloud=cloud)
+        return self._outcome(pair_id, T[:3, 3], found)
+
+    def _detect(self, cloud: ArrayLike) -> FlangeDetection | DetectionError:
+        assert self.flange is not None
+        try:
+            return detect_flange(np.asarray(cloud), self.flange, self.detect_params)
+        except DetectionError as exc:
+            return exc
+
+    def _outcome(self, pair_id: str, p_base: ArrayLike, found: FlangeDetection | DetectionError) -> PairOutcome:
+        index = self._count
+        self._count += 1
+        if isinstance(found, DetectionError):
+            log.info("calib.detection_failed", pair=pair_id, stage=found.stage, reason=found.reason)
+            return self.reject(pair_id, f"detection failed at {found.stage}: {found.reason}", index)
+        return self._keep(pair_id, index, p_base, found.center, found)
 
     def add(self, pair_id: str, p_base: ArrayLike, cloud: ArrayLike | None = None, p_cam: ArrayLike | None = None) -> PairOutcome:
         """One pair: its recorded centre ``p_cam`` if given, else the flange found in ``cloud``.
@@ -97,20 +119,17 @@ class PairCollector:
         InputError
             The flange must be detected but no flange model was given.
         """
-        index = self._count
-        self._count += 1
-        detection = None
         if p_cam is None:
             if cloud is None:
-                return self.reject(pair_id, "no flange centre recorded and no cloud to detect it in", index)
+                return self.reject(pair_id, "no flange centre recorded and no cloud to detect it in")
             if self.flange is None:
                 raise InputError(f"pair {pair_id!r}: a flange preset is needed to detect the centre in its cloud")
-            try:
-                detection = detect_flange(np.asarray(cloud), self.flange, self.detect_params)
-            except DetectionError as exc:
-                log.info("calib.detection_failed", pair=pair_id, stage=exc.stage, reason=exc.reason)
-                return self.reject(pair_id, f"detection failed at {exc.stage}: {exc.reason}", index)
-            p_cam = detection.center
+            return self._outcome(pair_id, p_base, self._detect(cloud))
+        index = self._count
+        self._count += 1
+        return self._keep(pair_id, index, p_base, p_cam, None)
+
+    def _keep(self, pair_id: str, index: int, p_base: ArrayLike, p_cam: ArrayLike, detection: FlangeDetection | None) -> PairOutcome:
         self._ids.append(pair_id)
         self._P_base.append(np.asarray(p_base, dtype=np.float64).reshape(3))
         self._P_cam.append(np.asarray(p_cam, dtype=np.float64).reshape(3))

@@ -270,7 +270,7 @@ def covariance_from_jacobian(J: Array, r: Array, n_params: int) -> tuple[Array, 
     sigma2 = float(r @ r) / dof
     JtJ = J.T @ J
     try:
-        cov = np.linalg.inv(JtJ) * sigma2
+        cov: Array = np.asarray(np.linalg.inv(JtJ), dtype=np.float64) * sigma2
     except np.linalg.LinAlgError:
         return np.full_like(JtJ, np.inf), float(np.sqrt(sigma2)), dof
     return cov, float(np.sqrt(sigma2)), dof

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
 from celld.calib.rigid import (
@@ -179,7 +179,7 @@ def _kabsch_batch(A: Array, B: Array) -> tuple[Array, Array]:
     return R, t
 
 
-def _samples(n: int, params: RobustParams) -> Array:
+def _samples(n: int, params: RobustParams) -> NDArray[np.int64]:
     if math.comb(n, 3) <= params.n_hypotheses:
         return np.array(list(combinations(range(n), 3)), dtype=np.int64)
     rng = np.random.default_rng(params.seed)
@@ -245,7 +245,7 @@ def solve_robust(
     sigma = math.sqrt(med2 / _CHI2_3_MEDIAN)
     k = params.k
     residuals = pair_residuals(T0, P_dst, P_src)
-    inlier: Array | None = None
+    inlier: NDArray[np.bool_] | None = None
     rounds = 0
     while True:
         threshold = max(k * sigma, params.min_threshold)

@@ -37,8 +37,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from celld import se3
 from celld.calib.algorithm1 import Algorithm1Result, run_algorithm1
-from celld.calib.dataset import Session
+from celld.calib.dataset import MAX_CAMERA_DISTANCE, Session
 from celld.calib.detect import detect_flange
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import FlangeModel
@@ -47,7 +48,6 @@ from celld.calib.pairs import Detections, PairCollector
 from celld.calib.quality import CalibrationQuality, QualityParams, assess_calibration
 from celld.calib.rigid import Array, Uncertainty, check_pairs, pair_residuals, solve_rigid
 from celld.calib.robust import RejectedPair, RobustParams, solve_robust
-from celld import se3
 from celld.config import CalibrationConfig
 from celld.errors import CalibrationError, DetectionError, InputError
 from celld.log import get_logger
@@ -284,13 +284,20 @@ def solve_pairs(
         fit = solve_rigid(P_b, P_c, with_scale=params.with_scale)
         T, used, unc, scale = fit.T_dst_src, list(range(len(P_b))), fit.uncertainty, fit.scale
     else:
-        if a1 is None or a1.fit is None:
+        if a1 is None or a1.fit is None or a1.T_base_cam is None:
             raise CalibrationError("Algorithm 1 found no solvable pool of four pairs")
         used = sorted(ids_t.index(i) for i in a1.pool_ids)
         T, unc, scale = a1.T_base_cam, a1.fit.uncertainty, a1.fit.scale
         rejected += [
             RejectedPair(ids_t[i], i, float("nan"), "not in Algorithm 1's final pool") for i in range(len(P_b)) if i not in used
         ]
+    d_cam = float(np.linalg.norm(T[:3, 3]))
+    if d_cam > MAX_CAMERA_DISTANCE:
+        raise CalibrationError(
+            f"the solve puts the camera {d_cam:.3g} m from the robot base, which no cell has (at most "
+            f"{MAX_CAMERA_DISTANCE:g} m): the poses and the clouds are likely in different units (poses must be "
+            "in metres, clouds in the session's declared unit)"
+        )
     res_all = pair_residuals(T, P_b, P_c, scale)
     for k, r in enumerate(rejected):
         if r.id in ids_t and not np.isfinite(r.residual):

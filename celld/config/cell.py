@@ -110,7 +110,11 @@ def _read_toml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
         raise ConfigError(source, "include", f"expected a list of file paths, got {includes!r}")
     merged: dict[str, Any] = {}
     for inc in includes:
-        merged = _merge(merged, _read_toml((path.parent / inc).resolve(), (*seen, path)))
+        try:
+            target = (path.parent / inc).resolve()
+        except (RuntimeError, OSError) as exc:  # a symlink loop
+            raise ConfigError(source, "include", f"cannot resolve {inc!r}: {exc}") from exc
+        merged = _merge(merged, _read_toml(target, (*seen, path)))
     return _merge(merged, data)
 
 
@@ -129,8 +133,28 @@ def parse(data: dict[str, Any], source: str = "<dict>") -> Config:
     values["cell_model"] = read_cell_model(sub)
     sub.done()
     top.done()
-    check_servo(values["servo"], values["tactile"], values["tool"], source)
-    return Config(**values)
+    check_servo(values["servo"], values["tactile"], values["tool"], source, values["motion"].max_linear_speed)
+    config = Config(**values)
+    check_cell(config)
+    return config
+
+
+def check_cell(config: Config) -> None:
+    """The rules between sections; raises ConfigError naming the key.
+
+    - the poses the cell moves to (the verification pose of a calibration,
+      the weld's scan pose) lie inside the workspace box.
+
+    The servo's rules (its speeds within the motion limits among them) are
+    :func:`~celld.config.tactile.check_servo`'s.
+    """
+    src = config.source
+    lo, hi = config.robot.workspace_min, config.robot.workspace_max
+    for key, pose in (("calibration.verification_pose", config.calibration.verification_pose),
+                      ("weld.scan_pose", config.weld.scan_pose)):
+        if not all(lo[i] <= pose[i] <= hi[i] for i in range(3)):
+            raise ConfigError(src, key, f"expected a position inside the workspace box {list(lo)} .. {list(hi)} m, got {list(pose[:3])}")
+
 
 
 def load(path: str | Path) -> Config:

@@ -112,7 +112,11 @@ class TableReader:
             raise self.error(name, f"expected {lo} {op} value <= {hi}, got {value}")
         return value * scale
 
-    def vector(self, name: builtins.str, length: builtins.int, default: Any = None, scale: builtins.float = 1.0) -> tuple[builtins.float, ...]:
+    def vector(
+        self, name: builtins.str, length: builtins.int, default: Any = None, scale: builtins.float = 1.0,
+        bound: builtins.float = math.inf, what: builtins.str = "",
+    ) -> tuple[builtins.float, ...]:
+        """A list of ``length`` finite numbers (times ``scale``), each within +-``bound`` as written (``what`` says why)."""
         value = self._get(name, _REQUIRED if default is None else default)
         if not isinstance(value, (list, tuple)) or len(value) != length:
             raise self.error(name, f"expected a list of {length} numbers, got {value!r}")
@@ -120,6 +124,8 @@ class TableReader:
         for v in value:
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
                 raise self.error(name, f"expected finite numbers, got {v!r}")
+            if abs(float(v)) > bound:
+                raise self.error(name, f"expected every value within +-{bound:g}{what}, got {v!r}")
             out.append(float(v) * scale)
         return tuple(out)
 

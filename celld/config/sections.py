@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import ipaddress
 import math
+import re
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 from celld.bus.keys import check_prefix
 from celld.config.reader import TableReader
@@ -18,6 +20,37 @@ from celld.errors import BusError
 from celld.robot.kinematics import MODELS as UR_MODELS
 from celld.seam.params import PRESETS as SEAM_PRESETS
 from celld.seam.params import SEAM_SOURCES, SeamParams
+
+# A cell's workspace, poses and offsets lie within this of the robot base, m.
+MAX_CELL_EXTENT = 5.0
+# The TCP lies within this of the flange, m (a welding tool is a few tenths).
+MAX_TCP_OFFSET = 1.0
+# Kernel file systems: no place for a state directory.
+_SYSTEM_DIRS = ("proc", "sys", "dev")
+# A host name as RFC 1123 allows it: labels of letters, digits and '-'.
+_HOSTNAME = re.compile(r"^(?=.{1,253}$)([A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+
+
+def _host(r: TableReader, name: str, default: str) -> str:
+    """An IP address or a host name (RFC 1123), else a ConfigError naming the key."""
+    host = r.str(name, default)
+    try:
+        ipaddress.ip_address(host)
+        return host
+    except ValueError:
+        pass
+    if _HOSTNAME.match(host) and not host.replace(".", "").isdigit():
+        return host
+    raise r.error(name, f"expected an IP address or a host name, got {host!r}")
+
+
+def _tcp_offset(r: TableReader) -> tuple[float, ...]:
+    value = r.vector("tcp_offset", 6, [0.0] * 6)
+    if math.hypot(*value[:3]) > MAX_TCP_OFFSET:
+        raise r.error("tcp_offset", f"expected the TCP within {MAX_TCP_OFFSET:g} m of the flange (metres), got {list(value[:3])}")
+    if math.hypot(*value[3:]) > math.pi + 1e-6:
+        raise r.error("tcp_offset", f"expected a rotation vector of at most pi rad, got {list(value[3:])}")
+    return value
 
 
 @dataclass(frozen=True)
@@ -32,7 +65,13 @@ class CellConfig:
         name = r.str("name", "cell")
         if not name or not all(c.isalnum() or c in "-_" for c in name):
             raise r.error("name", f"expected letters, digits, '-' or '_' (it is a zenoh key part), got {name!r}")
-        return cls(name=name, state_dir=r.str("state_dir", "/var/lib/celld"))
+        state_dir = r.str("state_dir", "/var/lib/celld")
+        if not state_dir.strip():
+            raise r.error("state_dir", "expected a directory for the journal, results and recordings, got an empty path")
+        parts = Path(state_dir).resolve().parts
+        if len(parts) > 1 and parts[1] in _SYSTEM_DIRS:
+            raise r.error("state_dir", f"expected a directory on a disk, got {state_dir!r} (under /{parts[1]}, a kernel file system)")
+        return cls(name=name, state_dir=state_dir)
 
 
 @dataclass(frozen=True)
@@ -56,26 +95,27 @@ class RobotConfig:
     @classmethod
     def read(cls, r: TableReader) -> RobotConfig:
         r.refuse_moved({"connect_timeout": "robot.connect_timeout_s (seconds)"})
-        wmin: tuple[float, ...] = r.vector("workspace_min", 3, list(cls.workspace_min))
-        wmax: tuple[float, ...] = r.vector("workspace_max", 3, list(cls.workspace_max))
+        reach = " m (no cell is larger)"
+        wmin: tuple[float, ...] = r.vector("workspace_min", 3, list(cls.workspace_min), bound=MAX_CELL_EXTENT, what=reach)
+        wmax: tuple[float, ...] = r.vector("workspace_max", 3, list(cls.workspace_max), bound=MAX_CELL_EXTENT, what=reach)
         if not all(a < b for a, b in zip(wmin, wmax)):
             raise r.error("workspace_max", f"expected every value above workspace_min {wmin}, got {wmax}")
         return cls(
             model=r.str("model", "ur10e", choices=tuple(UR_MODELS)),
-            host=r.str("host", "127.0.0.1"),
+            host=_host(r, "host", "127.0.0.1"),
             frequency_hz=r.float("frequency_hz", 500.0, lo=1.0, hi=500.0),
             connect_timeout=r.float("connect_timeout_s", 10.0, lo=0.1, hi=120.0),
             workspace_min=wmin,  # type: ignore[arg-type]
             workspace_max=wmax,  # type: ignore[arg-type]
-            tcp_offset=r.vector("tcp_offset", 6, list(cls.tcp_offset)),
-            home_q=r.vector("home_q", 6, list(cls.home_q)),
+            tcp_offset=_tcp_offset(r),
+            home_q=r.vector("home_q", 6, list(cls.home_q), bound=2 * math.pi, what=" rad (a UR joint turns +-360 deg)"),
             arc_output=r.int("arc_output", cls.arc_output, lo=-1, hi=7),
         )
 
 
 @dataclass(frozen=True)
 class MotionLimits:
-    """Cartesian limits every command obeys in every cycle (SI)."""
+    """The limits every command obeys in every cycle (SI): Cartesian for the TCP, per joint for joint moves."""
 
     max_linear_speed: float = 0.25  # m/s
     max_linear_accel: float = 1.0  # m/s^2
@@ -83,6 +123,11 @@ class MotionLimits:
     max_angular_speed: float = 1.0  # rad/s
     max_angular_accel: float = 4.0  # rad/s^2
     max_angular_jerk: float = 40.0  # rad/s^3
+    # Every joint in a joint move (the move is also slowed so the TCP keeps
+    # the Cartesian limits above). UR's own movej defaults: 1.05 rad/s, 1.4 rad/s^2.
+    max_joint_speed: float = 1.0  # rad/s
+    max_joint_accel: float = 2.0  # rad/s^2
+    max_joint_jerk: float = 20.0  # rad/s^3
     # A tactile sample older than this stops a servo, seconds.
     tactile_stale: float = 0.1
     # Robot state older than this many cycles stops the loop.
@@ -106,6 +151,9 @@ class MotionLimits:
             max_angular_speed=r.float("max_angular_speed", cls.max_angular_speed, lo=0.0, hi=3.14, open_lo=True),
             max_angular_accel=r.float("max_angular_accel", cls.max_angular_accel, lo=0.0, hi=40.0, open_lo=True),
             max_angular_jerk=r.float("max_angular_jerk", cls.max_angular_jerk, lo=0.0, hi=4000.0, open_lo=True),
+            max_joint_speed=r.float("max_joint_speed", cls.max_joint_speed, lo=0.0, hi=3.14, open_lo=True),
+            max_joint_accel=r.float("max_joint_accel", cls.max_joint_accel, lo=0.0, hi=40.0, open_lo=True),
+            max_joint_jerk=r.float("max_joint_jerk", cls.max_joint_jerk, lo=0.0, hi=4000.0, open_lo=True),
             tactile_stale=r.float("tactile_stale_ms", cls.tactile_stale * 1e3, lo=1.0, hi=5000.0, scale=1e-3),
             state_stale_cycles=r.int("state_stale_cycles", cls.state_stale_cycles, lo=1, hi=50),
             link_timeout=r.float("link_timeout_ms", cls.link_timeout * 1e3, lo=4.0, hi=5000.0, scale=1e-3),
@@ -209,6 +257,12 @@ class CalibrationConfig:
     icp_max_distance: float = 0.003
     icp_points: int = 1000
     model_spacing: float = 0.002
+    # Retention of the calibrate jobs' datasets (<state_dir>/jobs/<job>/dataset,
+    # about 59 MB for 20 PhoXi M poses): keep the newest keep_sessions, and any
+    # younger than keep_days days; 0 turns a rule off, both 0 keep everything.
+    # The current calibration's dataset is always kept (celld.daemon.retention).
+    keep_sessions: int = 10
+    keep_days: float = 0.0
 
     @classmethod
     def read(cls, r: TableReader) -> CalibrationConfig:
@@ -232,6 +286,8 @@ class CalibrationConfig:
             ),
             icp_points=r.int("icp_points", cls.icp_points, lo=10, hi=1_000_000),
             model_spacing=r.float("model_spacing_mm", cls.model_spacing * 1e3, lo=0.1, hi=10.0, scale=1e-3),
+            keep_sessions=r.int("keep_sessions", cls.keep_sessions, lo=0, hi=100_000),
+            keep_days=r.float("keep_days", cls.keep_days, lo=0.0, hi=36_500.0),
         )
 
 

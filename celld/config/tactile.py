@@ -62,6 +62,9 @@ class TactileConfig:
     max_reprojection_px: float = 0.5  # RMS corner reprojection error above which a pose is refused
     tare_frames: int = 30
     tare_max_spread: float = 2e-5  # m, RMS spread of the rest pose allowed during a tare
+    # m: a tare whose rest lies farther than this from the finger's reference
+    # rest (the first tare, kept in state_dir) is refused: the finger is not free.
+    tare_max_offset: float = 0.3e-3
     # -- contact levels of the normal deformation --
     contact_threshold: float = 0.0003  # m
     overload: float = 0.004  # m
@@ -86,6 +89,7 @@ class TactileConfig:
             max_reprojection_px=r.float("max_reprojection_px", cls.max_reprojection_px, lo=0.0, hi=20.0, open_lo=True),
             tare_frames=r.int("tare_frames", cls.tare_frames, lo=1, hi=10_000),
             tare_max_spread=r.float("tare_max_spread_mm", cls.tare_max_spread * 1e3, lo=0.0, hi=5.0, scale=1e-3, open_lo=True),
+            tare_max_offset=r.float("tare_max_offset_mm", cls.tare_max_offset * 1e3, lo=0.0, hi=10.0, scale=1e-3, open_lo=True),
             contact_threshold=r.float("contact_threshold_mm", cls.contact_threshold * 1e3, lo=0.0, hi=20.0, scale=1e-3),
             overload=r.float("overload_mm", cls.overload * 1e3, lo=0.0, hi=50.0, scale=1e-3),
         )
@@ -235,12 +239,15 @@ def servo_key(name: str) -> tuple[str, float]:
     return _SERVO_KEYS[name]
 
 
-def check_servo(servo: ServoConfig, tactile: TactileConfig, tool: ToolConfig, source: str = "<config>") -> None:
-    """The rules that tie the servo to the sensor and the tool; raises ConfigError naming the servo key.
+def check_servo(
+    servo: ServoConfig, tactile: TactileConfig, tool: ToolConfig, source: str = "<config>", max_linear_speed: float = math.inf
+) -> None:
+    """The rules that tie the servo to the sensor, the tool and the motion limits; raises ConfigError naming the servo key.
 
-    Every value in its :data:`SERVO_BOUNDS`, and ``contact_threshold <
-    delta_d < overload``: the servo must ask for a deformation the sensor
-    reads as contact and not as overload.
+    Every value in its :data:`SERVO_BOUNDS`; ``contact_threshold < delta_d <
+    overload``: the servo must ask for a deformation the sensor reads as
+    contact and not as overload; its speeds at most ``max_linear_speed``
+    (``[motion] max_linear_speed``), which every command obeys.
     """
     for name, bound in SERVO_BOUNDS.items():
         value = tool.torch_offset if name == "torch_offset" else getattr(servo, name)
@@ -254,13 +261,19 @@ def check_servo(servo: ServoConfig, tactile: TactileConfig, tool: ToolConfig, so
             f"expected tactile.contact_threshold_mm < delta_d_mm < tactile.overload_mm, got "
             f"{tactile.contact_threshold * 1e3:g} / {servo.delta_d * 1e3:g} / {tactile.overload * 1e3:g} mm",
         )
+    for name in ("v_const", "max_correction_speed", "touch_speed"):
+        v = getattr(servo, name)
+        if v > max_linear_speed:
+            raise ConfigError(
+                source, f"servo.{name}_mm_s", f"expected at most motion.max_linear_speed ({max_linear_speed * 1e3:g} mm/s), got {v * 1e3:g} mm/s"
+            )
 
 
 def with_overrides(servo: ServoConfig, tactile: TactileConfig, tool: ToolConfig, source: str,
-                   **overrides: float | None) -> tuple[ServoConfig, ToolConfig]:
+                   max_linear_speed: float = math.inf, **overrides: float | None) -> tuple[ServoConfig, ToolConfig]:
     """The servo and tool with a job's overrides (None: keep), checked as the config is (:func:`check_servo`)."""
     given: dict[str, Any] = {k: v for k, v in overrides.items() if v is not None}
     tool_new = replace(tool, torch_offset=given.pop("torch_offset")) if "torch_offset" in given else tool
     servo_new = replace(servo, **given)
-    check_servo(servo_new, tactile, tool_new, source)
+    check_servo(servo_new, tactile, tool_new, source, max_linear_speed)
     return servo_new, tool_new

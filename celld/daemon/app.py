@@ -26,7 +26,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from celld import fsutil, sdnotify
+from celld import fsutil, preflight, sdnotify
 from celld.bus.keys import CellKeys
 from celld.bus.server import BusServer
 from celld.bus.session import open_server
@@ -97,6 +97,8 @@ class Daemon:
             recording_factory=self._open_recording if cfg.recording.enabled else None,
             link_state=self.devices.link_state,
             auto_accept=cfg.calibration.auto_accept,
+            robot_report=self.devices.robot_report,
+            robot_action=self.devices.robot_action,
         )
         self.bus = BusServer(self._session.session, keys, self.manager, state_rate_hz=cfg.bus.state_rate_hz)
         await self.bus.start()
@@ -199,6 +201,13 @@ class Daemon:
 
 
 def serve(config: Config, factories: DeviceFactories) -> None:
-    """Run the daemon of ``config`` on the devices ``factories`` open, until SIGTERM or SIGINT."""
+    """Run the daemon of ``config`` on the devices ``factories`` open, until SIGTERM or SIGINT.
+
+    Raises
+    ------
+    ConfigError
+        What the config names is missing or unusable here (:mod:`celld.preflight`).
+    """
+    preflight.require(config)
     devices = CellDevices(config, factories)
     asyncio.run(Daemon(config, devices, build_runners(config, devices)).run())

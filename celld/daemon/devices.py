@@ -31,11 +31,13 @@ import numpy as np
 
 from celld.config import Config
 from celld.daemon.planning import MotionPlanner
-from celld.errors import CelldError, ConfigError, DeviceError
+from celld.errors import CelldError, ConfigError, DeviceError, InputError
 from celld.log import get_logger
 from celld.motion.algorithm2 import NAME as ALGORITHM2
 from celld.motion.handle import MotionHandle
+from celld.motion.loop import INTERLOCK_MISSING
 from celld.motion.types import RobotState
+from celld.robot.dashboard import ACTIONS, Dashboard, RobotCondition, robot_condition
 from celld.scanner.base import OrganizedCloud, Scanner
 from celld.scanner.factory import open_scanner
 from celld.supervision import Backoff, ChildRecords, Heartbeat
@@ -58,6 +60,8 @@ STALL_WARNING = 0.2
 # Least time between two restarts of a dying tactile process, s: it doubles
 # after each failed restart, up to a minute.
 TACTILE_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 32.0, 60.0))
+# The dashboard server is read this often, s.
+DASHBOARD_PERIOD = 0.5
 
 
 @dataclass(frozen=True)
@@ -111,7 +115,8 @@ def make_tactile(
         camera = opencv_camera
     realtime = replace(CAMERA_REALTIME, priority=config.tactile.rt_priority)
     return TactileProcess(config.tactile, config.tool, f"celld-{uuid.uuid4().hex[:8]}", camera, realtime,
-                          heartbeat=heartbeat, parent_timeout=config.motion.parent_timeout, records=records)
+                          heartbeat=heartbeat, parent_timeout=config.motion.parent_timeout, records=records,
+                          rest_file=Path(config.cell.state_dir) / "tactile" / "rest.json")
 
 
 class CellDevices:
@@ -141,6 +146,8 @@ class CellDevices:
         self.heartbeat: Heartbeat | None = None
         self._beating: asyncio.Task[None] | None = None
         self.leftovers: list[str] = []  # what was cleaned up after a previous daemon
+        self.dashboard = Dashboard(config.robot.host)
+        self._reading: asyncio.Task[None] | None = None
 
     # -- life cycle ----------------------------------------------------------------
 
@@ -174,6 +181,7 @@ class CellDevices:
             records=records,
         )
         self.motion.add_listener(self._on_state_batch)
+        self._reading = asyncio.get_running_loop().create_task(self._read_dashboard(), name="celld-dashboard")
         self.scanner = await asyncio.to_thread(self._factories.scanner, cfg)
         log.info("devices open", robot=cfg.robot.host, scanner=f"{cfg.scanner.kind}/{cfg.scanner.model}",
                  tactile=cfg.tactile.kind if self.tactile is not None else "none")
@@ -192,6 +200,11 @@ class CellDevices:
         if self.tactile is not None:
             await asyncio.to_thread(self.tactile.stop)
             self.tactile = None
+        if self._reading is not None:
+            self._reading.cancel()
+            await asyncio.gather(self._reading, return_exceptions=True)
+            self._reading = None
+            await self.dashboard.close()
         if self._beating is not None:
             self._beating.cancel()
             await asyncio.gather(self._beating, return_exceptions=True)
@@ -236,6 +249,23 @@ class CellDevices:
         await asyncio.to_thread(self.planner.check_move, q, T_base_tcp, tool)
         return await motion.move_to(T_base_tcp, speed_scale=speed_scale)
 
+    async def move_joints(self, q_goal: np.ndarray, speed_scale: float = 1.0, *, tool: bool = True) -> RobotState:
+        """A jerk-limited joint move, checked against the cell and the workspace box first, and slowed so the
+        TCP keeps the Cartesian limits (:meth:`MotionPlanner.plan_joint_move`).
+
+        Raises
+        ------
+        PathRefused
+            The move would hit the cell, leave the workspace or cross a joint limit; the robot did not move.
+        """
+        motion = self.require_motion()
+        q = await self.current_q()
+        plan = await asyncio.to_thread(self.planner.plan_joint_move, q, q_goal, speed_scale, tool)
+        if plan.speed_scale < speed_scale:
+            log.info("joint move slowed for the TCP's limits", asked=speed_scale, scale=round(plan.speed_scale, 4),
+                     tcp_speed=round(plan.tcp_speed, 4))
+        return await motion.move_joints(q_goal, speed_scale=plan.speed_scale)
+
     async def current_q(self, timeout: float = STATE_WAIT) -> np.ndarray:
         """The robot's joints now, waiting up to ``timeout`` s for the first state; DeviceError without one."""
         motion = self.require_motion()
@@ -260,6 +290,72 @@ class CellDevices:
             await self.motion.wait_idle(STOP_TIMEOUT)
         except CelldError as exc:
             log.warning("robot not confirmed at rest after a stop", error=str(exc))
+
+    async def _read_dashboard(self) -> None:
+        previous = ""
+        while True:
+            await self.dashboard.read()
+            cond = self.robot_condition()
+            if cond.state != previous:
+                (log.info if cond.ready else log.warning)("robot condition", state=cond.state, reason=cond.reason)
+                previous = cond.state
+            await asyncio.sleep(DASHBOARD_PERIOD)
+
+    def robot_condition(self) -> RobotCondition:
+        """Whether the robot can move, and if not why and what clears it (:mod:`celld.robot.dashboard`)."""
+        last = self.motion.supervisor.last_exit if self.motion is not None else None
+        return robot_condition(self.link_state(), self.dashboard.last, last.reason if last is not None else "")
+
+    def robot_report(self) -> dict[str, Any]:
+        """The robot's condition and the dashboard's last reading, for the status reply."""
+        r = self.dashboard.last
+        out: dict[str, Any] = self.robot_condition().as_dict()
+        out["link"] = self.link_state()
+        out["mode"] = r.robot_mode if r is not None and r.reachable else None
+        out["safety"] = r.safety if r is not None and r.reachable else None
+        out["dashboard"] = "reachable" if r is not None and r.reachable else (r.error if r is not None else "not read yet")
+        return out
+
+    async def robot_action(self, action: str) -> dict[str, Any]:
+        """Send an operator's recovery command (:data:`~celld.robot.dashboard.ACTIONS`) through the dashboard.
+
+        The caller refuses it while a job runs. After it, the motion supervisor
+        reconnects at once instead of waiting out its back-off.
+
+        Raises
+        ------
+        InputError
+            Unknown action.
+        RobotError
+            The controller refused it, with its reason.
+        """
+        if action not in ACTIONS:
+            raise InputError(f"robot action: expected one of {', '.join(ACTIONS)}, got {action!r}")
+        reply = await self.dashboard.act(action)
+        if self.motion is not None:
+            self.motion.supervisor.retry_now()
+        await self.dashboard.read()
+        return {"action": action, "reply": reply, "robot": self.robot_report()}
+
+    def interlock_report(self) -> dict[str, Any]:
+        """What celld can say about the arc interlock (standard outputs low when the program stops).
+
+        The I/O setting itself cannot be read over RTDE or the dashboard. What
+        can be seen: each motion process, when it starts, checks whether the
+        arc output was left on by the one before it (killed, or its link lost),
+        which only happens without the setting.
+        """
+        missing = [e for e in (self.motion.loop_events if self.motion is not None else ()) if e.startswith(INTERLOCK_MISSING)]
+        return {
+            "verified": False,
+            "missing_seen": bool(missing),
+            "detail": missing[-1] if missing else "",
+            "note": (
+                "the robot's I/O setting 'standard outputs low when the program stops' cannot be read over RTDE or the "
+                "dashboard; set it on the teach pendant (README). celld checks at every motion process start that the "
+                "arc output was not left on, which would show the setting missing"
+            ),
+        }
 
     def link_state(self) -> str:
         if self.motion is None:

@@ -38,6 +38,7 @@ from celld.bus.schema import (
     CancelRequest,
     Job,
     ListRequest,
+    RobotRequest,
     StatusRequest,
 )
 from celld.errors import CelldError, JobError
@@ -157,6 +158,11 @@ class JobManager:
     queue_depth : int
     recording_factory : callable(job_id, kind) -> JobRecording, optional
     link_state : callable() -> "up" | "down" | "unknown"
+    robot_report : callable() -> dict, optional
+        The robot's condition for the status reply (CellDevices.robot_report).
+    robot_action : coroutine function(action) -> dict, optional
+        Sends an operator's recovery command (CellDevices.robot_action);
+        refused while a job runs.
     auto_accept : bool
         Make a calibrate job's result current when it succeeds.
     """
@@ -174,6 +180,8 @@ class JobManager:
         recording_factory: Callable[[str, str], Any] | None = None,
         link_state: Callable[[], str] = lambda: "unknown",
         auto_accept: bool = False,
+        robot_report: Callable[[], dict[str, Any]] | None = None,
+        robot_action: Callable[[str], Awaitable[dict[str, Any]]] | None = None,
     ) -> None:
         self.journal = journal
         self.state_dir = Path(state_dir)
@@ -185,6 +193,8 @@ class JobManager:
         self.recording_factory = recording_factory
         self.link_state = link_state
         self.auto_accept = auto_accept
+        self.robot_report = robot_report
+        self.robot_action = robot_action
         self.calibrations = CalibrationStore(self.state_dir)
         self.results_dir = self.state_dir / "results"
         self.results_dir.mkdir(parents=True, exist_ok=True)
@@ -256,7 +266,7 @@ class JobManager:
             state = "stopping"
         else:
             state = "running" if self._running is not None else "idle"
-        return {
+        reply = {
             "cell": self.cell,
             "state": state,
             "running": self._running[0] if self._running else None,
@@ -267,6 +277,9 @@ class JobManager:
             "version": __version__,
             "message": self._fault,
         }
+        if self.robot_report is not None:
+            reply["robot"] = self.robot_report()
+        return reply
 
     async def on_cancel(self, req: CancelRequest) -> Mapping[str, Any]:
         reason = req.reason or "cancelled by request"
@@ -303,6 +316,14 @@ class JobManager:
 
     async def on_calibration(self, req: CalibrationRequest) -> Mapping[str, Any]:
         return {"calibration": self.calibrations.current()}
+
+    async def on_robot(self, req: RobotRequest) -> Mapping[str, Any]:
+        if self.robot_action is None:
+            raise JobError("$", "this cell has no robot dashboard to send commands to")
+        if self._running is not None:
+            raise JobError("$.action", f"refused: job {self._running[0]} is running; {req.action} is for a robot at rest, between jobs")
+        log.warning("operator robot command", action=req.action)
+        return await self.robot_action(req.action)
 
     # -- running ----------------------------------------------------------------------
 

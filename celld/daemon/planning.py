@@ -7,7 +7,9 @@ of ``[cell_model]`` and the TCP offset, twice: with the tool on the flange
 the tool is off). The daemon asks it
 
 - before each Cartesian move (:meth:`check_move`) and joint move
-  (:meth:`check_joint_move`);
+  (:meth:`plan_joint_move`: the line in joint space against the cell and the
+  workspace box, and the speed scale that keeps the TCP within the
+  Cartesian limits, :func:`joint_move_scale`);
 - for a weld's whole path before the first move of the weld
   (:meth:`check_path`);
 - for a calibration plan (:meth:`plan_calibration`): generated poses that
@@ -31,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from celld import se3
-from celld.config import Config
+from celld.config import Config, MotionLimits
 from celld.errors import PathRefused
 from celld.robot import kinematics as kin
 from celld.robot.cellmodel import Box
@@ -41,6 +43,69 @@ Array = NDArray[np.float64]
 
 # Rounds of replacement poses a calibration plan draws before it gives up.
 _REPLACEMENT_ROUNDS = 6
+
+
+@dataclass(frozen=True)
+class JointMovePlan:
+    """A checked joint move: the TCP at the goal and the speed scale the move runs at."""
+
+    T_base_tcp_goal: Array  # (4, 4)
+    speed_scale: float  # the caller's, lowered so the TCP keeps the Cartesian limits
+    tcp_speed: float  # the TCP's largest speed the move can reach at that scale, m/s (an upper bound)
+    check: PathCheck
+
+
+def joint_move_scale(
+    Q: Array,
+    s: Array,
+    dh: kin.DH,
+    T_flange_tcp: Array,
+    limits: MotionLimits,
+) -> tuple[float, float, float]:
+    """The largest speed scale (<= 1) of a joint move that keeps the TCP within the Cartesian limits.
+
+    The move runs on the line ``Q(s)`` (samples ``Q`` (n, 6) at ``s`` (n,) in
+    [0, 1]) with every joint bounded by the joint limits; the synchronised
+    planner lets the path parameter reach at most ``s' = v_j / max|dq|`` and
+    ``s'' = a_j / max|dq|``, all scaled by the speed scale ``k``. The TCP's
+    speed is then at most ``k s' max|dp/ds|`` and its acceleration at most
+    ``k s'' max|dp/ds| + k^2 s'^2 max|d2p/ds2|`` <= ``k (...)`` for ``k <= 1``
+    (the same for the rotation), which gives ``k``. The derivatives come from
+    finite differences of the forward kinematics over the samples; the jerk
+    is not bounded this way.
+
+    Returns
+    -------
+    (scale, tcp_speed, tcp_angular_speed) : the scale, and the TCP's linear
+    (m/s) and angular (rad/s) speed bounds at that scale.
+    """
+    span = float(np.abs(Q[-1] - Q[0]).max())
+    if span <= 0.0 or len(s) < 2:
+        return 1.0, 0.0, 0.0
+    T = np.array([kin.forward(q, dh, T_flange_tcp) for q in Q])
+    ds = np.diff(s)
+    dp = np.diff(T[:, :3, 3], axis=0)
+    lin1 = np.linalg.norm(dp, axis=1) / ds
+    # Rotation angle between neighbouring samples.
+    R_rel = np.einsum("nji,njk->nik", T[:-1, :3, :3], T[1:, :3, :3])
+    cos = np.clip((np.trace(R_rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    ang1 = np.arccos(cos) / ds
+    lin2 = ang2 = np.zeros(1)
+    if len(s) > 2:
+        mid = 0.5 * (ds[1:] + ds[:-1])
+        lin2 = np.abs(np.diff(lin1)) / mid
+        ang2 = np.abs(np.diff(ang1)) / mid
+    sd = limits.max_joint_speed / span
+    sdd = limits.max_joint_accel / span
+    L1, W1, L2, W2 = float(lin1.max()), float(ang1.max()), float(lin2.max()), float(ang2.max())
+    k = min(
+        1.0,
+        limits.max_linear_speed / max(sd * L1, 1e-12),
+        limits.max_angular_speed / max(sd * W1, 1e-12),
+        limits.max_linear_accel / max(sdd * L1 + sd * sd * L2, 1e-12),
+        limits.max_angular_accel / max(sdd * W1 + sd * sd * W2, 1e-12),
+    )
+    return k, k * sd * L1, k * sd * W1
 
 
 @dataclass(frozen=True)
@@ -57,7 +122,10 @@ class MotionPlanner:
 
     def __init__(self, config: Config) -> None:
         self.arm = kin.model(config.robot.model)
+        self.limits = config.motion
+        self.workspace = (np.asarray(config.robot.workspace_min), np.asarray(config.robot.workspace_max))
         T_flange_tcp = se3.from_ur_pose(config.robot.tcp_offset)
+        self.T_flange_tcp = T_flange_tcp
         self.with_tool = Checker(self.arm, config.cell_model, T_flange_tcp)
         self.bare = Checker(self.arm, config.cell_model.without_tool(), T_flange_tcp)
 
@@ -77,6 +145,34 @@ class MotionPlanner:
     def check_joint_move(self, q_start: Array, q_goal: Array, tool: bool = True) -> PathCheck:
         """A joint move, linear in joint space; raises PathRefused naming why."""
         return self._raise(self._checker(tool).check_joint_path(q_start, q_goal))
+
+    def plan_joint_move(self, q_start: Array, q_goal: Array, speed_scale: float = 1.0, tool: bool = True) -> JointMovePlan:
+        """Check a joint move and choose its speed scale (module docstring); raises PathRefused naming why.
+
+        Besides the cell, every sample of the line keeps the TCP inside the
+        workspace box of ``[robot]`` (the motion loop's stop on a breach would
+        come too late for a move that plainly leaves it).
+        """
+        check = self.check_joint_move(q_start, q_goal, tool)
+        T_flange_tcp = self.T_flange_tcp if tool else np.eye(4)
+        lo, hi = self.workspace
+        # The collision samples are as dense as the arm's spheres need; the
+        # box and the speed bound take at least 64.
+        q0, q1 = np.asarray(q_start, dtype=np.float64), np.asarray(q_goal, dtype=np.float64)
+        s_all: Array = np.linspace(0.0, 1.0, max(64, len(check.s)), dtype=np.float64)
+        Q = q0 + s_all[:, None] * (q1 - q0)
+        for q, si in zip(Q, s_all, strict=True):
+            p = kin.forward(q, self.arm.dh, T_flange_tcp)[:3, 3]
+            if np.any(p < lo) or np.any(p > hi):
+                goal = "[" + ", ".join(f"{v:.3f}" for v in q1) + "]"
+                raise PathRefused(
+                    f"joint move to {goal}: the TCP leaves the workspace box {lo.tolist()} .. {hi.tolist()} m "
+                    f"at {si:.0%} of the move, at {np.round(p, 3).tolist()} m"
+                )
+        k, v, _ = joint_move_scale(Q, s_all, self.arm.dh, T_flange_tcp, self.limits)
+        scale = speed_scale * k
+        T_goal = kin.forward(q_goal, self.arm.dh, T_flange_tcp)
+        return JointMovePlan(T_goal, scale, v * speed_scale, check)
 
     def check_path(self, q_start: Array, T_base_tcp_path: Array, tool: bool = True) -> PathCheck:
         """Straight TCP moves through the poses (n, 4, 4) in order (a weld); raises PathRefused naming why."""

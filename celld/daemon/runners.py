@@ -15,9 +15,12 @@ worker threads so the event loop keeps answering the bus.
   history, the e_icp of Eq. 13 and the quality gate's verdict (accept
   refuses a failed one unless forced). With ``compensate`` the calibration
   stored is Eq. 21's compensated estimate, and ``stored`` says so.
-  The early stop waits until the gate has its minimum of pairs.
-- **move**: a jerk-limited move to a TCP pose, or to joint positions through
-  the forward kinematics.
+  The early stop waits until the gate has its minimum of pairs. Old
+  datasets are then pruned by the config's retention rules
+  (:mod:`celld.daemon.retention`).
+- **move**: a jerk-limited straight move of the TCP to a pose, or a
+  jerk-limited joint move (straight in joint space, sent as speedJ) to joint
+  positions; both checked against the cell first (planning module).
 - **health**: the robot link and loop timing, the scanner (one capture), the
   tactile sensor.
 - **weld**: :mod:`celld.daemon.weld`.
@@ -44,11 +47,11 @@ from celld.calib.poses import calibration_poses
 from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
 from celld.config import Config
 from celld.daemon.devices import CellDevices
-from celld.daemon.jobs import JobContext, Runner
+from celld.daemon.jobs import CalibrationStore, JobContext, Runner
 from celld.daemon.planning import record_plan
+from celld.daemon.retention import prune_sessions
 from celld.errors import CalibrationError, CelldError, JobError
 from celld.log import get_logger
-from celld.robot.kinematics import forward
 
 log = get_logger(__name__)
 
@@ -148,7 +151,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     ctx.progress("verify", 0.0, "verification pose")
     T_v_robot = await _settled_flange_pose(devices, T_v, cal.settle)
     cloud_v = await devices.capture()
-    writer.set_verification(T_v_robot, cloud_v.points)
+    await asyncio.to_thread(writer.set_verification, T_v_robot, cloud_v.points)
     if rec is not None:
         rec.log_cloud_cam("verification", cloud_v.points)
     verifier = await asyncio.to_thread(verifier_from_cloud, cloud_v.points, T_v_robot, flange, params, dparams)
@@ -211,6 +214,8 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         "calibration solved", job=ctx.job_id, pairs=len(result.pair_ids), cost_mm=cost_mm, early_stop=early,
         verdict=result.quality.verdict, stored=result.stored,
     )
+    current = CalibrationStore(ctx.state_dir).current() or {}
+    await asyncio.to_thread(prune_sessions, ctx.state_dir / "jobs", cal.keep_sessions, cal.keep_days, (ctx.job_id, current.get("job")))
     return {
         "calibration": calibration,
         "report": report,
@@ -229,8 +234,17 @@ async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
     if not isinstance(job, MoveJob):
         raise JobError("$.kind", "not a move job")
     target = np.asarray(job.target, dtype=np.float64)
-    T = forward(target) if job.space == "joint" else se3.from_ur_pose(target)
-    ctx.progress("move", 0.0, f"moving to {np.round(se3.to_ur_pose(T), 4).tolist()}")
+    if job.space == "joint":
+        ctx.progress("move", 0.0, f"joint move to {np.round(target, 4).tolist()} rad")
+        state = await devices.move_joints(target, speed_scale=job.speed_scale)
+        err = np.degrees(np.abs(np.asarray(state.q) - target))
+        return {
+            "q": np.asarray(state.q).tolist(),
+            "joint_error_deg": err.tolist(),
+            "tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(),
+        }
+    T = se3.from_ur_pose(target)
+    ctx.progress("move", 0.0, f"moving to {np.round(target, 4).tolist()}")
     state = await devices.move_to(T, speed_scale=job.speed_scale)
     dt, dr = se3.error(state.T_base_tcp, T)
     return {"tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(), "error_mm": dt * 1e3, "error_deg": math.degrees(dr)}
@@ -248,8 +262,15 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
     if job.check in ("all", "robot"):
         h = devices.require_motion().health()
         out["robot"] = h._asdict()
+        condition = devices.robot_condition()
+        out["robot"]["condition"] = condition.as_dict()
         if h.link != "running":
             problems.append(f"robot link {h.link}")
+        if not condition.ready:
+            problems.append(f"robot {condition.state}: {condition.reason} ({condition.remedy})")
+        out["arc_interlock"] = devices.interlock_report()
+        if out["arc_interlock"]["missing_seen"]:
+            problems.append(out["arc_interlock"]["detail"])
     if job.check in ("all", "scanner"):
         try:
             cloud = await devices.capture()
@@ -266,10 +287,19 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
             out["tactile"] = {"ok": False, "error": "no tactile sensor configured"}
         else:
             running = devices.tactile.running()
-            out["tactile"] = {"ok": running and sample is not None and sample.valid, "running": running,
-                              "valid": bool(sample and sample.valid), "error": devices.tactile_error}
+            counters = devices.tactile.read_counters()
+            tared = bool(counters is not None and counters["tared"])
+            refused = bool(counters is not None and counters["tare_refused"])
+            offset = float(counters["tare_offset"]) if counters is not None else math.nan
+            out["tactile"] = {"ok": running and tared and sample is not None and sample.valid, "running": running,
+                              "valid": bool(sample and sample.valid), "tared": tared,
+                              "tare_offset_mm": offset * 1e3, "error": devices.tactile_error}
             if not running:
                 problems.append(f"the tactile process is not running: {devices.tactile_error or 'it ended'}")
+            elif not tared and refused:
+                problems.append(f"the SRM is not tared: the finger is not free ({offset * 1e3:.2f} mm from its reference rest)")
+            elif not tared:
+                problems.append("the SRM is not tared yet")
             elif sample is None or not sample.valid:
                 problems.append("the tactile sensor sees no tag")
     if problems and job.check != "all":

@@ -136,7 +136,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     from celld.seam.pipeline import find_seam, prepare
 
     try:
-        servo, tool_cfg = with_overrides(config.servo, config.tactile, config.tool, "weld job", delta_d=job.delta_d, k_p=job.k_p,
+        servo, tool_cfg = with_overrides(config.servo, config.tactile, config.tool, "weld job", config.motion.max_linear_speed, delta_d=job.delta_d, k_p=job.k_p,
                                          v_const=job.v_const, torch_offset=job.torch_offset)
     except ConfigError as exc:
         # The job's field of the refused value: its key in the section (delta_d_mm, ...).

@@ -56,7 +56,7 @@ STATE_DTYPE = np.dtype(
         ("status", np.int16),  # ControlStatus
         ("faults", np.uint32),  # safety Fault bits
         ("command_id", np.uint64),  # the command served
-        ("twist", np.float64, (6,)),  # the twist sent (zero unless action is speedL)
+        ("twist", np.float64, (6,)),  # the twist sent with speedL, the joint speeds (rad/s) with speedJ, else zero
         ("tactile_seq", np.int64),  # frame counter of the tactile sample used, -1 without
         ("tactile_age_ns", np.int64),
         ("tactile_torn", np.uint32),  # torn tactile reads so far

@@ -4,6 +4,7 @@ The main process posts a command as bytes (:class:`celld.shm.Mailbox`); the
 loop decodes it in the cycle it arrives. A command is one of:
 
 - :class:`MoveTo`: a jerk-limited Cartesian move to ``T_base_tcp``;
+- :class:`MoveJoints`: a jerk-limited joint move to ``q_goal`` (speedJ);
 - :class:`Stream`: velocity streaming from the setpoint slot;
 - :class:`StartServo`: the servo slot, with a :class:`~celld.motion.types.ServoPlan`.
 
@@ -44,6 +45,7 @@ class CommandKind(IntEnum):
     MOVE_TO = 1
     STREAM = 2
     SERVO = 3
+    MOVE_JOINTS = 4
 
 
 class MoveTo(NamedTuple):
@@ -59,6 +61,18 @@ class MoveTo(NamedTuple):
     angle_tolerance: float = 5e-4
 
 
+class MoveJoints(NamedTuple):
+    """Move the joints to ``q_goal`` (6,) rad, straight in joint space, jerk-limited per joint.
+
+    ``speed_scale`` (0, 1] scales every joint limit of the move; ``tolerance``
+    (rad) is the largest joint error at arrival.
+    """
+
+    q_goal: np.ndarray
+    speed_scale: float = 1.0
+    tolerance: float = 5e-5
+
+
 class Stream(NamedTuple):
     """Follow the twist in the setpoint slot; a setpoint older than ``timeout`` (s) means zero."""
 
@@ -71,7 +85,10 @@ class StartServo(NamedTuple):
     plan: ServoPlan
 
 
-Command = MoveTo | Stream | StartServo
+Command = MoveTo | MoveJoints | Stream | StartServo
+
+# Largest joint target accepted, rad: UR joints turn +-360 deg.
+_MAX_JOINT = 2.0 * math.pi
 
 
 def _positive(name: str, value: Any, hi: float = math.inf) -> float:
@@ -92,6 +109,16 @@ def move_to(T_base_tcp: ArrayLike, speed_scale: float = 1.0, tolerance: float = 
         _positive("tolerance", tolerance, 0.01),
         _positive("angle_tolerance", angle_tolerance, 0.1),
     )
+
+
+def move_joints(q_goal: ArrayLike, speed_scale: float = 1.0, tolerance: float = 5e-5) -> MoveJoints:
+    """Return a validated :class:`MoveJoints`."""
+    q = np.array(q_goal, dtype=np.float64)
+    if q.shape != (6,) or not np.all(np.isfinite(q)):
+        raise InputError(f"q_goal: expected 6 finite joint positions (rad), got {np.asarray(q_goal).tolist()!r}")
+    if np.any(np.abs(q) > _MAX_JOINT):
+        raise InputError(f"q_goal: every joint must lie within +-2 pi rad, got {q.tolist()}")
+    return MoveJoints(q, _positive("speed_scale", speed_scale, 1.0), _positive("tolerance", tolerance, 0.01))
 
 
 def stream(timeout: float = 0.1) -> Stream:
@@ -132,6 +159,10 @@ def encode(cmd: Command) -> bytes:
             "angle_tolerance": cmd.angle_tolerance,
         }
         arrays.append(("T_base_tcp", np.ascontiguousarray(cmd.T_base_tcp, dtype=np.float64)))
+    elif isinstance(cmd, MoveJoints):
+        kind = CommandKind.MOVE_JOINTS
+        meta = {"speed_scale": cmd.speed_scale, "tolerance": cmd.tolerance}
+        arrays.append(("q_goal", np.ascontiguousarray(cmd.q_goal, dtype=np.float64)))
     elif isinstance(cmd, Stream):
         kind = CommandKind.STREAM
         meta = {"timeout": cmd.timeout}
@@ -140,7 +171,7 @@ def encode(cmd: Command) -> bytes:
         meta = {"name": cmd.plan.name, "params": cmd.plan.params}
         arrays.extend((k, np.ascontiguousarray(v, dtype=np.float64)) for k, v in cmd.plan.arrays.items())
     else:
-        raise InputError(f"command: expected MoveTo, Stream or StartServo, got {type(cmd).__name__}")
+        raise InputError(f"command: expected MoveTo, MoveJoints, Stream or StartServo, got {type(cmd).__name__}")
     meta["arrays"] = [[name, list(a.shape)] for name, a in arrays]
     meta_bytes = json.dumps(meta).encode("utf-8")
     parts = [_HEADER.pack(_MAGIC, int(kind), len(meta_bytes)), meta_bytes]
@@ -188,6 +219,10 @@ def decode(payload: bytes) -> Command:
             raise InputError("move_to: the target pose T_base_tcp is missing")
         return move_to(arrays["T_base_tcp"], meta.get("speed_scale", 1.0), meta.get("tolerance", 5e-5),
                        meta.get("angle_tolerance", 5e-4))
+    if kind is CommandKind.MOVE_JOINTS:
+        if "q_goal" not in arrays:
+            raise InputError("move_joints: the target joints q_goal are missing")
+        return move_joints(arrays["q_goal"], meta.get("speed_scale", 1.0), meta.get("tolerance", 5e-5))
     if kind is CommandKind.STREAM:
         return stream(meta.get("timeout", 0.1))
     params = meta.get("params", {})

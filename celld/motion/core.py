@@ -20,6 +20,12 @@ Modes::
   treats speedStop as a non-real-time command that blocks until the
   controller reports it done, which has no place in a 2 ms cycle.
 
+A joint move (:mod:`celld.motion.joint_move`) runs the same modes in joint
+space: its own planner gives the joint speeds, sent as speedJ, and its own
+stop brakes them to zero; the joint speeds sent are checked per joint, and
+the workspace box with the measured TCP twist. It starts only from IDLE, and
+no other command is taken while it runs (a stop request ends it).
+
 The process output (the welding arc) is the servo law's to ask for and the
 core's to grant: ``CycleOutput.process_on`` is True only while the mode is
 ACTIVE with no fault, the controller is the servo slot, and the law's
@@ -41,8 +47,9 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from celld.config import MotionLimits
 from celld.errors import InputError
-from celld.motion.commands import Command, MoveTo, StartServo, Stream
+from celld.motion.commands import Command, MoveJoints, MoveTo, StartServo, Stream
 from celld.motion.controllers import (
     CartesianMove,
     ControlInput,
@@ -52,10 +59,13 @@ from celld.motion.controllers import (
     ServoSlot,
     VelocityStream,
 )
-from celld.motion.limits import CartesianLimits, LimiterResult, TwistLimiter
+from celld.motion.joint_move import JointMove
+from celld.motion.limits import CartesianLimits, JointMoveLimits, LimiterResult, TwistLimiter
 from celld.motion.safety import (
+    LIMITS,
     ROBOT_STOPPED,
     Fault,
+    JointSequenceMonitor,
     SequenceMonitor,
     WorkspaceGuard,
     describe,
@@ -69,6 +79,7 @@ from celld.tactile.sample import TactileSample
 Array = NDArray[np.float64]
 
 _ZERO6 = np.zeros(6)
+_ZERO3 = np.zeros(3)
 
 
 class Mode(IntEnum):
@@ -82,6 +93,7 @@ class Action(IntEnum):
 
     KICK = 0  # nothing but a watchdog kick
     SPEED = 1  # speedL(twist)
+    SPEED_J = 2  # speedJ(joint speeds)
 
 
 class CoreParams(NamedTuple):
@@ -95,6 +107,7 @@ class CoreParams(NamedTuple):
     tactile_stale: float  # s; an older tactile sample stops the servo
     latency: float = 0.004  # s from a command to its effect in the measured state
     move: MoveParams = MoveParams()
+    joint_limits: JointMoveLimits = JointMoveLimits.from_config(MotionLimits())
 
 
 class CycleInput(NamedTuple):
@@ -117,7 +130,7 @@ class CycleOutput(NamedTuple):
     """What to send, and what to record."""
 
     action: Action
-    twist: Array  # (6,) sent with SPEED, zero otherwise
+    twist: Array  # (6,) the twist sent with SPEED, the joint speeds (rad/s) with SPEED_J, zero otherwise
     mode: Mode
     status: ControlStatus
     command_id: int  # the command this cycle serves (or last served)
@@ -145,12 +158,13 @@ class MotionCore:
         self.factories = dict(servo_factories or {})
         self.limiter = TwistLimiter(params.limits, params.period)
         self.monitor = SequenceMonitor(params.limits, params.period)
+        self.joint_monitor = JointSequenceMonitor(params.joint_limits, params.period)
         # The breach is found after this cycle's twist went out: one more period of travel.
         self.workspace = WorkspaceGuard(
             params.workspace_min, params.workspace_max, params.limits, params.latency + params.period
         )
         self.mode = Mode.IDLE
-        self.controller: Controller = Hold()
+        self.controller: Controller | JointMove = Hold()
         self.command_id = 0
         self.status = ControlStatus.HOLD
         self._stop_status = ControlStatus.STOPPED
@@ -170,10 +184,20 @@ class MotionCore:
         self.mode = Mode.STOPPING
         self._stop_status = status
         self._stop_reason = reason
+        if isinstance(self.controller, JointMove):
+            self.controller.begin_stop()
 
     def _refusal(self, cmd: Command) -> tuple[ControlStatus, str] | None:
         """Why ``cmd`` cannot start here, or None."""
         p = self.params
+        if isinstance(self.controller, JointMove):
+            return ControlStatus.BAD_COMMAND, (
+                f"a joint move (command {self.command_id}) is running: it takes no other command; stop it first"
+            )
+        if isinstance(cmd, MoveJoints) and self.mode != Mode.IDLE:
+            return ControlStatus.BAD_COMMAND, (
+                f"a joint move starts from rest: command {self.command_id} is still {self.mode.name.lower()}"
+            )
         if isinstance(cmd, MoveTo) and not inside(cmd.T_base_tcp[:3, 3], p.workspace_min, p.workspace_max):
             return ControlStatus.WORKSPACE, (
                 f"move_to target {np.round(cmd.T_base_tcp[:3, 3], 4).tolist()} m lies outside the workspace "
@@ -184,12 +208,14 @@ class MotionCore:
             return ControlStatus.BAD_COMMAND, f"no servo law registered as {cmd.plan.name!r}; known: {known}"
         return None
 
-    def _build(self, cmd: Command) -> Controller:
+    def _build(self, cmd: Command) -> Controller | JointMove:
         p = self.params
         if isinstance(cmd, MoveTo):
             return CartesianMove(
                 cmd.T_base_tcp, p.limits, p.period, cmd.speed_scale, cmd.tolerance, cmd.angle_tolerance, p.move
             )
+        if isinstance(cmd, MoveJoints):
+            return JointMove(cmd.q_goal, p.joint_limits, p.period, cmd.speed_scale, cmd.tolerance)
         if isinstance(cmd, Stream):
             return VelocityStream(cmd.timeout)
         if isinstance(cmd, StartServo):
@@ -219,6 +245,7 @@ class MotionCore:
         if self.mode == Mode.IDLE:
             self.limiter.reset()
             self.monitor.reset()
+            self.joint_monitor.reset()
         ctrl.start(inp.state, self.limiter.twist, self.limiter.accel)
         self.controller = ctrl
         self.command_id = cid
@@ -244,6 +271,7 @@ class MotionCore:
             self.controller = Hold()
             self.limiter.reset()
             self.monitor.reset()
+            self.joint_monitor.reset()
             if inp.command is not None or inp.command_error:
                 self._refuse(inp.command_id, ControlStatus.SAFETY, f"refused: the robot reports {describe(faults)}")
             return self._output(Action.KICK, _ZERO6, faults, False)
@@ -252,6 +280,8 @@ class MotionCore:
             self._begin_stop(ControlStatus.STOPPED, "stopped on request")
         if inp.command is not None or inp.command_error:
             self._accept(inp, faults)
+        if isinstance(self.controller, JointMove):
+            return self._step_joint(self.controller, inp, faults)
 
         twist: Array = _ZERO6
         guarded = False
@@ -289,14 +319,41 @@ class MotionCore:
             self._begin_stop(status_of(faults), describe(faults))
         return self._output(Action.SPEED, twist, faults, guarded)
 
-    def _finish(self, faults: Fault) -> CycleOutput:
+    def _step_joint(self, ctrl: JointMove, inp: CycleInput, faults: Fault) -> CycleOutput:
+        """The cycle of a joint move (module docstring)."""
+        qd: Array = _ZERO6
+        if self.mode == Mode.ACTIVE:
+            if faults:
+                # Brake from what was sent last cycle, not from one more planned step.
+                self._begin_stop(status_of(faults), describe(faults))
+            else:
+                qd, status = ctrl.step(inp.state)
+                if status == ControlStatus.DONE or status >= ControlStatus.WORKSPACE:
+                    self._begin_stop(status, ctrl.reason)
+                else:
+                    self.status = status
+        if self.mode == Mode.STOPPING:
+            qd, at_rest = ctrl.stop_step()
+            self.status = self._stop_status
+            if at_rest:
+                return self._finish(faults, Action.SPEED_J)
+        faults |= self.joint_monitor.check(qd)
+        # The TCP's twist in a joint move is the robot's own; the stop is in joint space.
+        if self.workspace(inp.state.T_base_tcp[:3, 3], inp.state.v_tcp[:3], _ZERO3):
+            faults |= Fault.WORKSPACE
+        if faults & (Fault.WORKSPACE | LIMITS):
+            self._begin_stop(status_of(faults), describe(faults))
+        return self._output(Action.SPEED_J, qd, faults, False)
+
+    def _finish(self, faults: Fault, action: Action = Action.SPEED) -> CycleOutput:
         self.mode = Mode.IDLE
         self.controller = Hold()
         self.status = self._stop_status
         self.monitor.reset()
+        self.joint_monitor.reset()
         if self._stop_status != ControlStatus.DONE:
             self._refuse(self.command_id, self._stop_status, self._stop_reason)
-        return self._output(Action.SPEED, _ZERO6, faults, False)
+        return self._output(action, _ZERO6, faults, False)
 
     def _output(self, action: Action, twist: Array, faults: Fault, guarded: bool) -> CycleOutput:
         ctrl = self.controller

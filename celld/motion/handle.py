@@ -48,7 +48,7 @@ from celld.motion.channels import (
 )
 from celld.motion.controllers import MoveParams
 from celld.motion.core import CoreParams, Mode
-from celld.motion.limits import CartesianLimits, check_twist
+from celld.motion.limits import CartesianLimits, JointMoveLimits, check_twist
 from celld.motion.loop import LoopParams
 from celld.motion.process import MotionSpec, servo_laws_from
 from celld.motion.supervisor import LinkState, MotionSupervisor, ProcessExit
@@ -63,6 +63,8 @@ log = get_logger(__name__)
 RING_SECONDS = 8.0
 # How often the handle drains the ring, s.
 DRAIN_PERIOD = 0.02
+# The link counts as up while the loop's latest record is at most this many cycles old.
+LINK_FRESH_CYCLES = 10
 # Loop timing statistics cover this many recent cycles.
 STATS_WINDOW = 30_000
 _SAFETY = {ControlStatus.SAFETY, ControlStatus.WORKSPACE, ControlStatus.LIMIT}
@@ -116,6 +118,7 @@ def spec_from_config(config: Config, names: ChannelNames, host: str | None = Non
     robot, motion = config.robot, config.motion
     period = 1.0 / robot.frequency_hz
     limits = CartesianLimits.from_config(motion)
+    joint_limits = JointMoveLimits.from_config(motion)
     return MotionSpec(
         host=host or robot.host,
         channels=names,
@@ -127,11 +130,13 @@ def spec_from_config(config: Config, names: ChannelNames, host: str | None = Non
             state_stale=motion.state_stale_cycles * period,
             tactile_stale=motion.tactile_stale,
             move=move,
+            joint_limits=joint_limits,
         ),
         loop=LoopParams(
             period_ns=int(round(period * 1e9)),
             # speedL's own ramp must never clip the limiter's profile.
             speed_accel=2.0 * max(limits.linear_accel, limits.angular_accel),
+            joint_speed_accel=2.0 * joint_limits.accel,
             link_timeout_ns=int(link_timeout * 1e9),
             process_output=robot.arc_output,
         ),
@@ -166,6 +171,7 @@ class MotionHandle:
         self._cycles = 0
         self._last_record: np.void | None = None
         self._last_record_t = 0.0
+        self._fresh_ns = LINK_FRESH_CYCLES * supervisor.spec.loop.period_ns
         self._periods: deque[np.ndarray] = deque()
         self._period_count = 0
         self._pending: dict[int, _Pending] = {}
@@ -282,6 +288,22 @@ class MotionHandle:
         self._pending[cid] = _Pending(fut, [""])
         return fut
 
+    async def _arrive(self, command: cmd.Command, what: str, timeout: float | None) -> RobotState:
+        """Post a move, wait for it to end, and return the state on arrival or raise why it did not."""
+        cid = self._post(command)
+        fut = self._track(cid)
+        try:
+            status = await asyncio.wait_for(asyncio.shield(fut), timeout)
+        except TimeoutError:
+            self.stop()
+            raise MotionError(f"{what} did not arrive within {timeout} s; the robot was stopped") from None
+        if status != ControlStatus.DONE:
+            raise error_for(status, self._pending_reason(cid))
+        state = self.state()
+        if state is None:  # cannot happen: a DONE record was read
+            raise MotionError(f"{what} arrived but no robot state was read")
+        return state
+
     async def move_to(
         self,
         target: ArrayLike,
@@ -318,19 +340,33 @@ class MotionHandle:
         if not all(lo[i] <= p[i] <= hi[i] for i in range(3)):
             raise InputError(f"move_to target {np.round(p, 4).tolist()} m lies outside the workspace box "
                              f"{list(lo)} .. {list(hi)}")
-        cid = self._post(command)
-        fut = self._track(cid)
-        try:
-            status = await asyncio.wait_for(asyncio.shield(fut), timeout)
-        except TimeoutError:
-            self.stop()
-            raise MotionError(f"move_to did not arrive within {timeout} s; the robot was stopped") from None
-        if status != ControlStatus.DONE:
-            raise error_for(status, self._pending_reason(cid))
-        state = self.state()
-        if state is None:  # cannot happen: a DONE record was read
-            raise MotionError("move_to arrived but no robot state was read")
-        return state
+        return await self._arrive(command, "move_to", timeout)
+
+    async def move_joints(
+        self,
+        q_goal: ArrayLike,
+        speed_scale: float = 1.0,
+        tolerance: float = 5e-5,
+        timeout: float | None = None,
+        rest_timeout: float = 5.0,
+    ) -> RobotState:
+        """Move the joints straight in joint space to ``q_goal`` (rad) and return the state on arrival.
+
+        A joint move starts from rest: this waits up to ``rest_timeout`` s for
+        the loop to hold still first. The caller checks the path and the
+        goal's TCP against the cell (:class:`celld.daemon.planning.MotionPlanner`);
+        ``speed_scale`` scales every joint limit.
+
+        Raises
+        ------
+        InputError
+            ``q_goal`` is not 6 finite joint positions within +-2 pi.
+        SafetyStop, LinkLost, MotionError
+            The move did not arrive; the message says why.
+        """
+        command = cmd.move_joints(q_goal, speed_scale, tolerance)
+        await self.wait_idle(rest_timeout)
+        return await self._arrive(command, "move_joints", timeout)
 
     def stream(self, twist: ArrayLike, timeout: float = 0.1) -> None:
         """Set the streamed twist (6,) (base frame, m/s and rad/s); starts streaming if needed.
@@ -421,8 +457,18 @@ class MotionHandle:
                           from_ur_pose(rec["tcp_pose"]), np.array(rec["tcp_speed"]))
 
     def link_running(self) -> bool:
-        """True while the motion loop runs (cheap: no timing statistics)."""
-        return self.supervisor.state == LinkState.RUNNING
+        """True while the motion loop runs: its process is up and its latest record is fresh (cheap).
+
+        Read from the state ring itself, not from what the drain task last
+        collected, so it follows the loop within :data:`LINK_FRESH_CYCLES`
+        cycles even while the event loop is busy.
+        """
+        if self.supervisor.state != LinkState.RUNNING:
+            return False
+        last = self.ch.state.latest(1)
+        if len(last) == 0:
+            return False
+        return time.monotonic_ns() - int(last["t_ns"][0]) <= self._fresh_ns
 
     def heartbeat_age(self) -> float:
         """Seconds since the last state record arrived (inf before the first); cheap."""

@@ -1,4 +1,4 @@
-"""Cartesian motion limits and the jerk-limited twist limiter (ruckig, velocity interface).
+"""Cartesian and joint motion limits, and the jerk-limited twist limiter (ruckig, velocity interface).
 
 Every twist the motion loop sends passes through :class:`TwistLimiter`, so the
 configured limits hold in every cycle whatever the controller asked for.
@@ -86,6 +86,24 @@ class CartesianLimits(NamedTuple):
     def speeds(self) -> tuple[float, float]:
         return self.linear_speed, self.angular_speed
 
+
+
+class JointMoveLimits(NamedTuple):
+    """Limits of every joint in a joint move, SI: rad/s, rad/s^2, rad/s^3."""
+
+    speed: float
+    accel: float
+    jerk: float
+
+    @classmethod
+    def from_config(cls, m: MotionLimits) -> JointMoveLimits:
+        return cls(m.max_joint_speed, m.max_joint_accel, m.max_joint_jerk)
+
+    def scaled(self, factor: float) -> JointMoveLimits:
+        """Return every limit times ``factor`` (0 < factor <= 1)."""
+        if not 0.0 < factor <= 1.0:
+            raise InputError(f"limit scale: expected 0 < factor <= 1, got {factor}")
+        return JointMoveLimits(self.speed * factor, self.accel * factor, self.jerk * factor)
 
 
 class LimiterResult(IntEnum):

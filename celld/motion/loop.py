@@ -10,7 +10,7 @@ Each cycle:
    read keeps the last good sample and is counted), the control slot (stop,
    shutdown) and at most one command from the mailbox;
 4. step :class:`~celld.motion.core.MotionCore` and send what it says
-   (speedL, or a watchdog kick while it holds still), then switch the process
+   (speedL, speedJ in a joint move, or a watchdog kick while it holds still), then switch the process
    output (the welding arc) when the core's ``process_on`` changed;
 5. append one record to the state ring.
 
@@ -62,6 +62,7 @@ class LoopParams(NamedTuple):
 
     period_ns: int
     speed_accel: float  # speedL's own ramp, m/s^2 (and rad/s^2); above what the limiter uses
+    joint_speed_accel: float = 8.0  # speedJ's own ramp, rad/s^2; above what a joint move uses
     spin_ns: int = 300_000  # sleep to this long before the deadline, then spin
     link_timeout_ns: int = 100_000_000  # no fresh robot state this long: the link is lost
     program_grace_ns: int = 100_000_000  # the robot's program not running this long: exit
@@ -325,6 +326,8 @@ class MotionLoop:
         )
         if out.action == Action.SPEED:
             port.speed(out.twist.tolist(), p.speed_accel)
+        elif out.action == Action.SPEED_J:
+            port.speed_joints(out.twist.tolist(), p.joint_speed_accel)
         else:
             port.kick()
         t_sent = self.clock()

@@ -11,8 +11,9 @@ motion in a jerk-limited stop with a status the job sees:
   started now, plus the link latency, must not be outside the box on a side
   it is moving towards (moving back in from outside is allowed);
 - the speed, acceleration and jerk norms of the twists actually sent
-  (finite differences), which the limiter guarantees; a breach means a bug,
-  and still stops the robot.
+  (finite differences), which the limiter guarantees, and of every joint's
+  speed sent in a joint move, which its planner guarantees; a breach means a
+  bug, and still stops the robot.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from ruckig import ControlInterface, InputParameter, Ruckig, RuckigError, Trajectory
 
-from celld.motion.limits import CartesianLimits
+from celld.motion.limits import CartesianLimits, JointMoveLimits
 from celld.motion.types import ControlStatus
 
 Array = NDArray[np.float64]
@@ -197,6 +198,39 @@ class SequenceMonitor:
             if acc > amax * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / dt:
                 f |= Fault.ACCEL
             if jerk > jmax * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / (dt * dt):
+                f |= Fault.JERK
+        self._prev2 = p1
+        self._prev1 = v
+        return f
+
+
+class JointSequenceMonitor:
+    """Checks every joint's speed sent in a joint move: speed, and acceleration and jerk by finite differences."""
+
+    def __init__(self, limits: JointMoveLimits, period: float) -> None:
+        self.limits = limits
+        self.period = period
+        self._prev1 = [0.0] * 6
+        self._prev2 = [0.0] * 6
+
+    def reset(self) -> None:
+        """The robot is at rest and nothing is being sent."""
+        self._prev1 = [0.0] * 6
+        self._prev2 = [0.0] * 6
+
+    def check(self, qd: Sequence[float] | np.ndarray) -> Fault:
+        """Record the joint speeds ``qd`` (6,) sent this cycle and return the limits they break."""
+        lim = self.limits
+        dt = self.period
+        v = [float(x) for x in qd]
+        p1, p2 = self._prev1, self._prev2
+        f = Fault.NONE
+        for i in range(6):
+            if abs(v[i]) > lim.speed * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL:
+                f |= Fault.SPEED
+            if abs(v[i] - p1[i]) / dt > lim.accel * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / dt:
+                f |= Fault.ACCEL
+            if abs(v[i] - 2.0 * p1[i] + p2[i]) / (dt * dt) > lim.jerk * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / (dt * dt):
                 f |= Fault.JERK
         self._prev2 = p1
         self._prev1 = v

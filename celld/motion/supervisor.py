@@ -117,6 +117,7 @@ class MotionSupervisor:
         self.restarts = 0
         self.last_exit: ProcessExit | None = None
         self._failures = 0
+        self._retry = False
         self._proc: _Proc | None = None
         self._task: asyncio.Task[None] | None = None
         self._closing = False
@@ -158,6 +159,11 @@ class MotionSupervisor:
         """The motion process's last status record (phase, pid, real time, reason)."""
         self.ch.status.read_into(self._status)
         return self._status[0].copy()
+
+    def retry_now(self) -> None:
+        """Restart now if waiting to restart, with the back-off reset (the operator cleared a fault)."""
+        self._failures = 0
+        self._retry = True
 
     def request_stop(self) -> None:
         """Ask the loop for a jerk-limited stop; commands posted so far are cancelled."""
@@ -285,7 +291,8 @@ class MotionSupervisor:
             self.state = LinkState.RESTARTING
             self.restarts += 1
             restart_at = time.monotonic() + delay
-            while time.monotonic() < restart_at and not self._closing:
+            self._retry = False
+            while time.monotonic() < restart_at and not self._closing and not self._retry:
                 self.last_tick = time.monotonic()
                 await asyncio.sleep(min(_WATCH_PERIOD, max(restart_at - time.monotonic(), 0.0)))
         self._proc = None

@@ -88,7 +88,7 @@ _NO_MOTION = 1e-9
 # A joint moving this much between two samples a hair apart has changed IK branch, rad.
 _BRANCH_JUMP = 0.5
 # No joint limits: to tell a joint at its limit from a branch switch.
-_UNLIMITED = kin.JointLimits((-math.inf,) * 6, (math.inf,) * 6, (math.inf,) * 6)  # type: ignore[arg-type]
+_UNLIMITED = kin.JointLimits((-math.inf,) * 6, (math.inf,) * 6, (math.inf,) * 6)
 
 
 class PathParams(NamedTuple):
@@ -457,7 +457,7 @@ class Checker:
         # Uniform samples, denser until no sphere centre moves more than the step between two.
         n = max(1, math.ceil(float(np.abs(q1 - q0).max()) * self.arm.reach / self.params.step))
         while True:
-            s = np.linspace(0.0, 1.0, n + 1)
+            s = np.linspace(0.0, 1.0, n + 1, dtype=np.float64)
             Q = q0 + s[:, None] * (q1 - q0)
             F = self._frames(Q)
             C = self._centres(F)
@@ -502,7 +502,8 @@ class Checker:
             raise InputError(f"T_base_tcp_path: expected (n > 0, 4, 4) poses, got shape {T_path.shape}")
         q = kin.check_q(q_start, "q_start")
         n = len(T_path)
-        Qs, Ss = [q[None]], [np.zeros(1)]
+        Qs: list[Array] = [q[None]]
+        Ss: list[Array] = [np.zeros(1)]
         min_clearance = math.inf
         for k, T_raw in enumerate(T_path):
             T = se3.check_transform(T_raw, f"T_base_tcp_path[{k}]")

@@ -135,11 +135,11 @@ def _dh(d1: float, a2: float, a3: float, d4: float, d5: float, d6: float) -> DH:
 
 def _limits(base_shoulder_deg_s: float, elbow_deg_s: float, wrist_deg_s: float) -> JointLimits:
     """+-360 deg on every joint and the published joint speeds."""
-    qd = (base_shoulder_deg_s,) * 2 + (elbow_deg_s,) + (wrist_deg_s,) * 3
+    bs, el, wr = math.radians(base_shoulder_deg_s), math.radians(elbow_deg_s), math.radians(wrist_deg_s)
     return JointLimits(
-        q_min=(-_TWO_PI,) * 6,  # type: ignore[arg-type]
-        q_max=(_TWO_PI,) * 6,  # type: ignore[arg-type]
-        qd_max=tuple(math.radians(v) for v in qd),  # type: ignore[arg-type]
+        q_min=(-_TWO_PI,) * 6,
+        q_max=(_TWO_PI,) * 6,
+        qd_max=(bs, bs, el, wr, wr, wr),
     )
 
 

@@ -7,7 +7,8 @@ in the process that owns the 500 Hz loop and under the supervisor's timeout.
 
 ur-rtde's return values are not trusted (``speedL`` returns True on a dead
 link): the loop checks :meth:`RtdeLink.connected` and how fresh the state is
-every cycle. ``stopL`` does not end ``speedL``; :meth:`RtdeLink.speed_stop`
+every cycle. The loop sends ``speedL`` (a twist) or, in a joint move,
+``speedJ`` (joint speeds). ``stopL`` does not end ``speedL``; :meth:`RtdeLink.speed_stop`
 uses ``speedStop``. The RTDE watchdog (:meth:`RtdeLink.set_watchdog`) stops
 the robot's program when the loop stops writing, e.g. when the process is
 killed. :meth:`RtdeLink.set_digital_out` switches a standard digital output
@@ -33,6 +34,7 @@ RECEIVE_VARIABLES = (
     "safety_status_bits",
     "runtime_state",
     "robot_mode",
+    "actual_digital_output_bits",  # the arc interlock check (celld.motion.loop)
 )
 # UR runtime_state of a running program.
 RUNTIME_PLAYING = 2
@@ -60,6 +62,8 @@ class RobotPort(Protocol):
     def read(self) -> RawState: ...
 
     def speed(self, twist: Sequence[float], accel: float) -> bool: ...
+
+    def speed_joints(self, qd: Sequence[float], accel: float) -> bool: ...
 
     def kick(self) -> None: ...
 
@@ -144,6 +148,10 @@ class RtdeLink:
     def speed(self, twist: Sequence[float], accel: float) -> bool:
         """speedL: the TCP twist (base frame) the robot ramps to at ``accel`` and then keeps."""
         return bool(self._c.speedL(twist, accel, 0.0))  # type: ignore[attr-defined]
+
+    def speed_joints(self, qd: Sequence[float], accel: float) -> bool:
+        """speedJ: the joint speeds (rad/s) the robot ramps to at ``accel`` (rad/s^2) and then keeps."""
+        return bool(self._c.speedJ(qd, accel, 0.0))  # type: ignore[attr-defined]
 
     def speed_stop(self, accel: float) -> None:
         """speedStop: end speedL, decelerating at ``accel`` (stopL would not end it)."""

@@ -18,7 +18,6 @@ itself (length, values) is checked when it is read.
 
 from __future__ import annotations
 
-import re
 import threading
 import time
 from collections.abc import Callable
@@ -29,6 +28,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from celld import fsutil
+from celld.cloudfile import ply_header
 from celld.errors import DeviceError, InputError
 from celld.scanner.base import CaptureStats, OrganizedCloud, check_organized
 
@@ -36,17 +36,6 @@ from celld.scanner.base import CaptureStats, OrganizedCloud, check_organized
 SUFFIXES = (".npy", ".ply")
 # Metres per declared unit.
 UNITS = {"m": 1.0, "mm": 1e-3}
-# PLY scalar types and their numpy codes.
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}  # fmt: skip
-_PLY_FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
-_PLY_SIZE_RE = re.compile(r"^(?:comment|obj_info)\s+(width|height)\s*[:=]?\s*(\d+)\s*$", re.IGNORECASE)
-# A PLY header longer than this is not a header.
-_PLY_MAX_HEADER = 64 * 1024
 
 
 class PlyHeader(NamedTuple):
@@ -61,59 +50,16 @@ class PlyHeader(NamedTuple):
 
 def read_ply_header(path: Path) -> PlyHeader:
     """Parse and check the header of an organized PLY file; InputError names the file and the reason."""
-    with open(path, "rb") as f:
-        head = f.read(_PLY_MAX_HEADER)
-    end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0:
-        raise InputError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header' in the first {_PLY_MAX_HEADER} bytes)")
-    nl = head.find(b"\n", end)
-    data_offset = (nl + 1) if nl >= 0 else len(head)
-    lines = head[:end].decode("ascii", errors="replace").splitlines()[1:]
-    fmt = ""
-    size: dict[str, int] = {}
-    n_vertex = -1
-    fields: list[tuple[str, str]] = []
-    element = ""
-    elements: list[str] = []
-    for raw in lines:
-        line = raw.strip()
-        words = line.split()
-        if not words:
-            continue
-        m = _PLY_SIZE_RE.match(line)
-        if m:
-            size[m.group(1).lower()] = int(m.group(2))
-        elif words[0] == "format":
-            fmt = words[1] if len(words) > 1 else ""
-        elif words[0] == "element":
-            element = words[1] if len(words) > 1 else ""
-            elements.append(element)
-            if element == "vertex":
-                n_vertex = int(words[2]) if len(words) > 2 and words[2].isdigit() else -1
-        elif words[0] == "property" and element == "vertex":
-            if len(words) != 3 or words[1] not in _PLY_TYPES:
-                raise InputError(f"{path}: vertex property {line!r} is not a scalar PLY type (lists are not supported)")
-            fields.append((words[2], _PLY_TYPES[words[1]]))
-    if fmt not in _PLY_FORMATS:
-        raise InputError(f"{path}: PLY format {fmt!r} not supported (ascii, binary_little_endian, binary_big_endian)")
-    if n_vertex < 0:
-        raise InputError(f"{path}: no 'element vertex <count>' in the header")
-    if elements[0] != "vertex":
-        raise InputError(f"{path}: the vertex element must come first in the file")
-    names = [n for n, _ in fields]
-    if not {"x", "y", "z"} <= set(names) or len(set(names)) != len(names):
-        raise InputError(f"{path}: expected vertex properties x, y, z once each, got {names}")
-    if "width" not in size or "height" not in size:
+    h = ply_header(path)
+    if "width" not in h.grid or "height" not in h.grid:
         raise InputError(
             f"{path}: an organized PLY needs its grid in the header ('comment width W' and 'comment height H'); "
-            f"it has {n_vertex} vertices and no grid size"
+            f"it has {h.n_vertex} vertices and no grid size"
         )
-    width, height = size["width"], size["height"]
-    if width < 1 or height < 1 or width * height != n_vertex:
-        raise InputError(f"{path}: header grid {width} x {height} does not match its {n_vertex} vertices")
-    order = _PLY_FORMATS[fmt]
-    dtype = np.dtype([(n, (order or "<") + t) for n, t in fields])
-    return PlyHeader(fmt, width, height, dtype, data_offset)
+    width, height = h.grid["width"], h.grid["height"]
+    if width < 1 or height < 1 or width * height != h.n_vertex:
+        raise InputError(f"{path}: header grid {width} x {height} does not match its {h.n_vertex} vertices")
+    return PlyHeader(h.fmt, width, height, h.vertex_dtype, h.data_offset)
 
 
 def _read_ply(path: Path) -> np.ndarray:

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from celld.cloudfile import check_cloud_file
 from celld.errors import InputError, ScanError, SeamError, WorkpieceError
 
 # Cloud units accepted at this boundary, to metres.
@@ -133,7 +134,8 @@ def read_cloud(path: str | Path, units: str = "m") -> np.ndarray:
     suffix = p.suffix.lower()
     try:
         if suffix == ".npy":
-            P = np.load(p)
+            # Mapped first: a header that declares more than the file holds fails here, unallocated.
+            P = np.array(np.load(p, mmap_mode="r", allow_pickle=False))
         elif suffix == ".npz":
             with np.load(p) as data:
                 if "points" not in data:
@@ -142,10 +144,11 @@ def read_cloud(path: str | Path, units: str = "m") -> np.ndarray:
         elif suffix in (".ply", ".pcd"):
             import open3d as o3d
 
+            check_cloud_file(p)  # the header against the file's size, before Open3D allocates
             P = np.asarray(o3d.io.read_point_cloud(str(p)).points)
         else:
             raise ScanError(f"{p}: cloud must be .npy, .npz, .ply or .pcd, got {suffix or 'no extension'!r}")
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, InputError) as exc:
         raise ScanError(f"{p}: cannot read the cloud: {exc}") from exc
     P = np.asarray(P, dtype=np.float32 if np.asarray(P).dtype == np.float32 else np.float64)
     return P * _UNITS[units] if units != "m" else P

@@ -223,7 +223,7 @@ class Finger:
             c = self._stick_slip(c, p_rest, v_rest, wall)
         if p.hysteresis > 0.0:
             half = p.hysteresis / 2.0
-            self._tag = np.clip(self._tag, c.tip_shift_plane - half, c.tip_shift_plane + half)
+            self._tag = np.asarray(np.clip(self._tag, c.tip_shift_plane - half, c.tip_shift_plane + half), dtype=np.float64).reshape(-1)
             return c, self._tag.copy()
         return c, c.tip_shift_plane
 

@@ -555,7 +555,7 @@ def _draw_arm(nominal: NominalCell, b: ErrorBudget, seed: int) -> ArmTruth:
         d = np.asarray(dh.d) + _tnormal(r, b.dh_length, 6)
         a = np.asarray(dh.a) + _tnormal(r, b.dh_length, 6)
         alpha = np.asarray(dh.alpha) + _tnormal(r, b.dh_twist, 6)
-        dh = kin.DH(tuple(d.tolist()), tuple(a.tolist()), tuple(alpha.tolist()))  # type: ignore[arg-type]
+        dh = kin.DH(tuple(d.tolist()), tuple(a.tolist()), tuple(alpha.tolist()))
         offsets = tuple(_tnormal(r, b.joint_offset, 6).tolist())
     settle = b.on("settle")
     return ArmTruth(

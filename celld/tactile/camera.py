@@ -13,7 +13,15 @@ outcome go to a second slot (:data:`COUNTERS_DTYPE`).
 
 At start (and on request) the process tares: it averages ``tare_frames``
 detections with the finger free; until a tare succeeds it writes
-``NOT_TARED`` samples.
+``NOT_TARED`` samples. "Free" is checked, not assumed. A tare the daemon
+asks for is taken where it knows the finger is free (the weld's approach
+pose, clear of the part): it is accepted and becomes the finger's reference
+rest (kept across restarts). The process's own tare when it starts (or
+restarts, e.g. in the middle of a weld) is accepted only within
+``tare_max_offset`` of that reference: a camera restarted while the finger
+is pressed against the part stays ``NOT_TARED``, the counters say how far
+off the rest was, and the tare is retried until the finger is free. Without
+a reference yet, the start-up tare is taken but not kept as one.
 
 The process around the loop (its entry point, real-time set-up and its
 handle in the daemon) is :mod:`celld.tactile.process`. OpenCV runs
@@ -23,6 +31,7 @@ motion loop.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -35,7 +44,7 @@ from celld.errors import DeviceError, TactileError
 from celld.log import get_logger
 from celld.shm import SeqlockSlot
 from celld.tactile.aruco import TagDetector
-from celld.tactile.deformation import DeformationParams, Tare, estimate, invalid_sample, tare
+from celld.tactile.deformation import DeformationParams, Tare, TareRefused, estimate, invalid_sample, tare
 from celld.tactile.sample import ContactState, TactileSample, TactileStatus, to_record
 
 log = get_logger(__name__)
@@ -56,6 +65,8 @@ COUNTERS_DTYPE = np.dtype(
         ("detect_ns", np.int64),  # of the last frame
         ("pid", np.int64),
         ("tares", np.int64),  # tares completed since the process started
+        ("tare_refused", np.bool_),  # the last tare found the finger not free
+        ("tare_offset", np.float64),  # its rest from the reference rest, m; NaN without a reference
     ]
 )
 
@@ -146,10 +157,15 @@ class FrameEstimator:
         Where the camera sits in the tool (the deformation is in the tool frame).
     rest : Tare or None
         The tared rest position; None until a tare.
+    reference : (3,) array or None
+        The finger's reference rest in the camera frame, m (module
+        docstring); None: the next successful tare becomes it.
     """
 
-    def __init__(self, cfg: TactileConfig, tool: ToolConfig, rest: Tare | None = None) -> None:
+    def __init__(self, cfg: TactileConfig, tool: ToolConfig, rest: Tare | None = None, reference: np.ndarray | None = None) -> None:
         self.cfg = cfg
+        self.reference = None if reference is None else np.asarray(reference, dtype=np.float64)
+        self.new_reference = False  # the last tare set the reference (the caller keeps it)
         self.detector = TagDetector.from_config(cfg)
         self.params = DeformationParams.from_config(cfg, tool)
         self.rest = rest
@@ -227,11 +243,14 @@ class PreviewWriter:
         self.slot.write(r)
 
 
-def run_tare(source: FrameSource, est: FrameEstimator, publish: Callable[[TactileSample], None]) -> Tare:
-    """Tare with the finger free: average ``tare_frames`` detections.
+def run_tare(source: FrameSource, est: FrameEstimator, publish: Callable[[TactileSample], None], known_free: bool = False) -> Tare:
+    """Tare: average ``tare_frames`` detections.
 
     Every frame read meanwhile is still published (as ``NOT_TARED`` or the
-    detection's failure), so the motion process sees a live camera.
+    detection's failure), so the motion process sees a live camera. With
+    ``known_free`` (the daemon asked, the finger is clear of everything) the
+    rest is taken and becomes the reference; otherwise it must lie within
+    ``tare_max_offset`` of the reference (module docstring).
 
     Raises
     ------
@@ -254,11 +273,23 @@ def run_tare(source: FrameSource, est: FrameEstimator, publish: Callable[[Tactil
                 positions.append(p_cam)
             if len(positions) >= cfg.tare_frames:
                 break
-        rest = tare(np.array(positions).reshape(-1, 3), cfg.tare_max_spread, cfg.tare_frames)
+        reference = None if known_free else est.reference
+        rest = tare(np.array(positions).reshape(-1, 3), cfg.tare_max_spread, cfg.tare_frames, reference, cfg.tare_max_offset)
+    except TareRefused as exc:
+        est.rest = saved
+        est.counters[0]["tare_refused"] = True
+        est.counters[0]["tare_offset"] = exc.offset
+        raise
     except TactileError:
         est.rest = saved
         raise
     est.rest = rest
+    est.counters[0]["tare_refused"] = False
+    offset = math.nan if est.reference is None else float(np.linalg.norm(rest.p_cam_rest - est.reference))
+    est.counters[0]["tare_offset"] = offset
+    if known_free:
+        est.reference = rest.p_cam_rest.copy()
+        est.new_reference = True
     est.counters[0]["tared"] = True
     est.counters[0]["tares"] += 1
     est.counters[0]["p_cam_rest"] = rest.p_cam_rest
@@ -274,10 +305,12 @@ def run_camera(
     stop: Callable[[], bool],
     tare_requested: Callable[[], bool] = lambda: False,
     preview: PreviewWriter | None = None,
+    on_reference: Callable[[Tare], None] | None = None,
 ) -> None:
     """The camera loop: read, estimate, publish, until ``stop()``; tares when asked (and at start without a rest).
 
-    ``preview`` gets each frame after its sample is out, to share some for viewing.
+    ``preview`` gets each frame after its sample is out, to share some for
+    viewing; ``on_reference`` the tare that became the finger's reference rest.
     """
 
     def publish(sample: TactileSample) -> None:
@@ -286,14 +319,28 @@ def run_camera(
             counters.write(est.counters)
 
     need_tare = est.rest is None
+    known_free = False  # the pending tare is the daemon's (a failed one is retried as such)
+    last_failure = ""
     while not stop():
-        if need_tare or tare_requested():
+        if tare_requested():
+            known_free = True
+        if need_tare or known_free:
             try:
-                rest = run_tare(source, est, publish)
-                log.info("SRM tared", p_cam_rest_mm=np.round(rest.p_cam_rest * 1e3, 4).tolist(), spread_um=round(rest.spread * 1e6, 2))
-                need_tare = False
+                rest = run_tare(source, est, publish, known_free)
+                log.info("SRM tared", p_cam_rest_mm=np.round(rest.p_cam_rest * 1e3, 4).tolist(), spread_um=round(rest.spread * 1e6, 2),
+                         offset_mm=round(float(est.counters[0]["tare_offset"]) * 1e3, 4), reference=est.new_reference)
+                if est.new_reference:
+                    est.new_reference = False
+                    if on_reference is not None:
+                        on_reference(rest)
+                need_tare = known_free = False
+                last_failure = ""
             except TactileError as exc:
-                log.warning("SRM tare failed, trying again", reason=str(exc))
+                # Logged once per kind of failure: a pressed finger retries every few frames.
+                kind = type(exc).__name__
+                if kind != last_failure:
+                    log.warning("SRM not tared, trying again", reason=str(exc))
+                    last_failure = kind
                 need_tare = True
             continue
         frame = source.read()

@@ -68,7 +68,9 @@ class DeformationParams(NamedTuple):
         return cls(tool.R_tool_cam(), cfg.contact_threshold, cfg.overload, cfg.min_sharpness, cfg.max_reprojection_px)
 
 
-def tare(p_cam: Array, max_spread: float, min_frames: int = 1) -> Tare:
+def tare(
+    p_cam: Array, max_spread: float, min_frames: int = 1, reference: Array | None = None, max_offset: float = math.inf
+) -> Tare:
     """Rest position of the tag from positions seen with the finger free.
 
     Parameters
@@ -79,11 +81,17 @@ def tare(p_cam: Array, max_spread: float, min_frames: int = 1) -> Tare:
         Largest RMS spread accepted, m; a finger that moves or touches
         something during the tare spreads its positions.
     min_frames : int
+    reference : (3,) array, optional
+        The finger's reference rest (an earlier tare known free), m.
+    max_offset : float
+        Largest distance of the new rest from ``reference``, m: a finger held
+        still but pressed (against the part, after a crash) rests elsewhere.
 
     Raises
     ------
     TactileError
-        Too few frames, or the tag moved during the tare.
+        Too few frames, the tag moved during the tare, or it rests too far
+        from the reference (:class:`TareRefused`).
     """
     P = np.asarray(p_cam, dtype=np.float64)
     if P.ndim != 2 or P.shape[1] != 3:
@@ -98,7 +106,23 @@ def tare(p_cam: Array, max_spread: float, min_frames: int = 1) -> Tare:
             f"tare: the tag moved during the tare (RMS spread {spread * 1e3:.4f} mm, "
             f"expected at most {max_spread * 1e3:.4f} mm); keep the finger free and still"
         )
+    if reference is not None:
+        offset = float(np.linalg.norm(mean - np.asarray(reference, dtype=np.float64)))
+        if offset > max_offset:
+            raise TareRefused(
+                offset,
+                f"tare refused: the tag rests {offset * 1e3:.3f} mm from the finger's reference rest (at most "
+                f"{max_offset * 1e3:.3f} mm): the finger is not free (pressed or in contact); it is tared once it is free",
+            )
     return Tare(mean, len(P), spread)
+
+
+class TareRefused(TactileError):
+    """A tare that found the finger not free: ``offset`` (m) from its reference rest."""
+
+    def __init__(self, offset: float, message: str) -> None:
+        super().__init__(message)
+        self.offset = offset
 
 
 def deformation_tool(p_cam: Array, rest: Tare, R_tool_cam: Array) -> Array:

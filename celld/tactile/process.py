@@ -11,15 +11,18 @@ restarts it on the same slots after it died, and asks it to tare.
 
 from __future__ import annotations
 
+import json
 import multiprocessing as mp
 import os
 import time
 from multiprocessing.synchronize import Event
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from celld import fsutil
 from celld.config import TactileConfig, ToolConfig
 from celld.errors import DeviceError
 from celld.log import get_logger
@@ -35,6 +38,7 @@ from celld.tactile.camera import (
     preview_dtype,
     run_camera,
 )
+from celld.tactile.deformation import Tare
 from celld.tactile.sample import TACTILE_DTYPE, TactileSample, from_record
 
 log = get_logger(__name__)
@@ -60,12 +64,14 @@ def tactile_main(
     parent_pid: int = 0,
     heartbeat: str = "",
     parent_timeout_ns: int = 3_000_000_000,
+    rest_file: str = "",
 ) -> None:
     """Entry point of the tactile process (``multiprocessing`` spawn target).
 
     The process ends when told to (``stop``) and when its daemon is gone or
     hangs (:class:`~celld.supervision.ParentWatch`): a camera without its
-    daemon has nobody to serve.
+    daemon has nobody to serve. ``rest_file`` keeps the finger's reference
+    rest (:mod:`celld.tactile.camera`) across restarts.
     """
     parent = ParentWatch(parent_pid, heartbeat, parent_timeout_ns) if parent_pid else None
     cv2.setNumThreads(1)
@@ -79,8 +85,9 @@ def tactile_main(
     source = source_factory(cfg)
     try:
         source.open()
-        est = FrameEstimator(cfg, tool)
+        est = FrameEstimator(cfg, tool, reference=load_reference(rest_file) if rest_file else None)
         est.counters[0]["pid"] = os.getpid()
+        est.counters[0]["tare_offset"] = np.nan
         ready.set()
 
         def requested() -> bool:
@@ -97,7 +104,11 @@ def tactile_main(
                 log.warning("tactile process ends", reason=why)
             return bool(why)
 
-        run_camera(source, est, samples, counters, stopped, requested, preview)
+        def keep(rest: Tare) -> None:
+            if rest_file:
+                save_reference(rest_file, rest)
+
+        run_camera(source, est, samples, counters, stopped, requested, preview, keep)
     finally:
         source.close()
         samples.close()
@@ -106,6 +117,38 @@ def tactile_main(
             preview_shm.close()
         if parent is not None:
             parent.close()
+
+
+def load_reference(path: str | Path) -> np.ndarray | None:
+    """The finger's reference rest kept in ``path`` (camera frame, m), or None when there is none.
+
+    A file that cannot be read as one is logged and ignored: the next tare
+    then becomes the reference (and replaces the file).
+    """
+    p = Path(path)
+    if not p.exists():
+        return None
+    try:
+        data = json.loads(p.read_text())
+        ref = np.asarray(data["p_cam_rest_m"], dtype=np.float64)
+        if ref.shape != (3,) or not np.all(np.isfinite(ref)) or float(np.linalg.norm(ref)) > 1.0:
+            raise ValueError(f"p_cam_rest_m: expected 3 finite numbers within 1 m, got {data['p_cam_rest_m']!r}")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        log.error("the SRM's reference rest is unreadable; the next tare replaces it", path=str(p), error=str(exc))
+        return None
+    return ref
+
+
+def save_reference(path: str | Path, rest: Tare) -> None:
+    """Keep ``rest`` as the finger's reference rest (atomic write)."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    body = {"p_cam_rest_m": rest.p_cam_rest.tolist(), "spread_m": rest.spread, "frames": rest.n_frames,
+            "taken": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    try:
+        fsutil.write_json(p, body)
+    except OSError as exc:
+        log.error("could not keep the SRM's reference rest", path=str(p), error=str(exc))
 
 
 class TactileProcess:
@@ -127,6 +170,9 @@ class TactileProcess:
         s the heartbeat may stand still before the process ends.
     records : ChildRecords, optional
         Where the daemon records its children.
+    rest_file : path, optional
+        Where the finger's reference rest is kept (the daemon's
+        ``state_dir/tactile/rest.json``); "" keeps none, so every tare is taken.
     realtime : RealtimeOptions
         How the process asks for real time (:data:`CAMERA_REALTIME` unless
         given): SCHED_FIFO below the motion loop's priority (the process
@@ -147,6 +193,7 @@ class TactileProcess:
         heartbeat: str = "",
         parent_timeout: float = 3.0,
         records: ChildRecords | None = None,
+        rest_file: str | Path = "",
     ) -> None:
         self.cfg = cfg
         self.slot_name = f"{name}-tactile"
@@ -161,7 +208,7 @@ class TactileProcess:
         self._tare = ctx.Event()
         self._ready = ctx.Event()
         self._args = (cfg, tool, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, source_factory, realtime,
-                      self.preview_name, os.getpid(), heartbeat, int(parent_timeout * 1e9))
+                      self.preview_name, os.getpid(), heartbeat, int(parent_timeout * 1e9), str(rest_file))
         self._records = records
         self._proc = self._new_process()
         self.restarts = 0

@@ -5,17 +5,18 @@ from __future__ import annotations
 import asyncio
 import socket
 import threading
+from collections.abc import Callable, Coroutine, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Coroutine, Iterator
+from typing import Any
 
 import pytest
 
-from celld.daemon.dummy import DummyCell
 from celld.bus.keys import CellKeys
 from celld.bus.server import BusServer
 from celld.bus.session import ServerSession, open_server
 from celld.config import BusConfig, BusUser
+from celld.daemon.dummy import DummyCell
 from celld.journal import Journal
 
 

@@ -104,6 +104,6 @@ def test_viewer_credentials_cannot_submit(served, tmp_path: Path, capsys: pytest
 def test_schema_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bus", "schema", "--out", str(tmp_path / "schemas")]) == 0
     written = capsys.readouterr().out.split()
-    assert len(written) == 17 and all(Path(p).name.endswith(".schema.json") for p in written)
+    assert len(written) == 19 and all(Path(p).name.endswith(".schema.json") for p in written)
     submit = json.loads((tmp_path / "schemas" / "submit.schema.json").read_text())
     assert [b["properties"]["kind"]["const"] for b in submit["oneOf"]] == ["calibrate", "weld", "move", "health"]

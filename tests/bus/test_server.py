@@ -5,7 +5,8 @@ from __future__ import annotations
 import asyncio
 import json
 import time
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -117,12 +118,12 @@ def test_hostile_payloads_each_get_an_error_reply_and_the_server_stays_up(cell, 
 def test_a_wildcard_query_gets_one_reply_per_queryable_on_its_own_key(cell, client) -> None:
     replies = list(client.session.get(f"{cell.keys.base}/*", timeout=3.0))
     keys = sorted(str(r.ok.key_expr) for r in replies if r.ok is not None)
-    assert keys == sorted(cell.keys.query(q) for q in ("submit", "status", "cancel", "list", "accept", "calibration"))
+    assert keys == sorted(cell.keys.query(q) for q in ("submit", "status", "cancel", "list", "accept", "calibration", "robot"))
     assert cell.journal.jobs() == []  # an empty submit is refused ($.kind missing)
 
 
 def test_requests_of_every_queryable_with_garbage_get_errors(client) -> None:
-    for name in ("status", "cancel", "list", "accept", "calibration"):
+    for name in ("status", "cancel", "list", "accept", "calibration", "robot"):
         reply = client.request_raw(name, b'{"bogus": 1}')
         assert reply["ok"] is False and reply["error"]["field"] == "$.bogus", (name, reply)
 
@@ -182,6 +183,9 @@ class _Faulty:
 
     async def on_calibration(self, req: Any) -> Mapping[str, Any]:
         return {"calibration": None}
+
+    async def on_robot(self, req: Any) -> Mapping[str, Any]:
+        raise RuntimeError("a handler's own bug")
 
 
 def test_handler_failures_become_error_replies(serve_cell) -> None:

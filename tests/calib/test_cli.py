@@ -80,20 +80,47 @@ def test_solve_errors_are_json_with_a_reason(tmp_path: Path, rng: np.random.Gene
 
 
 @pytest.fixture(scope="module")
-def sim_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A small session from the ray-cast PhoXi M (0.4 of its resolution): 8 poses and a verification capture."""
+def sim_sessions(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A small session from the ray-cast PhoXi M (0.4 of its resolution), 8 poses and a verification capture,
+    saved twice: compact (the default) and as float32 PLY."""
     from celld.sim.scanner import SimScanner
     from celld.sim.scene import robot_scene
 
-    root = tmp_path_factory.mktemp("sim") / "session"
+    root = tmp_path_factory.mktemp("sim")
     flange = preset("ur10e")
     scanner = SimScanner("phoxi-m", T_BASE_CAM, seed=1, resolution_scale=0.4)
-    writer = SessionWriter(root, flange="ur10e", scanner="phoxi-m")
+    writers = [SessionWriter(root / kind, flange="ur10e", scanner="phoxi-m", compact=kind == "compact") for kind in ("compact", "float")]
     T_v = transform_from(np.eye(3), BOX_CENTRE)
-    writer.set_verification(T_v, scanner.capture(robot_scene(T_v, flange)).points)
+    P_v = scanner.capture(robot_scene(T_v, flange)).points
+    for w in writers:
+        w.set_verification(T_v, P_v)
     for T in flange_poses(np.random.default_rng(1), 8):
-        writer.add_pair(T, scanner.capture(robot_scene(T, flange)).points)
-    return root
+        P = scanner.capture(robot_scene(T, flange)).points
+        for w in writers:
+            w.add_pair(T, P)
+    return {"compact": root / "compact", "float": root / "float"}
+
+
+@pytest.fixture(scope="module")
+def sim_session(sim_sessions: dict[str, Path]) -> Path:
+    return sim_sessions["compact"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("redetect", [False, True])
+def test_a_compact_session_solves_exactly_as_the_float_one(sim_sessions: dict[str, Path], redetect: bool, capsys) -> None:
+    assert (sim_sessions["compact"] / "p000.cloud.json").is_file() and (sim_sessions["float"] / "p000.ply").is_file()
+    extra = ["--redetect"] if redetect else []
+    code_c, compact = run(capsys, "calib", "solve", str(sim_sessions["compact"]), "--json", *extra)
+    code_f, full = run(capsys, "calib", "solve", str(sim_sessions["float"]), "--json", *extra)
+    assert code_c == code_f == 0
+    # The detector reads the same float32 values in both: the same centres, the same solve, to the bit.
+    for key in ("T_base_cam", "pairs", "rejected", "residuals_mm", "uncertainty"):
+        assert compact[key] == full[key], key
+    assert compact["algorithm1"]["pool"] == full["algorithm1"]["pool"]
+    # e_icp runs Open3D's ICP, whose threaded sums differ in the last bits from run to run.
+    assert compact["algorithm1"]["cost_mm"] == pytest.approx(full["algorithm1"]["cost_mm"], rel=1e-9)
+    assert compact["e_icp"]["translation_mm"] == pytest.approx(full["e_icp"]["translation_mm"], rel=1e-9, abs=1e-12)
 
 
 @pytest.mark.slow

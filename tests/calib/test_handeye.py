@@ -44,7 +44,7 @@ def test_eye_in_hand_recovers_exact_data(rng: np.random.Generator) -> None:
 
 def test_eye_in_hand_with_noise_is_within_its_uncertainty() -> None:
     rng = np.random.default_rng(4)
-    T, P, N = eye_in_hand_data(rng, 15, 0.0002)
+    T, P, _N = eye_in_hand_data(rng, 15, 0.0002)
     fit = solve_eye_in_hand(T, P)
     dt, dr = error(fit.T_link_cam, T_FLAN_CAM)
     # Within 4 sigma of the predicted RMS errors, and the noise scale recovered.
@@ -117,7 +117,7 @@ def test_eye_on_arm_recovers_exact_data(rng: np.random.Generator) -> None:
 
 def test_eye_on_arm_with_noise_is_within_its_uncertainty() -> None:
     rng = np.random.default_rng(8)
-    Ta, Tf, P, N = eye_on_arm_data(rng, 20, 0.0002)
+    Ta, Tf, P, _N = eye_on_arm_data(rng, 20, 0.0002)
     fit = solve_eye_on_arm(Ta, Tf, P)
     dt, dr = error(fit.T_link_cam, T_ARM_CAM)
     assert dt < 4 * fit.uncertainty.translation_error

@@ -26,7 +26,7 @@ class FakeVerifier:
     def __init__(self, ok: bool = True) -> None:
         self.ok = ok
 
-    def strict(self) -> "FakeVerifier":
+    def strict(self) -> FakeVerifier:
         return self
 
     def __call__(self, T_base_cam: np.ndarray) -> IcpMetric:
@@ -112,3 +112,9 @@ def test_collinear_pairs_are_refused_as_undetermined(rng: np.random.Generator) -
     P_base = np.outer(np.linspace(0.0, 0.3, 6), [1.0, 0.2, 0.0]) + [0.4, 0.0, 0.45]
     with pytest.raises(CalibrationError, match="collinear.*undetermined"):
         solve_pairs([str(i) for i in range(6)], P_base, apply(invert(T_BASE_CAM), P_base))
+
+
+def test_a_solve_that_puts_the_camera_hundreds_of_metres_away_is_refused_with_the_likely_cause(rng: np.random.Generator) -> None:
+    ids, P_base, P_cam = box_pairs(rng, 8, 0.05e-3)
+    with pytest.raises(CalibrationError, match=r"puts the camera \d+ m from the robot base.*different units"):
+        solve_pairs(ids, P_base * 1000.0, P_cam, SolveParams(method="svd"))

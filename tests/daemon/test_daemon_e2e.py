@@ -92,6 +92,15 @@ def test_calibrate_over_the_bus_then_accept(daemon) -> None:
     # Six half-resolution PhoXi M captures: well under a millimetre and a tenth of a degree.
     assert dt < 0.5e-3 and math.degrees(dr) < 0.1, (dt, math.degrees(dr))
     assert Path(result["dataset"], "poses.json").exists()
+    # The dataset is compact, and solved again offline it gives the job's transform.
+    from celld.calib.dataset import load_session
+    from celld.calib.flange import preset
+    from celld.calib.session import SolveParams, calibrate_session
+
+    session = load_session(result["dataset"])
+    assert [r.cloud_path.name for r in session.pairs] == [f"p{i:03d}.cloud.json" for i in range(6)]
+    offline = calibrate_session(session, preset("ur10e"), SolveParams(e_required=0.0))
+    np.testing.assert_array_equal(offline.T_base_cam, T)
 
     # Not current until the operator accepts it.
     assert client.calibration() is None
@@ -117,6 +126,11 @@ def test_move_and_health_and_a_refused_job(daemon) -> None:
     client, _, _, robot = daemon
     _, record = client.submit_and_wait({"kind": "health", "check": "all"}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
+    health = json.loads(Path(record["result"]).read_text())
+    assert health["robot"]["condition"]["ready"] and health["problems"] == []
+    # The interlock setting cannot be read; health says so, and that no arc was found left on.
+    assert health["arc_interlock"]["verified"] is False and health["arc_interlock"]["missing_seen"] is False
+    assert "cannot be read" in health["arc_interlock"]["note"]
     target = [0.62, 0.02, 0.46, 0.0, 0.0, 0.0]
     _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": target}}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
@@ -139,6 +153,22 @@ def test_move_and_health_and_a_refused_job(daemon) -> None:
         assert record["state"] == "failed", (what, record)
         assert "refused" in record["reason"] and all(w in record["reason"] for w in words), (what, record["reason"])
         assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, f"the arm moved for the refused move into the {what}"
+
+    # A joint move lands within a hundredth of a degree on every joint of the
+    # robot's true joints, slowed if need be so the TCP keeps the Cartesian limits.
+    q_goal = [2.9, -1.35, 2.2, -2.4, 1.5, -1.1]
+    _, record = client.submit_and_wait({"kind": "move", "target": {"space": "joint", "q": q_goal}}, timeout=60)
+    assert record["state"] == "succeeded", record["reason"]
+    moved = json.loads(Path(record["result"]).read_text())
+    q_true = robot.truth()[2]
+    assert np.degrees(np.abs(q_true - np.array(q_goal))).max() < 0.01, np.degrees(q_true - np.array(q_goal))
+    assert max(moved["joint_error_deg"]) < 0.01
+    # A joint move whose line crosses the table is refused before any motion.
+    q_before = robot.truth()[2]
+    down = [2.9, -0.3, 2.2, -2.4, 1.5, -1.1]
+    _, record = client.submit_and_wait({"kind": "move", "target": {"space": "joint", "q": down}}, timeout=60)
+    assert record["state"] == "failed" and "refused" in record["reason"], record
+    assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6
 
 
 def test_a_calibration_dry_run_plans_and_checks_without_moving(daemon) -> None:

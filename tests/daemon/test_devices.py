@@ -6,9 +6,9 @@ import asyncio
 
 from celld.config import Config
 from celld.daemon import devices as devices_mod
-from celld.supervision import Backoff
 from celld.daemon.devices import CellDevices
 from celld.errors import DeviceError
+from celld.supervision import Backoff
 
 
 class FakeTactile:

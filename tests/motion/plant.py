@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from celld.motion.core import Action, CycleInput, CycleOutput, MotionCore
 from celld.motion.types import RobotState
+from celld.robot import kinematics as kin
 
 
 class KinematicPlant:
@@ -56,3 +57,46 @@ def run(core: MotionCore, plant: KinematicPlant, cycles: int, **kw) -> list[Cycl
         plant.apply(out)
         outs.append(out)
     return outs
+
+
+class JointPlant:
+    """The same for joint moves: integrates the commanded joint speeds (speedJ) with a latency.
+
+    ``follow`` (6,) scales what each joint does of its command (1: exactly;
+    below 1 a robot that lags its speeds, 0 a joint that does not move).
+    The TCP is the UR10e flange by forward kinematics.
+    """
+
+    def __init__(self, q: np.ndarray, period: float, latency_cycles: int = 2, follow: np.ndarray | None = None) -> None:
+        self.q = np.array(q, dtype=np.float64)
+        self.period = period
+        self.qd = np.zeros(6)
+        self.follow = np.ones(6) if follow is None else np.asarray(follow, dtype=np.float64)
+        self._pending: deque[np.ndarray] = deque([np.zeros(6)] * latency_cycles)
+        self.stamp_ns = 0
+        self.sent: list[np.ndarray] = []  # the joint speeds the core sent, one per cycle (zero with a kick)
+
+    def apply(self, out: CycleOutput) -> None:
+        if out.action == Action.SPEED_J:
+            cmd = out.twist.copy()
+        else:
+            assert out.action == Action.KICK, "a joint plant takes only speedJ and kicks"
+            cmd = self._pending[-1].copy() if self._pending else np.zeros(6)
+        self.sent.append(out.twist.copy() if out.action == Action.SPEED_J else np.zeros(6))
+        self._pending.append(cmd)
+        self.qd = self._pending.popleft() * self.follow
+        self.q = self.q + self.qd * self.period
+        self.stamp_ns += int(self.period * 1e9)
+
+    def state(self) -> RobotState:
+        T = kin.forward(self.q)
+        v = kin.jacobian(self.q) @ self.qd
+        return RobotState(self.stamp_ns, self.q.copy(), self.qd.copy(), T, v)
+
+    def cycle_input(self, **kw) -> CycleInput:
+        base = dict(
+            state=self.state(), state_age=0.0, safety_bits=1, tactile=None, tactile_age=float("inf"),
+            setpoint=np.zeros(6), setpoint_age=float("inf"),
+        )
+        base.update(kw)
+        return CycleInput(**base)

@@ -18,9 +18,6 @@ from scipy.spatial.transform import Rotation
 
 from celld.config import MotionLimits, ServoConfig, TactileConfig, ToolConfig
 from celld.errors import InputError
-from celld.motion.commands import start_servo
-from celld.motion.core import CoreParams, CycleInput, Mode, MotionCore
-from celld.motion.limits import CartesianLimits, sequence_peaks
 from celld.motion.algorithm2 import (
     NAME,
     Algorithm2Params,
@@ -33,6 +30,9 @@ from celld.motion.algorithm2 import (
     servo_velocity,
     torch_position,
 )
+from celld.motion.commands import start_servo
+from celld.motion.core import CoreParams, CycleInput, Mode, MotionCore
+from celld.motion.limits import CartesianLimits, sequence_peaks
 from celld.motion.types import ControlStatus, RobotState, ServoInput
 from celld.sim.srm import ContactParams, Wall, finger_contact
 from celld.tactile.deformation import contact_state, invalid_sample

@@ -19,6 +19,22 @@ def test_move_to_round_trip() -> None:
     assert got.speed_scale == 0.5 and got.tolerance == 1e-4
 
 
+def test_move_joints_round_trip_and_bad_targets() -> None:
+    q = np.array([0.1, -1.2, 1.4, -1.8, -1.57, 0.3])
+    got = cmd.decode(cmd.encode(cmd.move_joints(q, speed_scale=0.25, tolerance=1e-4)))
+    assert isinstance(got, cmd.MoveJoints)
+    np.testing.assert_array_equal(got.q_goal, q)
+    assert got.speed_scale == 0.25 and got.tolerance == 1e-4
+    with pytest.raises(InputError, match="6 finite joint positions"):
+        cmd.move_joints([0.0] * 5)
+    with pytest.raises(InputError, match="6 finite joint positions"):
+        cmd.move_joints([0.0, 0.0, np.nan, 0.0, 0.0, 0.0])
+    with pytest.raises(InputError, match=r"within \+-2 pi"):
+        cmd.move_joints([0.0, 0.0, 7.0, 0.0, 0.0, 0.0])
+    with pytest.raises(InputError, match="q_goal are missing"):
+        cmd.decode(b"CMD1" + bytes([4]) + (2).to_bytes(4, "little") + b"{}")
+
+
 def test_stream_and_servo_round_trip(rng: np.random.Generator) -> None:
     assert cmd.decode(cmd.encode(cmd.stream(0.25))) == cmd.Stream(0.25)
     path = rng.normal(size=(500, 3))

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from typing import Iterator, Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 import pytest
@@ -60,6 +60,10 @@ class FakePort:
     def speed(self, twist: Sequence[float], accel: float) -> bool:
         self.sent.append(("speedL", list(twist)))
         self.twist = np.array(twist)
+        return True
+
+    def speed_joints(self, qd: Sequence[float], accel: float) -> bool:
+        self.sent.append(("speedJ", list(qd)))
         return True
 
     def kick(self) -> None:
@@ -141,7 +145,7 @@ def test_one_record_per_cycle_with_what_was_sent(channels: Channels) -> None:
         sp["twist"] = [0.05, 0, 0, 0, 0, 0]
         channels.setpoint.write(sp)
         assert _cycles(loop, clock, 1) is None
-    recs, head, lost = channels.state.read_since(0)
+    recs, _head, lost = channels.state.read_since(0)
     assert len(recs) == 20 and lost == 0
     assert list(recs["cycle"]) == list(range(1, 21))
     assert np.all(recs["mode"] == int(Mode.ACTIVE)) and np.all(recs["command_id"] == 1)
@@ -361,10 +365,10 @@ def test_the_motion_process_switches_the_output_off_when_the_link_drops(
 
 
 def test_the_handle_reports_loop_events_about_no_command_and_resolves_nothing_with_them(channels: Channels) -> None:
+    from types import SimpleNamespace
+
     from celld.motion.channels import EVENT_DTYPE, encode_reason
     from celld.motion.handle import MotionHandle
-
-    from types import SimpleNamespace
 
     supervisor = SimpleNamespace(spec=SimpleNamespace(loop=SimpleNamespace(period_ns=2_000_000)), on_exit=lambda callback: None)
     handle = MotionHandle(supervisor, channels, None, ((-1.0,) * 3, (1.0,) * 3))  # type: ignore[arg-type]

@@ -23,7 +23,8 @@ import dataclasses
 import os
 import signal
 import time
-from typing import Any, Awaitable, Callable
+from collections.abc import Awaitable, Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -35,9 +36,9 @@ from celld.motion.core import Action, Mode
 from celld.motion.handle import MotionHandle
 from celld.motion.limits import CartesianLimits, sequence_peaks
 from celld.motion.supervisor import LinkState
-from celld.supervision import Backoff
 from celld.motion.types import ServoPlan
 from celld.se3 import error
+from celld.supervision import Backoff
 from celld.tactile.sample import ContactState, TactileSample, to_record
 
 pytestmark = pytest.mark.slow
@@ -202,6 +203,26 @@ def test_a_link_drop_fails_the_motion_with_its_reason_and_the_link_comes_back(si
     _run(sim, scenario)
 
 
+def test_the_link_state_follows_the_loop_within_a_few_cycles(sim: Any) -> None:
+    seen: dict[str, Any] = {}
+
+    async def scenario(motion: MotionHandle) -> None:
+        assert motion.link_running()
+        sim.inject("stall", ms=2000)  # no robot state: the loop ends on its link timeout (0.5 s here)
+        deadline = time.monotonic() + 5.0
+        while motion.link_running():
+            assert time.monotonic() < deadline, "the link still reads up"
+            await asyncio.sleep(0.001)
+        t_down = time.monotonic_ns()
+        seen["late_ms"] = (t_down - int(motion.ch.state.latest(1)["t_ns"][0])) * 1e-6
+        # The process is still on its way out: its supervisor has not seen it end yet.
+        seen["supervisor"] = motion.supervisor.state
+
+    _run(sim, scenario)
+    # Down within the fresh window (10 cycles, 20 ms) of the loop's last record, and polling.
+    assert seen["late_ms"] < 40.0, seen
+
+
 def test_stop_ends_the_motion_and_nothing_is_sent_after_it(sim: Any) -> None:
     async def scenario(motion: MotionHandle) -> None:
         start = motion.state()
@@ -254,6 +275,7 @@ def test_the_servo_slot_runs_a_registered_law_fed_by_the_tactile_slot(sim: Any) 
         plan = ServoPlan("probe", {"direction": np.array([0.0, 1.0, 0.0])}, {"speed": 0.02, "cycles": 500})
         stop = asyncio.Event()
         feeder = asyncio.ensure_future(feed(motion, ContactState.CONTACT, stop))
+        await asyncio.sleep(0.05)  # a sample is in the slot before the servo starts
         start = motion.state()
         assert start is not None
         cid = await motion.start_servo(plan)
@@ -266,10 +288,14 @@ def test_the_servo_slot_runs_a_registered_law_fed_by_the_tactile_slot(sim: Any) 
         await asyncio.sleep(0.3)
         stop.set()
         await feeder
-        with pytest.raises(MotionError, match="stale"):
+        with pytest.raises(MotionError, match="stale tactile"):
             await motion.wait(cid, timeout=10.0)
 
-    _run(sim, scenario, servo_laws={"probe": "tests.motion.laws:make_probe"})
+    # The robot's state may go stale only well after the tactile samples
+    # (0.1 s): a loaded test machine stalls the simulated controller now and then.
+    config = _config()
+    config = dataclasses.replace(config, motion=dataclasses.replace(config.motion, state_stale_cycles=250))
+    _run(sim, scenario, config=config, servo_laws={"probe": "tests.motion.laws:make_probe"})
     # 500 cycles at 20 mm/s, less the jerk-limited ramps: about 18-20 mm along +y.
     assert 0.015 < moved[0] < 0.021
 
@@ -374,13 +400,14 @@ def test_kill_9_of_the_motion_process_with_the_arc_on(loopback_host: str, interl
                 await asyncio.sleep(1 / 60)
 
         feeder = asyncio.ensure_future(feed())
+        await asyncio.sleep(0.05)  # a sample is in the slot before the servo starts
         try:
             plan = ServoPlan("probe", {"direction": np.array([0.0, 1.0, 0.0])},
                              {"speed": 0.005, "cycles": 100_000, "process": True, "process_from": 10})
             await motion.start_servo(plan)
             deadline = time.monotonic() + 10
             while not int(sim.status()["digital_out"]) & (1 << arc):
-                assert time.monotonic() < deadline, "the arc never came on"
+                assert time.monotonic() < deadline, f"the arc never came on: {list(motion.loop_events)}"
                 await asyncio.sleep(0.01)
             os.kill(motion.supervisor.pid, signal.SIGKILL)
             t_kill = time.monotonic_ns()
@@ -403,5 +430,7 @@ def test_kill_9_of_the_motion_process_with_the_arc_on(loopback_host: str, interl
         assert seen["arc_off_s"] <= 1 / 5.0 + 0.05, seen  # one watchdog period, and a few cycles
         assert not seen["arc_on_at_end"] and not missing, seen
     else:
-        assert seen["arc_on_at_end"], seen
+        # On long after the watchdog stopped the program: until the next motion
+        # process switched it off (its first write), or past the window.
+        assert seen["arc_on_at_end"] or seen["arc_off_s"] > 0.4, seen
         assert missing, seen  # the next process found the output on and said why

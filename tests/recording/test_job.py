@@ -18,6 +18,7 @@ from celld.config import RecordingConfig, parse
 from celld.errors import ConfigError, InputError, RecordingError
 from celld.recording import (
     JobRecording,
+    layout,
     read_component,
     read_entities,
     read_recording_id,
@@ -25,7 +26,6 @@ from celld.recording import (
     read_views,
     recording_path,
 )
-from celld.recording import layout
 from celld.tactile.sample import TACTILE_DTYPE
 
 # One second of the 500 Hz loop.
@@ -173,7 +173,7 @@ def test_state_batches_become_time_series_on_the_loop_clock(written: tuple[Path,
 
 def test_tcp_poses_from_the_ring_and_from_log_tcp_are_all_there(written: tuple[Path, dict]) -> None:
     path, sent = written
-    t, translation = read_component(path, layout.TCP, "Transform3D:translation")
+    _t, translation = read_component(path, layout.TCP, "Transform3D:translation")
     assert len(translation) == N_CYCLES + 1
     xyz = np.array([np.asarray(v).reshape(3) for v in translation])
     # The last ring record: 10 mm/s for 998 ms from x = 0.5 m.

@@ -10,7 +10,7 @@ class IO:
         self.reply = reply
         self.calls: list[tuple[int, bool]] = []
 
-    def setStandardDigitalOut(self, output_id: int, signal_level: bool) -> bool:  # noqa: N802 (ur-rtde's name)
+    def setStandardDigitalOut(self, output_id: int, signal_level: bool) -> bool:
         self.calls.append((output_id, signal_level))
         if isinstance(self.reply, Exception):
             raise self.reply

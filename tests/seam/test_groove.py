@@ -20,7 +20,7 @@ APEX_Z = C - (B / 2.0) / math.tan(ALPHA / 2.0)
 
 def _walls(noise: float = 0.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     wp = v_groove_butt(thickness=T, groove_angle=ALPHA, root_gap=B, root_face=C)
-    P, N, tri = sample_surface(wp.vertices, wp.triangles, 0.0004, seed=seed)
+    P, _N, tri = sample_surface(wp.vertices, wp.triangles, 0.0004, seed=seed)
     labels = wp.wall_labels[tri]
     P = P + noise * np.random.default_rng(seed).standard_normal(P.shape)
     return P, labels
@@ -35,7 +35,7 @@ def model():
 
 
 def test_noise_free_walls_meet_at_the_analytic_apex(model) -> None:
-    wp, prior = model
+    _wp, prior = model
     assert np.all(prior.status == OK)
     np.testing.assert_allclose(prior.apex[:, 1:], np.tile([0.0, APEX_Z], (len(prior.apex), 1)), atol=1e-9)
     np.testing.assert_allclose(np.abs(prior.direction[:, 0]), 1.0, atol=1e-9)
@@ -63,7 +63,7 @@ def test_a_shifted_joint_moves_the_seam_but_an_opened_gap_does_not(model) -> Non
     # Whole joint 0.6 mm to the left (+y): the seam follows.
     shifted = P + [0.0, 0.0006, 0.0]
     fit = fit_groove(shifted, labels, wp.seam, wp.approach, wp.wall_band, GrooveParams(), prior)
-    s, sig, valid = lateral_offsets(fit, prior, wp.seam, wp.approach, GrooveParams().step)
+    s, _sig, valid = lateral_offsets(fit, prior, wp.seam, wp.approach, GrooveParams().step)
     assert valid.all()
     assert np.mean(s) == pytest.approx(0.0006, abs=2e-5)
     # Gap opened by 1 mm, symmetric: the walls look like a deeper groove,

@@ -12,15 +12,14 @@ import math
 import numpy as np
 import pytest
 
-from celld import se3
+from celld import polyline, se3
 from celld.cli import main as celld_main
 from celld.errors import GrooveError, RegistrationError, ScanError, SeamError
-from celld.sim import workpiece as simscene
+from celld.seam import workpiece as wpm
 from celld.seam.params import SeamParams
 from celld.seam.pipeline import find_seam, prepare
-from celld.seam import workpiece as wpm
-from celld import polyline
 from celld.seam.workpiece import Workpiece, example
+from celld.sim import workpiece as simscene
 from celld.sim.scanner import SimScanner
 from celld.sim.scene import box
 

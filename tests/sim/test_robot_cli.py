@@ -41,3 +41,10 @@ def test_fault_subcommand_plays_and_clears_faults(sim_robot: SimRobotHandle, cap
         args.func(args)
     args = _parse(["sim", "fault", "--host", sim_robot.host, "stall", "--ms", "50"])
     assert args.func(args) == 0
+    # clear undoes what the simulator set, the protective stop included.
+    args = _parse(["sim", "fault", "--host", sim_robot.host, "clear"])
+    assert args.func(args) == 0
+    capsys.readouterr()
+    args = _parse(["sim", "fault", "--host", sim_robot.host, "status"])
+    assert args.func(args) == 0
+    assert json.loads(capsys.readouterr().out)["safety_mode"] == "NORMAL"

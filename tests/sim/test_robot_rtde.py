@@ -166,7 +166,7 @@ def test_watchdog_expiry_stops_the_robot_and_the_program(robot) -> None:
 
 
 def test_async_move_reports_progress_and_stop_l_cancels_it(robot) -> None:
-    sim, r, c = robot
+    _sim, r, c = robot
     target = np.array(r.getActualTCPPose()) + [0.0, 0.2, 0.0, 0.0, 0.0, 0.0]
     assert c.moveL(target.tolist(), 0.1, 0.5, True)
     time.sleep(0.2)
@@ -202,7 +202,7 @@ def test_servo_l_follows_a_step_with_its_time_constant(robot) -> None:
 
 
 def test_second_control_interface_is_refused_with_in_use(robot) -> None:
-    sim, r, c = robot
+    sim, _r, c = robot
     with pytest.raises(RuntimeError, match="IN_USE|in use"):
         rtde_control.RTDEControlInterface(sim.host)
     assert c.isConnected()

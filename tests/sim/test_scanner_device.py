@@ -60,7 +60,7 @@ def test_a_bad_pose_from_the_source_is_refused(flange) -> None:  # type: ignore[
 def test_the_units_own_error_and_exposure_delay(flange) -> None:  # type: ignore[no-untyped-def]
     import time
 
-    from celld.sim.world import NominalCell, PRESETS, draw_world
+    from celld.sim.world import PRESETS, NominalCell, draw_world
 
     T = se3.from_xyz_rpy([0.6, 0.0, 0.45], [0.0, 0.0, 0.0])
     exact = SimScanner("phoxi-m", T_BASE_CAM, seed=2, resolution_scale=SCALE).capture(robot_scene(T, flange)).points

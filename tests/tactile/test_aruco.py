@@ -76,8 +76,9 @@ def test_lighting_changes_leave_the_position_alone(scene: Scene) -> None:
 def test_translation_is_stable_where_the_face_on_rotation_flips(scene: Scene) -> None:
     # Tiny tilts either side of face-on: the IPPE rotation may jump, the
     # translation must not.
-    from celld.se3 import transform_from
     from scipy.spatial.transform import Rotation
+
+    from celld.se3 import transform_from
 
     positions = []
     for angle in (-0.004, 0.0, 0.004):

@@ -13,7 +13,7 @@ from celld.errors import DeviceError
 from celld.shm import SeqlockSlot
 from celld.sim.srm import SimSrm, SimSrmCamera, SrmSimParams, Wall
 from celld.tactile.camera import COUNTERS_DTYPE, FrameEstimator, OpenCvCamera, run_camera
-from celld.tactile.process import TactileProcess
+from celld.tactile.process import TactileProcess, load_reference, save_reference
 from celld.tactile.sample import TACTILE_DTYPE, ContactState, TactileStatus, from_record
 
 # A wall along +x at y = 0 of a horizontal plane; the default tool faces +x
@@ -142,6 +142,55 @@ def test_a_moving_finger_fails_the_tare_and_stays_untared() -> None:
         assert all(not s.valid for s in r.written)
     finally:
         r.close()
+
+
+def test_a_finger_pressed_at_start_is_not_tared_until_it_is_free(tmp_path) -> None:
+    # The start-up tare is taken but is no reference; the daemon's tare (the
+    # finger known free) is, and is kept.
+    free = Rig()
+    kept = []
+    try:
+        free.run(free.cfg.tare_frames + 2)
+        assert free.est.rest is not None and free.est.reference is None
+        asked = iter([True])
+        target = len(free.written) + free.cfg.tare_frames + 2
+        run_camera(free.camera, free.est, free.samples, free.counters, lambda: len(free.written) >= target,
+                   lambda: next(asked, False), on_reference=kept.append)
+        assert len(kept) == 1 and free.est.reference is not None
+        save_reference(tmp_path / "rest.json", kept[0])
+    finally:
+        free.close()
+    reference = load_reference(tmp_path / "rest.json")
+    np.testing.assert_allclose(reference, kept[0].p_cam_rest)
+
+    # A restarted camera process with the tip held 1.5 mm into the wall (still: the spread is fine).
+    r = Rig(y=0.0005)
+    try:
+        r.est = FrameEstimator(r.cfg, ToolConfig(), reference=reference)
+        r.run(3 * r.cfg.tare_frames)
+        assert r.est.rest is None and all(s.status == TactileStatus.NOT_TARED for s in r.written)
+        c = r.counters.read()[0]
+        assert not c["tared"] and c["tare_refused"]
+        assert c["tare_offset"] == pytest.approx(0.0015, abs=0.1e-3)
+        # Freed: the next tare is taken, next to the reference, which stays as it was.
+        r.y = -0.002
+        r.run(3 * r.cfg.tare_frames)
+        c = r.counters.read()[0]
+        assert r.est.rest is not None and c["tared"] and not c["tare_refused"]
+        assert c["tare_offset"] < 0.02e-3
+        np.testing.assert_array_equal(r.est.reference, reference)
+        assert r.written[-1].status == TactileStatus.OK
+    finally:
+        r.close()
+
+
+def test_an_unreadable_reference_is_ignored_and_replaced_by_the_next_tare(tmp_path) -> None:
+    path = tmp_path / "rest.json"
+    path.write_text('{"p_cam_rest_m": [0.0, "x", 0.02]}')
+    assert load_reference(path) is None
+    path.write_text("not json")
+    assert load_reference(path) is None
+    assert load_reference(tmp_path / "absent.json") is None
 
 
 def test_opencv_camera_that_is_absent_is_refused_then_reads_as_lost() -> None:

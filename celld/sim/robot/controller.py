@@ -287,6 +287,11 @@ class Controller:
         self.robot_mode = ROBOT_MODE_POWER_OFF
         self.message("Robot emergency stop", P.LEVEL_ERROR)
 
+    def clear_protective_stop(self) -> None:
+        """End a protective stop at once (the simulator's ``clear``; on a robot only the unlock does)."""
+        if self.safety_mode == SAFETY_PROTECTIVE_STOP:
+            self.safety_mode = SAFETY_NORMAL
+
     def release_emergency_stop(self) -> None:
         if self.estop_pressed:
             self.estop_pressed = False

@@ -24,10 +24,12 @@ RTDEControlInterface reconnects in an endless loop and crashes its process
 seconds on a control interface, then call its ``reconnect()``. The receive
 interface takes ``drop_rtde`` well.
 
-``clear`` undoes what can be undone: latency, stall, refused uploads, links
-held down, and a pressed e-stop (the arm stays powered off; power it on and
-release the brakes from the dashboard). A protective stop is cleared by the
-dashboard's ``unlock protective stop``, as on the robot.
+``clear`` undoes what the simulator set: latency, stall, refused uploads,
+links held down, a protective stop (at once; on the robot, and here too, the
+dashboard's ``unlock protective stop`` clears it 5 s after it occurred) and
+a pressed e-stop. An arm the fault powered off stays off: power it on and
+release the brakes from the dashboard (``celld robot power-on``,
+``brake-release``), as on the robot.
 """
 
 from __future__ import annotations

@@ -351,6 +351,7 @@ class SimServer:
             del self.faults.down_until_ns[port]
             self._listen(port)
         self.ctrl.refuse_upload = False
+        self.ctrl.clear_protective_stop()
         self.ctrl.release_emergency_stop()
 
 

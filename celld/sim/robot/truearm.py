@@ -32,6 +32,7 @@ import math
 import random
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import cast
 
 from celld.errors import ConfigError
 from celld.robot import kinematics as kin
@@ -78,7 +79,8 @@ class ArmTruth:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        dh = kin.DH(*(tuple(float(v) for v in row) for row in self.dh))
+        d, a, alpha = (cast("tuple[float, float, float, float, float, float]", tuple(float(v) for v in row)) for row in self.dh)
+        dh = kin.DH(d, a, alpha)
         object.__setattr__(self, "dh", dh)
         object.__setattr__(self, "joint_offsets", tuple(float(v) for v in self.joint_offsets))
         if any(len(row) != 6 for row in dh) or len(self.joint_offsets) != 6:

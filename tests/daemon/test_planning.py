@@ -1,0 +1,77 @@
+"""The daemon's joint-move planning: the cell, the workspace box and the TCP's Cartesian limits."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from celld.config import load
+from celld.daemon.planning import MotionPlanner, joint_move_scale
+from celld.errors import PathRefused
+from celld.robot import kinematics as kin
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIG = load(ROOT / "configs" / "sim-cell.toml")
+HOME = np.array(CONFIG.robot.home_q)
+
+
+@pytest.fixture(scope="module")
+def planner() -> MotionPlanner:
+    return MotionPlanner(CONFIG)
+
+
+def _tcp_peaks(planner: MotionPlanner, q0: np.ndarray, q1: np.ndarray, scale: float) -> tuple[float, float]:
+    """The TCP's largest linear and angular speed along a synchronised joint move at ``scale``, sampled finely.
+
+    The path parameter's speed is at most ``scale * v_joint / max|dq|`` (reached
+    in the cruise, or not at all on a short move): the bound is tight on the
+    cruise, so this samples the TCP speed along the line at that path speed.
+    """
+    s = np.linspace(0.0, 1.0, 2001)
+    T = np.array([kin.forward(q0 + si * (q1 - q0), planner.arm.dh, planner.T_flange_tcp) for si in s])
+    sd = scale * CONFIG.motion.max_joint_speed / float(np.abs(q1 - q0).max())
+    lin = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1) / np.diff(s) * sd
+    R = np.einsum("nji,njk->nik", T[:-1, :3, :3], T[1:, :3, :3])
+    ang = np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)) / np.diff(s) * sd
+    return float(lin.max()), float(ang.max())
+
+
+def test_a_large_joint_move_is_slowed_so_the_tcp_keeps_its_cartesian_limits(planner: MotionPlanner) -> None:
+    # Half a turn of the base with the arm stretched out: at full joint speed
+    # the TCP would sweep far faster than 0.25 m/s.
+    q1 = HOME + np.array([-0.9, 0.1, -0.2, 0.1, 0.0, 0.3])
+    plan = planner.plan_joint_move(HOME, q1)
+    lin_full, _ = _tcp_peaks(planner, HOME, q1, 1.0)
+    assert lin_full > 2 * CONFIG.motion.max_linear_speed
+    assert plan.speed_scale < 0.5
+    lin, ang = _tcp_peaks(planner, HOME, q1, plan.speed_scale)
+    assert lin <= CONFIG.motion.max_linear_speed * 1.01 and ang <= CONFIG.motion.max_angular_speed * 1.01
+    # Not slowed more than the bound needs (the speed or the acceleration bound decides).
+    assert lin > 0.3 * CONFIG.motion.max_linear_speed
+    assert plan.tcp_speed >= lin * 0.99
+    np.testing.assert_allclose(plan.T_base_tcp_goal, kin.forward(q1, planner.arm.dh, planner.T_flange_tcp))
+
+
+def test_a_wrist_turn_keeps_the_asked_scale_when_the_tcp_stays_slow(planner: MotionPlanner) -> None:
+    # Only the last joint turns: the flange turns in place.
+    q1 = HOME + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.3])
+    k, v, w = joint_move_scale(np.array([HOME, q1]), np.array([0.0, 1.0]), planner.arm.dh, np.eye(4), CONFIG.motion)
+    assert k == pytest.approx(1.0, rel=1e-6) and v < 1e-9 and w == pytest.approx(CONFIG.motion.max_joint_speed, rel=1e-6)
+    assert planner.plan_joint_move(HOME, q1, speed_scale=0.5).speed_scale <= 0.5
+
+
+def test_joint_moves_out_of_the_box_into_the_table_or_past_a_joint_limit_are_refused(planner: MotionPlanner) -> None:
+    with pytest.raises(PathRefused, match="table"):
+        planner.plan_joint_move(HOME, np.array([2.9, -0.3, 2.2, -2.4, 1.5, -1.1]))
+    narrow = dataclasses.replace(CONFIG, robot=dataclasses.replace(CONFIG.robot, workspace_max=(1.0, 1.0, 0.5)))
+    up = HOME + np.array([0.0, -0.2, -0.2, 0.0, 0.0, 0.0])
+    assert kin.forward(up, planner.arm.dh, planner.T_flange_tcp)[2, 3] > 0.5
+    with pytest.raises(PathRefused, match=r"leaves the workspace box .* at \d+% of the move"):
+        MotionPlanner(narrow).plan_joint_move(HOME, up)
+    past = HOME.copy()
+    past[0] = 7.0
+    with pytest.raises(PathRefused, match="joint limits"):
+        planner.plan_joint_move(HOME, past)

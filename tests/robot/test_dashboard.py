@@ -1,0 +1,118 @@
+"""The dashboard: why the robot is down and what clears it; ur-rtde's DashboardClient against the simulated controller."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+
+from celld.bus.schema import ROBOT_ACTIONS, ROBOT_CONDITIONS
+from celld.errors import InputError, RobotError
+from celld.robot.dashboard import ACTIONS, Dashboard, DashboardReading, reply_value, robot_condition
+
+
+def _reading(mode: str, safety: str) -> DashboardReading:
+    return DashboardReading(True, mode, safety, "PLAYING rtde_control", "", 0.0)
+
+
+def test_the_bus_names_the_same_actions_and_conditions() -> None:
+    assert tuple(ACTIONS) == ROBOT_ACTIONS
+    seen = {
+        robot_condition(link, r).state
+        for link in ("up", "down")
+        for r in (
+            None,
+            _reading("RUNNING", "NORMAL"),
+            _reading("RUNNING", "PROTECTIVE_STOP"),
+            _reading("POWER_OFF", "ROBOT_EMERGENCY_STOP"),
+            _reading("RUNNING", "VIOLATION"),
+            _reading("POWER_OFF", "NORMAL"),
+            _reading("IDLE", "NORMAL"),
+            _reading("BOOTING", "NORMAL"),
+            _reading("WEIRD", "NORMAL"),
+        )
+    }
+    assert seen == set(ROBOT_CONDITIONS)
+
+
+def test_reply_values_are_read_with_or_without_their_prefix() -> None:
+    assert reply_value("Robotmode: RUNNING", "Robotmode") == "RUNNING"
+    assert reply_value("Safetystatus: PROTECTIVE_STOP\n", "Safetystatus") == "PROTECTIVE_STOP"
+    assert reply_value("POWER_OFF", "Robotmode") == "POWER_OFF"
+
+
+@pytest.mark.parametrize(
+    ("link", "mode", "safety", "state", "words"),
+    [
+        ("up", "RUNNING", "NORMAL", "ready", ()),
+        ("down", "RUNNING", "PROTECTIVE_STOP", "protective_stop", ("protective stop", "celld robot unlock", "5 s")),
+        ("down", "POWER_OFF", "ROBOT_EMERGENCY_STOP", "emergency_stop", ("emergency stop", "release the emergency stop", "power-on")),
+        ("down", "RUNNING", "SAFEGUARD_STOP", "protective_stop", ("safeguard stop", "close the safeguard")),
+        ("down", "RUNNING", "VIOLATION", "safety_fault", ("VIOLATION", "safety restart")),
+        ("down", "POWER_OFF", "NORMAL", "power_off", ("powered off", "power-on", "brake-release")),
+        ("down", "IDLE", "NORMAL", "brakes", ("brakes on", "brake-release")),
+        ("down", "RUNNING", "NORMAL", "link_lost", ("RTDE link is down", "reconnects")),
+    ],
+)
+def test_the_condition_says_why_and_what_clears_it(link: str, mode: str, safety: str, state: str, words: tuple[str, ...]) -> None:
+    c = robot_condition(link, _reading(mode, safety), "the robot program stopped: protective stop")
+    assert c.state == state and c.ready == (state == "ready")
+    text = f"{c.reason} | {c.remedy}"
+    assert all(w in text for w in words), text
+    if not c.ready:
+        assert "celld saw: the robot program stopped" in c.reason
+
+
+def test_an_unreachable_robot_is_a_lost_link_unless_rtde_is_up() -> None:
+    down = DashboardReading(False, "", "", "", "RuntimeError: connection refused", 0.0)
+    c = robot_condition("down", down, "no fresh robot state for 120 ms")
+    assert c.state == "link_lost" and "connection refused" in c.reason and "no fresh robot state" in c.reason
+    assert robot_condition("up", down).ready
+    assert robot_condition("unknown", None).state == "link_lost"
+
+
+@pytest.mark.slow
+def test_the_dashboard_reads_the_simulated_controller_and_passes_on_its_refusals(loopback_host: str) -> None:
+    from celld.sim.robot import launch
+
+    async def scenario(sim) -> None:
+        dash = Dashboard(sim.host)
+        try:
+            r = await dash.read()
+            assert r.reachable and r.robot_mode == "RUNNING" and r.safety == "NORMAL", r
+            sim.inject("protective_stop")
+            r = await dash.read()
+            assert r.safety == "PROTECTIVE_STOP"
+            assert robot_condition("down", r).state == "protective_stop"
+            # Too early: the controller's own reason comes through.
+            with pytest.raises(RobotError, match="5s after occurrence"):
+                await dash.act("unlock")
+            with pytest.raises(InputError, match="expected one of unlock"):
+                await dash.act("reboot")
+            # The failed call dropped the connection; the next read reconnects.
+            sim.inject("power_off")
+            r = await dash.read()
+            assert r.reachable and r.robot_mode == "POWER_OFF"
+            await dash.act("power-on")
+            deadline = time.monotonic() + 5.0
+            while (await dash.read()).robot_mode != "IDLE":
+                assert time.monotonic() < deadline, dash.last
+                await asyncio.sleep(0.1)
+        finally:
+            await dash.close()
+
+    with launch(loopback_host, unlock_delay=5.0) as sim:
+        asyncio.run(scenario(sim))
+
+
+def test_a_robot_that_does_not_answer_reads_as_unreachable(loopback_host: str) -> None:
+    async def scenario() -> DashboardReading:
+        dash = Dashboard(loopback_host, timeout=0.5)
+        try:
+            return await dash.read()
+        finally:
+            await dash.close()
+
+    r = asyncio.run(scenario())
+    assert not r.reachable and r.error
