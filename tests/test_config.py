@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 import math
+import os
 from pathlib import Path
 
 import pytest
@@ -55,6 +55,34 @@ def test_the_seam_finder_takes_the_scanner_preset_and_the_tool_wall() -> None:
     assert cfg.seam.spacing == pytest.approx(0.002)
     assert cfg.seam.registration.voxel == pytest.approx(0.005)  # the Azure Kinect preset
     assert config.parse({}).seam.registration.voxel == pytest.approx(0.004)
+
+
+@pytest.mark.parametrize(
+    ("scanner", "expected"),
+    [
+        ({}, "none"),  # the simulated PhoXi M: structured light
+        ({"kind": "phoxi", "model": "phoxi-s"}, "none"),
+        ({"model": "azure-kinect"}, "estimate"),  # a simulated Azure Kinect
+        ({"kind": "azure-kinect", "model": "azure-kinect"}, "estimate"),
+        ({"kind": "realsense"}, "estimate"),
+    ],
+)
+def test_the_range_bias_is_estimated_by_default_for_time_of_flight_scanners(scanner: dict, expected: str) -> None:
+    assert config.parse({"scanner": scanner}).calibration.range_bias == expected
+    # The config's choice wins either way.
+    other = "none" if expected == "estimate" else "estimate"
+    assert config.parse({"scanner": scanner, "calibration": {"range_bias": other}}).calibration.range_bias == other
+
+
+@pytest.mark.parametrize("value", ["auto", "yes", 1, True])
+def test_a_range_bias_setting_that_is_not_a_mode_is_refused_with_the_choices(value: object) -> None:
+    with pytest.raises(ConfigError) as info:
+        config.parse({"scanner": {"model": "azure-kinect"}, "calibration": {"range_bias": value}}, "cell.toml")
+    assert info.value.key == "calibration.range_bias"
+    if isinstance(value, str):
+        assert info.value.reason == f"expected one of estimate, none, got {value!r}"
+    else:
+        assert info.value.reason.startswith("expected a string")
 
 
 def test_values_are_frozen() -> None:

@@ -164,6 +164,21 @@ class MotionLimits:
 
 SCANNER_KINDS = ("sim", "replay", "phoxi", "azure-kinect", "realsense")
 SCANNER_MODELS = ("phoxi-s", "phoxi-m", "azure-kinect")
+# calibration.range_bias: estimate the range bias on metal with T_base_cam, or not.
+RANGE_BIAS_MODES = ("estimate", "none")
+# Scanners that read bare metal long (time of flight, and the RealSense
+# family, whose L515 is a lidar): the range bias is estimated unless the config says "none".
+_BIASED_KINDS = ("azure-kinect", "realsense")
+_BIASED_MODELS = ("azure-kinect",)
+
+
+def range_bias_default(kind: str, model: str) -> str:
+    """``calibration.range_bias`` when the config does not set it: ``estimate`` for a time-of-flight scanner, else ``none``.
+
+    ``kind`` and ``model`` are the scanner's (``scanner.kind``, ``scanner.model``);
+    a simulated or replayed scanner goes by its model.
+    """
+    return "estimate" if kind in _BIASED_KINDS or model in _BIASED_MODELS else "none"
 
 
 @dataclass(frozen=True)
@@ -257,6 +272,10 @@ class CalibrationConfig:
     icp_max_distance: float = 0.003
     icp_points: int = 1000
     model_spacing: float = 0.002
+    # The scanner's range bias on bare metal: "estimate" it with T_base_cam
+    # (time of flight) or "none" (structured light). None until the config is
+    # parsed: it then takes the scanner's default (range_bias_default).
+    range_bias: str | None = None
 
     @classmethod
     def read(cls, r: TableReader) -> CalibrationConfig:
@@ -280,6 +299,7 @@ class CalibrationConfig:
             ),
             icp_points=r.int("icp_points", cls.icp_points, lo=10, hi=1_000_000),
             model_spacing=r.float("model_spacing_mm", cls.model_spacing * 1e3, lo=0.1, hi=10.0, scale=1e-3),
+            range_bias=r.str("range_bias", choices=RANGE_BIAS_MODES) if r.has("range_bias") else None,
         )
 
 
