@@ -85,6 +85,18 @@ def test_a_range_bias_setting_that_is_not_a_mode_is_refused_with_the_choices(val
         assert info.value.reason.startswith("expected a string")
 
 
+def test_the_seam_region_of_interest_can_be_narrowed_and_is_checked() -> None:
+    cfg = config.parse({"scanner": {"model": "azure-kinect"}, "seam": {"roi_min": [0.3, -0.35, -0.05], "roi_max": [0.9, 0.35, 0.3]}})
+    assert cfg.seam.roi_min == (0.3, -0.35, -0.05) and cfg.seam.roi_max == (0.9, 0.35, 0.3)
+    assert config.parse({}).seam.roi_min == (-0.2, -1.0, -0.1)  # the preset's
+    with pytest.raises(ConfigError) as info:
+        config.parse({"seam": {"roi_min": [0.3, -0.35, -0.05], "roi_max": [0.9, -0.4, 0.3]}})
+    assert info.value.key == "seam.roi_max" and "above roi_min" in info.value.reason
+    with pytest.raises(ConfigError) as info:
+        config.parse({"seam": {"roi_min": [300, -350, -50]}})  # millimetres
+    assert info.value.key == "seam.roi_min" and "within +-5" in info.value.reason
+
+
 def test_values_are_frozen() -> None:
     cfg = config.parse({})
     with pytest.raises(dataclasses.FrozenInstanceError):

@@ -90,10 +90,15 @@ class _CellScanner:
     def __call__(self, config: Config) -> Scanner:
         truth = TruthReader(config.robot.host)
         objects = self.objects
+        # One table: the part's scene brings the steel welding table (the robot
+        # scene's would lie in the same plane, a matte twin a time-of-flight
+        # camera reads 8 mm apart from it).
         return SimulatedScanner(
             config.scanner.model,
             config.T_base_cam_nominal(),
-            robot_scene_source(lambda: truth.latest().T_base_tcp, preset(config.calibration.flange), extra=lambda: objects),
+            robot_scene_source(
+                lambda: truth.latest().T_base_tcp, preset(config.calibration.flange), table=not objects, extra=lambda: objects
+            ),
             seed=config.scanner.seed,
             resolution_scale=config.scanner.resolution_scale,
             on_close=truth.close,
