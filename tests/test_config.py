@@ -64,6 +64,46 @@ def test_dataset_retention_keys() -> None:
     assert (default.keep_sessions, default.keep_days) == (10, 0.0)
 
 
+@pytest.mark.parametrize(
+    ("scanner", "expected"),
+    [
+        ({}, "none"),  # the simulated PhoXi M: structured light
+        ({"kind": "phoxi", "model": "phoxi-s"}, "none"),
+        ({"model": "azure-kinect"}, "estimate"),  # a simulated Azure Kinect
+        ({"kind": "azure-kinect", "model": "azure-kinect"}, "estimate"),
+        ({"kind": "realsense"}, "estimate"),
+    ],
+)
+def test_the_range_bias_is_estimated_by_default_for_time_of_flight_scanners(scanner: dict, expected: str) -> None:
+    assert config.parse({"scanner": scanner}).calibration.range_bias == expected
+    # The config's choice wins either way.
+    other = "none" if expected == "estimate" else "estimate"
+    assert config.parse({"scanner": scanner, "calibration": {"range_bias": other}}).calibration.range_bias == other
+
+
+@pytest.mark.parametrize("value", ["auto", "yes", 1, True])
+def test_a_range_bias_setting_that_is_not_a_mode_is_refused_with_the_choices(value: object) -> None:
+    with pytest.raises(ConfigError) as info:
+        config.parse({"scanner": {"model": "azure-kinect"}, "calibration": {"range_bias": value}}, "cell.toml")
+    assert info.value.key == "calibration.range_bias"
+    if isinstance(value, str):
+        assert info.value.reason == f"expected one of estimate, none, got {value!r}"
+    else:
+        assert info.value.reason.startswith("expected a string")
+
+
+def test_the_seam_region_of_interest_can_be_narrowed_and_is_checked() -> None:
+    cfg = config.parse({"scanner": {"model": "azure-kinect"}, "seam": {"roi_min": [0.3, -0.35, -0.05], "roi_max": [0.9, 0.35, 0.3]}})
+    assert cfg.seam.roi_min == (0.3, -0.35, -0.05) and cfg.seam.roi_max == (0.9, 0.35, 0.3)
+    assert config.parse({}).seam.roi_min == (-0.2, -1.0, -0.1)  # the preset's
+    with pytest.raises(ConfigError) as info:
+        config.parse({"seam": {"roi_min": [0.3, -0.35, -0.05], "roi_max": [0.9, -0.4, 0.3]}})
+    assert info.value.key == "seam.roi_max" and "above roi_min" in info.value.reason
+    with pytest.raises(ConfigError) as info:
+        config.parse({"seam": {"roi_min": [300, -350, -50]}})  # millimetres
+    assert info.value.key == "seam.roi_min" and "within +-5" in info.value.reason
+
+
 def test_values_are_frozen() -> None:
     cfg = config.parse({})
     with pytest.raises(dataclasses.FrozenInstanceError):

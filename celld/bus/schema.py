@@ -77,7 +77,7 @@ JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrup
 TERMINAL_STATES = ("succeeded", "failed", "cancelled", "interrupted")
 HEALTH_CHECKS = ("all", "robot", "scanner", "tactile")
 # Verdicts of the calibration quality gate (celld.calib.quality.VERDICTS; only "ok" passes).
-CALIBRATION_VERDICTS = ("ok", "too_few_pairs", "poor_data", "insufficient_rotation")
+CALIBRATION_VERDICTS = ("ok", "too_few_pairs", "poor_data", "insufficient_rotation", "insufficient_range_bias")
 
 Pose6 = tuple[float, float, float, float, float, float]
 
@@ -322,6 +322,9 @@ _QUALITY = _object(
         "e_icp": {"type": ["object", "null"], "description": "e_icp (Eq. 13) of the estimate; null without a verification cloud."},
         "e_icp_tilt_deg": {**_NUMBER_OR_NULL, "description": "e_icp's rotation across the verification flange's axis."},
         "e_icp_turn_deg": {**_NUMBER_OR_NULL, "description": "e_icp's rotation about the verification flange's axis (fixed only by its holes)."},
+        "range_bias_mm": {**_NUMBER_OR_NULL, "description": "The scanner's range bias on bare metal estimated with T_base_cam; null when not estimated."},
+        "range_bias_std_mm": {**_NUMBER_OR_NULL, "description": "Its 1-sigma."},
+        "range_bias_source": {"type": "string", "description": "What fixed it: steps (the metal face over the painted shoulder), pairs (the spread of the rays), or both; empty when not estimated."},
     },
     ("verdict", "passed", "reasons", "warnings", "pairs"),
 )
@@ -345,6 +348,13 @@ _CALIBRATION = _object(
         "stored": {"enum": ["estimate", "compensated"], "description": "T_base_cam is the estimate, or the estimate compensated by Eq. 21."},
         "quality": _QUALITY,
         "forced": {"type": "boolean", "description": "Accepted with force despite a failed quality verdict."},
+        "range_bias": {"enum": ["estimate", "none"], "description": "Whether the scanner's range bias on metal was estimated (calibration.range_bias)."},
+        "range_bias_mm": {
+            "type": "number",
+            "description": "The scanner's range bias on bare metal, mm (0 when not estimated): every scan placed with this "
+            "calibration has its points moved back along their rays by it.",
+        },
+        "range_bias_std_mm": {**_NUMBER_OR_NULL, "description": "Its 1-sigma, mm; null when not estimated."},
     },
     ("job", "T_base_cam", "accepted"),
 )

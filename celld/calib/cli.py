@@ -7,7 +7,10 @@ object with ``T_base_cam`` (4 x 4, metres; the compensated one of Eq. 21 with
 ``--compensate``, as ``stored`` says), ``residuals_mm`` (one per used pair,
 aligned with ``pairs``), ``rejected`` (ids), ``pairs`` (ids used) and
 ``quality`` (the gate's verdict, reasons, warnings, per-pair residuals and
-outliers, uncertainty at the workspace centre, e_icp), plus the details of
+outliers, uncertainty at the workspace centre, e_icp), ``range_bias``
+(the scanner's range bias on metal, ``bias_mm`` and ``std_mm``, estimated
+with ``--range-bias estimate``, the default for a time-of-flight session),
+plus the details of
 :meth:`~celld.calib.session.CalibrationResult.as_dict`. A failed verdict is a
 result, not an error: the exit code stays 0.
 
@@ -48,6 +51,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--compensate", action="store_true", help="report the estimate compensated by Eq. 21 as T_base_cam (needs a verification cloud)")
     s.add_argument("--redetect", action="store_true", help="detect every centre in its cloud, ignoring recorded centres")
     s.add_argument("--scale", action="store_true", help="estimate the scale c of Eq. 11")
+    s.add_argument(
+        "--range-bias",
+        choices=("estimate", "none"),
+        help="estimate the scanner's range bias on metal with T_base_cam (default: the config's, else by the session's scanner: "
+        "estimate for time of flight)",
+    )
     s.set_defaults(func=_solve)
 
     d = psub.add_parser("detect", help="find the flange centre and normal in one cloud")
@@ -83,6 +92,10 @@ def _solve(args: argparse.Namespace) -> int:
     t = ", ".join("-" if x is None else f"{x:.3f}" for x in q["translation_std_mm"])
     r = ", ".join("-" if x is None else f"{x:.3f}" for x in q["rotation_std_deg"])
     print(f"uncertainty (1 sigma): translation ({t}) mm at the workspace centre, rotation about x, y, z ({r}) deg")
+    rb = out["range_bias"]
+    if rb["mode"] == "estimate":
+        std = "-" if rb["std_mm"] is None else f"{rb['std_mm']:.3f}"
+        print(f"range bias on metal: {rb['bias_mm']:.3f} +- {std} mm (1 sigma, from {rb['source']})")
     if out["e_icp"] is not None:
         print(f"e_icp: {json.dumps(out['e_icp'])}")
     print(f"quality: {q['verdict']}")
@@ -104,6 +117,10 @@ def _solve_dict(args: argparse.Namespace) -> dict[str, Any]:
     flange = preset(name) if name else None
     cal = config.load(args.config).calibration if args.config else config.CalibrationConfig()
     overrides: dict[str, Any] = {"with_scale": args.scale}
+    if args.range_bias is not None:
+        overrides["range_bias"] = args.range_bias
+    elif not args.config:
+        overrides["range_bias"] = "none" if args.scale else config.range_bias_default("", session.scanner or "")
     if args.method is not None:
         overrides["method"] = args.method
     if args.compensate:

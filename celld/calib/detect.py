@@ -50,6 +50,7 @@ from scipy import ndimage
 from celld.calib.circle import angular_coverage, fit_plane, ransac_circle, refine_circle
 from celld.calib.detect_params import DetectParams
 from celld.calib.flange import FlangeModel
+from celld.calib.rangebias import FinishStep, measure_finish_step
 from celld.calib.segment import (
     COVERAGE_BINS,
     CROSS,
@@ -126,6 +127,11 @@ class FlangeDetection:
         nothing outside it, the coarse pass nothing off :func:`coarse_grid`
         (finiteness aside): a copy of the cloud exact on both gives the same
         detection.
+    finish_step : FinishStep or None
+        The metal face's height over the painted shoulder in this capture
+        (:func:`~celld.calib.rangebias.measure_finish_step`): what measures a
+        time-of-flight camera's range bias on metal. None when the flange has
+        no painted shoulder in view.
     """
 
     center: np.ndarray
@@ -140,6 +146,7 @@ class FlangeDetection:
     n_face: int
     n_dropped: int = 0
     window_px: tuple[int, int, int, int] | None = None
+    finish_step: FinishStep | None = None
 
 
 class _Input(NamedTuple):
@@ -363,7 +370,7 @@ def _fine(
             f"the circle is supported by {n_in} rim points over {coverage:.0%} of its circumference "
             f"(need {params.min_inliers} and {params.min_coverage:.0%})",
         )
-    if not hollow(F, fit.centre, face.normal, flange, params.e_plane, params.hollow_fraction):
+    if not hollow(F, fit.centre, face.normal, flange, params.e_plane, params.hollow_fraction, params.max_range_bias > 0.0, P):
         raise DetectionError("refine", "the model's hollow (the centring bore) holds points: a solid disc, not a flange")
     # Height of the circle's plane from the face points just inside the rim:
     # with a slab thicker than a step (ToF on ur10e-wrist) the plane averages both.
@@ -373,8 +380,9 @@ def _fine(
     band = (rho > 0.85 * fit.radius) & (rho < fit.radius)
     circle_center = fit.centre + (float(np.mean(h[band])) if band.any() else 0.0) * face.normal
     normal = -face.normal if face.normal @ circle_center > 0 else face.normal  # toward the camera
+    center = circle_center - flange.circle_z * normal
     return FlangeDetection(
-        center=circle_center - flange.circle_z * normal,
+        center=center,
         normal=normal,
         radius=fit.radius,
         inliers=n_in,
@@ -386,6 +394,7 @@ def _fine(
         n_face=len(F),
         n_dropped=inp.n_dropped,
         window_px=box,
+        finish_step=measure_finish_step(window, center, normal, flange),
     )
 
 

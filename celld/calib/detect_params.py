@@ -57,6 +57,12 @@ class DetectParams:
         Fewest rim inliers of an accepted circle.
     hollow_fraction : float
         The bore may hold at most this fraction of the points a solid face would have there.
+    max_range_bias : float
+        Largest range bias between bare metal and paint the scanner may show,
+        m (0 for structured light). When positive the step check compares
+        surfaces of one finish only (:func:`celld.calib.segment.hollow`): a
+        time-of-flight camera reads the metal face of a UR flange below its
+        painted shoulder.
     seed : int
         Seed of every random choice (RANSAC samples, subsets).
     """
@@ -79,6 +85,7 @@ class DetectParams:
     min_coverage: float = 0.5
     min_inliers: int = 30
     hollow_fraction: float = 0.2
+    max_range_bias: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -92,6 +99,8 @@ class DetectParams:
                 raise InputError(f"DetectParams.{key}: expected a positive integer, got {getattr(self, key)!r}")
         if not 0 < self.min_extent <= 1 or not 0 < self.min_coverage <= 1 or not 0 <= self.hollow_fraction <= 1:
             raise InputError("DetectParams: min_extent, min_coverage and hollow_fraction are fractions in (0, 1]")
+        if not (math.isfinite(self.max_range_bias) and 0.0 <= self.max_range_bias < 0.1):
+            raise InputError(f"DetectParams.max_range_bias: expected 0 <= bias < 0.1 m, got {self.max_range_bias!r}")
         if (self.crop_min is None) != (self.crop_max is None):
             raise InputError("DetectParams: give both crop_min and crop_max, or neither")
         if self.crop_min is not None and not all(a < b for a, b in zip(self.crop_min, self.crop_max)):  # type: ignore[arg-type]
@@ -99,7 +108,9 @@ class DetectParams:
 
 
 # Parameters per scanner model. Time of flight: mm noise, so wide tolerances,
-# and a plane slab thick enough to take the face and the wrist shoulder as one.
+# a plane slab thick enough to take the face and the wrist shoulder as one,
+# and a range bias on metal of up to 20 mm (users report 8-15 mm on the
+# Azure Kinect, research/handeye_anchors.md section 4).
 PARAMS_BY_SCANNER: dict[str, DetectParams] = {
     "phoxi-s": DetectParams(),
     "phoxi-m": DetectParams(),
@@ -111,5 +122,6 @@ PARAMS_BY_SCANNER: dict[str, DetectParams] = {
         min_coverage=0.4,
         cluster_eps=3.0,
         coarse_points=40_000,  # a 640 x 576 image: thin it less, the flange is small in it
+        max_range_bias=0.020,
     ),
 }

@@ -24,6 +24,15 @@ where the chamfer starts (``outer_diameter / 2 - chamfer``: 31 mm on the
 90 mm outer circle of the UR10e wrist, 6.5 mm behind the face, which the paper
 uses with a noisy time-of-flight camera (section 4.2).
 
+Finishes: the tool flange itself (face, chamfer, bore, holes, side wall) is
+bare machined metal; the wrist body it stands on (the shoulder annulus and
+the wrist cylinder) is painted on the arms of the presets (``wrist_finish``).
+A time-of-flight camera reads bare metal long (multipath), paint much less:
+the face and the shoulder then read a step that is not the model's 6.5 mm,
+which is what measures the camera's range bias on metal
+(:mod:`celld.calib.rangebias`). That the wrist housings are painted is read
+from the arms' appearance (UR, Franka, AUBO), not from a drawing.
+
 Dimensions come from ISO 9409-1 where the standard fixes them (pitch circle,
 face and centring diameters, threads, pin) and from the UR10e manual drawing
 (bore depth, the 6.5 mm the flange stands proud of the 90 mm wrist); see
@@ -53,6 +62,10 @@ _MESH_CHORD = 0.0003
 _MERGE_EPS = 1e-9
 # Seed of the model-cloud sampler: the model cloud is a fixed function of the model.
 _MODEL_CLOUD_SEED = 9409
+# Finishes of the wrist body: painted (the presets' arms) or bare metal.
+FINISHES = ("painted", "metal")
+# A shoulder narrower than this (radial width, m) shows too few points to measure the face's step over it.
+_MIN_SHOULDER = 0.005
 
 
 @dataclass(frozen=True)
@@ -90,6 +103,9 @@ class FlangeModel:
     dowel_angle : float
         Angle of the dowel pin about z from +x, rad; the threaded holes sit
         half a step either side of it.
+    wrist_finish : str
+        ``"painted"`` or ``"metal"``: the finish of the wrist body (shoulder
+        and wrist cylinder). The tool flange itself is always bare metal.
     """
 
     name: str
@@ -109,6 +125,7 @@ class FlangeModel:
     circle_radius: float = 0.0
     circle_z: float = 0.0
     dowel_angle: float = math.pi / 2
+    wrist_finish: str = "painted"
 
     def __post_init__(self) -> None:
         # Defaults that depend on other fields: flush wrist, face-edge circle.
@@ -158,8 +175,22 @@ class FlangeModel:
             raise InputError(f"flange {self.name!r}: holes and bore must end inside the body (thickness + wrist_depth)")
         if not -(self.thickness + self.wrist_depth) < self.circle_z <= 0.0:
             raise InputError(f"flange {self.name!r}: circle_z must lie on the body, got {self.circle_z} m")
+        if self.wrist_finish not in FINISHES:
+            raise InputError(f"flange {self.name!r}: wrist_finish must be one of {', '.join(FINISHES)}, got {self.wrist_finish!r}")
 
     # -- derived geometry ----------------------------------------------------
+
+    @property
+    def circle_on_metal(self) -> bool:
+        """The detector's circle (and the height it is placed at) lies on bare metal: the tool flange, or a metal wrist."""
+        return self.circle_radius <= self.outer_diameter / 2 + 1e-9 or self.wrist_finish == "metal"
+
+    @property
+    def finish_step(self) -> float | None:
+        """Height of the metal face above the painted shoulder, m (``thickness``); None without a painted shoulder to see."""
+        if self.wrist_finish != "painted" or self.wrist_diameter / 2 - self.outer_diameter / 2 < _MIN_SHOULDER:
+            return None
+        return self.thickness
 
     @property
     def face_radius(self) -> float:

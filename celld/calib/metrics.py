@@ -34,6 +34,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from celld.calib.flange import FlangeModel
+from celld.calib.rangebias import correct_range_bias
 from celld.calib.rigid import Array
 from celld.errors import CalibrationError, InputError
 from celld.se3 import check_points, check_transform, invert
@@ -214,6 +215,9 @@ class IcpVerifier:
     params : IcpParams
     normals_flan : (m, 3) array, optional
         Model normals; estimated from the model points when absent.
+    on_metal : (n,) bool array, optional
+        The verification points on bare metal, which a time-of-flight camera
+        reads long (:meth:`with_range_bias` corrects them); default none.
     """
 
     def __init__(
@@ -223,12 +227,19 @@ class IcpVerifier:
         T_base_flan_v: ArrayLike,
         params: IcpParams = IcpParams(),
         normals_flan: ArrayLike | None = None,
+        on_metal: ArrayLike | None = None,
     ) -> None:
         P_v = check_points(P_v_cam, "P_v_cam", min_points=10)
         P_model = check_points(P_model_flan, "P_model_flan", min_points=10)
         self.T_base_flan_v = check_transform(T_base_flan_v, "T_base_flan_v")
         self.params = params
         self._T_flan_base = invert(self.T_base_flan_v)
+        metal = np.zeros(len(P_v), dtype=bool) if on_metal is None else np.asarray(on_metal, dtype=bool)
+        if metal.shape != (len(P_v),):
+            raise InputError(f"on_metal: expected a mask of {len(P_v)} verification points, got shape {metal.shape}")
+        # Kept to build a verifier with the range bias corrected (with_range_bias).
+        self._inputs = (P_v, P_model, normals_flan, metal)
+        self.range_bias = 0.0
 
         src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P_v))
         if params.voxel > 0.0:
@@ -258,6 +269,23 @@ class IcpVerifier:
         self._criteria = o3d.pipelines.registration.ICPConvergenceCriteria(
             relative_fitness=params.relative_change, relative_rmse=params.relative_change, max_iteration=params.max_iterations
         )
+
+    def with_range_bias(self, bias: float) -> IcpVerifier:
+        """A verifier on the verification points on metal moved back along their rays by ``bias`` (m).
+
+        :func:`celld.calib.rangebias.correct_range_bias`; the points not on
+        metal stay. The bias is relative to the capture as measured, not to
+        this verifier's own correction.
+        """
+        P_v, P_model, normals, metal = self._inputs
+        if not np.any(metal) or bias == 0.0:
+            out = copy.copy(self)
+            out.range_bias = float(bias)
+            return out
+        out = IcpVerifier(correct_range_bias(P_v, bias, metal), P_model, self.T_base_flan_v, self.params, normals, metal)
+        out._inputs = self._inputs
+        out.range_bias = float(bias)
+        return out
 
     def strict(self) -> IcpVerifier:
         """A verifier on the same clouds whose ICP runs to convergence (:meth:`IcpParams.strict`)."""

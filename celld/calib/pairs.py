@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from celld.calib.detect import FlangeDetection, detect_flange
 from celld.calib.detect_params import DetectParams
 from celld.calib.flange import FlangeModel
+from celld.calib.rangebias import FinishStep
 from celld.calib.robust import RejectedPair
 from celld.errors import DetectionError, InputError
 from celld.log import get_logger
@@ -37,12 +38,18 @@ Array = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class Detections:
-    """The pairs of a session (ids, flange positions and centres, (n, 3) m) and the captures rejected."""
+    """The pairs of a session (ids, flange positions and centres, (n, 3) m) and the captures rejected.
+
+    ``steps`` holds each pair's finish step (the metal face over the painted
+    shoulder, :class:`~celld.calib.rangebias.FinishStep`), None for a pair
+    without one (a recorded centre, no painted shoulder in view).
+    """
 
     ids: tuple[str, ...]
     P_base: Array
     P_cam: Array
     rejected: tuple[RejectedPair, ...]
+    steps: tuple[FinishStep | None, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -80,6 +87,7 @@ class PairCollector:
         self._ids: list[str] = []
         self._P_base: list[Array] = []
         self._P_cam: list[Array] = []
+        self._steps: list[FinishStep | None] = []
         self._rejected: list[RejectedPair] = []
         self._count = 0
 
@@ -133,6 +141,7 @@ class PairCollector:
         self._ids.append(pair_id)
         self._P_base.append(np.asarray(p_base, dtype=np.float64).reshape(3))
         self._P_cam.append(np.asarray(p_cam, dtype=np.float64).reshape(3))
+        self._steps.append(None if detection is None else detection.finish_step)
         return PairOutcome(pair_id, index, detection, None)
 
     def reject(self, pair_id: str, reason: str, index: int | None = None) -> PairOutcome:
@@ -155,5 +164,5 @@ class PairCollector:
     def detections(self) -> Detections:
         """The pairs kept so far and the captures rejected."""
         return Detections(
-            tuple(self._ids), np.reshape(self._P_base, (-1, 3)), np.reshape(self._P_cam, (-1, 3)), tuple(self._rejected)
+            tuple(self._ids), np.reshape(self._P_base, (-1, 3)), np.reshape(self._P_cam, (-1, 3)), tuple(self._rejected), tuple(self._steps)
         )

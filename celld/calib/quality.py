@@ -20,6 +20,11 @@ truth. :func:`assess_calibration` returns a frozen :class:`CalibrationQuality`:
   leaves that turn loose (a degree and more on a sparse cloud). The tilt
   judges the estimate; the turn judges a compensated transform (Eq. 21
   applies it whole), and is a warning otherwise;
+- the range bias on metal estimated with the transform (time-of-flight
+  cameras, :mod:`celld.calib.rangebias`), with its 1-sigma: it moves the
+  camera's origin along its axis and every metal point of a scan by as
+  much, so a bias fixed worse than a limit fails the gate; the uncertainty
+  of the transform carries the bias's when the centres lie on metal;
 - a verdict, one of :data:`VERDICTS`, with the reasons, and warnings that do
   not fail the gate.
 
@@ -46,6 +51,8 @@ reason is listed):
   estimate too far about the flange's axis;
 - ``insufficient_rotation``: a rotation of the estimate is fixed worse than
   :attr:`QualityParams.max_rotation_std` (1-sigma);
+- ``insufficient_range_bias``: the range bias is fixed worse than
+  :attr:`QualityParams.max_range_bias_std` (1-sigma);
 - ``ok``.
 """
 
@@ -62,6 +69,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from celld.calib.metrics import IcpMetric
+from celld.calib.rangebias import RangeBiasFit
 from celld.calib.rigid import (
     Array,
     Uncertainty,
@@ -73,7 +81,7 @@ from celld.calib.robust import RejectedPair
 from celld.errors import InputError
 
 # The verdicts; only "ok" passes the gate.
-VERDICTS = ("ok", "too_few_pairs", "poor_data", "insufficient_rotation")
+VERDICTS = ("ok", "too_few_pairs", "poor_data", "insufficient_rotation", "insufficient_range_bias")
 # Median of |r|^2 / sigma^2 for a 3-D isotropic Gaussian residual (chi-square, 3 dof).
 _CHI2_3_MEDIAN = float(chi2.median(3))
 # A principal axis within this angle of a base axis is named after it (X, Y, Z).
@@ -130,6 +138,12 @@ class QualityParams:
         verification flange's axis), and largest turn about that axis a
         stored compensation may apply, rad (0.5 deg: twice the paper's
         0.25 deg).
+    warn_range_bias_std : float
+        A range bias 1-sigma above this is a warning, m (0.25 mm).
+    max_range_bias_std : float
+        A range bias 1-sigma above this fails the gate, m (0.5 mm: three
+        sigma then reach the 1.5 mm a time-of-flight calibration is held to,
+        along the camera's axis and on every metal point of a scan).
     """
 
     min_pairs: int = 5
@@ -141,6 +155,8 @@ class QualityParams:
     max_rotation_std: float = math.radians(0.25)
     max_e_icp_translation: float = 2.0e-3
     max_e_icp_rotation: float = math.radians(0.5)
+    warn_range_bias_std: float = 0.25e-3
+    max_range_bias_std: float = 0.5e-3
 
     def __post_init__(self) -> None:
         if self.min_pairs < 4:
@@ -149,11 +165,16 @@ class QualityParams:
             raise InputError(f"outlier_alpha: expected 0 < alpha < 0.5, got {self.outlier_alpha}")
         if not 0.0 <= self.max_outlier_fraction < 1.0:
             raise InputError(f"max_outlier_fraction: expected a fraction in [0, 1), got {self.max_outlier_fraction}")
-        for name in ("max_rms", "sigma_floor", "warn_rotation_std", "max_rotation_std", "max_e_icp_translation", "max_e_icp_rotation"):
+        for name in ("max_rms", "sigma_floor", "warn_rotation_std", "max_rotation_std", "max_e_icp_translation", "max_e_icp_rotation",
+                     "warn_range_bias_std", "max_range_bias_std"):
             if not getattr(self, name) > 0.0:
                 raise InputError(f"{name}: expected a positive value (SI units), got {getattr(self, name)}")
         if self.warn_rotation_std > self.max_rotation_std:
             raise InputError(f"warn_rotation_std: expected at most max_rotation_std {self.max_rotation_std}, got {self.warn_rotation_std}")
+        if self.warn_range_bias_std > self.max_range_bias_std:
+            raise InputError(
+                f"warn_range_bias_std: expected at most max_range_bias_std {self.max_range_bias_std}, got {self.warn_range_bias_std}"
+            )
 
     @property
     def outlier_k(self) -> float:
@@ -243,6 +264,14 @@ class CalibrationQuality:
     e_icp_turn : float
         Rotation of e_icp about the verification flange's axis, rad (signed,
         right-handed about the flange's +z); NaN when not known.
+    range_bias : float
+        The range bias on metal estimated with the transform, m; NaN when
+        not estimated.
+    range_bias_std : float
+        Its 1-sigma, m; NaN when not estimated.
+    range_bias_source : str
+        What fixed it: ``"steps"``, ``"pairs"``, ``"steps+pairs"``; ``""``
+        when not estimated.
     """
 
     verdict: str
@@ -259,6 +288,9 @@ class CalibrationQuality:
     e_icp: IcpMetric | None
     e_icp_tilt: float = math.nan
     e_icp_turn: float = math.nan
+    range_bias: float = math.nan
+    range_bias_std: float = math.nan
+    range_bias_source: str = ""
 
     @property
     def passed(self) -> bool:
@@ -290,6 +322,9 @@ class CalibrationQuality:
             "e_icp": None if self.e_icp is None else self.e_icp.as_dict(),
             "e_icp_tilt_deg": _finite(math.degrees(self.e_icp_tilt)),
             "e_icp_turn_deg": _finite(math.degrees(self.e_icp_turn)),
+            "range_bias_mm": _finite(self.range_bias * 1e3),
+            "range_bias_std_mm": _finite(self.range_bias_std * 1e3),
+            "range_bias_source": self.range_bias_source,
         }
 
 
@@ -340,6 +375,7 @@ def assess_calibration(
     flange_centre_cam: ArrayLike | None = None,
     compensated: bool = False,
     notes: Sequence[str] = (),
+    range_bias: RangeBiasFit | None = None,
     params: QualityParams = QualityParams(),
 ) -> CalibrationQuality:
     """The quality gate of one estimate (module docstring). Pure: arrays in, a value out.
@@ -376,6 +412,9 @@ def assess_calibration(
         The transform stored is the estimate compensated by e_icp (Eq. 21).
     notes : sequence of str
         Warnings the caller adds (e.g. a compensation that could not be applied).
+    range_bias : RangeBiasFit | None
+        The range bias estimated with the transform; ``P_cam`` are then the
+        centres corrected by it.
     params : QualityParams
 
     Raises
@@ -407,8 +446,17 @@ def assess_calibration(
 
     # Covariance of the estimate at that noise: sigma^2 (J^T J)^-1 on the pairs used.
     J, _ = rigid_jacobian(T, P_b[is_used], P_c[is_used], scale, with_scale)
+    JtJ = J.T @ J
+    if range_bias is not None and range_bias.centres_on_metal:
+        # The bias is a parameter of the pairs too: its column, d r_i / d b = -R u_i,
+        # and what the finish steps add to its information (at the same noise scale).
+        U = P_c[is_used] / np.linalg.norm(P_c[is_used], axis=1, keepdims=True)
+        J = np.column_stack([J, -(U @ T[:3, :3].T).reshape(-1)])
+        JtJ = J.T @ J
+        if math.isfinite(range_bias.sigma_from_steps) and range_bias.sigma_from_steps > 0.0:
+            JtJ[-1, -1] += (sigma / range_bias.sigma_from_steps) ** 2
     try:
-        cov = np.linalg.inv(J.T @ J)[:6, :6] * sigma**2
+        cov = np.linalg.inv(JtJ)[:6, :6] * sigma**2
     except np.linalg.LinAlgError:
         cov = np.full((6, 6), np.inf)
     P_used = P_b[is_used]
@@ -517,6 +565,31 @@ def assess_calibration(
             rotation.append(
                 f"rotation about {axis.name} poorly fixed: {figure}, above {math.degrees(params.max_rotation_std):.2f} deg; {advice}"
             )
+    bias_reasons: list[str] = []
+    if range_bias is not None:
+        b_std = range_bias.bias_std
+        if not b_std <= params.warn_range_bias_std:
+            figure = f"{b_std * 1e3:.2f} mm 1-sigma" if math.isfinite(b_std) else "not fixed at all"
+            if math.isfinite(range_bias.sigma_from_steps):
+                advice = "add poses where the flange's face and the painted shoulder around it are both in view"
+            else:
+                advice = (
+                    "only the spread of the rays fixes it (no capture showed the metal face over a painted shoulder): "
+                    "spread the poses wider across the field of view or take more of them, or calibrate where a "
+                    "painted shoulder around the flange is in view"
+                )
+            warnings.append(f"range bias on metal ({range_bias.bias * 1e3:.2f} mm) poorly fixed: {figure}; {advice}")
+            if not b_std <= params.max_range_bias_std:
+                bias_reasons.append(
+                    f"the range bias on metal ({range_bias.bias * 1e3:.2f} mm) is fixed to {figure}, above "
+                    f"{params.max_range_bias_std * 1e3:.2f} mm: it moves the camera along its axis and every metal point "
+                    f"of a scan by as much; {advice}"
+                )
+        if range_bias.rejected_steps:
+            warnings.append(
+                f"{len(range_bias.rejected_steps)} finish steps left out of the range bias as outliers: "
+                + ", ".join(r.id for r in range_bias.rejected_steps)
+            )
     if source == "floor" and math.isfinite(sigma_fit):
         warnings.append(
             f"the noise estimated from the residuals ({sigma_fit * 1e3:.3f} mm per axis) is below the floor "
@@ -527,13 +600,14 @@ def assess_calibration(
     warnings += [str(x) for x in notes]
 
     verdict = "ok"
-    for name, found in (("too_few_pairs", too_few), ("poor_data", poor), ("insufficient_rotation", rotation)):
+    for name, found in (("too_few_pairs", too_few), ("poor_data", poor), ("insufficient_rotation", rotation),
+                        ("insufficient_range_bias", bias_reasons)):
         if found:
             verdict = name
             break
     return CalibrationQuality(
         verdict=verdict,
-        reasons=tuple(too_few + poor + rotation),
+        reasons=tuple(too_few + poor + rotation + bias_reasons),
         warnings=tuple(warnings),
         pairs=tuple(pairs),
         rms=rms,
@@ -546,6 +620,9 @@ def assess_calibration(
         e_icp=e_icp,
         e_icp_tilt=tilt,
         e_icp_turn=turn,
+        range_bias=math.nan if range_bias is None else range_bias.bias,
+        range_bias_std=math.nan if range_bias is None else range_bias.bias_std,
+        range_bias_source="" if range_bias is None else range_bias.source,
     )
 
 

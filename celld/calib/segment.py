@@ -145,37 +145,80 @@ def raster_cells(P: np.ndarray, normal: np.ndarray, cell: float) -> np.ndarray:
     return np.floor((P @ plane_basis(normal).T) / cell).astype(np.int64)
 
 
-def _bands(flange: FlangeModel) -> tuple[tuple[float, float] | None, tuple[float, float] | None, float]:
-    """Radial bands about the axis, in the plane of the model's circle: (surface, other, dz).
-
-    The model's surfaces that face the camera, as (r_in, r_out, z): bore
-    bottom, face, shoulder. ``surface`` is the one whose outer edge is the
-    circle; ``other`` the widest one inside the circle at a different height
-    (a step of at least _MIN_STEP), ``dz`` its height above the circle's
-    plane. Both bands are trimmed by 15 % of their width at each bounding
-    edge; None when there is no such band.
-    """
-    levels = [
-        (0.0, flange.bore_diameter / 2, -flange.bore_depth),
-        (flange.bore_diameter / 2, flange.face_radius, 0.0),
-        (flange.outer_diameter / 2, flange.wrist_diameter / 2, -flange.thickness),
+def _levels(flange: FlangeModel) -> list[tuple[float, float, float, str]]:
+    """The model's surfaces that face the camera, as (r_in, r_out, z, finish): bore bottom, face, shoulder."""
+    return [
+        (0.0, flange.bore_diameter / 2, -flange.bore_depth, "metal"),
+        (flange.bore_diameter / 2, flange.face_radius, 0.0, "metal"),
+        (flange.outer_diameter / 2, flange.wrist_diameter / 2, -flange.thickness, flange.wrist_finish),
     ]
-    surface, other, dz = None, None, 0.0
-    for r0, r1, z in levels:
+
+
+class _Band(NamedTuple):
+    """A trimmed radial band of one surface: (r_in, r_out), its height z in the flange frame, its finish."""
+
+    radii: tuple[float, float]
+    z: float
+    finish: str
+    carries_rim: bool
+
+    @property
+    def width(self) -> float:
+        return self.radii[1] - self.radii[0]
+
+
+def _bands(flange: FlangeModel, by_finish: bool = False) -> tuple[tuple[float, float] | None, tuple[float, float] | None, float]:
+    """Two radial bands about the axis whose heights differ by a step of the model: (reference, other, dz).
+
+    Of the model's surfaces that face the camera (:func:`_levels`),
+    ``reference`` is the one whose outer edge is the circle, ``other`` the
+    widest one inside the circle at a different height (a step of at least
+    _MIN_STEP), ``dz`` its height above the reference. With ``by_finish``
+    (a scanner that reads bare metal and paint at different ranges) the two
+    must share a finish: when none inside the circle shares the reference's,
+    the widest pair inside the circle that shares one is taken (on a painted
+    UR wrist, the metal face over the metal bore bottom). Bands are trimmed by
+    15 % of their width at each bounding edge; None when there is no such pair.
+    """
+    bands = []
+    for r0, r1, z, finish in _levels(flange):
         if r0 >= flange.circle_radius:
             continue
         carries_rim = r1 >= flange.circle_radius - 1e-9
         r1 = min(r1, flange.circle_radius)
         trim = 0.15 * (r1 - r0)
-        band = (r0 + trim if r0 > 0 else 0.0, r1 - trim)
-        if carries_rim:
-            surface = band
-        elif abs(z - flange.circle_z) >= _MIN_STEP and (other is None or band[1] - band[0] > other[1] - other[0]):
-            other, dz = band, z - flange.circle_z
-    return surface, other, dz
+        bands.append(_Band((r0 + trim if r0 > 0 else 0.0, r1 - trim), z, finish, carries_rim))
+    surface = next((b for b in bands if b.carries_rim), None)
+    if surface is None:
+        return None, None, 0.0
+
+    def widest(ref: _Band) -> _Band | None:
+        partners = [b for b in bands if b is not ref and abs(b.z - ref.z) >= _MIN_STEP and (not by_finish or b.finish == ref.finish)]
+        return max(partners, key=lambda b: b.width, default=None)
+
+    other = widest(surface)
+    if other is not None:
+        return surface.radii, other.radii, other.z - surface.z
+    if not by_finish:
+        return surface.radii, None, 0.0
+    pairs = [(ref, o) for ref in bands if ref is not surface for o in [widest(ref)] if o is not None]
+    if not pairs:
+        return surface.radii, None, 0.0
+    ref, o = max(pairs, key=lambda p: min(p[0].width, p[1].width))
+    return ref.radii, o.radii, o.z - ref.z
 
 
-def hollow(face: np.ndarray, centre: np.ndarray, normal: np.ndarray, flange: FlangeModel, slab: float, fraction: float) -> bool:
+def hollow(
+    face: np.ndarray,
+    centre: np.ndarray,
+    normal: np.ndarray,
+    flange: FlangeModel,
+    slab: float,
+    fraction: float,
+    by_finish: bool = False,
+    around: np.ndarray | None = None,
+    undecided: bool = False,
+) -> bool:
     """True when the points around the circle show the model's step: a flange, not a solid disc.
 
     An ISO 9409-1 face is an annulus: seen in the plane of the face the
@@ -184,7 +227,11 @@ def hollow(face: np.ndarray, centre: np.ndarray, normal: np.ndarray, flange: Fla
     other band must be empty: at most ``fraction`` of the points the density
     on the surface band predicts. With a thicker slab (time of flight) both
     levels are in it, and the median height of the other band above the
-    surface band must be the model's step within half of it.
+    reference band must be the model's step within half of it. A
+    time-of-flight camera reads bare metal long against paint
+    (``by_finish``): the step is then judged between surfaces of one finish
+    (:func:`_bands`), so a painted shoulder under a metal face that reads
+    below it is still a flange and a solid disc still is not.
 
     Parameters
     ----------
@@ -192,21 +239,29 @@ def hollow(face: np.ndarray, centre: np.ndarray, normal: np.ndarray, flange: Fla
         (n, 3) points within ``slab`` of the circle's plane, camera frame.
     centre, normal : numpy.ndarray
         (3,) the circle's centre and unit normal (either sign), camera frame.
+    around : numpy.ndarray, optional
+        (m, 3) the points near the circle at any height, for the thick-slab
+        test (default ``face``): a bore read long may lie beyond the slab.
+    undecided : bool
+        The answer when a band of the thick-slab test holds too few points to
+        judge (the coarse pass passes such a candidate on to the fine pass,
+        which judges it at full resolution).
     """
-    surface, other, dz = _bands(flange)
+    surface, other, dz = _bands(flange, by_finish)
     if surface is None or other is None:
         return True
     up = normal if normal @ centre < 0 else -normal  # toward the camera, as flange +z
-    d = face - centre
+    thick = abs(dz) <= 2 * slab
+    d = (around if thick and around is not None else face) - centre
     h = d @ up
     rho = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) - h * h, 0.0))
     on_surface = (rho > surface[0]) & (rho < surface[1])
     on_other = (rho > other[0]) & (rho < other[1])
-    if abs(dz) > 2 * slab:
+    if not thick:
         density = np.count_nonzero(on_surface) / (math.pi * (surface[1] ** 2 - surface[0] ** 2))
         return bool(np.count_nonzero(on_other) <= fraction * density * math.pi * (other[1] ** 2 - other[0] ** 2))
     if np.count_nonzero(on_other) < MIN_POINTS or np.count_nonzero(on_surface) < MIN_POINTS:
-        return False
+        return undecided
     step = float(np.median(h[on_other]) - np.median(h[on_surface]))
     return abs(step - dz) < 0.5 * abs(dz)
 
@@ -235,7 +290,11 @@ def _coarse_circle(
     coverage = angular_coverage(R[fit.inliers], fit.centre, normal, COVERAGE_BINS)
     if coverage < params.min_coverage:
         return None
-    if not hollow(Q, fit.centre, normal, flange, params.e_plane_coarse, params.hollow_fraction):
+    # The thick-slab step test looks at every thinned point near the circle:
+    # a bore read long can lie beyond the cluster's plane slab.
+    near = np.einsum("ij,ij->i", P - fit.centre, P - fit.centre) < (1.2 * flange.circle_radius) ** 2
+    by_finish = params.max_range_bias > 0.0
+    if not hollow(Q, fit.centre, normal, flange, params.e_plane_coarse, params.hollow_fraction, by_finish, P[near], undecided=by_finish):
         return None
     return CoarseCandidate(idx, fit, coverage, step)
 

@@ -16,6 +16,14 @@ store (and accept) is the compensated one, ``T_base_cam e_icp`` (Eq. 21);
 cloud, or with an infinite e_icp, nothing can compensate: the estimate is
 stored and the quality report says why.
 
+Range bias (``range_bias = "estimate"``, time-of-flight cameras): the bias
+of the camera's range on bare metal is estimated with the transform
+(:mod:`celld.calib.rangebias`: the detections' finish steps and, when the
+centres lie on metal, the spread of their rays), the centres on metal and
+the verification cloud's metal points are corrected by it before Algorithm 1
+and e_icp, and the result carries it with its 1-sigma: the daemon applies it
+to every scan it places with the calibration.
+
 Methods:
 
 - ``robust`` (default): :func:`~celld.calib.robust.solve_robust`, every
@@ -46,6 +54,8 @@ from celld.calib.flange import FlangeModel
 from celld.calib.metrics import IcpMetric, IcpParams, IcpVerifier, compensate, cost_function, model_cloud_with_normals
 from celld.calib.pairs import Detections, PairCollector
 from celld.calib.quality import CalibrationQuality, QualityParams, assess_calibration
+from celld.calib.rangebias import MODES as RANGE_BIAS_MODES
+from celld.calib.rangebias import RangeBiasData, RangeBiasFit, correct_range_bias, solve_range_bias, solve_robust_range_bias
 from celld.calib.rigid import Array, Uncertainty, check_pairs, pair_residuals, solve_rigid
 from celld.calib.robust import RejectedPair, RobustParams, solve_robust
 from celld.config import CalibrationConfig
@@ -57,6 +67,9 @@ log = get_logger(__name__)
 METHODS = ("robust", "svd", "algorithm1")
 # Margin around the flange model when the verification cloud is cropped, m.
 _VERIFICATION_MARGIN = 0.005
+# Verification points this far outside the tool flange's radius still count as
+# its metal (a point read long at a tilt moves sideways by b sin(theta)), m.
+_METAL_MARGIN = 0.0015
 
 
 @dataclass(frozen=True)
@@ -84,6 +97,9 @@ class SolveParams:
         Store the estimate compensated by Eq. 21 (needs a verification cloud).
     with_scale : bool
         Estimate the scale of Eq. 11.
+    range_bias : str
+        ``"estimate"``: estimate the range bias on metal with the transform
+        (:mod:`celld.calib.rangebias`); ``"none"``: the scanner has none.
     quality : QualityParams
         Thresholds of the quality gate.
     """
@@ -98,6 +114,7 @@ class SolveParams:
     k_max: int | None = None
     compensate: bool = False
     with_scale: bool = False
+    range_bias: str = "none"
     quality: QualityParams = field(default_factory=QualityParams)
 
     @classmethod
@@ -112,6 +129,7 @@ class SolveParams:
             "e_required": cal.e_required,
             "k_max": cal.k_max,
             "compensate": cal.compensate,
+            "range_bias": cal.range_bias or "none",
         }
         values.update(overrides)
         return cls(**values)
@@ -120,6 +138,10 @@ class SolveParams:
         if self.method not in METHODS:
             raise InputError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
         cost_function(self.cost, self.work_radius)  # validates the name and radius
+        if self.range_bias not in RANGE_BIAS_MODES:
+            raise InputError(f"range_bias: expected one of {', '.join(RANGE_BIAS_MODES)}, got {self.range_bias!r}")
+        if self.range_bias == "estimate" and self.with_scale:
+            raise InputError("range_bias estimate and with_scale exclude each other: a free scale absorbs a range bias")
 
 
 @dataclass(frozen=True)
@@ -155,6 +177,9 @@ class CalibrationResult:
         The quality gate's verdict on the estimate.
     stored : str
         ``"compensated"`` when the transform to store is Eq. 21's, else ``"estimate"``.
+    range_bias : RangeBiasFit | None
+        The range bias on metal estimated with the transform (``range_bias =
+        "estimate"``), None when not estimated.
     """
 
     T_base_cam: Array
@@ -170,6 +195,12 @@ class CalibrationResult:
     n_pairs: int
     quality: CalibrationQuality
     stored: str = "estimate"
+    range_bias: RangeBiasFit | None = None
+
+    @property
+    def bias(self) -> float:
+        """The range bias on metal to apply with the calibration, m (0 when not estimated)."""
+        return 0.0 if self.range_bias is None else self.range_bias.bias
 
     @property
     def T_base_cam_stored(self) -> Array:
@@ -183,7 +214,8 @@ class CalibrationResult:
 
         ``T_base_cam`` is the transform to store (:attr:`T_base_cam_stored`),
         ``stored`` says which one it is and ``T_base_cam_estimate`` is the
-        estimate before Eq. 21.
+        estimate before Eq. 21; ``range_bias`` holds the range bias on metal
+        (``bias_mm``, ``std_mm``; 0 with mode ``none``).
         """
         out: dict[str, Any] = {
             "T_base_cam": self.T_base_cam_stored.tolist(),
@@ -203,6 +235,7 @@ class CalibrationResult:
             "e_icp": None if self.e_icp is None else self.e_icp.as_dict(),
             "T_base_cam_compensated": None if self.T_base_cam_compensated is None else self.T_base_cam_compensated.tolist(),
             "quality": self.quality.as_dict(),
+            "range_bias": {"mode": "none", "bias_mm": 0.0} if self.range_bias is None else self.range_bias.as_dict(),
         }
         if self.algorithm1 is not None:
             a = self.algorithm1
@@ -235,6 +268,7 @@ def solve_pairs(
     verifier: IcpVerifier | None = None,
     pre_rejected: Sequence[RejectedPair] = (),
     n_pairs: int | None = None,
+    range_data: RangeBiasData | None = None,
 ) -> CalibrationResult:
     """Solve ``T_base_cam`` from detected centre pairs (the pure core).
 
@@ -252,6 +286,9 @@ def solve_pairs(
         Pairs already rejected upstream (failed detections), reported as such.
     n_pairs : int | None
         Pairs in the session (default: detected plus pre-rejected).
+    range_data : RangeBiasData | None
+        The pairs' finish steps and where their centres lie, for
+        ``range_bias = "estimate"`` (:mod:`celld.calib.rangebias`).
 
     Raises
     ------
@@ -259,15 +296,31 @@ def solve_pairs(
         Malformed or too few pairs, coincident or collinear positions (the
         rotation is undetermined; coplanar ones are solved and their
         conditioning reported by the quality gate), no consistent set, or
-        ``algorithm1`` without a verification cloud.
+        ``algorithm1`` without a verification cloud, or a range bias to
+        estimate without the data that observe it.
     """
     P_b, P_c = check_pairs(P_base, P_cam)
+    P_c_measured = P_c
     ids_t = tuple(str(i) for i in ids)
     if len(ids_t) != len(P_b):
         raise InputError(f"ids: expected {len(P_b)} pair ids, got {len(ids_t)}")
     if params.method == "algorithm1" and verifier is None:
         raise CalibrationError("method algorithm1 needs a verification cloud (the session has none)")
     cost = cost_function(params.cost, params.work_radius)
+
+    # The range bias first (robust, on the consistent pairs): Algorithm 1 and
+    # e_icp then see centres and a verification cloud corrected by it.
+    rb = rob_rb = None
+    if params.range_bias == "estimate":
+        if range_data is None:
+            raise CalibrationError("range_bias = estimate: the session gives no finish steps nor centre finish to observe it")
+        if range_data.step_bias.shape != (len(P_b),):
+            raise InputError(f"range_data: expected {len(P_b)} steps, got {range_data.step_bias.shape[0]}")
+        rob_rb, rb = solve_robust_range_bias(P_b, P_c, range_data, ids_t, params.robust)
+        if range_data.centres_on_metal:
+            P_c = correct_range_bias(P_c, rb.bias)
+        if verifier is not None:
+            verifier = verifier.with_range_bias(rb.bias)
 
     a1 = None
     if verifier is not None and len(P_b) >= 4:
@@ -276,10 +329,19 @@ def solve_pairs(
         )
 
     rejected = list(pre_rejected)
-    if params.method == "robust":
+    if params.method == "robust" and rb is not None and rob_rb is not None:
+        # The joint fit on the consistent pairs: its covariance carries the bias's.
+        T, used, unc, scale = rb.T_base_cam, list(rob_rb.inliers), rb.uncertainty, 1.0
+        rejected += list(rob_rb.rejected)
+    elif params.method == "robust":
         rob = solve_robust(P_b, P_c, ids=ids_t, params=replace(params.robust, with_scale=params.with_scale))
         T, used, unc, scale = rob.T_base_cam, list(rob.inliers), rob.fit.uncertainty, rob.fit.scale
         rejected += list(rob.rejected)
+    elif params.method == "svd" and rb is not None and range_data is not None:
+        rb = solve_range_bias(P_b, P_c_measured, range_data, ids=ids_t)  # every pair, as measured
+        T, used, unc, scale = rb.T_base_cam, list(range(len(P_b))), rb.uncertainty, 1.0
+        if range_data.centres_on_metal:
+            P_c = rb.P_cam_corrected
     elif params.method == "svd":
         fit = solve_rigid(P_b, P_c, with_scale=params.with_scale)
         T, used, unc, scale = fit.T_dst_src, list(range(len(P_b))), fit.uncertainty, fit.scale
@@ -335,6 +397,7 @@ def solve_pairs(
         flange_centre_cam=centre_cam,
         compensated=T_comp is not None,
         notes=notes,
+        range_bias=rb,
         params=params.quality,
     )
     return CalibrationResult(
@@ -351,7 +414,24 @@ def solve_pairs(
         n_pairs=n_pairs if n_pairs is not None else len(P_b) + len(pre_rejected),
         quality=quality,
         stored="compensated" if T_comp is not None else "estimate",
+        range_bias=rb,
     )
+
+
+def range_bias_data(params: SolveParams, flange: FlangeModel | None, detections: Detections) -> RangeBiasData | None:
+    """What the detections say about the range bias, when ``params`` estimate it (else None).
+
+    Raises
+    ------
+    CalibrationError
+        A range bias to estimate without a flange preset (it says which surfaces are bare metal).
+    """
+    if params.range_bias != "estimate":
+        return None
+    if flange is None:
+        raise CalibrationError("range_bias = estimate needs the flange preset: it says which surfaces are bare metal")
+    steps = detections.steps if len(detections.steps) == len(detections.ids) else (None,) * len(detections.ids)
+    return RangeBiasData.from_steps(flange.circle_on_metal, steps)
 
 
 def detect_pairs(
@@ -382,6 +462,8 @@ def verifier_from_cloud(
     The crop is the cylinder the flange model fills, about the detected
     centre and along the detected normal, plus a margin: what the model
     cannot explain (other links, the table) stays out of the registration.
+    The points of the tool flange are marked as bare metal, so that a range
+    bias can be corrected (:meth:`~celld.calib.metrics.IcpVerifier.with_range_bias`).
     The detection only says where the flange is in the cloud. ``P_v_cam`` may
     be organized (H, W, 3) with NaN for no return.
 
@@ -405,7 +487,13 @@ def verifier_from_cloud(
     radial = np.linalg.norm(d - np.outer(h, det.normal), axis=1)
     keep = (h >= P_model[:, 2].min() - m) & (h <= P_model[:, 2].max() + m) & (radial <= r_max)
     P_v = P_v[keep]
-    return IcpVerifier(P_v, P_model, T_base_flan_v, params.icp, normals_flan=N_model)
+    # The points on bare metal, for a range bias correction: the tool flange is
+    # the cylinder of its outer diameter (a metal point read long moves along
+    # its ray, so heights cannot tell); all of it on a bare-metal wrist.
+    on_metal = radial[keep] <= flange.outer_diameter / 2 + _METAL_MARGIN
+    if flange.wrist_finish == "metal":
+        on_metal[:] = True
+    return IcpVerifier(P_v, P_model, T_base_flan_v, params.icp, normals_flan=N_model, on_metal=on_metal)
 
 
 def verification_verifier(
@@ -439,7 +527,10 @@ def calibrate_session(
     verifier = None
     if flange is not None:
         verifier = verification_verifier(session, flange, params, detect_params)
-    result = solve_pairs(det.ids, det.P_base, det.P_cam, params, verifier, det.rejected, n_pairs=len(session.pairs))
+    result = solve_pairs(
+        det.ids, det.P_base, det.P_cam, params, verifier, det.rejected, n_pairs=len(session.pairs),
+        range_data=range_bias_data(params, flange, det),
+    )
     log.info(
         "calib.solved",
         method=result.method,

@@ -22,6 +22,7 @@ from celld.config.cell import Config, load, parse
 from celld.config.reader import TableReader
 from celld.config.sections import (
     BUS_ROLES,
+    RANGE_BIAS_MODES,
     SCANNER_KINDS,
     SCANNER_MODELS,
     BusConfig,
@@ -33,11 +34,13 @@ from celld.config.sections import (
     RobotConfig,
     ScannerConfig,
     WeldConfig,
+    range_bias_default,
 )
 from celld.config.tactile import SERVO_BOUNDS, Bound, ServoConfig, TactileConfig, ToolConfig, check_servo, with_overrides
 
 __all__ = [
-    "BUS_ROLES", "SCANNER_KINDS", "SCANNER_MODELS", "SERVO_BOUNDS", "Bound", "BusConfig", "BusUser", "CalibrationConfig",
+    "BUS_ROLES", "RANGE_BIAS_MODES", "SCANNER_KINDS", "SCANNER_MODELS", "SERVO_BOUNDS", "Bound", "BusConfig", "BusUser", "CalibrationConfig",
     "CellConfig", "Config", "MotionLimits", "RecordingConfig", "RobotConfig", "ScannerConfig", "ServoConfig",
-    "TableReader", "TactileConfig", "ToolConfig", "WeldConfig", "check_servo", "load", "parse", "with_overrides",
+    "TableReader", "TactileConfig", "ToolConfig", "WeldConfig", "check_servo", "load", "parse", "range_bias_default",
+    "with_overrides",
 ]

@@ -4,7 +4,8 @@ A file may ``include = ["robots/ur10e.toml", ...]`` other files (paths relative
 to it); later values override earlier ones, table by table. :func:`load`
 reads a file and its includes, :func:`parse` validates the merged tables into
 a :class:`Config`: every section, then the rules between sections
-(:func:`~celld.config.tactile.check_servo`).
+(:func:`~celld.config.tactile.check_servo`), and the defaults that depend on
+another section (``calibration.range_bias`` on the scanner).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import copy
 import tomllib
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -30,6 +31,7 @@ from celld.config.sections import (
     RobotConfig,
     ScannerConfig,
     WeldConfig,
+    range_bias_default,
     read_seam,
 )
 from celld.config.tactile import ServoConfig, TactileConfig, ToolConfig, check_servo
@@ -134,6 +136,8 @@ def parse(data: dict[str, Any], source: str = "<dict>") -> Config:
     sub.done()
     top.done()
     check_servo(values["servo"], values["tactile"], values["tool"], source, values["motion"].max_linear_speed)
+    if values["calibration"].range_bias is None:
+        values["calibration"] = replace(values["calibration"], range_bias=range_bias_default(values["scanner"].kind, values["scanner"].model))
     config = Config(**values)
     check_cell(config)
     return config

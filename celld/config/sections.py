@@ -164,6 +164,21 @@ class MotionLimits:
 
 SCANNER_KINDS = ("sim", "replay", "phoxi", "azure-kinect", "realsense")
 SCANNER_MODELS = ("phoxi-s", "phoxi-m", "azure-kinect")
+# calibration.range_bias: estimate the range bias on metal with T_base_cam, or not.
+RANGE_BIAS_MODES = ("estimate", "none")
+# Scanners that read bare metal long (time of flight, and the RealSense
+# family, whose L515 is a lidar): the range bias is estimated unless the config says "none".
+_BIASED_KINDS = ("azure-kinect", "realsense")
+_BIASED_MODELS = ("azure-kinect",)
+
+
+def range_bias_default(kind: str, model: str) -> str:
+    """``calibration.range_bias`` when the config does not set it: ``estimate`` for a time-of-flight scanner, else ``none``.
+
+    ``kind`` and ``model`` are the scanner's (``scanner.kind``, ``scanner.model``);
+    a simulated or replayed scanner goes by its model.
+    """
+    return "estimate" if kind in _BIASED_KINDS or model in _BIASED_MODELS else "none"
 
 
 @dataclass(frozen=True)
@@ -263,6 +278,10 @@ class CalibrationConfig:
     # The current calibration's dataset is always kept (celld.daemon.retention).
     keep_sessions: int = 10
     keep_days: float = 0.0
+    # The scanner's range bias on bare metal: "estimate" it with T_base_cam
+    # (time of flight) or "none" (structured light). None until the config is
+    # parsed: it then takes the scanner's default (range_bias_default).
+    range_bias: str | None = None
 
     @classmethod
     def read(cls, r: TableReader) -> CalibrationConfig:
@@ -288,6 +307,7 @@ class CalibrationConfig:
             model_spacing=r.float("model_spacing_mm", cls.model_spacing * 1e3, lo=0.1, hi=10.0, scale=1e-3),
             keep_sessions=r.int("keep_sessions", cls.keep_sessions, lo=0, hi=100_000),
             keep_days=r.float("keep_days", cls.keep_days, lo=0.0, hi=36_500.0),
+            range_bias=r.str("range_bias", choices=RANGE_BIAS_MODES) if r.has("range_bias") else None,
         )
 
 
@@ -457,16 +477,29 @@ class WeldConfig:
         )
 
 
+# A seam region of interest beyond this from the base is not a cell's, m.
+_ROI_BOUND = 5.0
+
+
 def read_seam(r: TableReader, scanner_model: str, finger_wall: str) -> SeamParams:
     """Read the ``[seam]`` table: the scanner's preset with ``seam_source``,
     ``spacing_mm``, ``table_z`` (omit to measure the table),
-    ``max_model_deviation_mm`` and ``seed`` over it. The finger's wall is the
-    tool's (``[tool] wall_side``)."""
+    ``max_model_deviation_mm``, ``seed`` and the region of interest
+    ``roi_min`` / ``roi_max`` (base frame, m: where the part may be; a
+    wide-angle camera such as the Azure Kinect sees the robot's base inside
+    the default box) over it. The finger's wall is the tool's (``[tool] wall_side``)."""
     r.refuse_moved({"finger_wall": "[tool] wall_side (the seam's normals point to the finger's wall)"})
     base = SeamParams.for_scanner(r.str("preset", scanner_model, choices=tuple(SEAM_PRESETS)))
     table_z = r.float("table_z", 0.0, lo=-2.0, hi=2.0) if r.has("table_z") else None
+    x0, y0, z0 = r.vector("roi_min", 3, list(base.roi_min), bound=_ROI_BOUND, what=" m (base frame)")
+    x1, y1, z1 = r.vector("roi_max", 3, list(base.roi_max), bound=_ROI_BOUND, what=" m (base frame)")
+    roi_min, roi_max = (x0, y0, z0), (x1, y1, z1)
+    if not all(a < b for a, b in zip(roi_min, roi_max)):
+        raise r.error("roi_max", f"expected above roi_min {list(roi_min)} on every axis, got {list(roi_max)}")
     return replace(
         base,
+        roi_min=roi_min,
+        roi_max=roi_max,
         seam_source=r.str("seam_source", base.seam_source, choices=SEAM_SOURCES),
         spacing=r.float("spacing_mm", base.spacing * 1e3, lo=0.1, hi=50.0, scale=1e-3),
         finger_wall=finger_wall,

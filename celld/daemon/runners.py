@@ -18,6 +18,13 @@ worker threads so the event loop keeps answering the bus.
   The early stop waits until the gate has its minimum of pairs. Old
   datasets are then pruned by the config's retention rules
   (:mod:`celld.daemon.retention`).
+  With ``calibration.range_bias = "estimate"`` (time-of-flight scanners)
+  the scanner's range bias on metal is estimated with the transform
+  (:mod:`celld.calib.rangebias`) and stored with it (``range_bias_mm`` and
+  its 1-sigma): every scan placed with this calibration is corrected by it.
+  Algorithm 1 starts with the bias its first four captures' finish steps
+  say (the verification cloud's metal points, and the centres when they lie
+  on metal, corrected by it).
 - **move**: a jerk-limited straight move of the TCP to a pose, or a
   jerk-limited joint move (straight in joint space, sent as speedJ) to joint
   positions; both checked against the cell first (planning module).
@@ -44,7 +51,8 @@ from celld.calib.flange import preset
 from celld.calib.metrics import cost_function
 from celld.calib.pairs import PairCollector
 from celld.calib.poses import calibration_poses
-from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
+from celld.calib.rangebias import bias_from_steps, correct_range_bias
+from celld.calib.session import SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import CalibrationStore, JobContext, Runner
@@ -156,6 +164,8 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         rec.log_cloud_cam("verification", cloud_v.points)
     verifier = await asyncio.to_thread(verifier_from_cloud, cloud_v.points, T_v_robot, flange, params, dparams)
     alg = Algorithm1(verifier, cost_function(params.cost, params.work_radius), e_required=params.e_required, k_max=params.k_max or len(poses))
+    estimate_bias = params.range_bias == "estimate"
+    bias_online = 0.0  # the range bias Algorithm 1 runs with, m
 
     pairs = PairCollector(flange, dparams, writer)
     early = False
@@ -173,11 +183,22 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
             rec.log_circle_cam("flange", det.center, det.normal, det.radius)
             rec.log_tcp(T_bf)
         data: dict[str, Any] = {"pair": pid, "detected": True, "radius_mm": det.radius * 1e3, "inliers": det.inliers}
+        if det.finish_step is not None:
+            data["range_bias_mm"] = det.finish_step.bias * 1e3
         found = pairs.detections()
         if pairs.n_pairs == 4:
-            step = await asyncio.to_thread(alg.start, list(found.ids), found.P_base, found.P_cam)
+            if estimate_bias:
+                # The first four finish steps fix the bias to about 0.1 mm: Algorithm 1
+                # scores with the verification cloud's metal corrected by it.
+                bias_online = bias_from_steps(found.steps) or 0.0
+                corrected = await asyncio.to_thread(verifier.with_range_bias, bias_online)
+                alg = Algorithm1(corrected, cost_function(params.cost, params.work_radius),
+                                 e_required=params.e_required, k_max=params.k_max or len(poses))
+            P_cam = correct_range_bias(found.P_cam, bias_online) if flange.circle_on_metal else found.P_cam
+            step = await asyncio.to_thread(alg.start, list(found.ids), found.P_base, P_cam)
         elif pairs.n_pairs > 4 and not alg.done:
-            step = await asyncio.to_thread(alg.add, pid, found.P_base[-1], found.P_cam[-1])
+            p_cam = correct_range_bias(found.P_cam[-1:], bias_online)[0] if flange.circle_on_metal else found.P_cam[-1]
+            step = await asyncio.to_thread(alg.add, pid, found.P_base[-1], p_cam)
         else:
             step = None
         if step is not None:
@@ -194,8 +215,9 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     if pairs.n_pairs < 4:
         raise CalibrationError(f"only {pairs.n_pairs} of {len(poses)} captures showed the flange; at least 4 are needed")
     ctx.progress("solve", None, f"solving from {pairs.n_pairs} pairs")
+    range_data = range_bias_data(params, flange, found)
     result = await asyncio.to_thread(
-        solve_pairs, found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, pairs.n_captures
+        solve_pairs, found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, pairs.n_captures, range_data
     )
     report = result.as_dict()
     a1 = alg.result() if alg.started else None
@@ -209,10 +231,14 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         "dataset": str(dataset),
         "method": result.method,
         "quality": report["quality"],
+        # The scanner's range bias on metal, to apply with T_base_cam (0 with mode none).
+        "range_bias": params.range_bias,
+        "range_bias_mm": result.bias * 1e3,
+        "range_bias_std_mm": None if result.range_bias is None else report["range_bias"]["std_mm"],
     }
     log.info(
         "calibration solved", job=ctx.job_id, pairs=len(result.pair_ids), cost_mm=cost_mm, early_stop=early,
-        verdict=result.quality.verdict, stored=result.stored,
+        verdict=result.quality.verdict, stored=result.stored, range_bias_mm=round(result.bias * 1e3, 3),
     )
     current = CalibrationStore(ctx.state_dir).current() or {}
     await asyncio.to_thread(prune_sessions, ctx.state_dir / "jobs", cal.keep_sessions, cal.keep_days, (ctx.job_id, current.get("job")))

@@ -6,7 +6,9 @@ Steps, each published as a progress event:
    and the scanner captures the part;
 2. **seam**: the seam finder registers the part model in the scan and places
    its seam in the base frame with the *current* calibration (an accepted
-   calibrate job); a weld without one is refused;
+   calibrate job); a weld without one is refused. A calibration with a
+   range bias on metal (time-of-flight scanner) has the scan's points moved
+   back along their rays by it first: the part and the table are metal;
 3. **approach**: the finger's wall line at ``weld.tip_height`` above the seam
    (:mod:`celld.seam.weldpath`) becomes the servo's plan; the tool comes down
    ``approach_height`` above its start, then onto it, ``clearance`` off the
@@ -38,6 +40,7 @@ import numpy as np
 
 from celld import fsutil, polyline, se3
 from celld.bus.schema import WeldJob
+from celld.calib.rangebias import correct_range_bias
 from celld.config import Config, ServoConfig, with_overrides
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import CalibrationStore, JobContext
@@ -68,6 +71,8 @@ PATH_STEP = 0.01
 PROGRESS_PERIOD = 0.5
 # Seconds between SRM camera frames logged to the recording while tracking.
 PREVIEW_PERIOD = 0.2
+# A calibration's range bias beyond this is not a scanner's (mm): refused as corrupt.
+MAX_RANGE_BIAS_MM = 100.0
 
 
 def resolve_workpiece(name: str, config: Config) -> Workpiece:
@@ -93,8 +98,13 @@ def resolve_workpiece(name: str, config: Config) -> Workpiece:
         raise JobError("$.workpiece", f"workpiece {name!r} cannot be used: {exc}") from exc
 
 
-def current_T_base_cam(state_dir: Path) -> tuple[np.ndarray, str]:
-    """The accepted calibration's T_base_cam and the job that made it; refused without one."""
+def current_calibration(state_dir: Path) -> tuple[np.ndarray, float, str]:
+    """The accepted calibration: ``T_base_cam``, the scanner's range bias on metal (m) and the job that made it.
+
+    Refused without one, or when either value is unusable. A calibration
+    without a range bias (structured light, or written before it existed)
+    has none: 0.
+    """
     cal = CalibrationStore(state_dir).current()
     if cal is None:
         raise JobError("$", "the cell has no current calibration: run a calibrate job and accept it first")
@@ -102,7 +112,10 @@ def current_T_base_cam(state_dir: Path) -> tuple[np.ndarray, str]:
         T = se3.check_transform(cal.get("T_base_cam", []), "calibration.T_base_cam")
     except (InputError, ValueError, TypeError) as exc:
         raise JobError("$", f"the current calibration is unusable: {exc}") from exc
-    return T, str(cal.get("job", ""))
+    bias_mm = cal.get("range_bias_mm", 0.0)
+    if isinstance(bias_mm, bool) or not isinstance(bias_mm, (int, float)) or not abs(bias_mm) <= MAX_RANGE_BIAS_MM:
+        raise JobError("$", f"the current calibration is unusable: range_bias_mm must be a number within +-{MAX_RANGE_BIAS_MM:g} mm, got {bias_mm!r}")
+    return T, float(bias_mm) * 1e-3, str(cal.get("job", ""))
 
 
 class _Collector:
@@ -142,7 +155,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         # The job's field of the refused value: its key in the section (delta_d_mm, ...).
         raise JobError("$." + exc.key.rsplit(".", 1)[-1], exc.reason) from exc
     tool = ToolGeometry.from_config(tool_cfg)
-    T_base_cam, cal_job = current_T_base_cam(ctx.state_dir)
+    T_base_cam, range_bias, cal_job = current_calibration(ctx.state_dir)
     workpiece = resolve_workpiece(job.workpiece, config)
     # Prepared models by content (a user's model edited on disk is prepared again).
     key = hashlib.sha1(workpiece.vertices.tobytes() + workpiece.triangles.tobytes() + workpiece.seam.tobytes()).hexdigest()
@@ -169,14 +182,17 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         ctx.progress("scan", 0.0, "arm to the scan pose, scanning")
         await devices.move_to(T_scan, speed_scale=speed)
     cloud = await devices.capture()
+    # The calibration's range bias on metal: the scan (a metal part on a steel
+    # table) moved back along its rays, as the calibration was solved.
+    points = correct_range_bias(cloud.points, range_bias) if range_bias else np.asarray(cloud.points)
     if rec is not None:
         rec.log_camera_pose(T_base_cam)
-        rec.log_cloud_cam("scan", cloud.points)
+        rec.log_cloud_cam("scan", points)
 
     # 2. seam
     ctx.progress("seam", None, f"finding the seam of {workpiece.name} with calibration {cal_job or '(unnamed)'}")
     nominal = se3.from_ur_pose(wc.nominal_pose) if wc.nominal_pose else None
-    seam = await asyncio.to_thread(find_seam, cloud, prepared, T_base_cam, seam_params, nominal)
+    seam = await asyncio.to_thread(find_seam, points, prepared, T_base_cam, seam_params, nominal)
     geometry = weld_geometry(seam.points_base, seam.tangents, seam.normals, seam.plane_normal, offset, wc.tip_height)
     if rec is not None:
         rec.log_path_base("planned", geometry.seam_base)

@@ -11,7 +11,11 @@ CLOUD: ``.npy`` ((H, W, 3) organized or (n, 3), NaN for no return), ``.npz``
 MODEL: a shipped example (``v-groove``, ``fillet-t``, ``curved-groove``) or a
 mesh file (STL, PLY, OBJ; ``--mesh-units``) with ``--seam`` (JSON or CSV).
 The hand-eye transform comes from ``--T-base-cam`` (a JSON 4x4, metres, or
-``.npy``) or from a cell config's ``[scanner] T_base_cam`` (``--config``).
+``.npy``; or a calibration JSON with ``T_base_cam``) or from a cell config's
+``[scanner] T_base_cam`` (``--config``). A time-of-flight scanner's range bias
+on metal (``--range-bias-mm``, default: the calibration file's
+``range_bias_mm``, else 0) moves the scan's points back along their rays
+first, as the daemon does.
 """
 
 from __future__ import annotations
@@ -30,6 +34,8 @@ from celld.errors import InputError, ScanError, SeamError, WorkpieceError
 
 # Cloud units accepted at this boundary, to metres.
 _UNITS = {"m": 1.0, "mm": 1e-3}
+# A range bias beyond this is not a scanner's, mm.
+_MAX_RANGE_BIAS_MM = 100.0
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -43,6 +49,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     find.add_argument("--cloud-units", default="m", choices=tuple(_UNITS), help="units of the cloud (default m)")
     find.add_argument("--T-base-cam", dest="T_base_cam", help="hand-eye transform: JSON 4x4 (m) or .npy")
     find.add_argument("--config", help="cell config whose [scanner] T_base_cam to use")
+    find.add_argument(
+        "--range-bias-mm", dest="range_bias_mm", type=float,
+        help="the scanner's range bias on metal, mm (default: the --T-base-cam calibration file's range_bias_mm, else 0)",
+    )
     find.add_argument("--nominal", help="expected part pose T_base_obj: JSON 4x4 (m) or .npy (orders the seam, limits the search)")
     find.add_argument("--scanner", default="phoxi-m", help="parameter preset: phoxi-s, phoxi-m, azure-kinect")
     find.add_argument("--seam-source", default="auto", choices=("auto", "groove", "model"))
@@ -92,12 +102,37 @@ def _run(args: argparse.Namespace) -> Any:
         if not args.seam:
             raise WorkpieceError(f"--model {args.model!r} is not a shipped example ({', '.join(EXAMPLES)}): give a mesh file with --seam")
         model = load_workpiece(args.model, args.seam, mesh_units=args.mesh_units)
+    from celld.calib.rangebias import correct_range_bias
+
     T_base_cam = _hand_eye(args)
+    bias = _range_bias(args)
     nominal = _matrix_file(args.nominal, "--nominal") if args.nominal else None
     params = SeamParams.for_scanner(args.scanner, seam_source=args.seam_source)
     params = replace(params, registration=replace(params.registration, seed=args.seed))
     cloud = read_cloud(args.cloud, args.cloud_units)
+    if bias:
+        cloud = correct_range_bias(cloud, bias)
     return find_seam(cloud, model, T_base_cam, params, T_base_obj_nominal=nominal)
+
+
+def _range_bias(args: argparse.Namespace) -> float:
+    """The range bias on metal, m: ``--range-bias-mm``, else the calibration file's ``range_bias_mm``, else 0."""
+    value: Any = args.range_bias_mm
+    where = "--range-bias-mm"
+    if value is None and args.T_base_cam and Path(args.T_base_cam).suffix.lower() != ".npy":
+        try:
+            doc = json.loads(Path(args.T_base_cam).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            doc = None  # _hand_eye has read it already, or said why not
+        if isinstance(doc, dict):
+            doc = doc.get("calibration", doc)
+            value = doc.get("range_bias_mm") if isinstance(doc, dict) else None
+            where = f"range_bias_mm of {args.T_base_cam}"
+    if value is None:
+        return 0.0
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not abs(value) <= _MAX_RANGE_BIAS_MM:
+        raise InputError(f"{where}: expected a range bias within +-{_MAX_RANGE_BIAS_MM:g} mm, got {value!r}")
+    return float(value) * 1e-3
 
 
 def _hand_eye(args: argparse.Namespace) -> np.ndarray:
@@ -120,6 +155,7 @@ def _matrix_file(path: str, what: str) -> np.ndarray:
         else:
             value = json.loads(p.read_text(encoding="utf-8"))
             if isinstance(value, dict):
+                value = value.get("calibration", value) if isinstance(value.get("calibration"), dict) else value
                 value = next((value[k] for k in ("T_base_cam", "T_base_obj", "matrix") if k in value), value)
     except (OSError, ValueError) as exc:
         raise InputError(f"{what} {path}: cannot read a 4x4 matrix: {exc}") from exc

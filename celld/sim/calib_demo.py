@@ -29,7 +29,7 @@ from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
 from celld.calib.pairs import PairCollector
 from celld.calib.poses import calibration_poses
-from celld.calib.session import SolveParams, solve_pairs, verifier_from_cloud
+from celld.calib.session import SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
 from celld.sim.scanner import SimScanner, scanner_model
 from celld.sim.scene import robot_scene
 from celld.sim.world import add_world_arguments, options_from_args, world_of
@@ -96,7 +96,9 @@ def run(args: argparse.Namespace) -> int:
     params = SolveParams.from_config(cal)
     verifier = verifier_from_cloud(P_v, T_v, flange, params, dparams)
     found = pairs.detections()
-    result = solve_pairs(found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, n_pairs=n)
+    result = solve_pairs(
+        found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, n_pairs=n, range_data=range_bias_data(params, flange, found)
+    )
     seconds = time.perf_counter() - t0
 
     dt, dr = se3.error(result.T_base_cam, T_base_cam_true)
@@ -120,6 +122,9 @@ def run(args: argparse.Namespace) -> int:
         say(f"Algorithm 1: cost {a1.cost * 1e3:.3f} mm after {a1.n_pairs_used} pairs (target reached: {a1.reached})")
     unc = result.uncertainty
     say(f"predicted 1-sigma error: {unc.translation_error * 1e3:.3f} mm, {math.degrees(unc.rotation_error):.4f} deg")
+    if result.range_bias is not None:
+        rb = result.range_bias
+        say(f"range bias on metal: {rb.bias * 1e3:.3f} +- {rb.bias_std * 1e3:.3f} mm (1 sigma, from {rb.source})")
     say(f"error against the simulator's truth: {dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg")
     q = result.quality
     say(f"quality gate: {q.verdict}" + "".join(f"\n  fails: {r}" for r in q.reasons) + "".join(f"\n  warning: {w}" for w in q.warnings))

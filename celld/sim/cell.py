@@ -91,10 +91,15 @@ class _CellScanner:
         model = scanner_model(sc.model)
         if sc.metal_bias is not None:
             model = replace(model, metal_bias=sc.metal_bias)
+        # One table: the part's scene brings the steel welding table (the robot
+        # scene's would lie in the same plane, a matte twin a time-of-flight
+        # camera reads 8 mm apart from it).
         return SimulatedScanner(
             model,
             sc.T_base_cam,
-            robot_scene_source(lambda: truth.latest().T_base_flange, self.world.flange, extra=lambda: objects),
+            robot_scene_source(
+                lambda: truth.latest().T_base_flange, self.world.flange, table=not objects, extra=lambda: objects
+            ),
             seed=sc.noise_seed,
             resolution_scale=sc.resolution_scale,
             on_close=truth.close,

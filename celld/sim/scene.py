@@ -6,6 +6,12 @@ reads (``"metal"`` or ``"matte"``). :func:`robot_scene` builds the calibration
 scene: the flange on the wrist, the other robot links as simple solids behind
 it, the table and, on request, random clutter on the table.
 
+Materials: the tool flange (face, chamfer, bore, holes, side wall) is bare
+machined metal; the wrist body it stands on (the shoulder annulus and the
+wrist cylinder of the flange model) has the model's ``wrist_finish``: painted
+(``"matte"``) on the presets' arms, so a time-of-flight camera's metal bias
+lies on the flange and not on the 90 mm wrist circle around it.
+
 The link solids are stand-ins with UR10e-like sizes (wrist Ø90, d6 = 116 mm,
 forearm Ø90): they occlude, cast shadows and offer false planes and edges to
 the detector, which is all the calibration needs of them.
@@ -31,6 +37,8 @@ _LINK_RADIUS = 0.045
 _FOREARM_LENGTH = 0.57
 _BASE_RADIUS = 0.095
 _BASE_HEIGHT = 0.18
+# Triangles within this of the shoulder's plane (or behind it) are the wrist's, m.
+_SPLIT_EPS = 1e-7
 # The table top is the plane z = 0 of the base frame; its extent, metres.
 _TABLE_MIN = (-0.3, -0.8)
 _TABLE_MAX = (1.5, 0.8)
@@ -85,6 +93,31 @@ def box(size: tuple[float, float, float]) -> o3d.geometry.TriangleMesh:
     return mesh
 
 
+def flange_objects(T_base_flange: np.ndarray, flange: FlangeModel) -> list[SceneObject]:
+    """The flange model as two objects: the tool flange (metal) and the wrist body behind it (its finish).
+
+    The flange model's mesh is split at the shoulder's plane, z = -thickness:
+    what lies behind it outside the flange's diameter (the shoulder, the
+    wrist cylinder) and the back cap are the wrist; the bottoms of the
+    threaded holes, deeper than the shoulder, are the flange's.
+    """
+    mesh = flange.mesh()
+    V = np.asarray(mesh.vertices)
+    F = np.asarray(mesh.triangles)
+    tri = V[F]
+    r_centroid = np.linalg.norm(tri.mean(axis=1)[:, :2], axis=1)
+    z_max = tri[:, :, 2].max(axis=1)
+    behind = z_max <= -flange.thickness + _SPLIT_EPS
+    behind &= (r_centroid >= flange.outer_diameter / 2 - _SPLIT_EPS) | (z_max <= -(flange.thickness + flange.wrist_depth) + _SPLIT_EPS)
+    parts = []
+    for name, keep, material in (("flange", ~behind, "metal"), ("wrist", behind, "metal" if flange.wrist_finish == "metal" else "matte")):
+        part = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(F[keep]))
+        part.remove_unreferenced_vertices()
+        part.compute_triangle_normals()
+        parts.append(SceneObject(name, part, T_base_flange, material))
+    return parts
+
+
 def _arm_links(T_base_flange: np.ndarray, flange: FlangeModel) -> list[SceneObject]:
     """Wrist 3, wrist 2 and the forearm as cylinders behind the flange, plus the base column."""
     r_w = flange.wrist_diameter / 2
@@ -137,7 +170,7 @@ def robot_scene(
     T_base_flange : numpy.ndarray
         (4, 4) pose of the flange frame (face centre, +z out of the face) in the base frame.
     flange : FlangeModel
-        The flange to place; its mesh is the ``"flange"`` object (metal).
+        The flange to place; its mesh is the ``"flange"`` (metal) and ``"wrist"`` objects.
     table : bool
         Add the table, its top at base z = 0.
     clutter_seed : int or None
@@ -146,10 +179,11 @@ def robot_scene(
     Returns
     -------
     list of SceneObject
-        The flange first.
+        The flange first (metal), then the wrist body it stands on (its
+        finish, :func:`flange_objects`).
     """
     T_base_flange = se3.check_transform(T_base_flange, "T_base_flange")
-    objects = [SceneObject("flange", flange.mesh(), T_base_flange, "metal")]
+    objects = flange_objects(T_base_flange, flange)
     objects += _arm_links(T_base_flange, flange)
     if table:
         size = (_TABLE_MAX[0] - _TABLE_MIN[0], _TABLE_MAX[1] - _TABLE_MIN[1], _TABLE_THICKNESS)

@@ -132,17 +132,42 @@ def test_wrist_circle_preset_gives_the_face_centre(phoxi_m_scenes: list[tuple[np
     assert centre_error(det, T_cam_flange) < 3e-4
 
 
-def test_azure_kinect_on_the_wrist_circle_reads_long_by_the_metal_bias() -> None:
+def test_azure_kinect_on_a_painted_wrist_finds_the_true_centre_and_measures_the_metal_bias() -> None:
+    # The simulated Azure Kinect reads metal 8 mm long. The 90 mm circle lies on the
+    # painted wrist: its centre is not biased, and the metal face reads 8 mm lower
+    # against the shoulder than the drawing's 6.5 mm, which is what measures the bias.
     T = se3.from_xyz_rpy([0.6, 0.0, 0.42], [0.1, -0.05, 0.2])
     cloud = SimScanner("azure-kinect", T_BASE_CAM, seed=0).capture(robot_scene(T, UR10E))
     det = detect_flange(cloud.points, preset("ur10e-wrist"), PARAMS_BY_SCANNER["azure-kinect"])
     truth = truth_in_camera(T)[:3, 3]
+    assert np.linalg.norm(det.center - truth) < 1e-3
+    step = det.finish_step
+    assert step is not None and step.nominal == pytest.approx(0.0065)
+    assert step.measured == pytest.approx(0.0065 - 0.008 * step.cos_incidence, abs=5e-4)
+    assert step.bias == pytest.approx(SCANNER_MODELS["azure-kinect"].metal_bias, abs=5e-4)
+    assert 0.0 < step.bias_std < 3e-4 and step.n_metal > 200 and step.n_painted > 200
+
+
+def test_azure_kinect_on_a_bare_metal_wrist_reads_long_by_the_metal_bias() -> None:
+    T = se3.from_xyz_rpy([0.6, 0.0, 0.42], [0.1, -0.05, 0.2])
+    metal_wrist = replace(preset("ur10e-wrist"), wrist_finish="metal")
+    cloud = SimScanner("azure-kinect", T_BASE_CAM, seed=0).capture(robot_scene(T, metal_wrist))
+    det = detect_flange(cloud.points, metal_wrist, PARAMS_BY_SCANNER["azure-kinect"])
+    truth = truth_in_camera(T)[:3, 3]
     ray = truth / np.linalg.norm(truth)
     err = det.center - truth
     along = float(err @ ray)
-    # The scanner model puts 8 mm of range bias on metal: the detector sees it, it cannot remove it.
+    # 8 mm of range bias on all of it: the detector sees it, it cannot remove it, and no step says it.
     assert 0.004 < along < 0.011
     assert np.linalg.norm(err - along * ray) < 0.003
+    assert det.finish_step is None
+
+
+def test_structured_light_measures_no_finish_step_bias(phoxi_m_scenes: list[tuple[np.ndarray, OrganizedCloud]]) -> None:
+    _, cloud = phoxi_m_scenes[1]
+    det = detect_flange(cloud.points, UR10E)
+    assert det.finish_step is not None
+    assert det.finish_step.bias == pytest.approx(0.0, abs=2e-4)
 
 
 def test_detection_is_deterministic(phoxi_m_scenes: list[tuple[np.ndarray, OrganizedCloud]]) -> None:
@@ -163,7 +188,7 @@ def test_a_preset_that_does_not_match_the_flange_is_refused(phoxi_m_scenes: list
 
 
 def test_a_scene_without_a_flange_is_refused() -> None:
-    objects = [o for o in robot_scene(calibration_pose(0), UR10E, clutter_seed=2) if o.name not in ("flange", "wrist3")]
+    objects = [o for o in robot_scene(calibration_pose(0), UR10E, clutter_seed=2) if o.name not in ("flange", "wrist", "wrist3")]
     cloud = SimScanner("phoxi-m", T_BASE_CAM, resolution_scale=0.25).capture(objects)
     with pytest.raises(DetectionError):
         detect_flange(cloud.points, UR10E)

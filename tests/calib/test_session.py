@@ -10,8 +10,9 @@ from scipy.spatial.transform import Rotation
 
 from celld.calib.flange import preset
 from celld.calib.metrics import IcpMetric, IcpParams, IcpVerifier, model_cloud_with_normals
+from celld.calib.rangebias import RangeBiasData
 from celld.calib.session import SolveParams, solve_pairs
-from celld.errors import CalibrationError
+from celld.errors import CalibrationError, InputError
 from celld.se3 import apply, error, invert, transform_from
 
 T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
@@ -118,3 +119,84 @@ def test_a_solve_that_puts_the_camera_hundreds_of_metres_away_is_refused_with_th
     ids, P_base, P_cam = box_pairs(rng, 8, 0.05e-3)
     with pytest.raises(CalibrationError, match=r"puts the camera \d+ m from the robot base.*different units"):
         solve_pairs(ids, P_base * 1000.0, P_cam, SolveParams(method="svd"))
+
+
+# -- the range bias of a time-of-flight camera ------------------------------------------
+
+BIAS = 0.008  # m, metal reads long
+
+
+def tof_pairs(rng: np.random.Generator, n: int = 16, on_metal: bool = False, steps: bool = True) -> tuple[list[str], np.ndarray, np.ndarray, RangeBiasData]:
+    ids, P_base, P_cam = box_pairs(rng, n, 0.3e-3)
+    if on_metal:
+        P_cam = P_cam + BIAS * P_cam / np.linalg.norm(P_cam, axis=1, keepdims=True)
+    b = BIAS + rng.normal(0.0, 1e-4, n) if steps else np.full(n, np.nan)
+    return ids, P_base, P_cam, RangeBiasData(on_metal, b, np.full(n, 1e-4 if steps else np.nan))
+
+
+def biased_verifier(rng: np.random.Generator) -> IcpVerifier:
+    """e_icp against the UR10e flange whose metal (inside its 63 mm) reads BIAS long."""
+    P_flan, N_flan = model_cloud_with_normals(preset("ur10e"), 0.0008)
+    P_flan = P_flan[N_flan[:, 2] > -0.5]
+    metal = np.linalg.norm(P_flan[:, :2], axis=1) < 0.0315
+    P_v = apply(invert(T_BASE_CAM) @ T_BASE_FLAN_V, P_flan)
+    P_v += (BIAS * metal)[:, None] * P_v / np.linalg.norm(P_v, axis=1, keepdims=True) + rng.normal(0.0, 5e-5, P_v.shape)
+    P, N = model_cloud_with_normals(preset("ur10e"), 0.001)
+    return IcpVerifier(P_v, P, T_BASE_FLAN_V, IcpParams(max_points=3000, max_distances=(0.012, 0.003)), normals_flan=N, on_metal=metal)
+
+
+def test_the_range_bias_is_estimated_reported_and_corrects_the_verification_cloud(rng: np.random.Generator) -> None:
+    ids, P_base, P_cam, data = tof_pairs(rng)
+    verifier = biased_verifier(rng)
+    plain = solve_pairs(ids, P_base, P_cam, SolveParams(), verifier)
+    result = solve_pairs(ids, P_base, P_cam, SolveParams(range_bias="estimate"), verifier, range_data=data)
+    # Centres on the painted wrist: the transform is Eq. 9-12's either way ...
+    assert error(result.T_base_cam, plain.T_base_cam)[0] < 1e-9
+    assert plain.range_bias is None and plain.bias == 0.0
+    rb = result.range_bias
+    assert rb is not None and result.bias == pytest.approx(BIAS, abs=4 * rb.bias_std) and rb.bias_std < 1e-4
+    # ... but e_icp now registers a verification cloud whose metal is where it belongs.
+    assert np.linalg.norm(result.e_icp.T_camhat_cam[:3, 3]) < 0.5 * np.linalg.norm(plain.e_icp.T_camhat_cam[:3, 3])
+    out = result.as_dict()
+    assert out["range_bias"]["bias_mm"] == pytest.approx(result.bias * 1e3)
+    assert out["range_bias"]["std_mm"] == pytest.approx(rb.bias_std * 1e3) and out["range_bias"]["source"] == "steps"
+    q = out["quality"]
+    assert q["verdict"] == "ok" and q["range_bias_mm"] == pytest.approx(result.bias * 1e3) and q["range_bias_std_mm"] > 0.0
+    assert plain.as_dict()["range_bias"] == {"mode": "none", "bias_mm": 0.0}
+    assert plain.as_dict()["quality"]["range_bias_mm"] is None
+
+
+def test_centres_on_metal_are_corrected_before_every_method(rng: np.random.Generator) -> None:
+    ids, P_base, P_cam, data = tof_pairs(rng, on_metal=True)
+    biased = solve_pairs(ids, P_base, P_cam, SolveParams())
+    assert error(biased.T_base_cam, T_BASE_CAM)[0] > 5e-3
+    for method in ("robust", "svd"):
+        result = solve_pairs(ids, P_base, P_cam, SolveParams(method=method, range_bias="estimate"), range_data=data)
+        assert error(result.T_base_cam, T_BASE_CAM)[0] < 1.5e-3, method
+        assert result.bias == pytest.approx(BIAS, abs=1e-4)
+        assert result.quality.verdict == "ok"
+        # The residuals are those of the corrected centres.
+        assert result.quality.rms < 1e-3
+
+
+def test_a_range_bias_only_the_rays_fix_fails_the_gate_with_the_reason(rng: np.random.Generator) -> None:
+    # A bare-metal wrist: no finish step; 16 pairs of 0.5 mm centres over a 0.3 m box fix b to about 0.6 mm.
+    ids, P_base, P_cam, data = tof_pairs(rng, on_metal=True, steps=False)
+    P_cam = P_cam + rng.normal(0.0, 0.4e-3, P_cam.shape)
+    result = solve_pairs(ids, P_base, P_cam, SolveParams(range_bias="estimate"), range_data=data)
+    rb = result.range_bias
+    assert rb is not None and rb.source == "pairs" and rb.bias_std > SolveParams().quality.max_range_bias_std
+    assert result.quality.verdict == "insufficient_range_bias"
+    assert any("range bias on metal" in r and "spread of the rays" in r for r in result.quality.reasons)
+
+
+def test_range_bias_settings_and_data_are_checked(rng: np.random.Generator) -> None:
+    with pytest.raises(InputError, match="range_bias: expected one of estimate, none"):
+        SolveParams(range_bias="auto")
+    with pytest.raises(InputError, match="with_scale"):
+        SolveParams(range_bias="estimate", with_scale=True)
+    ids, P_base, P_cam, data = tof_pairs(rng)
+    with pytest.raises(CalibrationError, match="range_bias = estimate"):
+        solve_pairs(ids, P_base, P_cam, SolveParams(range_bias="estimate"))
+    with pytest.raises(InputError, match="range_data"):
+        solve_pairs(ids, P_base, P_cam, SolveParams(range_bias="estimate"), range_data=data.subset(range(5)))

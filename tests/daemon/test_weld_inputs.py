@@ -10,7 +10,7 @@ import pytest
 
 from celld import fsutil
 from celld.config import parse
-from celld.daemon.weld import current_T_base_cam, resolve_workpiece
+from celld.daemon.weld import current_calibration, resolve_workpiece
 from celld.errors import JobError
 from celld.seam.workpiece import v_groove_butt
 
@@ -46,12 +46,21 @@ def test_parts_resolve_from_the_examples_or_the_workpiece_dir(tmp_path: Path) ->
 
 def test_a_weld_needs_a_usable_current_calibration(tmp_path: Path) -> None:
     with pytest.raises(JobError, match="no current calibration"):
-        current_T_base_cam(tmp_path)
+        current_calibration(tmp_path)
     fsutil.write_json(tmp_path / "calibration.json", {"job": "j1", "T_base_cam": [[1, 0, 0], [0, 1, 0]]})
     with pytest.raises(JobError, match="unusable"):
-        current_T_base_cam(tmp_path)
+        current_calibration(tmp_path)
     T = np.eye(4)
     T[:3, 3] = [0.6, 0.0, 1.0]
+    # Without a range bias (structured light, or a calibration from before it): none.
     fsutil.write_json(tmp_path / "calibration.json", {"job": "j2", "T_base_cam": T.tolist()})
-    T_read, job = current_T_base_cam(tmp_path)
-    assert job == "j2" and np.allclose(T_read, T)
+    T_read, bias, job = current_calibration(tmp_path)
+    assert job == "j2" and np.allclose(T_read, T) and bias == 0.0
+    # A time-of-flight calibration's range bias comes in metres.
+    fsutil.write_json(tmp_path / "calibration.json", {"job": "j3", "T_base_cam": T.tolist(), "range_bias_mm": 8.1})
+    assert current_calibration(tmp_path)[1] == pytest.approx(0.0081)
+    # A hand-edited or corrupt value is refused, not applied to a scan (json reads NaN too).
+    for bad in ('"8"', "null", "NaN", "1e4", "true"):
+        (tmp_path / "calibration.json").write_text(f'{{"job": "j4", "T_base_cam": {json.dumps(T.tolist())}, "range_bias_mm": {bad}}}')
+        with pytest.raises(JobError, match="range_bias_mm"):
+            current_calibration(tmp_path)

@@ -212,6 +212,38 @@ def test_cli_prints_one_json_object(vgroove_scan, tmp_path, capsys) -> None:
     assert code == 0 and json.loads(capsys.readouterr().out)["ok"] is True
 
 
+@pytest.mark.slow
+def test_cli_applies_the_range_bias_of_a_calibration_file(vgroove_scan, tmp_path, capsys) -> None:
+    wp, _, cloud = vgroove_scan
+    np.save(tmp_path / "scan.npy", cloud)
+    (tmp_path / "nominal.json").write_text(json.dumps(simscene.nominal_pose(wp).tolist()))
+
+    def seam(calibration: dict, *extra: str) -> np.ndarray:
+        (tmp_path / "cal.json").write_text(json.dumps(calibration))
+        code = celld_main(["seam", "find", str(tmp_path / "scan.npy"), "--model", "v-groove", "--T-base-cam", str(tmp_path / "cal.json"),
+                           "--nominal", str(tmp_path / "nominal.json"), "--json", *extra])
+        out = json.loads(capsys.readouterr().out)
+        assert code == 0 and out["ok"] is True, out
+        return np.array(out["seam"]["points_base"])
+
+    plain = seam({"T_base_cam": T_BASE_CAM.tolist()})
+    # A calibrate job's result: its range bias moves the scan 8 mm back along the rays
+    # (toward the camera above the part), and the seam with it.
+    job = {"calibration": {"T_base_cam": T_BASE_CAM.tolist(), "range_bias_mm": 8.0}}
+    shift = seam(job) - plain
+    assert np.median(shift[:, 2]) == pytest.approx(0.008, abs=0.0015)
+    # The option wins over the file.
+    np.testing.assert_allclose(seam(job, "--range-bias-mm", "0"), plain, atol=1e-4)
+
+
+def test_cli_refuses_a_range_bias_that_is_no_scanner_s(tmp_path, capsys) -> None:
+    (tmp_path / "cal.json").write_text(json.dumps({"T_base_cam": T_BASE_CAM.tolist(), "range_bias_mm": "8"}))
+    for extra in ([], ["--range-bias-mm", "800"]):
+        code = celld_main(["seam", "find", str(tmp_path / "scan.npy"), "--model", "v-groove", "--T-base-cam", str(tmp_path / "cal.json"), "--json", *extra])
+        out = json.loads(capsys.readouterr().out)
+        assert code == 2 and out["ok"] is False and "range bias" in out["error"]["reason"], out
+
+
 def test_seam_config_table_is_read_and_checked() -> None:
     from celld.config import TableReader
     from celld.config.sections import read_seam

@@ -13,7 +13,7 @@ from celld import se3
 from celld.calib.flange import preset
 from celld.errors import InputError
 from celld.sim.scanner import SCANNER_MODELS, ScannerModel, SceneObject, SimScanner, robot_scene
-from celld.sim.scene import box
+from celld.sim.scene import box, flange_objects
 
 # The paper's Eq. 19: the camera 1 m above the base, looking down.
 T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
@@ -163,6 +163,7 @@ def test_robot_scene_puts_the_flange_first_and_the_table_top_at_base_z0() -> Non
     objects = robot_scene(T_base_flange, preset("ur10e"), clutter_seed=4)
     assert objects[0].name == "flange" and objects[0].material == "metal"
     np.testing.assert_array_equal(objects[0].T_base_obj, T_base_flange)
+    assert objects[1].name == "wrist" and objects[1].material == "matte"
     table = next(o for o in objects if o.name == "table")
     top = se3.apply(table.T_base_obj, np.asarray(table.mesh.vertices))[:, 2].max()
     assert top == pytest.approx(0.0, abs=1e-12)
@@ -195,3 +196,22 @@ def test_roi_casts_only_its_window_of_the_full_size_cloud() -> None:
     assert not np.isfinite(part.points[outside]).any() and (labels[outside] == -1).all()
     with pytest.raises(InputError, match="roi_px"):
         SimScanner(quiet, np.eye(4), resolution_scale=0.1, roi_px=(10, 5, 0, 10))
+
+
+def test_the_tool_flange_is_metal_and_the_wrist_body_has_its_finish() -> None:
+    flange = preset("ur10e")
+    T = se3.from_xyz_rpy([0.6, 0.0, 0.45], [0.0, 0.0, 0.0])
+    tool, wrist = flange_objects(T, flange)
+    z_tool = np.asarray(tool.mesh.vertices)[:, 2]
+    z_wrist = np.asarray(wrist.mesh.vertices)[:, 2]
+    r_wrist = np.linalg.norm(np.asarray(wrist.mesh.vertices)[:, :2], axis=1)
+    # The flange stands 6.5 mm proud: everything from its face down to the shoulder (and its
+    # 8 mm threaded holes) is the machined flange; the shoulder out to the 90 mm wrist and the
+    # wrist behind it are painted.
+    assert z_tool.min() == pytest.approx(-flange.hole_depth) and z_tool.max() == pytest.approx(0.0)
+    assert np.linalg.norm(np.asarray(tool.mesh.vertices)[:, :2], axis=1).max() == pytest.approx(flange.outer_diameter / 2, rel=1e-6)
+    assert z_wrist.max() == pytest.approx(-flange.thickness) and r_wrist.max() == pytest.approx(flange.wrist_diameter / 2, rel=1e-6)
+    assert (tool.material, wrist.material) == ("metal", "matte")
+    assert len(tool.mesh.triangles) + len(wrist.mesh.triangles) == len(flange.mesh().triangles)
+    bare = replace(flange, wrist_finish="metal")
+    assert [o.material for o in flange_objects(T, bare)] == ["metal", "metal"]
