@@ -23,6 +23,7 @@ from celld.config.sections import (
     SCANNER_KINDS,
     SCANNER_MODELS,
     BusConfig,
+    BusTls,
     BusUser,
     CalibrationConfig,
     CellConfig,
@@ -36,7 +37,7 @@ from celld.config.sections import (
 from celld.config.tactile import SERVO_BOUNDS, Bound, ServoConfig, TactileConfig, ToolConfig, check_servo, with_overrides
 
 __all__ = [
-    "BUS_ROLES", "SCANNER_KINDS", "SCANNER_MODELS", "SERVO_BOUNDS", "Bound", "BusConfig", "BusUser", "CalibrationConfig",
+    "BUS_ROLES", "SCANNER_KINDS", "SCANNER_MODELS", "SERVO_BOUNDS", "Bound", "BusConfig", "BusTls", "BusUser", "CalibrationConfig",
     "CellConfig", "Config", "MotionLimits", "RecordingConfig", "RobotConfig", "ScannerConfig", "ServoConfig", "SimConfig",
     "TableReader", "TactileConfig", "ToolConfig", "WeldConfig", "check_servo", "load", "parse", "with_overrides",
 ]
