@@ -7,6 +7,9 @@ Figures (each against its target, written to bench/out/bus_load/):
    reply), sequential, on loopback. The issue sets no number: reported as
    p50 / p99 / max.
 2. ``status_rtt_ms``: the same for ``status``, sequential (the baseline of 3).
+2b. ``result_rtt_ms``: the same for ``result/<job>`` (the MES fetching a
+   finished job's result over the bus: the journal lookup, the result file
+   read and sent), sequential, for a finished health job.
 3. ``status_load``: open-loop ``status`` queries at 1000 Hz for 30 s (``--quick``:
    5 s) while a weld job runs and the cell publishes its progress and state.
    Target (issue): the rate is sustained and every query is answered;
@@ -102,6 +105,9 @@ class DummyCellProcess:
                 "--state-dir", str(workdir / "state"), "--job-duration", str(job_duration),
                 "--weld-duration", str(weld_duration), "--progress-hz", "10",
                 "--state-hz", str(STATE_HZ), "--log-level", "warning",
+                # The submit phase measures round trips: jobs that end at once may
+                # still fall behind sequential submits on a loaded machine.
+                "--max-queue", "1000",
             ],
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
@@ -144,7 +150,7 @@ def status_load(client: CellClient, rate_hz: float, duration: float) -> dict[str
     sent_ns = np.zeros(n, dtype=np.int64)
     got_ns = np.zeros(n, dtype=np.int64)
     ok = np.zeros(n, dtype=bool)
-    key = client.keys.query("status")
+    key = client.key("status")
     lock = threading.Lock()
 
     def on_reply(i: int):
@@ -196,7 +202,20 @@ def status_load(client: CellClient, rate_hz: float, duration: float) -> dict[str
 # -- report -------------------------------------------------------------------------
 
 
-def write_report(figures: dict[str, Any], submit_ms: np.ndarray, status_ms: np.ndarray, load: dict[str, Any]) -> None:
+def result_rtt(client: CellClient, job: str, n: int) -> tuple[np.ndarray, int]:
+    """Round trips of ``n`` sequential result queries of the finished ``job``, ms; and the reply's size, bytes."""
+    deadline = time.monotonic() + 30.0
+    while client.status(job)["state"] in ("queued", "running"):
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"job {job} did not end for the result round trip")
+        time.sleep(0.05)
+    size = len(json.dumps(client.result(job)))
+    return sequential_rtt(client, n, lambda: client.result(job)), size
+
+
+def write_report(
+    figures: dict[str, Any], submit_ms: np.ndarray, status_ms: np.ndarray, load: dict[str, Any], result_ms: np.ndarray | None = None
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -204,7 +223,7 @@ def write_report(figures: dict[str, Any], submit_ms: np.ndarray, status_ms: np.n
 
     OUT.mkdir(parents=True, exist_ok=True)
     lines = ["# bus_load", "", "| figure | p50 ms | p99 ms | p99.9 ms | max ms | n |", "|---|---|---|---|---|---|"]
-    for name in ("submit_rtt_ms", "status_rtt_ms"):
+    for name in ("submit_rtt_ms", "status_rtt_ms", "result_rtt_ms"):
         f = figures.get(name, {})
         if f.get("n"):
             lines.append(f"| {name} | {f['p50']} | {f['p99']} | {f['p999']} | {f['max']} | {f['n']} |")
@@ -223,7 +242,9 @@ def write_report(figures: dict[str, Any], submit_ms: np.ndarray, status_ms: np.n
 
     fig, axes = plt.subplots(1, 2 if load else 1, figsize=(12 if load else 6, 4), squeeze=False)
     ax = axes[0][0]
-    for data, label in ((submit_ms, "submit"), (status_ms, "status"), (load.get("_latency_ms", np.empty(0)), "status under load")):
+    curves = ((submit_ms, "submit"), (status_ms, "status"), (result_ms if result_ms is not None else np.empty(0), "result"),
+              (load.get("_latency_ms", np.empty(0)), "status under load"))
+    for data, label in curves:
         if data.size:
             x = np.sort(data)
             ax.step(x, np.arange(1, x.size + 1) / x.size, where="post", label=f"{label} (n={data.size})")
@@ -286,9 +307,13 @@ def main(argv: list[str] | None = None) -> int:
 
         client.status()  # warm-up: links, declarations, first-call costs
         submit_ms = np.empty(0)
+        result_ms = None
         if n_submits:
-            submit_ms = sequential_rtt(client, n_submits, lambda: client.submit({"kind": "health", "ref": "bus-load"}))
+            last: list[str] = []
+            submit_ms = sequential_rtt(client, n_submits, lambda: last.append(client.submit({"kind": "health", "ref": "bus-load"})["job"]))
             figures["submit_rtt_ms"] = _percentiles(submit_ms)
+            result_ms, size = result_rtt(client, last[-1], n_status)
+            figures["result_rtt_ms"] = {**_percentiles(result_ms), "reply_bytes": size}
         status_ms = sequential_rtt(client, n_status, client.status)
         figures["status_rtt_ms"] = _percentiles(status_ms)
 
@@ -311,10 +336,11 @@ def main(argv: list[str] | None = None) -> int:
         if weld_id:
             client.cancel(weld_id, "end of the load test")
 
-    write_report(figures, submit_ms, status_ms, load)
+    write_report(figures, submit_ms, status_ms, load, result_ms)
     summary = figures.get("submit_rtt_ms", {})
     print(f"submit round trip: {summary}")
     print(f"status round trip: {figures['status_rtt_ms']}")
+    print(f"result round trip: {figures.get('result_rtt_ms')}")
     print(f"status load: {figures['status_load']} weld running: {figures['weld_running']}")
     print(f"load target met: {figures['load_target_met']}; results in {OUT}")
     if args.json:
@@ -334,6 +360,7 @@ def main_sim_cell(args: argparse.Namespace) -> int:
     n_submits = args.submits if args.submits is not None else (20 if args.quick else 100)
     n_status = 200 if args.quick else 1000
     figures: dict[str, Any] = {"server": "daemon on the simulated cell", "quick": args.quick}
+    result_ms: np.ndarray | None = None
     with tempfile.TemporaryDirectory(prefix="bus-load-cell-") as tmp:
         work = Path(tmp)
         cfg_path = work / "cell.toml"
@@ -372,11 +399,14 @@ def main_sim_cell(args: argparse.Namespace) -> int:
             weld = client.status(weld_id)
             figures["weld"] = {"state": weld["state"], "reason": weld["reason"], "v_const_mm_s": v}
             if weld["state"] == "succeeded":
-                f = json.loads(Path(weld["result"]).read_text())["figures"]
+                result_ms, size = result_rtt(client, weld_id, 50 if args.quick else 200)
+                figures["result_rtt_ms"] = {**_percentiles(result_ms), "reply_bytes": size, "job": "the weld"}
+                f = client.result(weld_id)["result"]["figures"]
                 figures["motion_loop"] = {k: f[k] for k in ("loop_cycles", "loop_cycles_late_2ms", "loop_late_p99_ms", "loop_late_max_ms", "duration_s")}
                 figures["motion_loop_target_met"] = f["loop_cycles_late_2ms"] == 0
-    write_report(figures, submit_ms, status_ms, load)
+    write_report(figures, submit_ms, status_ms, load, result_ms)
     print(f"submit round trip: {figures.get('submit_rtt_ms')}")
+    print(f"result round trip: {figures.get('result_rtt_ms')}")
     print(f"status round trip: {figures['status_rtt_ms']}")
     print(f"status load: {figures['status_load']} weld: {figures['weld']}")
     print(f"motion loop while welding: {figures.get('motion_loop')}")

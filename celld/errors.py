@@ -25,7 +25,10 @@ caller never has to know which library failed::
     │   └── PathRefused        a move would hit the cell or cannot be reached (checked before it starts)
     ├── BusError               the zenoh bus failed or refused a request
     ├── JournalError           the job journal refused a change or is damaged
-    └── RecordingError         a job recording cannot be written
+    ├── RecordingError         a job recording cannot be written
+    └── StorageError           a write to the state directory failed (disk full, I/O error, read-only)
+        ├── JournalWriteError  ... the journal's (also a JournalError)
+        └── RecordingWriteError ... a recording's file (also a RecordingError)
 
 In the 500 Hz loop nothing raises: controllers return status values instead.
 """
@@ -156,3 +159,35 @@ class JournalError(CelldError):
 
 class RecordingError(CelldError):
     """A job recording (the rerun ``.rrd`` file) cannot be created or written."""
+
+
+class StorageError(CelldError):
+    """A write to the cell's state directory failed: the disk is full, an I/O error, a read-only file system.
+
+    Parameters
+    ----------
+    what : str
+        Which store: ``journal``, ``result``, ``job files`` (datasets, paths),
+        ``recording``, ``calibration``, ``probe``.
+    path : str
+        The file (or database) that could not be written.
+    reason : str
+        The operating system's or SQLite's words (``No space left on device``).
+    errno : int or None
+        The errno, when the failure came with one.
+    """
+
+    def __init__(self, what: str, path: str, reason: str, errno: int | None = None) -> None:
+        self.what = what
+        self.path = path
+        self.reason = reason
+        self.errno = errno
+        super().__init__(f"storage: {what} {path}: {reason}" if path else f"storage: {what}: {reason}")
+
+
+class JournalWriteError(JournalError, StorageError):
+    """The journal could not commit a change (SQLite ``SQLITE_FULL``, ``SQLITE_IOERR``, ...)."""
+
+
+class RecordingWriteError(RecordingError, StorageError):
+    """A recording's ``.rrd`` file could not be created or written; the recording is incomplete."""

@@ -12,13 +12,16 @@ crash or a power cut at any point:
 
 A process killed between 1 and 3 leaves only a temporary file, which
 :func:`remove_stale_temporaries` deletes (the daemon calls it at start-up).
-Errors are the ``OSError`` of the failing call; the temporary file is removed
-on the way out.
+Errors are the ``OSError`` of the failing call, naming the final file; the
+temporary file is removed on the way out. :func:`storage_error` turns one into a
+:class:`~celld.errors.StorageError` naming the store and the file, and
+:func:`free_bytes` says how much room a directory's file system has left.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import json
 import os
@@ -29,10 +32,14 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from celld.errors import StorageError
+
 # Suffix of temporary files; nothing else in a state directory ends with it.
 TEMP_SUFFIX = ".celld-tmp"
 # Default permissions of result files (before the umask).
 DEFAULT_MODE = 0o644
+# errno values that mean "this store cannot take writes", not "this call was wrong".
+STORAGE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS, errno.EFBIG})
 
 
 def _temp_path(path: Path) -> Path:
@@ -62,18 +69,28 @@ def atomic_open(path: str | os.PathLike[str], mode: int = DEFAULT_MODE) -> Itera
     """
     path = Path(path)
     tmp = _temp_path(path)
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, mode)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, mode)
+    except OSError as exc:
+        raise _about(exc, path) from exc
     try:
         with os.fdopen(fd, "wb") as f:
             yield f
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.errno is not None:
+            raise _about(exc, path) from exc
         raise
     fsync_dir(path.parent)
+
+
+def _about(exc: OSError, path: Path) -> OSError:
+    """``exc`` naming the file the caller asked for, not the temporary one (same errno, same subclass)."""
+    return OSError(exc.errno, exc.strerror, str(path))
 
 
 def write_bytes(path: str | os.PathLike[str], data: bytes, mode: int = DEFAULT_MODE) -> Path:
@@ -133,3 +150,40 @@ def remove_stale_temporaries(directory: str | os.PathLike[str], recursive: bool 
             p.unlink()
             removed.append(p)
     return removed
+
+
+def free_bytes(directory: str | os.PathLike[str]) -> int:
+    """Bytes an unprivileged writer may still use on the file system of ``directory``.
+
+    Raises
+    ------
+    OSError
+        ``directory`` does not exist or cannot be examined.
+    """
+    st = os.statvfs(directory)
+    return int(st.f_bavail) * int(st.f_frsize)
+
+
+def is_storage_error(exc: BaseException, under: str | os.PathLike[str] | None = None) -> bool:
+    """Whether ``exc`` is a store refusing writes: disk full, quota, I/O error, read-only,
+    or any ``OSError`` about a file under ``under`` (a socket's ``ConnectionError`` is not)."""
+    if isinstance(exc, StorageError):
+        return True
+    if not isinstance(exc, OSError) or isinstance(exc, ConnectionError):
+        return False
+    if exc.errno in STORAGE_ERRNOS:
+        return True
+    filename = exc.filename
+    return under is not None and isinstance(filename, (str, os.PathLike)) and Path(filename).is_relative_to(under)
+
+
+def storage_error(what: str, exc: BaseException, path: str | os.PathLike[str] | None = None) -> StorageError:
+    """``exc`` (an ``OSError``, or a StorageError passed through) as a StorageError of store ``what``."""
+    if isinstance(exc, StorageError):
+        return exc
+    filename = path if path is not None else getattr(exc, "filename", None)
+    code = getattr(exc, "errno", None)
+    reason = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+    if code is not None:
+        reason = f"{reason} (errno {code})"
+    return StorageError(what, str(filename) if filename is not None else "", reason, code)

@@ -14,6 +14,16 @@ reason; :attr:`Journal.recovered` lists them. One process at a time may hold
 a journal (an exclusive lock on ``<file>.lock``); a second one is refused
 instead of marking the first one's running job interrupted.
 
+Each row also keeps who submitted the job (``owner``, the bus user; empty on
+an open bus) and the client's ``request_id``, unique per owner, so a replayed
+submit finds the job it already made (:meth:`Journal.find_request`).
+
+A change that cannot be committed (the disk is full, an I/O error, a
+read-only file system) raises :class:`~celld.errors.JournalWriteError`
+(a :class:`~celld.errors.StorageError` and a JournalError) naming the
+database and SQLite's reason; the transaction is rolled back and the journal
+stays usable, so the same change can be made again once there is room.
+
 Times are UTC wall clock, ISO 8601 with milliseconds (``2025-03-01T12:00:00.123Z``).
 Job ids are ``<UTC yyyymmdd-HHMMSS>-<6 hex>``: sortable, and one zenoh key chunk.
 Calls are thread-safe; each is a few milliseconds of blocking I/O (an fsync),
@@ -36,7 +46,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from celld.errors import JournalError
+from celld.errors import JournalError, JournalWriteError
 
 # States, and which states each may move to.
 STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
@@ -45,8 +55,8 @@ _NEXT: dict[str, frozenset[str]] = {
     "queued": frozenset({"running", "failed", "cancelled", "interrupted"}),
     "running": frozenset({"succeeded", "failed", "cancelled", "interrupted"}),
 }
-# Version of the table layout, kept in PRAGMA user_version.
-_SCHEMA_VERSION = 1
+# Version of the table layout, kept in PRAGMA user_version (2: owner and request_id).
+_SCHEMA_VERSION = 2
 # How long a statement waits for a lock held by a reader, ms.
 _BUSY_TIMEOUT_MS = 5000
 # Reasons written when a journal is opened after its process died.
@@ -65,11 +75,20 @@ CREATE TABLE IF NOT EXISTS jobs (
     created TEXT NOT NULL,
     started TEXT,
     ended   TEXT,
-    result  TEXT
+    result  TEXT,
+    owner   TEXT NOT NULL DEFAULT '',
+    request_id TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state);
 """
-_COLUMNS = "id, kind, params, ref, state, reason, created, started, ended, result"
+# Layout 1 -> 2: who submitted the job, and the client's request id.
+_MIGRATE_1_2 = """
+ALTER TABLE jobs ADD COLUMN owner TEXT NOT NULL DEFAULT '';
+ALTER TABLE jobs ADD COLUMN request_id TEXT
+"""
+# A request id names one job per owner (NULLs are distinct in a UNIQUE index).
+_INDEX_REQUESTS = "CREATE UNIQUE INDEX IF NOT EXISTS jobs_by_request ON jobs (owner, request_id)"
+_COLUMNS = "id, kind, params, ref, state, reason, created, started, ended, result, owner, request_id"
 
 
 def utc_now() -> str:
@@ -96,6 +115,8 @@ class JobRecord:
     started: str | None
     ended: str | None
     result: str | None
+    owner: str = ""
+    request_id: str | None = None
 
     @property
     def params(self) -> dict[str, Any]:
@@ -106,20 +127,27 @@ class JobRecord:
     def terminal(self) -> bool:
         return self.state in TERMINAL
 
-    def to_message(self) -> dict[str, Any]:
-        """The record as the bus sends it (the ``job-reply`` record)."""
-        return {
+    def to_message(self, details: bool = True) -> dict[str, Any]:
+        """The record as the bus sends it (the ``job-reply`` record).
+
+        Without ``details`` the parameters, the client's reference and request
+        id, the owner and the result's path are left out and ``redacted`` is
+        true: what a user who may not see other users' jobs gets.
+        """
+        message: dict[str, Any] = {
             "id": self.id,
             "kind": self.kind,
             "state": self.state,
             "reason": self.reason,
-            "ref": self.ref,
-            "params": self.params,
             "created": self.created,
             "started": self.started,
             "ended": self.ended,
-            "result": self.result,
         }
+        if not details:
+            message["redacted"] = True
+            return message
+        message.update(ref=self.ref, params=self.params, result=self.result, owner=self.owner, request_id=self.request_id)
+        return message
 
 
 class Journal:
@@ -185,24 +213,39 @@ class Journal:
         if version > _SCHEMA_VERSION:
             raise JournalError(f"{self.path}: journal layout {version} is newer than this celld ({_SCHEMA_VERSION})")
         with self._transaction():
-            for statement in _CREATE.strip().split(";"):
+            exists = db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'jobs'").fetchone()
+            script = _MIGRATE_1_2 if exists and version == 1 else ("" if exists else _CREATE)
+            for statement in script.strip().split(";"):
                 if statement.strip():
                     db.execute(statement)
+            db.execute(_INDEX_REQUESTS)
             db.execute(f"PRAGMA user_version = {_SCHEMA_VERSION}")
 
     @contextlib.contextmanager
     def _transaction(self) -> Iterator[sqlite3.Connection]:
-        """One committed transaction, under the thread lock."""
+        """One committed transaction, under the thread lock.
+
+        SQLite's operational errors (disk full, I/O error, read-only) become
+        :class:`JournalWriteError`; the transaction is rolled back, if SQLite
+        has not done so itself, so the next change starts clean.
+        """
         with self._lock:
             if self._lock_fd < 0:
                 raise JournalError(f"{self.path}: the journal is closed")
-            self._db.execute("BEGIN IMMEDIATE")
+            db = self._db
             try:
-                yield self._db
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._db.execute("COMMIT")
+                db.execute("BEGIN IMMEDIATE")
+                try:
+                    yield db
+                    db.execute("COMMIT")
+                except BaseException:
+                    if db.in_transaction:
+                        with contextlib.suppress(sqlite3.Error):
+                            db.execute("ROLLBACK")
+                    raise
+            except sqlite3.OperationalError as exc:
+                name = getattr(exc, "sqlite_errorname", None)
+                raise JournalWriteError("journal", str(self.path), f"{exc}" + (f" ({name})" if name else "")) from exc
 
     def _recover(self) -> tuple[JobRecord, ...]:
         now = self._clock()
@@ -228,16 +271,30 @@ class Journal:
 
     # -- changes ------------------------------------------------------------------------
 
-    def create(self, kind: str, params: Mapping[str, Any], ref: str = "", start: bool = False) -> JobRecord:
+    def create(
+        self,
+        kind: str,
+        params: Mapping[str, Any],
+        ref: str = "",
+        start: bool = False,
+        *,
+        owner: str = "",
+        request_id: str | None = None,
+    ) -> JobRecord:
         """Record a new job as ``queued``, or as ``running`` with ``start``; returns its record.
 
         ``start=True`` records a job that runs at once in one transaction (one
         fsync instead of two); the record gets a fresh id either way.
+        ``owner`` is the bus user who submitted it; ``request_id`` the
+        client's id of the request, unique per owner.
 
         Raises
         ------
         JournalError
-            ``params`` is not JSON-serialisable (NaN, infinities, objects).
+            ``params`` is not JSON-serialisable (NaN, infinities, objects), or
+            ``owner`` already has a job with ``request_id``.
+        JournalWriteError
+            The change could not be committed (disk full, I/O error).
         """
         try:
             params_json = json.dumps(dict(params), allow_nan=False, separators=(",", ":"))
@@ -250,10 +307,13 @@ class Journal:
             try:
                 with self._transaction() as db:
                     db.execute(
-                        "INSERT INTO jobs (id, kind, params, ref, state, created, started) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                        (job_id, kind, params_json, ref, state, now, started),
+                        "INSERT INTO jobs (id, kind, params, ref, state, created, started, owner, request_id) "
+                        "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        (job_id, kind, params_json, ref, state, now, started, owner, request_id),
                     )
-            except sqlite3.IntegrityError:
+            except sqlite3.IntegrityError as exc:
+                if request_id is not None and self.find_request(owner, request_id) is not None:
+                    raise JournalError(f"request id {request_id!r} of {owner or 'the open bus'} names a job already") from exc
                 continue  # the same id in the same second: draw again
             return self._get_required(job_id)
         raise JournalError("could not draw a unique job id")
@@ -267,6 +327,13 @@ class Journal:
         if state not in TERMINAL:
             raise JournalError(f"expected a terminal state ({', '.join(sorted(TERMINAL))}), got {state!r}")
         return self._move(job_id, state, reason, result)
+
+    def set_result(self, job_id: str, result: str) -> JobRecord:
+        """Record the path of a job's result written after the job ended (a write retried once space returned)."""
+        with self._transaction() as db:
+            if db.execute("UPDATE jobs SET result = ? WHERE id = ?", (result, job_id)).rowcount != 1:
+                raise JournalError(f"no job {job_id!r} in the journal")
+        return self._get_required(job_id)
 
     def _move(self, job_id: str, state: str, reason: str, result: str | None) -> JobRecord:
         allowed_from = sorted(s for s, nxt in _NEXT.items() if state in nxt)
@@ -296,6 +363,11 @@ class Journal:
 
     def get(self, job_id: str) -> JobRecord | None:
         rows = self._rows(f"SELECT {_COLUMNS} FROM jobs WHERE id = ?", (job_id,))
+        return rows[0] if rows else None
+
+    def find_request(self, owner: str, request_id: str) -> JobRecord | None:
+        """The job ``owner`` submitted with ``request_id``, if any."""
+        rows = self._rows(f"SELECT {_COLUMNS} FROM jobs WHERE owner = ? AND request_id = ?", (owner, request_id))
         return rows[0] if rows else None
 
     def _get_required(self, job_id: str) -> JobRecord:

@@ -40,3 +40,50 @@ def sim_robot(loopback_host: str):
 
     with launch(loopback_host, realtime=True) as handle:
         yield handle
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """Factory: a tmpfs of ``size`` bytes mounted at a fresh directory, unmounted after the test.
+
+    Skips the test, with the reason, where mounting is not permitted (not
+    root, a container without CAP_SYS_ADMIN); the injected-error tests cover
+    the same paths there.
+    """
+    import subprocess
+
+    mounted: list = []
+
+    def make(size: int, name: str = "disk"):
+        where = tmp_path / name
+        where.mkdir()
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size},mode=0700", "tmpfs", str(where)], capture_output=True, text=True)
+        if r.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here (needs root or CAP_SYS_ADMIN): {r.stderr.strip() or r.returncode}")
+        mounted.append(where)
+        return where
+
+    yield make
+    for where in reversed(mounted):
+        if subprocess.run(["umount", str(where)], capture_output=True).returncode != 0:
+            subprocess.run(["umount", "-l", str(where)], capture_output=True)
+
+
+def fill_disk(directory, leave: int = 0):
+    """Write a filler file into ``directory`` until at most ``leave`` bytes stay free; returns its path."""
+    path = os.path.join(directory, "filler")
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        block = b"\0" * 4096
+        while True:
+            st = os.statvfs(directory)
+            free = st.f_bavail * st.f_frsize
+            if free <= leave:
+                break
+            try:
+                os.write(fd, block[: max(1, min(len(block), free - leave))])
+            except OSError:
+                break
+    finally:
+        os.close(fd)
+    return path

@@ -202,3 +202,71 @@ def test_kill_9_at_random_moments_never_damages_journal_or_results(tmp_path: Pat
         for p in results.iterdir():  # every result under its final name is whole
             assert p.suffix == ".bin" and p.read_bytes() == p.stem.encode() * 20_000
     assert finished > 0
+
+
+def test_a_layout_1_journal_gains_owner_and_request_id(tmp_path: Path) -> None:
+    path = tmp_path / "old.sqlite3"
+    db = sqlite3.connect(path)
+    db.executescript(
+        """
+        PRAGMA journal_mode = WAL;
+        CREATE TABLE jobs (seq INTEGER PRIMARY KEY AUTOINCREMENT, id TEXT NOT NULL UNIQUE, kind TEXT NOT NULL,
+            params TEXT NOT NULL, ref TEXT NOT NULL DEFAULT '', state TEXT NOT NULL, reason TEXT NOT NULL DEFAULT '',
+            created TEXT NOT NULL, started TEXT, ended TEXT, result TEXT);
+        INSERT INTO jobs (id, kind, params, state, created, ended) VALUES ('20250101-000000-aaaaaa', 'health', '{}', 'succeeded', 'x', 'y');
+        PRAGMA user_version = 1;
+        """
+    )
+    db.close()
+    with Journal(path) as j:
+        old = j.get("20250101-000000-aaaaaa")
+        assert old is not None and (old.owner, old.request_id) == ("", None)
+        new = j.create("health", {"kind": "health"}, owner="olga", request_id="r-1")
+        assert j.find_request("olga", "r-1") == new and j.find_request("oscar", "r-1") is None
+        assert j.check() == []
+
+
+def test_a_request_id_names_one_job_per_owner(journal: Journal) -> None:
+    a = journal.create("health", {"kind": "health"}, owner="olga", request_id="step-1")
+    journal.create("health", {"kind": "health"}, owner="oscar", request_id="step-1")
+    journal.create("health", {"kind": "health"})  # no request id: any number of these
+    journal.create("health", {"kind": "health"})
+    with pytest.raises(JournalError, match="names a job already"):
+        journal.create("health", {"kind": "health"}, owner="olga", request_id="step-1")
+    assert journal.find_request("olga", "step-1") == a
+
+
+def test_a_write_the_disk_cannot_take_is_a_storage_error_and_the_journal_stays_usable(journal: Journal) -> None:
+    from celld.errors import JournalWriteError, StorageError
+
+    job = journal.create("health", {"kind": "health"}).id
+    real = journal._db
+
+    class Full:
+        def execute(self, sql: str, *args):
+            if sql == "COMMIT":
+                exc = sqlite3.OperationalError("database or disk is full")
+                exc.sqlite_errorname = "SQLITE_FULL"  # type: ignore[attr-defined]
+                raise exc
+            return real.execute(sql, *args)
+
+        def __getattr__(self, name: str):
+            return getattr(real, name)
+
+    journal._db = Full()  # type: ignore[assignment]
+    with pytest.raises(JournalWriteError) as err:
+        journal.start(job)
+    assert isinstance(err.value, StorageError) and err.value.what == "journal"
+    assert "database or disk is full" in str(err.value) and "SQLITE_FULL" in str(err.value)
+    journal._db = real
+    assert journal.get(job).state == "queued", "the failed change was rolled back"
+    assert journal.start(job).state == "running"
+    assert journal.set_result(job, "/x/result.json").result == "/x/result.json"
+
+
+def test_a_record_without_details_keeps_only_what_a_viewer_may_see(journal: Journal) -> None:
+    r = journal.create("weld", {"kind": "weld", "ref": "order-1"}, ref="order-1", owner="olga", request_id="q")
+    full, redacted = r.to_message(), r.to_message(details=False)
+    assert full["params"] == {"kind": "weld", "ref": "order-1"} and full["owner"] == "olga" and full["request_id"] == "q"
+    assert redacted["redacted"] is True and not {"params", "ref", "owner", "request_id", "result"} & set(redacted)
+    assert {k: full[k] for k in redacted if k != "redacted"} == {k: v for k, v in redacted.items() if k != "redacted"}

@@ -17,6 +17,9 @@ understands only the keywords below and refuses a schema that uses any other
 - ``oneOf`` whose branches are objects told apart by one property with a
   ``const`` (a discriminator such as ``kind``), so the error can name the
   branch's own field instead of "matches none of the alternatives";
+- ``not`` whose schema is ``{"required": [a, b, ...]}`` (fields that must not
+  all be given together): the error names the last of them and says "give
+  either a or b, not both";
 - annotations, which do not constrain: ``$schema``, ``$id``, ``$comment``,
   ``title``, ``description``, ``default``, ``examples``.
 
@@ -45,7 +48,7 @@ _ASSERTIONS = frozenset(
         "minLength", "maxLength", "pattern",
         "prefixItems", "items", "minItems", "maxItems",
         "properties", "required", "additionalProperties",
-        "oneOf",
+        "oneOf", "not",
     }
 )
 # Keywords that only describe.
@@ -163,6 +166,19 @@ def validate(schema: Mapping[str, Any], value: Any, path: str = "$") -> None:
         _check_object(schema, value, path)
     if "oneOf" in schema:
         _check_one_of(schema, value, path)
+    if "not" in schema and isinstance(value, dict):
+        _check_not(schema["not"], value, path)
+
+
+def _check_not(sub: Mapping[str, Any], value: dict[str, Any], path: str) -> None:
+    names = list(sub["required"])
+    if not all(n in value for n in names):
+        return
+    if len(names) == 2:
+        reason = f"give either {names[0]} or {names[1]}, not both"
+    else:
+        reason = f"give at most {len(names) - 1} of {', '.join(names)}, not all"
+    raise JobError(field_path(path, names[-1]), reason)
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -293,6 +309,13 @@ def check_schema(schema: Any, where: str = "#") -> None:
         check_schema(sub, f"{where}/prefixItems/{i}")
     if "pattern" in schema:
         re.compile(schema["pattern"])
+    if "not" in schema:
+        sub = schema["not"]
+        if not isinstance(sub, Mapping) or set(sub) - _ANNOTATIONS != {"required"} or len(sub["required"]) < 2:
+            raise ValueError(f"{where}/not: only {{\"required\": [two or more fields]}} is supported, got {sub!r}")
+        for key in sub["required"]:
+            if key not in schema.get("properties", {}):
+                raise ValueError(f"{where}/not: required {key!r} has no entry in properties")
     if "oneOf" in schema:
         for i, branch in enumerate(schema["oneOf"]):
             check_schema(branch, f"{where}/oneOf/{i}")

@@ -1,4 +1,4 @@
-"""Bus subcommands: ``celld submit``, ``status``, ``jobs``, ``cancel``, ``accept``, ``robot``, ``bus schema``.
+"""Bus subcommands: ``celld submit``, ``status``, ``jobs``, ``result``, ``cancel``, ``accept``, ``robot``, ``bus schema``.
 
 Every subcommand that talks to a cell reads the bus settings from ``--config``
 (default ``/etc/celld/cell.toml``) and addresses the cell named there, or
@@ -56,6 +56,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
     job_common = argparse.ArgumentParser(add_help=False, parents=[common])
     job_common.add_argument("--ref", default="", help="your reference for the job (echoed in status)")
+    job_common.add_argument(
+        "--request-id", help="your id of this submit: submitting again with the same id returns the same job (idempotent)"
+    )
     job_common.add_argument("--wait", action="store_true", help="show progress and wait until the job ends")
     job_common.add_argument("--wait-timeout", type=float, help="give up waiting after this many seconds")
 
@@ -106,23 +109,28 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     x = sub.add_parser("cancel", parents=[common], help="cancel a queued or running job (the robot stops first)")
     x.add_argument("job")
-    x.add_argument("--reason", default="")
+    x.add_argument("--reason", default="", help="why (kept in the job's record)")
     x.set_defaults(func=_cancel)
+
+    r = sub.add_parser("result", parents=[common], help="a finished job's result, over the bus")
+    r.add_argument("job")
+    r.add_argument("--out", help="write the result document to this file instead of printing it")
+    r.set_defaults(func=_result)
 
     a = sub.add_parser("accept", parents=[common], help="make a calibrate job's result the current calibration")
     a.add_argument("job")
     a.add_argument("--force", action="store_true", help="accept even though the calibration failed its quality gate")
     a.set_defaults(func=_accept)
 
-    r = sub.add_parser("robot", parents=[common], help="clear a robot fault through its dashboard (refused while a job runs)")
-    r.add_argument("action", choices=schema.ROBOT_ACTIONS,
-                   help="unlock a protective stop, power the arm on, release its brakes, close the safety pop-up")
-    r.set_defaults(func=_robot)
+    rb = sub.add_parser("robot", parents=[common], help="clear a robot fault through its dashboard (refused while a job runs)")
+    rb.add_argument("action", choices=schema.ROBOT_ACTIONS,
+                    help="unlock a protective stop, power the arm on, release its brakes, close the safety pop-up")
+    rb.set_defaults(func=_robot)
 
     b = sub.add_parser("bus", help="bus tools")
     bsub = b.add_subparsers(dest="bus_command", metavar="ACTION", required=True)
-    e = bsub.add_parser("schema", help="export the JSON Schema of every bus message")
-    e.add_argument("--out", required=True, help="directory to write <name>.schema.json files into")
+    e = bsub.add_parser("schema", help="export the JSON Schema of every bus message and the AsyncAPI document")
+    e.add_argument("--out", required=True, help="directory to write <name>.schema.json files and asyncapi.json into")
     e.set_defaults(func=_schema)
 
 
@@ -159,6 +167,8 @@ def _job_message(args: argparse.Namespace) -> dict[str, Any]:
             raise JobError("$", f"{args.path}: expected a JSON object (a job message), got {schema.describe(message)}")
         if args.ref:
             message["ref"] = args.ref
+        if args.request_id:
+            message["request_id"] = args.request_id
         return message
     m: dict[str, Any] = {"kind": kind}
     if kind == "calibrate":
@@ -191,6 +201,8 @@ def _job_message(args: argparse.Namespace) -> dict[str, Any]:
         m["check"] = args.check
     if args.ref:
         m["ref"] = args.ref
+    if args.request_id:
+        m["request_id"] = args.request_id
     return m
 
 
@@ -245,7 +257,10 @@ def _submit(args: argparse.Namespace) -> int:
             if args.json:
                 _print_json(reply)
             else:
-                print(f"{reply['job']} {reply['state']}" + (f" (position {reply['position']})" if reply["state"] == "queued" else ""))
+                print(
+                    f"{reply['job']} {reply['state']}" + (f" (position {reply['position']})" if reply["state"] == "queued" else "")
+                    + (" (replayed: this request id made it before)" if reply.get("replayed") else "")
+                )
             return 0
         bar = ProgressBar()
         try:
@@ -268,6 +283,8 @@ def _print_record(r: dict[str, Any]) -> None:
         line += f": {r['reason']}"
     if r.get("result"):
         line += f" -> {r['result']}"
+    if r.get("redacted"):
+        line += " (details withheld from this user)"
     print(line)
 
 
@@ -294,10 +311,15 @@ def _status(args: argparse.Namespace) -> int:
 
 def _print_status(s: dict[str, Any]) -> None:
     queued = ", ".join(s.get("queued", [])) or "-"
+    storage = s.get("storage") or {}
+    free = storage.get("free_mb")
     print(
         f"{s.get('cell', '?')}: {s.get('state', '?')}  running {s.get('running') or '-'}  queued {queued}  "
         f"robot {s.get('robot_link', '?')}  calibration {s.get('calibration') or '-'}"
+        + (f"  free {free:.0f} MB" if isinstance(free, (int, float)) else "")
     )
+    if s.get("message"):
+        print(f"  {s['message']}")
     robot = s.get("robot")
     if isinstance(robot, dict) and not robot.get("ready", True):
         _print_robot(robot)
@@ -311,7 +333,7 @@ def _status_all(args: argparse.Namespace) -> int:
         out = []
         for name in cells:
             try:
-                out.append(CellClient(bus, name, session=session, timeout=args.timeout).status())
+                out.append(CellClient(bus, name, user=user, session=session, timeout=args.timeout).status())
             except BusError as exc:
                 out.append({"ok": False, "cell": name, "error": {"field": "", "reason": str(exc)}})
     finally:
@@ -347,6 +369,28 @@ def _cancel(args: argparse.Namespace) -> int:
         _print_json(reply)
     else:
         print(f"{reply['job']} {reply['state']}")
+    return 0
+
+
+def _result(args: argparse.Namespace) -> int:
+    with _client(args) as cell:
+        reply = cell.result(args.job)
+    if args.out:
+        if reply["result"] is None:
+            raise JobError("$.job", f"job {args.job} ({reply['state']}) has no result to write" + (
+                f": it is over {schema.MAX_RESULT_BYTES} bytes, on the cell PC at {reply.get('path')}" if reply["too_large"] else ""))
+        Path(args.out).write_text(json.dumps(reply["result"], indent=2) + "\n", encoding="utf-8")
+        print(args.out)
+    elif args.json:
+        _print_json(reply)
+    else:
+        print(f"{reply['job']} {reply['kind']} {reply['state']}" + (f": {reply['reason']}" if reply["reason"] else ""))
+        if reply["too_large"]:
+            print(f"result over {schema.MAX_RESULT_BYTES} bytes: on the cell PC at {reply.get('path')}")
+        elif reply["result"] is not None:
+            print(json.dumps(reply["result"], indent=2))
+        for f in reply["files"]:
+            print(f"file on the cell PC: {f['path']} ({f['bytes']} bytes)")
     return 0
 
 

@@ -5,8 +5,13 @@ same way::
 
     with CellClient(config.load("/etc/celld/cell.toml").bus, "cell-01") as cell:
         with cell.watch_progress() as events:     # subscribe before submitting
-            reply = cell.submit({"kind": "calibrate", "n_poses": 12})
+            reply = cell.submit({"kind": "calibrate", "n_poses": 12, "request_id": "order-7-step-1"})
             record = events.wait(reply["job"], on_event=print)
+        result = cell.result(reply["job"])["result"]
+
+With a user (``user=`` or ``bus.user``) the client sends its requests to that
+user's keys (``<prefix>/<cell>/u/<user>/...``), which is what a cell with
+``bus.users`` answers; without one, to the open bus's ``<prefix>/<cell>/...``.
 
 Calls are synchronous (zenoh's ``get`` blocks the calling thread); from
 asyncio code run them with ``asyncio.to_thread``. A refused request raises
@@ -89,6 +94,7 @@ class CellClient:
         timeout: float | None = None,
     ) -> None:
         self.keys = CellKeys.of(bus.prefix, cell)
+        self.user = bus.user if user is None else user
         self.timeout = bus.query_timeout if timeout is None else timeout
         self._owns_session = session is None
         self.session = open_client(bus, user, password) if session is None else session
@@ -106,8 +112,12 @@ class CellClient:
 
     # -- requests ---------------------------------------------------------------------
 
-    def request_raw(self, name: str, payload: bytes | None) -> dict[str, Any]:
-        """Send ``payload`` as it is to queryable ``name``; return the decoded reply, ok or not.
+    def key(self, name: str) -> str:
+        """Where this client's ``name`` requests go (its user's keys on a bus with users)."""
+        return self.keys.query(name, self.user)
+
+    def request_raw(self, name: str, payload: bytes | None, key: str | None = None) -> dict[str, Any]:
+        """Send ``payload`` as it is to queryable ``name`` (or to ``key``); return the decoded reply, ok or not.
 
         Raises
         ------
@@ -115,7 +125,7 @@ class CellClient:
             No reply (the cell is down, or the ACL dropped the query), a
             timeout, or a reply that is not a JSON reply object.
         """
-        key = self.keys.query(name)
+        key = key or self.key(name)
         while True:
             try:
                 errors = []
@@ -134,8 +144,8 @@ class CellClient:
             raise BusError(f"{key}: no answer within {self.timeout:g} s ({'; '.join(errors)})")
         raise BusError(f"{key}: no reply (is the cell running, and may this user send {name}?)")
 
-    def request(self, name: str, message: Mapping[str, Any] | None = None) -> dict[str, Any]:
-        """Send ``message`` to queryable ``name``; return the reply of an accepted request.
+    def request(self, name: str, message: Mapping[str, Any] | None = None, key: str | None = None) -> dict[str, Any]:
+        """Send ``message`` to queryable ``name`` (or to ``key``); return the reply of an accepted request.
 
         Raises
         ------
@@ -144,12 +154,12 @@ class CellClient:
         BusError
             See :meth:`request_raw`.
         """
-        reply = self.request_raw(name, schema.encode(message) if message else None)
+        reply = self.request_raw(name, schema.encode(message) if message else None, key)
         if reply["ok"]:
             return reply
         error = reply.get("error")
         if not isinstance(error, dict):
-            raise BusError(f"{self.keys.query(name)}: refused without an error object: {schema.describe(error)}")
+            raise BusError(f"{key or self.key(name)}: refused without an error object: {schema.describe(error)}")
         raise JobError(str(error.get("field", "")), str(error.get("reason", "refused")))
 
     def submit(self, message: Mapping[str, Any]) -> dict[str, Any]:
@@ -195,6 +205,10 @@ class CellClient:
         """The current calibration, or None."""
         value = self.request("calibration")["calibration"]
         return None if value is None else dict(value)
+
+    def result(self, job: str) -> dict[str, Any]:
+        """A finished job's result-reply: ``result`` (the document, or None), ``files`` left on the cell, ..."""
+        return self.request("result", key=self.keys.result(job, self.user))
 
     # -- publications -----------------------------------------------------------------
 

@@ -20,9 +20,14 @@ queryable                 payload                                       parsed i
 ``calibration``           ``{}``                                        :class:`CalibrationRequest`
 ``robot``                 ``{"action": "unlock" | "power-on" |          :class:`RobotRequest`
                           "brake-release" | "close-popup"}``
+``result/<job>``          ``{}`` (the job is in the key)                :class:`ResultRequest`
 ========================  ============================================  ===========================
 
-An empty payload counts as ``{}``. Replies are ``{"ok": true, ...}`` or
+An empty payload counts as ``{}``. Every rule a request must follow is in its
+schema (the "poses or n_poses, not both" rule of a calibrate job is a
+``not``/``required`` there), so a client that validates against the exported
+schemas is refused by the cell only for the cell's own reasons (a full queue,
+an unknown workpiece, a storage fault, its role). Replies are ``{"ok": true, ...}`` or
 ``{"ok": false, "error": {"field": PATH, "reason": TEXT}}``; publications are
 progress events per job and the robot and tactile state. Their schemas are in
 :data:`SCHEMAS` too (``*-reply``, ``progress``, ``state-robot``,
@@ -71,6 +76,10 @@ JOB_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
 TEXT_PATTERN = r"^[^\u0000-\u001f\u007f]*$"
 # Dialect of every exported schema.
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
+# A client's id of a submit: letters, digits and '_', '.', ':', '-' (a UUID fits).
+REQUEST_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:-]{0,63}$"
+# Largest result sent inline by the result queryable, bytes of JSON.
+MAX_RESULT_BYTES = 1024 * 1024
 
 JOB_KINDS = ("calibrate", "weld", "move", "health")
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
@@ -149,12 +158,21 @@ def _pose(desc: str) -> dict[str, Any]:
 
 _JOB_ID = {"type": "string", "pattern": JOB_ID_PATTERN, "description": "A job id, as returned by submit."}
 _REF = _text("The client's own reference for the job (an order number); echoed in status.", 128)
+_REQUEST_ID = {
+    "type": "string",
+    "pattern": REQUEST_ID_PATTERN,
+    "description": (
+        "The client's id of this submit (a UUID, an MES order step). Submitting again with the same id and "
+        "the same body returns the job the first submit made (replayed: true) instead of making a second; "
+        "the same id with a different body is refused. Ids are kept per bus user, in the journal."
+    ),
+}
 _NULLABLE_TEXT = {"type": ["string", "null"]}
 _JOINTS = _vector("Joint positions, rad.", 6, -2 * math.pi, 2 * math.pi)
 
 
 def _submit_branch(kind: str, desc: str, properties: dict[str, Any], required: tuple[str, ...] = ()) -> dict[str, Any]:
-    props = {"kind": {"const": kind, "description": "The job kind."}, **properties, "ref": _REF}
+    props = {"kind": {"const": kind, "description": "The job kind."}, **properties, "ref": _REF, "request_id": _REQUEST_ID}
     return _object(desc, props, ("kind", *required))
 
 
@@ -165,7 +183,7 @@ _DRY_RUN = {
     "joints, paths, what was refused and why) is in the result and the job's recording.",
 }
 
-_CALIBRATE = _submit_branch(
+_CALIBRATE: dict[str, Any] = _submit_branch(
     "calibrate",
     "Eye-on-base calibration of the scanner from the robot's flange (Algorithm 1): the "
     "verification pose first, then calibration poses, a progress event per pair, an early "
@@ -192,6 +210,7 @@ _CALIBRATE = _submit_branch(
         "dry_run": _DRY_RUN,
     },
 )
+_CALIBRATE["not"] = {"required": ["poses", "n_poses"], "description": "Give either poses or n_poses, not both."}
 
 _WELD = _submit_branch(
     "weld",
@@ -260,20 +279,59 @@ def _reply(desc: str, properties: dict[str, Any], required: tuple[str, ...] = ()
 
 
 _JOB_RECORD = _object(
-    "One job as the journal keeps it. Times are UTC wall clock, ISO 8601.",
+    "One job as the journal keeps it. Times are UTC wall clock, ISO 8601. A user who may not see "
+    "the job in full (a viewer, or an operator looking at another user's job) gets it redacted: no "
+    "params, ref, request_id, owner or result, and redacted: true.",
     {
         "id": _JOB_ID,
         "kind": {"enum": list(JOB_KINDS)},
         "state": {"enum": list(JOB_STATES)},
-        "reason": {"type": "string", "description": "Why the job failed, was cancelled or interrupted."},
+        "reason": {"type": "string", "description": "Why the job failed, was cancelled (the canceller's reason) or interrupted."},
         "ref": {"type": "string"},
-        "params": {"type": "object", "description": "The job as submitted (the submit message)."},
+        "params": {"type": "object", "description": "The job as submitted (the submit message, without request_id)."},
         "created": {"type": "string"},
         "started": _NULLABLE_TEXT,
         "ended": _NULLABLE_TEXT,
-        "result": {"type": ["string", "null"], "description": "Path of the result, in the cell's state directory."},
+        "result": {
+            "type": ["string", "null"],
+            "description": "Path of the result file on the cell PC (read it over the bus: <req>/result/<job>).",
+        },
+        "owner": {"type": "string", "description": "The bus user who submitted the job (empty on an open bus)."},
+        "request_id": {"type": ["string", "null"], "description": "The submit's request_id, if it had one."},
+        "redacted": {"const": True, "description": "Present when params, ref, request_id, owner and result are withheld."},
     },
-    ("id", "kind", "state", "reason", "params", "created", "started", "ended", "result"),
+    ("id", "kind", "state", "reason", "created", "started", "ended"),
+)
+
+_STORAGE = _object(
+    "The state directory: free space against the floor, and storage faults.",
+    {
+        "ok": {"type": "boolean", "description": "No storage fault and free space above the floor: jobs are taken."},
+        "free_mb": {"type": ["number", "null"], "description": "Free space of the state directory's file system, MiB."},
+        "floor_mb": {"type": "number", "minimum": 0, "description": "cell.min_free_mb: below it new jobs are refused."},
+        "fault": {"type": "string", "description": "The storage fault now (empty when none); jobs are refused and the queue waits."},
+        "last_error": {
+            "type": ["object", "null"],
+            "description": "The most recent failed write, kept after recovery: {what, path, reason, at}.",
+            "properties": {
+                "what": {"type": "string", "description": "journal, result, job files, recording, calibration or probe."},
+                "path": {"type": "string"},
+                "reason": {"type": "string"},
+                "at": {"type": "string", "description": "UTC, ISO 8601."},
+            },
+        },
+        "pending_writes": {"type": "integer", "minimum": 0, "description": "Writes owed, made once there is room."},
+    },
+    ("ok", "free_mb", "floor_mb", "fault", "last_error", "pending_writes"),
+)
+
+_FILE = _object(
+    "A file a job left in the cell's state directory.",
+    {
+        "path": {"type": "string", "description": "Relative to the state directory (jobs/<job>/..., recordings/<job>.rrd)."},
+        "bytes": {"type": "integer", "minimum": 0},
+    },
+    ("path", "bytes"),
 )
 
 _NUMBER_OR_NULL = {"type": ["number", "null"]}
@@ -444,11 +502,20 @@ _BODIES: dict[str, dict[str, Any]] = {
         {"action": {"enum": list(ROBOT_ACTIONS), "description": "unlock a protective stop, power the arm on, release its brakes, close the safety pop-up."}},
         ("action",),
     ),
+    "result": _object(
+        "A finished job's result. The job id is the last chunk of the key (<req>/result/<job>); the payload is empty or {}.", {}
+    ),
     # replies
     "error-reply": _object("A refused request.", {"ok": {"const": False}, "error": _ERROR}, ("ok", "error")),
     "submit-reply": _reply(
-        "A job was taken: it runs now (position 0) or waits in the queue.",
-        {"job": _JOB_ID, "state": {"enum": ["running", "queued"]}, "position": {"type": "integer", "minimum": 0}},
+        "A job was taken: it runs now (position 0) or waits in the queue. A replayed request_id "
+        "gives the original job in its state now (it may have ended) and replayed: true.",
+        {
+            "job": _JOB_ID,
+            "state": {"enum": list(JOB_STATES)},
+            "position": {"type": "integer", "minimum": 0, "description": "0: runs now (or no longer waits); n: n-th in the queue."},
+            "replayed": {"type": "boolean", "description": "True when the request_id named a job already made."},
+        },
         ("job", "state", "position"),
     ),
     "status-reply": _reply(
@@ -463,12 +530,30 @@ _BODIES: dict[str, dict[str, Any]] = {
             "calibration": {"type": ["string", "null"], "description": "Job id of the current calibration."},
             "uptime_s": {"type": "number", "minimum": 0},
             "version": {"type": "string"},
-            "message": {"type": "string"},
+            "message": {"type": "string", "description": "Why the cell is in fault (robot link, storage), else empty."},
+            "storage": _STORAGE,
         },
         ("cell", "state", "running", "queued"),
     ),
     "job-reply": _reply("One job's record (status with a job id).", {"record": _JOB_RECORD}, ("record",)),
     "cancel-reply": _reply("The job's state after the request.", {"job": _JOB_ID, "state": {"enum": list(JOB_STATES)}}, ("job", "state")),
+    "result-reply": _reply(
+        "A finished job's result. result is the JSON the job wrote (null if it wrote none, or if it is "
+        "larger than the inline limit: then too_large is true and the file stays on the cell PC at path). "
+        "Bulky arrays (a weld's paths, a calibration's clouds) are files of the job (files), not sent here.",
+        {
+            "job": _JOB_ID,
+            "kind": {"enum": list(JOB_KINDS)},
+            "state": {"enum": list(TERMINAL_STATES)},
+            "reason": {"type": "string"},
+            "result": {"type": ["object", "null"], "description": "The result document."},
+            "bytes": {"type": "integer", "minimum": 0, "description": "Size of the result file."},
+            "too_large": {"type": "boolean", "description": f"The result is over {MAX_RESULT_BYTES} bytes and was not sent."},
+            "path": {"type": ["string", "null"], "description": "The result file on the cell PC."},
+            "files": {"type": "array", "items": _FILE, "description": "Files the job left on the cell PC (not sent)."},
+        },
+        ("job", "kind", "state", "reason", "result", "too_large", "files"),
+    ),
     "list-reply": _reply("Jobs, newest first.", {"jobs": {"type": "array", "items": _JOB_RECORD}}, ("jobs",)),
     "accept-reply": _reply("The new current calibration.", {"job": _JOB_ID, "calibration": _CALIBRATION}, ("job", "calibration")),
     "calibration-reply": _reply(
@@ -502,7 +587,7 @@ def _checked(schemas: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
 SCHEMAS: Mapping[str, dict[str, Any]] = _checked({name: _exported(name, body) for name, body in _BODIES.items()})
 
 # Requests, by queryable name.
-REQUESTS = ("submit", "status", "cancel", "list", "accept", "calibration", "robot")
+REQUESTS = ("submit", "status", "cancel", "list", "accept", "calibration", "robot", "result")
 
 
 # -- values ------------------------------------------------------------------------
@@ -521,6 +606,7 @@ class CalibrateJob:
     seed: int | None = None
     dry_run: bool = False
     ref: str = ""
+    request_id: str = ""  # the client's id of the submit
     kind: ClassVar[str] = "calibrate"
 
 
@@ -536,6 +622,7 @@ class WeldJob:
     arc: bool = True
     dry_run: bool = False
     ref: str = ""
+    request_id: str = ""  # the client's id of the submit
     kind: ClassVar[str] = "weld"
 
 
@@ -547,6 +634,7 @@ class MoveJob:
     target: Pose6
     speed_scale: float = 0.5
     ref: str = ""
+    request_id: str = ""  # the client's id of the submit
     kind: ClassVar[str] = "move"
 
 
@@ -556,6 +644,7 @@ class HealthJob:
 
     check: str = "all"
     ref: str = ""
+    request_id: str = ""  # the client's id of the submit
     kind: ClassVar[str] = "health"
 
 
@@ -596,7 +685,12 @@ class RobotRequest:
     action: str  # one of ROBOT_ACTIONS
 
 
-Request = Job | StatusRequest | CancelRequest | ListRequest | AcceptRequest | CalibrationRequest | RobotRequest
+@dataclass(frozen=True)
+class ResultRequest:
+    job: str
+
+
+Request = Job | StatusRequest | CancelRequest | ListRequest | AcceptRequest | CalibrationRequest | RobotRequest | ResultRequest
 
 
 # -- decoding ------------------------------------------------------------------------
@@ -709,8 +803,7 @@ def _pose6(values: Any) -> Pose6:
 
 
 def _build_calibrate(m: Mapping[str, Any]) -> CalibrateJob:
-    if "poses" in m and "n_poses" in m:
-        raise JobError("$.n_poses", "give either poses or n_poses, not both")
+    # "poses or n_poses, not both" is the schema's own rule (not/required): checked before this.
     return CalibrateJob(
         n_poses=_int_or_none(m.get("n_poses")),
         e_required=_mm(m.get("e_required_mm")),
@@ -721,6 +814,7 @@ def _build_calibrate(m: Mapping[str, Any]) -> CalibrateJob:
         seed=_int_or_none(m.get("seed")),
         dry_run=bool(m.get("dry_run", False)),
         ref=m.get("ref", ""),
+        request_id=m.get("request_id", ""),
     )
 
 
@@ -735,6 +829,7 @@ def _build_weld(m: Mapping[str, Any]) -> WeldJob:
         arc=bool(m.get("arc", True)),
         dry_run=bool(m.get("dry_run", False)),
         ref=m.get("ref", ""),
+        request_id=m.get("request_id", ""),
     )
 
 
@@ -746,11 +841,12 @@ def _build_move(m: Mapping[str, Any]) -> MoveJob:
         target=_pose6(values),
         speed_scale=float(m.get("speed_scale", 0.5)),
         ref=m.get("ref", ""),
+        request_id=m.get("request_id", ""),
     )
 
 
 def _build_health(m: Mapping[str, Any]) -> HealthJob:
-    return HealthJob(check=m.get("check", "all"), ref=m.get("ref", ""))
+    return HealthJob(check=m.get("check", "all"), ref=m.get("ref", ""), request_id=m.get("request_id", ""))
 
 
 _JOB_BUILDERS: dict[str, Callable[[Mapping[str, Any]], Job]] = {
@@ -773,6 +869,7 @@ _BUILDERS: dict[str, Callable[[Mapping[str, Any]], Any]] = {
     "accept": lambda m: AcceptRequest(job=m["job"], force=bool(m.get("force", False))),
     "calibration": lambda m: CalibrationRequest(),
     "robot": lambda m: RobotRequest(action=m["action"]),
+    "result": lambda m: ResultRequest(job=""),  # the job comes from the key: parse_result
 }
 
 
@@ -788,7 +885,7 @@ def parse(request: str, raw: bytes | bytearray | memoryview) -> Any:
 
     Returns
     -------
-    Job or StatusRequest or CancelRequest or ListRequest or AcceptRequest or CalibrationRequest
+    Job or StatusRequest or CancelRequest or ListRequest or AcceptRequest or CalibrationRequest or ResultRequest
 
     Raises
     ------
@@ -801,6 +898,13 @@ def parse(request: str, raw: bytes | bytearray | memoryview) -> Any:
     value = load_json(raw)
     validate(SCHEMAS[request], value)
     return build(value)
+
+
+def parse_result(job: str, raw: bytes | bytearray | memoryview) -> ResultRequest:
+    """:func:`parse` for ``result/<job>``: the payload must be empty (or ``{}``); ``job`` is the key's last chunk."""
+    validate(SCHEMAS["result"], load_json(raw))
+    validate(_JOB_ID, job, "$.job")
+    return ResultRequest(job=job)
 
 
 def parse_submit(raw: bytes | bytearray | memoryview) -> Job:
@@ -868,6 +972,8 @@ def job_to_message(job: Job) -> dict[str, Any]:
         m["check"] = job.check
     if job.ref:
         m["ref"] = job.ref
+    if job.request_id:
+        m["request_id"] = job.request_id
     return m
 
 
@@ -898,7 +1004,17 @@ def error_reply(field: str, reason: str) -> dict[str, Any]:
 
 
 def export_schemas(directory: str | Path) -> list[Path]:
-    """Write every schema as ``<name>.schema.json`` into ``directory`` (created); returns the paths."""
+    """Write the bundle into ``directory`` (created); returns the paths.
+
+    Every schema as ``<name>.schema.json``, and ``asyncapi.json``: one
+    AsyncAPI 2.6 document listing the key expressions (channels), the
+    operations on them and their messages, whose payloads are ``$ref``s to
+    the schema files beside it (:mod:`celld.bus.asyncapi`).
+    """
+    from celld.bus.asyncapi import asyncapi_document
+
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
-    return [fsutil.write_json(out / f"{name}.schema.json", schema) for name, schema in SCHEMAS.items()]
+    paths = [fsutil.write_json(out / f"{name}.schema.json", schema) for name, schema in SCHEMAS.items()]
+    paths.append(fsutil.write_json(out / "asyncapi.json", asyncapi_document()))
+    return paths

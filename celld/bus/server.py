@@ -1,19 +1,31 @@
 """The cell's side of the bus: queryables that answer every request, and publications.
 
 :class:`BusServer` declares the queryables of one cell (``submit``, ``status``,
-``cancel``, ``list``, ``accept``, ``calibration``), its liveliness token, and
-publishes progress events and decimated robot and tactile state. It owns no
-job logic: the daemon gives it an object with one coroutine per request.
+``cancel``, ``list``, ``accept``, ``calibration``, ``result/<job>``), its
+liveliness token, and publishes progress events and decimated robot and
+tactile state. It owns no job logic: the daemon gives it an object with one
+coroutine per request.
+
+Who asks (:mod:`celld.bus.security`): on an open bus the queryables sit at
+``<prefix>/<cell>/<name>`` and every request comes from
+:data:`~celld.bus.security.OPEN`. With ``callers`` (the config's users) the
+server declares, for each user, the queryables its role may use at
+``<prefix>/<cell>/u/<user>/<name>``; zenoh's ACL (:func:`celld.bus.session.acl_config`)
+lets a link query only its own user's keys, so the queryable a request
+reached names its user, and the handler gets that :class:`Caller`. A query
+whose key expression is not exactly the queryable's own (a wildcard) is
+refused on a bus with users.
 
 Handler interface (:class:`CellHandlers`; the daemon's job manager implements it)::
 
-    async def on_submit(self, job: Job) -> dict            # -> submit-reply body
-    async def on_status(self, req: StatusRequest) -> dict  # -> status-reply or job-reply body
-    async def on_cancel(self, req: CancelRequest) -> dict  # -> cancel-reply body
-    async def on_list(self, req: ListRequest) -> dict      # -> list-reply body
-    async def on_accept(self, req: AcceptRequest) -> dict  # -> accept-reply body
-    async def on_calibration(self, req: CalibrationRequest) -> dict  # -> calibration-reply body
-    async def on_robot(self, req: RobotRequest) -> dict              # -> robot-reply body
+    async def on_submit(self, job: Job, caller: Caller) -> dict            # -> submit-reply body
+    async def on_status(self, req: StatusRequest, caller: Caller) -> dict  # -> status-reply or job-reply body
+    async def on_cancel(self, req: CancelRequest, caller: Caller) -> dict  # -> cancel-reply body
+    async def on_list(self, req: ListRequest, caller: Caller) -> dict      # -> list-reply body
+    async def on_accept(self, req: AcceptRequest, caller: Caller) -> dict  # -> accept-reply body
+    async def on_calibration(self, req: CalibrationRequest, caller: Caller) -> dict  # -> calibration-reply body
+    async def on_robot(self, req: RobotRequest, caller: Caller) -> dict    # -> robot-reply body
+    async def on_result(self, req: ResultRequest, caller: Caller) -> dict  # -> result-reply body
 
 - A handler receives a request already validated and built into a frozen value
   (:mod:`celld.bus.schema`); it never sees raw bytes.
@@ -51,7 +63,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -66,9 +78,11 @@ from celld.bus.schema import (
     CancelRequest,
     Job,
     ListRequest,
+    ResultRequest,
     RobotRequest,
     StatusRequest,
 )
+from celld.bus.security import OPEN, Caller
 from celld.errors import BusError, CelldError, JobError
 from celld.log import get_logger
 
@@ -87,13 +101,14 @@ MAX_PENDING = 1024
 class CellHandlers(Protocol):
     """What the daemon provides to answer the bus (see the module docstring)."""
 
-    async def on_submit(self, job: Job) -> Mapping[str, Any]: ...
-    async def on_status(self, req: StatusRequest) -> Mapping[str, Any]: ...
-    async def on_cancel(self, req: CancelRequest) -> Mapping[str, Any]: ...
-    async def on_list(self, req: ListRequest) -> Mapping[str, Any]: ...
-    async def on_accept(self, req: AcceptRequest) -> Mapping[str, Any]: ...
-    async def on_calibration(self, req: CalibrationRequest) -> Mapping[str, Any]: ...
-    async def on_robot(self, req: RobotRequest) -> Mapping[str, Any]: ...
+    async def on_submit(self, job: Job, caller: Caller) -> Mapping[str, Any]: ...
+    async def on_status(self, req: StatusRequest, caller: Caller) -> Mapping[str, Any]: ...
+    async def on_cancel(self, req: CancelRequest, caller: Caller) -> Mapping[str, Any]: ...
+    async def on_list(self, req: ListRequest, caller: Caller) -> Mapping[str, Any]: ...
+    async def on_accept(self, req: AcceptRequest, caller: Caller) -> Mapping[str, Any]: ...
+    async def on_calibration(self, req: CalibrationRequest, caller: Caller) -> Mapping[str, Any]: ...
+    async def on_robot(self, req: RobotRequest, caller: Caller) -> Mapping[str, Any]: ...
+    async def on_result(self, req: ResultRequest, caller: Caller) -> Mapping[str, Any]: ...
 
 
 @dataclass
@@ -108,6 +123,18 @@ class ServerStats:
     reply_failures: int = 0  # zenoh could not send a reply (client gone)
     published: int = 0  # progress and state samples sent
     decimated: int = 0  # state samples skipped by the rate limit
+
+
+@dataclass(frozen=True)
+class _Request:
+    """One query on its way from zenoh's thread to the loop."""
+
+    name: str
+    caller: Caller
+    key: str  # where the reply goes
+    job: str  # the job of a result request
+    query: zenoh.Query
+    raw: bytes
 
 
 class _Decimator:
@@ -143,6 +170,8 @@ class BusServer:
         Longest a handler may take before the client gets an error, s.
     max_pending : int
         Most requests in flight; more are answered "busy".
+    callers : iterable of Caller, optional
+        The bus's users (:func:`celld.bus.session.callers`); none: an open bus.
     """
 
     def __init__(
@@ -154,6 +183,7 @@ class BusServer:
         state_rate_hz: float = 20.0,
         reply_timeout: float = REPLY_TIMEOUT,
         max_pending: int = MAX_PENDING,
+        callers: Iterable[Caller] = (),
     ) -> None:
         if state_rate_hz <= 0 or reply_timeout <= 0 or max_pending < 1:
             raise BusError(
@@ -166,7 +196,8 @@ class BusServer:
         self.reply_timeout = reply_timeout
         self.max_pending = max_pending
         self.stats = ServerStats()
-        self._handlers: dict[str, Callable[[Any], Awaitable[Mapping[str, Any]]]] = {
+        self.callers = tuple(callers)
+        self._handlers: dict[str, Callable[[Any, Caller], Awaitable[Mapping[str, Any]]]] = {
             "submit": handlers.on_submit,
             "status": handlers.on_status,
             "cancel": handlers.on_cancel,
@@ -174,6 +205,7 @@ class BusServer:
             "accept": handlers.on_accept,
             "calibration": handlers.on_calibration,
             "robot": handlers.on_robot,
+            "result": handlers.on_result,
         }
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lock = threading.Lock()
@@ -195,9 +227,12 @@ class BusServer:
             raise BusError("the bus server is already started")
         self._loop = asyncio.get_running_loop()
         try:
-            for name in QUERYABLES:
-                callback = self._callback(name)
-                self._queryables.append(self.session.declare_queryable(self.keys.query(name), callback))
+            for caller in self.callers or (OPEN,):
+                for name in (*QUERYABLES, "result"):
+                    if not caller.may(name):
+                        continue
+                    key = self.keys.results(caller.user) if name == "result" else self.keys.query(name, caller.user)
+                    self._queryables.append(self.session.declare_queryable(key, self._callback(name, caller, key)))
             for stream, key in (("robot", self.keys.state_robot), ("tactile", self.keys.state_tactile)):
                 self._publishers[stream] = self.session.declare_publisher(
                     key, encoding=_JSON, congestion_control=zenoh.CongestionControl.DROP
@@ -242,10 +277,27 @@ class BusServer:
 
     # -- requests ----------------------------------------------------------------
 
-    def _callback(self, name: str) -> Callable[[zenoh.Query], None]:
+    def _callback(self, name: str, caller: Caller, declared: str) -> Callable[[zenoh.Query], None]:
+        result_head = declared[: -len("*")] if name == "result" else ""
+
         def on_query(query: zenoh.Query) -> None:  # on a zenoh thread
             try:
-                self._enqueue(name, query)
+                key = str(query.key_expr)
+                job = ""
+                if name == "result":
+                    job = key[len(result_head):] if key.startswith(result_head) else ""
+                    exact = bool(job) and not set(job) & set("*$?#/")  # one literal job id
+                    reply_key = result_head + job if exact else declared
+                else:
+                    reply_key, exact = declared, key == declared
+                if not exact and (caller.user or name == "result"):
+                    # A wildcard reached a user's queryable (a router without the
+                    # ACL let it through) or names no one job: not this user's request.
+                    self._count("requests")
+                    what = "name one job: <req>/result/<job>" if name == "result" else f"query your own key {declared}"
+                    self._reply_now(reply_key, query, schema.error_reply("$", f"refused: {what}, not {key!r}"))
+                    return
+                self._enqueue(name, caller, reply_key, job, query)
             except Exception as exc:  # nothing a client sends may kill zenoh's thread  # noqa: BLE001
                 log.error("bus callback failed", request=name, error=repr(exc))
 
@@ -256,11 +308,11 @@ class BusServer:
         with self._lock:
             setattr(self.stats, counter, getattr(self.stats, counter) + 1)
 
-    def _enqueue(self, name: str, query: zenoh.Query) -> None:
+    def _enqueue(self, name: str, caller: Caller, key: str, job: str, query: zenoh.Query) -> None:
         self._count("requests")
         payload = query.payload
         if payload is not None and len(payload) > schema.MAX_PAYLOAD_BYTES:
-            self._reply_now(name, query, schema.error_reply("$", f"expected at most {schema.MAX_PAYLOAD_BYTES} bytes, got {len(payload)}"))
+            self._reply_now(key, query, schema.error_reply("$", f"expected at most {schema.MAX_PAYLOAD_BYTES} bytes, got {len(payload)}"))
             return
         raw = payload.to_bytes() if payload is not None else b""
         with self._lock:
@@ -270,23 +322,24 @@ class BusServer:
         if busy:
             self._count("busy")
             reason = "the cell is shutting down" if self._closing else f"busy: {self.max_pending} requests in flight, try again"
-            self._reply_now(name, query, schema.error_reply("", reason))
+            self._reply_now(key, query, schema.error_reply("", reason))
             return
         loop = self._loop
+        request = _Request(name, caller, key, job, query, raw)
         try:
             if loop is None:
                 raise RuntimeError("not started")
-            loop.call_soon_threadsafe(self._spawn, name, query, raw)
+            loop.call_soon_threadsafe(self._spawn, request)
         except RuntimeError:  # the loop is closed
             self._release()
-            self._reply_now(name, query, schema.error_reply("", "the cell is shutting down"))
+            self._reply_now(key, query, schema.error_reply("", "the cell is shutting down"))
 
-    def _spawn(self, name: str, query: zenoh.Query, raw: bytes) -> None:
+    def _spawn(self, request: _Request) -> None:
         if self._closing:  # close() began after this request was handed over
             self._release()
-            self._reply_now(name, query, schema.error_reply("", "the cell is shutting down"))
+            self._reply_now(request.key, request.query, schema.error_reply("", "the cell is shutting down"))
             return
-        task = asyncio.get_running_loop().create_task(self._answer(name, query, raw))
+        task = asyncio.get_running_loop().create_task(self._answer(request))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
@@ -294,10 +347,11 @@ class BusServer:
         with self._lock:
             self._pending -= 1
 
-    async def _answer(self, name: str, query: zenoh.Query, raw: bytes) -> None:
+    async def _answer(self, request: _Request) -> None:
         """Handle one request and reply once: with the handler's answer, or, if it
         is slower than ``reply_timeout``, with an error while it goes on."""
         replied = False
+        name = request.name
 
         def reply_once(reply: Mapping[str, Any]) -> bool:
             nonlocal replied
@@ -305,7 +359,7 @@ class BusServer:
                 return False
             replied = True
             self._release()
-            self._reply_now(name, query, reply)
+            self._reply_now(request.key, request.query, reply)
             return True
 
         def too_slow() -> None:
@@ -316,7 +370,7 @@ class BusServer:
         # slow handler is reported, not torn in half.
         timer = asyncio.get_running_loop().call_later(self.reply_timeout, too_slow)
         try:
-            reply = await self._handle(name, raw)
+            reply = await self._handle(request)
         except asyncio.CancelledError:
             timer.cancel()
             reply_once(schema.error_reply("", "the cell is shutting down"))
@@ -325,10 +379,11 @@ class BusServer:
         if not reply_once(reply) and reply.get("ok") is not True:
             log.error("bus handler failed after its reply", request=name, error=reply.get("error"))
 
-    async def _handle(self, name: str, raw: bytes) -> Mapping[str, Any]:
+    async def _handle(self, request: _Request) -> Mapping[str, Any]:
+        name = request.name
         try:
-            request = schema.parse(name, raw)
-            body = await self._handlers[name](request)
+            value = schema.parse_result(request.job, request.raw) if name == "result" else schema.parse(name, request.raw)
+            body = await self._handlers[name](value, request.caller)
             if not isinstance(body, Mapping):
                 raise TypeError(f"handler on_{name} returned {type(body).__name__}, expected a mapping")
             return {"ok": True, **body}
@@ -343,7 +398,7 @@ class BusServer:
             log.exception("bus handler failed", request=name)
             return schema.error_reply("", f"internal error while handling {name}")
 
-    def _reply_now(self, name: str, query: zenoh.Query, reply: Mapping[str, Any]) -> None:
+    def _reply_now(self, key: str, query: zenoh.Query, reply: Mapping[str, Any]) -> None:
         if reply.get("ok") is not True:
             self._count("refused")
         try:
@@ -353,8 +408,9 @@ class BusServer:
             log.error("bus reply not encodable", error=str(exc))
             payload = schema.encode(schema.error_reply("", "internal error: the reply was not valid JSON"))
         try:
-            # The queryable's own key: a query may have come in on a wildcard.
-            query.reply(self.keys.query(name), payload, encoding=_JSON)
+            # The queryable's own key (a query may have come in on a wildcard),
+            # or the one result it names.
+            query.reply(key, payload, encoding=_JSON)
         except zenoh.ZError as exc:
             self._count("reply_failures")
             log.debug("bus reply failed", error=str(exc))

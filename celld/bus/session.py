@@ -23,15 +23,32 @@ Access control, when ``bus.users`` is not empty:
   ``$RUNTIME_DIRECTORY`` (systemd's ``RuntimeDirectory=``), ``$XDG_RUNTIME_DIR``
   or the temporary directory; zenoh reads it when the session opens and the
   file is deleted right after. A link whose credentials do not match is refused.
-- zenoh's ACL, default deny, one policy per role (:func:`acl_config`): a
-  *viewer* may query ``status``, ``list`` and ``calibration``, subscribe to
-  progress and state, and see the liveliness tokens; an *operator* may also
-  query ``submit``, ``cancel`` and ``accept``. A refused query gets no reply at
-  all (zenoh drops it), which the client reports as "no reply".
+- zenoh's ACL, default deny, one policy per user (:func:`acl_config`): each
+  user may query only its own request keys ``<prefix>/<cell>/u/<user>/<name>``
+  for the requests its role allows (:mod:`celld.bus.security`), subscribe to
+  progress and state, and see the liveliness tokens. A rule must include the
+  query's key expression, so another user's key and wildcards are refused.
+  A refused query gets no reply at all (zenoh drops it), which the client
+  reports as "no reply". This is how the cell knows who asks: the user of
+  the queryable a request reached (:func:`callers`).
+
+TLS (``[bus.tls]``, for ``tls/host:port`` endpoints) is zenoh's own TLS
+transport (``transport.link.tls``): the cell listens with its certificate and
+key, a client verifies it against the root CA (and that it names the host,
+unless ``verify_name_on_connect = false``); with ``mutual = true`` the cell
+also demands a client certificate signed by that CA, and a client presents
+its ``connect_certificate`` (zenoh sends one only when its own
+``enable_mtls`` is on, so the client config sets it too). User/password and
+the ACL work on top of TLS unchanged.
+
+:func:`~celld.bus.security.bus_warnings` says what is unsafe about a config
+(an open bus on a non-loopback address, traffic without TLS off this
+machine); :func:`open_server` logs each as a warning.
 
 The ACL filters what crosses this session's own links. In a router topology
 (cells in ``client`` mode) the router sees every client under one link, so put
 the per-user rules on the router; :func:`acl_config` gives the rules to paste.
+Identity is as good as the ACL where the users' links end.
 """
 
 from __future__ import annotations
@@ -48,7 +65,8 @@ from typing import Any
 
 import zenoh
 
-from celld.bus.keys import OPERATOR_QUERYABLES, VIEWER_QUERYABLES, CellKeys, alive_all
+from celld.bus.keys import QUERYABLES, CellKeys, alive_all
+from celld.bus.security import ROLE_REQUESTS, Caller, bus_warnings
 from celld.config import BusConfig
 from celld.errors import BusError
 from celld.log import get_logger
@@ -65,21 +83,36 @@ _OTHER_LINKS_GRACE = 0.25
 _ENDPOINT = re.compile(r"^(?P<proto>[a-z0-9]+)/(?P<host>\[[^\]]*\]|[^:/\[\]]+):(?P<port>\d+)(?P<tail>[#?].*)?$")
 
 
+def callers(bus: BusConfig) -> tuple[Caller, ...]:
+    """The verified identities the server answers, one per ``bus.users`` entry (none: an open bus)."""
+    return tuple(Caller(u.name, u.role, u.job_details) for u in bus.users)
+
+
 # -- configs ------------------------------------------------------------------------
 
 
+def user_request_keys(keys: CellKeys, user: str, role: str) -> list[str]:
+    """The request keys ``user`` may query with ``role``: its own, and only those its role allows."""
+    allowed = ROLE_REQUESTS.get(role, ())
+    out = [keys.query(q, user) for q in QUERYABLES if q in allowed]
+    if "result" in allowed:
+        out.append(keys.results(user))
+    return out
+
+
 def acl_config(bus: BusConfig, keys: CellKeys) -> dict[str, Any] | None:
-    """zenoh ``access_control`` for the roles of ``bus.users``; None without users.
+    """zenoh ``access_control`` for ``bus.users``; None without users.
 
     Rules are written from the server's side: *ingress* is what a user sends
     to the cell (queries, subscriptions), *egress* what the cell sends back
-    (replies, publications, the queryables and the token it declares).
+    (replies, publications, the queryables and the token it declares). Every
+    user has a rule pair of its own request keys (:func:`user_request_keys`),
+    so a link authenticated as one user can neither query nor even see the
+    queryables of another.
     """
     if not bus.users:
         return None
     base = keys.base
-    read_queries = [f"{base}/{q}" for q in VIEWER_QUERYABLES]
-    write_queries = [f"{base}/{q}" for q in OPERATOR_QUERYABLES]
     publications = [f"{base}/progress/**", f"{base}/state/**"]
     every_alive = alive_all(keys.prefix)
 
@@ -87,25 +120,62 @@ def acl_config(bus: BusConfig, keys: CellKeys) -> dict[str, Any] | None:
         return {"id": rule_id, "messages": messages, "flows": [flow], "permission": "allow", "key_exprs": key_exprs}
 
     rules = [
-        rule("read-queries-in", ["query"], "ingress", read_queries),
-        rule("read-queries-out", ["declare_queryable", "reply"], "egress", read_queries),
         rule("publications-in", ["declare_subscriber"], "ingress", publications),
         rule("publications-out", ["put"], "egress", publications),
         rule("alive-in", ["liveliness_query", "declare_liveliness_subscriber"], "ingress", [every_alive]),
         rule("alive-out", ["liveliness_token", "reply"], "egress", [keys.alive]),
-        rule("write-queries-in", ["query"], "ingress", write_queries),
-        rule("write-queries-out", ["declare_queryable", "reply"], "egress", write_queries),
     ]
-    read_rules = [r["id"] for r in rules if not r["id"].startswith("write-")]
+    shared = [r["id"] for r in rules]
     subjects, policies = [], []
-    for role in ("operator", "viewer"):
-        names = [u.name for u in bus.users if u.role == role]
-        if not names:
-            continue
-        subjects.append({"id": f"{role}s", "usernames": names})
-        allowed = read_rules + (["write-queries-in", "write-queries-out"] if role == "operator" else [])
-        policies.append({"id": f"{role}-policy", "rules": allowed, "subjects": [f"{role}s"]})
+    for i, u in enumerate(bus.users):
+        own = user_request_keys(keys, u.name, u.role)
+        rules.append(rule(f"u{i}-queries-in", ["query"], "ingress", own))
+        rules.append(rule(f"u{i}-queries-out", ["declare_queryable", "reply"], "egress", own))
+        subjects.append({"id": f"u{i}", "usernames": [u.name]})
+        policies.append({"id": f"u{i}-policy", "rules": [*shared, f"u{i}-queries-in", f"u{i}-queries-out"], "subjects": [f"u{i}"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def tls_config(bus: BusConfig, side: str) -> dict[str, Any] | None:
+    """zenoh ``transport.link.tls`` of the ``server`` or ``client`` side; None without ``[bus.tls]``."""
+    tls = bus.tls
+    if tls is None:
+        return None
+    conf: dict[str, Any] = {"verify_name_on_connect": tls.verify_name_on_connect}
+    if tls.root_ca_certificate:
+        conf["root_ca_certificate"] = tls.root_ca_certificate
+    if side == "server" and tls.listen_certificate:
+        conf["listen_certificate"] = tls.listen_certificate
+        conf["listen_private_key"] = tls.listen_private_key
+    if tls.connect_certificate:
+        conf["connect_certificate"] = tls.connect_certificate
+        conf["connect_private_key"] = tls.connect_private_key
+    # The listening side demands a client certificate; a connecting side sends one only with it on.
+    conf["enable_mtls"] = tls.mutual or (side == "client" and bool(tls.connect_certificate))
+    return conf
+
+
+def tls_problems(bus: BusConfig) -> list[str]:
+    """Files of ``[bus.tls]`` that cannot be read, and private keys others may read."""
+    out: list[str] = []
+    if bus.tls is None:
+        return out
+    for key, path in bus.tls.paths().items():
+        try:
+            mode = os.stat(path).st_mode
+            with open(path, "rb"):
+                pass
+        except OSError as exc:
+            out.append(f"bus.tls.{key}: cannot read {path}: {exc.strerror or exc}")
+            continue
+        if key.endswith("private_key") and mode & 0o077:
+            out.append(f"bus.tls.{key}: {path} may be read by other users (mode {mode & 0o777:o}); chmod 600 it")
+    return out
+
+
+def config_warnings(bus: BusConfig) -> list[str]:
+    """Everything unsafe or unusable in ``bus``: :func:`~celld.bus.security.bus_warnings` and :func:`tls_problems`."""
+    return bus_warnings(len(bus.users), bus.listen, bus.connect, bus.mode, bus.tls is not None) + tls_problems(bus)
 
 
 def _scouting(bus: BusConfig) -> dict[str, Any]:
@@ -140,8 +210,14 @@ def server_config(bus: BusConfig, keys: CellKeys, dictionary_file: str | None = 
         usrpwd["dictionary_file"] = dictionary_file
     if bus.user:
         usrpwd.update(user=bus.user, password=bus.password)
+    transport: dict[str, Any] = {}
     if usrpwd:
-        conf["transport"] = {"auth": {"usrpwd": usrpwd}}
+        transport["auth"] = {"usrpwd": usrpwd}
+    tls = tls_config(bus, "server")
+    if tls is not None:
+        transport["link"] = {"tls": tls}
+    if transport:
+        conf["transport"] = transport
     acl = acl_config(bus, keys)
     if acl is not None:
         conf["access_control"] = acl
@@ -190,8 +266,14 @@ def client_config(bus: BusConfig, user: str | None = None, password: str | None 
     }
     user = bus.user if user is None else user
     password = bus.password if password is None else password
+    transport: dict[str, Any] = {}
     if user:
-        conf["transport"] = {"auth": {"usrpwd": {"user": user, "password": password or ""}}}
+        transport["auth"] = {"usrpwd": {"user": user, "password": password or ""}}
+    tls = tls_config(bus, "client")
+    if tls is not None:
+        transport["link"] = {"tls": tls}
+    if transport:
+        conf["transport"] = transport
     return conf
 
 
@@ -252,6 +334,8 @@ def open_server(bus: BusConfig, keys: CellKeys) -> ServerSession:
     BusError
         zenoh refused the config or could not listen (address in use, ...).
     """
+    for warning in config_warnings(bus):
+        log.warning("bus config unsafe", warning=warning)
     private = _private_dir() if bus.users else None
     try:
         dictionary = str(_write_dictionary(private, bus)) if private else None
@@ -264,7 +348,10 @@ def open_server(bus: BusConfig, keys: CellKeys) -> ServerSession:
         # zenoh read the dictionary when the session opened: keep no password on disk.
         if private is not None:
             shutil.rmtree(private, ignore_errors=True)
-    log.info("bus session open", mode=bus.mode, listen=list(bus.listen), connect=list(bus.connect), users=len(bus.users))
+    log.info(
+        "bus session open", mode=bus.mode, listen=list(bus.listen), connect=list(bus.connect), users=len(bus.users),
+        tls=bus.tls is not None and bool(bus.tls.listen_certificate), mutual_tls=bool(bus.tls and bus.tls.mutual),
+    )
     return ServerSession(session=session, keys=keys, config=conf)
 
 

@@ -26,6 +26,7 @@ from celld.config.sections import (
     SCANNER_KINDS,
     SCANNER_MODELS,
     BusConfig,
+    BusTls,
     BusUser,
     CalibrationConfig,
     CellConfig,
@@ -39,7 +40,7 @@ from celld.config.sections import (
 from celld.config.tactile import SERVO_BOUNDS, Bound, ServoConfig, TactileConfig, ToolConfig, check_servo, with_overrides
 
 __all__ = [
-    "BUS_ROLES", "RANGE_BIAS_MODES", "SCANNER_KINDS", "SCANNER_MODELS", "SERVO_BOUNDS", "Bound", "BusConfig", "BusUser", "CalibrationConfig",
+    "BUS_ROLES", "RANGE_BIAS_MODES", "SCANNER_KINDS", "SCANNER_MODELS", "SERVO_BOUNDS", "Bound", "BusConfig", "BusTls", "BusUser", "CalibrationConfig",
     "CellConfig", "Config", "MotionLimits", "RecordingConfig", "RobotConfig", "ScannerConfig", "ServoConfig",
     "TableReader", "TactileConfig", "ToolConfig", "WeldConfig", "check_servo", "load", "parse", "range_bias_default",
     "with_overrides",

@@ -11,7 +11,7 @@ from __future__ import annotations
 import ipaddress
 import math
 import re
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from celld.bus.keys import check_prefix
@@ -59,6 +59,11 @@ class CellConfig:
 
     name: str = "cell"
     state_dir: str = "/var/lib/celld"
+    # Below this much free space in state_dir new jobs are refused and queued
+    # ones wait, MiB (0: no floor): a weld's recording and clouds take tens of MB.
+    min_free_mb: float = 256.0
+    # During a storage fault, how often the writes it owes are tried again, s.
+    storage_retry_s: float = 5.0
 
     @classmethod
     def read(cls, r: TableReader) -> CellConfig:
@@ -71,7 +76,12 @@ class CellConfig:
         parts = Path(state_dir).resolve().parts
         if len(parts) > 1 and parts[1] in _SYSTEM_DIRS:
             raise r.error("state_dir", f"expected a directory on a disk, got {state_dir!r} (under /{parts[1]}, a kernel file system)")
-        return cls(name=name, state_dir=state_dir)
+        return cls(
+            name=name,
+            state_dir=state_dir,
+            min_free_mb=r.float("min_free_mb", cls.min_free_mb, lo=0.0, hi=1e7),
+            storage_retry_s=r.float("storage_retry_s", cls.storage_retry_s, lo=0.1, hi=600.0),
+        )
 
 
 @dataclass(frozen=True)
@@ -313,14 +323,69 @@ class CalibrationConfig:
 
 @dataclass(frozen=True)
 class BusUser:
-    """A user the bus accepts (zenoh user/password authentication) and its role."""
+    """A user the bus accepts (zenoh user/password authentication) and its role.
+
+    Roles (:mod:`celld.bus.security`): *viewer* reads the cell's status, job
+    records without their parameters and references, the calibration;
+    *operator* also submits, accepts, and cancels its own jobs; *supervisor*
+    also cancels any job and sees every job in full. ``job_details`` lets a
+    viewer or operator see other users' jobs in full and read their results.
+    """
 
     name: str
-    password: str
-    role: str  # operator: may submit, cancel and accept, and read | viewer: may only read
+    password: str = field(repr=False)
+    role: str
+    job_details: bool = False
 
 
-BUS_ROLES = ("operator", "viewer")
+BUS_ROLES = ("viewer", "operator", "supervisor")
+# A user name is one zenoh key chunk: its requests go to <prefix>/<cell>/u/<name>/...
+_USER_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+@dataclass(frozen=True)
+class BusTls:
+    """zenoh's TLS transport, for ``tls/host:port`` endpoints: PEM files (see :mod:`celld.bus.session`).
+
+    The cell listens with ``listen_certificate`` and ``listen_private_key``
+    (the certificate must name the address clients connect to: an IP SAN for
+    ``tls/192.0.2.10:7447``). A client verifies it against
+    ``root_ca_certificate``. With ``mutual`` both sides present a certificate:
+    the cell accepts only clients whose ``connect_certificate`` the same CA
+    signed.
+    """
+
+    root_ca_certificate: str = ""
+    listen_certificate: str = ""
+    listen_private_key: str = ""
+    mutual: bool = False
+    connect_certificate: str = ""
+    connect_private_key: str = ""
+    # A client checks that the cell's certificate names the host it connects to.
+    verify_name_on_connect: bool = True
+
+    @classmethod
+    def read(cls, r: TableReader) -> BusTls:
+        tls = cls(
+            root_ca_certificate=r.str("root_ca_certificate", ""),
+            listen_certificate=r.str("listen_certificate", ""),
+            listen_private_key=r.str("listen_private_key", ""),
+            mutual=r.bool("mutual", False),
+            connect_certificate=r.str("connect_certificate", ""),
+            connect_private_key=r.str("connect_private_key", ""),
+            verify_name_on_connect=r.bool("verify_name_on_connect", True),
+        )
+        for a, b in (("listen_certificate", "listen_private_key"), ("connect_certificate", "connect_private_key")):
+            if bool(getattr(tls, a)) != bool(getattr(tls, b)):
+                raise r.error(b if getattr(tls, a) else a, f"expected {a} and {b} together, or neither")
+        if tls.mutual and not tls.root_ca_certificate:
+            raise r.error("root_ca_certificate", "mutual TLS needs the CA that signs the clients' certificates")
+        return tls
+
+    def paths(self) -> dict[str, str]:
+        """The configured files by key."""
+        keys = ("root_ca_certificate", "listen_certificate", "listen_private_key", "connect_certificate", "connect_private_key")
+        return {k: getattr(self, k) for k in keys if getattr(self, k)}
 
 
 @dataclass(frozen=True)
@@ -341,7 +406,9 @@ class BusConfig:
     # The credentials this process presents when it connects (clients, the CLI,
     # a daemon in client mode or linking to peers that require authentication).
     user: str = ""
-    password: str = ""
+    password: str = field(default="", repr=False)
+    # [bus.tls]: certificates for tls/ endpoints; None: no TLS.
+    tls: BusTls | None = None
     # Multicast and gossip scouting: off keeps a loopback bus to the configured endpoints.
     multicast_scouting: bool = False
     # How long a client waits for a link to the cell, and for a reply, s.
@@ -362,9 +429,9 @@ class BusConfig:
         users: list[BusUser] = []
         for i, u in enumerate(users_raw):
             ur = TableReader(u, r.source, r.key(f"users[{i}]"))
-            user = BusUser(ur.str("name"), ur.str("password"), ur.str("role", choices=BUS_ROLES))
-            if not user.name or any(c in user.name for c in ": \t\r\n"):
-                raise ur.error("name", f"expected a name without ':' or white space, got {user.name!r}")
+            user = BusUser(ur.str("name"), ur.str("password"), ur.str("role", choices=BUS_ROLES), ur.bool("job_details", False))
+            if not _USER_NAME.match(user.name):
+                raise ur.error("name", f"expected letters, digits, '_', '.' or '-' (a zenoh key chunk), got {user.name!r}")
             if not user.password or any(c in user.password for c in "\r\n"):
                 raise ur.error("password", "expected a non-empty password on one line")
             if any(u.name == user.name for u in users):
@@ -379,8 +446,19 @@ class BusConfig:
         own_user, password = r.str("user", ""), r.str("password", "")
         if bool(own_user) != bool(password):
             raise r.error("password" if own_user else "user", "expected user and password together, or neither")
+        if own_user and not _USER_NAME.match(own_user):
+            raise r.error("user", f"expected letters, digits, '_', '.' or '-' (a zenoh key chunk), got {own_user!r}")
+        mode = r.str("mode", cls.mode, choices=("peer", "client", "router"))
+        tls = None
+        if r.has("tls"):
+            tr = r.table("tls")
+            tls = BusTls.read(tr)
+            tr.done()
+        tls_listen = [e for e in listen if e.startswith("tls/")] if mode != "client" else []
+        if tls_listen and (tls is None or not tls.listen_certificate):
+            raise r.error("tls", f"listen endpoints {tls_listen} need bus.tls.listen_certificate and listen_private_key")
         return cls(
-            mode=r.str("mode", cls.mode, choices=("peer", "client", "router")),
+            mode=mode,
             listen=tuple(listen),
             connect=tuple(connect),
             prefix=prefix,
@@ -391,6 +469,7 @@ class BusConfig:
             multicast_scouting=r.bool("multicast_scouting", False),
             connect_timeout=r.float("connect_timeout_s", cls.connect_timeout, lo=0.05, hi=120.0),
             query_timeout=r.float("query_timeout_s", cls.query_timeout, lo=0.05, hi=600.0),
+            tls=tls,
         )
 
 

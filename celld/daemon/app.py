@@ -29,7 +29,7 @@ from typing import Any
 from celld import fsutil, preflight, sdnotify
 from celld.bus.keys import CellKeys
 from celld.bus.server import BusServer
-from celld.bus.session import open_server
+from celld.bus.session import callers, open_server
 from celld.config import Config
 from celld.daemon.devices import CellDevices, DeviceFactories
 from celld.daemon.jobs import JobManager, Runner
@@ -99,8 +99,12 @@ class Daemon:
             auto_accept=cfg.calibration.auto_accept,
             robot_report=self.devices.robot_report,
             robot_action=self.devices.robot_action,
+            min_free_mb=cfg.cell.min_free_mb,
+            storage_retry_s=cfg.cell.storage_retry_s,
         )
-        self.bus = BusServer(self._session.session, keys, self.manager, state_rate_hz=cfg.bus.state_rate_hz)
+        self.bus = BusServer(
+            self._session.session, keys, self.manager, state_rate_hz=cfg.bus.state_rate_hz, callers=callers(cfg.bus)
+        )
         await self.bus.start()
         self.manager.start()
         loop = asyncio.get_running_loop()

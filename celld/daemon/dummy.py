@@ -31,8 +31,9 @@ from typing import Any
 from celld import config
 from celld.bus.keys import CellKeys
 from celld.bus.schema import JOB_KINDS, Job
+from celld.bus.security import OPEN, Caller
 from celld.bus.server import BusServer
-from celld.bus.session import open_server
+from celld.bus.session import callers, open_server
 from celld.daemon.jobs import JobContext, JobManager
 from celld.journal import Journal
 from celld.log import configure
@@ -96,10 +97,10 @@ class DummyCell(JobManager):
         if self.server is not None:
             self.server.publish_progress(job, kind, state, stage, **kw)
 
-    async def on_submit(self, job: Job) -> Mapping[str, Any]:
+    async def on_submit(self, job: Job, caller: Caller = OPEN) -> Mapping[str, Any]:
         if self._worker is None:
             self.start()  # on the server's loop, at the first job
-        return await super().on_submit(job)
+        return await super().on_submit(job, caller)
 
     async def _wait(self, ctx: JobContext) -> Mapping[str, Any]:
         duration = self.durations.get(ctx.job.kind, self.job_duration)
@@ -137,14 +138,16 @@ async def serve(
     state_hz: float = 0.0,
     durations: Mapping[str, float] | None = None,
     progress_hz: float | None = None,
+    max_queue: int = MAX_QUEUE,
 ) -> None:
     """Serve a dummy cell with ``cfg``'s bus until cancelled."""
     keys = CellKeys.of(cfg.bus.prefix, cfg.cell.name)
     with open_server(cfg.bus, keys) as server_session, Journal(state_dir / "jobs.sqlite3") as journal:
         cell = DummyCell(
-            cfg.cell.name, journal, job_duration=job_duration, steps=steps, durations=durations, progress_hz=progress_hz
+            cfg.cell.name, journal, job_duration=job_duration, steps=steps, durations=durations, progress_hz=progress_hz,
+            max_queue=max_queue,
         )
-        server = BusServer(server_session.session, keys, cell, state_rate_hz=cfg.bus.state_rate_hz)
+        server = BusServer(server_session.session, keys, cell, state_rate_hz=cfg.bus.state_rate_hz, callers=callers(cfg.bus))
         cell.attach(server)
         async with server:
             feed = asyncio.create_task(cell.feed_state(state_hz)) if state_hz > 0 else None
@@ -166,6 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=5, help="progress events per job")
     parser.add_argument("--progress-hz", type=float, help="progress events per second of a job (instead of --steps)")
     parser.add_argument("--state-hz", type=float, default=0.0, help="rate of made-up state samples offered (0: none)")
+    parser.add_argument("--max-queue", type=int, default=MAX_QUEUE, help="jobs that may wait behind the running one")
     parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
     args = parser.parse_args(argv)
     configure(args.log_level)  # logs on stderr: stdout carries the ready line
@@ -178,7 +182,9 @@ def main(argv: list[str] | None = None) -> int:
             loop.add_signal_handler(sig, task.cancel)  # type: ignore[union-attr]
         try:
             durations = {} if args.weld_duration is None else {"weld": args.weld_duration}
-            await serve(cfg, Path(args.state_dir), args.job_duration, args.steps, args.state_hz, durations, args.progress_hz)
+            await serve(
+                cfg, Path(args.state_dir), args.job_duration, args.steps, args.state_hz, durations, args.progress_hz, args.max_queue
+            )
         except asyncio.CancelledError:
             pass
 

@@ -16,13 +16,40 @@
   the runner sees as :class:`asyncio.CancelledError` at its next await; the
   manager then calls ``stop_robot`` (a jerk-limited stop) before it records
   the job as cancelled. A runner never has to clean up the robot itself.
+- Cancel keeps the canceller's reason in the record (and who cancelled, on
+  a bus with users).
 - Progress events go out through ``publish`` (the bus server); each job also
   gets its own rerun recording when a ``recording_factory`` is given.
+
+Who may do what (:class:`celld.bus.security.Caller`, from the bus server): a
+job's owner is the bus user who submitted it; an operator cancels only its own
+jobs, a supervisor any; a user who may not see a job in full gets its record
+redacted and its result refused. A submit with a ``request_id`` is
+idempotent per owner: the same id and body give the original job back
+(``replayed``), the same id with another body is refused.
+
+Storage faults are job faults (:class:`celld.daemon.storage.StorageGuard`):
+
+- a journal, result, dataset (any job file), calibration or recording write
+  that fails fails the job with the reason (``storage: <what> <path>:
+  <reason>``), and the cell goes into a storage fault that status shows;
+- nothing is lost that can be kept: a job's end the journal could not take is
+  kept in memory (status and list show it) and a result file that could not
+  be written is kept too; both are owed writes, made in order once space
+  returns;
+- while the fault lasts, or while free space is under ``cell.min_free_mb``,
+  submits are refused with the reason and the queue waits (a job whose start
+  cannot be recorded goes back to the head of the queue); every
+  ``storage_retry_s`` the owed writes and a probe are tried again, and the
+  queue runs again once they succeed;
+- the worker never dies of a job: anything a job raises ends that job.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import json
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Mapping
@@ -38,17 +65,24 @@ from celld.bus.schema import (
     CancelRequest,
     Job,
     ListRequest,
+    ResultRequest,
     RobotRequest,
     StatusRequest,
 )
-from celld.errors import CelldError, JobError
-from celld.journal import JobRecord, Journal
+from celld.bus.security import OPEN, Caller
+from celld.daemon.storage import StorageGuard
+from celld.errors import CelldError, JobError, JournalError, StorageError
+from celld.journal import JobRecord, Journal, utc_now
 from celld.log import get_logger
 
 log = get_logger(__name__)
 
 # Default: most jobs waiting behind the running one.
 QUEUE_DEPTH = 4
+# Default: how often owed writes are retried during a storage fault, s.
+STORAGE_RETRY_S = 5.0
+# Most files of one job listed in a result reply.
+MAX_LISTED_FILES = 200
 
 
 class ProgressSink(Protocol):
@@ -101,8 +135,6 @@ class CalibrationStore:
         self.candidates.mkdir(parents=True, exist_ok=True)
 
     def current(self) -> dict[str, Any] | None:
-        import json
-
         if not self.current_path.exists():
             return None
         try:
@@ -115,8 +147,6 @@ class CalibrationStore:
         return fsutil.write_json(self.candidates / f"{job_id}.json", dict(calibration))
 
     def accept(self, job_id: str, force: bool = False) -> dict[str, Any]:
-        import json
-
         path = self.candidates / f"{job_id}.json"
         if not path.exists():
             raise JobError("$.job", f"job {job_id} left no calibration to accept (not a finished calibrate job)")
@@ -131,15 +161,19 @@ class CalibrationStore:
                     f"the calibration of job {job_id} failed its quality gate ({verdict}: {reasons}); accept it with force to override",
                 )
             calibration["forced"] = True
-        calibration["accepted"] = _utc_now()
+        calibration["accepted"] = utc_now()
         fsutil.write_json(self.current_path, calibration)
         return calibration
 
 
-def _utc_now() -> str:
-    from celld.journal import utc_now
+@dataclass(frozen=True)
+class _Ending:
+    """A job's end the journal has not taken yet (a storage fault); status shows it meanwhile."""
 
-    return utc_now()
+    state: str
+    reason: str
+    result: str | None
+    ended: str
 
 
 class JobManager:
@@ -165,6 +199,12 @@ class JobManager:
         refused while a job runs.
     auto_accept : bool
         Make a calibrate job's result current when it succeeds.
+    min_free_mb : float
+        The disk-space floor of the state directory, MiB (``cell.min_free_mb``); 0: none.
+    storage_retry_s : float
+        How often owed writes are retried during a storage fault, s.
+    free_bytes : callable, optional
+        Replaces the free-space reading (tests).
     """
 
     def __init__(
@@ -182,7 +222,12 @@ class JobManager:
         auto_accept: bool = False,
         robot_report: Callable[[], dict[str, Any]] | None = None,
         robot_action: Callable[[str], Awaitable[dict[str, Any]]] | None = None,
+        min_free_mb: float = 0.0,
+        storage_retry_s: float = STORAGE_RETRY_S,
+        free_bytes: Callable[[], int | None] | None = None,
     ) -> None:
+        if storage_retry_s <= 0:
+            raise ValueError(f"storage_retry_s: expected > 0, got {storage_retry_s}")
         self.journal = journal
         self.state_dir = Path(state_dir)
         self.runners = dict(runners)
@@ -195,6 +240,8 @@ class JobManager:
         self.auto_accept = auto_accept
         self.robot_report = robot_report
         self.robot_action = robot_action
+        self.storage = StorageGuard(self.state_dir, min_free_mb, free_bytes=free_bytes)
+        self.storage_retry_s = storage_retry_s
         self.calibrations = CalibrationStore(self.state_dir)
         self.results_dir = self.state_dir / "results"
         self.results_dir.mkdir(parents=True, exist_ok=True)
@@ -203,15 +250,21 @@ class JobManager:
         self._running: tuple[str, Job, asyncio.Task[None]] | None = None
         self._wake = asyncio.Event()
         self._worker: asyncio.Task[None] | None = None
+        self._watcher: asyncio.Task[None] | None = None
         self._closing = False
         self._fault = ""
         self._t0 = time.monotonic()
+        self._endings: dict[str, _Ending] = {}
+        self._cancel_reasons: dict[str, str] = {}
+        self._recording: Any = None  # the running job's recording, for status
         self.finished: dict[str, asyncio.Event] = {}
 
     # -- life cycle ---------------------------------------------------------------
 
     def start(self) -> None:
-        self._worker = asyncio.get_running_loop().create_task(self._work(), name="celld-jobs")
+        loop = asyncio.get_running_loop()
+        self._worker = loop.create_task(self._work(), name="celld-jobs")
+        self._watcher = loop.create_task(self._watch_storage(), name="celld-storage")
 
     async def close(self) -> None:
         """Cancel queued and running jobs (the robot stops first), then stop the worker."""
@@ -220,48 +273,105 @@ class JobManager:
             job_id, job = self._queue.popleft()
             self._end(job_id, job, "cancelled", "the daemon is shutting down")
         if self._running is not None:
+            self._cancel_reasons.setdefault(self._running[0], "the daemon is shutting down")
             self._running[2].cancel()
             await asyncio.gather(self._running[2], return_exceptions=True)
-        if self._worker is not None:
-            self._worker.cancel()
-            await asyncio.gather(self._worker, return_exceptions=True)
+        for task in (self._worker, self._watcher):
+            if task is not None:
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+        if self.storage.owed:
+            self.storage.retry()  # a last try; what is still owed is lost with this process
+            if self.storage.owed:
+                log.error("writes still owed at shutdown", owed=[w.label for w in self.storage.owed])
 
     def set_fault(self, message: str) -> None:
         """Mark the cell faulty (e.g. the robot link is down); "" clears it."""
         self._fault = message
 
+    # -- records --------------------------------------------------------------------
+
+    def _record(self, job_id: str) -> JobRecord | None:
+        """The journal's record of ``job_id``, with its end if the journal still owes it."""
+        record = self.journal.get(job_id)
+        return None if record is None else self._with_ending(record)
+
+    def _with_ending(self, record: JobRecord) -> JobRecord:
+        """``record`` with the end the journal still owes, if any."""
+        ending = self._endings.get(record.id)
+        if ending is None:
+            return record
+        return dataclasses.replace(
+            record, state=ending.state, reason=ending.reason, ended=ending.ended, result=ending.result or record.result
+        )
+
+    def _position(self, job_id: str) -> int:
+        for i, (queued, _) in enumerate(self._queue):
+            if queued == job_id:
+                return i + 1 if self._running is not None else i
+        return 0
+
     # -- CellHandlers ---------------------------------------------------------------
 
-    async def on_submit(self, job: Job) -> Mapping[str, Any]:
+    async def on_submit(self, job: Job, caller: Caller = OPEN) -> Mapping[str, Any]:
+        if not caller.may("submit"):
+            raise JobError("$", f"refused: {caller} may not submit jobs")
         if self._closing:
             raise JobError("$", "refused: the daemon is shutting down")
         if job.kind not in self.runners:
             raise JobError("$.kind", f"this cell cannot run {job.kind!r} jobs (it runs {', '.join(sorted(self.runners))})")
+        params = schema.job_to_message(job)
+        params.pop("request_id", None)  # kept in its own column; the body is the rest
+        request_id = job.request_id or None
+        if request_id is not None:
+            prior = self.journal.find_request(caller.user, request_id)
+            if prior is not None:
+                if prior.params != params:
+                    raise JobError(
+                        "$.request_id",
+                        f"request id {request_id!r} was used for job {prior.id} with a different body; "
+                        "a new job needs a new request id",
+                    )
+                prior = self._with_ending(prior)
+                log.info("submit replayed", job=prior.id, request_id=request_id, user=caller.user)
+                return {"job": prior.id, "state": prior.state, "position": self._position(prior.id), "replayed": True}
+        problem = self.storage.problem()
+        if problem:
+            raise JobError("$", f"refused: {problem}")
         if self._waiting() >= self.queue_depth:
             raise JobError("$", f"refused: a job is running and the queue is full ({self.queue_depth})")
-        params = schema.job_to_message(job)
-        record = self.journal.create(job.kind, params, ref=getattr(job, "ref", ""))
+        try:
+            record = self.journal.create(job.kind, params, ref=job.ref, owner=caller.user, request_id=request_id)
+        except StorageError as exc:
+            fault = self.storage.failed(exc)
+            self._wake.set()
+            raise JobError("$", f"refused: {fault}; the job was not taken") from exc
         self.finished[record.id] = asyncio.Event()
         self._queue.append((record.id, job))
         position = self._waiting()
         self.publish(record.id, job.kind, "queued", "queued", fraction=0.0, message=f"position {position}")
         self._wake.set()
-        log.info("job accepted", job=record.id, kind=job.kind, position=position)
+        log.info("job accepted", job=record.id, kind=job.kind, position=position, user=caller.user)
         return {"job": record.id, "state": "running" if position == 0 else "queued", "position": position}
 
     def _waiting(self) -> int:
         """Jobs waiting behind the one that runs (or is about to run)."""
         return len(self._queue) if self._running is not None else max(0, len(self._queue) - 1)
 
-    async def on_status(self, req: StatusRequest) -> Mapping[str, Any]:
+    async def on_status(self, req: StatusRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
         if req.job is not None:
-            record = self.journal.get(req.job)
+            record = self._record(req.job)
             if record is None:
                 raise JobError("$.job", f"no such job {req.job!r}")
-            return {"record": record.to_message()}
+            return {"record": record.to_message(caller.may_see(record.owner))}
         current = self.calibrations.current()
-        if self._fault:
+        self._note_recording_trouble()
+        storage_problem = self.storage.problem()
+        message = self._fault or storage_problem
+        if self._fault or storage_problem:
             state = "fault"
+            if storage_problem and self._queue:
+                message += f"; {len(self._queue)} queued job(s) wait for it"
         elif self._closing:
             state = "stopping"
         else:
@@ -275,55 +385,117 @@ class JobManager:
             "calibration": current.get("job") if current else None,
             "uptime_s": time.monotonic() - self._t0,
             "version": __version__,
-            "message": self._fault,
+            "message": message,
+            "storage": self.storage.to_message(),
         }
         if self.robot_report is not None:
             reply["robot"] = self.robot_report()
         return reply
 
-    async def on_cancel(self, req: CancelRequest) -> Mapping[str, Any]:
+    def _note_recording_trouble(self) -> None:
+        """A recording that cannot write shows in status while its job still runs."""
+        rec = self._recording
+        error = getattr(rec, "write_error", None)
+        if error is not None and self.storage.fault is None:
+            self.storage.failed(error, "recording", str(getattr(rec, "path", "") or ""))
+
+    async def on_cancel(self, req: CancelRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
+        record = self._record(req.job)
+        if record is None:
+            raise JobError("$.job", f"no such job {req.job!r}")
+        if not caller.may_cancel(record.owner):
+            raise JobError("$.job", f"job {req.job} is another user's; {caller} may cancel only its own jobs (a supervisor may cancel any)")
         reason = req.reason or "cancelled by request"
+        if caller.user:
+            reason += f" (by {caller.user})"
         for i, (job_id, job) in enumerate(self._queue):
             if job_id == req.job:
                 del self._queue[i]
                 self._end(job_id, job, "cancelled", reason)
+                log.info("job cancelled", job=job_id, user=caller.user, reason=reason)
                 return {"job": job_id, "state": "cancelled"}
         if self._running is not None and self._running[0] == req.job:
             task = self._running[2]
+            self._cancel_reasons[req.job] = reason
             task.cancel(reason)
             await asyncio.gather(task, return_exceptions=True)
-            record = self.journal.get(req.job)
-            return {"job": req.job, "state": record.state if record else "cancelled"}
-        record = self.journal.get(req.job)
-        if record is None:
-            raise JobError("$.job", f"no such job {req.job!r}")
+            log.info("job cancelled", job=req.job, user=caller.user, reason=reason)
+            after = self._record(req.job)
+            return {"job": req.job, "state": after.state if after else "cancelled"}
         raise JobError("$.job", f"job {req.job} has already ended ({record.state})")
 
-    async def on_list(self, req: ListRequest) -> Mapping[str, Any]:
-        return {"jobs": [r.to_message() for r in self.journal.jobs(req.limit, req.state, req.kind)]}
+    async def on_list(self, req: ListRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
+        records = (self._with_ending(r) for r in self.journal.jobs(req.limit, req.state, req.kind))
+        return {"jobs": [r.to_message(caller.may_see(r.owner)) for r in records]}
 
-    async def on_accept(self, req: AcceptRequest) -> Mapping[str, Any]:
-        record = self.journal.get(req.job)
+    async def on_accept(self, req: AcceptRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
+        if not caller.may("accept"):
+            raise JobError("$", f"refused: {caller} may not accept calibrations")
+        record = self._record(req.job)
         if record is None:
             raise JobError("$.job", f"no such job {req.job!r}")
         if record.kind != "calibrate" or record.state != "succeeded":
             raise JobError("$.job", f"job {req.job} is a {record.state} {record.kind} job; only a succeeded calibrate job can be accepted")
         if self._running is not None:
             raise JobError("$", f"refused: job {self._running[0]} is running; accept a calibration between jobs")
-        calibration = self.calibrations.accept(req.job, force=req.force)
-        log.info("calibration accepted", job=req.job, forced=bool(calibration.get("forced")))
+        try:
+            calibration = self.calibrations.accept(req.job, force=req.force)
+        except OSError as exc:
+            fault = self.storage.failed(exc, "calibration")
+            raise JobError("$", f"refused: {fault}") from exc
+        log.info("calibration accepted", job=req.job, user=caller.user, forced=bool(calibration.get("forced")))
         return {"job": req.job, "calibration": calibration}
 
-    async def on_calibration(self, req: CalibrationRequest) -> Mapping[str, Any]:
+    async def on_calibration(self, req: CalibrationRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
         return {"calibration": self.calibrations.current()}
 
-    async def on_robot(self, req: RobotRequest) -> Mapping[str, Any]:
+    async def on_robot(self, req: RobotRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
         if self.robot_action is None:
             raise JobError("$", "this cell has no robot dashboard to send commands to")
         if self._running is not None:
             raise JobError("$.action", f"refused: job {self._running[0]} is running; {req.action} is for a robot at rest, between jobs")
-        log.warning("operator robot command", action=req.action)
+        log.warning("operator robot command", action=req.action, user=caller.user)
         return await self.robot_action(req.action)
+
+    async def on_result(self, req: ResultRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
+        record = self._record(req.job)
+        if record is None:
+            raise JobError("$.job", f"no such job {req.job!r}")
+        if not caller.may_see(record.owner):
+            raise JobError("$.job", f"{caller} may not read the results of other users' jobs (bus.users job_details)")
+        if not record.terminal:
+            raise JobError("$.job", f"job {req.job} is {record.state}; its result comes when it ends")
+        return await asyncio.to_thread(self._result_reply, record)
+
+    def _result_reply(self, record: JobRecord) -> dict[str, Any]:
+        reply: dict[str, Any] = {
+            "job": record.id, "kind": record.kind, "state": record.state, "reason": record.reason,
+            "result": None, "too_large": False, "path": record.result, "files": self._files(record.id),
+        }
+        if record.result:
+            path = Path(record.result)
+            try:
+                size = path.stat().st_size
+                reply["bytes"] = size
+                if size > schema.MAX_RESULT_BYTES:
+                    reply["too_large"] = True
+                else:
+                    reply["result"] = json.loads(path.read_bytes())
+            except (OSError, ValueError) as exc:
+                raise JobError("$.job", f"the result of job {record.id} cannot be read on the cell: {exc}") from exc
+        return reply
+
+    def _files(self, job_id: str) -> list[dict[str, Any]]:
+        out: list[dict[str, Any]] = []
+        places = [self.state_dir / "jobs" / job_id, self.state_dir / "recordings" / f"{job_id}.rrd"]
+        for place in places:
+            found = [place] if place.is_file() else sorted(p for p in place.rglob("*") if p.is_file()) if place.is_dir() else []
+            for p in found[: MAX_LISTED_FILES - len(out)]:
+                try:
+                    out.append({"path": str(p.relative_to(self.state_dir)), "bytes": p.stat().st_size})
+                except OSError:
+                    continue
+        return out
 
     # -- running ----------------------------------------------------------------------
 
@@ -332,36 +504,73 @@ class JobManager:
         event = self.finished.get(job_id)
         if event is not None:
             await asyncio.wait_for(event.wait(), timeout)
-        return self.journal.get(job_id)
+        return self._record(job_id)
+
+    async def _watch_storage(self) -> None:
+        """While storage is not ok, retry the owed writes and the probe every ``storage_retry_s``."""
+        while True:
+            await asyncio.sleep(self.storage_retry_s)
+            if self.storage.fault is None and not self.storage.owed and not (self._queue and self.storage.below_floor()):
+                continue
+            try:
+                if self.storage.retry():
+                    self._wake.set()
+            except Exception:  # the watcher must outlive anything a retry raises
+                log.exception("storage retry failed")
 
     async def _work(self) -> None:
         while True:
             await self._wake.wait()
             self._wake.clear()
             while self._queue and not self._closing:
+                if not self.storage.ok:
+                    # Held, not lost: the watcher wakes the worker once storage is back.
+                    break
                 job_id, job = self._queue.popleft()
-                task = asyncio.get_running_loop().create_task(self._run(job_id, job), name=f"job-{job_id}")
-                self._running = (job_id, job, task)
                 try:
-                    await asyncio.shield(task)
+                    await self._run_one(job_id, job)
                 except asyncio.CancelledError:
-                    if not task.done():
-                        raise
-                finally:
-                    self._running = None
-                record = self.journal.get(job_id)
-                if record is not None and not record.terminal:
-                    # Cancelled before its first step: it never ran.
-                    self._end(job_id, job, "cancelled", "cancelled before it started")
+                    raise
+                except Exception:  # a bug around one job must not end the worker
+                    log.exception("job handling failed", job=job_id)
+
+    async def _run_one(self, job_id: str, job: Job) -> None:
+        try:
+            self.journal.start(job_id)
+        except StorageError as exc:
+            # It has not started: it waits at the head of the queue until its start can be recorded.
+            self.storage.failed(exc)
+            self._queue.appendleft((job_id, job))
+            return
+        task = asyncio.get_running_loop().create_task(self._run(job_id, job), name=f"job-{job_id}")
+        self._running = (job_id, job, task)
+        try:
+            await asyncio.shield(task)
+        except asyncio.CancelledError:
+            if not task.done():
+                raise
+        finally:
+            self._running = None
+            self._recording = None
+        if task.done() and not task.cancelled() and task.exception() is not None:
+            log.error("job task failed", job=job_id, error=repr(task.exception()))
+        record = self._record(job_id)
+        if record is not None and not record.terminal:
+            # Cancelled before its first step, or ended by a bug before its end was recorded.
+            self._end(job_id, job, "cancelled", self._cancel_reasons.pop(job_id, "cancelled before it started"))
 
     async def _run(self, job_id: str, job: Job) -> None:
-        self.journal.start(job_id)
         recording = None
         if self.recording_factory is not None:
             try:
                 recording = self.recording_factory(job_id, job.kind)
+            except StorageError as exc:
+                fault = self.storage.failed(exc)
+                self._end(job_id, job, "failed", f"{fault}; the job did not start")
+                return
             except CelldError as exc:
                 log.error("job recording not opened; the job runs without one", job=job_id, error=str(exc))
+        self._recording = recording
         ctx = JobContext(job_id, job, self.state_dir, self.publish, recording)
         self.publish(job_id, job.kind, "running", "start", fraction=0.0)
         state, reason, result_path = "failed", "", None
@@ -369,33 +578,73 @@ class JobManager:
             result = dict(await self.runners[job.kind](ctx))
             if recording is not None and recording.path is not None:
                 result.setdefault("recording", str(recording.path))
-            result_path = str(fsutil.write_json(self.results_dir / f"{job_id}.json", result))
-            if job.kind == "calibrate" and "calibration" in result:
-                self.calibrations.add_candidate(job_id, result["calibration"])
-                if self.auto_accept:
-                    try:
-                        self.calibrations.accept(job_id)
-                    except JobError as exc:  # a failed quality verdict waits for an operator
-                        log.warning("calibration not accepted automatically", job=job_id, reason=str(exc))
-            state = "succeeded"
+            if job.kind == "health":
+                result.setdefault("storage", self.storage.to_message())
+            result_path, reason = self._save_result(job_id, job, result)
+            state = "failed" if reason else "succeeded"
         except asyncio.CancelledError:
-            state, reason = "cancelled", "cancelled by request"
+            state, reason = "cancelled", self._cancel_reasons.pop(job_id, "cancelled by request")
             await self._stop_robot_safely(job_id)
+        except StorageError as exc:
+            state, reason = "failed", str(self.storage.failed(exc))
+            await self._stop_robot_safely(job_id)
+            log.warning("job failed", job=job_id, error=reason)
         except CelldError as exc:
             state, reason = "failed", str(exc)
             await self._stop_robot_safely(job_id)
             log.warning("job failed", job=job_id, error=reason)
         except Exception as exc:  # a bug: the job fails, the daemon stays up
-            state, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
+            if fsutil.is_storage_error(exc, self.state_dir):
+                state, reason = "failed", str(self.storage.failed(exc, "job files"))
+                log.warning("job failed", job=job_id, error=reason)
+            else:
+                state, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
+                log.exception("job failed with an internal error", job=job_id)
             await self._stop_robot_safely(job_id)
-            log.exception("job failed with an internal error", job=job_id)
         finally:
             if recording is not None:
                 try:
                     recording.close()
+                except StorageError as exc:
+                    fault = self.storage.failed(exc)
+                    if state == "succeeded":
+                        state, reason = "failed", f"{fault} (the job itself succeeded; its recording is incomplete)"
+                    else:
+                        reason = f"{reason}; and {fault}" if reason else str(fault)
                 except CelldError as exc:
                     log.error("job recording not closed cleanly", job=job_id, error=str(exc))
         self._end(job_id, job, state, reason, result_path)
+
+    def _save_result(self, job_id: str, job: Job, result: dict[str, Any]) -> tuple[str | None, str]:
+        """Write the result (and a calibration candidate); returns (path, "") or (None, the storage reason).
+
+        A result the disk could not take is kept and owed: written, and the
+        journal pointed at it, once there is room.
+        """
+        path = self.results_dir / f"{job_id}.json"
+        try:
+            written = str(fsutil.write_json(path, result))
+        except OSError as exc:
+            fault = self.storage.failed(exc, "result", str(path))
+
+            def write_later() -> None:
+                self.journal.set_result(job_id, str(fsutil.write_json(path, result)))
+                ending = self._endings.get(job_id)
+                if ending is not None:
+                    self._endings[job_id] = dataclasses.replace(ending, result=str(path))
+
+            self.storage.owe(f"result {path.name}", write_later, job=job_id)
+            return None, f"{fault} (the result is kept and written once there is room)"
+        if job.kind == "calibrate" and "calibration" in result:
+            try:
+                self.calibrations.add_candidate(job_id, result["calibration"])
+                if self.auto_accept:
+                    self.calibrations.accept(job_id)
+            except JobError as exc:  # a failed quality verdict waits for an operator
+                log.warning("calibration not accepted automatically", job=job_id, reason=str(exc))
+            except OSError as exc:
+                return written, str(self.storage.failed(exc, "calibration"))
+        return written, ""
 
     async def _stop_robot_safely(self, job_id: str) -> None:
         try:
@@ -404,9 +653,39 @@ class JobManager:
             log.error("stop after the job failed", job=job_id, error=str(exc))
 
     def _end(self, job_id: str, job: Job, state: str, reason: str, result: str | None = None) -> None:
-        self.journal.finish(job_id, state, reason, result)
+        """Record, then publish, a job's end; an end the journal cannot take is kept and owed."""
+        if self.storage.owes(job_id):
+            self._owe_end(job_id, state, reason, result)  # after the result owed before it
+        else:
+            try:
+                self.journal.finish(job_id, state, reason, result)
+            except StorageError as exc:
+                fault = self.storage.failed(exc)
+                if not reason.startswith("storage:"):
+                    was = f"{state}: {reason}" if reason else state
+                    state, reason = "failed", f"{fault} (recording the end of the job, which {was})"
+                self._owe_end(job_id, state, reason, result)
+            except JournalError as exc:  # not a storage fault: an impossible transition
+                log.error("job end not recorded", job=job_id, state=state, error=str(exc))
         self.publish(job_id, job.kind, state, "end", fraction=1.0 if state == "succeeded" else None, message=reason)
         event = self.finished.get(job_id)
         if event is not None:
             event.set()
         log.info("job ended", job=job_id, kind=job.kind, state=state, reason=reason)
+
+    def _owe_end(self, job_id: str, state: str, reason: str, result: str | None) -> None:
+        self._endings[job_id] = _Ending(state, reason, result, utc_now())
+
+        def write_end() -> None:
+            ending = self._endings.get(job_id)
+            if ending is None:
+                return
+            try:
+                self.journal.finish(job_id, ending.state, ending.reason, ending.result)
+            except StorageError:
+                raise
+            except JournalError as exc:
+                log.error("owed job end dropped", job=job_id, error=str(exc))
+            self._endings.pop(job_id, None)
+
+        self.storage.owe(f"journal: end of job {job_id}", write_end, job=job_id)

@@ -13,10 +13,22 @@ loop: motion state arrives in batches from the state ring through
 
 The stream is thread safe; the current time of a rerun stream is per thread,
 so each method sets it before it logs.
+
+The file is written by this module, not by rerun's file sink: rerun encodes
+into a memory stream (:class:`rerun.BinaryStream`) and a small thread moves
+the bytes into the file with plain ``os.write`` every
+:data:`_DRAIN_PERIOD` s. rerun's own file sink, on a full disk, printed the
+error in its log only, then made ``flush`` time out and ``disconnect`` hang
+for good; here a failed write is an ``OSError`` that the recording keeps
+(:attr:`JobRecording.write_error`, visible while the job runs) and that
+:meth:`JobRecording.close` raises as
+:class:`~celld.errors.RecordingWriteError` (a StorageError): the job that
+owned the recording then fails with the reason.
 """
 
 from __future__ import annotations
 
+import os
 import re
 import socket
 import threading
@@ -33,7 +45,7 @@ from scipy.spatial.transform import Rotation
 
 from celld import se3
 from celld.config import RecordingConfig
-from celld.errors import InputError, RecordingError
+from celld.errors import InputError, RecordingError, RecordingWriteError
 from celld.log import get_logger
 from celld.recording import layout
 from celld.recording.state import DEFAULT_SERIES, Series, state_columns
@@ -54,6 +66,8 @@ _NORMAL_LENGTH_RADII = 1.0
 _FLUSH_TIMEOUT = 5.0
 # How long opening a recording waits to see whether a viewer listens, s.
 _PROBE_TIMEOUT = 0.5
+# How often encoded bytes move from rerun's memory stream into the file, s.
+_DRAIN_PERIOD = 0.2
 
 
 def recording_path(state_dir: str | Path, job_id: str) -> Path:
@@ -111,6 +125,67 @@ def _colors(colors: ArrayLike | None, n_all: int, keep: np.ndarray, name: str) -
     return c if len(c) == 1 else c[keep]
 
 
+class _FileWriter:
+    """Moves rerun's encoded bytes into the ``.rrd`` file, so a failed write is an OSError here.
+
+    After the first failed write the file is incomplete: later bytes are read
+    (so nothing piles up in memory) and dropped, and :attr:`error` keeps the
+    first failure.
+    """
+
+    def __init__(self, path: Path, stream: Any) -> None:
+        self.path = path
+        self.stream = stream
+        self.error: OSError | None = None
+        self.written = 0
+        self._lock = threading.Lock()
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+        except OSError as exc:
+            raise RecordingWriteError("recording", str(path), f"cannot create it: {exc.strerror or exc}", exc.errno) from exc
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"rrd-writer-{path.stem}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(_DRAIN_PERIOD):
+            self.drain()
+
+    def drain(self) -> None:
+        """Write what rerun has encoded so far."""
+        with self._lock:
+            data = self.stream.read(flush=False)
+            if not data or self._fd < 0 or self.error is not None:
+                return
+            view = memoryview(data)
+            try:
+                while view:
+                    n = os.write(self._fd, view)
+                    view = view[n:]
+                    self.written += n
+            except OSError as exc:
+                self.error = exc
+                log.error("recording_write_failed", path=str(self.path), error=str(exc), written=self.written)
+
+    def close(self) -> None:
+        """Stop the thread, write the rest, make it durable, close the file."""
+        self._stop.set()
+        self._thread.join()
+        self.drain()
+        with self._lock:
+            if self._fd < 0:
+                return
+            try:
+                if self.error is None:
+                    os.fsync(self._fd)
+            except OSError as exc:
+                self.error = exc
+            finally:
+                os.close(self._fd)
+                self._fd = -1
+
+
 class JobRecording:
     """The rerun recording of one job.
 
@@ -136,8 +211,10 @@ class JobRecording:
     ------
     InputError
         ``job_id`` or ``kind`` is not acceptable.
+    RecordingWriteError
+        The file cannot be created (a RecordingError and a StorageError).
     RecordingError
-        The file cannot be created.
+        rerun refused the sinks.
 
     Notes
     -----
@@ -168,6 +245,7 @@ class JobRecording:
         self.serve_url: str | None = None
         self.connect_url: str | None = None
         self._closed = False
+        self._writer: _FileWriter | None = None
         self._lock = threading.Lock()
         self._named: set[str] = set()
         self._ignored_reported: set[str] = set()
@@ -180,6 +258,8 @@ class JobRecording:
         try:
             self._rec.set_sinks(*self._sinks(), default_blueprint=layout.default_blueprint(kind))
         except RuntimeError as exc:
+            if self._writer is not None:
+                self._writer.close()
             raise RecordingError(f"recording {self.job_id}: rerun refused its sinks: {exc}") from exc
         self._warm_up()
 
@@ -195,11 +275,9 @@ class JobRecording:
     def _sinks(self) -> list[Any]:
         sinks: list[Any] = []
         if self.path is not None:
-            try:
-                self.path.parent.mkdir(parents=True, exist_ok=True)
-                sinks.append(rr.FileSink(str(self.path)))
-            except (OSError, RuntimeError) as exc:
-                raise RecordingError(f"recording {self.job_id}: cannot create {self.path}: {exc}") from exc
+            stream = rr.binary_stream(recording=self._rec)
+            self._writer = _FileWriter(self.path, stream)
+            sinks.append(stream)
         cfg = self.config
         if cfg.serve_grpc_port:
             if _port_free(cfg.serve_grpc_host, cfg.serve_grpc_port):
@@ -543,12 +621,23 @@ class JobRecording:
     def closed(self) -> bool:
         return self._closed
 
+    @property
+    def write_error(self) -> OSError | None:
+        """The first write to the file that failed (the file is incomplete), or None."""
+        return self._writer.error if self._writer is not None else None
+
     def close(self) -> None:
         """Flush every sink and close them; the file gets its footer (index).
 
         Safe to call twice. An unreachable viewer costs up to about
         5 s here (rerun's final connection attempt); the file is complete
         regardless.
+
+        Raises
+        ------
+        RecordingWriteError
+            A write to the file failed (disk full, I/O error): the file is
+            incomplete. The stream is closed all the same.
         """
         if self._closed:
             return
@@ -557,10 +646,18 @@ class JobRecording:
             return
         try:
             self._rec.flush(timeout_sec=_FLUSH_TIMEOUT)
-        except RuntimeError as exc:  # a live sink that cannot take the data; the file sink has it
+        except RuntimeError as exc:  # a live sink that cannot take the data; the file has it
             self._log.warning("recording_flush_incomplete", error=str(exc))
         self._rec.disconnect()
+        writer = self._writer
+        if writer is not None:
+            writer.close()
         self._log.info("recording_closed", path=str(self.path) if self.path else None)
+        error = writer.error if writer is not None else None
+        if error is not None:
+            raise RecordingWriteError(
+                "recording", str(self.path), f"{error.strerror or error} (errno {error.errno}); the recording is incomplete", error.errno
+            ) from error
 
     def __enter__(self) -> JobRecording:
         return self

@@ -14,7 +14,7 @@ import pytest
 
 from celld.bus.keys import CellKeys
 from celld.bus.server import BusServer
-from celld.bus.session import ServerSession, open_server
+from celld.bus.session import ServerSession, callers, open_server
 from celld.config import BusConfig, BusUser
 from celld.daemon.dummy import DummyCell
 from celld.journal import Journal
@@ -92,15 +92,17 @@ def serve_cell(loopback_host: str, tmp_path: Path, loop_thread: LoopThread) -> I
         handlers: Any = None,
         mode: str = "peer",
         connect: tuple[str, ...] = (),
+        tls: Any = None,
         **server_options: Any,
     ) -> ServedCell:
-        listen = () if mode == "client" else (f"tcp/{loopback_host}:{free_port(loopback_host)}",)
-        bus = BusConfig(mode=mode, listen=listen, connect=connect, users=users)
+        proto = "tls" if tls is not None else "tcp"
+        listen = () if mode == "client" else (f"{proto}/{loopback_host}:{free_port(loopback_host)}",)
+        bus = BusConfig(mode=mode, listen=listen, connect=connect, users=users, tls=tls)
         keys = CellKeys.of(bus.prefix, name)
         journal = Journal(tmp_path / name / "jobs.sqlite3")
         cell = DummyCell(name, journal, job_duration=job_duration)
         session = open_server(bus, keys)
-        server = BusServer(session.session, keys, handlers or cell, **server_options)
+        server = BusServer(session.session, keys, handlers or cell, callers=callers(bus), **server_options)
         cell.attach(server)
         loop_thread.run(server.start())
         s = ServedCell(bus, keys, server, cell, journal, session, loop_thread)

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import structlog
 
+from celld.bus import schema
 from celld.cli import main
 from celld.config import BusUser
 
@@ -65,6 +66,20 @@ def test_submit_wait_status_jobs_cancel(served, tmp_path: Path, capsys: pytest.C
     assert "has already ended (succeeded)" in capsys.readouterr().err
 
 
+def test_result_and_request_id_from_the_command_line(served, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cell = served()
+    cfg = write_config(tmp_path, cell)
+    assert main(["submit", "health", "--config", cfg, "--wait", "--request-id", "cli-1"]) == 0
+    job = capsys.readouterr().out.split()[0]
+    assert main(["submit", "health", "--config", cfg, "--request-id", "cli-1"]) == 0
+    assert capsys.readouterr().out.startswith(f"{job} succeeded (replayed")
+    assert main(["result", job, "--config", cfg, "--json"]) == 0
+    reply = json.loads(capsys.readouterr().out)
+    assert reply["state"] == "succeeded" and reply["result"]["waited_s"] == pytest.approx(0.05)
+    assert main(["result", job, "--config", cfg, "--out", str(tmp_path / "r.json")]) == 0
+    assert json.loads((tmp_path / "r.json").read_text()) == reply["result"]
+
+
 def test_bad_parameters_are_refused_before_sending(served, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cell = served()
     cfg = write_config(tmp_path, cell)
@@ -103,7 +118,8 @@ def test_viewer_credentials_cannot_submit(served, tmp_path: Path, capsys: pytest
 
 def test_schema_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bus", "schema", "--out", str(tmp_path / "schemas")]) == 0
-    written = capsys.readouterr().out.split()
-    assert len(written) == 19 and all(Path(p).name.endswith(".schema.json") for p in written)
+    written = [Path(p).name for p in capsys.readouterr().out.split()]
+    assert len(written) == len(schema.SCHEMAS) + 1 and written[-1] == "asyncapi.json"
+    assert all(name.endswith(".schema.json") for name in written[:-1])
     submit = json.loads((tmp_path / "schemas" / "submit.schema.json").read_text())
     assert [b["properties"]["kind"]["const"] for b in submit["oneOf"]] == ["calibrate", "weld", "move", "health"]

@@ -169,8 +169,8 @@ def test_a_valid_job_with_one_field_replaced_gives_a_job_or_names_a_field(messag
 
 def test_every_schema_is_draft_2020_12_and_exported(tmp_path) -> None:
     paths = schema.export_schemas(tmp_path / "schemas")
-    assert {p.name for p in paths} == {f"{n}.schema.json" for n in schema.SCHEMAS}
-    for p in paths:
+    assert {p.name for p in paths} == {f"{n}.schema.json" for n in schema.SCHEMAS} | {"asyncapi.json"}
+    for p in paths[:-1]:
         data = json.loads(p.read_text())
         assert data["$schema"] == "https://json-schema.org/draft/2020-12/schema"
         assert data == schema.SCHEMAS[p.name.removesuffix(".schema.json")]

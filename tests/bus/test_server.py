@@ -164,28 +164,31 @@ class _Faulty:
     def __init__(self) -> None:
         self.slow_done = asyncio.Event()
 
-    async def on_submit(self, job: Any) -> Mapping[str, Any]:
+    async def on_submit(self, job: Any, caller: Any = None) -> Mapping[str, Any]:
         raise RuntimeError("a bug")
 
-    async def on_status(self, req: Any) -> Mapping[str, Any]:
+    async def on_status(self, req: Any, caller: Any = None) -> Mapping[str, Any]:
         await asyncio.sleep(0.5)
         self.slow_done.set()
         return {"cell": "x", "state": "idle", "running": None, "queued": []}
 
-    async def on_cancel(self, req: Any) -> Any:
+    async def on_cancel(self, req: Any, caller: Any = None) -> Any:
         return ["not", "a", "mapping"]
 
-    async def on_list(self, req: Any) -> Mapping[str, Any]:
+    async def on_list(self, req: Any, caller: Any = None) -> Mapping[str, Any]:
         return {"jobs": [float("nan")]}
 
-    async def on_accept(self, req: Any) -> Mapping[str, Any]:
+    async def on_accept(self, req: Any, caller: Any = None) -> Mapping[str, Any]:
         raise BusError("link down")
 
-    async def on_calibration(self, req: Any) -> Mapping[str, Any]:
+    async def on_calibration(self, req: Any, caller: Any = None) -> Mapping[str, Any]:
         return {"calibration": None}
 
-    async def on_robot(self, req: Any) -> Mapping[str, Any]:
+    async def on_robot(self, req: Any, caller: Any = None) -> Mapping[str, Any]:
         raise RuntimeError("a handler's own bug")
+
+    async def on_result(self, req: Any, caller: Any = None) -> Mapping[str, Any]:
+        raise JobError("$.job", "no such job")
 
 
 def test_handler_failures_become_error_replies(serve_cell) -> None:

@@ -59,27 +59,31 @@ def test_loopback_peer_config_has_scouting_off_and_no_auth() -> None:
     assert "transport" not in conf and "access_control" not in conf
 
 
-def test_acl_gives_operators_write_queries_and_viewers_only_reads() -> None:
+def test_acl_gives_each_user_its_own_request_keys_and_its_roles_requests() -> None:
     acl = session.acl_config(BusConfig(users=USERS), KEYS)
     assert acl is not None and acl["enabled"] and acl["default_permission"] == "deny"
     rules = {r["id"]: r for r in acl["rules"]}
-    policies = {p["subjects"][0]: set(p["rules"]) for p in acl["policies"]}
     subjects = {s["id"]: s["usernames"] for s in acl["subjects"]}
-    assert subjects == {"operators": ["olga", "oscar"], "viewers": ["vic"]}
+    policies = {subjects[p["subjects"][0]][0]: set(p["rules"]) for p in acl["policies"]}
+    assert sorted(policies) == ["olga", "oscar", "vic"], "one subject, one policy per user"
 
-    def allowed(subject: str, message: str, flow: str, key: str) -> bool:
+    def allowed(user: str, message: str, flow: str, key: str) -> bool:
         return any(
-            message in rules[r]["messages"] and flow in rules[r]["flows"] and key in rules[r]["key_exprs"] for r in policies[subject]
+            message in rules[r]["messages"] and flow in rules[r]["flows"] and key in rules[r]["key_exprs"] for r in policies[user]
         )
 
     for q in ("submit", "cancel", "accept"):
-        assert allowed("operators", "query", "ingress", KEYS.query(q))
-        assert not allowed("viewers", "query", "ingress", KEYS.query(q))
-        assert not allowed("viewers", "declare_queryable", "egress", KEYS.query(q))
+        assert allowed("olga", "query", "ingress", KEYS.query(q, "olga"))
+        assert not allowed("olga", "query", "ingress", KEYS.query(q, "oscar")), "another user's key"
+        assert not allowed("olga", "query", "ingress", KEYS.query(q)), "the open bus's key"
+        assert not allowed("vic", "query", "ingress", KEYS.query(q, "vic"))
+        assert not allowed("vic", "declare_queryable", "egress", KEYS.query(q, "vic"))
     for q in ("status", "list", "calibration"):
-        assert allowed("viewers", "query", "ingress", KEYS.query(q)) and allowed("viewers", "reply", "egress", KEYS.query(q))
-    assert allowed("viewers", "put", "egress", f"{KEYS.base}/progress/**")
-    assert allowed("viewers", "liveliness_token", "egress", KEYS.alive)
+        assert allowed("vic", "query", "ingress", KEYS.query(q, "vic")) and allowed("vic", "reply", "egress", KEYS.query(q, "vic"))
+        assert not allowed("vic", "query", "ingress", KEYS.query(q, "olga"))
+    assert allowed("vic", "query", "ingress", KEYS.results("vic"))
+    assert allowed("vic", "put", "egress", f"{KEYS.base}/progress/**")
+    assert allowed("vic", "liveliness_token", "egress", KEYS.alive)
     assert session.acl_config(BusConfig(), KEYS) is None
 
 

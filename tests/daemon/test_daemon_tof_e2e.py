@@ -1,8 +1,9 @@
 """A time-of-flight cell end to end over the bus: calibrate on the 90 mm wrist circle, then place a seam.
 
-The simulated cell of ``configs/sim-cell.toml`` with the ray-cast Azure
-Kinect instead of the PhoXi M: it reads bare metal (the tool flange, the
-steel part and table) 8 mm long. The daemon's calibrate job estimates that
+The simulated cell of ``configs/sim-cell.toml`` in its ideal world, with
+the ray-cast Azure Kinect instead of the PhoXi M (both the cell's belief,
+``[scanner]``, and the world's truth, ``[sim.scanner]``): it reads bare
+metal (the tool flange, the steel part and table) 8 mm long. The daemon's calibrate job estimates that
 range bias with T_base_cam (``calibration.range_bias`` defaults to estimate
 for this scanner) and stores it with the calibration; a weld's scan is
 corrected by it before its seam is placed. The test talks to ``celld run``
@@ -20,13 +21,12 @@ import pytest
 
 from celld import polyline, se3
 from celld.bus import schema
-from celld.sim.cell import run_cell, sim_workpiece
+from celld.sim.cell import run_cell, sim_part
 from celld.sim.scanner import SCANNER_MODELS
 
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[2]
-TRUE_BIAS = SCANNER_MODELS["azure-kinect"].metal_bias  # the simulator's truth, to score only
 
 
 def _config(tmp_path: Path, host: str) -> Path:
@@ -54,6 +54,11 @@ fps = 15
 # only around the fixture.
 roi_min = [0.3, -0.35, -0.05]
 roi_max = [0.9, 0.35, 0.3]
+[sim]
+preset = "ideal"
+flange = "ur10e-wrist"
+[sim.scanner]
+model = "azure-kinect"
 [bus]
 listen = ["tcp/{host}:7447"]
 """
@@ -63,23 +68,25 @@ listen = ["tcp/{host}:7447"]
 
 def test_calibrate_estimates_the_range_bias_and_the_weld_scan_is_placed_with_it(tmp_path: Path, loopback_host: str) -> None:
     with run_cell(_config(tmp_path, loopback_host), tmp_path / "daemon.log", timeout=120) as cell:
-        client, cfg = cell.client, cell.config
-        assert cfg.calibration.range_bias == "estimate"  # the default for a time-of-flight scanner
+        client, cfg, world = cell.client, cell.config, cell.world
+        # The simulator's truth, to score only.
+        true_bias = SCANNER_MODELS["azure-kinect"].metal_bias if world.scanner.metal_bias is None else world.scanner.metal_bias
+        assert world.scanner.model == "azure-kinect" and cfg.calibration.range_bias == "estimate"  # the default for a time-of-flight scanner
 
         events: list[dict] = []
         _, record = client.submit_and_wait({"kind": "calibrate", "seed": 1}, on_event=events.append, timeout=900)
         assert record["state"] == "succeeded", record["reason"]
         # Each pair's progress event says the bias its finish step measured.
         steps = [e["data"]["range_bias_mm"] for e in events if e.get("stage") == "pair" and "range_bias_mm" in e.get("data", {})]
-        assert len(steps) >= 10 and abs(float(np.median(steps)) - TRUE_BIAS * 1e3) < 0.5, steps
+        assert len(steps) >= 10 and abs(float(np.median(steps)) - true_bias * 1e3) < 0.5, steps
 
         result = json.loads(Path(record["result"]).read_text())
         calibration = result["calibration"]
-        dt, dr = se3.error(np.array(calibration["T_base_cam"]), cfg.T_base_cam_nominal())
+        dt, dr = se3.error(np.array(calibration["T_base_cam"]), world.scanner.T_base_cam)
         # The time-of-flight target: 1.5 mm at the camera's origin.
         assert dt <= 1.5e-3 and math.degrees(dr) < 0.2, (dt * 1e3, math.degrees(dr))
         assert calibration["range_bias"] == "estimate"
-        assert abs(calibration["range_bias_mm"] - TRUE_BIAS * 1e3) < 0.3, calibration["range_bias_mm"]
+        assert abs(calibration["range_bias_mm"] - true_bias * 1e3) < 0.3, calibration["range_bias_mm"]
         assert 0.0 < calibration["range_bias_std_mm"] < 0.15
         quality = result["report"]["quality"]
         assert quality["verdict"] == "ok", quality["reasons"]
@@ -100,7 +107,7 @@ def test_calibrate_estimates_the_range_bias_and_the_weld_scan_is_placed_with_it(
         _, dry = client.submit_and_wait({"kind": "weld", "dry_run": True}, timeout=300)
         assert dry["state"] == "succeeded", dry["reason"]
         planned = np.array(json.loads(Path(dry["result"]).read_text())["planned_path"])
-        part = sim_workpiece(cfg)
+        part = sim_part(world)
         assert part is not None
         # The planned path is the seam at the tip's height: the true wall line's seam at that height.
         truth, _ = polyline.resample(part.wall.seam_base, 2e-4)

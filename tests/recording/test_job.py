@@ -389,3 +389,30 @@ def test_a_job_is_pushed_to_a_listening_viewer(tmp_path: Path, loopback_host: st
     # The job's own file is complete regardless of the viewer.
     _, e = read_scalars(tmp_path / "job.rrd", layout.CALIB_E_ICP, timeline=layout.ITERATION)
     np.testing.assert_allclose(e[:, 0], [0.0013])
+
+
+def test_a_full_disk_fails_the_recording_and_close_returns(tmp_path: Path, small_disk, rng: np.random.Generator) -> None:
+    """rerun's own file sink hung in close() once the disk was full, and said so only in its log."""
+    import threading
+
+    from celld.errors import StorageError
+
+    disk = small_disk(1 * 2**20)
+    outcome: dict = {}
+
+    def record() -> None:
+        rec = JobRecording(disk / "recordings" / "job-full.rrd", "job-full", "scan")
+        try:
+            for i in range(20):
+                rec.log_cloud_base(f"c{i}", rng.random((20_000, 3)))
+            rec.close()
+            outcome["closed"] = "without an error"
+        except StorageError as exc:
+            outcome["closed"] = exc
+
+    t = threading.Thread(target=record, daemon=True)
+    t.start()
+    t.join(30)
+    assert not t.is_alive(), "close() hung on a full disk"
+    assert isinstance(outcome["closed"], StorageError), outcome["closed"]
+    assert "No space left on device" in str(outcome["closed"]) and "job-full.rrd" in str(outcome["closed"])
