@@ -238,9 +238,24 @@ def record_plan(rec: Any, checker: Checker, joints: Sequence[Sequence[float]], n
     """
     if rec is None:
         return
-    for obj in checker.cell.objects:
-        if isinstance(obj.shape, Box):
-            rec.log_boxes(obj.name, obj.T_base_obj[None], np.asarray(obj.shape.size)[None])
+    record_cell(rec, checker)
     for i, q in enumerate(joints):
         _, ends, radii = checker.segments(np.asarray(q, dtype=np.float64))
         rec.log_capsules(f"{name}_{i + 1:02d}", ends, radii)
+
+
+def record_cell(rec: Any, checker: Checker) -> None:
+    """Draw the cell model's box objects in a job recording (``rec`` None: nothing to do)."""
+    if rec is None:
+        return
+    for obj in checker.cell.objects:
+        if isinstance(obj.shape, Box):
+            rec.log_boxes(obj.name, obj.T_base_obj[None], np.asarray(obj.shape.size)[None])
+
+
+def record_arm(rec: Any, checker: Checker, q: Sequence[float] | np.ndarray, stamp_ns: int | None = None) -> None:
+    """Draw the arm (and the checker's tool) at joints ``q`` as ``/world/robot/arm`` at a time: the arm as it moved."""
+    if rec is None:
+        return
+    _, ends, radii = checker.segments(np.asarray(q, dtype=np.float64))
+    rec.log_capsules("arm", ends, radii, stamp_ns=stamp_ns)

@@ -49,17 +49,18 @@ from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
 from celld.calib.metrics import cost_function
-from celld.calib.pairs import PairCollector
+from celld.calib.pairs import Detections, PairCollector
 from celld.calib.poses import calibration_poses
 from celld.calib.rangebias import bias_from_steps, correct_range_bias
 from celld.calib.session import SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import CalibrationStore, JobContext, Runner
-from celld.daemon.planning import record_plan
+from celld.daemon.planning import record_arm, record_cell, record_plan
 from celld.daemon.retention import prune_sessions
 from celld.errors import CalibrationError, CelldError, JobError
 from celld.log import get_logger
+from celld.recording import layout
 
 log = get_logger(__name__)
 
@@ -154,6 +155,11 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     dataset = ctx.result_dir() / "dataset"
     writer = SessionWriter(dataset, flange=cal.flange, scanner=config.scanner.model)
     rec = ctx.recording
+    if rec is not None:
+        # The cell, and the flange model carried by the TCP (the flange: tcp_offset is zero here) at each pose.
+        record_cell(rec, planner.bare)
+        mesh = await asyncio.to_thread(flange.mesh)
+        rec.log_mesh(layout.FLANGE, np.asarray(mesh.vertices), np.asarray(mesh.triangles), static=True)
 
     # Verification pose first: its cloud scores every estimate (Eq. 13).
     ctx.progress("verify", 0.0, "verification pose")
@@ -182,6 +188,9 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
             rec.log_cloud_cam("pair", cloud.points)
             rec.log_circle_cam("flange", det.center, det.normal, det.radius)
             rec.log_tcp(T_bf)
+            here = devices.require_motion().state()
+            if here is not None:
+                record_arm(rec, planner.bare, here.q)
         data: dict[str, Any] = {"pair": pid, "detected": True, "radius_mm": det.radius * 1e3, "inliers": det.inliers}
         if det.finish_step is not None:
             data["range_bias_mm"] = det.finish_step.bias * 1e3
@@ -220,6 +229,8 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         solve_pairs, found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, pairs.n_captures, range_data
     )
     report = result.as_dict()
+    if rec is not None:
+        _record_solution(rec, result.T_base_cam, result.bias, found, report["quality"], flange.circle_on_metal)
     a1 = alg.result() if alg.started else None
     cost_mm = a1.cost * 1e3 if a1 is not None and math.isfinite(a1.cost) else None
     calibration = {
@@ -250,6 +261,18 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         "poses_planned": len(poses),
         "dataset": str(dataset),
     }
+
+
+def _record_solution(rec: Any, T_base_cam: np.ndarray, bias: float, found: Detections, quality: Mapping[str, Any],
+                     circle_on_metal: bool) -> None:
+    """The solved calibration in its recording: the camera placed for the whole
+    recording (every capture then lies in the base frame) and each pair's
+    residual, robot centre to scanner centre (the centre corrected by the range
+    bias where the circle lies on metal, as the solve used it)."""
+    rec.log_camera_pose(T_base_cam, static=True)
+    P_cam = correct_range_bias(found.P_cam, bias) if (bias and circle_on_metal) else found.P_cam
+    left_out = {str(p["id"]): bool(p["outlier"] or not p["used"]) for p in quality.get("pairs", [])}
+    rec.log_residuals(list(found.ids), found.P_base, se3.apply(T_base_cam, P_cam), [left_out.get(i, False) for i in found.ids])
 
 
 # -- move ----------------------------------------------------------------------------

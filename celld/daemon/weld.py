@@ -44,10 +44,11 @@ from celld.calib.rangebias import correct_range_bias
 from celld.config import Config, ServoConfig, with_overrides
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import CalibrationStore, JobContext
-from celld.daemon.planning import record_plan
+from celld.daemon.planning import record_arm, record_cell, record_plan
 from celld.errors import CelldError, ConfigError, InputError, JobError, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
+from celld.recording import layout
 from celld.seam.figures import track_summary
 from celld.seam.weldpath import WeldGeometry, start_pose, tool_poses, wall_offset, weld_geometry
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
@@ -186,6 +187,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     # table) moved back along its rays, as the calibration was solved.
     points = correct_range_bias(cloud.points, range_bias) if range_bias else np.asarray(cloud.points)
     if rec is not None:
+        record_cell(rec, devices.planner.with_tool)
         rec.log_camera_pose(T_base_cam)
         rec.log_cloud_cam("scan", points)
 
@@ -196,6 +198,8 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     geometry = weld_geometry(seam.points_base, seam.tangents, seam.normals, seam.plane_normal, offset, wc.tip_height)
     if rec is not None:
         rec.log_path_base("planned", geometry.seam_base)
+        # The part model where the scan placed it.
+        rec.log_mesh(layout.WORKPIECE, workpiece.vertices, workpiece.triangles, seam.T_base_obj)
     ctx.progress("seam", None, f"seam found: {seam.length * 1e3:.1f} mm", length_mm=seam.length * 1e3, **_quality(seam))
 
     # 3. the whole path, checked against the cell before the tool moves to it:
@@ -317,6 +321,10 @@ def _log_preview(devices: CellDevices, rec: Any, last_stamp: int) -> int:
     stamp, image, corners = frame
     try:
         rec.log_camera_image(image, corners, stamp_ns=stamp)
+        # The arm as it moves, at the rate of the previews.
+        here = devices.require_motion().state()
+        if here is not None:
+            record_arm(rec, devices.planner.with_tool, here.q, stamp_ns=here.stamp_ns)
     except CelldError as exc:
         log.warning("SRM frame not recorded", error=str(exc))
     return stamp

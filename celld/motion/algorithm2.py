@@ -456,7 +456,7 @@ class Algorithm2Servo:
             self._tel_refined = self.to_base(self._ref[n - 1]) if n > 0 else np.full(3, math.nan)
             self._tel_refined.flags.writeable = False  # handed out every cycle: nobody may change it
         on = self.p.process and self._torch_on_path and self.phase in (Phase.TRACK, Phase.SEARCH, Phase.FINISH)
-        return ServoTelemetry(int(self.phase), float(self.last.delta_n), self._tel_refined, bool(on))
+        return ServoTelemetry(int(self.phase), float(self.last.delta_n), self._tel_refined, bool(on), self.p.side * self.p.delta_d)
 
     # -- geometry of the current state --
 

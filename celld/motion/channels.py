@@ -66,6 +66,10 @@ STATE_DTYPE = np.dtype(
         ("delta_n", np.float64),  # m, normal deformation the law used, NaN without
         ("refined_base", np.float64, (3,)),  # latest refined path point, base frame, m; NaN without
         ("process_on", np.bool_),  # the core asked for the process output (welding arc) this cycle
+        ("delta_d", np.float64),  # m, the normal deformation the law holds (signed as delta_n), NaN without
+        # The tactile sample the loop holds (celld.tactile.sample.TactileSample).
+        ("delta_tool", np.float64, (3,)),  # m, tool frame: tangential, normal, out of plane; NaN when not valid
+        ("contact", np.int8),  # ContactState, -1 without a sample
     ]
 )
 

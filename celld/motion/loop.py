@@ -369,6 +369,14 @@ class MotionLoop:
         r["delta_n"] = tel.delta_n
         r["refined_base"] = tel.refined_base
         r["process_on"] = out.process_on
+        r["delta_d"] = tel.delta_d
+        tac = self._tactile
+        if tac is None:
+            r["delta_tool"] = np.nan
+            r["contact"] = -1
+        else:
+            r["delta_tool"] = tac.delta_tool
+            r["contact"] = int(tac.contact)
         ch.state.append(r)
         self._prev_wake = t_wake
 

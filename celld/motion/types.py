@@ -81,12 +81,16 @@ class ServoTelemetry(NamedTuple):
     process_on : bool
         The law wants the process (the welding arc) on. The core switches it
         on only while the law runs undisturbed (:mod:`celld.motion.core`).
+    delta_d : float
+        The normal deformation the law holds the finger at, m, signed as
+        ``delta_n``; NaN: none.
     """
 
     phase: int
     delta_n: float
     refined_base: np.ndarray
     process_on: bool
+    delta_d: float = math.nan
 
 
 def _nan3() -> np.ndarray:

@@ -16,7 +16,7 @@ so each method sets it before it logs.
 
 The file is written by this module, not by rerun's file sink: rerun encodes
 into a memory stream (:class:`rerun.BinaryStream`) and a small thread moves
-the bytes into the file with plain ``os.write`` every
+the bytes into ``<job>.rrd.part`` with plain ``os.write`` every
 :data:`_DRAIN_PERIOD` s. rerun's own file sink, on a full disk, printed the
 error in its log only, then made ``flush`` time out and ``disconnect`` hang
 for good; here a failed write is an ``OSError`` that the recording keeps
@@ -24,13 +24,25 @@ for good; here a failed write is an ``OSError`` that the recording keeps
 :meth:`JobRecording.close` raises as
 :class:`~celld.errors.RecordingWriteError` (a StorageError): the job that
 owned the recording then fails with the reason.
+
+Each read of a rerun 0.41 memory stream is a whole RRD stream with its own
+footer, and a file of several such streams is refused by rerun's reader
+("More than one RRD manifest", a CRC error). So :meth:`JobRecording.close`
+merges the part file into one stream with the rerun CLI that comes with the
+SDK (``rerun rrd merge``: 1.5 s and about the file's size in memory for 360
+MB), then renames it into place; the part file is removed. A merge that
+fails (the disk full again) keeps the part file and says how to merge it by
+hand.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import socket
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -66,6 +78,10 @@ _NORMAL_LENGTH_RADII = 1.0
 _FLUSH_TIMEOUT = 5.0
 # How long opening a recording waits to see whether a viewer listens, s.
 _PROBE_TIMEOUT = 0.5
+# Calibration residual arrows are drawn this many times their length.
+_RESIDUAL_SCALE = 20.0
+# Longest a recording's merge may take at close, s (360 MB: 1.5 s).
+_MERGE_TIMEOUT = 300.0
 # How often encoded bytes move from rerun's memory stream into the file, s.
 _DRAIN_PERIOD = 0.2
 
@@ -135,13 +151,15 @@ class _FileWriter:
 
     def __init__(self, path: Path, stream: Any) -> None:
         self.path = path
+        self.part = path.with_name(path.name + ".part")
         self.stream = stream
         self.error: OSError | None = None
+        self.merge_error = ""
         self.written = 0
         self._lock = threading.Lock()
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+            self._fd = os.open(self.part, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
         except OSError as exc:
             raise RecordingWriteError("recording", str(path), f"cannot create it: {exc.strerror or exc}", exc.errno) from exc
         self._stop = threading.Event()
@@ -184,6 +202,26 @@ class _FileWriter:
             finally:
                 os.close(self._fd)
                 self._fd = -1
+        if self.error is None:
+            self._merge()
+
+    def _merge(self) -> None:
+        """Merge the part file's streams into the one ``.rrd`` stream, then rename it into place."""
+        tmp = self.path.with_name(self.path.name + ".merging")
+        cmd = [sys.executable, "-m", "rerun_cli", "rrd", "merge", str(self.part), "-o", str(tmp)]
+        try:
+            done = subprocess.run(cmd, capture_output=True, timeout=_MERGE_TIMEOUT, check=False)
+            if done.returncode == 0:
+                os.replace(tmp, self.path)
+                self.part.unlink()
+                return
+            tail = done.stderr.decode(errors="replace").strip().splitlines()[-1:] or [f"exit code {done.returncode}"]
+            self.merge_error = tail[0]
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            self.merge_error = str(exc)
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        log.error("recording_merge_failed", part=str(self.part), error=self.merge_error)
 
 
 class JobRecording:
@@ -377,20 +415,91 @@ class JobRecording:
         """
         return self._log_cloud(f"{layout.CLOUDS_CAM}/{_check_name(name, 'cloud name')}", P_cam, colors, stamp_ns)
 
-    def _log_pose(self, entity: str, T: ArrayLike, name: str, stamp_ns: int | None) -> None:
+    def _log_pose(self, entity: str, T: ArrayLike, name: str, stamp_ns: int | None, static: bool = False) -> None:
         T = se3.check_transform(T, name)
         if not self._active():
             return
-        self._at(stamp_ns)
+        if not static:
+            self._at(stamp_ns)
         self._rec.log(
             entity,
             rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]),
             rr.TransformAxes3D(_AXIS_LENGTH),
+            static=static,
         )
 
-    def log_camera_pose(self, T_base_cam: ArrayLike, stamp_ns: int | None = None) -> None:
-        """Log the scanner pose ``T_base_cam`` (4, 4) at ``/world/camera`` (an estimate or the nominal)."""
-        self._log_pose(layout.CAMERA, T_base_cam, "T_base_cam", stamp_ns)
+    def log_camera_pose(self, T_base_cam: ArrayLike, stamp_ns: int | None = None, static: bool = False) -> None:
+        """Log the scanner pose ``T_base_cam`` (4, 4) at ``/world/camera`` (an estimate or the nominal).
+
+        ``static``: the pose for the whole recording (a solved calibration):
+        every cloud and circle logged in the camera frame, at any time, is
+        drawn through it, so they all lie in the base frame.
+        """
+        self._log_pose(layout.CAMERA, T_base_cam, "T_base_cam", stamp_ns, static)
+
+    def log_mesh(self, entity: str, vertices: ArrayLike, triangles: ArrayLike, T_base_obj: ArrayLike | None = None,
+                 color: tuple[int, int, int] = (170, 170, 180), static: bool = False, stamp_ns: int | None = None) -> None:
+        """Log a triangle mesh (a workpiece, the flange) at ``entity`` under ``/world``.
+
+        Parameters
+        ----------
+        entity : str
+            Entity path under ``/world`` (:data:`~celld.recording.layout.WORKPIECE`, ``/world/tcp/flange``).
+        vertices, triangles : array_like
+            (v, 3) vertices in the object's frame, m; (f, 3) vertex indices.
+        T_base_obj : array_like, optional
+            (4, 4) pose of the object's frame in its parent's frame; None logs no
+            transform (the mesh follows its parent, e.g. the TCP).
+        static : bool
+            For the whole recording (a model), not at a time.
+        """
+        if not entity.startswith(layout.WORLD + "/"):
+            raise InputError(f"mesh entity: expected a path under {layout.WORLD}, got {entity!r}")
+        V = se3.check_points(vertices, "mesh vertices", min_points=3)
+        F = np.asarray(triangles)
+        if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0 or not np.issubdtype(F.dtype, np.integer) or F.min() < 0 or F.max() >= len(V):
+            raise InputError(f"mesh triangles: expected (f, 3) indices into {len(V)} vertices, got shape {F.shape}")
+        T = None if T_base_obj is None else se3.check_transform(T_base_obj, "T_base_obj")
+        if not self._active():
+            return
+        if not static:
+            self._at(stamp_ns)
+        parts: list[Any] = [rr.Mesh3D(vertex_positions=V.astype(np.float32), triangle_indices=F.astype(np.uint32), albedo_factor=color)]
+        if T is not None:
+            parts.append(rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+        self._rec.log(entity, *parts, static=static)
+
+    def log_residuals(self, ids: list[str], P_robot_base: ArrayLike, P_scanner_base: ArrayLike, outlier: ArrayLike,
+                      stamp_ns: int | None = None) -> None:
+        """Log a calibration's per-pair residuals: arrows and a bar chart.
+
+        Parameters
+        ----------
+        ids : list of str
+            Pair ids, in order.
+        P_robot_base : array_like
+            (n, 3) flange centres as the robot reports them, base frame, m.
+        P_scanner_base : array_like
+            (n, 3) the same centres as the scanner saw them, placed with the
+            solved T_base_cam, base frame, m.
+        outlier : array_like
+            (n,) bool: the estimator left the pair out (drawn red).
+        """
+        A = se3.check_points(P_robot_base, "P_robot_base", min_points=1)
+        B = se3.check_points(P_scanner_base, "P_scanner_base", min_points=1)
+        out = np.asarray(outlier, dtype=bool).reshape(-1)
+        if len(B) != len(A) or len(out) != len(A) or len(ids) != len(A):
+            raise InputError(f"residuals: expected matching ids, points and outlier flags, got {len(ids)}, {len(A)}, {len(B)}, {len(out)}")
+        if not self._active():
+            return
+        self._at(stamp_ns)
+        colors = np.where(out[:, None], np.array([[230, 40, 40]]), np.array([[0, 200, 120]])).astype(np.uint8)
+        # Arrows from the robot's centre to the scanner's, drawn 20 times longer (residuals are tenths of a mm).
+        self._rec.log(
+            layout.RESIDUALS,
+            rr.Arrows3D(origins=A, vectors=(B - A) * _RESIDUAL_SCALE, colors=colors, labels=list(ids)),
+        )
+        self._rec.log(layout.CALIB_RESIDUALS, rr.BarChart(np.linalg.norm(B - A, axis=1) * 1e3))
 
     def log_tcp(self, T_base_tcp: ArrayLike, stamp_ns: int | None = None) -> None:
         """Log one TCP pose ``T_base_tcp`` (4, 4) at ``/world/tcp``.
@@ -658,6 +767,12 @@ class JobRecording:
             raise RecordingWriteError(
                 "recording", str(self.path), f"{error.strerror or error} (errno {error.errno}); the recording is incomplete", error.errno
             ) from error
+        if writer is not None and writer.merge_error:
+            raise RecordingWriteError(
+                "recording", str(self.path),
+                f"its streams could not be merged into one file ({writer.merge_error}); they are kept in {writer.part}: "
+                f"'python -m rerun_cli rrd merge {writer.part} -o {self.path}' merges them",
+            )
 
     def __enter__(self) -> JobRecording:
         return self

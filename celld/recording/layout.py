@@ -9,15 +9,26 @@ daemon, the viewer layout and the tests agree on one tree::
         /world/camera/clouds/<name>   clouds in the camera frame
       /world/circles/<name>     detected circles (ring), normal as a child arrow
       /world/tcp                the robot TCP: pose T_base_tcp over time
+        /world/tcp/flange       the flange model at each calibration pose
       /world/paths/<name>       planned, refined and torch paths
+      /world/workpiece          the part model where the scan placed it
+      /world/cell/<object>      the cell model's objects (table, scanner, fixtures)
+      /world/robot/<name>       the arm and its tool as capsules (at planned poses; "arm" as it moved)
+      /world/calib/residuals    per-pair residuals, robot centre to scanner centre (x20)
     /srm/camera                 the SRM finger camera image
       /srm/camera/tag           the detected ArUco tag outline, pixels
-    /servo/delta, /servo/v_r, /servo/omega     Algorithm 2 signals (SI)
+    /servo/delta                the SRM deformation in the tool frame (m): tangential, normal, out of plane
+    /servo/delta_n              Algorithm 2's normal deformation delta_n and its target delta_d (m)
+    /servo/v_r, /servo/omega    Algorithm 2's commanded twist (SI)
+    /servo/phase                Algorithm 2's phase (touch, track, search, finish, ...)
+    /weld/contact               the finger's contact state (0 none, 1 contact, 2 overload)
+    /weld/arc                   the arc output the loop asked for (0 off, 1 on)
     /robot/v_tcp                measured TCP twist, base frame (m/s, rad/s)
     /robot/q                    joint positions (rad)
     /motion/loop/<signal>_ms    RT loop timing, milliseconds (late, period, work)
     /motion/status              the loop's ControlStatus per cycle
     /calib/e_icp                ICP error metric of Eq. 13 per iteration, metres
+    /calib/residuals_mm         per-pair residuals of the solved calibration, mm
     /events                     job events as text
 
 Time: ``time`` is a duration timeline in seconds since the recording was
@@ -26,6 +37,8 @@ process). ``iteration`` is a sequence timeline of Algorithm 1.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import rerun.blueprint as rrb
 
@@ -42,6 +55,10 @@ CIRCLES = "/world/circles"
 TCP = "/world/tcp"
 PATHS = "/world/paths"
 CELL = "/world/cell"  # the cell model's objects
+WORKPIECE = "/world/workpiece"  # the part model, placed where the scan found it
+FLANGE = "/world/tcp/flange"  # the flange model, carried by the TCP at each pose
+RESIDUALS = "/world/calib/residuals"  # robot centre -> scanner centre, per pair
+CALIB_RESIDUALS = "/calib/residuals_mm"  # the same, a bar per pair, mm
 ROBOT = "/world/robot"  # the arm and its tool at planned poses
 SRM_CAMERA = "/srm/camera"
 SRM_TAG = "/srm/camera/tag"
@@ -49,6 +66,11 @@ SERVO = "/servo"
 SERVO_DELTA = "/servo/delta"
 SERVO_V_R = "/servo/v_r"
 SERVO_OMEGA = "/servo/omega"
+SERVO_DELTA_N = "/servo/delta_n"
+SERVO_PHASE = "/servo/phase"
+WELD = "/weld"
+WELD_CONTACT = "/weld/contact"
+WELD_ARC = "/weld/arc"
 ROBOT_V_TCP = "/robot/v_tcp"
 ROBOT_Q = "/robot/q"
 MOTION_LOOP = "/motion/loop"
@@ -72,17 +94,22 @@ def default_blueprint(kind: str = "other") -> rrb.Blueprint:
     """The viewer layout stored in every recording.
 
     A 3D view of ``/world`` beside the SRM camera, above a tab group of time
-    series: the servo signals, loop timing and the calibration error. A
-    calibration job opens on the ``e_icp`` tab, any other job on ``delta``.
+    series: the servo signals, the contact and arc state, loop timing and the
+    calibration error. A calibration job opens on the ``e_icp`` tab, any
+    other job on ``delta_n``.
     """
-    series = [
-        rrb.TimeSeriesView(origin=SERVO_DELTA, name="delta (m)"),
-        rrb.TimeSeriesView(origin=SERVO_V_R, name="V_r (m/s)"),
-        rrb.TimeSeriesView(origin=SERVO_OMEGA, name="omega (rad/s)"),
-        rrb.TimeSeriesView(origin=MOTION_LOOP, name="loop timing (ms)"),
-        rrb.TimeSeriesView(origin=CALIB_E_ICP, name="e_icp (m)"),
+    tabs = [
+        (SERVO_DELTA_N, "delta_n, delta_d (m)"),
+        (WELD, "contact, arc"),
+        (SERVO_DELTA, "delta (m)"),
+        (SERVO_V_R, "V_r (m/s)"),
+        (SERVO_OMEGA, "omega (rad/s)"),
+        (MOTION_LOOP, "loop timing (ms)"),
+        (CALIB_E_ICP, "e_icp (m)"),
     ]
-    active = 4 if kind == "calibration" else 0
+    series: list[Any] = [rrb.TimeSeriesView(origin=origin, name=name) for origin, name in tabs]
+    series.append(rrb.BarChartView(origin=CALIB_RESIDUALS, name="residuals (mm)"))
+    active = [origin for origin, _ in tabs].index(CALIB_E_ICP if kind == "calibration" else SERVO_DELTA_N)
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(

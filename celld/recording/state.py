@@ -26,6 +26,11 @@ q               (6,)      /robot/q                          rad
 twist[0:3]      (6,)      /servo/v_r                        m/s
 twist[3:6]      (6,)      /servo/omega                      rad/s
 delta_tool      (3,)      /servo/delta                      m
+delta_n         ()        /servo/delta_n                    m
+delta_d         ()        /servo/delta_n (its target)       m
+servo_phase     ()        /servo/phase                      the law's phase
+contact         ()        /weld/contact                     ContactState
+process_on      ()        /weld/arc                         0 off, 1 on
 late_ns         ()        /motion/loop/late_ms              ms
 period_ns       ()        /motion/loop/period_ms            ms
 work_ns         ()        /motion/loop/work_ms              ms
@@ -88,6 +93,11 @@ DEFAULT_SERIES: tuple[Series, ...] = (
     Series("twist", layout.SERVO_V_R, ("x", "y", "z"), components=(0, 3)),
     Series("twist", layout.SERVO_OMEGA, ("wx", "wy", "wz"), components=(3, 6)),
     Series("delta_tool", layout.SERVO_DELTA, ("tangential", "normal", "out of plane")),
+    Series("delta_n", f"{layout.SERVO_DELTA_N}/delta_n", ("delta_n",)),
+    Series("delta_d", f"{layout.SERVO_DELTA_N}/delta_d", ("delta_d",)),
+    Series("servo_phase", layout.SERVO_PHASE, ("phase",)),
+    Series("contact", layout.WELD_CONTACT, ("contact",)),
+    Series("process_on", layout.WELD_ARC, ("arc",)),
     Series("late_ns", f"{layout.MOTION_LOOP}/late_ms", ("late",), _MS),
     Series("period_ns", f"{layout.MOTION_LOOP}/period_ms", ("period",), _MS),
     Series("work_ns", f"{layout.MOTION_LOOP}/work_ms", ("work",), _MS),

@@ -19,7 +19,7 @@ import pytest
 from celld import se3
 from celld.bus.client import CellClient
 from celld.journal import Journal
-from celld.recording.readback import read_entities
+from celld.recording.readback import read_component, read_entities
 
 pytestmark = pytest.mark.slow
 
@@ -110,8 +110,14 @@ def test_calibrate_over_the_bus_then_accept(daemon) -> None:
 
     rrd = Path(result["recording"])
     entities = read_entities(rrd)
-    assert any(e.startswith("/world") for e in entities), entities
     assert any("e_icp" in e for e in entities), entities
+    # The calibration recording: the cell and the arm, the flange model on the TCP, the
+    # residuals, and the solved T_base_cam placing every capture in the base frame.
+    for entity in ("/world/cell/table", "/world/robot/arm", "/world/tcp/flange", "/world/calib/residuals",
+                   "/calib/residuals_mm", "/world/camera/clouds/pair"):
+        assert entity in entities, (entity, entities)
+    _, translation = read_component(rrd, "/world/camera", "Transform3D:translation", timeline="")
+    np.testing.assert_allclose(np.asarray(translation[-1]).reshape(3), np.array(result["calibration"]["T_base_cam"])[:3, 3], atol=1e-9)
 
     # SIGTERM: the robot stops first, the daemon exits cleanly.
     proc.send_signal(signal.SIGTERM)

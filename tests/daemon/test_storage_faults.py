@@ -305,7 +305,7 @@ async def test_a_dataset_that_cannot_be_written_fails_the_job_with_its_path(tmp_
 @run
 async def test_a_recording_that_cannot_be_written_fails_the_job(tmp_path: Path, monkeypatch) -> None:
     h = Harness(tmp_path, recording=True)
-    disk = FullOs(lambda p: p.endswith(".rrd"))
+    disk = FullOs(lambda p: p.endswith(".rrd.part"))
     monkeypatch.setattr(recording_job, "os", disk, raising=False)
     disk.full = True
     job = (await h.manager.on_submit(WeldJob()))["job"]

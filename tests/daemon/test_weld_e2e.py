@@ -26,7 +26,8 @@ import pytest
 from celld import se3
 from celld.bus import schema
 from celld.journal import Journal
-from celld.recording.readback import read_entities
+from celld.recording import layout
+from celld.recording.readback import read_entities, read_scalars
 from celld.sim.cell import run_cell, sim_part, start_daemon, stop_daemon
 from celld.sim.score import TruthRecorder, lateral, open_loop_torch, targeting, true_torch_path
 from tests.daemon.orphans import after_kill
@@ -144,7 +145,18 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
             assert any(e.endswith(name) and e.startswith("/world") for e in entities), (name, entities)
         assert any(e.startswith("/servo") for e in entities), entities
         assert "/srm/camera" in entities and "/srm/camera/tag" in entities, entities
+        assert "/world/workpiece" in entities and "/world/robot/arm" in entities and "/world/cell/table" in entities, entities
         assert any(e.startswith("/motion/loop") for e in entities), entities
+        # The weld's timeline: the arc on as long as the figures say, delta_n held at delta_d while it burns.
+        _, arc_rec = read_scalars(Path(result["recording"]), layout.WELD_ARC)
+        _, dn = read_scalars(Path(result["recording"]), f"{layout.SERVO_DELTA_N}/delta_n")
+        _, dd = read_scalars(Path(result["recording"]), f"{layout.SERVO_DELTA_N}/delta_d")
+        burning = arc_rec[:, 0] > 0
+        assert abs(burning.sum() * 2e-3 - result["figures"]["arc_on_s"]) < 0.1 * result["figures"]["arc_on_s"]
+        assert np.all(np.isfinite(dn[burning, 0])) and np.all(np.abs(dd[burning, 0]) > 0)
+        assert float(np.median(np.abs(dn[burning, 0] - dd[burning, 0]))) < 0.3 * float(np.median(np.abs(dd[burning, 0])))
+        _, contact = read_scalars(Path(result["recording"]), layout.WELD_CONTACT)
+        assert float(np.mean(contact[burning, 0] >= 1)) > 0.95
 
         # Cancel during the track: a jerk-limited stop, the arc off, the job cancelled.
         with client.watch_progress() as events:

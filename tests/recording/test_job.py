@@ -6,6 +6,7 @@ import json
 import os
 import socket
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -137,6 +138,7 @@ def test_the_file_holds_every_entity_of_the_layout(written: tuple[Path, dict]) -
         "/motion/loop/period_ms",
         "/motion/loop/work_ms",
         "/motion/status",
+        "/weld/contact",  # the tactile samples' contact state
         "/calib/e_icp",
         "/events",
     }
@@ -145,8 +147,41 @@ def test_the_file_holds_every_entity_of_the_layout(written: tuple[Path, dict]) -
 def test_the_blueprint_has_the_3d_2d_and_time_series_views(written: tuple[Path, dict]) -> None:
     views = read_views(written[0])
     assert ("3D", "/world") in views and ("2D", "/srm/camera") in views
-    for origin in (layout.SERVO_DELTA, layout.SERVO_V_R, layout.SERVO_OMEGA, layout.MOTION_LOOP, layout.CALIB_E_ICP):
+    for origin in (layout.SERVO_DELTA_N, layout.WELD, layout.SERVO_DELTA, layout.SERVO_V_R, layout.SERVO_OMEGA, layout.MOTION_LOOP, layout.CALIB_E_ICP):
         assert ("TimeSeries", origin) in views
+
+
+def test_the_weld_timeline_has_the_deformation_its_target_the_contact_and_the_arc(tmp_path: Path) -> None:
+    """The motion ring's own records (celld.motion.channels.STATE_DTYPE): delta_n against delta_d,
+    the contact state, the phase and the arc output, each a series on the loop's clock."""
+    from celld.motion.channels import STATE_DTYPE as RING_DTYPE
+
+    path = tmp_path / "weld.rrd"
+    rec = JobRecording(path, "weld-1", "weld")
+    n = 300
+    b = np.zeros(n, RING_DTYPE)
+    b["t_ns"] = rec.t0_ns + np.arange(n) * PERIOD_NS
+    b["delta_n"] = np.where(np.arange(n) < 50, np.nan, 0.0015 + 1e-5 * np.sin(np.arange(n)))
+    b["delta_d"] = np.where(np.arange(n) < 20, np.nan, 0.0015)
+    b["delta_tool"] = np.nan
+    b["delta_tool"][50:, 1] = b["delta_n"][50:]
+    b["contact"] = np.where(np.arange(n) < 50, 0, 1)
+    b["servo_phase"] = np.where(np.arange(n) < 50, 0, 1)
+    b["process_on"] = (np.arange(n) >= 60) & (np.arange(n) < 250)
+    assert rec.log_state_batch(b) == n
+    rec.close()
+    _, dn = read_scalars(path, f"{layout.SERVO_DELTA_N}/delta_n")
+    _, dd = read_scalars(path, f"{layout.SERVO_DELTA_N}/delta_d")
+    _, contact = read_scalars(path, layout.WELD_CONTACT)
+    _, arc = read_scalars(path, layout.WELD_ARC)
+    _, phase = read_scalars(path, layout.SERVO_PHASE)
+    np.testing.assert_allclose(dn[:, 0], b["delta_n"], equal_nan=True)
+    np.testing.assert_allclose(dd[:, 0], b["delta_d"], equal_nan=True)
+    np.testing.assert_array_equal(contact[:, 0], b["contact"])
+    np.testing.assert_array_equal(phase[:, 0], b["servo_phase"])
+    np.testing.assert_array_equal(arc[:, 0], b["process_on"].astype(float))
+    # The arc on for exactly the cycles the loop asked for it: 190 cycles, 0.38 s.
+    assert int(arc[:, 0].sum()) == 190
 
 
 def test_state_batches_become_time_series_on_the_loop_clock(written: tuple[Path, dict]) -> None:
@@ -416,3 +451,69 @@ def test_a_full_disk_fails_the_recording_and_close_returns(tmp_path: Path, small
     assert not t.is_alive(), "close() hung on a full disk"
     assert isinstance(outcome["closed"], StorageError), outcome["closed"]
     assert "No space left on device" in str(outcome["closed"]) and "job-full.rrd" in str(outcome["closed"])
+
+
+def test_a_solved_calibration_places_every_capture_in_the_base_frame_with_its_residuals(tmp_path: Path) -> None:
+    """The calibration recording: captures logged in the camera frame during the job, the solved
+    T_base_cam logged static at the end (it then places them all), the flange model carried by the
+    TCP, the residual of each pair as an arrow and a bar."""
+    from celld.calib.flange import preset
+
+    path = tmp_path / "cal.rrd"
+    rec = JobRecording(path, "cal-1", "calibration")
+    mesh = preset("ur10e").mesh()
+    V, F = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    rec.log_mesh(layout.FLANGE, V, F, static=True)
+    rec.log_cloud_cam("pair", np.array([[0.0, 0.0, 0.8], [0.01, 0.0, 0.8]]))
+    T = se3.from_ur_pose([0.6, 0.0, 1.0, np.pi, 0.0, 0.0])
+    P_robot = np.array([[0.5, 0.0, 0.2], [0.6, 0.1, 0.25], [0.7, -0.1, 0.3]])
+    P_scanner = P_robot + [[1e-4, 0.0, 0.0], [0.0, -2e-4, 0.0], [0.0, 0.0, 3e-3]]
+    rec.log_camera_pose(T, static=True)
+    rec.log_residuals(["p000", "p001", "p002"], P_robot, P_scanner, [False, False, True])
+    rec.close()
+
+    entities = read_entities(path)
+    assert {layout.FLANGE, layout.RESIDUALS, layout.CALIB_RESIDUALS, layout.CAMERA} <= entities
+    # Static: no time on any timeline, so it holds for the captures logged before it.
+    _, translation = read_component(path, layout.CAMERA, "Transform3D:translation", timeline="")
+    np.testing.assert_allclose(np.asarray(translation[0]).reshape(3), T[:3, 3])
+    _, vertices = read_component(path, layout.FLANGE, "Mesh3D:vertex_positions", timeline="")
+    assert len(vertices[0]) == len(V)
+    _, bars = read_component(path, layout.CALIB_RESIDUALS, "BarChart:values")
+    np.testing.assert_allclose(np.asarray(bars[0][0]["buffer"]), [0.1, 0.2, 3.0], rtol=1e-6)  # a tensor
+    _, vectors = read_component(path, layout.RESIDUALS, "Arrows3D:vectors")
+    np.testing.assert_allclose(np.asarray(vectors[0]).reshape(-1, 3), (P_scanner - P_robot) * 20.0, atol=1e-9)
+
+
+def test_bad_meshes_and_residuals_are_refused_with_the_reason(tmp_path: Path) -> None:
+    rec = JobRecording(tmp_path / "bad.rrd", "bad-1", "calibration")
+    V = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    with pytest.raises(InputError, match="indices into 3 vertices"):
+        rec.log_mesh(layout.WORKPIECE, V, [[0, 1, 3]])
+    with pytest.raises(InputError, match="under /world"):
+        rec.log_mesh("/workpiece", V, [[0, 1, 2]])
+    with pytest.raises(InputError, match="matching ids"):
+        rec.log_residuals(["a"], V, V, [False, False, False])
+    rec.close()
+
+
+def test_a_recording_drained_many_times_is_one_readable_stream(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each drain of rerun's memory stream is a whole RRD stream; close merges them into one file
+    that rerun's own verifier accepts (several streams in one file are refused), and the part file goes."""
+    import celld.recording.job as job_mod
+
+    monkeypatch.setattr(job_mod, "_DRAIN_PERIOD", 0.01)
+    path = tmp_path / "recordings" / "long-1.rrd"
+    rec = JobRecording(path, "long-1", "calibration")
+    rng = np.random.default_rng(1)
+    for i in range(6):
+        rec.log_cloud_cam("pair", rng.uniform(0.5, 1.0, (2000, 3)))
+        rec.log_e_icp(i, 1e-3 / (i + 1))
+        time.sleep(0.05)  # several drains between the logs
+    assert rec._writer is not None and rec._writer.written > 0  # drained before close
+    rec.close()
+    assert path.is_file() and not path.with_name("long-1.rrd.part").exists()
+    verify = subprocess.run([sys.executable, "-m", "rerun_cli", "rrd", "verify", str(path)], capture_output=True, text=True)
+    assert verify.returncode == 0, verify.stderr[-500:]
+    it, e = read_scalars(path, layout.CALIB_E_ICP, timeline=layout.ITERATION)
+    np.testing.assert_array_equal(it, np.arange(6))
