@@ -517,3 +517,4 @@ def test_a_recording_drained_many_times_is_one_readable_stream(tmp_path: Path, m
     assert verify.returncode == 0, verify.stderr[-500:]
     it, e = read_scalars(path, layout.CALIB_E_ICP, timeline=layout.ITERATION)
     np.testing.assert_array_equal(it, np.arange(6))
+    np.testing.assert_allclose(e[:, 0], 1e-3 / np.arange(1, 7))
