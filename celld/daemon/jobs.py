@@ -296,6 +296,13 @@ class JobManager:
         record = self.journal.get(job_id)
         return None if record is None else self._with_ending(record)
 
+    def _known(self, job_id: str) -> JobRecord:
+        """:meth:`_record`, refused with the reason when there is no such job."""
+        record = self._record(job_id)
+        if record is None:
+            raise JobError("$.job", f"no such job {job_id!r}")
+        return record
+
     def _with_ending(self, record: JobRecord) -> JobRecord:
         """``record`` with the end the journal still owes, if any."""
         ending = self._endings.get(record.id)
@@ -400,9 +407,7 @@ class JobManager:
             self.storage.failed(error, "recording", str(getattr(rec, "path", "") or ""))
 
     async def on_cancel(self, req: CancelRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
-        record = self._record(req.job)
-        if record is None:
-            raise JobError("$.job", f"no such job {req.job!r}")
+        record = self._known(req.job)
         if not caller.may_cancel(record.owner):
             raise JobError("$.job", f"job {req.job} is another user's; {caller} may cancel only its own jobs (a supervisor may cancel any)")
         reason = req.reason or "cancelled by request"
@@ -431,9 +436,7 @@ class JobManager:
     async def on_accept(self, req: AcceptRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
         if not caller.may("accept"):
             raise JobError("$", f"refused: {caller} may not accept calibrations")
-        record = self._record(req.job)
-        if record is None:
-            raise JobError("$.job", f"no such job {req.job!r}")
+        record = self._known(req.job)
         if record.kind != "calibrate" or record.state != "succeeded":
             raise JobError("$.job", f"job {req.job} is a {record.state} {record.kind} job; only a succeeded calibrate job can be accepted")
         if self._running is not None:
@@ -458,9 +461,7 @@ class JobManager:
         return await self.robot_action(req.action)
 
     async def on_result(self, req: ResultRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
-        record = self._record(req.job)
-        if record is None:
-            raise JobError("$.job", f"no such job {req.job!r}")
+        record = self._known(req.job)
         if not caller.may_see(record.owner):
             raise JobError("$.job", f"{caller} may not read the results of other users' jobs (bus.users job_details)")
         if not record.terminal:

@@ -211,14 +211,10 @@ def distorted_groove(name: str, shape: object) -> tuple[Workpiece, Stations]:
 
 def _model_stations(workpiece: Workpiece) -> Stations:
     """Stations of a model swept along a flat path with the profile across it (the shipped generators)."""
-    from celld import polyline
+    from celld.seam.weldpath import model_seam_frames
 
-    P, _ = polyline.resample(workpiece.seam, _STATION)
-    T = np.gradient(P, axis=0)
-    T /= np.linalg.norm(T, axis=1)[:, None]
+    P, _, lat = model_seam_frames(workpiece, "left", _STATION)  # lat = approach x tangent
     up = np.asarray(workpiece.approach, dtype=np.float64)
-    lat = np.cross(up, T)
-    lat /= np.linalg.norm(lat, axis=1)[:, None]
     return Stations(P, lat, np.tile(up, (len(P), 1)))
 
 
