@@ -605,7 +605,9 @@ class JobManager:
         finally:
             if recording is not None:
                 try:
-                    recording.close()
+                    # Off the event loop: a close flushes, merges and fsyncs the file (seconds for a
+                    # calibration's clouds), and the daemon's heartbeat must go on meanwhile.
+                    await asyncio.to_thread(recording.close)
                 except StorageError as exc:
                     fault = self.storage.failed(exc)
                     if state == "succeeded":
