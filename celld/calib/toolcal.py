@@ -341,7 +341,7 @@ def solve_tool_tip(
         # Nothing to be robust with: every subset is as degenerate as the whole.
         x = _lstsq(T, P)
         residuals = _residuals(T, P, x)
-        inlier = np.ones(n, dtype=bool)
+        inlier: NDArray[np.bool_] = np.ones(n, dtype=bool)
         sigma = float(np.sqrt(np.sum(residuals**2) / max(3 * n - 6, 1)))
         threshold = math.inf
     else:
@@ -354,7 +354,7 @@ def solve_tool_tip(
             threshold = max(rp.k * sigma, rp.min_threshold)
             if rp.max_threshold is not None:
                 threshold = min(threshold, rp.max_threshold)
-            inlier = residuals <= threshold
+            inlier = np.asarray(residuals <= threshold, dtype=bool)
             if inlier_prev is not None and (np.array_equal(inlier, inlier_prev) or rounds >= rp.max_rounds):
                 break
             inlier_prev = inlier
@@ -433,3 +433,59 @@ def solve_or_raise(T_base_tcp: ArrayLike, P_base_tip: ArrayLike, ids: Sequence[s
     if not np.all(np.isfinite(fit.p_tcp_tip)):
         raise CalibrationError("; ".join(fit.reasons) or "the tip could not be solved")
     return fit
+
+
+def tool_calibration_poses(
+    R_base_face: ArrayLike,
+    p_base_tip: ArrayLike,
+    p_tcp_tip: ArrayLike,
+    z_tcp_finger: ArrayLike,
+    n: int,
+    max_tilt: float,
+    seed: int = 0,
+    max_spin: float = 0.6,
+) -> Array:
+    """TCP poses (n, 4, 4) that present the tip at ``p_base_tip`` at ``n`` orientations turned about it.
+
+    The first is ``R_base_face`` itself (the TCP orientation that faces the
+    scanner: the calibration's verification pose). The others are it tilted
+    by up to ``max_tilt`` (rad) about axes across the finger, their directions
+    spread round the circle (golden angle, seeded jitter), magnitudes
+    alternating between the full and two thirds of it, and spun about the
+    finger by up to ``max_spin`` (rad): turns about three axes, so (T1) fixes
+    every component of the tip. Each pose puts the believed tip
+    ``p_tcp_tip`` at ``p_base_tip``.
+
+    ``z_tcp_finger`` is the finger's axis (from the tip towards the flange),
+    TCP frame: the tool config's ``tool_z_tcp``.
+    """
+    R0 = np.asarray(R_base_face, dtype=np.float64)
+    p = np.asarray(p_base_tip, dtype=np.float64)
+    t = np.asarray(p_tcp_tip, dtype=np.float64)
+    if R0.shape != (3, 3) or p.shape != (3,) or t.shape != (3,):
+        raise InputError(f"expected R (3, 3), p_base_tip (3,), p_tcp_tip (3,); got {R0.shape}, {p.shape}, {t.shape}")
+    if n < 1 or not (math.isfinite(max_tilt) and 0.0 <= max_tilt <= math.pi / 3):
+        raise InputError(f"expected n >= 1 and 0 <= max_tilt <= 60 deg, got n={n}, max_tilt={max_tilt!r} rad")
+    from scipy.spatial.transform import Rotation
+
+    d = -(R0 @ np.asarray(z_tcp_finger, dtype=np.float64))  # the finger's direction, flange to tip, base frame
+    d /= np.linalg.norm(d)
+    e1 = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d, e1)
+    rng = np.random.default_rng(seed)
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    out = np.zeros((n, 4, 4))
+    for i in range(n):
+        if i == 0:
+            R = R0
+        else:
+            phi = i * golden + rng.uniform(-0.2, 0.2)
+            tilt = max_tilt * (1.0 if i % 2 else 2.0 / 3.0)
+            axis = math.cos(phi) * e1 + math.sin(phi) * e2
+            spin = max_spin * rng.uniform(-1.0, 1.0)
+            R = Rotation.from_rotvec(tilt * axis).as_matrix() @ Rotation.from_rotvec(spin * d).as_matrix() @ R0
+        out[i, :3, :3] = R
+        out[i, :3, 3] = p - R @ t
+        out[i, 3, 3] = 1.0
+    return out
