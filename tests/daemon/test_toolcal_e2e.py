@@ -1,0 +1,97 @@
+"""Calibrate, then tool-calibrate, over the bus, in the realistic world: the measured tip against the tool as built.
+
+The cell is ``configs/sim-cell.toml`` on this test's own loopback address in
+the realistic world, whose tool is built off its drawing (the tip about a
+millimetre from ``tool.tip_tcp_mm``): the ray-cast PhoXi M sees the tool as
+built, the daemon only its config. Slow (a calibration and a tool
+calibration, about 4 minutes).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from celld.bus import schema
+from celld.errors import JobError
+from celld.sim.cell import run_cell
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[2]
+WORLD_SEED = 3
+# The measured tip against the true one, m: a tenth of the tip's own radius, and
+# well inside the 1-2 mm a typed tool is off.
+TIP_TOLERANCE = 0.2e-3
+
+
+def _config(tmp_path: Path, host: str) -> Path:
+    path = tmp_path / "cell.toml"
+    path.write_text(
+        f"""
+include = ["{ROOT / 'configs' / 'sim-cell.toml'}"]
+[cell]
+name = "toolcal-e2e"
+state_dir = "{tmp_path / 'state'}"
+[robot]
+host = "{host}"
+[bus]
+listen = ["tcp/{host}:7447"]
+[tool]
+measured = "required"
+[sim]
+preset = "realistic"
+seed = {WORLD_SEED}
+"""
+    )
+    return path
+
+
+def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host: str) -> None:
+    cfg_path = _config(tmp_path, loopback_host)
+    with run_cell(cfg_path, tmp_path / "daemon.log", timeout=120) as cell:
+        client, cfg, world = cell.client, cell.config, cell.world
+        tip_true = np.asarray(world.tool.config.tip_tcp)
+        tip_config = np.asarray(cfg.tool.tip_tcp)
+        assert np.linalg.norm(tip_true - tip_config) > 0.5e-3, "this world's tool must differ from its drawing"
+
+        # Without a calibration a tool calibration is refused, with the reason.
+        _, refused = client.submit_and_wait({"kind": "tool-calibrate"}, timeout=60)
+        assert refused["state"] == "failed" and "no current calibration" in refused["reason"]
+
+        _, cal = client.submit_and_wait({"kind": "calibrate", "seed": 5}, timeout=900)
+        assert cal["state"] == "succeeded", cal["reason"]
+        client.accept(cal["id"], force=True)
+
+        # A weld on an unmeasured tool is refused, naming the key that would allow it.
+        _, weld = client.submit_and_wait({"kind": "weld", "dry_run": True}, timeout=120)
+        assert weld["state"] == "failed" and "tool.measured" in weld["reason"], weld["reason"]
+
+        events: list[dict] = []
+        _, tc = client.submit_and_wait({"kind": "tool-calibrate", "seed": 1}, on_event=events.append, timeout=900)
+        assert tc["state"] == "succeeded", tc["reason"]
+        assert [e for e in events if e["stage"] == "pose" and e.get("data", {}).get("detected")]
+        for e in events:
+            schema.check_message("progress", e)
+        result = json.loads(Path(tc["result"]).read_text())
+        tool = result["tool"]
+        assert tool["quality"]["verdict"] == "ok", tool["quality"]
+        tip = np.asarray(tool["tip_tcp_mm"]) * 1e-3
+        err = tip - tip_true
+        print(f"tool calibration: tip error {np.round(err * 1e3, 4).tolist()} mm (|e| {np.linalg.norm(err) * 1e3:.4f} mm), "
+              f"config off by {np.linalg.norm(tip_config - tip_true) * 1e3:.3f} mm, 1-sigma {tool['tip_std_mm']} mm, "
+              f"rms {tool['quality']['rms_mm']:.4f} mm, {tool['poses']} poses, offset {tool['quality']['offset_base_mm']} mm")
+        assert np.linalg.norm(err) <= TIP_TOLERANCE, (err, tool)
+
+        accepted = client.accept(tc["id"])
+        schema.check_message("accept-reply", accepted)
+        assert accepted["kind"] == "tool-calibrate" and accepted["tool"]["tip_tcp_mm"] == tool["tip_tcp_mm"]
+        current = client.request("calibration")
+        schema.check_message("calibration-reply", current)
+        assert current["tool"]["job"] == tc["id"] and current["calibration"]["job"] == cal["id"]
+        # A calibrate job is not a tool calibration, nor the reverse: each accept goes to its own store.
+        with pytest.raises(JobError):
+            client.accept(refused["id"])
