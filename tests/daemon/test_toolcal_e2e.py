@@ -10,6 +10,7 @@ tool calibration, about 5 minutes).
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +65,11 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host:
         _, cal = client.submit_and_wait({"kind": "calibrate", "seed": WORLD_SEED, "e_required_mm": 0.01}, timeout=900)
         assert cal["state"] == "succeeded", cal["reason"]
         client.accept(cal["id"], force=True)
+        # The calibration's end may have held the daemon long enough for its motion process to restart: wait for the link.
+        deadline = time.monotonic() + 60
+        while client.status().get("robot_link") != "up":
+            assert time.monotonic() < deadline, client.status()
+            time.sleep(0.5)
 
         # (A weld on this unmeasured tool is refused, naming tool.measured: tests/daemon/test_weld_inputs.py.)
         events: list[dict] = []
