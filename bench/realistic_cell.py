@@ -9,14 +9,17 @@ the simulated UR10e behind real ur-rtde and ``celld sim run``, driven over
 the bus (:func:`celld.sim.demo.run_jobs`):
 
 1. calibrate (the cell's 20 poses, Algorithm 1 may stop earlier) and accept;
-2. tool-calibrate: **not run**, there is no such job yet; the daemon welds
-   with the configured tool offsets, which the realistic world's tool misses
-   by up to 1-2 mm (``--without tool_offsets`` is the weld as if the tool
-   were calibrated perfectly);
+2. tool-calibrate and accept: the SRM tip measured with the scanner (the
+   realistic world's tool misses the configured one by up to 1-2 mm); the
+   weld then uses the measured tip (``--no-tool-calibrate`` welds with the
+   configured one, ``--without tool_offsets`` as if the tool were drawn
+   exactly);
 3. weld the V-groove: scan, seam, touch, Algorithm 2 with the arc.
 
 Per seed, against the world's truth (read after the jobs):
 
+- tool calibration: the measured tip against the tool as built (and how far
+  the config's tip is off it), with the job's own 1-sigma and verdict;
 - calibration targeting error: where the flange truly lands when sent, through
   the accepted T_base_cam and the controller's nominal kinematics, to points
   the scanner saw (celld.sim.score.targeting): mean and max over the
@@ -85,11 +88,12 @@ def cell_config(work: Path, quick: bool) -> Path:
 INFRASTRUCTURE = ("robot program stopped", "robot link")
 
 
-def run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool, say: Any, retries: int = 1) -> dict[str, Any]:
+def run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool, say: Any, retries: int = 1,
+             tool_calibrate: bool = True) -> dict[str, Any]:
     """One seeded cell end to end, run again (up to ``retries`` times) after a starved robot link; its figures."""
     lost: list[str] = []
     while True:
-        r = _run_seed(seed, options, quick, force_accept, say)
+        r = _run_seed(seed, options, quick, force_accept, say, tool_calibrate)
         reason = str(r.get("failed", {}).get("reason", ""))
         if "failed" not in r or not any(k in reason for k in INFRASTRUCTURE) or len(lost) >= retries:
             if lost:
@@ -99,18 +103,19 @@ def run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool, 
         say(f"seed {seed}: {reason}; running it again")
 
 
-def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool, say: Any) -> dict[str, Any]:
+def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool, say: Any, tool_calibrate: bool = True) -> dict[str, Any]:
     """One seeded cell end to end; its figures (or why it failed)."""
     with tempfile.TemporaryDirectory(prefix="celld-realistic-") as tmp:
         work = Path(tmp)
         t0 = time.monotonic()
         try:
             figures = run_jobs(cell_config(work, quick), work / "daemon.log", WorldOptions(options.preset, seed, options.on, options.off),
-                               say, calibrate_seed=seed, force_accept=force_accept)
+                               say, calibrate_seed=seed, force_accept=force_accept, tool_calibrate=tool_calibrate)
         except CelldError as exc:
             log = (work / "daemon.log").read_text(errors="replace")[-2000:] if (work / "daemon.log").exists() else ""
             return {"seed": seed, "success": False, "failed": {"reason": str(exc), "log_tail": log}, "seconds": time.monotonic() - t0}
-    out: dict[str, Any] = {"seed": seed, "seconds": round(time.monotonic() - t0, 1), "tool_calibration": "not run (no tool-calibrate job yet)"}
+    out: dict[str, Any] = {"seed": seed, "seconds": round(time.monotonic() - t0, 1),
+                           "tool_calibration": figures.get("tool", "not run (--no-tool-calibrate)" if not tool_calibrate else "failed")}
     if "calibration" in figures:
         c = figures["calibration"]
         out["calibration"] = {k: c[k] for k in ("translation_error_mm", "rotation_error_deg", "pairs", "verdict", "forced", "targeting")}
@@ -196,6 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--with", dest="with_sources", default="", help=f"error sources to switch on ({', '.join(SOURCES)})")
     ap.add_argument("--without", dest="without_sources", default="", help="error sources to switch off")
     ap.add_argument("--force-accept", action="store_true", help="accept calibrations that fail the daemon's quality gate")
+    ap.add_argument("--no-tool-calibrate", action="store_true", help="weld with the configured tool, no tool-calibrate job")
     ap.add_argument("--retries", type=int, default=1, help="runs again of a seed whose robot link was starved by the machine")
     ap.add_argument("--out", default=None, help="directory of a full run's results (default bench/out/realistic_cell/<preset>)")
     args = ap.parse_args(argv)
@@ -207,16 +213,21 @@ def main(argv: list[str] | None = None) -> int:
     seeds = [args.seed0] if args.quick else list(range(args.seed0, args.seed0 + args.seeds))
     say = (lambda text: print(text, file=sys.stderr, flush=True)) if args.json else (lambda text: print(text, flush=True))
     label = args.preset + "".join(f" +{s}" for s in options.on) + "".join(f" -{s}" for s in options.off)
-    say(f"realistic_cell: preset {label}, seeds {seeds}; tool calibration: not run (no tool-calibrate job yet)")
+    say(f"realistic_cell: preset {label}, seeds {seeds}; tool calibration: {'not run' if args.no_tool_calibrate else 'run and accepted'}")
     runs = []
     quiet = lambda text: None  # noqa: E731  (the jobs' own progress lines)
     for seed in seeds:
         say(f"seed {seed} ...")
-        r = run_seed(seed, options, args.quick, args.force_accept, quiet, args.retries)
+        r = run_seed(seed, options, args.quick, args.force_accept, quiet, args.retries, not args.no_tool_calibrate)
         runs.append(r)
         say("\n".join(table([r])[2:]) + f"   ({r.get('seconds', 0):.0f} s)")
+        tc = r.get("tool_calibration")
+        if isinstance(tc, dict):
+            say(f"  tool calibration: tip {tc['tip_error_mm']:.3f} mm from the true tip (config {tc['config_error_mm']:.3f} mm), "
+                f"1-sigma {tc['tip_std_mm']} mm, RMS {tc['rms_mm']} mm, {tc['poses']} poses, verdict {tc['verdict']}")
     sources = sorted(((set(SOURCES) if args.preset == "realistic" else set()) | set(options.on)) - set(options.off))
     summary = summarise(label, sources, runs)
+    summary["tool_tip_error_mm"] = [r["tool_calibration"]["tip_error_mm"] for r in runs if isinstance(r.get("tool_calibration"), dict)]
     say("")
     say(f"preset: {label} (sources on: {', '.join(sources) or 'none'})")
     for line in table(runs):

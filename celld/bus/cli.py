@@ -72,6 +72,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--seed", type=int, help="seed of the pose generator")
     c.add_argument("--dry-run", action="store_true", help="plan and check the poses against the cell, do not move")
 
+    t = kinds.add_parser("tool-calibrate", parents=[job_common], help="measure the SRM tip in the TCP frame with the scanner")
+    t.add_argument("--n-poses", type=int, help="orientations to present the tool at (default 12)")
+    t.add_argument("--max-tilt-deg", type=float, help="largest tilt of the finger from facing the scanner, deg (default 20)")
+    t.add_argument("--tip-position", **_floats(3, "X"), help="where the tip is presented, base frame, m (default: the verification pose's position)")
+    t.add_argument("--seed", type=int, help="seed of the orientation generator")
+    t.add_argument("--dry-run", action="store_true", help="plan and check the poses against the cell, do not move")
+
     w = kinds.add_parser("weld", parents=[job_common], help="scan, find the seam, touch and track it")
     w.add_argument("--workpiece", help="workpiece model known to the cell (default: the config's weld.workpiece)")
     w.add_argument("--delta-d-mm", type=float, help="desired normal deformation, mm")
@@ -117,7 +124,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--out", help="write the result document to this file instead of printing it")
     r.set_defaults(func=_result)
 
-    a = sub.add_parser("accept", parents=[common], help="make a calibrate job's result the current calibration")
+    a = sub.add_parser("accept", parents=[common], help="make a calibrate (tool-calibrate) job's result the current (tool) calibration")
     a.add_argument("job")
     a.add_argument("--force", action="store_true", help="accept even though the calibration failed its quality gate")
     a.set_defaults(func=_accept)
@@ -182,6 +189,13 @@ def _job_message(args: argparse.Namespace) -> dict[str, Any]:
             m["verification_pose"] = args.verification_pose
         if args.compensate:
             m["compensate"] = True
+        if args.dry_run:
+            m["dry_run"] = True
+    elif kind == "tool-calibrate":
+        _put(m, "n_poses", args.n_poses)
+        _put(m, "max_tilt_deg", args.max_tilt_deg)
+        _put(m, "tip_position", args.tip_position)
+        _put(m, "seed", args.seed)
         if args.dry_run:
             m["dry_run"] = True
     elif kind == "weld":
@@ -400,8 +414,10 @@ def _accept(args: argparse.Namespace) -> int:
     if args.json:
         _print_json(reply)
     else:
-        forced = " (forced past a failed quality verdict)" if reply["calibration"].get("forced") else ""
-        print(f"calibration of {reply['job']} is current{forced}")
+        what = "tool calibration" if reply.get("kind") == "tool-calibrate" else "calibration"
+        value = reply.get("tool") if reply.get("kind") == "tool-calibrate" else reply.get("calibration")
+        forced = " (forced past a failed quality verdict)" if (value or {}).get("forced") else ""
+        print(f"{what} of {reply['job']} is current{forced}")
     return 0
 
 

@@ -11,12 +11,13 @@ Requests (what a client sends, keyed by the queryable's name):
 ========================  ============================================  ===========================
 queryable                 payload                                       parsed into
 ========================  ============================================  ===========================
-``submit``                ``{"kind": "calibrate" | "weld" | "move" |    :data:`Job`
-                          "health", ...}``
+``submit``                ``{"kind": "calibrate" | "tool-calibrate" |   :data:`Job`
+                          "weld" | "move" | "health", ...}``
 ``status``                ``{}`` or ``{"job": ID}``                     :class:`StatusRequest`
 ``cancel``                ``{"job": ID}``                               :class:`CancelRequest`
 ``list``                  ``{"limit": N, "state": S, "kind": K}``       :class:`ListRequest`
-``accept``                ``{"job": ID, "force": B}`` (a calibrate job) :class:`AcceptRequest`
+``accept``                ``{"job": ID, "force": B}`` (a calibrate or   :class:`AcceptRequest`
+                          tool-calibrate job)
 ``calibration``           ``{}``                                        :class:`CalibrationRequest`
 ``robot``                 ``{"action": "unlock" | "power-on" |          :class:`RobotRequest`
                           "brake-release" | "close-popup"}``
@@ -81,12 +82,16 @@ REQUEST_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:-]{0,63}$"
 # Largest result sent inline by the result queryable, bytes of JSON.
 MAX_RESULT_BYTES = 1024 * 1024
 
-JOB_KINDS = ("calibrate", "weld", "move", "health")
+JOB_KINDS = ("calibrate", "weld", "move", "health", "tool-calibrate")
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
 TERMINAL_STATES = ("succeeded", "failed", "cancelled", "interrupted")
 HEALTH_CHECKS = ("all", "robot", "scanner", "tactile")
 # Verdicts of the calibration quality gate (celld.calib.quality.VERDICTS; only "ok" passes).
 CALIBRATION_VERDICTS = ("ok", "too_few_pairs", "poor_data", "insufficient_rotation", "insufficient_range_bias")
+# Verdicts of a tool calibration (celld.calib.toolcal.VERDICTS; only "ok" passes).
+TOOL_VERDICTS = ("ok", "too_few_poses", "poor_orientation_spread", "poor_data")
+# Most poses one tool calibration may visit.
+MAX_TOOL_POSES = 100
 
 Pose6 = tuple[float, float, float, float, float, float]
 
@@ -212,6 +217,25 @@ _CALIBRATE: dict[str, Any] = _submit_branch(
 )
 _CALIBRATE["not"] = {"required": ["poses", "n_poses"], "description": "Give either poses or n_poses, not both."}
 
+_TOOL_CALIBRATE = _submit_branch(
+    "tool-calibrate",
+    "Measure the welding tool's SRM tip in the TCP frame (the torch follows: it sits torch_offset along -x "
+    "of the tool frame, whose origin the tip is): the tool is presented to the scanner at n_poses "
+    "orientations, turned about the tip, the tip ball is found in each capture with the current "
+    "calibration, and the tip solved by least squares with its residuals, outliers, 1-sigma and a verdict. "
+    "Needs a current calibration. The result becomes the current tool calibration only on an accept "
+    "request (a failed verdict only with force) or when the config says so.",
+    {
+        "n_poses": _integer("How many orientations to present the tool at (default 12).", 3, MAX_TOOL_POSES),
+        "max_tilt_deg": _number("Largest tilt of the finger from the pose facing the scanner, deg (default 20).", 2.0, 45.0),
+        "tip_position": _vector(
+            "Where the tip is presented, base frame, m (default: the position of calibration.verification_pose, "
+            "which the scanner sees).", 3, -2.5, 2.5),
+        "seed": _integer("Seed of the orientation generator (default 0).", 0, 2**32 - 1),
+        "dry_run": _DRY_RUN,
+    },
+)
+
 _WELD = _submit_branch(
     "weld",
     "Scan, find the seam, move it to the base frame with the current calibration, approach, "
@@ -260,7 +284,7 @@ _HEALTH = _submit_branch(
 _SUBMIT = {
     "type": "object",
     "description": "A job for the cell. The reply is submit-reply or error-reply.",
-    "oneOf": [_CALIBRATE, _WELD, _MOVE, _HEALTH],
+    "oneOf": [_CALIBRATE, _WELD, _MOVE, _HEALTH, _TOOL_CALIBRATE],
 }
 
 _ERROR = _object(
@@ -417,6 +441,62 @@ _CALIBRATION = _object(
     ("job", "T_base_cam", "accepted"),
 )
 
+_TOOL_QUALITY = _object(
+    "The verdict on a tool calibration (celld.calib.toolcal): why, each pose's residual and whether it is an "
+    "outlier, the noise, the orientation spread and the tip's 1-sigma.",
+    {
+        "verdict": {"enum": list(TOOL_VERDICTS), "description": "Only ok passes; accept refuses the others unless forced."},
+        "passed": {"type": "boolean"},
+        "reasons": {**_TEXTS, "description": "Why the verdict is not ok."},
+        "warnings": {**_TEXTS, "description": "What does not fail the verdict but should be known."},
+        "poses": {
+            "type": "array",
+            "description": "Every pose with a tip measurement: residual against the fit, used, outlier, and why.",
+            "items": _object(
+                "One pose.",
+                {
+                    "id": {"type": "string"},
+                    "residual_mm": _NUMBER_OR_NULL,
+                    "used": {"type": "boolean"},
+                    "outlier": {"type": "boolean"},
+                    "reason": {"type": "string"},
+                },
+                ("id", "residual_mm", "used", "outlier", "reason"),
+            ),
+        },
+        "outliers": {"type": "array", "items": {"type": "string"}, "description": "Ids of the outliers."},
+        "n_used": {"type": "integer", "minimum": 0},
+        "rms_mm": {**_NUMBER_OR_NULL, "description": "RMS residual of the poses used."},
+        "sigma_mm": {**_NUMBER_OR_NULL, "description": "Noise per axis the uncertainty uses."},
+        "sigma_source": {"enum": ["residuals", "floor"]},
+        "spread_deg": {**_NUMBER_OR_NULL, "description": "Orientation spread of the poses used along the worst-fixed direction of the tip."},
+        "spread_axis_tcp": _vector("That direction, TCP frame.", 3),
+        "tip_std_mm": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3, "description": "1-sigma of the tip along TCP x, y, z."},
+        "offset_base_mm": _vector("Where the scanner and the arm disagree at the tool's place (solved with the tip), base frame, mm.", 3),
+        "offset_std_mm": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3},
+        "missed": {"type": "array", "items": {"type": "object"}, "description": "Poses whose capture showed no tip, and why."},
+    },
+    ("verdict", "passed", "reasons", "warnings", "poses"),
+)
+
+_TOOL_CALIBRATION = _object(
+    "A tool calibration: the SRM tip measured in the TCP frame; it overrides tool.tip_tcp_mm once current.",
+    {
+        "job": _JOB_ID,
+        "tip_tcp_mm": _vector("The tip's centre in the TCP frame, mm.", 3),
+        "tip_std_mm": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3, "description": "Its 1-sigma, mm."},
+        "nominal_tip_tcp_mm": _vector("The config's tool.tip_tcp_mm when it was measured.", 3),
+        "delta_mm": _vector("Measured minus configured tip, TCP frame, mm.", 3),
+        "torch_tcp_mm": _vector("The torch point that follows (torch_offset along -x of the tool frame), TCP frame, mm.", 3),
+        "calibration_job": {"type": "string", "description": "The hand-eye calibration the tips were placed with."},
+        "poses": {"type": "integer", "minimum": 0, "description": "Poses with a tip measurement."},
+        "quality": _TOOL_QUALITY,
+        "accepted": {"type": "string", "description": "When it became current, UTC ISO 8601."},
+        "forced": {"type": "boolean", "description": "Accepted with force despite a failed verdict."},
+    },
+    ("job", "tip_tcp_mm", "quality"),
+)
+
 _PROGRESS = _object(
     "Progress of one job, published on progress/<job>. seq counts from 0 without gaps at "
     "the sender; a gap at the receiver means dropped events (ask status).",
@@ -492,7 +572,8 @@ _BODIES: dict[str, dict[str, Any]] = {
         },
     ),
     "accept": _object(
-        "Make a finished calibrate job's result the current calibration. A result whose quality verdict is not ok is refused unless force is true.",
+        "Make a finished calibrate job's result the current calibration, or a finished tool-calibrate job's the "
+        "current tool calibration. A result whose verdict is not ok is refused unless force is true.",
         {"job": _JOB_ID, "force": {"type": "boolean", "default": False, "description": "Accept even though the quality verdict is not ok."}},
         ("job",),
     ),
@@ -555,10 +636,17 @@ _BODIES: dict[str, dict[str, Any]] = {
         ("job", "kind", "state", "reason", "result", "too_large", "files"),
     ),
     "list-reply": _reply("Jobs, newest first.", {"jobs": {"type": "array", "items": _JOB_RECORD}}, ("jobs",)),
-    "accept-reply": _reply("The new current calibration.", {"job": _JOB_ID, "calibration": _CALIBRATION}, ("job", "calibration")),
+    "accept-reply": _reply(
+        "The new current calibration (calibration, for a calibrate job) or tool calibration (tool, for a tool-calibrate job).",
+        {"job": _JOB_ID, "kind": {"enum": ["calibrate", "tool-calibrate"]}, "calibration": _CALIBRATION, "tool": _TOOL_CALIBRATION},
+        ("job",),
+    ),
     "calibration-reply": _reply(
-        "The current calibration, null if there is none.",
-        {"calibration": {"type": ["object", "null"], **{k: v for k, v in _CALIBRATION.items() if k != "type"}}},
+        "The current calibration, null if there is none; and the current tool calibration (tool), null if there is none.",
+        {
+            "calibration": {"type": ["object", "null"], **{k: v for k, v in _CALIBRATION.items() if k != "type"}},
+            "tool": {"type": ["object", "null"], **{k: v for k, v in _TOOL_CALIBRATION.items() if k != "type"}},
+        },
         ("calibration",),
     ),
     "robot-reply": _reply(
@@ -648,7 +736,21 @@ class HealthJob:
     kind: ClassVar[str] = "health"
 
 
-Job = CalibrateJob | WeldJob | MoveJob | HealthJob
+@dataclass(frozen=True)
+class ToolCalibrateJob:
+    """Measure the SRM tip in the TCP frame. ``None`` means "the default"."""
+
+    n_poses: int | None = None
+    max_tilt: float | None = None  # rad
+    tip_position: tuple[float, float, float] | None = None  # m, base frame
+    seed: int | None = None
+    dry_run: bool = False
+    ref: str = ""
+    request_id: str = ""  # the client's id of the submit
+    kind: ClassVar[str] = "tool-calibrate"
+
+
+Job = CalibrateJob | WeldJob | MoveJob | HealthJob | ToolCalibrateJob
 
 
 @dataclass(frozen=True)
@@ -849,11 +951,26 @@ def _build_health(m: Mapping[str, Any]) -> HealthJob:
     return HealthJob(check=m.get("check", "all"), ref=m.get("ref", ""), request_id=m.get("request_id", ""))
 
 
+def _build_tool_calibrate(m: Mapping[str, Any]) -> ToolCalibrateJob:
+    tilt = m.get("max_tilt_deg")
+    tip = m.get("tip_position")
+    return ToolCalibrateJob(
+        n_poses=_int_or_none(m.get("n_poses")),
+        max_tilt=None if tilt is None else math.radians(float(tilt)),
+        tip_position=None if tip is None else (float(tip[0]), float(tip[1]), float(tip[2])),
+        seed=_int_or_none(m.get("seed")),
+        dry_run=bool(m.get("dry_run", False)),
+        ref=m.get("ref", ""),
+        request_id=m.get("request_id", ""),
+    )
+
+
 _JOB_BUILDERS: dict[str, Callable[[Mapping[str, Any]], Job]] = {
     "calibrate": _build_calibrate,
     "weld": _build_weld,
     "move": _build_move,
     "health": _build_health,
+    "tool-calibrate": _build_tool_calibrate,
 }
 
 
@@ -970,6 +1087,17 @@ def job_to_message(job: Job) -> dict[str, Any]:
         m["speed_scale"] = job.speed_scale
     elif isinstance(job, HealthJob):
         m["check"] = job.check
+    elif isinstance(job, ToolCalibrateJob):
+        if job.n_poses is not None:
+            m["n_poses"] = job.n_poses
+        if job.max_tilt is not None:
+            m["max_tilt_deg"] = round(math.degrees(job.max_tilt), 9)
+        if job.tip_position is not None:
+            m["tip_position"] = list(job.tip_position)
+        if job.seed is not None:
+            m["seed"] = job.seed
+        if job.dry_run:
+            m["dry_run"] = True
     if job.ref:
         m["ref"] = job.ref
     if job.request_id:

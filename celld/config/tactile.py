@@ -95,6 +95,10 @@ class TactileConfig:
         )
 
 
+# tool.measured: a weld needs a measured tip, or may use the configured one.
+TOOL_MEASURED = ("required", "nominal")
+
+
 @dataclass(frozen=True)
 class ToolConfig:
     """The welding tool on the flange: the SRM finger, its camera's mount and the torch.
@@ -120,6 +124,11 @@ class ToolConfig:
     # Which side of the tool the seam wall is on: "left" (+n_d) or "right" (-n_d).
     wall_side: str = "left"
     torch_offset: float = 0.03  # m, |d| of Eq. 14: the torch trails the tip by this much
+    # Whether a weld needs the tip measured by an accepted tool-calibrate job
+    # ("required": the measured tip overrides tip_tcp; a weld without one is
+    # refused) or may run on tip_tcp as typed ("nominal": a tool known to be as
+    # drawn; a measured tip, when there is one, still overrides it).
+    measured: str = "required"
 
     def R_tool_cam(self) -> np.ndarray:
         return np.array(self.T_tool_cam, dtype=np.float64)[:3, :3]
@@ -145,6 +154,7 @@ class ToolConfig:
             T_tool_cam=r.matrix4("T_tool_cam", [list(row) for row in cls.T_tool_cam]),
             wall_side=r.str("wall_side", cls.wall_side, choices=("left", "right")),
             torch_offset=r.float("torch_offset_mm", cls.torch_offset * 1e3, lo=lo, hi=hi, scale=1e-3, open_lo=True),
+            measured=r.str("measured", cls.measured, choices=TOOL_MEASURED),
         )
 
 

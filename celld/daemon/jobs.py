@@ -118,6 +118,9 @@ class JobContext:
 
 Runner = Callable[[JobContext], Awaitable[Mapping[str, Any]]]
 
+# Job kinds whose result an accept makes current, and the key of their result that holds it.
+ACCEPTED_KINDS = {"calibrate": "calibration", "tool-calibrate": "tool"}
+
 
 class CalibrationStore:
     """The current calibration, and the candidates finished calibrate jobs left.
@@ -127,11 +130,17 @@ class CalibrationStore:
     A candidate whose quality verdict (``quality.verdict``) is not ``ok`` is
     accepted only with ``force``, and is then marked ``forced``; a candidate
     without a verdict (written before the gate existed) is accepted as before.
+
+    The same store keeps the tool calibration (:func:`tool_store`:
+    ``tool.json`` and ``tool-calibrations/``): one accept, one verdict rule,
+    for whatever a job measured.
     """
 
-    def __init__(self, state_dir: Path) -> None:
-        self.current_path = state_dir / "calibration.json"
-        self.candidates = state_dir / "calibrations"
+    def __init__(self, state_dir: Path, current: str = "calibration.json", candidates: str = "calibrations",
+                 kind: str = "calibrate") -> None:
+        self.current_path = state_dir / current
+        self.candidates = state_dir / candidates
+        self.kind = kind
         self.candidates.mkdir(parents=True, exist_ok=True)
 
     def current(self) -> dict[str, Any] | None:
@@ -149,7 +158,7 @@ class CalibrationStore:
     def accept(self, job_id: str, force: bool = False) -> dict[str, Any]:
         path = self.candidates / f"{job_id}.json"
         if not path.exists():
-            raise JobError("$.job", f"job {job_id} left no calibration to accept (not a finished calibrate job)")
+            raise JobError("$.job", f"job {job_id} left no calibration to accept (not a finished {self.kind} job)")
         calibration = json.loads(path.read_text())
         quality = calibration.get("quality")
         verdict = quality.get("verdict") if isinstance(quality, dict) else None
@@ -164,6 +173,11 @@ class CalibrationStore:
         calibration["accepted"] = utc_now()
         fsutil.write_json(self.current_path, calibration)
         return calibration
+
+
+def tool_store(state_dir: Path) -> CalibrationStore:
+    """The current tool calibration (``<state_dir>/tool.json``) and the candidates tool-calibrate jobs left."""
+    return CalibrationStore(state_dir, "tool.json", "tool-calibrations", "tool-calibrate")
 
 
 @dataclass(frozen=True)
@@ -198,7 +212,7 @@ class JobManager:
         Sends an operator's recovery command (CellDevices.robot_action);
         refused while a job runs.
     auto_accept : bool
-        Make a calibrate job's result current when it succeeds.
+        Make a calibrate (or tool-calibrate) job's result current when it succeeds (and its verdict is ok).
     min_free_mb : float
         The disk-space floor of the state directory, MiB (``cell.min_free_mb``); 0: none.
     storage_retry_s : float
@@ -243,6 +257,7 @@ class JobManager:
         self.storage = StorageGuard(self.state_dir, min_free_mb, free_bytes=free_bytes)
         self.storage_retry_s = storage_retry_s
         self.calibrations = CalibrationStore(self.state_dir)
+        self.tools = tool_store(self.state_dir)
         self.results_dir = self.state_dir / "results"
         self.results_dir.mkdir(parents=True, exist_ok=True)
         fsutil.remove_stale_temporaries(self.state_dir)
@@ -437,20 +452,22 @@ class JobManager:
         if not caller.may("accept"):
             raise JobError("$", f"refused: {caller} may not accept calibrations")
         record = self._known(req.job)
-        if record.kind != "calibrate" or record.state != "succeeded":
-            raise JobError("$.job", f"job {req.job} is a {record.state} {record.kind} job; only a succeeded calibrate job can be accepted")
+        if record.kind not in ACCEPTED_KINDS or record.state != "succeeded":
+            raise JobError("$.job", f"job {req.job} is a {record.state} {record.kind} job; only a succeeded calibrate or "
+                                    "tool-calibrate job can be accepted")
         if self._running is not None:
             raise JobError("$", f"refused: job {self._running[0]} is running; accept a calibration between jobs")
+        store = self.tools if record.kind == "tool-calibrate" else self.calibrations
         try:
-            calibration = self.calibrations.accept(req.job, force=req.force)
+            calibration = store.accept(req.job, force=req.force)
         except OSError as exc:
             fault = self.storage.failed(exc, "calibration")
             raise JobError("$", f"refused: {fault}") from exc
-        log.info("calibration accepted", job=req.job, user=caller.user, forced=bool(calibration.get("forced")))
-        return {"job": req.job, "calibration": calibration}
+        log.info("calibration accepted", job=req.job, kind=record.kind, user=caller.user, forced=bool(calibration.get("forced")))
+        return {"job": req.job, "kind": record.kind, ACCEPTED_KINDS[record.kind]: calibration}
 
     async def on_calibration(self, req: CalibrationRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
-        return {"calibration": self.calibrations.current()}
+        return {"calibration": self.calibrations.current(), "tool": self.tools.current()}
 
     async def on_robot(self, req: RobotRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
         if self.robot_action is None:
@@ -638,11 +655,13 @@ class JobManager:
 
             self.storage.owe(f"result {path.name}", write_later, job=job_id)
             return None, f"{fault} (the result is kept and written once there is room)"
-        if job.kind == "calibrate" and "calibration" in result:
+        key = ACCEPTED_KINDS.get(job.kind)
+        if key is not None and key in result:
+            store = self.tools if job.kind == "tool-calibrate" else self.calibrations
             try:
-                self.calibrations.add_candidate(job_id, result["calibration"])
+                store.add_candidate(job_id, result[key])
                 if self.auto_accept:
-                    self.calibrations.accept(job_id)
+                    store.accept(job_id)
             except JobError as exc:  # a failed quality verdict waits for an operator
                 log.warning("calibration not accepted automatically", job=job_id, reason=str(exc))
             except OSError as exc:

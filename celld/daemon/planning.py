@@ -184,8 +184,10 @@ class MotionPlanner:
         candidates: Array,
         n: int,
         replacements: Callable[[int, int], Array] | None = None,
+        tool: bool = False,
     ) -> CalibrationPlan:
-        """The first ``n`` of ``candidates`` (k, 4, 4) the arm can visit in order without the tool, from ``q_start``.
+        """The first ``n`` of ``candidates`` (k, 4, 4) the arm can visit in order without the tool (with it:
+        ``tool``, a tool calibration), from ``q_start``.
 
         Refused candidates are skipped and kept with their reason; when fewer
         than ``n`` pass and ``replacements(count, round)`` is given, it draws
@@ -199,7 +201,7 @@ class MotionPlanner:
             A given pose is refused, or not enough poses pass after the
             replacement rounds (the message lists the first refusals).
         """
-        checker = self.bare
+        checker = self._checker(tool)
         poses: list[Array] = []
         joints: list[tuple[float, ...]] = []
         refused: list[Refusal] = []

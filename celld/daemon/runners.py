@@ -31,6 +31,7 @@ worker threads so the event loop keeps answering the bus.
 - **health**: the robot link and loop timing, the scanner (one capture), the
   tactile sensor.
 - **weld**: :mod:`celld.daemon.weld`.
+- **tool-calibrate**: :mod:`celld.daemon.toolcal`.
 """
 
 from __future__ import annotations
@@ -84,7 +85,12 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
 
         return await run_weld(ctx, config, devices, weld_cache)
 
-    return {"calibrate": calibrate, "move": move, "health": health, "weld": weld}
+    async def tool_calibrate(ctx: JobContext) -> Mapping[str, Any]:
+        from celld.daemon.toolcal import run_tool_calibrate
+
+        return await run_tool_calibrate(ctx, config, devices)
+
+    return {"calibrate": calibrate, "move": move, "health": health, "weld": weld, "tool-calibrate": tool_calibrate}
 
 
 # -- calibrate ---------------------------------------------------------------------

@@ -6,7 +6,10 @@ Steps, each published as a progress event:
    and the scanner captures the part;
 2. **seam**: the seam finder registers the part model in the scan and places
    its seam in the base frame with the *current* calibration (an accepted
-   calibrate job); a weld without one is refused. A calibration with a
+   calibrate job); a weld without one is refused. The tool's tip is the
+   current tool calibration's (an accepted tool-calibrate job), which
+   overrides ``tool.tip_tcp_mm``; without one the weld is refused unless
+   ``tool.measured = "nominal"`` says the typed tip may be used. A calibration with a
    range bias on metal (time-of-flight scanner) has the scan's points moved
    back along their rays by it first: the part and the table are metal;
 3. **approach**: the finger's wall line at ``weld.tip_height`` above the seam
@@ -33,6 +36,7 @@ import asyncio
 import hashlib
 import math
 from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -41,9 +45,9 @@ import numpy as np
 from celld import fsutil, polyline, se3
 from celld.bus.schema import WeldJob
 from celld.calib.rangebias import correct_range_bias
-from celld.config import Config, ServoConfig, with_overrides
+from celld.config import Config, ServoConfig, ToolConfig, with_overrides
 from celld.daemon.devices import CellDevices
-from celld.daemon.jobs import CalibrationStore, JobContext
+from celld.daemon.jobs import CalibrationStore, JobContext, tool_store
 from celld.daemon.planning import record_arm, record_cell, record_plan
 from celld.errors import CelldError, ConfigError, InputError, JobError, WorkpieceError
 from celld.log import get_logger
@@ -74,6 +78,8 @@ PROGRESS_PERIOD = 0.5
 PREVIEW_PERIOD = 0.2
 # A calibration's range bias beyond this is not a scanner's (mm): refused as corrupt.
 MAX_RANGE_BIAS_MM = 100.0
+# A measured tip farther than this from the TCP is not a tool's (m): refused as corrupt.
+MAX_TIP_DISTANCE = 1.0
 
 
 def resolve_workpiece(name: str, config: Config) -> Workpiece:
@@ -119,6 +125,29 @@ def current_calibration(state_dir: Path) -> tuple[np.ndarray, float, str]:
     return T, float(bias_mm) * 1e-3, str(cal.get("job", ""))
 
 
+def current_tool(state_dir: Path, tool: ToolConfig) -> tuple[ToolConfig, str]:
+    """``tool`` with the current tool calibration's tip, and the job that measured it ("" for none).
+
+    Refused without a current tool calibration unless ``tool.measured`` is
+    ``"nominal"``, and when the stored tip is unusable.
+    """
+    current = tool_store(state_dir).current()
+    if current is None:
+        if tool.measured == "nominal":
+            return tool, ""
+        raise JobError("$", "the tool's tip is not measured: run a tool-calibrate job and accept it first, or set "
+                            "tool.measured = \"nominal\" in the config to weld with tool.tip_tcp_mm as typed")
+    tip_mm = current.get("tip_tcp_mm")
+    try:
+        tip = np.asarray(tip_mm, dtype=np.float64) * 1e-3
+    except (TypeError, ValueError) as exc:
+        raise JobError("$", f"the current tool calibration is unusable: tip_tcp_mm {tip_mm!r}") from exc
+    if tip.shape != (3,) or not np.all(np.isfinite(tip)) or np.linalg.norm(tip) > MAX_TIP_DISTANCE:
+        raise JobError("$", f"the current tool calibration is unusable: tip_tcp_mm must be 3 finite numbers within "
+                            f"{MAX_TIP_DISTANCE * 1e3:g} mm of the TCP, got {tip_mm!r}")
+    return replace(tool, tip_tcp=(float(tip[0]), float(tip[1]), float(tip[2]))), str(current.get("job", ""))
+
+
 class _Collector:
     """Motion state records of one command, gathered from the handle's batches."""
 
@@ -155,8 +184,9 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     except ConfigError as exc:
         # The job's field of the refused value: its key in the section (delta_d_mm, ...).
         raise JobError("$." + exc.key.rsplit(".", 1)[-1], exc.reason) from exc
-    tool = ToolGeometry.from_config(tool_cfg)
     T_base_cam, range_bias, cal_job = current_calibration(ctx.state_dir)
+    tool_cfg, tool_job = current_tool(ctx.state_dir, tool_cfg)
+    tool = ToolGeometry.from_config(tool_cfg)
     workpiece = resolve_workpiece(job.workpiece, config)
     # Prepared models by content (a user's model edited on disk is prepared again).
     key = hashlib.sha1(workpiece.vertices.tobytes() + workpiece.triangles.tobytes() + workpiece.seam.tobytes()).hexdigest()
@@ -219,6 +249,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
             "dry_run": True,
             "workpiece": workpiece.name,
             "calibration_job": cal_job,
+            "tool_calibration_job": tool_job,
             "planned_path": geometry.seam_base.tolist(),
             "tcp_path": [se3.to_ur_pose(T).tolist() for T in path],
             "min_clearance_mm": round(check.min_clearance * 1e3, 2),
@@ -295,6 +326,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     result = _summarise(records, geometry, tool, servo, seam, offset, ctx.result_dir(), rec)
     result["workpiece"] = workpiece.name
     result["calibration_job"] = cal_job
+    result["tool_calibration_job"] = tool_job
     if retract_error:
         result["retract_error"] = retract_error
     return result

@@ -78,7 +78,7 @@ def srm_source(world: World, robot_host: str, part: SimWorkpiece | None) -> SimS
 
 
 class _CellScanner:
-    """Opens the simulated scanner of a world: the robot scene at the true flange pose, plus the part."""
+    """Opens the simulated scanner of a world: the robot scene at the true flange pose with the tool as built, plus the part."""
 
     def __init__(self, world: World, part: SimWorkpiece | None) -> None:
         self.world = world
@@ -98,7 +98,8 @@ class _CellScanner:
             model,
             sc.T_base_cam,
             robot_scene_source(
-                lambda: truth.latest().T_base_flange, self.world.flange, table=not objects, extra=lambda: objects
+                lambda: truth.latest().T_base_flange, self.world.flange, table=not objects, extra=lambda: objects,
+                tool=self.world.tool.config,  # the tool as built, never the controller's [tool]
             ),
             seed=sc.noise_seed,
             resolution_scale=sc.resolution_scale,

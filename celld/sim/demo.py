@@ -89,8 +89,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_jobs(config_path: str | Path, log_path: str | Path, options: Any, say: Any, n_poses: int | None = None,
-             calibrate_seed: int | None = None, force_accept: bool = False) -> dict[str, Any]:
+             calibrate_seed: int | None = None, force_accept: bool = False, tool_calibrate: bool = False) -> dict[str, Any]:
     """Start the cell of ``config_path`` in the world of ``options``, calibrate, accept, weld; score against the truth.
+
+    With ``tool_calibrate`` a tool-calibrate job runs (and is accepted) between
+    the calibration and the weld, and ``tool`` in the figures scores its tip
+    against the tool as built.
 
     Returns the figures (``world``, ``calibration``, ``weld``), or ``failed``
     with the job's record when a job did not succeed. A calibration that
@@ -139,6 +143,31 @@ def run_jobs(config_path: str | Path, log_path: str | Path, options: Any, say: A
         }
         say(f"calibration {cal['id']} accepted{' (forced past its quality gate)' if forced else ''}: "
             f"{dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg from the true T_base_cam")
+        if tool_calibrate:
+            tc = _job(cell.client, {"kind": "tool-calibrate", "seed": calibrate_seed or 0}, say)
+            if tc["state"] != "succeeded":
+                return {**figures, "failed": _failed(tc, say)}
+            tool = json.loads(Path(tc["result"]).read_text())["tool"]
+            tq = tool["quality"]
+            tool_forced = False
+            try:
+                cell.client.accept(tc["id"])
+            except JobError as exc:
+                say(f"tool calibration {tc['id']} refused at accept: {exc}")
+                if not force_accept:
+                    return {**figures, "failed": {"job": tc["id"], "state": "not accepted", "reason": str(exc), "verdict": tq["verdict"]}}
+                cell.client.accept(tc["id"], force=True)
+                tool_forced = True
+            tip_true = np.asarray(world.tool.config.tip_tcp)
+            err = np.asarray(tool["tip_tcp_mm"]) * 1e-3 - tip_true
+            figures["tool"] = {
+                "job": tc["id"], "tip_error_mm": float(np.linalg.norm(err) * 1e3), "tip_error_xyz_mm": (err * 1e3).tolist(),
+                "config_error_mm": float(np.linalg.norm(np.asarray(cfg.tool.tip_tcp) - tip_true) * 1e3),
+                "tip_std_mm": tool["tip_std_mm"], "rms_mm": tq["rms_mm"], "poses": tool["poses"], "verdict": tq["verdict"],
+                "forced": tool_forced,
+            }
+            say(f"tool calibration {tc['id']} accepted: tip {figures['tool']['tip_error_mm']:.3f} mm from the true tip "
+                f"(the config's {figures['tool']['config_error_mm']:.3f} mm), verdict {tq['verdict']}")
         with TruthRecorder(cfg.robot.host) as recorder:
             weld = _job(cell.client, {"kind": "weld"}, say)
         if weld["state"] != "succeeded":

@@ -54,6 +54,7 @@ import open3d as o3d
 
 from celld import se3
 from celld.calib.flange import FlangeModel
+from celld.config import ToolConfig
 from celld.errors import DeviceError, InputError
 from celld.scanner.base import CaptureStats, OrganizedCloud
 from celld.sim.scene import SceneObject, robot_scene
@@ -362,6 +363,7 @@ def robot_scene_source(
     table: bool = True,
     clutter_seed: int | None = None,
     extra: Callable[[], Sequence[SceneObject]] | None = None,
+    tool: ToolConfig | None = None,
 ) -> SceneSource:
     """A scene source of the calibration scene at the robot's current pose.
 
@@ -376,11 +378,13 @@ def robot_scene_source(
         As :func:`celld.sim.scene.robot_scene`.
     extra : callable, optional
         Returns more objects (a workpiece) to add to each capture.
+    tool : ToolConfig, optional
+        The welding tool as built on the flange (flange frame), drawn at each capture.
     """
 
     def scene() -> list[SceneObject]:
         T = se3.check_transform(T_base_flange(), "T_base_flange")
-        objects = list(robot_scene(T, flange, table=table, clutter_seed=clutter_seed))
+        objects = list(robot_scene(T, flange, table=table, clutter_seed=clutter_seed, tool=tool))
         if extra is not None:
             objects.extend(extra())
         return objects

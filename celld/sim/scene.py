@@ -4,7 +4,15 @@ A :class:`SceneObject` is any triangle mesh in its own frame, placed in the
 base frame by ``T_base_obj``, with a material that the scanner's noise model
 reads (``"metal"`` or ``"matte"``). :func:`robot_scene` builds the calibration
 scene: the flange on the wrist, the other robot links as simple solids behind
-it, the table and, on request, random clutter on the table.
+it, the table and, on request, random clutter on the table, and the welding
+tool as built (:func:`tool_objects`) when it is given one.
+
+The tool is drawn as the scanner needs it for a tool calibration: the SRM
+finger as a thin shaft from the flange's centre to the tip, and the tip ball
+(the tool's ``tip_radius``) at the true tip, both matte. The shaft is thinner
+than the ball (:data:`_SHAFT_OF_TIP`), so the ball's end stands out, and thin
+enough to leave the flange's face and bore to the calibration's detector
+(only a shadow stripe of about a millimetre crosses them).
 
 Materials: the tool flange (face, chamfer, bore, holes, side wall) is bare
 machined metal; the wrist body it stands on (the shoulder annulus and the
@@ -27,6 +35,7 @@ import open3d as o3d
 
 from celld import se3
 from celld.calib.flange import FlangeModel
+from celld.config import ToolConfig
 from celld.errors import InputError
 
 # Materials the scanner noise models know.
@@ -46,6 +55,10 @@ _TABLE_THICKNESS = 0.03
 # Clutter is dropped in this box on the table (base frame x, y), metres.
 _CLUTTER_MIN = (0.25, -0.35)
 _CLUTTER_MAX = (0.95, 0.35)
+# The finger's shaft radius as a fraction of the tip ball's.
+_SHAFT_OF_TIP = 0.6
+# Facets of the tip ball (30: the mesh lies within 3 um of a 1 mm sphere).
+_BALL_RESOLUTION = 30
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,8 +173,33 @@ def _clutter(seed: int) -> list[SceneObject]:
     return objects
 
 
+def tool_objects(T_base_flange: np.ndarray, tool: ToolConfig) -> list[SceneObject]:
+    """The welding tool as built on the flange: the finger's shaft and the tip ball (both matte).
+
+    ``tool`` is in the keys of :class:`~celld.config.ToolConfig` with the
+    flange as its TCP (the simulated world's :attr:`ToolTruth.config`): the
+    ball's centre is ``tip_tcp``, the shaft runs from it along the tool's z
+    axis (towards the flange) for the tip's distance from the flange's centre.
+    """
+    T = se3.check_transform(T_base_flange, "T_base_flange")
+    tip = np.asarray(tool.tip_tcp, dtype=np.float64)
+    z = np.asarray(tool.tool_z_tcp, dtype=np.float64)
+    z = z / np.linalg.norm(z)
+    length = max(float(np.linalg.norm(tip)) - 1e-3, 5e-3)
+    # cylinder() spans z in [-length, 0] of its frame: put that frame's origin at the shaft's flange end.
+    T_shaft = T @ se3.frame_from_z(tip + length * z, z)
+    shaft = cylinder(_SHAFT_OF_TIP * tool.tip_radius, length, resolution=24)
+    ball = o3d.geometry.TriangleMesh.create_sphere(radius=tool.tip_radius, resolution=_BALL_RESOLUTION)
+    ball.compute_triangle_normals()
+    return [
+        SceneObject("srm_finger", shaft, T_shaft, "matte"),
+        SceneObject("srm_tip", ball, T @ se3.transform_from(np.eye(3), tip), "matte"),
+    ]
+
+
 def robot_scene(
-    T_base_flange: np.ndarray, flange: FlangeModel, table: bool = True, clutter_seed: int | None = None
+    T_base_flange: np.ndarray, flange: FlangeModel, table: bool = True, clutter_seed: int | None = None,
+    tool: ToolConfig | None = None,
 ) -> list[SceneObject]:
     """The calibration scene: flange on the wrist, robot links, table, optional clutter.
 
@@ -175,6 +213,8 @@ def robot_scene(
         Add the table, its top at base z = 0.
     clutter_seed : int or None
         Seed of the random clutter on the table; ``None`` for none.
+    tool : ToolConfig or None
+        The welding tool as built, flange frame (:func:`tool_objects`); ``None``: no tool.
 
     Returns
     -------
@@ -191,4 +231,6 @@ def robot_scene(
         objects.append(SceneObject("table", box(size), se3.transform_from(np.eye(3), centre), "matte"))
     if clutter_seed is not None:
         objects += _clutter(clutter_seed)
+    if tool is not None:
+        objects += tool_objects(T_base_flange, tool)
     return objects

@@ -35,6 +35,11 @@ valid_jobs = st.one_of(
         st.lists(st.floats(-6.28, 6.28), min_size=6, max_size=6), st.floats(0.01, 1.0),
     ),
     st.builds(lambda c: {"kind": "health", "check": c}, st.sampled_from(schema.HEALTH_CHECKS)),
+    st.builds(
+        lambda n, t, p, s, d: {"kind": "tool-calibrate", "n_poses": n, "max_tilt_deg": t, "tip_position": p, "seed": s, "dry_run": d},
+        st.integers(3, schema.MAX_TOOL_POSES), st.floats(2.0, 45.0), st.lists(st.floats(-2.5, 2.5), min_size=3, max_size=3),
+        st.integers(0, 2**32 - 1), st.booleans(),
+    ),
 )
 _kinds = st.sampled_from(["calibrate", "weld", "move", "health", "Weld", "", "x"])
 _fields = st.sampled_from(["n_poses", "poses", "target", "arc", "check", "k_p", "ref", "kind", "zz"])

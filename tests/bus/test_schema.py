@@ -196,3 +196,25 @@ def test_checker_agrees_with_the_reference_validator(message: dict) -> None:
         if exc.reason.startswith("give either"):
             return  # the one rule outside the schema
     assert ours == reference
+
+
+def test_tool_calibrate_converts_degrees_and_checks_its_ranges() -> None:
+    job = submit({"kind": "tool-calibrate", "n_poses": 10, "max_tilt_deg": 15, "tip_position": [0.6, 0, 0.45], "seed": 2})
+    assert job == schema.ToolCalibrateJob(n_poses=10, max_tilt=pytest.approx(math.radians(15)), tip_position=(0.6, 0.0, 0.45), seed=2)
+    assert submit({"kind": "tool-calibrate"}) == schema.ToolCalibrateJob()
+    assert parse_submit(schema.encode(schema.job_to_message(job))) == job
+    assert refusal({"kind": "tool-calibrate", "n_poses": 2}).field == "$.n_poses"
+    assert refusal({"kind": "tool-calibrate", "max_tilt_deg": 60}).field == "$.max_tilt_deg"
+    assert refusal({"kind": "tool-calibrate", "tip_position": [0.6, 0.0]}).field == "$.tip_position"
+    assert refusal({"kind": "tool-calibrate", "poses": []}).field == "$.poses"  # not a calibrate job's field
+
+
+def test_tool_calibration_replies_match_their_schemas() -> None:
+    quality = {"verdict": "ok", "passed": True, "reasons": [], "warnings": [],
+               "poses": [{"id": "000", "residual_mm": 0.02, "used": True, "outlier": False, "reason": ""}]}
+    tool = {"job": "j2", "tip_tcp_mm": [0.8, -1.1, 200.9], "quality": quality}
+    schema.check_message("accept-reply", {"ok": True, "job": "j2", "kind": "tool-calibrate", "tool": tool})
+    schema.check_message("calibration-reply", {"ok": True, "calibration": None, "tool": tool})
+    with pytest.raises(JobError) as err:
+        schema.check_message("accept-reply", {"ok": True, "job": "j2", "tool": {**tool, "quality": {**quality, "verdict": "fine"}}})
+    assert err.value.field == "$.tool.quality.verdict"

@@ -130,7 +130,7 @@ async def test_unknown_jobs_and_bad_accepts_are_refused(tmp_path: Path) -> None:
     h.manager.start()
     job = (await h.manager.on_submit(HealthJob()))["job"]
     await h.manager.wait(job, timeout=5)
-    with pytest.raises(JobError, match="only a succeeded calibrate job"):
+    with pytest.raises(JobError, match="only a succeeded calibrate or tool-calibrate job"):
         await h.manager.on_accept(AcceptRequest(job=job))
     await h.manager.close()
 

@@ -64,3 +64,28 @@ def test_a_weld_needs_a_usable_current_calibration(tmp_path: Path) -> None:
         (tmp_path / "calibration.json").write_text(f'{{"job": "j4", "T_base_cam": {json.dumps(T.tolist())}, "range_bias_mm": {bad}}}')
         with pytest.raises(JobError, match="range_bias_mm"):
             current_calibration(tmp_path)
+
+
+def test_a_weld_takes_the_measured_tip_and_refuses_an_unmeasured_tool_unless_nominal(tmp_path: Path) -> None:
+    from celld.config import ToolConfig
+    from celld.daemon.jobs import tool_store
+    from celld.daemon.weld import current_tool
+
+    required = parse({"tool": {"tip_tcp_mm": [0, 0, 200]}}).tool
+    assert required.measured == "required"
+    with pytest.raises(JobError, match='tool.measured = "nominal"'):
+        current_tool(tmp_path, required)
+    nominal = parse({"tool": {"tip_tcp_mm": [0, 0, 200], "measured": "nominal"}}).tool
+    assert current_tool(tmp_path, nominal) == (nominal, "")
+    store = tool_store(tmp_path)
+    quality = {"verdict": "poor_data", "reasons": ["RMS residual 0.5 mm exceeds 0.3 mm"]}
+    store.add_candidate("t1", {"job": "t1", "tip_tcp_mm": [0.8, -1.1, 200.9], "quality": quality})
+    with pytest.raises(JobError, match="poor_data: RMS residual"):
+        store.accept("t1")
+    store.accept("t1", force=True)
+    tool, job = current_tool(tmp_path, required)
+    assert job == "t1" and tool.tip_tcp == pytest.approx((0.8e-3, -1.1e-3, 0.2009))
+    assert tool == ToolConfig(tip_tcp=tool.tip_tcp)  # only the tip changes
+    fsutil.write_json(tmp_path / "tool.json", {"job": "t2", "tip_tcp_mm": [0.0, "x", 200.0]})
+    with pytest.raises(JobError, match="unusable"):
+        current_tool(tmp_path, nominal)

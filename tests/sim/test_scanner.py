@@ -215,3 +215,22 @@ def test_the_tool_flange_is_metal_and_the_wrist_body_has_its_finish() -> None:
     assert len(tool.mesh.triangles) + len(wrist.mesh.triangles) == len(flange.mesh().triangles)
     bare = replace(flange, wrist_finish="metal")
     assert [o.material for o in flange_objects(T, bare)] == ["metal", "metal"]
+
+
+def test_the_tool_is_drawn_as_built_a_thin_finger_ending_in_the_tip_ball() -> None:
+    from celld.config import ToolConfig
+    from celld.sim.scene import tool_objects
+
+    T = se3.from_xyz_rpy([0.6, 0.0, 0.25], [0.2, -0.1, 0.3])
+    built = ToolConfig(tip_tcp=(0.0008, -0.0011, 0.2009), tip_radius=0.001)
+    finger, ball = tool_objects(T, built)
+    assert (finger.name, ball.name) == ("srm_finger", "srm_tip")
+    p_tip = se3.apply(T, np.array([built.tip_tcp]))[0]
+    V_ball = se3.apply(ball.T_base_obj, np.asarray(ball.mesh.vertices))
+    assert np.allclose(np.linalg.norm(V_ball - p_tip, axis=1), built.tip_radius, atol=1e-9)
+    V = se3.apply(finger.T_base_obj, np.asarray(finger.mesh.vertices))
+    axis = T[:3, :3] @ np.asarray(built.tool_z_tcp)
+    along = (V - p_tip) @ axis
+    across = np.linalg.norm((V - p_tip) - np.outer(along, axis), axis=1)
+    assert along.min() == pytest.approx(0.0, abs=1e-9) and along.max() == pytest.approx(np.linalg.norm(built.tip_tcp) - 1e-3, abs=1e-9)
+    assert across.max() < built.tip_radius  # thinner than the ball: the ball's end stands out

@@ -1,0 +1,202 @@
+"""The SRM tip in a scanner cloud: the ball at the end of the finger, found near where it is believed (pure).
+
+The finger ends in a small ball (``tool.tip_radius``, 1 mm on the SRM). The
+controller believes the tip is at ``p_pred`` (its tool config and the robot
+pose, placed in the camera frame with the current calibration); the truth
+may be a millimetre or two away. :func:`detect_tip` finds it:
+
+1. crop: the points within ``window`` of ``p_pred`` (a cloud with none is
+   refused, with the reason);
+2. apex: the finger's end is the extreme of those points along the finger
+   axis, away from the flange (``-u``): the mean of the few most extreme
+   points, and the ball's centre one radius back along ``u``;
+3. sphere of known radius: Gauss-Newton on ``sum (|p - c| - r)^2`` over the
+   points in a shell of the ball around the current centre, leaving out the
+   finger's (those more than a fraction of the radius towards the flange),
+   selection and fit repeated until the selection settles.
+
+With a known radius a visible cap suffices: the centre lies one radius
+behind the surface the scanner sees. Everything is in the camera frame, m.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from celld.errors import CalibrationError, InputError
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class TipDetectParams:
+    """Parameters of :func:`detect_tip` (SI units).
+
+    Attributes
+    ----------
+    window : float
+        Radius of the search window around the predicted tip, m.
+    apex_points : int
+        How many of the most extreme points give the finger's end.
+    shell : float
+        Points within ``radius +- shell`` of the centre are the ball's, m.
+    axial_cut : float
+        Points more than this times the radius towards the flange (along
+        ``u``) from the centre are the finger's, not the ball's.
+    min_points : int
+        Fewest ball points for a detection.
+    max_rms : float
+        Largest RMS distance of the ball points from the fitted sphere, m.
+    rounds : int
+        Most selection / fit rounds.
+    """
+
+    window: float = 0.015
+    apex_points: int = 5
+    shell: float = 0.4e-3
+    axial_cut: float = 0.3
+    min_points: int = 12
+    max_rms: float = 0.2e-3
+    rounds: int = 8
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.window) and 0.001 <= self.window <= 0.1):
+            raise InputError(f"window: expected 1 mm <= window <= 100 mm, got {self.window!r} m")
+        if not (math.isfinite(self.shell) and self.shell > 0.0 and math.isfinite(self.max_rms) and self.max_rms > 0.0):
+            raise InputError("shell and max_rms: expected finite values > 0")
+        if self.apex_points < 1 or self.min_points < 4 or self.rounds < 1:
+            raise InputError("apex_points >= 1, min_points >= 4 and rounds >= 1 expected")
+        if not (math.isfinite(self.axial_cut) and -1.0 <= self.axial_cut <= 1.0):
+            raise InputError(f"axial_cut: expected -1 <= value <= 1, got {self.axial_cut!r}")
+
+
+@dataclass(frozen=True)
+class TipDetection:
+    """A tip found in a cloud, camera frame.
+
+    Attributes
+    ----------
+    p_cam : (3,) array
+        The ball's centre, m.
+    n_points : int
+        Points of the ball the fit used.
+    rms : float
+        Their RMS distance from the sphere, m.
+    window_points : int
+        Points in the search window.
+    offset : float
+        Distance of the centre from the prediction, m.
+    """
+
+    p_cam: Array
+    n_points: int
+    rms: float
+    window_points: int
+    offset: float
+
+
+def window_points(points_cam: ArrayLike, p_pred: ArrayLike, window: float) -> Array:
+    """The finite points of a cloud ((H, W, 3) organized or (n, 3), NaN for no return) within ``window`` of ``p_pred``."""
+    P = np.asarray(points_cam)
+    if P.ndim < 2 or P.shape[-1] != 3:
+        raise InputError(f"points_cam: expected an (H, W, 3) or (n, 3) cloud, got shape {P.shape}")
+    P = P.reshape(-1, 3)
+    c = np.asarray(p_pred, dtype=np.float64)
+    # Cheap box test first (float32 of millions of points), the exact distance on what is left.
+    near = np.all(np.abs(P - c.astype(P.dtype)) <= window, axis=1)
+    Q = P[near].astype(np.float64)
+    Q = Q[np.all(np.isfinite(Q), axis=1)]
+    return np.asarray(Q[np.linalg.norm(Q - c, axis=1) <= window], dtype=np.float64)
+
+
+def fit_sphere_known_radius(P: ArrayLike, c0: ArrayLike, radius: float, iterations: int = 20) -> tuple[Array, float]:
+    """Gauss-Newton on ``sum (|p - c| - r)^2``: the centre (3,) and the RMS of ``|p - c| - r``, m."""
+    Q = np.asarray(P, dtype=np.float64)
+    c = np.asarray(c0, dtype=np.float64).copy()
+    for _ in range(iterations):
+        d = Q - c
+        dist = np.linalg.norm(d, axis=1)
+        dist = np.where(dist < 1e-12, 1e-12, dist)
+        r = dist - radius
+        J = -d / dist[:, None]  # d(|p - c|)/dc
+        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        c = c + step
+        if float(np.linalg.norm(step)) < 1e-9:
+            break
+    res = np.linalg.norm(Q - c, axis=1) - radius
+    return c, float(np.sqrt(np.mean(res**2)))
+
+
+def detect_tip(
+    points_cam: ArrayLike,
+    p_pred: ArrayLike,
+    u_cam: ArrayLike,
+    radius: float,
+    params: TipDetectParams = TipDetectParams(),
+) -> TipDetection:
+    """The tip ball's centre in a cloud (module docstring), camera frame.
+
+    Parameters
+    ----------
+    points_cam : (H, W, 3) or (n, 3)
+        The cloud, camera frame, m; NaN where there is no return.
+    p_pred : (3,)
+        Where the tool config puts the tip's centre, camera frame, m.
+    u_cam : (3,)
+        The finger's axis from the tip towards the flange, camera frame (normalised here).
+    radius : float
+        The tip ball's radius, m.
+    params : TipDetectParams
+
+    Raises
+    ------
+    InputError
+        A prediction, axis or radius that is not usable.
+    CalibrationError
+        No points in the window, too few on the ball, or a fit that does not
+        hold (the message says which and the figures).
+    """
+    p = np.asarray(p_pred, dtype=np.float64)
+    u = np.asarray(u_cam, dtype=np.float64)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise InputError(f"p_pred: expected a finite (3,) point, got {p.tolist()}")
+    if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
+        raise InputError(f"u_cam: expected a non-zero finite (3,) direction, got {u.tolist()}")
+    if not (math.isfinite(radius) and 0.0 < radius <= 0.02):
+        raise InputError(f"radius: expected 0 < radius <= 20 mm, got {radius!r} m")
+    u = u / np.linalg.norm(u)
+    W = window_points(points_cam, p, params.window)
+    if len(W) == 0:
+        raise CalibrationError(f"no points within {params.window * 1e3:.1f} mm of the predicted tip: the tip is out of "
+                               "the scanner's view or hidden, or the tool config or the calibration is far off")
+    s = (W - p) @ (-u)
+    k = min(params.apex_points, len(W))
+    apex = W[np.argsort(s)[-k:]].mean(axis=0)
+    c = apex + radius * u
+    sel: NDArray[np.bool_] | None = None
+    rms = math.inf
+    for _ in range(params.rounds):
+        d = W - c
+        new = (np.abs(np.linalg.norm(d, axis=1) - radius) <= params.shell) & (d @ u <= params.axial_cut * radius)
+        if sel is not None and np.array_equal(new, sel):
+            break
+        sel = new
+        if int(sel.sum()) < params.min_points:
+            break
+        c, rms = fit_sphere_known_radius(W[sel], c, radius)
+    n = int(sel.sum()) if sel is not None else 0
+    if n < params.min_points:
+        raise CalibrationError(f"only {n} points on the tip ball ({len(W)} in the {params.window * 1e3:.1f} mm window); "
+                               f"at least {params.min_points} are needed")
+    if not rms <= params.max_rms:
+        raise CalibrationError(f"the tip ball's points lie {rms * 1e3:.3f} mm RMS off a {radius * 1e3:.2f} mm sphere "
+                               f"(at most {params.max_rms * 1e3:.3f} mm): not the tip")
+    offset = float(np.linalg.norm(c - p))
+    if offset > params.window:
+        raise CalibrationError(f"the fitted tip lies {offset * 1e3:.2f} mm from the prediction, outside the "
+                               f"{params.window * 1e3:.1f} mm window")
+    return TipDetection(np.asarray(c, dtype=np.float64), n, rms, len(W), offset)
