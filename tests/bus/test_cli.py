@@ -122,7 +122,7 @@ def test_schema_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert len(written) == len(schema.SCHEMAS) + 1 and written[-1] == "asyncapi.json"
     assert all(name.endswith(".schema.json") for name in written[:-1])
     submit = json.loads((tmp_path / "schemas" / "submit.schema.json").read_text())
-    assert [b["properties"]["kind"]["const"] for b in submit["oneOf"]] == ["calibrate", "weld", "move", "health"]
+    assert [b["properties"]["kind"]["const"] for b in submit["oneOf"]] == ["calibrate", "weld", "move", "health", "tool-calibrate"]
 
 
 def test_submit_tool_calibrate_builds_its_message() -> None:
