@@ -7,8 +7,10 @@
    simulated UR10e in it (behind real ur-rtde, in real time) and the daemon on
    its devices as its own process (``celld sim run``);
 2. submits a calibrate job over zenoh, shows its progress, accepts the result;
-3. submits a weld job: scan, seam, touch, Algorithm 2 with the arc, retract;
-4. prints, side by side against the world's truth: the calibration (its
+3. submits a tool-calibrate job (the SRM tip measured by the scanner) and
+   accepts it, unless ``--no-tool-calibrate``;
+4. submits a weld job: scan, seam, touch, Algorithm 2 with the arc, retract;
+5. prints, side by side against the world's truth: the calibration (its
    error and where the robot truly lands when sent to points the scanner
    saw), the weld plan alone (where the torch would go following the plan
    from scan and calibration without the tactile correction) and the torch as
@@ -17,10 +19,10 @@
 
 Only this script reads the truth, after the jobs have ended (a recorder
 keeps the arm's true states while the weld runs, since the robot's shared
-history holds two seconds); the daemon never sees it. There is no tool
-calibration job yet: the tool's offsets are the configured ones, and the
-``realistic`` world's tool differs from them (``--without tool_offsets``
-shows the weld as if the tool were calibrated).
+history holds two seconds); the daemon never sees it. The ``realistic``
+world's tool differs from the configured one by up to 1-2 mm: the
+tool-calibrate job measures its tip (``--no-tool-calibrate`` welds with the
+configured tip, ``--without tool_offsets`` as if the tool were as drawn).
 """
 
 from __future__ import annotations
@@ -44,11 +46,12 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim-cell.tom
 def add_parser(sub: argparse._SubParsersAction) -> None:
     from celld.sim.world import add_world_arguments
 
-    p = sub.add_parser("demo", help="run the simulated cell and its daemon: calibrate, then weld, over the bus")
+    p = sub.add_parser("demo", help="run the simulated cell and its daemon: calibrate, tool-calibrate, then weld, over the bus")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="a cell config whose devices are simulated")
     p.add_argument("--poses", type=int, default=None, help="calibration poses (default: the config's n_poses)")
     p.add_argument("--json", action="store_true", help="print the figures as one JSON object last")
     p.add_argument("--force-accept", action="store_true", help="accept a calibration that fails the daemon's quality gate")
+    p.add_argument("--no-tool-calibrate", action="store_true", help="weld with the configured tool tip, no tool-calibrate job")
     add_world_arguments(p)
     p.set_defaults(func=run)
 
@@ -71,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
     say(world.describe())
     t0 = time.monotonic()
     try:
-        figures = run_jobs(args.config, log_path, options, say, n_poses=args.poses, force_accept=args.force_accept)
+        figures = run_jobs(args.config, log_path, options, say, n_poses=args.poses, force_accept=args.force_accept,
+                           tool_calibrate=not args.no_tool_calibrate)
     except CelldError as exc:
         say(f"celld demo failed: {exc}")
         return 1

@@ -3,8 +3,8 @@
 The cell is ``configs/sim-cell.toml`` on this test's own loopback address in
 the realistic world, whose tool is built off its drawing (the tip about a
 millimetre from ``tool.tip_tcp_mm``): the ray-cast PhoXi M sees the tool as
-built, the daemon only its config. Slow (a 20-pose calibration and a
-tool calibration, about 5 minutes).
+built, the daemon only its config. Slow (a 10-pose calibration and an
+8-pose tool calibration, two to three minutes).
 """
 
 from __future__ import annotations
@@ -64,8 +64,8 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host:
         _, refused = client.submit_and_wait({"kind": "tool-calibrate"}, timeout=60)
         assert refused["state"] == "failed" and "no current calibration" in refused["reason"]
 
-        # Every pose of the calibration (no early stop): the realistic arm's error needs the pairs.
-        _, cal = client.submit_and_wait({"kind": "calibrate", "seed": WORLD_SEED, "e_required_mm": 0.01}, timeout=900)
+        # Every pose of a 10-pose calibration (no early stop): the realistic arm's error needs the pairs.
+        _, cal = client.submit_and_wait({"kind": "calibrate", "seed": WORLD_SEED, "n_poses": 10, "e_required_mm": 0.01}, timeout=900)
         assert cal["state"] == "succeeded", cal["reason"]
         client.accept(cal["id"], force=True)
         # The calibration's end may have held the daemon long enough for its motion process to restart: wait for the link.
@@ -76,7 +76,7 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host:
 
         # (A weld on this unmeasured tool is refused, naming tool.measured: tests/daemon/test_weld_inputs.py.)
         events: list[dict] = []
-        _, tc = client.submit_and_wait({"kind": "tool-calibrate", "seed": 1}, on_event=events.append, timeout=900)
+        _, tc = client.submit_and_wait({"kind": "tool-calibrate", "seed": 1, "n_poses": 8}, on_event=events.append, timeout=900)
         assert tc["state"] == "succeeded", tc["reason"]
         assert [e for e in events if e["stage"] == "pose" and e.get("data", {}).get("detected")]
         for e in events:
