@@ -101,13 +101,27 @@ class DummyCellProcess:
         )
         self.proc = subprocess.Popen(
             [
-                sys.executable, "-m", "celld.daemon.dummy", "--config", str(self.config_path),
-                "--state-dir", str(workdir / "state"), "--job-duration", str(job_duration),
-                "--weld-duration", str(weld_duration), "--progress-hz", "10",
-                "--state-hz", str(STATE_HZ), "--log-level", "warning",
+                sys.executable,
+                "-m",
+                "celld.daemon.dummy",
+                "--config",
+                str(self.config_path),
+                "--state-dir",
+                str(workdir / "state"),
+                "--job-duration",
+                str(job_duration),
+                "--weld-duration",
+                str(weld_duration),
+                "--progress-hz",
+                "10",
+                "--state-hz",
+                str(STATE_HZ),
+                "--log-level",
+                "warning",
                 # The submit phase measures round trips: jobs that end at once may
                 # still fall behind sequential submits on a loaded machine.
-                "--max-queue", "1000",
+                "--max-queue",
+                "1000",
             ],
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
@@ -242,8 +256,12 @@ def write_report(
 
     fig, axes = plt.subplots(1, 2 if load else 1, figsize=(12 if load else 6, 4), squeeze=False)
     ax = axes[0][0]
-    curves = ((submit_ms, "submit"), (status_ms, "status"), (result_ms if result_ms is not None else np.empty(0), "result"),
-              (load.get("_latency_ms", np.empty(0)), "status under load"))
+    curves = (
+        (submit_ms, "submit"),
+        (status_ms, "status"),
+        (result_ms if result_ms is not None else np.empty(0), "result"),
+        (load.get("_latency_ms", np.empty(0)), "status under load"),
+    )
     for data, label in curves:
         if data.size:
             x = np.sort(data)
@@ -376,7 +394,11 @@ def main_sim_cell(args: argparse.Namespace) -> int:
                 raise RuntimeError(f"calibration {cal['state']}: {cal['reason']}")
             client.accept(cal["id"])
             client.status()
-            submit_ms = sequential_rtt(client, n_submits, lambda: client.submit({"kind": "health", "check": "robot", "ref": "bus-load"})) if n_submits else np.empty(0)
+            submit_ms = (
+                sequential_rtt(client, n_submits, lambda: client.submit({"kind": "health", "check": "robot", "ref": "bus-load"}))
+                if n_submits
+                else np.empty(0)
+            )
             if n_submits:
                 figures["submit_rtt_ms"] = _percentiles(submit_ms)
             status_ms = sequential_rtt(client, n_status, client.status)
@@ -402,7 +424,9 @@ def main_sim_cell(args: argparse.Namespace) -> int:
                 result_ms, size = result_rtt(client, weld_id, 50 if args.quick else 200)
                 figures["result_rtt_ms"] = {**_percentiles(result_ms), "reply_bytes": size, "job": "the weld"}
                 f = client.result(weld_id)["result"]["figures"]
-                figures["motion_loop"] = {k: f[k] for k in ("loop_cycles", "loop_cycles_late_2ms", "loop_late_p99_ms", "loop_late_max_ms", "duration_s")}
+                figures["motion_loop"] = {
+                    k: f[k] for k in ("loop_cycles", "loop_cycles_late_2ms", "loop_late_p99_ms", "loop_late_max_ms", "duration_s")
+                }
                 figures["motion_loop_target_met"] = f["loop_cycles_late_2ms"] == 0
     write_report(figures, submit_ms, status_ms, load, result_ms)
     print(f"submit round trip: {figures.get('submit_rtt_ms')}")

@@ -74,9 +74,7 @@ from celld.se3 import apply, invert, transform_from
 OUT = Path(__file__).resolve().parent / "out" / "calib_accuracy"
 
 # Eq. 19: the simulated cell's camera, 1 m above the base looking down.
-T_BASE_CAM_TRUE = np.array(
-    [[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]]
-)
+T_BASE_CAM_TRUE = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
 # Calibration workspace: box centre and size (base frame, m), tilt bound (rad).
 BOX_CENTRE = np.array([0.6, 0.0, 0.45])
 BOX_SIZE = np.array([0.3, 0.3, 0.2])
@@ -181,7 +179,9 @@ def marker_pose_noisy(rng: np.random.Generator, T_cam_marker: np.ndarray, sigma:
 # -- one realization -------------------------------------------------------------
 
 
-def _algorithm1(ids: list[str], P_base: np.ndarray, P_cam: np.ndarray, P_v: np.ndarray, sigma: float, e_required: float) -> tuple[np.ndarray | None, np.ndarray | None, float]:
+def _algorithm1(
+    ids: list[str], P_base: np.ndarray, P_cam: np.ndarray, P_v: np.ndarray, sigma: float, e_required: float
+) -> tuple[np.ndarray | None, np.ndarray | None, float]:
     """Algorithm 1 on the pairs in order; and its optimum compensated by Eq. 21.
 
     The candidates are ranked with the sweep's ICP set-up; the compensation
@@ -471,7 +471,9 @@ def realization_3(job: tuple[int, str, int, float]) -> dict[str, Any]:
         verifier = None
         out["verification_error"] = str(exc)
     try:
-        res = solve_pairs(found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, range_data=range_bias_data(params, flange, found))
+        res = solve_pairs(
+            found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, range_data=range_bias_data(params, flange, found)
+        )
         plain = solve_pairs(found.ids, found.P_base, found.P_cam, replace(params, range_bias="none"), verifier, found.rejected)
     except CalibrationError as exc:
         out["error"] = str(exc)
@@ -561,8 +563,11 @@ def _write_bench3(result: dict[str, Any], args: argparse.Namespace) -> None:
             lines.append(
                 f"| {setup} | {m} | {st['t_mean_mm']:.3f} | {st.get('t_max_mm', math.nan):.3f} | {st['r_mean_deg']:.4f} | {within} |"
             )
-    lines += ["", "| set-up | range bias mean (mm) | spread over seeds (mm) | reported 1-sigma (mm) | from pairs alone | from steps alone |",
-              "|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| set-up | range bias mean (mm) | spread over seeds (mm) | reported 1-sigma (mm) | from pairs alone | from steps alone |",
+        "|---|---|---|---|---|---|",
+    ]
     for setup in setups:
         res = result[setup]
         if res["range_bias_mm_mean"] is None:
@@ -604,7 +609,11 @@ def _write_bench3(result: dict[str, Any], args: argparse.Namespace) -> None:
 def _write_bench1(result: dict[str, Any], args: argparse.Namespace) -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     tag = "_quick" if args.quick else ""
-    lines = ["sigma_mm," + ",".join(f"{m}_t_mean_mm,{m}_t_std_mm,{m}_r_mean_deg,{m}_r_std_deg" for m in METHODS_1) + ",robust_rejected_mean,ratio_t,ratio_r"]
+    lines = [
+        "sigma_mm,"
+        + ",".join(f"{m}_t_mean_mm,{m}_t_std_mm,{m}_r_mean_deg,{m}_r_std_deg" for m in METHODS_1)
+        + ",robust_rejected_mean,ratio_t,ratio_r"
+    ]
     for e in result["table"]:
         vals = [f"{e['sigma_mm']:.1f}"]
         for m in METHODS_1:
@@ -713,9 +722,7 @@ def main(argv: list[str] | None = None) -> int:
         for e in r1["table"]:
             a1 = e["algorithm1"]
             a1c = e["algorithm1_eq21"]
-            alg = (
-                f"alg1 {a1['t_mean_mm']:.3f} alg1+eq21 {a1c['t_mean_mm']:.3f} " if a1 is not None else ""
-            )
+            alg = f"alg1 {a1['t_mean_mm']:.3f} alg1+eq21 {a1c['t_mean_mm']:.3f} " if a1 is not None else ""
             print(
                 f"bench1 sigma {e['sigma_mm']:5.1f} mm: t mean (mm) svd/oracle {e['svd_all']['t_mean_mm']:.3f} {alg}"
                 f"robust {e['robust']['t_mean_mm']:.3f} (ratio {e['ratio_t']:.3f}); r mean (deg) svd {e['svd_all']['r_mean_deg']:.4f} "

@@ -167,7 +167,10 @@ def main(argv: list[str] | None = None) -> int:
     for seed in range(n_plans):
         row = run_plan(checker, seed)
         rows.append(row)
-        print(f"plan seed {seed:2d}: {row.seconds:6.3f} s, {row.samples:5d} samples, {row.accepted}/{N_POSES + 1} accepted {row.refused}", flush=True)
+        print(
+            f"plan seed {seed:2d}: {row.seconds:6.3f} s, {row.samples:5d} samples, {row.accepted}/{N_POSES + 1} accepted {row.refused}",
+            flush=True,
+        )
     for seed in range(n_welds):
         row = run_weld(cell, seed)
         rows.append(row)

@@ -138,8 +138,10 @@ def run(n: int, seed: int, work: Path) -> dict[str, Any]:
     out["max_rebuild_error_mm"] = [round(max(d["max_error_m"][a] for d in sidecars) * 1e3, 5) for a in range(3)]
     out["xy_from_pinhole"] = sum(d["xy"]["model"] == "pinhole" for d in sidecars)
     out["pinhole_error_mm_max"] = max(d["xy"]["pinhole_error_m"] for d in sidecars) * 1e3
-    out["window_px_median"] = [int(np.median([d["window"]["window_px"][1] - d["window"]["window_px"][0] for d in sidecars])),
-                               int(np.median([d["window"]["window_px"][3] - d["window"]["window_px"][2] for d in sidecars]))]
+    out["window_px_median"] = [
+        int(np.median([d["window"]["window_px"][1] - d["window"]["window_px"][0] for d in sidecars])),
+        int(np.median([d["window"]["window_px"][3] - d["window"]["window_px"][2] for d in sidecars])),
+    ]
 
     a, b = results["float"], results["compact"]
     dt, dr = se3.error(a.T_base_cam, b.T_base_cam)

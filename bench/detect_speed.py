@@ -111,8 +111,18 @@ def run_scene(scanner: str, flange_name: str, i: int, reps: int, timed: bool) ->
     along = float(err @ ray)
     normal_deg = math.degrees(math.acos(min(1.0, float(det.normal @ T_cam_flange[:3, 2]))))
     return Row(
-        scanner, flange_name, i, outcome, reason, float(np.linalg.norm(err)) * 1e3, along * 1e3,
-        float(np.linalg.norm(err - along * ray)) * 1e3, normal_deg, det.radius * 1e3, times, roi_times,
+        scanner,
+        flange_name,
+        i,
+        outcome,
+        reason,
+        float(np.linalg.norm(err)) * 1e3,
+        along * 1e3,
+        float(np.linalg.norm(err - along * ray)) * 1e3,
+        normal_deg,
+        det.radius * 1e3,
+        times,
+        roi_times,
     )
 
 
@@ -156,12 +166,39 @@ def write_outputs(rows: list[Row], figures: dict[str, Any]) -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     with open(OUT / "results.csv", "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["scanner", "flange", "pose", "outcome", "err_mm", "along_ray_mm", "lateral_mm", "normal_deg", "radius_mm",
-                    "time_ms_median", "roi_time_ms_median", "reason"])
+        w.writerow(
+            [
+                "scanner",
+                "flange",
+                "pose",
+                "outcome",
+                "err_mm",
+                "along_ray_mm",
+                "lateral_mm",
+                "normal_deg",
+                "radius_mm",
+                "time_ms_median",
+                "roi_time_ms_median",
+                "reason",
+            ]
+        )
         for r in rows:
-            w.writerow([r.scanner, r.flange, r.pose, r.outcome, f"{r.err_mm:.4f}", f"{r.along_ray_mm:.4f}", f"{r.lateral_mm:.4f}",
-                        f"{r.normal_deg:.4f}", f"{r.radius_mm:.3f}", f"{stats(r.time_ms)['median']:.1f}",
-                        f"{stats(r.roi_time_ms)['median']:.1f}", r.reason])
+            w.writerow(
+                [
+                    r.scanner,
+                    r.flange,
+                    r.pose,
+                    r.outcome,
+                    f"{r.err_mm:.4f}",
+                    f"{r.along_ray_mm:.4f}",
+                    f"{r.lateral_mm:.4f}",
+                    f"{r.normal_deg:.4f}",
+                    f"{r.radius_mm:.3f}",
+                    f"{stats(r.time_ms)['median']:.1f}",
+                    f"{stats(r.roi_time_ms)['median']:.1f}",
+                    r.reason,
+                ]
+            )
     lines = ["# detect_speed", "", "| figure | value |", "|---|---|"]
     lines += [f"| {k} | {v} |" for k, v in figures.items()]
     (OUT / "summary.md").write_text("\n".join(lines) + "\n")

@@ -152,8 +152,9 @@ def make_tactile(host: str) -> Any:
 
     cfg = TactileConfig(kind="sim", fps=60.0)
     wall = np.array([[-1.0, 0.5], [1.0, 0.5]])  # far from the finger: frames render and detect, no contact
-    return TactileProcess(cfg, ToolConfig(), f"celld-bench-{os.getpid()}", SimSrmSource(host, wall, 1.0, np.eye(4)),
-                          RealtimeOptions(enabled=False))
+    return TactileProcess(
+        cfg, ToolConfig(), f"celld-bench-{os.getpid()}", SimSrmSource(host, wall, 1.0, np.eye(4)), RealtimeOptions(enabled=False)
+    )
 
 
 def figures(records: np.ndarray, fifo: bool, cpu: int, extra: dict[str, Any]) -> dict[str, Any]:
@@ -211,8 +212,13 @@ async def run_pair(rt: bool, seconds: float) -> tuple[dict[str, Any], dict[str, 
     losses_idle: list[str] = []
     losses_loaded: list[str] = []
     motion = await MotionHandle.open(
-        config, host=HOST, realtime=RealtimeOptions(enabled=rt), tactile_slot=tactile.slot_name,
-        connect_timeout=30.0, link_timeout=0.5, watchdog_hz=5.0,
+        config,
+        host=HOST,
+        realtime=RealtimeOptions(enabled=rt),
+        tactile_slot=tactile.slot_name,
+        connect_timeout=30.0,
+        link_timeout=0.5,
+        watchdog_hz=5.0,
     )
     motion.add_listener(records.append)
     try:
@@ -241,9 +247,12 @@ async def run_pair(rt: bool, seconds: float) -> tuple[dict[str, Any], dict[str, 
     common = {"restarts": health.restarts, "lost_records": health.lost_records, "seconds": seconds}
     seen = int(len(np.unique(loaded["tactile_seq"][loaded["tactile_seq"] > 0])))
     r_idle = figures(idle, bool(st["realtime"]), int(st["cpu"]), common | {"link_losses": losses_idle})
-    r_loaded = figures(loaded, bool(st["realtime"]), int(st["cpu"]),
-                       common | {"calibration_solves": solves[0], "tactile_frames": frames, "tactile_samples_seen": seen,
-                                 "link_losses": losses_loaded})
+    r_loaded = figures(
+        loaded,
+        bool(st["realtime"]),
+        int(st["cpu"]),
+        common | {"calibration_solves": solves[0], "tactile_frames": frames, "tactile_samples_seen": seen, "link_losses": losses_loaded},
+    )
     return r_idle, r_loaded, idle, loaded
 
 
@@ -253,9 +262,16 @@ def write_table(results: dict[str, dict[str, Any]], bare: dict[str, dict[str, An
     for r in results.values():
         r["link_loss_count"] = len(r.get("link_losses", []))
     cols = [
-        ("period_error_p50_ms", "p50"), ("period_error_p99_ms", "p99"), ("period_error_p999_ms", "p99.9"),
-        ("period_error_max_ms", "max"), ("cycles_late_over_1ms", ">1 ms late"), ("cycles_late_over_2ms", ">2 ms late"),
-        ("late_max_ms", "max late"), ("overruns", "overruns"), ("work_p99_ms", "work p99"), ("cycles", "cycles"),
+        ("period_error_p50_ms", "p50"),
+        ("period_error_p99_ms", "p99"),
+        ("period_error_p999_ms", "p99.9"),
+        ("period_error_max_ms", "max"),
+        ("cycles_late_over_1ms", ">1 ms late"),
+        ("cycles_late_over_2ms", ">2 ms late"),
+        ("late_max_ms", "max late"),
+        ("overruns", "overruns"),
+        ("work_p99_ms", "work p99"),
+        ("cycles", "cycles"),
         ("link_loss_count", "link losses"),
     ]
     lines = [
@@ -266,18 +282,21 @@ def write_table(results: dict[str, dict[str, Any]], bare: dict[str, dict[str, An
         vals = [f"{r[k]:.3f}" if isinstance(r[k], float) else str(r[k]) for k, _ in cols]
         lines.append(f"| {name} | {'yes' if r['fifo'] else 'no'} | " + " | ".join(vals) + " |")
     for name, r in bare.items():
-        lines.append(f"| {name} | {'yes' if name.endswith('-rt') else 'no'} | "
-                     f"{r['period_error_p50_ms']:.3f} | {r['period_error_p99_ms']:.3f} | {r['period_error_p999_ms']:.3f} | "
-                     f"{r['period_error_max_ms']:.3f} | {r['cycles_late_over_1ms']} | {r['cycles_late_over_2ms']} | "
-                     f"{r['late_max_ms']:.3f} | - | - | {r['cycles']} | - |")
-    text = ("Loop period error |period - 2 ms| and wake-up lateness, ms. Targets (real-time cases): "
-            "p99 <= 0.2, p99.9 <= 0.5, no cycle more than 2 ms late.\n\n")
+        lines.append(
+            f"| {name} | {'yes' if name.endswith('-rt') else 'no'} | "
+            f"{r['period_error_p50_ms']:.3f} | {r['period_error_p99_ms']:.3f} | {r['period_error_p999_ms']:.3f} | "
+            f"{r['period_error_max_ms']:.3f} | {r['cycles_late_over_1ms']} | {r['cycles_late_over_2ms']} | "
+            f"{r['late_max_ms']:.3f} | - | - | {r['cycles']} | - |"
+        )
+    text = (
+        "Loop period error |period - 2 ms| and wake-up lateness, ms. Targets (real-time cases): "
+        "p99 <= 0.2, p99.9 <= 0.5, no cycle more than 2 ms late.\n\n"
+    )
     (OUT / "results.md").write_text(text + "\n".join(lines) + "\n")
     (OUT / "results.json").write_text(json.dumps({"cases": results, "platform": bare}, indent=2))
 
 
-def write_outputs(results: dict[str, dict[str, Any]], series: dict[str, np.ndarray],
-                  bare: dict[str, dict[str, Any]]) -> None:
+def write_outputs(results: dict[str, dict[str, Any]], series: dict[str, np.ndarray], bare: dict[str, dict[str, Any]]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -311,8 +330,11 @@ async def main_async(args: argparse.Namespace) -> dict[str, Any]:
     bare_s = 1.5 if args.quick else 20.0
     bare = {f"bare-timer-{'rt' if rt else 'best-effort'}": run_bare(bare_s, rt) for rt in (True, False)}
     for name, r in bare.items():
-        print(f"{name:20s} p99={r['period_error_p99_ms']:.4f} p99.9={r['period_error_p999_ms']:.4f} "
-              f"max={r['period_error_max_ms']:.3f} ms >2ms late={r['cycles_late_over_2ms']}", flush=True)
+        print(
+            f"{name:20s} p99={r['period_error_p99_ms']:.4f} p99.9={r['period_error_p999_ms']:.4f} "
+            f"max={r['period_error_max_ms']:.3f} ms >2ms late={r['cycles_late_over_2ms']}",
+            flush=True,
+        )
     results: dict[str, dict[str, Any]] = {}
     series: dict[str, np.ndarray] = {}
     with launch(HOST, realtime=True) as sim:
@@ -325,15 +347,19 @@ async def main_async(args: argparse.Namespace) -> dict[str, Any]:
             for name, r, recs in ((f"{prefix}-idle", r_idle, idle), (f"{prefix}-loaded", r_loaded, loaded)):
                 results[name] = r
                 series[name] = recs
-                print(f"{name:20s} fifo={r['fifo']} p50={r['period_error_p50_ms']:.4f} "
-                      f"p99={r['period_error_p99_ms']:.4f} p99.9={r['period_error_p999_ms']:.4f} "
-                      f"max={r['period_error_max_ms']:.3f} ms >1ms late={r['cycles_late_over_1ms']} "
-                      f">2ms late={r['cycles_late_over_2ms']} overruns={r['overruns']} "
-                      f"work p99={r['work_p99_ms']:.3f} ms", flush=True)
+                print(
+                    f"{name:20s} fifo={r['fifo']} p50={r['period_error_p50_ms']:.4f} "
+                    f"p99={r['period_error_p99_ms']:.4f} p99.9={r['period_error_p999_ms']:.4f} "
+                    f"max={r['period_error_max_ms']:.3f} ms >1ms late={r['cycles_late_over_1ms']} "
+                    f">2ms late={r['cycles_late_over_2ms']} overruns={r['overruns']} "
+                    f"work p99={r['work_p99_ms']:.3f} ms",
+                    flush=True,
+                )
     if not args.quick:
         write_outputs(results, series, bare)
     rt_ok = all(
-        results[c]["period_error_p99_ms"] <= TARGET_P99 and results[c]["period_error_p999_ms"] <= TARGET_P999
+        results[c]["period_error_p99_ms"] <= TARGET_P99
+        and results[c]["period_error_p999_ms"] <= TARGET_P999
         and results[c]["cycles_late_over_2ms"] == 0
         for c in ("rt-idle", "rt-loaded")
     )

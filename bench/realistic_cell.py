@@ -74,7 +74,7 @@ TRACKED_MIN = 120.0  # of the 150 mm seam
 def cell_config(work: Path, quick: bool) -> Path:
     """The simulated cell of configs/sim-cell.toml on the benchmark's address, its state in ``work``."""
     path = work / "cell.toml"
-    extra = '[sim.scanner]\nresolution_scale = 0.5\n[calibration]\nn_poses = 6\n' if quick else ""
+    extra = "[sim.scanner]\nresolution_scale = 0.5\n[calibration]\nn_poses = 6\n" if quick else ""
     path.write_text(
         f'include = ["{ROOT / "configs" / "sim-cell.toml"}"]\n[cell]\nname = "bench-realistic"\nstate_dir = "{work / "state"}"\n'
         f'[robot]\nhost = "{HOST}"\n[bus]\nlisten = ["tcp/{HOST}:7447"]\n{extra}'
@@ -88,8 +88,9 @@ def cell_config(work: Path, quick: bool) -> Path:
 INFRASTRUCTURE = ("robot program stopped", "robot link")
 
 
-def run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool, say: Any, retries: int = 1,
-             tool_calibrate: bool = True) -> dict[str, Any]:
+def run_seed(
+    seed: int, options: WorldOptions, quick: bool, force_accept: bool, say: Any, retries: int = 1, tool_calibrate: bool = True
+) -> dict[str, Any]:
     """One seeded cell end to end, run again (up to ``retries`` times) after a starved robot link; its figures."""
     lost: list[str] = []
     while True:
@@ -109,13 +110,23 @@ def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool,
         work = Path(tmp)
         t0 = time.monotonic()
         try:
-            figures = run_jobs(cell_config(work, quick), work / "daemon.log", WorldOptions(options.preset, seed, options.on, options.off),
-                               say, calibrate_seed=seed, force_accept=force_accept, tool_calibrate=tool_calibrate)
+            figures = run_jobs(
+                cell_config(work, quick),
+                work / "daemon.log",
+                WorldOptions(options.preset, seed, options.on, options.off),
+                say,
+                calibrate_seed=seed,
+                force_accept=force_accept,
+                tool_calibrate=tool_calibrate,
+            )
         except CelldError as exc:
             log = (work / "daemon.log").read_text(errors="replace")[-2000:] if (work / "daemon.log").exists() else ""
             return {"seed": seed, "success": False, "failed": {"reason": str(exc), "log_tail": log}, "seconds": time.monotonic() - t0}
-    out: dict[str, Any] = {"seed": seed, "seconds": round(time.monotonic() - t0, 1),
-                           "tool_calibration": figures.get("tool", "not run (--no-tool-calibrate)" if not tool_calibrate else "failed")}
+    out: dict[str, Any] = {
+        "seed": seed,
+        "seconds": round(time.monotonic() - t0, 1),
+        "tool_calibration": figures.get("tool", "not run (--no-tool-calibrate)" if not tool_calibrate else "failed"),
+    }
     if "calibration" in figures:
         c = figures["calibration"]
         out["calibration"] = {k: c[k] for k in ("translation_error_mm", "rotation_error_deg", "pairs", "verdict", "forced", "targeting")}
@@ -171,8 +182,10 @@ def summarise(preset: str, sources: list[str], runs: list[dict[str, Any]]) -> di
 
 
 def table(runs: list[dict[str, Any]]) -> list[str]:
-    lines = ["| seed | cal. vs truth mm / deg | targeting mean / max mm (cal. box) | (over the table) | plan alone RMS / max mm | torch RMS / max mm | tracked mm | success |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| seed | cal. vs truth mm / deg | targeting mean / max mm (cal. box) | (over the table) | plan alone RMS / max mm | torch RMS / max mm | tracked mm | success |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in runs:
         c = r.get("calibration")
         w = r.get("weld")
@@ -223,8 +236,10 @@ def main(argv: list[str] | None = None) -> int:
         say("\n".join(table([r])[2:]) + f"   ({r.get('seconds', 0):.0f} s)")
         tc = r.get("tool_calibration")
         if isinstance(tc, dict):
-            say(f"  tool calibration: tip {tc['tip_error_mm']:.3f} mm from the true tip (config {tc['config_error_mm']:.3f} mm), "
-                f"1-sigma {tc['tip_std_mm']} mm, RMS {tc['rms_mm']} mm, {tc['poses']} poses, verdict {tc['verdict']}")
+            say(
+                f"  tool calibration: tip {tc['tip_error_mm']:.3f} mm from the true tip (config {tc['config_error_mm']:.3f} mm), "
+                f"1-sigma {tc['tip_std_mm']} mm, RMS {tc['rms_mm']} mm, {tc['poses']} poses, verdict {tc['verdict']}"
+            )
     sources = sorted(((set(SOURCES) if args.preset == "realistic" else set()) | set(options.on)) - set(options.off))
     summary = summarise(label, sources, runs)
     summary["tool_tip_error_mm"] = [r["tool_calibration"]["tip_error_mm"] for r in runs if isinstance(r.get("tool_calibration"), dict)]
@@ -232,9 +247,11 @@ def main(argv: list[str] | None = None) -> int:
     say(f"preset: {label} (sources on: {', '.join(sources) or 'none'})")
     for line in table(runs):
         say(line)
-    say(f"targeting mean {summary['targeting_mean_mm']} mm (target <= {TARGETING_MEAN}): "
+    say(
+        f"targeting mean {summary['targeting_mean_mm']} mm (target <= {TARGETING_MEAN}): "
         f"{'met' if summary['targets']['targeting_mean'] else 'missed'}; torch within {TORCH_RMS} / {TORCH_MAX} mm in every seed: "
-        f"{'met' if summary['targets']['torch_every_seed'] else 'missed'}; successes {summary['successes']} of {len(runs)}")
+        f"{'met' if summary['targets']['torch_every_seed'] else 'missed'}; successes {summary['successes']} of {len(runs)}"
+    )
     if not args.quick:
         out = Path(args.out) if args.out else OUT / label.replace(" ", "_")
         out.mkdir(parents=True, exist_ok=True)
@@ -242,7 +259,11 @@ def main(argv: list[str] | None = None) -> int:
         (out / "results.md").write_text("\n".join([f"preset {label}", "", *table(runs), ""]))
         say(f"results in {out}")
     if args.json:
-        print(json.dumps({"summary": summary, "runs": runs}, default=lambda o: None if isinstance(o, float) and not math.isfinite(o) else str(o)))
+        print(
+            json.dumps(
+                {"summary": summary, "runs": runs}, default=lambda o: None if isinstance(o, float) and not math.isfinite(o) else str(o)
+            )
+        )
     return 0
 
 

@@ -181,8 +181,15 @@ async def _trial_in_process(fault: str, sim: Any, speed: float) -> dict[str, flo
         _, T, _ = sim.truth()
         wall = float(T[1, 3]) + WALL_AHEAD
         config = _config(workspace_max_y=wall)
-    motion = await MotionHandle.open(config, host=sim.host, servo_laws=LAWS, connect_timeout=20.0, link_timeout=0.5,
-                                     watchdog_hz=config.motion.rtde_watchdog_hz, backoff=Backoff(delays=(5.0,)))
+    motion = await MotionHandle.open(
+        config,
+        host=sim.host,
+        servo_laws=LAWS,
+        connect_timeout=20.0,
+        link_timeout=0.5,
+        watchdog_hz=config.motion.rtde_watchdog_hz,
+        backoff=Backoff(delays=(5.0,)),
+    )
     feeder = asyncio.ensure_future(_feed(motion))
     try:
         await asyncio.sleep(0.05)
@@ -232,8 +239,9 @@ def _standin_daemon(host: str, speed: float, conn: Any) -> None:
 
     async def main() -> None:
         config = _config()
-        motion = await MotionHandle.open(config, host=host, servo_laws=LAWS, connect_timeout=20.0, link_timeout=0.5,
-                                         watchdog_hz=config.motion.rtde_watchdog_hz)
+        motion = await MotionHandle.open(
+            config, host=host, servo_laws=LAWS, connect_timeout=20.0, link_timeout=0.5, watchdog_hz=config.motion.rtde_watchdog_hz
+        )
         feeder = asyncio.ensure_future(_feed(motion))  # held: an unreferenced task may be collected
         conn.send(("names", tuple(motion.ch.names)))
 
@@ -410,8 +418,7 @@ def main(argv: list[str] | None = None) -> int:
     kd = report["faults"].get("kill_daemon")
     if kd:
         ok = kd["arc_off_s"]["max"] <= TARGET_ARC_OFF_S and kd["rest_s"]["max"] <= TARGET_REST_S
-        print(f"kill -9 of the daemon: arc off within {TARGET_ARC_OFF_S} s, at rest within {TARGET_REST_S} s: "
-              f"{'met' if ok else 'MISSED'}")
+        print(f"kill -9 of the daemon: arc off within {TARGET_ARC_OFF_S} s, at rest within {TARGET_REST_S} s: {'met' if ok else 'MISSED'}")
     if args.json:
         print(json.dumps(report))
     return 0

@@ -122,7 +122,22 @@ def run_case(variant: str, wp_name: str, n: int, seed: int) -> list[Row]:
             path = find_seam(cloud, prepared, T_base_cam, params, T_base_obj_nominal=simscene.nominal_pose(wp))
         except SeamError as exc:
             dt = time.perf_counter() - t0
-            rows.append(Row(variant, wp_name, i, "refused", f"{type(exc).__name__}: {exc.reason}", "", math.nan, math.nan, math.nan, dt, 0, exc.figures.get("fitness", math.nan)))
+            rows.append(
+                Row(
+                    variant,
+                    wp_name,
+                    i,
+                    "refused",
+                    f"{type(exc).__name__}: {exc.reason}",
+                    "",
+                    math.nan,
+                    math.nan,
+                    math.nan,
+                    dt,
+                    0,
+                    exc.figures.get("fitness", math.nan),
+                )
+            )
             continue
         dt = time.perf_counter() - t0
         truth = se3.apply(T_true, truth_obj)
@@ -132,9 +147,22 @@ def run_case(variant: str, wp_name: str, n: int, seed: int) -> list[Row]:
         q = path.quality
         wrong = err.max() > WRONG_BOUND[variant] or not forward
         reason = "" if not wrong else ("runs backwards" if not forward else f"max error {err.max() * 1e3:.2f} mm")
-        rows.append(Row(variant, wp_name, i, "wrong" if wrong else "ok", reason, q.source,
-                        float(np.sqrt(np.mean(err**2))), float(err.max()), float(np.sqrt(np.mean(err_model**2))),
-                        dt, q.attempts, q.fitness))
+        rows.append(
+            Row(
+                variant,
+                wp_name,
+                i,
+                "wrong" if wrong else "ok",
+                reason,
+                q.source,
+                float(np.sqrt(np.mean(err**2))),
+                float(err.max()),
+                float(np.sqrt(np.mean(err_model**2))),
+                dt,
+                q.attempts,
+                q.fitness,
+            )
+        )
     return rows
 
 
@@ -187,15 +215,51 @@ def write_outputs(rows: list[Row], summary: dict[str, Any], out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "results.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["scanner", "workpiece", "pose", "outcome", "source", "rms_mm", "max_mm", "model_rms_mm", "time_s", "attempts", "fitness", "reason"])
+        w.writerow(
+            [
+                "scanner",
+                "workpiece",
+                "pose",
+                "outcome",
+                "source",
+                "rms_mm",
+                "max_mm",
+                "model_rms_mm",
+                "time_s",
+                "attempts",
+                "fitness",
+                "reason",
+            ]
+        )
         for r in rows:
-            w.writerow([r.scanner, r.workpiece, r.pose, r.outcome, r.source, f"{r.rms * 1e3:.4f}", f"{r.max * 1e3:.4f}",
-                        f"{r.model_rms * 1e3:.4f}", f"{r.time:.3f}", r.attempts, f"{r.fitness:.4f}", r.reason])
-    lines = ["| scanner | workpiece | ok | refused | wrong | seam RMS (mm) | seam max (mm) | time median / max (s) |", "|---|---|---|---|---|---|---|---|"]
+            w.writerow(
+                [
+                    r.scanner,
+                    r.workpiece,
+                    r.pose,
+                    r.outcome,
+                    r.source,
+                    f"{r.rms * 1e3:.4f}",
+                    f"{r.max * 1e3:.4f}",
+                    f"{r.model_rms * 1e3:.4f}",
+                    f"{r.time:.3f}",
+                    r.attempts,
+                    f"{r.fitness:.4f}",
+                    r.reason,
+                ]
+            )
+    lines = [
+        "| scanner | workpiece | ok | refused | wrong | seam RMS (mm) | seam max (mm) | time median / max (s) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for variant, fig in summary.items():
         for wp, c in fig["cases"].items():
-            lines.append(f"| {variant} | {wp} | {c['ok']} | {c['refused']} | {c['wrong']} | {c['seam_rms_mm']:.3f} | {c['seam_max_mm']:.3f} | {c['time_median_s']:.2f} / {c['time_max_s']:.2f} |")
-        lines.append(f"| **{variant}** | all | {fig['ok']} | {fig['refused']} | {fig['wrong']} | {fig['seam_rms_mm']:.3f} (target {fig['target_rms_mm']:.2f}) | {fig['seam_max_mm']:.3f} | {fig['time_median_s']:.2f} / {fig['time_max_s']:.2f} |")
+            lines.append(
+                f"| {variant} | {wp} | {c['ok']} | {c['refused']} | {c['wrong']} | {c['seam_rms_mm']:.3f} | {c['seam_max_mm']:.3f} | {c['time_median_s']:.2f} / {c['time_max_s']:.2f} |"
+            )
+        lines.append(
+            f"| **{variant}** | all | {fig['ok']} | {fig['refused']} | {fig['wrong']} | {fig['seam_rms_mm']:.3f} (target {fig['target_rms_mm']:.2f}) | {fig['seam_max_mm']:.3f} | {fig['time_median_s']:.2f} / {fig['time_max_s']:.2f} |"
+        )
     (out / "summary.md").write_text("\n".join(lines) + "\n")
     import matplotlib
 
@@ -242,15 +306,21 @@ def main(argv: list[str] | None = None) -> int:
             case = run_case(variant, wp, n, args.seed)
             rows += case
             for r in case:
-                print(f"{r.scanner:20s} {r.workpiece:14s} {r.pose:3d} {r.outcome:8s} {r.source:6s} rms {r.rms * 1e3:7.3f} max {r.max * 1e3:7.3f} mm "
-                      f"t {r.time:5.2f} s att {r.attempts} {r.reason}", file=sys.stderr if args.json else sys.stdout, flush=True)
+                print(
+                    f"{r.scanner:20s} {r.workpiece:14s} {r.pose:3d} {r.outcome:8s} {r.source:6s} rms {r.rms * 1e3:7.3f} max {r.max * 1e3:7.3f} mm "
+                    f"t {r.time:5.2f} s att {r.attempts} {r.reason}",
+                    file=sys.stderr if args.json else sys.stdout,
+                    flush=True,
+                )
     summary = summarize(rows)
     if not args.quick:
         write_outputs(rows, summary, Path(args.out))
     for variant, fig in summary.items():
-        print(f"{variant}: ok {fig['ok']}/{fig['scans']}, refused {fig['refused']}, wrong {fig['wrong']}, "
-              f"seam RMS {fig['seam_rms_mm']:.3f} mm (target {fig['target_rms_mm']:.2f}), max {fig['seam_max_mm']:.3f} mm, "
-              f"time median {fig['time_median_s']:.2f} s, max {fig['time_max_s']:.2f} s")
+        print(
+            f"{variant}: ok {fig['ok']}/{fig['scans']}, refused {fig['refused']}, wrong {fig['wrong']}, "
+            f"seam RMS {fig['seam_rms_mm']:.3f} mm (target {fig['target_rms_mm']:.2f}), max {fig['seam_max_mm']:.3f} mm, "
+            f"time median {fig['time_median_s']:.2f} s, max {fig['time_max_s']:.2f} s"
+        )
     if args.json:
         print(json.dumps(summary, default=lambda o: None if isinstance(o, float) and not math.isfinite(o) else o))
     return 0

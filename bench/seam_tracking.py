@@ -237,7 +237,8 @@ def run_kinematic(kind: str, cfg: Config, motion: MotionLimits, quick: bool, see
     cv2.setNumThreads(1)
     rest = tare(
         np.array([detector.detect(srm.frame(0, arm.T, np.zeros(3), 0.0).image).p_cam for _ in range(10)]),
-        cfg.tactile.tare_max_spread, 10,
+        cfg.tactile.tare_max_spread,
+        10,
     )
     frame_ns = int(round(1e9 / cfg.tactile.fps))
     next_frame = 0
@@ -312,16 +313,36 @@ def run_kinematic(kind: str, cfg: Config, motion: MotionLimits, quick: bool, see
         if core.mode == Mode.IDLE:
             break
     tr = Trace(
-        np.array(cyc["t"]), np.array(cyc["torch"]), np.array(cyc["tip"]), np.array(cyc["t_d"]), np.array(cyc["twist"]),
-        np.array(cyc["omega"]), np.array(frames["stamp"]), np.array(frames["err"]), np.array(frames["dn"]),
-        np.array(frames["contact"]), np.array(frames["detect_ms"]), np.array(cyc["latency"]),
-        ControlStatus(status).name, servo.reason, servo.guard_cycles,
+        np.array(cyc["t"]),
+        np.array(cyc["torch"]),
+        np.array(cyc["tip"]),
+        np.array(cyc["t_d"]),
+        np.array(cyc["twist"]),
+        np.array(cyc["omega"]),
+        np.array(frames["stamp"]),
+        np.array(frames["err"]),
+        np.array(frames["dn"]),
+        np.array(frames["contact"]),
+        np.array(frames["detect_ms"]),
+        np.array(cyc["latency"]),
+        ControlStatus(status).name,
+        servo.reason,
+        servo.guard_cycles,
     )
     figures = summarise(kind, cfg, motion, tr, P_true, P_plan2)
     if frames["detect_cpu_ms"]:
         figures["detect_cpu_median_ms"] = round(float(np.median(frames["detect_cpu_ms"])), 3)
-    return RunResult(figures, {"t": tr.t, "e_torch": np.array([lateral(P_true, q)[0] for q in tr.torch]), "omega": tr.omega,
-                               "refined": servo.refined_plane, "P_true": P_true, "P_plan": P_plan2})
+    return RunResult(
+        figures,
+        {
+            "t": tr.t,
+            "e_torch": np.array([lateral(P_true, q)[0] for q in tr.torch]),
+            "omega": tr.omega,
+            "refined": servo.refined_plane,
+            "P_true": P_true,
+            "P_plan": P_plan2,
+        },
+    )
 
 
 def _plane(p_base: np.ndarray) -> np.ndarray:
@@ -375,7 +396,8 @@ def summarise(kind: str, cfg: Config, motion: MotionLimits, tr: Trace, P_true: n
     err_v = tr.frame_err[valid]
     twists = tr.twist.reshape(-1, 6)
     ratios = sequence_peaks(twists if len(twists) else np.zeros((1, 6)), PERIOD, np.zeros((2, 6))).ratios(
-        CartesianLimits.from_config(motion))
+        CartesianLimits.from_config(motion)
+    )
     # |n_d . n_seam| at the torch, from the truth: where the guard band is.
     t_seam = polyline.project(tr.torch.reshape(-1, 2), P_true).tangent if len(tr.torch) else np.zeros((0, 2))
     cos_dt = np.abs(np.einsum("ij,ij->i", tr.t_d.reshape(-1, 2), t_seam))  # n_d . n_t = t_d . t_t in the plane
@@ -425,8 +447,9 @@ def summarise(kind: str, cfg: Config, motion: MotionLimits, tr: Trace, P_true: n
 HOST = "127.0.99.61"
 
 
-def run_closed_loop(kind: str, cfg: Config, motion: MotionLimits, quick: bool, seed: int, host: str = HOST,
-                    camera_sched: str = "daemon") -> RunResult:
+def run_closed_loop(
+    kind: str, cfg: Config, motion: MotionLimits, quick: bool, seed: int, host: str = HOST, camera_sched: str = "daemon"
+) -> RunResult:
     """One seam in wall-clock time through the cell's own processes.
 
     The simulated UR10e (its own process, real ur-rtde against it), the motion
@@ -462,8 +485,9 @@ def run_closed_loop(kind: str, cfg: Config, motion: MotionLimits, quick: bool, s
     # allow 25 cycles of state age, this long run allows 50 (100 ms) and a
     # link silent for 0.5 s. A real controller does not stall like that.
     config = parse({"robot": {"workspace_min": [-1.2, -1.2, 0.02], "workspace_max": [1.2, 1.2, 1.2]}})
-    config = dataclasses.replace(config, tactile=cfg.tactile, tool=cfg.tool, servo=cfg.servo,
-                                 motion=dataclasses.replace(motion, state_stale_cycles=50))
+    config = dataclasses.replace(
+        config, tactile=cfg.tactile, tool=cfg.tool, servo=cfg.servo, motion=dataclasses.replace(motion, state_stale_cycles=50)
+    )
     tool = ToolGeometry.from_config(cfg.tool)
     T_start = start_pose(P_plan, cfg)
     records: list[np.ndarray] = []
@@ -479,7 +503,9 @@ def run_closed_loop(kind: str, cfg: Config, motion: MotionLimits, quick: bool, s
             pass
         name = f"bench-{uuid.uuid4().hex[:8]}"
         truth_slot = SeqlockSlot.create(f"{name}-srm-truth", SRM_TRUTH_DTYPE)
-        spec = SimSrmSource(host, P_true, -side, T_BASE_PLANE, cfg.tool, SrmSimParams(seed=seed, fps=cfg.tactile.fps), truth_slot=f"{name}-srm-truth")
+        spec = SimSrmSource(
+            host, P_true, -side, T_BASE_PLANE, cfg.tool, SrmSimParams(seed=seed, fps=cfg.tactile.fps), truth_slot=f"{name}-srm-truth"
+        )
         # The simulator runs at FIFO 50 on CPU 0 (as in the motion tests), the
         # motion loop at FIFO 80 on CPU 1, the camera process as the daemon
         # starts it: FIFO 40 (below both) on any CPU, so best-effort work never
@@ -509,8 +535,13 @@ def run_closed_loop(kind: str, cfg: Config, motion: MotionLimits, quick: bool, s
 
         async def main() -> None:
             handle = await MotionHandle.open(
-                config, host=host, servo_laws=CELL_SERVO_LAWS, tactile_slot=tactile.slot_name,
-                connect_timeout=60.0, link_timeout=0.5, backoff=Backoff(delays=(0.2, 0.5)),
+                config,
+                host=host,
+                servo_laws=CELL_SERVO_LAWS,
+                tactile_slot=tactile.slot_name,
+                connect_timeout=60.0,
+                link_timeout=0.5,
+                backoff=Backoff(delays=(0.2, 0.5)),
             )
             handle.add_listener(records.append)
             try:
@@ -598,8 +629,17 @@ def run_closed_loop(kind: str, cfg: Config, motion: MotionLimits, quick: bool, s
     figures["overruns"] = int(mine["overruns"].max() - mine["overruns"].min()) if len(mine) else None
     figures["late_p99_us"] = round(float(np.percentile(mine["late_ns"], 99)) * 1e-3, 1) if len(mine) else None
     e = np.array([lateral(P_true, q)[0] for q in tr.torch])
-    return RunResult(figures, {"t": tr.t, "e_torch": e, "omega": np.interp(tr.t, np.arange(len(sent)) * PERIOD, sent[:, 5]) if len(sent) else np.zeros(len(tr.t)),
-                               "refined": np.zeros((0, 2)), "P_true": P_true, "P_plan": P_plan2})
+    return RunResult(
+        figures,
+        {
+            "t": tr.t,
+            "e_torch": e,
+            "omega": np.interp(tr.t, np.arange(len(sent)) * PERIOD, sent[:, 5]) if len(sent) else np.zeros(len(tr.t)),
+            "refined": np.zeros((0, 2)),
+            "P_true": P_true,
+            "P_plan": P_plan2,
+        },
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -611,12 +651,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--direct", action="store_true", help="development: deformation from the simulator's truth, no images")
     ap.add_argument("--camera-fps", type=float, default=None, help="camera frame rate (default: the config's, 60)")
-    ap.add_argument("--tactile-stale-ms", type=float, default=None,
-                    help="age of the last valid sample that stops the servo (default: the config's, 100 ms); "
-                         "recorded in the output when changed")
-    ap.add_argument("--camera-sched", choices=("daemon", "nice", "fifo-pinned"), default="daemon",
-                    help="closed loop: camera process as the daemon runs it (SCHED_FIFO tactile.rt_priority = 40, any "
-                         "CPU; default), best effort at nice -10 (nice), or SCHED_FIFO 40 pinned to the loop's CPU")
+    ap.add_argument(
+        "--tactile-stale-ms",
+        type=float,
+        default=None,
+        help="age of the last valid sample that stops the servo (default: the config's, 100 ms); recorded in the output when changed",
+    )
+    ap.add_argument(
+        "--camera-sched",
+        choices=("daemon", "nice", "fifo-pinned"),
+        default="daemon",
+        help="closed loop: camera process as the daemon runs it (SCHED_FIFO tactile.rt_priority = 40, any "
+        "CPU; default), best effort at nice -10 (nice), or SCHED_FIFO 40 pinned to the loop's CPU",
+    )
     args = ap.parse_args(argv)
     cfg = Config()
     if args.camera_fps:
@@ -635,9 +682,15 @@ def main(argv: list[str] | None = None) -> int:
         results.append(r)
         if not args.json:
             print(json.dumps(r.figures))
-    figures = {"mode": args.mode + ("-direct" if args.direct else ""), "quick": args.quick, "camera_fps": cfg.tactile.fps,
-               "tactile_stale_ms": round(motion.tactile_stale * 1e3, 1),
-               "camera_sched": args.camera_sched if args.mode == "closed-loop" else None, "seams": [r.figures for r in results], "targets": TARGETS}
+    figures = {
+        "mode": args.mode + ("-direct" if args.direct else ""),
+        "quick": args.quick,
+        "camera_fps": cfg.tactile.fps,
+        "tactile_stale_ms": round(motion.tactile_stale * 1e3, 1),
+        "camera_sched": args.camera_sched if args.mode == "closed-loop" else None,
+        "seams": [r.figures for r in results],
+        "targets": TARGETS,
+    }
     if not args.quick:
         write_outputs(results, figures, OUT / figures["mode"])
     print(json.dumps(figures))
@@ -669,8 +722,10 @@ def write_outputs(results: list[RunResult], figures: dict[str, Any], out: Path) 
         fig.suptitle(f"{f['seam']}: RMS {f['lateral_rms_mm']} mm, max {f['lateral_max_mm']} mm")
         fig.savefig(out / f"{f['seam']}.png", dpi=100)
         plt.close(fig)
-    lines = ["| seam | lateral RMS mm | max mm | plan only RMS/max mm | delta_n RMS mm | omega peak | guard | limit ratio | detect ms | deform RMS/max mm | latency ms |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| seam | lateral RMS mm | max mm | plan only RMS/max mm | delta_n RMS mm | omega peak | guard | limit ratio | detect ms | deform RMS/max mm | latency ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in results:
         f = r.figures
         lines.append(

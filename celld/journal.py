@@ -342,8 +342,7 @@ class Journal:
         marks = ", ".join("?" for _ in allowed_from)
         with self._transaction() as db:
             cur = db.execute(
-                f"UPDATE jobs SET state = ?, reason = ?, {stamp} = ?, result = COALESCE(?, result) "
-                f"WHERE id = ? AND state IN ({marks})",
+                f"UPDATE jobs SET state = ?, reason = ?, {stamp} = ?, result = COALESCE(?, result) WHERE id = ? AND state IN ({marks})",
                 (state, reason, now, result, job_id, *allowed_from),
             )
             if cur.rowcount != 1:

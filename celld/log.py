@@ -47,9 +47,7 @@ def configure(level: str = "info", json: bool = False) -> None:
     if not isinstance(numeric, int):
         raise ValueError(f"unknown log level {level!r}: expected debug, info, warning or error")
     logging.basicConfig(stream=sys.stderr, level=numeric, format="%(message)s")
-    renderer: Any = (
-        structlog.processors.JSONRenderer() if json else structlog.dev.ConsoleRenderer(colors=False)
-    )
+    renderer: Any = structlog.processors.JSONRenderer() if json else structlog.dev.ConsoleRenderer(colors=False)
     structlog.configure(
         processors=[
             structlog.contextvars.merge_contextvars,

@@ -13,7 +13,10 @@ from celld.calib.dataset import read_cloud, write_cloud
 from celld.cloudfile import MAX_POINTS, check_cloud_file
 from celld.errors import InputError
 
-FORGED_PLY = b"ply\nformat binary_little_endian 1.0\nelement vertex 500000000\nproperty float x\nproperty float y\nproperty float z\nend_header\n" + bytes(120)
+FORGED_PLY = (
+    b"ply\nformat binary_little_endian 1.0\nelement vertex 500000000\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    + bytes(120)
+)
 
 
 def test_a_forged_ply_header_is_refused_before_any_allocation(tmp_path: Path) -> None:
@@ -52,15 +55,21 @@ def test_reading_the_forged_ply_stays_small_in_a_capped_process(tmp_path: Path) 
 
 def test_truncated_ascii_and_pcd_headers_are_refused(tmp_path: Path) -> None:
     ascii_ply = tmp_path / "a.ply"
-    ascii_ply.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1000\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n")
+    ascii_ply.write_bytes(
+        b"ply\nformat ascii 1.0\nelement vertex 1000\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n"
+    )
     with pytest.raises(InputError, match="at least 6 characters each"):
         check_cloud_file(ascii_ply)
     pcd = tmp_path / "c.pcd"
-    pcd.write_bytes(b"VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100000\nHEIGHT 1\nPOINTS 100000\nDATA binary\n" + bytes(12))
+    pcd.write_bytes(
+        b"VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100000\nHEIGHT 1\nPOINTS 100000\nDATA binary\n" + bytes(12)
+    )
     with pytest.raises(InputError, match="declares 100000 points"):
         check_cloud_file(pcd)
     huge = tmp_path / "h.pcd"
-    huge.write_bytes(f"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {MAX_POINTS + 1}\nHEIGHT 1\nDATA binary_compressed\n".encode())
+    huge.write_bytes(
+        f"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {MAX_POINTS + 1}\nHEIGHT 1\nDATA binary_compressed\n".encode()
+    )
     with pytest.raises(InputError, match="more than the"):
         check_cloud_file(huge)
     with pytest.raises(InputError, match="expected a .ply or .pcd"):

@@ -188,11 +188,13 @@ def test_preflight_names_unknown_presets_and_unwritable_state(tmp_path: Path) ->
     ro = tmp_path / "ro"
     ro.mkdir()
     ro.chmod(0o500)
-    bad = config.parse({
-        "cell": {"state_dir": str(ro / "state")},
-        "calibration": {"flange": "ur99"},
-        "tactile": {"kind": "opencv", "tag_dictionary": "DICT_9X9_7"},
-    })
+    bad = config.parse(
+        {
+            "cell": {"state_dir": str(ro / "state")},
+            "calibration": {"flange": "ur99"},
+            "tactile": {"kind": "opencv", "tag_dictionary": "DICT_9X9_7"},
+        }
+    )
     found = {f.key: f.reason for f in preflight(bad)}
     assert "known presets" in found["calibration.flange"]
     assert "DICT_9X9_7" in found["tactile.tag_dictionary"]

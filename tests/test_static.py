@@ -1,4 +1,4 @@
-"""The code passes its linter and its type checker (configured in pyproject.toml)."""
+"""The code passes its linter, its formatter and its type checker (configured in pyproject.toml)."""
 
 from __future__ import annotations
 
@@ -16,8 +16,13 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_ruff_finds_nothing() -> None:
-    out = _run("ruff", "check", "--no-cache", "--output-format", "concise", "celld", "tests", "bench")
+    out = _run("ruff", "check", "--no-cache", "--output-format", "concise", "celld", "tests", "bench", "examples")
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_the_code_is_formatted() -> None:
+    out = _run("ruff", "format", "--check", "--no-cache", "celld", "tests", "bench", "examples")
+    assert out.returncode == 0, "run `ruff format celld tests bench examples`:\n" + out.stdout + out.stderr
 
 
 @pytest.mark.slow

@@ -84,7 +84,9 @@ def test_leftover_children_are_stopped_and_their_shared_memory_removed(tmp_path:
     records = ChildRecords(tmp_path / "run")
     # A child that ignores nothing: SIGTERM ends it.
     child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
-    stubborn = subprocess.Popen([sys.executable, "-c", "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); time.sleep(60)"])
+    stubborn = subprocess.Popen(
+        [sys.executable, "-c", "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); time.sleep(60)"]
+    )
     name = f"t-left-{uuid.uuid4().hex[:8]}"
     slot = SeqlockSlot.create(name, HEARTBEAT_DTYPE)
     slot.close()  # left behind, not unlinked (as by a killed daemon): not this process's to clean at exit

@@ -37,14 +37,17 @@ SCHEMA_FILE = "{name}.schema.json"
 _SCHEMA_FORMAT = "application/schema+json;version=draft-2020-12"
 
 _PARAMETERS: dict[str, dict[str, Any]] = {
-    "prefix": {"description": "bus.prefix of the cell config (default celld); may have several chunks (plant/line-2/celld).",
-               "schema": {"type": "string"}},
+    "prefix": {
+        "description": "bus.prefix of the cell config (default celld); may have several chunks (plant/line-2/celld).",
+        "schema": {"type": "string"},
+    },
     "cell": {"description": "cell.name of the cell config; one key chunk.", "schema": {"type": "string", "pattern": "^[A-Za-z0-9_-]+$"}},
-    "user": {"description": "The bus user the link authenticated as; only on a bus with users.",
-             "schema": {"type": "string", "pattern": "^[A-Za-z0-9_.-]+$"}},
+    "user": {
+        "description": "The bus user the link authenticated as; only on a bus with users.",
+        "schema": {"type": "string", "pattern": "^[A-Za-z0-9_.-]+$"},
+    },
     "job": {"description": "A job id, as submit returned it.", "schema": {"type": "string", "pattern": "^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"}},
-    "req": {"description": "{prefix}/{cell} on an open bus; {prefix}/{cell}/u/{user} on a bus with users.",
-            "schema": {"type": "string"}},
+    "req": {"description": "{prefix}/{cell} on an open bus; {prefix}/{cell}/u/{user} on a bus with users.", "schema": {"type": "string"}},
 }
 
 
@@ -93,7 +96,7 @@ def _channel(spec: KeySpec) -> dict[str, Any]:
         }
         channel["subscribe"] = {
             "operationId": f"{spec.name}-reply",
-            "summary": "the reply to the query: {\"ok\": true, ...} or an error-reply",
+            "summary": 'the reply to the query: {"ok": true, ...} or an error-reply',
             "message": {"oneOf": replies} if len(replies) > 1 else replies[0],
         }
     elif spec.kind == "publication":
@@ -112,8 +115,8 @@ def asyncapi_document() -> dict[str, Any]:
             "description": (
                 "The zenoh interface of one celld welding cell: jobs in (queries), replies, results, progress "
                 "and state out. Every message is a UTF-8 JSON object whose JSON Schema (draft 2020-12, "
-                f"{DIALECT}) is the file the payload $ref names. Replies are {{\"ok\": true, ...}} or "
-                "{\"ok\": false, \"error\": {\"field\": JSON path, \"reason\": text}}. On a bus with users each "
+                f'{DIALECT}) is the file the payload $ref names. Replies are {{"ok": true, ...}} or '
+                '{"ok": false, "error": {"field": JSON path, "reason": text}}. On a bus with users each '
                 "user queries its own keys ({prefix}/{cell}/u/{user}/...); zenoh's access control lets a link "
                 "query only its own user's keys, which is how the cell knows who asks."
             ),

@@ -43,12 +43,25 @@ from celld.errors import JobError
 # Keywords that constrain a value.
 _ASSERTIONS = frozenset(
     {
-        "type", "enum", "const",
-        "minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum",
-        "minLength", "maxLength", "pattern",
-        "prefixItems", "items", "minItems", "maxItems",
-        "properties", "required", "additionalProperties",
-        "oneOf", "not",
+        "type",
+        "enum",
+        "const",
+        "minimum",
+        "maximum",
+        "exclusiveMinimum",
+        "exclusiveMaximum",
+        "minLength",
+        "maxLength",
+        "pattern",
+        "prefixItems",
+        "items",
+        "minItems",
+        "maxItems",
+        "properties",
+        "required",
+        "additionalProperties",
+        "oneOf",
+        "not",
     }
 )
 # Keywords that only describe.
@@ -312,7 +325,7 @@ def check_schema(schema: Any, where: str = "#") -> None:
     if "not" in schema:
         sub = schema["not"]
         if not isinstance(sub, Mapping) or set(sub) - _ANNOTATIONS != {"required"} or len(sub["required"]) < 2:
-            raise ValueError(f"{where}/not: only {{\"required\": [two or more fields]}} is supported, got {sub!r}")
+            raise ValueError(f'{where}/not: only {{"required": [two or more fields]}} is supported, got {sub!r}')
         for key in sub["required"]:
             if key not in schema.get("properties", {}):
                 raise ValueError(f"{where}/not: required {key!r} has no entry in properties")

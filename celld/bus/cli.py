@@ -75,7 +75,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t = kinds.add_parser("tool-calibrate", parents=[job_common], help="measure the SRM tip in the TCP frame with the scanner")
     t.add_argument("--n-poses", type=int, help="orientations to present the tool at (default 12)")
     t.add_argument("--max-tilt-deg", type=float, help="largest tilt of the finger from facing the scanner, deg (default 20)")
-    t.add_argument("--tip-position", **_floats(3, "X"), help="where the tip is presented, base frame, m (default: the verification pose's position)")
+    t.add_argument(
+        "--tip-position", **_floats(3, "X"), help="where the tip is presented, base frame, m (default: the verification pose's position)"
+    )
     t.add_argument("--seed", type=int, help="seed of the orientation generator")
     t.add_argument("--dry-run", action="store_true", help="plan and check the poses against the cell, do not move")
 
@@ -130,8 +132,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     a.set_defaults(func=_accept)
 
     rb = sub.add_parser("robot", parents=[common], help="clear a robot fault through its dashboard (refused while a job runs)")
-    rb.add_argument("action", choices=schema.ROBOT_ACTIONS,
-                    help="unlock a protective stop, power the arm on, release its brakes, close the safety pop-up")
+    rb.add_argument(
+        "action",
+        choices=schema.ROBOT_ACTIONS,
+        help="unlock a protective stop, power the arm on, release its brakes, close the safety pop-up",
+    )
     rb.set_defaults(func=_robot)
 
     b = sub.add_parser("bus", help="bus tools")
@@ -272,7 +277,8 @@ def _submit(args: argparse.Namespace) -> int:
                 _print_json(reply)
             else:
                 print(
-                    f"{reply['job']} {reply['state']}" + (f" (position {reply['position']})" if reply["state"] == "queued" else "")
+                    f"{reply['job']} {reply['state']}"
+                    + (f" (position {reply['position']})" if reply["state"] == "queued" else "")
                     + (" (replayed: this request id made it before)" if reply.get("replayed") else "")
                 )
             return 0
@@ -391,8 +397,11 @@ def _result(args: argparse.Namespace) -> int:
         reply = cell.result(args.job)
     if args.out:
         if reply["result"] is None:
-            raise JobError("$.job", f"job {args.job} ({reply['state']}) has no result to write" + (
-                f": it is over {schema.MAX_RESULT_BYTES} bytes, on the cell PC at {reply.get('path')}" if reply["too_large"] else ""))
+            raise JobError(
+                "$.job",
+                f"job {args.job} ({reply['state']}) has no result to write"
+                + (f": it is over {schema.MAX_RESULT_BYTES} bytes, on the cell PC at {reply.get('path')}" if reply["too_large"] else ""),
+            )
         Path(args.out).write_text(json.dumps(reply["result"], indent=2) + "\n", encoding="utf-8")
         print(args.out)
     elif args.json:

@@ -324,7 +324,6 @@ class ProgressWatch:
                 if record.get("state") in schema.TERMINAL_STATES:
                     return record
 
-
     def wait_stage(self, job: str, stage: str, timeout: float) -> dict[str, Any]:
         """Wait for a progress event of ``job`` in ``stage``; returns it.
 

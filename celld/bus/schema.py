@@ -229,8 +229,11 @@ _TOOL_CALIBRATE = _submit_branch(
         "n_poses": _integer("How many orientations to present the tool at (default 12).", 3, MAX_TOOL_POSES),
         "max_tilt_deg": _number("Largest tilt of the finger from the pose facing the scanner, deg (default 20).", 2.0, 45.0),
         "tip_position": _vector(
-            "Where the tip is presented, base frame, m (default: the position of calibration.verification_pose, "
-            "which the scanner sees).", 3, -2.5, 2.5),
+            "Where the tip is presented, base frame, m (default: the position of calibration.verification_pose, which the scanner sees).",
+            3,
+            -2.5,
+            2.5,
+        ),
         "seed": _integer("Seed of the orientation generator (default 0).", 0, 2**32 - 1),
         "dry_run": _DRY_RUN,
     },
@@ -247,7 +250,9 @@ _WELD = _submit_branch(
             "pattern": r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$",
             "description": "A workpiece model known to the cell (an example or a model in weld.workpiece_dir); absent: the cell's weld.workpiece.",
         },
-        "delta_d_mm": _servo_number("delta_d", "Desired normal deformation of the SRM, mm; between the sensor's contact and overload levels"),
+        "delta_d_mm": _servo_number(
+            "delta_d", "Desired normal deformation of the SRM, mm; between the sensor's contact and overload levels"
+        ),
         "k_p": _servo_number("k_p", "Normal gain of Eq. 16, 1/s"),
         "v_const_mm_s": _servo_number("v_const", "Tangential speed V_const, mm/s"),
         "torch_offset_mm": _servo_number("torch_offset", "|d| of Eq. 14, mm"),
@@ -290,7 +295,10 @@ _SUBMIT = {
 _ERROR = _object(
     "Why a request was refused.",
     {
-        "field": {"type": "string", "description": "JSON path of the offending field ($ for the whole message, empty when no field is at fault)."},
+        "field": {
+            "type": "string",
+            "description": "JSON path of the offending field ($ for the whole message, empty when no field is at fault).",
+        },
         "reason": {"type": "string", "description": "What was expected and what came."},
     },
     ("field", "reason"),
@@ -390,8 +398,20 @@ _QUALITY = _object(
         "sigma_mm": {**_NUMBER_OR_NULL, "description": "Noise per axis the uncertainty uses."},
         "sigma_source": {"enum": ["residuals", "floor"]},
         "workspace_centre": _vector("Centroid of the positions used, base frame, m.", 3),
-        "translation_std_mm": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3, "description": "1-sigma at the workspace centre, base x, y, z."},
-        "rotation_std_deg": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3, "description": "1-sigma about base x, y, z."},
+        "translation_std_mm": {
+            "type": "array",
+            "items": _NUMBER_OR_NULL,
+            "minItems": 3,
+            "maxItems": 3,
+            "description": "1-sigma at the workspace centre, base x, y, z.",
+        },
+        "rotation_std_deg": {
+            "type": "array",
+            "items": _NUMBER_OR_NULL,
+            "minItems": 3,
+            "maxItems": 3,
+            "description": "1-sigma about base x, y, z.",
+        },
         "rotation_axes": {
             "type": "array",
             "description": "Principal axes of the rotation covariance, the worst fixed first.",
@@ -403,10 +423,19 @@ _QUALITY = _object(
         },
         "e_icp": {"type": ["object", "null"], "description": "e_icp (Eq. 13) of the estimate; null without a verification cloud."},
         "e_icp_tilt_deg": {**_NUMBER_OR_NULL, "description": "e_icp's rotation across the verification flange's axis."},
-        "e_icp_turn_deg": {**_NUMBER_OR_NULL, "description": "e_icp's rotation about the verification flange's axis (fixed only by its holes)."},
-        "range_bias_mm": {**_NUMBER_OR_NULL, "description": "The scanner's range bias on bare metal estimated with T_base_cam; null when not estimated."},
+        "e_icp_turn_deg": {
+            **_NUMBER_OR_NULL,
+            "description": "e_icp's rotation about the verification flange's axis (fixed only by its holes).",
+        },
+        "range_bias_mm": {
+            **_NUMBER_OR_NULL,
+            "description": "The scanner's range bias on bare metal estimated with T_base_cam; null when not estimated.",
+        },
         "range_bias_std_mm": {**_NUMBER_OR_NULL, "description": "Its 1-sigma."},
-        "range_bias_source": {"type": "string", "description": "What fixed it: steps (the metal face over the painted shoulder), pairs (the spread of the rays), or both; empty when not estimated."},
+        "range_bias_source": {
+            "type": "string",
+            "description": "What fixed it: steps (the metal face over the painted shoulder), pairs (the spread of the rays), or both; empty when not estimated.",
+        },
     },
     ("verdict", "passed", "reasons", "warnings", "pairs"),
 )
@@ -427,10 +456,16 @@ _CALIBRATION = _object(
         "accepted": {"type": "string", "description": "When it became current, UTC ISO 8601."},
         "dataset": {"type": "string", "description": "Path of the saved dataset."},
         "method": {"type": "string", "description": "The estimator that gave T_base_cam (robust, svd, algorithm1)."},
-        "stored": {"enum": ["estimate", "compensated"], "description": "T_base_cam is the estimate, or the estimate compensated by Eq. 21."},
+        "stored": {
+            "enum": ["estimate", "compensated"],
+            "description": "T_base_cam is the estimate, or the estimate compensated by Eq. 21.",
+        },
         "quality": _QUALITY,
         "forced": {"type": "boolean", "description": "Accepted with force despite a failed quality verdict."},
-        "range_bias": {"enum": ["estimate", "none"], "description": "Whether the scanner's range bias on metal was estimated (calibration.range_bias)."},
+        "range_bias": {
+            "enum": ["estimate", "none"],
+            "description": "Whether the scanner's range bias on metal was estimated (calibration.range_bias).",
+        },
         "range_bias_mm": {
             "type": "number",
             "description": "The scanner's range bias on bare metal, mm (0 when not estimated): every scan placed with this "
@@ -469,9 +504,18 @@ _TOOL_QUALITY = _object(
         "rms_mm": {**_NUMBER_OR_NULL, "description": "RMS residual of the poses used."},
         "sigma_mm": {**_NUMBER_OR_NULL, "description": "Noise per axis the uncertainty uses."},
         "sigma_source": {"enum": ["residuals", "floor"]},
-        "spread_deg": {**_NUMBER_OR_NULL, "description": "Orientation spread of the poses used along the worst-fixed direction of the tip."},
+        "spread_deg": {
+            **_NUMBER_OR_NULL,
+            "description": "Orientation spread of the poses used along the worst-fixed direction of the tip.",
+        },
         "spread_axis_tcp": _vector("That direction, TCP frame.", 3),
-        "tip_std_mm": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3, "description": "1-sigma of the tip along TCP x, y, z."},
+        "tip_std_mm": {
+            "type": "array",
+            "items": _NUMBER_OR_NULL,
+            "minItems": 3,
+            "maxItems": 3,
+            "description": "1-sigma of the tip along TCP x, y, z.",
+        },
         "offset_base_mm": _vector("Where the scanner and the arm disagree at the tool's place (solved with the tip), base frame, mm.", 3),
         "offset_std_mm": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3},
         "missed": {"type": "array", "items": {"type": "object"}, "description": "Poses whose capture showed no tip, and why."},
@@ -505,10 +549,13 @@ _PROGRESS = _object(
         "kind": {"enum": list(JOB_KINDS)},
         "seq": {"type": "integer", "minimum": 0},
         "state": {"enum": list(JOB_STATES)},
-        "stage": {"type": "string", "description": "What the job is doing: verify, pair, solve, scan, seam, approach, touch, track, retract, ..."},
+        "stage": {
+            "type": "string",
+            "description": "What the job is doing: verify, pair, solve, scan, seam, approach, touch, track, retract, ...",
+        },
         "fraction": {"type": ["number", "null"], "minimum": 0.0, "maximum": 1.0, "description": "Done so far, 0..1, if known."},
         "message": {"type": "string"},
-        "data": {"type": "object", "description": "Stage figures, e.g. {\"pair\": 3, \"cost_mm\": 0.41}."},
+        "data": {"type": "object", "description": 'Stage figures, e.g. {"pair": 3, "cost_mm": 0.41}.'},
     },
     ("job", "seq", "state", "stage"),
 )
@@ -526,7 +573,10 @@ _ROBOT_CONDITION = _object(
         "remedy": {"type": "string", "description": "What clears it, e.g. `celld robot unlock`."},
         "link": {"enum": ["up", "down", "unknown"], "description": "The RTDE link."},
         "mode": {"type": ["string", "null"], "description": "Dashboard robot mode (RUNNING, IDLE, POWER_OFF, ...), null when not read."},
-        "safety": {"type": ["string", "null"], "description": "Dashboard safety status (NORMAL, PROTECTIVE_STOP, ...), null when not read."},
+        "safety": {
+            "type": ["string", "null"],
+            "description": "Dashboard safety status (NORMAL, PROTECTIVE_STOP, ...), null when not read.",
+        },
         "dashboard": {"type": "string", "description": "reachable, or why the dashboard server was not."},
     },
     ("ready", "state", "reason", "remedy"),
@@ -574,13 +624,21 @@ _BODIES: dict[str, dict[str, Any]] = {
     "accept": _object(
         "Make a finished calibrate job's result the current calibration, or a finished tool-calibrate job's the "
         "current tool calibration. A result whose verdict is not ok is refused unless force is true.",
-        {"job": _JOB_ID, "force": {"type": "boolean", "default": False, "description": "Accept even though the quality verdict is not ok."}},
+        {
+            "job": _JOB_ID,
+            "force": {"type": "boolean", "default": False, "description": "Accept even though the quality verdict is not ok."},
+        },
         ("job",),
     ),
     "calibration": _object("The current calibration.", {}),
     "robot": _object(
         "An operator's recovery command through the robot's dashboard server; refused while a job runs.",
-        {"action": {"enum": list(ROBOT_ACTIONS), "description": "unlock a protective stop, power the arm on, release its brakes, close the safety pop-up."}},
+        {
+            "action": {
+                "enum": list(ROBOT_ACTIONS),
+                "description": "unlock a protective stop, power the arm on, release its brakes, close the safety pop-up.",
+            }
+        },
         ("action",),
     ),
     "result": _object(

@@ -187,8 +187,7 @@ class BusServer:
     ) -> None:
         if state_rate_hz <= 0 or reply_timeout <= 0 or max_pending < 1:
             raise BusError(
-                f"expected state_rate_hz > 0, reply_timeout > 0, max_pending >= 1; "
-                f"got {state_rate_hz}, {reply_timeout}, {max_pending}"
+                f"expected state_rate_hz > 0, reply_timeout > 0, max_pending >= 1; got {state_rate_hz}, {reply_timeout}, {max_pending}"
             )
         self.session = session
         self.keys = cell
@@ -285,7 +284,7 @@ class BusServer:
                 key = str(query.key_expr)
                 job = ""
                 if name == "result":
-                    job = key[len(result_head):] if key.startswith(result_head) else ""
+                    job = key[len(result_head) :] if key.startswith(result_head) else ""
                     exact = bool(job) and not set(job) & set("*$?#/")  # one literal job id
                     reply_key = result_head + job if exact else declared
                 else:

@@ -250,7 +250,7 @@ def client_config(bus: BusConfig, user: str | None = None, password: str | None 
     if not endpoints and not bus.multicast_scouting:
         raise BusError(
             "no endpoint to connect to: bus.listen has no fixed port and bus.connect is empty "
-            "(give the cell a fixed port, e.g. listen = [\"tcp/127.0.0.1:7447\"])"
+            '(give the cell a fixed port, e.g. listen = ["tcp/127.0.0.1:7447"])'
         )
     mode = "peer" if bus.mode == "peer" else "client"
     timeout_ms = int(bus.connect_timeout * 1e3)
@@ -349,8 +349,13 @@ def open_server(bus: BusConfig, keys: CellKeys) -> ServerSession:
         if private is not None:
             shutil.rmtree(private, ignore_errors=True)
     log.info(
-        "bus session open", mode=bus.mode, listen=list(bus.listen), connect=list(bus.connect), users=len(bus.users),
-        tls=bus.tls is not None and bool(bus.tls.listen_certificate), mutual_tls=bool(bus.tls and bus.tls.mutual),
+        "bus session open",
+        mode=bus.mode,
+        listen=list(bus.listen),
+        connect=list(bus.connect),
+        users=len(bus.users),
+        tls=bus.tls is not None and bool(bus.tls.listen_certificate),
+        mutual_tls=bool(bus.tls and bus.tls.mutual),
     )
     return ServerSession(session=session, keys=keys, config=conf)
 

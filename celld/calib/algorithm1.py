@@ -143,7 +143,9 @@ class Algorithm1:
         Estimate the scale ``c`` of Eq. 11 in each pool solve.
     """
 
-    def __init__(self, evaluate: Evaluate, cost: Cost = translation_cost, *, e_required: float, k_max: int, with_scale: bool = False) -> None:
+    def __init__(
+        self, evaluate: Evaluate, cost: Cost = translation_cost, *, e_required: float, k_max: int, with_scale: bool = False
+    ) -> None:
         if not e_required >= 0.0:
             raise InputError(f"e_required: expected a cost >= 0 m, got {e_required}")
         if k_max < 0:

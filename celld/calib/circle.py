@@ -192,10 +192,10 @@ def plane_basis(normal: np.ndarray) -> np.ndarray:
     return np.stack([u, np.cross(n, u)])
 
 
-
 def _circle_residuals(x: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """Distances of the 2D points ``Q`` from the circle ``x = (cu, cv, r)``."""
     return np.hypot(Q[:, 0] - x[0], Q[:, 1] - x[1]) - x[2]
+
 
 def refine_circle(
     P: np.ndarray, init: CircleFit, plane_point: np.ndarray, plane_normal: np.ndarray, e_d: float, iterations: int = 3

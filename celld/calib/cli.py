@@ -48,7 +48,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--flange", help="flange preset (default: the session's); needed to detect centres in clouds")
     s.add_argument("--method", choices=("robust", "svd", "algorithm1"), help="estimator (default: the config's, robust)")
     s.add_argument("--config", help="cell config whose [calibration] section sets the method, e_icp and Algorithm 1")
-    s.add_argument("--compensate", action="store_true", help="report the estimate compensated by Eq. 21 as T_base_cam (needs a verification cloud)")
+    s.add_argument(
+        "--compensate", action="store_true", help="report the estimate compensated by Eq. 21 as T_base_cam (needs a verification cloud)"
+    )
     s.add_argument("--redetect", action="store_true", help="detect every centre in its cloud, ignoring recorded centres")
     s.add_argument("--scale", action="store_true", help="estimate the scale c of Eq. 11")
     s.add_argument(
@@ -176,5 +178,7 @@ def _detect(args: argparse.Namespace) -> int:
     else:
         c = ", ".join(f"{x:.4f}" for x in out["center"])
         n = ", ".join(f"{x:.5f}" for x in out["normal"])
-        print(f"flange {flange.name}: centre ({c}) {args.units}, normal ({n}), radius {out['radius']:.4f} {args.units}, {det.inliers} rim inliers")
+        print(
+            f"flange {flange.name}: centre ({c}) {args.units}, normal ({n}), radius {out['radius']:.4f} {args.units}, {det.inliers} rim inliers"
+        )
     return 0

@@ -239,9 +239,7 @@ def _max_abs(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
         return float(np.max(np.abs(a - b), where=mask, initial=0.0))
 
 
-def encode(
-    P_cam: ArrayLike, window_px: ArrayLike, grid_px: ArrayLike, grid_stride: int, depth_unit: float = DEPTH_UNIT
-) -> CompactCloud:
+def encode(P_cam: ArrayLike, window_px: ArrayLike, grid_px: ArrayLike, grid_stride: int, depth_unit: float = DEPTH_UNIT) -> CompactCloud:
     """Split an organized cloud into a depth image, the rebuild of x and y, and exact pixels.
 
     Parameters

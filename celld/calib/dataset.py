@@ -395,7 +395,9 @@ def read_compact_cloud(path: str | Path) -> Array:
     root, where = path.parent, path.name
     doc = _read_json(path)
     if _get(doc, "format", str, where) != CLOUD_FORMAT or doc.get("version") != CLOUD_VERSION:
-        raise InputError(f"{path}: expected a {CLOUD_FORMAT!r} version {CLOUD_VERSION} document, got {doc.get('format')!r} {doc.get('version')!r}")
+        raise InputError(
+            f"{path}: expected a {CLOUD_FORMAT!r} version {CLOUD_VERSION} document, got {doc.get('format')!r} {doc.get('version')!r}"
+        )
     if doc.get("units") != "m":
         raise InputError(f"{path}: units: expected 'm', got {doc.get('units')!r}")
     shape_doc = _get(doc, "shape_px", list, where)
@@ -576,8 +578,12 @@ class SessionWriter:
                     log.warning("calibration cloud written whole: no compact form", cloud=stem, reason=str(exc))
                 else:
                     log.debug(
-                        "calibration cloud written compact", cloud=stem, window_px=c.window_px, source=found[1],
-                        xy="pinhole" if c.xy is None else "images", max_error_mm=np.round(c.max_error * 1e3, 4).tolist(),
+                        "calibration cloud written compact",
+                        cloud=stem,
+                        window_px=c.window_px,
+                        source=found[1],
+                        xy="pinhole" if c.xy is None else "images",
+                        max_error_mm=np.round(c.max_error * 1e3, 4).tolist(),
                     )
                     return name
         write_cloud(self.root / f"{stem}.ply", P)
@@ -663,7 +669,9 @@ def _read_json(path: Path) -> Any:
 
 def _check_header(doc: Any, path: Path) -> None:
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise InputError(f"{path}: expected a {FORMAT!r} document, got format {doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}")
+        raise InputError(
+            f"{path}: expected a {FORMAT!r} document, got format {doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}"
+        )
     if doc.get("version") not in _VERSIONS_READ:
         raise InputError(f"{path}: expected version {' or '.join(map(str, _VERSIONS_READ))}, got {doc.get('version')!r}")
     if doc.get("units") not in ("m", "mm"):
@@ -742,9 +750,7 @@ def _load_reference(root: Path) -> Session:
         keys = sorted(doc, key=int)
     except ValueError as exc:
         raise InputError(f"{path}: expected integer keys, got {sorted(doc)[:5]}") from exc
-    numbered = sorted(
-        ((int(m.group(1)), p) for p in root.iterdir() if (m := _REFERENCE_CLOUD.match(p.name))), key=lambda x: x[0]
-    )
+    numbered = sorted(((int(m.group(1)), p) for p in root.iterdir() if (m := _REFERENCE_CLOUD.match(p.name))), key=lambda x: x[0])
     by_order = len(numbered) == len(keys)
     pairs = []
     for n, key in enumerate(keys):

@@ -89,8 +89,6 @@ _COARSE_VOXELS_PER_RADIUS = 12
 _MAX_CANDIDATES = 3
 
 
-
-
 @dataclass(frozen=True, eq=False)
 class FlangeDetection:
     """A verified flange in a cloud: pose of its centre and the quality of the fit.
@@ -361,9 +359,7 @@ def _fine(
     n_in = int(fit.inliers.sum())
     coverage = angular_coverage(Q[fit.inliers], fit.centre, face.normal, COVERAGE_BINS)
     if abs(fit.radius - R) > params.e_r:
-        raise DetectionError(
-            "refine", f"fitted radius {fit.radius * 1e3:.3f} mm is outside {R * 1e3:.2f} +- {params.e_r * 1e3:.2f} mm"
-        )
+        raise DetectionError("refine", f"fitted radius {fit.radius * 1e3:.3f} mm is outside {R * 1e3:.2f} +- {params.e_r * 1e3:.2f} mm")
     if n_in < params.min_inliers or coverage < params.min_coverage:
         raise DetectionError(
             "refine",
@@ -401,9 +397,7 @@ def _fine(
 # -- entry point ----------------------------------------------------------------
 
 
-def coarse_grid(
-    P: np.ndarray, params: DetectParams, roi_center: np.ndarray | None = None
-) -> tuple[tuple[int, int, int, int], int]:
+def coarse_grid(P: np.ndarray, params: DetectParams, roi_center: np.ndarray | None = None) -> tuple[tuple[int, int, int, int], int]:
     """The pixels the coarse pass reads of an organized cloud: ``P[row0:row1:stride, col0:col1:stride]``.
 
     Returns ``((row0, row1, col0, col1), stride)``: the grid of every

@@ -168,8 +168,7 @@ class FlangeModel:
             raise InputError(f"flange {self.name!r}: chamfer {self.chamfer} m must be less than thickness {self.thickness} m")
         if self.wrist_diameter < self.outer_diameter:
             raise InputError(
-                f"flange {self.name!r}: wrist_diameter {self.wrist_diameter} m must be at least "
-                f"outer_diameter {self.outer_diameter} m"
+                f"flange {self.name!r}: wrist_diameter {self.wrist_diameter} m must be at least outer_diameter {self.outer_diameter} m"
             )
         if max(self.hole_depth, self.dowel_depth, self.bore_depth) >= self.thickness + self.wrist_depth:
             raise InputError(f"flange {self.name!r}: holes and bore must end inside the body (thickness + wrist_depth)")
@@ -397,9 +396,7 @@ PRESETS: dict[str, FlangeModel] = {
     "franka": FlangeModel(name="franka", wrist_diameter=0.075, **_ISO_50_4_M6),
     "aubo-i5": FlangeModel(name="aubo-i5", wrist_diameter=0.080, **_ISO_50_4_M6),
     # The 90 mm outer circle of the UR10e wrist, 6.5 mm behind the face (paper section 4.2).
-    "ur10e-wrist": FlangeModel(
-        name="ur10e-wrist", wrist_diameter=0.090, circle_radius=0.045, circle_z=-0.0065, **_ISO_50_4_M6
-    ),
+    "ur10e-wrist": FlangeModel(name="ur10e-wrist", wrist_diameter=0.090, circle_radius=0.045, circle_z=-0.0065, **_ISO_50_4_M6),
 }
 
 

@@ -213,9 +213,7 @@ def solve_eye_in_hand(
     N = _check_optional(n_cam, n, "n_cam", unit=True)
     need = MIN_PAIRS if N is not None else 5
     if n < need:
-        raise CalibrationError(
-            f"eye-in-hand: expected at least {need} poses{'' if N is not None else ' without normals'}, got {n}"
-        )
+        raise CalibrationError(f"eye-in-hand: expected at least {need} poses{'' if N is not None else ' without normals'}, got {n}")
     R_i, t_i = T[:, :3, :3], T[:, :3, 3]
     _check_rotation_spread(R_i, "eye-in-hand")
 

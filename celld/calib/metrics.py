@@ -307,9 +307,7 @@ class IcpVerifier:
         T = self._T_flan_base @ T_base_camhat  # T_flan_cam'
         reg = None
         for d in self.params.max_distances:
-            reg = o3d.pipelines.registration.registration_icp(
-                self._source, self._target, d, T, self._estimation, self._criteria
-            )
+            reg = o3d.pipelines.registration.registration_icp(self._source, self._target, d, T, self._estimation, self._criteria)
             if reg.fitness == 0.0:
                 return IcpMetric.failed(f"no verification point within {d * 1e3:.3g} mm of the placed model")
             T = np.asarray(reg.transformation)

@@ -165,8 +165,16 @@ class QualityParams:
             raise InputError(f"outlier_alpha: expected 0 < alpha < 0.5, got {self.outlier_alpha}")
         if not 0.0 <= self.max_outlier_fraction < 1.0:
             raise InputError(f"max_outlier_fraction: expected a fraction in [0, 1), got {self.max_outlier_fraction}")
-        for name in ("max_rms", "sigma_floor", "warn_rotation_std", "max_rotation_std", "max_e_icp_translation", "max_e_icp_rotation",
-                     "warn_range_bias_std", "max_range_bias_std"):
+        for name in (
+            "max_rms",
+            "sigma_floor",
+            "warn_rotation_std",
+            "max_rotation_std",
+            "max_e_icp_translation",
+            "max_e_icp_rotation",
+            "warn_range_bias_std",
+            "max_range_bias_std",
+        ):
             if not getattr(self, name) > 0.0:
                 raise InputError(f"{name}: expected a positive value (SI units), got {getattr(self, name)}")
         if self.warn_rotation_std > self.max_rotation_std:
@@ -600,8 +608,12 @@ def assess_calibration(
     warnings += [str(x) for x in notes]
 
     verdict = "ok"
-    for name, found in (("too_few_pairs", too_few), ("poor_data", poor), ("insufficient_rotation", rotation),
-                        ("insufficient_range_bias", bias_reasons)):
+    for name, found in (
+        ("too_few_pairs", too_few),
+        ("poor_data", poor),
+        ("insufficient_rotation", rotation),
+        ("insufficient_range_bias", bias_reasons),
+    ):
         if found:
             verdict = name
             break

@@ -411,7 +411,11 @@ def _steps(ids: tuple[str, ...], data: RangeBiasData, alpha: float) -> tuple[np.
     spread = float(np.std(b[keep], ddof=1)) if np.count_nonzero(keep) >= 3 else 0.0
     sigma = max(spread, floor)
     rejected = tuple(
-        RejectedStep(ids[i], float(b[i]), f"bias {b[i] * 1e3:.2f} mm is {abs(b[i] - med) / scale:.1f} noise scales from the median {med * 1e3:.2f} mm")
+        RejectedStep(
+            ids[i],
+            float(b[i]),
+            f"bias {b[i] * 1e3:.2f} mm is {abs(b[i] - med) / scale:.1f} noise scales from the median {med * 1e3:.2f} mm",
+        )
         for i in np.flatnonzero(out)
     )
     return keep, sigma, rejected

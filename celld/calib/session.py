@@ -324,9 +324,7 @@ def solve_pairs(
 
     a1 = None
     if verifier is not None and len(P_b) >= 4:
-        a1 = run_algorithm1(
-            ids_t, P_b, P_c, verifier, cost, e_required=params.e_required, k_max=params.k_max, with_scale=params.with_scale
-        )
+        a1 = run_algorithm1(ids_t, P_b, P_c, verifier, cost, e_required=params.e_required, k_max=params.k_max, with_scale=params.with_scale)
 
     rejected = list(pre_rejected)
     if params.method == "robust" and rb is not None and rob_rb is not None:
@@ -350,9 +348,7 @@ def solve_pairs(
             raise CalibrationError("Algorithm 1 found no solvable pool of four pairs")
         used = sorted(ids_t.index(i) for i in a1.pool_ids)
         T, unc, scale = a1.T_base_cam, a1.fit.uncertainty, a1.fit.scale
-        rejected += [
-            RejectedPair(ids_t[i], i, float("nan"), "not in Algorithm 1's final pool") for i in range(len(P_b)) if i not in used
-        ]
+        rejected += [RejectedPair(ids_t[i], i, float("nan"), "not in Algorithm 1's final pool") for i in range(len(P_b)) if i not in used]
     d_cam = float(np.linalg.norm(T[:3, 3]))
     if d_cam > MAX_CAMERA_DISTANCE:
         raise CalibrationError(
@@ -528,7 +524,13 @@ def calibrate_session(
     if flange is not None:
         verifier = verification_verifier(session, flange, params, detect_params)
     result = solve_pairs(
-        det.ids, det.P_base, det.P_cam, params, verifier, det.rejected, n_pairs=len(session.pairs),
+        det.ids,
+        det.P_base,
+        det.P_cam,
+        params,
+        verifier,
+        det.rejected,
+        n_pairs=len(session.pairs),
         range_data=range_bias_data(params, flange, det),
     )
     log.info(

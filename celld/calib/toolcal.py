@@ -191,8 +191,13 @@ class ToolTipFit:
             "reasons": list(self.reasons),
             "warnings": list(self.warnings),
             "poses": [
-                {"id": pid, "residual_mm": _finite_or_none(self.residuals[i] * 1e3), "used": i in used,
-                 "outlier": i in out_reason, "reason": out_reason.get(i, "")}
+                {
+                    "id": pid,
+                    "residual_mm": _finite_or_none(self.residuals[i] * 1e3),
+                    "used": i in used,
+                    "outlier": i in out_reason,
+                    "reason": out_reason.get(i, ""),
+                }
                 for i, pid in enumerate(self.ids)
             ],
             "outliers": [r.id for r in self.rejected],
@@ -332,9 +337,23 @@ def solve_tool_tip(
     nan3 = np.full(3, math.nan)
     inf3 = np.full(3, math.inf)
     if n < MIN_SOLVE_POSES:
-        return ToolTipFit(nan3, inf3, nan3, inf3, ids_t, np.full(n, math.nan), (), (), math.nan, "floor", 0.0,
-                          np.array([0.0, 0.0, 1.0]), "too_few_poses",
-                          (f"{n} tip measurements; at least {params.min_poses} are needed (the solve needs {MIN_SOLVE_POSES})",), ())
+        return ToolTipFit(
+            nan3,
+            inf3,
+            nan3,
+            inf3,
+            ids_t,
+            np.full(n, math.nan),
+            (),
+            (),
+            math.nan,
+            "floor",
+            0.0,
+            np.array([0.0, 0.0, 1.0]),
+            "too_few_poses",
+            (f"{n} tip measurements; at least {params.min_poses} are needed (the solve needs {MIN_SOLVE_POSES})",),
+            (),
+        )
     spread_all, _ = orientation_spread(T[:, :3, :3])
     rp = params.robust
     if spread_all < _MIN_SAMPLE_SPREAD:
@@ -369,9 +388,13 @@ def solve_tool_tip(
     used = np.flatnonzero(inlier)
     rejected = tuple(
         RejectedPair(
-            id=ids_t[i], index=int(i), residual=float(residuals[i]),
-            reason=(f"residual {residuals[i] * 1e3:.3f} mm exceeds the inlier threshold {threshold * 1e3:.3f} mm "
-                    f"({rp.k:.2f} x estimated noise {sigma * 1e3:.3f} mm per axis)"),
+            id=ids_t[i],
+            index=int(i),
+            residual=float(residuals[i]),
+            reason=(
+                f"residual {residuals[i] * 1e3:.3f} mm exceeds the inlier threshold {threshold * 1e3:.3f} mm "
+                f"({rp.k:.2f} x estimated noise {sigma * 1e3:.3f} mm per axis)"
+            ),
         )
         for i in np.flatnonzero(~inlier)
     )
@@ -386,9 +409,21 @@ def solve_tool_tip(
     else:
         std = np.full(6, math.inf)
     fit = ToolTipFit(
-        p_tcp_tip=x[:3].copy(), tip_std=std[:3], offset_base=x[3:].copy(), offset_std=std[3:], ids=ids_t,
-        residuals=residuals, inliers=tuple(int(i) for i in used), rejected=rejected, sigma=float(sigma_used),
-        sigma_source=source, spread=spread, spread_axis_tcp=axis, verdict="ok", reasons=(), warnings=(),
+        p_tcp_tip=x[:3].copy(),
+        tip_std=std[:3],
+        offset_base=x[3:].copy(),
+        offset_std=std[3:],
+        ids=ids_t,
+        residuals=residuals,
+        inliers=tuple(int(i) for i in used),
+        rejected=rejected,
+        sigma=float(sigma_used),
+        sigma_source=source,
+        spread=spread,
+        spread_axis_tcp=axis,
+        verdict="ok",
+        reasons=(),
+        warnings=(),
     )
     verdict, reasons, warnings = _verdict(fit, n, params)
     return ToolTipFit(**{**fit.__dict__, "verdict": verdict, "reasons": reasons, "warnings": warnings})
@@ -401,15 +436,22 @@ def _verdict(fit: ToolTipFit, n: int, params: ToolCalParams) -> tuple[str, tuple
         found.append(("too_few_poses", f"{n} tip measurements; at least {params.min_poses} are needed"))
     if fit.spread < params.min_spread:
         ax = np.round(fit.spread_axis_tcp, 3).tolist()
-        found.append((
-            "poor_orientation_spread",
-            f"the flange orientations spread {math.degrees(fit.spread):.2f} deg along the TCP direction {ax}, "
-            f"at least {math.degrees(params.min_spread):.2f} deg are needed: turn the tool about at least two axes",
-        ))
+        found.append(
+            (
+                "poor_orientation_spread",
+                f"the flange orientations spread {math.degrees(fit.spread):.2f} deg along the TCP direction {ax}, "
+                f"at least {math.degrees(params.min_spread):.2f} deg are needed: turn the tool about at least two axes",
+            )
+        )
     n_out = len(fit.rejected)
     if n_out > params.max_outlier_fraction * n:
-        found.append(("poor_data", f"{n_out} of {n} poses are outliers (at most {params.max_outlier_fraction:.0%} allowed): "
-                                   + ", ".join(r.id for r in fit.rejected)))
+        found.append(
+            (
+                "poor_data",
+                f"{n_out} of {n} poses are outliers (at most {params.max_outlier_fraction:.0%} allowed): "
+                + ", ".join(r.id for r in fit.rejected),
+            )
+        )
     elif n_out:
         warnings.append(f"{n_out} of {n} poses left out as outliers: " + ", ".join(r.id for r in fit.rejected))
     if math.isfinite(fit.rms) and fit.rms > params.max_rms:
@@ -426,8 +468,9 @@ def _verdict(fit: ToolTipFit, n: int, params: ToolCalParams) -> tuple[str, tuple
     return verdict, tuple(r for _, r in found), tuple(warnings)
 
 
-def solve_or_raise(T_base_tcp: ArrayLike, P_base_tip: ArrayLike, ids: Sequence[str] | None = None,
-                   params: ToolCalParams = ToolCalParams()) -> ToolTipFit:
+def solve_or_raise(
+    T_base_tcp: ArrayLike, P_base_tip: ArrayLike, ids: Sequence[str] | None = None, params: ToolCalParams = ToolCalParams()
+) -> ToolTipFit:
     """:func:`solve_tool_tip`, raising CalibrationError when there are too few poses to solve at all."""
     fit = solve_tool_tip(T_base_tcp, P_base_tip, ids, params)
     if not np.all(np.isfinite(fit.p_tcp_tip)):

@@ -171,8 +171,10 @@ def detect_tip(
     u = u / np.linalg.norm(u)
     W = window_points(points_cam, p, params.window)
     if len(W) == 0:
-        raise CalibrationError(f"no points within {params.window * 1e3:.1f} mm of the predicted tip: the tip is out of "
-                               "the scanner's view or hidden, or the tool config or the calibration is far off")
+        raise CalibrationError(
+            f"no points within {params.window * 1e3:.1f} mm of the predicted tip: the tip is out of "
+            "the scanner's view or hidden, or the tool config or the calibration is far off"
+        )
     s = (W - p) @ (-u)
     k = min(params.apex_points, len(W))
     apex = W[np.argsort(s)[-k:]].mean(axis=0)
@@ -190,13 +192,18 @@ def detect_tip(
         c, rms = fit_sphere_known_radius(W[sel], c, radius)
     n = int(sel.sum()) if sel is not None else 0
     if n < params.min_points:
-        raise CalibrationError(f"only {n} points on the tip ball ({len(W)} in the {params.window * 1e3:.1f} mm window); "
-                               f"at least {params.min_points} are needed")
+        raise CalibrationError(
+            f"only {n} points on the tip ball ({len(W)} in the {params.window * 1e3:.1f} mm window); "
+            f"at least {params.min_points} are needed"
+        )
     if not rms <= params.max_rms:
-        raise CalibrationError(f"the tip ball's points lie {rms * 1e3:.3f} mm RMS off a {radius * 1e3:.2f} mm sphere "
-                               f"(at most {params.max_rms * 1e3:.3f} mm): not the tip")
+        raise CalibrationError(
+            f"the tip ball's points lie {rms * 1e3:.3f} mm RMS off a {radius * 1e3:.2f} mm sphere "
+            f"(at most {params.max_rms * 1e3:.3f} mm): not the tip"
+        )
     offset = float(np.linalg.norm(c - p))
     if offset > params.window:
-        raise CalibrationError(f"the fitted tip lies {offset * 1e3:.2f} mm from the prediction, outside the "
-                               f"{params.window * 1e3:.1f} mm window")
+        raise CalibrationError(
+            f"the fitted tip lies {offset * 1e3:.2f} mm from the prediction, outside the {params.window * 1e3:.1f} mm window"
+        )
     return TipDetection(np.asarray(c, dtype=np.float64), n, rms, len(W), offset)

@@ -137,7 +137,9 @@ def parse(data: dict[str, Any], source: str = "<dict>") -> Config:
     top.done()
     check_servo(values["servo"], values["tactile"], values["tool"], source, values["motion"].max_linear_speed)
     if values["calibration"].range_bias is None:
-        values["calibration"] = replace(values["calibration"], range_bias=range_bias_default(values["scanner"].kind, values["scanner"].model))
+        values["calibration"] = replace(
+            values["calibration"], range_bias=range_bias_default(values["scanner"].kind, values["scanner"].model)
+        )
     config = Config(**values)
     check_cell(config)
     return config
@@ -154,11 +156,9 @@ def check_cell(config: Config) -> None:
     """
     src = config.source
     lo, hi = config.robot.workspace_min, config.robot.workspace_max
-    for key, pose in (("calibration.verification_pose", config.calibration.verification_pose),
-                      ("weld.scan_pose", config.weld.scan_pose)):
+    for key, pose in (("calibration.verification_pose", config.calibration.verification_pose), ("weld.scan_pose", config.weld.scan_pose)):
         if not all(lo[i] <= pose[i] <= hi[i] for i in range(3)):
             raise ConfigError(src, key, f"expected a position inside the workspace box {list(lo)} .. {list(hi)} m, got {list(pose[:3])}")
-
 
 
 def load(path: str | Path) -> Config:

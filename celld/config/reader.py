@@ -113,8 +113,13 @@ class TableReader:
         return value * scale
 
     def vector(
-        self, name: builtins.str, length: builtins.int, default: Any = None, scale: builtins.float = 1.0,
-        bound: builtins.float = math.inf, what: builtins.str = "",
+        self,
+        name: builtins.str,
+        length: builtins.int,
+        default: Any = None,
+        scale: builtins.float = 1.0,
+        bound: builtins.float = math.inf,
+        what: builtins.str = "",
     ) -> tuple[builtins.float, ...]:
         """A list of ``length`` finite numbers (times ``scale``), each within +-``bound`` as written (``what`` says why)."""
         value = self._get(name, _REQUIRED if default is None else default)

@@ -227,11 +227,13 @@ class ScannerConfig:
 
     @classmethod
     def read(cls, r: TableReader) -> ScannerConfig:
-        r.refuse_moved({
-            "capture_timeout": "scanner.capture_timeout_s (seconds)",
-            "seed": "[sim.scanner] seed (the simulated scanner belongs to the simulator's world)",
-            "resolution_scale": "[sim.scanner] resolution_scale (the simulated scanner belongs to the simulator's world)",
-        })
+        r.refuse_moved(
+            {
+                "capture_timeout": "scanner.capture_timeout_s (seconds)",
+                "seed": "[sim.scanner] seed (the simulated scanner belongs to the simulator's world)",
+                "resolution_scale": "[sim.scanner] resolution_scale (the simulated scanner belongs to the simulator's world)",
+            }
+        )
         depth_min = r.float("depth_min_mm", cls.depth_min * 1e3, lo=0.0, hi=20_000.0, scale=1e-3)
         depth_max = r.float("depth_max_mm", cls.depth_max * 1e3, lo=0.0, hi=20_000.0, scale=1e-3, open_lo=True)
         if not depth_min < depth_max:
@@ -310,9 +312,7 @@ class CalibrationConfig:
             verification_pose=r.vector("verification_pose", 6, list(cls.verification_pose)),
             method=r.str("method", cls.method, choices=("robust", "svd", "algorithm1")),
             compensate=r.bool("compensate", False),
-            icp_max_distance=r.float(
-                "icp_max_distance_mm", cls.icp_max_distance * 1e3, lo=0.0, hi=100.0, scale=1e-3, open_lo=True
-            ),
+            icp_max_distance=r.float("icp_max_distance_mm", cls.icp_max_distance * 1e3, lo=0.0, hi=100.0, scale=1e-3, open_lo=True),
             icp_points=r.int("icp_points", cls.icp_points, lo=10, hi=1_000_000),
             model_spacing=r.float("model_spacing_mm", cls.model_spacing * 1e3, lo=0.1, hi=10.0, scale=1e-3),
             keep_sessions=r.int("keep_sessions", cls.keep_sessions, lo=0, hi=100_000),
@@ -422,7 +422,7 @@ class BusConfig:
         connect = r._get("connect", list(cls.connect))
         for key, value in (("listen", listen), ("connect", connect)):
             if not isinstance(value, list) or not all(isinstance(v, str) and "/" in v for v in value):
-                raise r.error(key, f"expected a list of zenoh endpoints such as \"tcp/127.0.0.1:7447\", got {value!r}")
+                raise r.error(key, f'expected a list of zenoh endpoints such as "tcp/127.0.0.1:7447", got {value!r}')
         users_raw = r._get("users", [])
         if not isinstance(users_raw, list):
             raise r.error("users", "expected an array of tables [[bus.users]]")

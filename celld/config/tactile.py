@@ -29,11 +29,25 @@ from celld.errors import ConfigError
 
 # Keys that moved out of [tactile] when it was split, and where they went.
 _MOVED_FROM_TACTILE = {
-    **{k: f"[tool] {k}" for k in ("tool_x_tcp", "tool_z_tcp", "tip_tcp_mm", "tip_radius_mm", "T_tool_cam", "wall_side",
-                                  "torch_offset_mm")},
-    **{k: f"[servo] {k}" for k in ("delta_d_mm", "k_p", "v_const_mm_s", "k_torch", "max_correction_speed_mm_s", "omega_max",
-                                   "guard_cos", "plan_smoothing_mm", "refine_window_mm", "contact_loss_samples",
-                                   "search_distance_mm", "touch_speed_mm_s", "touch_distance_mm")},
+    **{k: f"[tool] {k}" for k in ("tool_x_tcp", "tool_z_tcp", "tip_tcp_mm", "tip_radius_mm", "T_tool_cam", "wall_side", "torch_offset_mm")},
+    **{
+        k: f"[servo] {k}"
+        for k in (
+            "delta_d_mm",
+            "k_p",
+            "v_const_mm_s",
+            "k_torch",
+            "max_correction_speed_mm_s",
+            "omega_max",
+            "guard_cos",
+            "plan_smoothing_mm",
+            "refine_window_mm",
+            "contact_loss_samples",
+            "search_distance_mm",
+            "touch_speed_mm_s",
+            "touch_distance_mm",
+        )
+    },
 }
 
 
@@ -267,7 +281,8 @@ def check_servo(
             raise ConfigError(source, f"{section}.{key}", f"expected {bound.text(1.0 / scale)}, got {value / scale:g}")
     if not tactile.contact_threshold < servo.delta_d < tactile.overload:
         raise ConfigError(
-            source, "servo.delta_d_mm",
+            source,
+            "servo.delta_d_mm",
             f"expected tactile.contact_threshold_mm < delta_d_mm < tactile.overload_mm, got "
             f"{tactile.contact_threshold * 1e3:g} / {servo.delta_d * 1e3:g} / {tactile.overload * 1e3:g} mm",
         )
@@ -275,12 +290,15 @@ def check_servo(
         v = getattr(servo, name)
         if v > max_linear_speed:
             raise ConfigError(
-                source, f"servo.{name}_mm_s", f"expected at most motion.max_linear_speed ({max_linear_speed * 1e3:g} mm/s), got {v * 1e3:g} mm/s"
+                source,
+                f"servo.{name}_mm_s",
+                f"expected at most motion.max_linear_speed ({max_linear_speed * 1e3:g} mm/s), got {v * 1e3:g} mm/s",
             )
 
 
-def with_overrides(servo: ServoConfig, tactile: TactileConfig, tool: ToolConfig, source: str,
-                   max_linear_speed: float = math.inf, **overrides: float | None) -> tuple[ServoConfig, ToolConfig]:
+def with_overrides(
+    servo: ServoConfig, tactile: TactileConfig, tool: ToolConfig, source: str, max_linear_speed: float = math.inf, **overrides: float | None
+) -> tuple[ServoConfig, ToolConfig]:
     """The servo and tool with a job's overrides (None: keep), checked as the config is (:func:`check_servo`)."""
     given: dict[str, Any] = {k: v for k, v in overrides.items() if v is not None}
     tool_new = replace(tool, torch_offset=given.pop("torch_offset")) if "torch_offset" in given else tool

@@ -102,9 +102,7 @@ class Daemon:
             min_free_mb=cfg.cell.min_free_mb,
             storage_retry_s=cfg.cell.storage_retry_s,
         )
-        self.bus = BusServer(
-            self._session.session, keys, self.manager, state_rate_hz=cfg.bus.state_rate_hz, callers=callers(cfg.bus)
-        )
+        self.bus = BusServer(self._session.session, keys, self.manager, state_rate_hz=cfg.bus.state_rate_hz, callers=callers(cfg.bus))
         await self.bus.start()
         self.manager.start()
         loop = asyncio.get_running_loop()

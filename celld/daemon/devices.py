@@ -109,14 +109,23 @@ def make_tactile(
     if camera is None:
         if kind == "sim":
             raise ConfigError(
-                config.source, "tactile.kind",
+                config.source,
+                "tactile.kind",
                 "'sim' is the simulated cell's SRM camera: run this config with `celld sim run`, or use 'opencv'",
             )
         camera = opencv_camera
     realtime = replace(CAMERA_REALTIME, priority=config.tactile.rt_priority)
-    return TactileProcess(config.tactile, config.tool, f"celld-{uuid.uuid4().hex[:8]}", camera, realtime,
-                          heartbeat=heartbeat, parent_timeout=config.motion.parent_timeout, records=records,
-                          rest_file=Path(config.cell.state_dir) / "tactile" / "rest.json")
+    return TactileProcess(
+        config.tactile,
+        config.tool,
+        f"celld-{uuid.uuid4().hex[:8]}",
+        camera,
+        realtime,
+        heartbeat=heartbeat,
+        parent_timeout=config.motion.parent_timeout,
+        records=records,
+        rest_file=Path(config.cell.state_dir) / "tactile" / "rest.json",
+    )
 
 
 class CellDevices:
@@ -183,8 +192,12 @@ class CellDevices:
         self.motion.add_listener(self._on_state_batch)
         self._reading = asyncio.get_running_loop().create_task(self._read_dashboard(), name="celld-dashboard")
         self.scanner = await asyncio.to_thread(self._factories.scanner, cfg)
-        log.info("devices open", robot=cfg.robot.host, scanner=f"{cfg.scanner.kind}/{cfg.scanner.model}",
-                 tactile=cfg.tactile.kind if self.tactile is not None else "none")
+        log.info(
+            "devices open",
+            robot=cfg.robot.host,
+            scanner=f"{cfg.scanner.kind}/{cfg.scanner.model}",
+            tactile=cfg.tactile.kind if self.tactile is not None else "none",
+        )
 
     async def close(self) -> None:
         if self.motion is not None:
@@ -262,8 +275,12 @@ class CellDevices:
         q = await self.current_q()
         plan = await asyncio.to_thread(self.planner.plan_joint_move, q, q_goal, speed_scale, tool)
         if plan.speed_scale < speed_scale:
-            log.info("joint move slowed for the TCP's limits", asked=speed_scale, scale=round(plan.speed_scale, 4),
-                     tcp_speed=round(plan.tcp_speed, 4))
+            log.info(
+                "joint move slowed for the TCP's limits",
+                asked=speed_scale,
+                scale=round(plan.speed_scale, 4),
+                tcp_speed=round(plan.tcp_speed, 4),
+            )
         return await motion.move_joints(q_goal, speed_scale=plan.speed_scale)
 
     async def current_q(self, timeout: float = STATE_WAIT) -> np.ndarray:
@@ -459,4 +476,3 @@ class CellDevices:
                 log.warning("state batch not recorded", error=str(exc))
             live.append(rec)
         self._recordings = live
-

@@ -85,8 +85,13 @@ class DummyCell(JobManager):
         self.steps = max(1, steps)
         self.server: BusServer | None = None
         super().__init__(
-            journal, journal.path.parent, {kind: self._wait for kind in JOB_KINDS}, self._publish, _no_robot,
-            cell=name, queue_depth=max_queue,
+            journal,
+            journal.path.parent,
+            {kind: self._wait for kind in JOB_KINDS},
+            self._publish,
+            _no_robot,
+            cell=name,
+            queue_depth=max_queue,
         )
 
     def attach(self, server: BusServer) -> None:
@@ -122,7 +127,14 @@ class DummyCell(JobManager):
                 phase = now_ns * 1e-9
                 q = [math.sin(phase + i) for i in range(6)]
                 self.server.publish_robot_state(
-                    {"t_ns": now_ns, "link": "up", "q": q, "qd": [0.0] * 6, "tcp_pose": [0.5, 0.0, 0.4, 0.0, math.pi, 0.0], "tcp_speed": [0.0] * 6},
+                    {
+                        "t_ns": now_ns,
+                        "link": "up",
+                        "q": q,
+                        "qd": [0.0] * 6,
+                        "tcp_pose": [0.5, 0.0, 0.4, 0.0, math.pi, 0.0],
+                        "tcp_speed": [0.0] * 6,
+                    },
                     now_ns,
                 )
                 self.server.publish_tactile_state({"t_ns": now_ns, "valid": True, "contact": True, "delta": [0.0, 0.0015, 0.0]}, now_ns)
@@ -144,7 +156,12 @@ async def serve(
     keys = CellKeys.of(cfg.bus.prefix, cfg.cell.name)
     with open_server(cfg.bus, keys) as server_session, Journal(state_dir / "jobs.sqlite3") as journal:
         cell = DummyCell(
-            cfg.cell.name, journal, job_duration=job_duration, steps=steps, durations=durations, progress_hz=progress_hz,
+            cfg.cell.name,
+            journal,
+            job_duration=job_duration,
+            steps=steps,
+            durations=durations,
+            progress_hz=progress_hz,
             max_queue=max_queue,
         )
         server = BusServer(server_session.session, keys, cell, state_rate_hz=cfg.bus.state_rate_hz, callers=callers(cfg.bus))

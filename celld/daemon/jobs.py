@@ -87,8 +87,15 @@ MAX_LISTED_FILES = 200
 
 class ProgressSink(Protocol):
     def __call__(
-        self, job: str, kind: str, state: str, stage: str, *, fraction: float | None = None,
-        message: str = "", data: Mapping[str, Any] | None = None,
+        self,
+        job: str,
+        kind: str,
+        state: str,
+        stage: str,
+        *,
+        fraction: float | None = None,
+        message: str = "",
+        data: Mapping[str, Any] | None = None,
     ) -> Any: ...
 
 
@@ -136,8 +143,9 @@ class CalibrationStore:
     for whatever a job measured.
     """
 
-    def __init__(self, state_dir: Path, current: str = "calibration.json", candidates: str = "calibrations",
-                 kind: str = "calibrate") -> None:
+    def __init__(
+        self, state_dir: Path, current: str = "calibration.json", candidates: str = "calibrations", kind: str = "calibrate"
+    ) -> None:
         self.current_path = state_dir / current
         self.candidates = state_dir / candidates
         self.kind = kind
@@ -351,8 +359,7 @@ class JobManager:
                 if prior.params != params:
                     raise JobError(
                         "$.request_id",
-                        f"request id {request_id!r} was used for job {prior.id} with a different body; "
-                        "a new job needs a new request id",
+                        f"request id {request_id!r} was used for job {prior.id} with a different body; a new job needs a new request id",
                     )
                 prior = self._with_ending(prior)
                 log.info("submit replayed", job=prior.id, request_id=request_id, user=caller.user)
@@ -453,8 +460,10 @@ class JobManager:
             raise JobError("$", f"refused: {caller} may not accept calibrations")
         record = self._known(req.job)
         if record.kind not in ACCEPTED_KINDS or record.state != "succeeded":
-            raise JobError("$.job", f"job {req.job} is a {record.state} {record.kind} job; only a succeeded calibrate or "
-                                    "tool-calibrate job can be accepted")
+            raise JobError(
+                "$.job",
+                f"job {req.job} is a {record.state} {record.kind} job; only a succeeded calibrate or tool-calibrate job can be accepted",
+            )
         if self._running is not None:
             raise JobError("$", f"refused: job {self._running[0]} is running; accept a calibration between jobs")
         store = self.tools if record.kind == "tool-calibrate" else self.calibrations
@@ -487,8 +496,14 @@ class JobManager:
 
     def _result_reply(self, record: JobRecord) -> dict[str, Any]:
         reply: dict[str, Any] = {
-            "job": record.id, "kind": record.kind, "state": record.state, "reason": record.reason,
-            "result": None, "too_large": False, "path": record.result, "files": self._files(record.id),
+            "job": record.id,
+            "kind": record.kind,
+            "state": record.state,
+            "reason": record.reason,
+            "result": None,
+            "too_large": False,
+            "path": record.result,
+            "files": self._files(record.id),
         }
         if record.result:
             path = Path(record.result)

@@ -145,8 +145,12 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     poses = np.array(plan.poses)
     for r in plan.refused:
         log.warning("calibration pose replaced", job=ctx.job_id, reason=r.message)
-    ctx.progress("plan", 0.0, f"{len(poses)} poses planned, {len(plan.refused)} replaced (they would hit the cell or are out of reach)",
-                 replaced=[r.message for r in plan.refused])
+    ctx.progress(
+        "plan",
+        0.0,
+        f"{len(poses)} poses planned, {len(plan.refused)} replaced (they would hit the cell or are out of reach)",
+        replaced=[r.message for r in plan.refused],
+    )
     if job.dry_run:
         record_plan(ctx.recording, planner.bare, [tuple(to_v.q_end), *plan.q])
         return {
@@ -175,7 +179,9 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     if rec is not None:
         rec.log_cloud_cam("verification", cloud_v.points)
     verifier = await asyncio.to_thread(verifier_from_cloud, cloud_v.points, T_v_robot, flange, params, dparams)
-    alg = Algorithm1(verifier, cost_function(params.cost, params.work_radius), e_required=params.e_required, k_max=params.k_max or len(poses))
+    alg = Algorithm1(
+        verifier, cost_function(params.cost, params.work_radius), e_required=params.e_required, k_max=params.k_max or len(poses)
+    )
     estimate_bias = params.range_bias == "estimate"
     bias_online = 0.0  # the range bias Algorithm 1 runs with, m
 
@@ -207,8 +213,12 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
                 # scores with the verification cloud's metal corrected by it.
                 bias_online = bias_from_steps(found.steps) or 0.0
                 corrected = await asyncio.to_thread(verifier.with_range_bias, bias_online)
-                alg = Algorithm1(corrected, cost_function(params.cost, params.work_radius),
-                                 e_required=params.e_required, k_max=params.k_max or len(poses))
+                alg = Algorithm1(
+                    corrected,
+                    cost_function(params.cost, params.work_radius),
+                    e_required=params.e_required,
+                    k_max=params.k_max or len(poses),
+                )
             P_cam = correct_range_bias(found.P_cam, bias_online) if flange.circle_on_metal else found.P_cam
             step = await asyncio.to_thread(alg.start, list(found.ids), found.P_base, P_cam)
         elif pairs.n_pairs > 4 and not alg.done:
@@ -254,8 +264,14 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         "range_bias_std_mm": None if result.range_bias is None else report["range_bias"]["std_mm"],
     }
     log.info(
-        "calibration solved", job=ctx.job_id, pairs=len(result.pair_ids), cost_mm=cost_mm, early_stop=early,
-        verdict=result.quality.verdict, stored=result.stored, range_bias_mm=round(result.bias * 1e3, 3),
+        "calibration solved",
+        job=ctx.job_id,
+        pairs=len(result.pair_ids),
+        cost_mm=cost_mm,
+        early_stop=early,
+        verdict=result.quality.verdict,
+        stored=result.stored,
+        range_bias_mm=round(result.bias * 1e3, 3),
     )
     current = CalibrationStore(ctx.state_dir).current() or {}
     await asyncio.to_thread(prune_sessions, ctx.state_dir / "jobs", cal.keep_sessions, cal.keep_days, (ctx.job_id, current.get("job")))
@@ -269,8 +285,9 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     }
 
 
-def _record_solution(rec: Any, T_base_cam: np.ndarray, bias: float, found: Detections, quality: Mapping[str, Any],
-                     circle_on_metal: bool) -> None:
+def _record_solution(
+    rec: Any, T_base_cam: np.ndarray, bias: float, found: Detections, quality: Mapping[str, Any], circle_on_metal: bool
+) -> None:
     """The solved calibration in its recording: the camera placed for the whole
     recording (every capture then lies in the base frame) and each pair's
     residual, robot centre to scanner centre (the centre corrected by the range
@@ -346,9 +363,14 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
             tared = bool(counters is not None and counters["tared"])
             refused = bool(counters is not None and counters["tare_refused"])
             offset = float(counters["tare_offset"]) if counters is not None else math.nan
-            out["tactile"] = {"ok": running and tared and sample is not None and sample.valid, "running": running,
-                              "valid": bool(sample and sample.valid), "tared": tared,
-                              "tare_offset_mm": offset * 1e3, "error": devices.tactile_error}
+            out["tactile"] = {
+                "ok": running and tared and sample is not None and sample.valid,
+                "running": running,
+                "valid": bool(sample and sample.valid),
+                "tared": tared,
+                "tare_offset_mm": offset * 1e3,
+                "error": devices.tactile_error,
+            }
             if not running:
                 problems.append(f"the tactile process is not running: {devices.tactile_error or 'it ended'}")
             elif not tared and refused:

@@ -132,8 +132,7 @@ class StorageGuard:
         if self.below_floor():
             free = self.free()
             return (
-                f"only {(free or 0) / MIB:.1f} MB free in {self.state_dir}, under the floor of "
-                f"{self.min_free_mb:g} MB (cell.min_free_mb)"
+                f"only {(free or 0) / MIB:.1f} MB free in {self.state_dir}, under the floor of {self.min_free_mb:g} MB (cell.min_free_mb)"
             )
         return ""
 

@@ -80,8 +80,12 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
     poses = np.array(plan.poses)
     for r in plan.refused:
         log.warning("tool calibration pose replaced", job=ctx.job_id, reason=r.message)
-    ctx.progress("plan", 0.0, f"{len(poses)} poses planned, {len(plan.refused)} replaced (they would hit the cell or are out of reach)",
-                 replaced=[r.message for r in plan.refused])
+    ctx.progress(
+        "plan",
+        0.0,
+        f"{len(poses)} poses planned, {len(plan.refused)} replaced (they would hit the cell or are out of reach)",
+        replaced=[r.message for r in plan.refused],
+    )
     if job.dry_run:
         record_plan(ctx.recording, planner.with_tool, list(plan.q))
         return {
@@ -125,28 +129,55 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         ids.append(pid)
         T_found.append(T_bt)
         P_found.append(p_base)
-        detections.append({"id": pid, "T_base_tcp": T_bt.tolist(), "p_base_tip": p_base.tolist(), "points": det.n_points,
-                           "rms_mm": det.rms * 1e3, "offset_mm": det.offset * 1e3})
+        detections.append(
+            {
+                "id": pid,
+                "T_base_tcp": T_bt.tolist(),
+                "p_base_tip": p_base.tolist(),
+                "points": det.n_points,
+                "rms_mm": det.rms * 1e3,
+                "offset_mm": det.offset * 1e3,
+            }
+        )
         if rec is not None:
             rec.log_tcp(T_bt)
             record_arm(rec, planner.with_tool, state.q)
-        ctx.progress("pose", (i + 1) / len(poses), f"pose {pid}: tip {det.offset * 1e3:.2f} mm from the configured one",
-                     pose=pid, detected=True, points=det.n_points, fit_rms_mm=round(det.rms * 1e3, 4),
-                     offset_mm=round(det.offset * 1e3, 3))
+        ctx.progress(
+            "pose",
+            (i + 1) / len(poses),
+            f"pose {pid}: tip {det.offset * 1e3:.2f} mm from the configured one",
+            pose=pid,
+            detected=True,
+            points=det.n_points,
+            fit_rms_mm=round(det.rms * 1e3, 4),
+            offset_mm=round(det.offset * 1e3, 3),
+        )
 
     dataset = ctx.result_dir() / "toolcal.json"
-    await asyncio.to_thread(fsutil.write_json, dataset, {
-        "frame": "base", "units": "m", "calibration_job": cal_job, "T_base_cam": T_base_cam.tolist(),
-        "range_bias_m": range_bias, "tip_tcp_config": p_tcp_nominal.tolist(), "tip_radius": tool.tip_radius,
-        "detections": detections, "missed": missed,
-    })
+    await asyncio.to_thread(
+        fsutil.write_json,
+        dataset,
+        {
+            "frame": "base",
+            "units": "m",
+            "calibration_job": cal_job,
+            "T_base_cam": T_base_cam.tolist(),
+            "range_bias_m": range_bias,
+            "tip_tcp_config": p_tcp_nominal.tolist(),
+            "tip_radius": tool.tip_radius,
+            "detections": detections,
+            "missed": missed,
+        },
+    )
     ctx.progress("solve", None, f"solving the tip from {len(ids)} of {len(poses)} poses")
     T_arr = np.array(T_found).reshape(-1, 4, 4)
     P_arr = np.array(P_found).reshape(-1, 3)
     fit = await asyncio.to_thread(solve_tool_tip, T_arr, P_arr, ids, ToolCalParams())
     if not np.all(np.isfinite(fit.p_tcp_tip)):
-        raise CalibrationError(f"only {len(ids)} of {len(poses)} captures showed the tip; at least 3 are needed"
-                               + (f" (first miss: {missed[0]['reason']})" if missed else ""))
+        raise CalibrationError(
+            f"only {len(ids)} of {len(poses)} captures showed the tip; at least 3 are needed"
+            + (f" (first miss: {missed[0]['reason']})" if missed else "")
+        )
     quality = fit.as_dict()
     quality["missed"] = missed
     if len(missed):
@@ -169,6 +200,12 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         "poses": len(ids),
         "quality": quality,
     }
-    log.info("tool calibration solved", job=ctx.job_id, poses=len(ids), verdict=fit.verdict,
-             tip_mm=np.round(tip * 1e3, 3).tolist(), delta_mm=np.round((tip - p_tcp_nominal) * 1e3, 3).tolist())
+    log.info(
+        "tool calibration solved",
+        job=ctx.job_id,
+        poses=len(ids),
+        verdict=fit.verdict,
+        tip_mm=np.round(tip * 1e3, 3).tolist(),
+        delta_mm=np.round((tip - p_tcp_nominal) * 1e3, 3).tolist(),
+    )
     return {"tool": result_tool, "poses_planned": len(poses), "poses_detected": len(ids), "dataset": str(dataset)}

@@ -91,7 +91,9 @@ def resolve_workpiece(name: str, config: Config) -> Workpiece:
     if name in EXAMPLES:
         return example(name)
     if not wc.workpiece_dir:
-        raise JobError("$.workpiece", f"unknown workpiece {name!r}: not an example ({', '.join(EXAMPLES)}) and weld.workpiece_dir is not set")
+        raise JobError(
+            "$.workpiece", f"unknown workpiece {name!r}: not an example ({', '.join(EXAMPLES)}) and weld.workpiece_dir is not set"
+        )
     if "/" in name or name.startswith("."):
         raise JobError("$.workpiece", f"expected a plain model name, got {name!r}")
     d = Path(wc.workpiece_dir)
@@ -121,7 +123,9 @@ def current_calibration(state_dir: Path) -> tuple[np.ndarray, float, str]:
         raise JobError("$", f"the current calibration is unusable: {exc}") from exc
     bias_mm = cal.get("range_bias_mm", 0.0)
     if isinstance(bias_mm, bool) or not isinstance(bias_mm, (int, float)) or not abs(bias_mm) <= MAX_RANGE_BIAS_MM:
-        raise JobError("$", f"the current calibration is unusable: range_bias_mm must be a number within +-{MAX_RANGE_BIAS_MM:g} mm, got {bias_mm!r}")
+        raise JobError(
+            "$", f"the current calibration is unusable: range_bias_mm must be a number within +-{MAX_RANGE_BIAS_MM:g} mm, got {bias_mm!r}"
+        )
     return T, float(bias_mm) * 1e-3, str(cal.get("job", ""))
 
 
@@ -135,16 +139,22 @@ def current_tool(state_dir: Path, tool: ToolConfig) -> tuple[ToolConfig, str]:
     if current is None:
         if tool.measured == "nominal":
             return tool, ""
-        raise JobError("$", "the tool's tip is not measured: run a tool-calibrate job and accept it first, or set "
-                            "tool.measured = \"nominal\" in the config to weld with tool.tip_tcp_mm as typed")
+        raise JobError(
+            "$",
+            "the tool's tip is not measured: run a tool-calibrate job and accept it first, or set "
+            'tool.measured = "nominal" in the config to weld with tool.tip_tcp_mm as typed',
+        )
     tip_mm = current.get("tip_tcp_mm")
     try:
         tip = np.asarray(tip_mm, dtype=np.float64) * 1e-3
     except (TypeError, ValueError) as exc:
         raise JobError("$", f"the current tool calibration is unusable: tip_tcp_mm {tip_mm!r}") from exc
     if tip.shape != (3,) or not np.all(np.isfinite(tip)) or np.linalg.norm(tip) > MAX_TIP_DISTANCE:
-        raise JobError("$", f"the current tool calibration is unusable: tip_tcp_mm must be 3 finite numbers within "
-                            f"{MAX_TIP_DISTANCE * 1e3:g} mm of the TCP, got {tip_mm!r}")
+        raise JobError(
+            "$",
+            f"the current tool calibration is unusable: tip_tcp_mm must be 3 finite numbers within "
+            f"{MAX_TIP_DISTANCE * 1e3:g} mm of the TCP, got {tip_mm!r}",
+        )
     return replace(tool, tip_tcp=(float(tip[0]), float(tip[1]), float(tip[2]))), str(current.get("job", ""))
 
 
@@ -172,15 +182,26 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     if devices.tactile is None:
         raise JobError("$", "the cell has no tactile sensor (tactile.kind); it cannot track a seam")
     if not devices.tactile.running():
-        raise JobError("$", f"the tactile sensor is not running ({devices.tactile_error or 'its process ended'}); the daemon keeps restarting it")
+        raise JobError(
+            "$", f"the tactile sensor is not running ({devices.tactile_error or 'its process ended'}); the daemon keeps restarting it"
+        )
     motion = devices.require_motion()
     wc = config.weld
     seam_params = config.seam
     from celld.seam.pipeline import find_seam, prepare
 
     try:
-        servo, tool_cfg = with_overrides(config.servo, config.tactile, config.tool, "weld job", config.motion.max_linear_speed, delta_d=job.delta_d, k_p=job.k_p,
-                                         v_const=job.v_const, torch_offset=job.torch_offset)
+        servo, tool_cfg = with_overrides(
+            config.servo,
+            config.tactile,
+            config.tool,
+            "weld job",
+            config.motion.max_linear_speed,
+            delta_d=job.delta_d,
+            k_p=job.k_p,
+            v_const=job.v_const,
+            torch_offset=job.torch_offset,
+        )
     except ConfigError as exc:
         # The job's field of the refused value: its key in the section (delta_d_mm, ...).
         raise JobError("$." + exc.key.rsplit(".", 1)[-1], exc.reason) from exc
@@ -206,8 +227,11 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         here = motion.state()
         dt, dr = se3.error(here.T_base_tcp, T_scan) if here is not None else (math.inf, math.inf)
         if dt > DRY_RUN_AT_SCAN or dr > DRY_RUN_AT_SCAN_ANGLE:
-            raise JobError("$.dry_run", f"a dry run scans from the scan pose and moves nothing: the arm is {dt * 1e3:.1f} mm "
-                                        f"from weld.scan_pose; move it there first (celld submit move --pose ...)")
+            raise JobError(
+                "$.dry_run",
+                f"a dry run scans from the scan pose and moves nothing: the arm is {dt * 1e3:.1f} mm "
+                f"from weld.scan_pose; move it there first (celld submit move --pose ...)",
+            )
         ctx.progress("scan", 0.0, "scanning (dry run: the arm stays where it is)")
     else:
         ctx.progress("scan", 0.0, "arm to the scan pose, scanning")
@@ -263,8 +287,13 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
 
     # 4. touch and track
     plan = algorithm2_plan(
-        geometry.wall_base, servo, tool_cfg, config.motion, T_base_plane=geometry.T_base_plane,
-        process=bool(job.arc) and config.robot.arc_output >= 0, seam_offset=offset,
+        geometry.wall_base,
+        servo,
+        tool_cfg,
+        config.motion,
+        T_base_plane=geometry.T_base_plane,
+        process=bool(job.arc) and config.robot.arc_output >= 0,
+        seam_offset=offset,
     )
     collector = _Collector()
     motion.add_listener(collector)
@@ -273,7 +302,9 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     try:
         cid = await motion.start_servo(plan)
         collector.command_id = cid
-        ctx.progress("track", 0.0, "touching the seam, then tracking" + (" with the arc on" if plan.params.get("process") else " (dry run, arc off)"))
+        ctx.progress(
+            "track", 0.0, "touching the seam, then tracking" + (" with the arc on" if plan.params.get("process") else " (dry run, arc off)")
+        )
         waiting = asyncio.ensure_future(motion.wait(cid, timeout=wc.timeout))
         s_wall = polyline.arc_length(geometry.wall_base)
         try:
@@ -288,8 +319,12 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
                     last_progress = now
                     p = tool.T_base_tool(se3.from_ur_pose(last["tcp_pose"]))[:3, 3]
                     i = int(np.argmin(np.linalg.norm(geometry.wall_base - p, axis=1)))
-                    ctx.progress("track", float(min(1.0, s_wall[i] / s_wall[-1])), f"{s_wall[i] * 1e3:.0f} of {s_wall[-1] * 1e3:.0f} mm",
-                                 arc=bool(last["process_on"]))
+                    ctx.progress(
+                        "track",
+                        float(min(1.0, s_wall[i] / s_wall[-1])),
+                        f"{s_wall[i] * 1e3:.0f} of {s_wall[-1] * 1e3:.0f} mm",
+                        arc=bool(last["process_on"]),
+                    )
             waiting.result()
         except CelldError as exc:
             failure = exc
@@ -332,8 +367,9 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     return result
 
 
-def weld_path(geometry: WeldGeometry, T_tcp_tool: np.ndarray, T_above: np.ndarray, T_start: np.ndarray,
-              T_scan: np.ndarray, retract_height: float) -> np.ndarray:
+def weld_path(
+    geometry: WeldGeometry, T_tcp_tool: np.ndarray, T_above: np.ndarray, T_start: np.ndarray, T_scan: np.ndarray, retract_height: float
+) -> np.ndarray:
     """The TCP poses (n, 4, 4) a weld passes through: above the start, the start, along the wall line
     (every PATH_STEP), up by the retract height at the end, back to the scan pose."""
     length = float(polyline.arc_length(geometry.wall_base)[-1])
@@ -367,14 +403,23 @@ def _quality(seam: Any) -> dict[str, Any]:
     return {k: q[k] for k in ("source", "fitness", "inlier_rmse", "coverage") if k in q}
 
 
-def _summarise(records: np.ndarray | None, geometry: WeldGeometry, tool: ToolGeometry, servo: ServoConfig, seam: Any,
-               offset: float, out_dir: Path, rec: Any) -> dict[str, Any]:
+def _summarise(
+    records: np.ndarray | None,
+    geometry: WeldGeometry,
+    tool: ToolGeometry,
+    servo: ServoConfig,
+    seam: Any,
+    offset: float,
+    out_dir: Path,
+    rec: Any,
+) -> dict[str, Any]:
     """The paths and tracking figures of a finished track, written to paths.json and the recording."""
     if records is None or len(records) == 0:
         raise CelldError("the servo ran but no motion record of it was read")
     track = track_summary(records, geometry, tool, servo.delta_d)
     paths = {
-        "frame": "base", "units": "m",
+        "frame": "base",
+        "units": "m",
         "planned": geometry.seam_base.tolist(),
         "planned_wall": geometry.wall_base.tolist(),
         "refined": track.refined.tolist(),

@@ -122,9 +122,7 @@ def torch_position(P_r: Array, t_d: Array, d: float) -> Array:
     return P_r - d * t_d
 
 
-def servo_velocity(
-    t_v: Array, n_v: Array, v_const: float, delta_n: float, delta_d: float, k_p: float, max_correction: float
-) -> Array:
+def servo_velocity(t_v: Array, n_v: Array, v_const: float, delta_n: float, delta_d: float, k_p: float, max_correction: float) -> Array:
     """Line 24, Eq. 16: ``V_r = V_const t_v - k_p (delta_n - delta_d) n_v`` (2,).
 
     The normal correction is bounded by ``max_correction`` (m/s), as a seam
@@ -293,9 +291,7 @@ class Algorithm2Params(NamedTuple):
             raise InputError("algorithm2 plan: tactile_stale must be > 0, tip_radius and k_height >= 0")
         if not 0.0 <= p.seam_offset < p.torch_offset:
             # The torch trails the tip by |d|: it cannot reach a seam |d| or more off the wall.
-            raise InputError(
-                f"algorithm2 plan: seam_offset must be >= 0 and below torch_offset {p.torch_offset} m, got {p.seam_offset} m"
-            )
+            raise InputError(f"algorithm2 plan: seam_offset must be >= 0 and below torch_offset {p.torch_offset} m, got {p.seam_offset} m")
         return p
 
 
@@ -429,8 +425,9 @@ class Algorithm2Servo:
         self._status = ControlStatus.OK
         self._tel_n = 0  # refined points when _tel_refined was computed
         self._tel_refined = np.full(3, math.nan)
-        self.last = Diagnostics(Phase.TOUCH, ControlStatus.OK, 0.0, False, math.nan, math.nan,
-                                np.zeros(2), np.zeros(2), np.zeros(2), math.nan, "")
+        self.last = Diagnostics(
+            Phase.TOUCH, ControlStatus.OK, 0.0, False, math.nan, math.nan, np.zeros(2), np.zeros(2), np.zeros(2), math.nan, ""
+        )
 
     # -- the refined path, read-only views for callers outside the loop --
 
@@ -723,8 +720,17 @@ class Algorithm2Servo:
         self.phase = Phase.FINISH
 
     def _twist(
-        self, T: Array, V_r: Array, omega: float, guarded: bool, h: float, e: float, delta_n: float,
-        P_r: Array, P_t: Array, latency: float,
+        self,
+        T: Array,
+        V_r: Array,
+        omega: float,
+        guarded: bool,
+        h: float,
+        e: float,
+        delta_n: float,
+        P_r: Array,
+        P_t: Array,
+        latency: float,
     ) -> tuple[Array, ControlStatus]:
         """Line 14: the TCP twist (6,) in the base frame that moves P_r with V_r and turns at omega."""
         if guarded:
@@ -743,6 +749,7 @@ class Algorithm2Servo:
         return np.concatenate([v_tcp, w]), ControlStatus.OK
 
     def _out(self, twist: Array, status: ControlStatus, latency: float) -> tuple[Array, ControlStatus]:
-        self.last = Diagnostics(self.phase, status, 0.0, False, math.nan, math.nan, np.zeros(2),
-                                self.last.P_r, self.last.P_t, latency, self.reason)
+        self.last = Diagnostics(
+            self.phase, status, 0.0, False, math.nan, math.nan, np.zeros(2), self.last.P_r, self.last.P_t, latency, self.reason
+        )
         return twist, status

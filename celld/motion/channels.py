@@ -142,8 +142,14 @@ class ChannelNames(NamedTuple):
         """Fresh names for one supervisor; ``tactile`` names an existing tactile slot to read."""
         tag = f"celld-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         return cls(
-            f"{tag}-state", f"{tag}-events", f"{tag}-cmd", f"{tag}-setpoint",
-            tactile or f"{tag}-tactile", f"{tag}-control", f"{tag}-status", state_capacity,
+            f"{tag}-state",
+            f"{tag}-events",
+            f"{tag}-cmd",
+            f"{tag}-setpoint",
+            tactile or f"{tag}-tactile",
+            f"{tag}-control",
+            f"{tag}-status",
+            state_capacity,
         )
 
 
@@ -160,9 +166,7 @@ class Channels:
             self.events = Ring.create(n.events, EVENT_DTYPE, EVENT_CAPACITY)
             self.commands = Mailbox.create(n.commands, MAILBOX_SLOTS, MAILBOX_SLOT_BYTES)
             self.setpoint = SeqlockSlot.create(n.setpoint, SETPOINT_DTYPE)
-            self.tactile = (
-                SeqlockSlot.create(n.tactile, TACTILE_DTYPE) if create_tactile else SeqlockSlot.attach(n.tactile, TACTILE_DTYPE)
-            )
+            self.tactile = SeqlockSlot.create(n.tactile, TACTILE_DTYPE) if create_tactile else SeqlockSlot.attach(n.tactile, TACTILE_DTYPE)
             self.control = SeqlockSlot.create(n.control, CONTROL_DTYPE)
             self.status = SeqlockSlot.create(n.status, STATUS_DTYPE)
         else:

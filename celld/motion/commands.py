@@ -100,8 +100,7 @@ def _positive(name: str, value: Any, hi: float = math.inf) -> float:
     return v
 
 
-def move_to(T_base_tcp: ArrayLike, speed_scale: float = 1.0, tolerance: float = 5e-5,
-            angle_tolerance: float = 5e-4) -> MoveTo:
+def move_to(T_base_tcp: ArrayLike, speed_scale: float = 1.0, tolerance: float = 5e-5, angle_tolerance: float = 5e-4) -> MoveTo:
     """Return a validated :class:`MoveTo`."""
     return MoveTo(
         check_transform(T_base_tcp, "T_base_tcp").copy(),
@@ -200,8 +199,12 @@ def decode(payload: bytes) -> Command:
     arrays: dict[str, np.ndarray] = {}
     offset = end
     for entry in meta.get("arrays", []):
-        if (not isinstance(entry, list) or len(entry) != 2 or not isinstance(entry[0], str)
-                or not all(isinstance(n, int) and n >= 0 for n in entry[1])):
+        if (
+            not isinstance(entry, list)
+            or len(entry) != 2
+            or not isinstance(entry[0], str)
+            or not all(isinstance(n, int) and n >= 0 for n in entry[1])
+        ):
             raise InputError(f"command: bad array descriptor {entry!r}")
         name, shape = entry[0], tuple(entry[1])
         count = int(np.prod(shape)) if shape else 1
@@ -217,8 +220,7 @@ def decode(payload: bytes) -> Command:
     if kind is CommandKind.MOVE_TO:
         if "T_base_tcp" not in arrays:
             raise InputError("move_to: the target pose T_base_tcp is missing")
-        return move_to(arrays["T_base_tcp"], meta.get("speed_scale", 1.0), meta.get("tolerance", 5e-5),
-                       meta.get("angle_tolerance", 5e-4))
+        return move_to(arrays["T_base_tcp"], meta.get("speed_scale", 1.0), meta.get("tolerance", 5e-5), meta.get("angle_tolerance", 5e-4))
     if kind is CommandKind.MOVE_JOINTS:
         if "q_goal" not in arrays:
             raise InputError("move_joints: the target joints q_goal are missing")

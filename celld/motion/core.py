@@ -160,9 +160,7 @@ class MotionCore:
         self.monitor = SequenceMonitor(params.limits, params.period)
         self.joint_monitor = JointSequenceMonitor(params.joint_limits, params.period)
         # The breach is found after this cycle's twist went out: one more period of travel.
-        self.workspace = WorkspaceGuard(
-            params.workspace_min, params.workspace_max, params.limits, params.latency + params.period
-        )
+        self.workspace = WorkspaceGuard(params.workspace_min, params.workspace_max, params.limits, params.latency + params.period)
         self.mode = Mode.IDLE
         self.controller: Controller | JointMove = Hold()
         self.command_id = 0
@@ -211,9 +209,7 @@ class MotionCore:
     def _build(self, cmd: Command) -> Controller | JointMove:
         p = self.params
         if isinstance(cmd, MoveTo):
-            return CartesianMove(
-                cmd.T_base_tcp, p.limits, p.period, cmd.speed_scale, cmd.tolerance, cmd.angle_tolerance, p.move
-            )
+            return CartesianMove(cmd.T_base_tcp, p.limits, p.period, cmd.speed_scale, cmd.tolerance, cmd.angle_tolerance, p.move)
         if isinstance(cmd, MoveJoints):
             return JointMove(cmd.q_goal, p.joint_limits, p.period, cmd.speed_scale, cmd.tolerance)
         if isinstance(cmd, Stream):
@@ -360,6 +356,16 @@ class MotionCore:
         telemetry = ctrl.telemetry() if isinstance(ctrl, ServoSlot) else NO_TELEMETRY
         process_on = self.mode == Mode.ACTIVE and not faults and telemetry.process_on
         return CycleOutput(
-            action, twist, self.mode, self.status, self.command_id, faults, guarded,
-            self._event, self._event_id, self._event_status, process_on, telemetry,
+            action,
+            twist,
+            self.mode,
+            self.status,
+            self.command_id,
+            faults,
+            guarded,
+            self._event,
+            self._event_id,
+            self._event_status,
+            process_on,
+            telemetry,
         )

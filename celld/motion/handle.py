@@ -103,10 +103,18 @@ def error_for(status: ControlStatus, reason: str) -> CelldError:
     return MotionError(text)
 
 
-def spec_from_config(config: Config, names: ChannelNames, host: str | None = None,
-                     servo_laws: dict[str, str] | None = None, realtime: RealtimeOptions = RealtimeOptions(),
-                     move: MoveParams = MoveParams(), link_timeout: float = 0.1, watchdog_hz: float = 10.0,
-                     log_level: str = "info", heartbeat: str = "") -> MotionSpec:
+def spec_from_config(
+    config: Config,
+    names: ChannelNames,
+    host: str | None = None,
+    servo_laws: dict[str, str] | None = None,
+    realtime: RealtimeOptions = RealtimeOptions(),
+    move: MoveParams = MoveParams(),
+    link_timeout: float = 0.1,
+    watchdog_hz: float = 10.0,
+    log_level: str = "info",
+    heartbeat: str = "",
+) -> MotionSpec:
     """Build the motion process's spec from a validated config.
 
     ``link_timeout`` (s without fresh robot state before the link counts as
@@ -159,8 +167,13 @@ class _Pending(NamedTuple):
 class MotionHandle:
     """See the module docstring. Create with :meth:`open`."""
 
-    def __init__(self, supervisor: MotionSupervisor, channels: Channels, limits: CartesianLimits,
-                 workspace: tuple[tuple[float, ...], tuple[float, ...]]) -> None:
+    def __init__(
+        self,
+        supervisor: MotionSupervisor,
+        channels: Channels,
+        limits: CartesianLimits,
+        workspace: tuple[tuple[float, ...], tuple[float, ...]],
+    ) -> None:
         self.supervisor = supervisor
         self.ch = channels
         self.limits = limits
@@ -220,8 +233,7 @@ class MotionHandle:
         names = ChannelNames.unique(capacity, tactile_slot)
         channels = Channels.create(names, create_tactile=tactile_slot is None)
         try:
-            spec = spec_from_config(config, names, host, servo_laws, realtime, move, link_timeout, watchdog_hz,
-                                    heartbeat=heartbeat)
+            spec = spec_from_config(config, names, host, servo_laws, realtime, move, link_timeout, watchdog_hz, heartbeat=heartbeat)
             timeout = connect_timeout if connect_timeout is not None else config.robot.connect_timeout
             sup = MotionSupervisor(spec, channels, timeout, hang_timeout, backoff, records)
             handle = cls(sup, channels, spec.core.limits, (spec.core.workspace_min, spec.core.workspace_max))
@@ -338,8 +350,7 @@ class MotionHandle:
         lo, hi = self.workspace
         p = command.T_base_tcp[:3, 3]
         if not all(lo[i] <= p[i] <= hi[i] for i in range(3)):
-            raise InputError(f"move_to target {np.round(p, 4).tolist()} m lies outside the workspace box "
-                             f"{list(lo)} .. {list(hi)}")
+            raise InputError(f"move_to target {np.round(p, 4).tolist()} m lies outside the workspace box {list(lo)} .. {list(hi)}")
         return await self._arrive(command, "move_to", timeout)
 
     async def move_joints(
@@ -453,8 +464,9 @@ class MotionHandle:
         rec = self._last_record
         if rec is None:
             return None
-        return RobotState(int(rec["t_ns"]), np.array(rec["q"]), np.array(rec["qd"]),
-                          from_ur_pose(rec["tcp_pose"]), np.array(rec["tcp_speed"]))
+        return RobotState(
+            int(rec["t_ns"]), np.array(rec["q"]), np.array(rec["qd"]), from_ur_pose(rec["tcp_pose"]), np.array(rec["tcp_speed"])
+        )
 
     def link_running(self) -> bool:
         """True while the motion loop runs: its process is up and its latest record is fresh (cheap).

@@ -87,7 +87,6 @@ class CartesianLimits(NamedTuple):
         return self.linear_speed, self.angular_speed
 
 
-
 class JointMoveLimits(NamedTuple):
     """Limits of every joint in a joint move, SI: rad/s, rad/s^2, rad/s^3."""
 
@@ -288,7 +287,9 @@ class TwistLimiter:
                 box_j[i] = jmax * max(abs(a[i]) / na if na > _TINY_A else 0.0, _JERK_FLOOR)
         return self._run(target, self._zeros, box_a, box_j, Synchronization.No)
 
-    def step(self, target_twist: Sequence[float] | Array, target_accel: Sequence[float] | Array | None = None) -> tuple[Array, LimiterResult]:
+    def step(
+        self, target_twist: Sequence[float] | Array, target_accel: Sequence[float] | Array | None = None
+    ) -> tuple[Array, LimiterResult]:
         """Advance one period towards ``target_twist`` (6,), optionally arriving with ``target_accel``.
 
         Returns the twist to send (a new (6,) array) and how the step went.

@@ -165,7 +165,8 @@ class MotionLoop:
         elif not self._output_failed:
             self._output_failed = True
             self._event(
-                0, ControlStatus.FAULT,
+                0,
+                ControlStatus.FAULT,
                 f"process output {idx}: switching it {'on' if on else 'off'} failed; retrying every cycle",
             )
         return ok
@@ -185,7 +186,8 @@ class MotionLoop:
             return
         if left_on:
             self._event(
-                0, ControlStatus.FAULT,
+                0,
+                ControlStatus.FAULT,
                 f"{INTERLOCK_MISSING}: process output {idx} was still on when this motion process started; set it to "
                 "go low when the program stops (robot Installation > I/O Setup)",
             )
@@ -259,9 +261,7 @@ class MotionLoop:
                 faults = robot_faults(raw.safety_bits)
                 if faults:
                     return LoopExit(ControlStatus.SAFETY, f"the robot program stopped: {describe(faults)}")
-                return LoopExit(
-                    ControlStatus.LINK_LOST, f"the robot program stopped (runtime state {raw.runtime_state})"
-                )
+                return LoopExit(ControlStatus.LINK_LOST, f"the robot program stopped (runtime state {raw.runtime_state})")
         else:
             self._not_playing_since = -1
 
@@ -320,8 +320,17 @@ class MotionLoop:
 
         out = self.core.step(
             CycleInput(
-                state, age_ns * 1e-9, raw.safety_bits, self._tactile, tactile_age, self._setpoint, setpoint_age,
-                command, command_id, command_error, stop,
+                state,
+                age_ns * 1e-9,
+                raw.safety_bits,
+                self._tactile,
+                tactile_age,
+                self._setpoint,
+                setpoint_age,
+                command,
+                command_id,
+                command_error,
+                stop,
             )
         )
         if out.action == Action.SPEED:

@@ -48,6 +48,8 @@ EXIT_CODES = {
     ControlStatus.SAFETY: 4,
     ControlStatus.FAULT: 5,
 }
+
+
 @dataclass(frozen=True)
 class MotionSpec:
     """Everything the motion process needs; picklable, built by the supervisor."""
@@ -82,8 +84,9 @@ def load_factories(servo_laws: tuple[tuple[str, str], ...]) -> dict[str, ServoFa
     return out
 
 
-def _report(ch: Channels, phase: Phase, rt: RealtimeReport | None = None, exit_status: ControlStatus = ControlStatus.OK,
-            reason: str = "") -> None:
+def _report(
+    ch: Channels, phase: Phase, rt: RealtimeReport | None = None, exit_status: ControlStatus = ControlStatus.OK, reason: str = ""
+) -> None:
     rec = np.zeros(1, STATUS_DTYPE)
     rec["phase"] = int(phase)
     rec["pid"] = os.getpid()
@@ -119,8 +122,13 @@ def run(spec: MotionSpec) -> LoopExit:
         loop = MotionLoop(link, core, ch, spec.loop, parent=parent)
         rt = make_realtime(spec.realtime)
         if rt.refused:
-            log.warning("motion loop runs without full real-time privileges", refused=rt.refused,
-                        fifo=rt.fifo, cpu=rt.cpu, memory_locked=rt.memory_locked)
+            log.warning(
+                "motion loop runs without full real-time privileges",
+                refused=rt.refused,
+                fifo=rt.fifo,
+                cpu=rt.cpu,
+                memory_locked=rt.memory_locked,
+            )
         else:
             log.info("motion loop real time", fifo_priority=spec.realtime.priority, cpu=rt.cpu)
         _report(ch, Phase.RUNNING, rt)
@@ -137,14 +145,12 @@ def run(spec: MotionSpec) -> LoopExit:
             gc.enable()
         # Say why at once: closing the link below can take a while.
         _report(ch, Phase.EXITED, rt, end.status, end.reason)
-        log.info("motion loop ended", status=end.status.name, reason=end.reason, cycles=loop.cycles,
-                 overruns=loop.overruns)
+        log.info("motion loop ended", status=end.status.name, reason=end.reason, cycles=loop.cycles, overruns=loop.overruns)
         return end
     finally:
         if loop is not None and not loop.release_output():
             # After the exit report: on a dead link ur-rtde tries to reconnect first.
-            log.error("the process output could not be switched off; the robot's I/O set-up must do it",
-                      output=spec.loop.process_output)
+            log.error("the process output could not be switched off; the robot's I/O set-up must do it", output=spec.loop.process_output)
         if link is not None:
             # A graceful end stops the robot's program; otherwise the watchdog does.
             link.close(stop_script=end is not None and end.status == ControlStatus.OK)

@@ -62,7 +62,9 @@ def log(R: ArrayLike) -> Array:
     kk = ((r00 - c) / d, (r11 - c) / d, (r22 - c) / d)
     i = max(range(3), key=lambda j: kk[j])
     off = {
-        (0, 1): 0.5 * (r01 + r10), (0, 2): 0.5 * (r02 + r20), (1, 2): 0.5 * (r12 + r21),
+        (0, 1): 0.5 * (r01 + r10),
+        (0, 2): 0.5 * (r02 + r20),
+        (1, 2): 0.5 * (r12 + r21),
     }
     ki = math.sqrt(max(kk[i], 0.0))
     axis = [0.0, 0.0, 0.0]

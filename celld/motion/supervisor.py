@@ -254,8 +254,13 @@ class MotionSupervisor:
         own = int(st["pid"]) == proc.process.pid and int(st["phase"]) == int(Phase.EXITED)
         ran = time.monotonic() - proc.running_since if proc.running_since else 0.0
         if own and (code in _CODE_STATUS or proc.exiting_since is not None):
-            return ProcessExit(proc.process.pid, code, ControlStatus(int(st["exit_status"])),  # type: ignore[arg-type]
-                               decode_reason(st["reason"]), ran)
+            return ProcessExit(
+                proc.process.pid,  # type: ignore[arg-type]
+                code,
+                ControlStatus(int(st["exit_status"])),
+                decode_reason(st["reason"]),
+                ran,
+            )
         if proc.killed_for:
             reason = f"motion process killed: {proc.killed_for}"
         elif code is not None and code < 0:
@@ -280,8 +285,7 @@ class MotionSupervisor:
             self.last_exit = end
             self._running.clear()
             log_fn = log.info if end.status == ControlStatus.OK else log.warning
-            log_fn("motion process ended", pid=end.pid, exitcode=end.exitcode, status=end.status.name,
-                   reason=end.reason)
+            log_fn("motion process ended", pid=end.pid, exitcode=end.exitcode, status=end.status.name, reason=end.reason)
             for callback in list(self._exit_listeners):
                 callback(end)
             if self._closing:

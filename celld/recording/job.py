@@ -288,9 +288,7 @@ class JobRecording:
         self._named: set[str] = set()
         self._ignored_reported: set[str] = set()
         self._log = log.bind(job=job_id, kind=kind)
-        self._rec = rr.RecordingStream(
-            APPLICATION_ID, recording_id=job_id, default_enabled=config.enabled, send_properties=True
-        )
+        self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=job_id, default_enabled=config.enabled, send_properties=True)
         if not config.enabled:
             return
         try:
@@ -302,9 +300,7 @@ class JobRecording:
         self._warm_up()
 
     @classmethod
-    def for_job(
-        cls, state_dir: str | Path, job_id: str, kind: str = "other", config: RecordingConfig | None = None
-    ) -> JobRecording:
+    def for_job(cls, state_dir: str | Path, job_id: str, kind: str = "other", config: RecordingConfig | None = None) -> JobRecording:
         """Open the recording of ``job_id`` at :func:`recording_path` under ``state_dir``."""
         return cls(recording_path(state_dir, job_id), job_id, kind, config)
 
@@ -437,8 +433,16 @@ class JobRecording:
         """
         self._log_pose(layout.CAMERA, T_base_cam, "T_base_cam", stamp_ns, static)
 
-    def log_mesh(self, entity: str, vertices: ArrayLike, triangles: ArrayLike, T_base_obj: ArrayLike | None = None,
-                 color: tuple[int, int, int] = (170, 170, 180), static: bool = False, stamp_ns: int | None = None) -> None:
+    def log_mesh(
+        self,
+        entity: str,
+        vertices: ArrayLike,
+        triangles: ArrayLike,
+        T_base_obj: ArrayLike | None = None,
+        color: tuple[int, int, int] = (170, 170, 180),
+        static: bool = False,
+        stamp_ns: int | None = None,
+    ) -> None:
         """Log a triangle mesh (a workpiece, the flange) at ``entity`` under ``/world``.
 
         Parameters
@@ -469,8 +473,9 @@ class JobRecording:
             parts.append(rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
         self._rec.log(entity, *parts, static=static)
 
-    def log_residuals(self, ids: list[str], P_robot_base: ArrayLike, P_scanner_base: ArrayLike, outlier: ArrayLike,
-                      stamp_ns: int | None = None) -> None:
+    def log_residuals(
+        self, ids: list[str], P_robot_base: ArrayLike, P_scanner_base: ArrayLike, outlier: ArrayLike, stamp_ns: int | None = None
+    ) -> None:
         """Log a calibration's per-pair residuals: arrows and a bar chart.
 
         Parameters
@@ -546,7 +551,9 @@ class JobRecording:
         """
         self._log_circle(f"{layout.CAMERA}/circles/{_check_name(name, 'circle name')}", center_cam, normal_cam, radius, stamp_ns)
 
-    def log_circle_base(self, name: str, center_base: ArrayLike, normal_base: ArrayLike, radius: float, stamp_ns: int | None = None) -> None:
+    def log_circle_base(
+        self, name: str, center_base: ArrayLike, normal_base: ArrayLike, radius: float, stamp_ns: int | None = None
+    ) -> None:
         """Log a circle in the base frame at ``/world/circles/<name>``; arguments as :meth:`log_circle_cam`."""
         self._log_circle(f"{layout.CIRCLES}/{_check_name(name, 'circle name')}", center_base, normal_base, radius, stamp_ns)
 
@@ -585,8 +592,13 @@ class JobRecording:
         quats = Rotation.from_matrix(T[:, :3, :3]).as_quat()  # x, y, z, w
         self._rec.log(
             f"{layout.CELL}/{_check_name(name, 'cell object name')}",
-            rr.Boxes3D(centers=T[:, :3, 3], half_sizes=size / 2.0, quaternions=quats, colors=[(150, 150, 160)],
-                       fill_mode=rr.components.FillMode.Solid),
+            rr.Boxes3D(
+                centers=T[:, :3, 3],
+                half_sizes=size / 2.0,
+                quaternions=quats,
+                colors=[(150, 150, 160)],
+                fill_mode=rr.components.FillMode.Solid,
+            ),
         )
 
     def log_capsules(self, name: str, ends_base: ArrayLike, radii: ArrayLike, stamp_ns: int | None = None) -> None:
@@ -690,7 +702,8 @@ class JobRecording:
                     layout.TCP,
                     indexes=[t_ok],
                     columns=rr.Transform3D.columns(
-                        translation=T[:, :3, 3], quaternion=Rotation.from_matrix(T[:, :3, :3]).as_quat()  # x, y, z, w
+                        translation=T[:, :3, 3],
+                        quaternion=Rotation.from_matrix(T[:, :3, :3]).as_quat(),  # x, y, z, w
                     ),
                 )
         for col in cols.series:
@@ -769,7 +782,8 @@ class JobRecording:
             ) from error
         if writer is not None and writer.merge_error:
             raise RecordingWriteError(
-                "recording", str(self.path),
+                "recording",
+                str(self.path),
                 f"its streams could not be merged into one file ({writer.merge_error}); they are kept in {writer.part}: "
                 f"'python -m rerun_cli rrd merge {writer.part} -o {self.path}' merges them",
             )

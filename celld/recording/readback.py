@@ -70,9 +70,7 @@ def _index_seconds_or_ticks(column: pa.Array) -> np.ndarray:
     return column.to_numpy(zero_copy_only=False)
 
 
-def read_component(
-    path: str | Path, entity: str, component: str, timeline: str = layout.TIME
-) -> tuple[np.ndarray, list[Any]]:
+def read_component(path: str | Path, entity: str, component: str, timeline: str = layout.TIME) -> tuple[np.ndarray, list[Any]]:
     """Every logged value of one component of one entity, ordered by ``timeline``.
 
     Parameters

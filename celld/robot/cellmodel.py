@@ -198,9 +198,7 @@ class Mesh:
         import open3d as o3d
 
         scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(
-            o3d.core.Tensor(self.vertices.astype(np.float32)), o3d.core.Tensor(self.triangles.astype(np.uint32))
-        )
+        scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)), o3d.core.Tensor(self.triangles.astype(np.uint32)))
         return scene
 
     def signed_distance(self, P_obj: Array) -> Array:
@@ -296,9 +294,7 @@ class CellModel:
 
     def allows(self, part: str, obj: str) -> bool:
         """True when arm link or tool part ``part`` may touch object ``obj``."""
-        return any(o.name == obj and part in o.allow for o in self.objects) or any(
-            p.name == part and obj in p.allow for p in self.tool
-        )
+        return any(o.name == obj and part in o.allow for o in self.objects) or any(p.name == part and obj in p.allow for p in self.tool)
 
     def with_object(self, obj: CellObject) -> CellModel:
         """A new model with ``obj`` added (e.g. the registered workpiece before a weld)."""

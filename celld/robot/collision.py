@@ -332,9 +332,7 @@ class Checker:
         self.params = params
         self.T_flange_tcp = se3.check_transform(np.eye(4) if T_flange_tcp is None else T_flange_tcp, "T_flange_tcp")
         self._T_tcp_flange = se3.invert(self.T_flange_tcp)
-        tool = tuple(
-            Capsule(p.name, 6, p.p0_flange, p.p1_flange, p.radius, _TOOL_CHAIN, is_tool=True) for p in cell.tool
-        )
+        tool = tuple(Capsule(p.name, 6, p.p0_flange, p.p1_flange, p.radius, _TOOL_CHAIN, is_tool=True) for p in cell.tool)
         self.parts: tuple[Capsule, ...] = arm_capsules(arm) + tool
         # Every part's spheres, stacked: local centre, frame, radius, part index.
         centres, frames, radii, owner = [], [], [], []
@@ -350,8 +348,7 @@ class Checker:
         self._sphere_part = np.asarray(owner)
         # Per object: the spheres checked against it (those of parts whose contact is not allowed).
         self._object_spheres = [
-            np.flatnonzero([not cell.allows(self.parts[p].name, obj.name) for p in self._sphere_part])
-            for obj in cell.objects
+            np.flatnonzero([not cell.allows(self.parts[p].name, obj.name) for p in self._sphere_part]) for obj in cell.objects
         ]
         self._ends_local = np.array([[part.p0, part.p1] for part in self.parts])
         self._part_frame = np.array([part.frame for part in self.parts])
@@ -452,7 +449,9 @@ class Checker:
         text = "joint move to [" + ", ".join(f"{v:.3f}" for v in q1) + "]"
         for name, q in (("start", q0), ("goal", q1)):
             if not kin.within_limits(q, self.arm.limits):
-                f = _Failure("joint_limits", f"the {name} joints are outside the joint limits", 0.0 if name == "start" else 1.0, tuple(q.tolist()))
+                f = _Failure(
+                    "joint_limits", f"the {name} joints are outside the joint limits", 0.0 if name == "start" else 1.0, tuple(q.tolist())
+                )
                 return PathCheck(q0[None], np.zeros(1), math.inf, Refusal(f.reason, _message(text, f, f.s), target, f.s, f.q))
         # Uniform samples, denser until no sphere centre moves more than the step between two.
         n = max(1, math.ceil(float(np.abs(q1 - q0).max()) * self.arm.reach / self.params.step))
@@ -547,7 +546,12 @@ class Checker:
         p = self.params
         dh, limits = self.arm.dh, self.arm.limits
         if not kin.within_limits(q0, limits):
-            return _Line(q0[None], np.zeros(1), math.inf, _Failure("joint_limits", "the start joints are outside the joint limits", 0.0, tuple(q0.tolist())))
+            return _Line(
+                q0[None],
+                np.zeros(1),
+                math.inf,
+                _Failure("joint_limits", "the start joints are outside the joint limits", 0.0, tuple(q0.tolist())),
+            )
         F0 = self._frames(q0[None])
         C0 = self._centres(F0)[0]
         T0 = kin.matrix_from_rows(F0[0, 6].ravel()) @ self.T_flange_tcp
@@ -607,10 +611,7 @@ class Checker:
         if first is not None and i_col <= i_sing:
             failure = _Failure("collision", first[1].describe(), float(S[i_col]), tuple(Q[i_col].tolist()), first[1])
         elif i_sing < len(Q):
-            detail = (
-                f"singular passage (smallest singular value of the Jacobian {sigma[i_sing]:.4f}, "
-                f"below {p.min_singular_value:.4f})"
-            )
+            detail = f"singular passage (smallest singular value of the Jacobian {sigma[i_sing]:.4f}, below {p.min_singular_value:.4f})"
             failure = _Failure("singular", detail, float(S[i_sing]), tuple(Q[i_sing].tolist()))
         end = min(i_col, i_sing, len(Q) - 1) + 1
         return _Line(Q[:end], S[:end], float(clearance[:end].min()), failure)

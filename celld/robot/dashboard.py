@@ -88,13 +88,17 @@ def robot_condition(link: str, reading: DashboardReading | None, last_exit: str 
         if link == "up":
             return RobotCondition(True, "ready", "", "")
         return RobotCondition(
-            False, "link_lost", f"no link to the robot: RTDE is {link} and the dashboard server does not answer ({why}){seen}",
+            False,
+            "link_lost",
+            f"no link to the robot: RTDE is {link} and the dashboard server does not answer ({why}){seen}",
             "check the robot is on, its network cable and robot.host; celld reconnects by itself",
         )
     safety, mode = reading.safety.upper(), reading.robot_mode.upper()
     if "EMERGENCY_STOP" in safety:
         return RobotCondition(
-            False, "emergency_stop", f"emergency stop ({safety}){seen}",
+            False,
+            "emergency_stop",
+            f"emergency stop ({safety}){seen}",
             "release the emergency stop, then `celld robot power-on` and `celld robot brake-release`",
         )
     if safety in ("PROTECTIVE_STOP", "SAFEGUARD_STOP", "AUTOMATIC_MODE_SAFEGUARD_STOP", "SYSTEM_THREE_POSITION_ENABLING_STOP"):
@@ -106,11 +110,15 @@ def robot_condition(link: str, reading: DashboardReading | None, last_exit: str 
         return RobotCondition(False, "protective_stop", f"{safety.lower().replace('_', ' ')}{seen}", remedy)
     if safety not in ("NORMAL", "REDUCED", "RECOVERY", ""):
         return RobotCondition(
-            False, "safety_fault", f"safety {safety}{seen}",
+            False,
+            "safety_fault",
+            f"safety {safety}{seen}",
             "see the teach pendant; a fault or violation needs a safety restart there",
         )
     if mode == "POWER_OFF":
-        return RobotCondition(False, "power_off", f"the arm is powered off{seen}", "`celld robot power-on`, then `celld robot brake-release`")
+        return RobotCondition(
+            False, "power_off", f"the arm is powered off{seen}", "`celld robot power-on`, then `celld robot brake-release`"
+        )
     if mode == "IDLE":
         return RobotCondition(False, "brakes", f"the arm is powered with its brakes on{seen}", "`celld robot brake-release`")
     if mode in ("BOOTING", "POWER_ON", "BACKDRIVE", "CONFIRM_SAFETY", "DISCONNECTED", "NO_CONTROLLER", "UPDATING_FIRMWARE"):
@@ -119,7 +127,9 @@ def robot_condition(link: str, reading: DashboardReading | None, last_exit: str 
         return RobotCondition(False, "unknown", f"robot mode {mode or 'unknown'}{seen}", "see the teach pendant")
     if link != "up":
         return RobotCondition(
-            False, "link_lost", f"the arm is running but the RTDE link is {link}{seen}",
+            False,
+            "link_lost",
+            f"the arm is running but the RTDE link is {link}{seen}",
             "celld reconnects by itself; if it does not, check robot.host and that the robot is in remote control",
         )
     return RobotCondition(True, "ready", "", "")
@@ -137,8 +147,9 @@ class Dashboard:
         Builds the client; ``dashboard_client.DashboardClient`` by default.
     """
 
-    def __init__(self, host: str, timeout: float = 2.0, port: int = DASHBOARD_PORT,
-                 client_factory: Callable[[str, int], Any] | None = None) -> None:
+    def __init__(
+        self, host: str, timeout: float = 2.0, port: int = DASHBOARD_PORT, client_factory: Callable[[str, int], Any] | None = None
+    ) -> None:
         self.host = host
         self.port = port
         self.timeout = timeout

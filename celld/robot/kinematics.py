@@ -188,6 +188,7 @@ def model(name: str) -> URModel:
     except KeyError:
         raise InputError(f"robot model: expected one of {', '.join(MODELS)}, got {name!r}") from None
 
+
 # A 3x4 row-major rigid transform as 12 floats: R00 R01 R02 t0 R10 ... t2.
 Rows = list[float]
 

@@ -51,7 +51,9 @@ def depth_to_points(depth: ArrayLike, K: ArrayLike, units_per_metre: float, dept
     if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0.0 or K[1, 1] <= 0.0:
         raise InputError(f"depth intrinsics: expected a (3, 3) matrix with positive focal lengths, got {K.tolist()}")
     if not (units_per_metre > 0.0 and 0.0 <= depth_min < depth_max):
-        raise InputError(f"depth scale and range: expected units_per_metre > 0 and 0 <= min < max, got {units_per_metre}, {depth_min}, {depth_max}")
+        raise InputError(
+            f"depth scale and range: expected units_per_metre > 0 and 0 <= min < max, got {units_per_metre}, {depth_min}, {depth_max}"
+        )
     image = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(d)))
     metres = image.clip_transform(units_per_metre, depth_min, depth_max, float("nan"))
     vertex_map = metres.create_vertex_map(o3d.core.Tensor(K), float("nan"))

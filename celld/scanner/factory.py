@@ -39,7 +39,8 @@ def open_scanner(config: ScannerConfig) -> Scanner:
     kind = config.kind
     if kind == "sim":
         raise ConfigError(
-            _SOURCE, "scanner.kind",
+            _SOURCE,
+            "scanner.kind",
             "'sim' is the simulated cell's scanner: run this config with `celld sim run`, or name a real driver",
         )
     if kind == "replay":

@@ -60,8 +60,7 @@ def find_producer(configured: str = "", environ: dict[str, str] | None = None) -
             return candidates[0]
     where = f"{GENTL_PATH_ENV}={':'.join(dirs)}" if dirs else f"{GENTL_PATH_ENV} is not set"
     raise DriverUnavailable(
-        f"Photoneo: no GenTL producer (.cti) found ({where}); install PhoXi Control or the mvGenTL producer, "
-        "or set scanner.gentl_producer"
+        f"Photoneo: no GenTL producer (.cti) found ({where}); install PhoXi Control or the mvGenTL producer, or set scanner.gentl_producer"
     )
 
 

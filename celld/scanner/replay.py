@@ -185,9 +185,7 @@ class ReplayScanner:
         A file's header is malformed (named in the message).
     """
 
-    def __init__(
-        self, directory: str | Path, units: str = "m", loop: bool = False, clock: Callable[[], int] = time.monotonic_ns
-    ) -> None:
+    def __init__(self, directory: str | Path, units: str = "m", loop: bool = False, clock: Callable[[], int] = time.monotonic_ns) -> None:
         self.directory = Path(directory)
         if units not in UNITS:
             raise InputError(f"replay units: expected one of {', '.join(UNITS)}, got {units!r}")

@@ -50,7 +50,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     find.add_argument("--T-base-cam", dest="T_base_cam", help="hand-eye transform: JSON 4x4 (m) or .npy")
     find.add_argument("--config", help="cell config whose [scanner] T_base_cam to use")
     find.add_argument(
-        "--range-bias-mm", dest="range_bias_mm", type=float,
+        "--range-bias-mm",
+        dest="range_bias_mm",
+        type=float,
         help="the scanner's range bias on metal, mm (default: the --T-base-cam calibration file's range_bias_mm, else 0)",
     )
     find.add_argument("--nominal", help="expected part pose T_base_obj: JSON 4x4 (m) or .npy (orders the seam, limits the search)")

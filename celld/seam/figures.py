@@ -60,8 +60,12 @@ def lateral_error(P_base: Array, seam_base: Array, T_base_plane: Array) -> dict[
     e = np.abs(d[inside])
     if len(e) == 0:
         return {"rms_mm": float("nan"), "max_mm": float("nan"), "points": 0, "outside": int(len(Q))}
-    return {"rms_mm": float(np.sqrt(np.mean(e**2))) * 1e3, "max_mm": float(e.max()) * 1e3,
-            "points": int(len(e)), "outside": int(len(Q) - len(e))}
+    return {
+        "rms_mm": float(np.sqrt(np.mean(e**2))) * 1e3,
+        "max_mm": float(e.max()) * 1e3,
+        "points": int(len(e)),
+        "outside": int(len(Q) - len(e)),
+    }
 
 
 def track_summary(records: np.ndarray, geometry: WeldGeometry, tool: ToolGeometry, delta_d: float) -> TrackSummary:

@@ -64,6 +64,7 @@ log = get_logger(__name__)
 
 Array = NDArray[np.float64]
 
+
 @dataclass(frozen=True)
 class SeamQuality:
     """Quality figures of one seam (SI units; NaN where not measured).
@@ -457,7 +458,9 @@ def _coverage(P_near: Array, stations: Array, radius: float) -> float:
     return float(np.mean(np.asarray(counts) > 0))
 
 
-def _across_support(prepared: PreparedWorkpiece, P_near: Array, proj: polyline.Projection, near: NDArray[np.bool_], params: SeamParams) -> float:
+def _across_support(
+    prepared: PreparedWorkpiece, P_near: Array, proj: polyline.Projection, near: NDArray[np.bool_], params: SeamParams
+) -> float:
     """Share of the scan points near the seam that lie on faces facing across it.
 
     Only such faces (bevels, a web) fix the part sideways; flat tops do not.
@@ -500,9 +503,17 @@ def _seam_points(
 ) -> tuple[Array, str, str, dict[str, float]]:
     """The seam at the stations (model frame): measured groove or registered model."""
     nan = math.nan
-    gq = dict(groove_coverage=nan, groove_windows_ok=nan, groove_contradicting=nan, apex_sigma=nan,
-              wall_rms=nan, model_groove_rms=nan, model_groove_max=nan, deviation_sigma=nan,
-              lateral_shift_mean=nan)
+    gq = dict(
+        groove_coverage=nan,
+        groove_windows_ok=nan,
+        groove_contradicting=nan,
+        apex_sigma=nan,
+        wall_rms=nan,
+        model_groove_rms=nan,
+        model_groove_max=nan,
+        deviation_sigma=nan,
+        lateral_shift_mean=nan,
+    )
     wp, prior = prepared.workpiece, prepared.groove_prior
     if prior is None:
         if params.seam_source == "groove":
@@ -569,8 +580,10 @@ def _seam_points(
     z = float(np.max(dev / se))
     if params.seam_source == "auto" and z < params.deviation_sigmas:
         # The registered model seam is the more precise of the two here.
-        why = (f"the measured groove agrees with the model within its uncertainty "
-               f"(largest deviation {z:.1f} sigma, below {params.deviation_sigmas:.1f})")
+        why = (
+            f"the measured groove agrees with the model within its uncertainty "
+            f"(largest deviation {z:.1f} sigma, below {params.deviation_sigmas:.1f})"
+        )
         return stations, "model", why, gq
     return stations + Dst, "groove", "", gq
 

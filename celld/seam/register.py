@@ -220,8 +220,16 @@ def register(
         # Source is the scan, target the model: the result maps the nominal
         # frame to the model. No mutual filter: a plate's faces look alike.
         glob = reg.registration_ransac_based_on_feature_matching(
-            coarse, model.coarse, fpfh, model.coarse_fpfh, False, 1.5 * v,
-            reg.TransformationEstimationPointToPoint(False), 3, checkers, criteria,
+            coarse,
+            model.coarse,
+            fpfh,
+            model.coarse_fpfh,
+            False,
+            1.5 * v,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
+            checkers,
+            criteria,
         )
         T = glob.transformation
         for dist in (2.0 * v, v, 0.5 * v):
@@ -263,6 +271,10 @@ def _away_from_edges(fine: o3d.geometry.PointCloud, model: PreparedModel, T_obj_
 
 def _icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, distance: float, T: Array, iterations: int) -> Array:
     return reg.registration_icp(
-        source, target, distance, T, reg.TransformationEstimationPointToPlane(),
+        source,
+        target,
+        distance,
+        T,
+        reg.TransformationEstimationPointToPlane(),
         reg.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=iterations),
     ).transformation

@@ -110,9 +110,7 @@ def wall_offset(workpiece: Workpiece, tip_height: float, finger_wall: str = "lef
     if len(tris) == 0:
         raise WorkpieceError(f"{workpiece.name}: no triangle is labelled as the {finger_wall} wall")
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(workpiece.vertices.astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32))
-    )
+    scene.add_triangles(o3d.core.Tensor(workpiece.vertices.astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32)))
     P, _, N = model_seam_frames(workpiece, finger_wall)
     idx = np.linspace(0, len(P) - 1, _STATIONS + 2)[1:-1].round().astype(int)
     a = np.asarray(workpiece.approach, dtype=np.float64)
@@ -152,7 +150,9 @@ def weld_geometry(points: Array, tangents: Array, normals: Array, plane_normal: 
     z = np.asarray(plane_normal, dtype=np.float64)
     z = z / np.linalg.norm(z)
     if P.ndim != 2 or P.shape[1] != 3 or len(P) < 2 or T.shape != P.shape or N.shape != P.shape:
-        raise WorkpieceError(f"seam: expected matching (n, 3) points, tangents and normals with n >= 2, got {P.shape}, {T.shape}, {N.shape}")
+        raise WorkpieceError(
+            f"seam: expected matching (n, 3) points, tangents and normals with n >= 2, got {P.shape}, {T.shape}, {N.shape}"
+        )
     seam_up = P + tip_height * z
     wall = seam_up + offset * N
     return WeldGeometry(_plane(wall[0], T[0], z), wall, seam_up, T, N, float(offset), float(tip_height))

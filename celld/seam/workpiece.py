@@ -168,8 +168,7 @@ def _check_seam(name: str, S: Array, V: Array, F: NDArray[np.int64], extent: flo
     seam_extent = float(np.max(S.max(axis=0) - S.min(axis=0)))
     if seam_extent > 100.0 * extent or (length > MIN_SEAM_LENGTH and length * 100.0 < extent and extent > 0.1):
         raise WorkpieceError(
-            f"{name}: seam spans {seam_extent:.4g} m but the mesh {extent:.4g} m: "
-            "the seam file and the mesh use different units"
+            f"{name}: seam spans {seam_extent:.4g} m but the mesh {extent:.4g} m: the seam file and the mesh use different units"
         )
     if length < MIN_SEAM_LENGTH:
         raise WorkpieceError(f"{name}: seam is {length * 1e3:.2f} mm long, expected at least {MIN_SEAM_LENGTH * 1e3:.0f} mm")
@@ -318,7 +317,15 @@ def v_groove_butt(
     dy = bow * math.pi / length * np.cos(phase)
     path = np.column_stack([x, y, np.zeros(n)])
     lat = np.column_stack([-dy, np.ones(n), np.zeros(n)]) / np.sqrt(1.0 + dy**2)[:, None]
-    params = dict(thickness=thickness, groove_angle=groove_angle, root_gap=root_gap, root_face=root_face, length=length, plate_width=plate_width, bow=bow)
+    params = dict(
+        thickness=thickness,
+        groove_angle=groove_angle,
+        root_gap=root_gap,
+        root_face=root_face,
+        length=length,
+        plate_width=plate_width,
+        bow=bow,
+    )
     return _v_groove_along("v-groove", path, lat, params)
 
 
@@ -338,7 +345,9 @@ def fillet_t_joint(
     top and the web's -y face, (x, web_offset - web_thickness/2,
     flange_thickness); the web is the left wall, the flange top the right.
     """
-    _check_positive(flange_thickness=flange_thickness, flange_width=flange_width, web_thickness=web_thickness, web_height=web_height, length=length)
+    _check_positive(
+        flange_thickness=flange_thickness, flange_width=flange_width, web_thickness=web_thickness, web_height=web_height, length=length
+    )
     if abs(web_offset) + web_thickness / 2.0 >= flange_width / 2.0:
         raise WorkpieceError(f"the web ({web_thickness} m thick at {web_offset} m) must stand on the flange ({flange_width} m wide)")
     y0, y1, tf = web_offset - web_thickness / 2.0, web_offset + web_thickness / 2.0, flange_thickness
@@ -357,7 +366,14 @@ def fillet_t_joint(
     )
     seam = np.column_stack([x, np.full(2, y0), np.full(2, tf)])
     band = (0.0015, min(0.012, 0.8 * web_height, 0.8 * (w + y0)))
-    params = dict(flange_thickness=flange_thickness, flange_width=flange_width, web_thickness=web_thickness, web_height=web_height, length=length, web_offset=web_offset)
+    params = dict(
+        flange_thickness=flange_thickness,
+        flange_width=flange_width,
+        web_thickness=web_thickness,
+        web_height=web_height,
+        length=length,
+        web_offset=web_offset,
+    )
     return Workpiece("fillet-t", V, F, seam, np.array([0.0, 0.0, 1.0]), L, band, "fillet", params)
 
 
@@ -386,7 +402,15 @@ def curved_groove(
     centre = np.array([0.0, radius, 0.0])
     path = centre + radius * np.column_stack([np.sin(theta), -np.cos(theta), np.zeros_like(theta)])
     lat = np.column_stack([-np.sin(theta), np.cos(theta), np.zeros_like(theta)])  # toward the centre: left
-    params = dict(radius=radius, arc_angle=arc_angle, thickness=thickness, groove_angle=groove_angle, root_gap=root_gap, root_face=root_face, plate_width=plate_width)
+    params = dict(
+        radius=radius,
+        arc_angle=arc_angle,
+        thickness=thickness,
+        groove_angle=groove_angle,
+        root_gap=root_gap,
+        root_face=root_face,
+        plate_width=plate_width,
+    )
     return _v_groove_along("curved-groove", path, lat, params)
 
 

@@ -64,7 +64,9 @@ def run(args: argparse.Namespace) -> int:
     world = world_of(cfg, options_from_args(args))
     sc = world.scanner
     unit = scanner_model(sc.model) if sc.metal_bias is None else replace(scanner_model(sc.model), metal_bias=sc.metal_bias)
-    scanner = SimScanner(unit, sc.T_base_cam, seed=args.seed, resolution_scale=sc.resolution_scale, measure=None if sc.ideal else sc.measure)
+    scanner = SimScanner(
+        unit, sc.T_base_cam, seed=args.seed, resolution_scale=sc.resolution_scale, measure=None if sc.ideal else sc.measure
+    )
     T_base_cam_true = sc.T_base_cam
     home = cfg.robot.home_q
 
@@ -91,8 +93,10 @@ def run(args: argparse.Namespace) -> int:
         if got.rejected is not None or det is None:
             say(f"  pair {got.id}: no flange ({got.rejected.reason if got.rejected else 'no detection'})")
             continue
-        say(f"  pair {got.id}: centre found, radius {det.radius * 1e3:.2f} mm, {det.inliers} rim points, "
-            f"residual {det.residual * 1e6:.0f} um")
+        say(
+            f"  pair {got.id}: centre found, radius {det.radius * 1e3:.2f} mm, {det.inliers} rim points, "
+            f"residual {det.residual * 1e6:.0f} um"
+        )
     params = SolveParams.from_config(cal)
     verifier = verifier_from_cloud(P_v, T_v, flange, params, dparams)
     found = pairs.detections()

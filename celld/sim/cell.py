@@ -98,7 +98,10 @@ class _CellScanner:
             model,
             sc.T_base_cam,
             robot_scene_source(
-                lambda: truth.latest().T_base_flange, self.world.flange, table=not objects, extra=lambda: objects,
+                lambda: truth.latest().T_base_flange,
+                self.world.flange,
+                table=not objects,
+                extra=lambda: objects,
                 tool=self.world.tool.config,  # the tool as built, never the controller's [tool]
             ),
             seed=sc.noise_seed,
@@ -166,7 +169,9 @@ def start_daemon(config_path: str | Path, log: IO[bytes], timeout: float = 90.0,
     cfg = config_mod.load(config_path)
     proc = subprocess.Popen(
         [sys.executable, "-m", "celld.cli", "sim", "run", "--config", str(Path(config_path).resolve()), *world.to_argv()],
-        stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
     )
     client = None
     deadline = time.monotonic() + timeout

@@ -74,8 +74,15 @@ def run(args: argparse.Namespace) -> int:
     say(world.describe())
     t0 = time.monotonic()
     try:
-        figures = run_jobs(args.config, log_path, options, say, n_poses=args.poses, force_accept=args.force_accept,
-                           tool_calibrate=not args.no_tool_calibrate)
+        figures = run_jobs(
+            args.config,
+            log_path,
+            options,
+            say,
+            n_poses=args.poses,
+            force_accept=args.force_accept,
+            tool_calibrate=not args.no_tool_calibrate,
+        )
     except CelldError as exc:
         say(f"celld demo failed: {exc}")
         return 1
@@ -92,8 +99,16 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_jobs(config_path: str | Path, log_path: str | Path, options: Any, say: Any, n_poses: int | None = None,
-             calibrate_seed: int | None = None, force_accept: bool = False, tool_calibrate: bool = False) -> dict[str, Any]:
+def run_jobs(
+    config_path: str | Path,
+    log_path: str | Path,
+    options: Any,
+    say: Any,
+    n_poses: int | None = None,
+    calibrate_seed: int | None = None,
+    force_accept: bool = False,
+    tool_calibrate: bool = False,
+) -> dict[str, Any]:
     """Start the cell of ``config_path`` in the world of ``options``, calibrate, accept, weld; score against the truth.
 
     With ``tool_calibrate`` a tool-calibrate job runs (and is accepted) between
@@ -134,19 +149,27 @@ def run_jobs(config_path: str | Path, log_path: str | Path, options: Any, say: A
         except JobError as exc:
             say(f"calibration {cal['id']} refused at accept: {exc}")
             if not force_accept:
-                return {**figures, "failed": {"job": cal["id"], "state": "not accepted", "reason": str(exc),
-                                              "verdict": quality.get("verdict")}}
+                return {
+                    **figures,
+                    "failed": {"job": cal["id"], "state": "not accepted", "reason": str(exc), "verdict": quality.get("verdict")},
+                }
             accepted, forced = cell.client.accept(cal["id"], force=True), True
         T_est = np.array(accepted["calibration"]["T_base_cam"])
         dt, dr = se3.error(T_est, world.scanner.T_base_cam)
         figures["calibration"] = {
-            "job": cal["id"], "translation_error_mm": dt * 1e3, "rotation_error_deg": math.degrees(dr),
-            "pairs": cal_result["calibration"]["pairs"], "recording": cal_result.get("recording"),
-            "verdict": quality.get("verdict"), "forced": forced,
+            "job": cal["id"],
+            "translation_error_mm": dt * 1e3,
+            "rotation_error_deg": math.degrees(dr),
+            "pairs": cal_result["calibration"]["pairs"],
+            "recording": cal_result.get("recording"),
+            "verdict": quality.get("verdict"),
+            "forced": forced,
             "targeting": targeting(world, T_est, cfg),
         }
-        say(f"calibration {cal['id']} accepted{' (forced past its quality gate)' if forced else ''}: "
-            f"{dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg from the true T_base_cam")
+        say(
+            f"calibration {cal['id']} accepted{' (forced past its quality gate)' if forced else ''}: "
+            f"{dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg from the true T_base_cam"
+        )
         if tool_calibrate:
             tc = _job(cell.client, {"kind": "tool-calibrate", "seed": calibrate_seed or 0}, say)
             if tc["state"] != "succeeded":
@@ -165,13 +188,20 @@ def run_jobs(config_path: str | Path, log_path: str | Path, options: Any, say: A
             tip_true = np.asarray(world.tool.config.tip_tcp)
             err = np.asarray(tool["tip_tcp_mm"]) * 1e-3 - tip_true
             figures["tool"] = {
-                "job": tc["id"], "tip_error_mm": float(np.linalg.norm(err) * 1e3), "tip_error_xyz_mm": (err * 1e3).tolist(),
+                "job": tc["id"],
+                "tip_error_mm": float(np.linalg.norm(err) * 1e3),
+                "tip_error_xyz_mm": (err * 1e3).tolist(),
                 "config_error_mm": float(np.linalg.norm(np.asarray(cfg.tool.tip_tcp) - tip_true) * 1e3),
-                "tip_std_mm": tool["tip_std_mm"], "rms_mm": tq["rms_mm"], "poses": tool["poses"], "verdict": tq["verdict"],
+                "tip_std_mm": tool["tip_std_mm"],
+                "rms_mm": tq["rms_mm"],
+                "poses": tool["poses"],
+                "verdict": tq["verdict"],
                 "forced": tool_forced,
             }
-            say(f"tool calibration {tc['id']} accepted: tip {figures['tool']['tip_error_mm']:.3f} mm from the true tip "
-                f"(the config's {figures['tool']['config_error_mm']:.3f} mm), verdict {tq['verdict']}")
+            say(
+                f"tool calibration {tc['id']} accepted: tip {figures['tool']['tip_error_mm']:.3f} mm from the true tip "
+                f"(the config's {figures['tool']['config_error_mm']:.3f} mm), verdict {tq['verdict']}"
+            )
         with TruthRecorder(cfg.robot.host) as recorder:
             weld = _job(cell.client, {"kind": "weld"}, say)
         if weld["state"] != "succeeded":
@@ -191,7 +221,9 @@ def run_jobs(config_path: str | Path, log_path: str | Path, options: Any, say: A
             "torch_error": lateral(part, torch_true),
             # The torch as the daemon believes it went (its kinematics and tool config).
             "torch_believed_error": lateral(part, np.array(res["torch_path"])),
-            "figures": res["figures"], "recording": res.get("recording"), "paths": res.get("paths"),
+            "figures": res["figures"],
+            "recording": res.get("recording"),
+            "paths": res.get("paths"),
         }
     return figures
 

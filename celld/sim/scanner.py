@@ -60,8 +60,16 @@ from celld.scanner.base import CaptureStats, OrganizedCloud
 from celld.sim.scene import SceneObject, robot_scene
 
 __all__ = [
-    "SCANNER_MODELS", "OrganizedCloud", "ScannerModel", "SceneObject", "SceneSource", "SimScanner", "SimulatedScanner",
-    "robot_scene", "robot_scene_source", "scanner_model",
+    "SCANNER_MODELS",
+    "OrganizedCloud",
+    "ScannerModel",
+    "SceneObject",
+    "SceneSource",
+    "SimScanner",
+    "SimulatedScanner",
+    "robot_scene",
+    "robot_scene_source",
+    "scanner_model",
 ]
 
 # A scene source: called at each capture, returns the objects in view.
@@ -339,9 +347,7 @@ class SimScanner:
         m = self.model
         padded = np.pad(depth, 1, constant_values=np.nan)
         H, W = depth.shape
-        neighbours = np.stack(
-            [padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]]
-        )  # up, down, left, right
+        neighbours = np.stack([padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]])  # up, down, left, right
         step = np.abs(neighbours - depth[None])
         step = np.where(np.isfinite(step), step, -1.0)
         which = np.argmax(step, axis=0)
@@ -437,8 +443,9 @@ class SimulatedScanner:
             raise InputError(f"simulated scanner: capture_delay must be 0 <= lo <= hi <= 10 s, got {capture_delay}")
         self.model_name = model if isinstance(model, str) else model.name
         self._scene = scene
-        self._sim = SimScanner(model, np.asarray(T_base_cam, dtype=np.float64), seed=seed, resolution_scale=resolution_scale, clock=clock,
-                               measure=measure)
+        self._sim = SimScanner(
+            model, np.asarray(T_base_cam, dtype=np.float64), seed=seed, resolution_scale=resolution_scale, clock=clock, measure=measure
+        )
         self._delay = (float(lo), float(hi))
         self._delay_rng = np.random.default_rng([seed, 0xDE1A])
         self._seed = seed

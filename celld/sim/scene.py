@@ -198,7 +198,10 @@ def tool_objects(T_base_flange: np.ndarray, tool: ToolConfig) -> list[SceneObjec
 
 
 def robot_scene(
-    T_base_flange: np.ndarray, flange: FlangeModel, table: bool = True, clutter_seed: int | None = None,
+    T_base_flange: np.ndarray,
+    flange: FlangeModel,
+    table: bool = True,
+    clutter_seed: int | None = None,
     tool: ToolConfig | None = None,
 ) -> list[SceneObject]:
     """The calibration scene: flange on the wrist, robot links, table, optional clutter.

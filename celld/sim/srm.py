@@ -390,8 +390,12 @@ class TagRenderer:
         dst = ss * (img_pts - [x0, y0] + 0.5) - 0.5
         H = cv2.getPerspectiveTransform(uv.astype(np.float32), dst.astype(np.float32))
         cv2.warpPerspective(
-            self._texture, H, (hi.shape[1], hi.shape[0]), dst=hi,
-            flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_TRANSPARENT,
+            self._texture,
+            H,
+            (hi.shape[1], hi.shape[0]),
+            dst=hi,
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_TRANSPARENT,
         )
         roi[:] = cv2.resize(hi.astype(np.float32), (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
         return y0, y1, x0, x1
@@ -452,8 +456,9 @@ class SimSrm:
     params : SrmSimParams
     """
 
-    def __init__(self, cfg: TactileConfig, tool: ToolConfig, wall: Wall | WallSurface, T_base_plane: Array,
-                 params: SrmSimParams = SrmSimParams()) -> None:
+    def __init__(
+        self, cfg: TactileConfig, tool: ToolConfig, wall: Wall | WallSurface, T_base_plane: Array, params: SrmSimParams = SrmSimParams()
+    ) -> None:
         from celld.tactile.tool import ToolGeometry
 
         self.cfg = cfg

@@ -116,7 +116,9 @@ class Stations(NamedTuple):
     up: Array
 
 
-def _sweep_stations(profiles: Array, path: Array, lateral: Array, up: Array, labels: dict[int, int]) -> tuple[Array, NDArray[np.int64], NDArray[np.int8]]:
+def _sweep_stations(
+    profiles: Array, path: Array, lateral: Array, up: Array, labels: dict[int, int]
+) -> tuple[Array, NDArray[np.int64], NDArray[np.int8]]:
     """A convex profile that changes along the path, swept into a closed prism mesh.
 
     ``profiles`` (m, k, 2) are counter-clockwise (lateral, up) coordinates at
@@ -194,10 +196,26 @@ def distorted_groove(name: str, shape: object) -> tuple[Workpiece, Stations]:
     h = (t - c) * math.tan(alpha / 2.0)
     g = gap / 2.0
     zeros, ones = np.zeros(n), np.ones(n)
-    left = np.stack([np.column_stack([g, zeros]), np.column_stack([g + W, zeros]), np.column_stack([g + W, t * ones]),
-                     np.column_stack([g + h, t * ones]), np.column_stack([g, c * ones])], axis=1)
-    right = np.stack([np.column_stack([-g, c * ones]), np.column_stack([-g - h, t * ones]), np.column_stack([-g - W, t * ones]),
-                      np.column_stack([-g - W, zeros]), np.column_stack([-g, zeros])], axis=1)
+    left = np.stack(
+        [
+            np.column_stack([g, zeros]),
+            np.column_stack([g + W, zeros]),
+            np.column_stack([g + W, t * ones]),
+            np.column_stack([g + h, t * ones]),
+            np.column_stack([g, c * ones]),
+        ],
+        axis=1,
+    )
+    right = np.stack(
+        [
+            np.column_stack([-g, c * ones]),
+            np.column_stack([-g - h, t * ones]),
+            np.column_stack([-g - W, t * ones]),
+            np.column_stack([-g - W, zeros]),
+            np.column_stack([-g, zeros]),
+        ],
+        axis=1,
+    )
     parts = [_sweep_stations(left, path, lat_t, up_t, {3: LEFT_WALL}), _sweep_stations(right, path, lat_t, up_t, {0: RIGHT_WALL})]
     V = np.vstack([parts[0][0], parts[1][0]])
     F = np.vstack([parts[0][1], parts[1][1] + len(parts[0][0])])

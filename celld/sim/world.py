@@ -357,8 +357,13 @@ def add_world_arguments(parser: Any) -> None:
     """``--preset``, ``--world-seed``, ``--with`` and ``--without`` on an argparse parser."""
     parser.add_argument("--preset", choices=PRESET_NAMES, default=None, help="the error budget (default: the config's [sim] preset)")
     parser.add_argument("--world-seed", type=int, default=None, help="the world's seed (default: the config's [sim] seed)")
-    parser.add_argument("--with", dest="with_sources", default="", metavar="SOURCES",
-                        help=f"error sources to switch on, comma-separated ({', '.join(SOURCES)})")
+    parser.add_argument(
+        "--with",
+        dest="with_sources",
+        default="",
+        metavar="SOURCES",
+        help=f"error sources to switch on, comma-separated ({', '.join(SOURCES)})",
+    )
     parser.add_argument("--without", dest="without_sources", default="", metavar="SOURCES", help="error sources to switch off")
 
 
@@ -598,7 +603,9 @@ def _draw_scanner(nominal: NominalCell, b: ErrorBudget, seed: int) -> ScannerTru
         dT = se3.transform_from(Rotation.from_rotvec(_tnormal(r, b.mount_rotation, 3)).as_matrix(), _tnormal(r, b.mount_translation, 3))
         T = T @ dT
     scale = float(_tnormal(_rng(seed, "depth_scale"), b.depth_scale * klass, 1)[0]) if b.on("depth_scale") else 0.0
-    dfield = _depth_field(nominal.scanner, b.distortion * klass, _rng(seed, "distortion")) if b.on("distortion") and b.distortion > 0 else None
+    dfield = (
+        _depth_field(nominal.scanner, b.distortion * klass, _rng(seed, "distortion")) if b.on("distortion") and b.distortion > 0 else None
+    )
     bias = None
     if b.on("metal_bias") and model.metal_bias > 0.0:
         bias = max(0.0, model.metal_bias + float(_tnormal(_rng(seed, "metal_bias"), b.metal_bias, 1)[0]))
@@ -664,8 +671,13 @@ def _draw_tool(nominal: NominalCell, b: ErrorBudget, seed: int) -> ToolTruth:
     torch = torch_nominal + _tnormal(r, b.torch_offset, 3)
     x = dR @ np.asarray(cfg.tool_x_tcp)
     z = dR @ np.asarray(cfg.tool_z_tcp)
-    true_cfg = replace(cfg, tool_x_tcp=tuple(x.tolist()), tool_z_tcp=tuple(z.tolist()), tip_tcp=tuple(tip.tolist()),
-                       torch_offset=float(np.linalg.norm(torch - tip)))
+    true_cfg = replace(
+        cfg,
+        tool_x_tcp=tuple(x.tolist()),
+        tool_z_tcp=tuple(z.tolist()),
+        tip_tcp=tuple(tip.tolist()),
+        torch_offset=float(np.linalg.norm(torch - tip)),
+    )
     return ToolTruth(cfg, true_cfg, torch, torch_nominal)
 
 

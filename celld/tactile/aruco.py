@@ -241,7 +241,9 @@ class TagDetector:
     ) -> None:
         code = getattr(cv2.aruco, dictionary, None)
         if not isinstance(code, int) or not dictionary.startswith("DICT_"):
-            raise ConfigError("tactile", "tag_dictionary", f"expected an OpenCV ArUco dictionary name such as DICT_4X4_50, got {dictionary!r}")
+            raise ConfigError(
+                "tactile", "tag_dictionary", f"expected an OpenCV ArUco dictionary name such as DICT_4X4_50, got {dictionary!r}"
+            )
         aruco_dict = cv2.aruco.getPredefinedDictionary(code)
         if not 0 <= tag_id < aruco_dict.bytesList.shape[0]:
             raise ConfigError("tactile", "tag_id", f"expected an id below {aruco_dict.bytesList.shape[0]} for {dictionary}, got {tag_id}")
@@ -310,7 +312,9 @@ class TagDetector:
             return _no_detection(TactileStatus.BAD_POSE, other, c)
         fit = fit_edges(gray, c, self._cells, self._K, self._dist)
         if not np.all(np.isfinite(fit.corners_px)):
-            return _no_detection(TactileStatus.BLURRED if fit.sharpness < self.min_sharpness else TactileStatus.BAD_POSE, other, c, fit.sharpness)
+            return _no_detection(
+                TactileStatus.BLURRED if fit.sharpness < self.min_sharpness else TactileStatus.BAD_POSE, other, c, fit.sharpness
+            )
         # The fitted corners are undistorted already.
         ok, rvec, tvec = cv2.solvePnP(self._object, fit.corners_px, self._K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         if not ok or not np.all(np.isfinite(tvec)) or tvec[2, 0] <= 0.0:

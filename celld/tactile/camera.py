@@ -211,12 +211,14 @@ PREVIEW_PERIOD = 0.2
 
 def preview_dtype(cfg: TactileConfig) -> np.dtype:
     """A frame for viewing: capture stamp, the grey image and the detected tag's corners."""
-    return np.dtype([
-        ("stamp_ns", np.int64),
-        ("has_tag", np.bool_),
-        ("corners_px", np.float64, (4, 2)),
-        ("image", np.uint8, (cfg.height_px, cfg.width_px)),
-    ])
+    return np.dtype(
+        [
+            ("stamp_ns", np.int64),
+            ("has_tag", np.bool_),
+            ("corners_px", np.float64, (4, 2)),
+            ("image", np.uint8, (cfg.height_px, cfg.width_px)),
+        ]
+    )
 
 
 class PreviewWriter:
@@ -327,8 +329,13 @@ def run_camera(
         if need_tare or known_free:
             try:
                 rest = run_tare(source, est, publish, known_free)
-                log.info("SRM tared", p_cam_rest_mm=np.round(rest.p_cam_rest * 1e3, 4).tolist(), spread_um=round(rest.spread * 1e6, 2),
-                         offset_mm=round(float(est.counters[0]["tare_offset"]) * 1e3, 4), reference=est.new_reference)
+                log.info(
+                    "SRM tared",
+                    p_cam_rest_mm=np.round(rest.p_cam_rest * 1e3, 4).tolist(),
+                    spread_um=round(rest.spread * 1e6, 2),
+                    offset_mm=round(float(est.counters[0]["tare_offset"]) * 1e3, 4),
+                    reference=est.new_reference,
+                )
                 if est.new_reference:
                     est.new_reference = False
                     if on_reference is not None:

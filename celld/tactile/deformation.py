@@ -68,9 +68,7 @@ class DeformationParams(NamedTuple):
         return cls(tool.R_tool_cam(), cfg.contact_threshold, cfg.overload, cfg.min_sharpness, cfg.max_reprojection_px)
 
 
-def tare(
-    p_cam: Array, max_spread: float, min_frames: int = 1, reference: Array | None = None, max_offset: float = math.inf
-) -> Tare:
+def tare(p_cam: Array, max_spread: float, min_frames: int = 1, reference: Array | None = None, max_offset: float = math.inf) -> Tare:
     """Rest position of the tag from positions seen with the finger free.
 
     Parameters

@@ -143,8 +143,12 @@ def save_reference(path: str | Path, rest: Tare) -> None:
     """Keep ``rest`` as the finger's reference rest (atomic write)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    body = {"p_cam_rest_m": rest.p_cam_rest.tolist(), "spread_m": rest.spread, "frames": rest.n_frames,
-            "taken": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    body = {
+        "p_cam_rest_m": rest.p_cam_rest.tolist(),
+        "spread_m": rest.spread,
+        "frames": rest.n_frames,
+        "taken": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
     try:
         fsutil.write_json(p, body)
     except OSError as exc:
@@ -207,8 +211,22 @@ class TactileProcess:
         self._stop = ctx.Event()
         self._tare = ctx.Event()
         self._ready = ctx.Event()
-        self._args = (cfg, tool, self.slot_name, self.counters_name, self._stop, self._tare, self._ready, source_factory, realtime,
-                      self.preview_name, os.getpid(), heartbeat, int(parent_timeout * 1e9), str(rest_file))
+        self._args = (
+            cfg,
+            tool,
+            self.slot_name,
+            self.counters_name,
+            self._stop,
+            self._tare,
+            self._ready,
+            source_factory,
+            realtime,
+            self.preview_name,
+            os.getpid(),
+            heartbeat,
+            int(parent_timeout * 1e9),
+            str(rest_file),
+        )
         self._records = records
         self._proc = self._new_process()
         self.restarts = 0

@@ -23,22 +23,33 @@ poses = st.lists(st.tuples(*[st.floats(-2.5, 2.5)] * 3, *[st.floats(-6.28, 6.28)
 valid_jobs = st.one_of(
     st.builds(
         lambda n, e, k, c, s: {"kind": "calibrate", "n_poses": n, "e_required_mm": e, "k_max": k, "compensate": c, "seed": s},
-        st.integers(4, 1000), st.floats(0, 100), st.integers(1, 10_000), st.booleans(), st.integers(0, 2**32 - 1),
+        st.integers(4, 1000),
+        st.floats(0, 100),
+        st.integers(1, 10_000),
+        st.booleans(),
+        st.integers(0, 2**32 - 1),
     ),
     st.builds(lambda p: {"kind": "calibrate", "poses": p}, poses),
     st.builds(
         lambda d, v, k, a: {"kind": "weld", "delta_d_mm": d, "v_const_mm_s": v, "k_p": k, "arc": a},
-        st.floats(0.01, 20), st.floats(0.01, 500), st.floats(0.01, 1000), st.booleans(),
+        st.floats(0.01, 20),
+        st.floats(0.01, 500),
+        st.floats(0.01, 1000),
+        st.booleans(),
     ),
     st.builds(
         lambda q, s: {"kind": "move", "target": {"space": "joint", "q": q}, "speed_scale": s},
-        st.lists(st.floats(-6.28, 6.28), min_size=6, max_size=6), st.floats(0.01, 1.0),
+        st.lists(st.floats(-6.28, 6.28), min_size=6, max_size=6),
+        st.floats(0.01, 1.0),
     ),
     st.builds(lambda c: {"kind": "health", "check": c}, st.sampled_from(schema.HEALTH_CHECKS)),
     st.builds(
         lambda n, t, p, s, d: {"kind": "tool-calibrate", "n_poses": n, "max_tilt_deg": t, "tip_position": p, "seed": s, "dry_run": d},
-        st.integers(3, schema.MAX_TOOL_POSES), st.floats(2.0, 45.0), st.lists(st.floats(-2.5, 2.5), min_size=3, max_size=3),
-        st.integers(0, 2**32 - 1), st.booleans(),
+        st.integers(3, schema.MAX_TOOL_POSES),
+        st.floats(2.0, 45.0),
+        st.lists(st.floats(-2.5, 2.5), min_size=3, max_size=3),
+        st.integers(0, 2**32 - 1),
+        st.booleans(),
     ),
 )
 _kinds = st.sampled_from(["calibrate", "weld", "move", "health", "Weld", "", "x"])

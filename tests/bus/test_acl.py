@@ -39,9 +39,10 @@ def test_viewer_may_read_but_not_submit_cancel_or_accept(cell) -> None:
 
 
 def test_viewer_receives_progress_events(cell) -> None:
-    with CellClient(cell.client_bus("vic", "view-secret"), cell.keys.cell) as viewer, CellClient(
-        cell.client_bus("olga", "op-secret"), cell.keys.cell
-    ) as operator:
+    with (
+        CellClient(cell.client_bus("vic", "view-secret"), cell.keys.cell) as viewer,
+        CellClient(cell.client_bus("olga", "op-secret"), cell.keys.cell) as operator,
+    ):
         with viewer.watch_progress() as events:
             reply = operator.submit({"kind": "health"})
             record = events.wait(reply["job"], timeout=5.0)

@@ -10,8 +10,21 @@ from celld.errors import JobError
 SHAPE = {
     "type": "object",
     "oneOf": [
-        {"type": "object", "properties": {"shape": {"const": "circle"}, "r": {"type": "number", "exclusiveMinimum": 0}}, "required": ["shape", "r"], "additionalProperties": False},
-        {"type": "object", "properties": {"shape": {"const": "box"}, "size": {"type": "array", "prefixItems": [{"type": "number"}, {"type": "integer"}], "minItems": 2, "maxItems": 2}}, "required": ["shape"], "additionalProperties": False},
+        {
+            "type": "object",
+            "properties": {"shape": {"const": "circle"}, "r": {"type": "number", "exclusiveMinimum": 0}},
+            "required": ["shape", "r"],
+            "additionalProperties": False,
+        },
+        {
+            "type": "object",
+            "properties": {
+                "shape": {"const": "box"},
+                "size": {"type": "array", "prefixItems": [{"type": "number"}, {"type": "integer"}], "minItems": 2, "maxItems": 2},
+            },
+            "required": ["shape"],
+            "additionalProperties": False,
+        },
     ],
 }
 
@@ -69,5 +82,5 @@ def test_a_long_unknown_key_is_shortened_in_the_error_path() -> None:
 
     path = field_path("$", "k" * 200_000)
     assert len(path) < 60 and path.startswith("$['kkk") and path.endswith("...']")
-    assert len(field_path("$", "\U0001F600" * 50_000)) < 60
+    assert len(field_path("$", "\U0001f600" * 50_000)) < 60
     assert field_path("$", "n_poses") == "$.n_poses"

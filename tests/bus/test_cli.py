@@ -132,10 +132,35 @@ def test_submit_tool_calibrate_builds_its_message() -> None:
 
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers(dest="cmd"))
-    args = parser.parse_args(["submit", "tool-calibrate", "--n-poses", "9", "--max-tilt-deg", "15", "--tip-position", "0.6", "0", "0.45",
-                              "--seed", "4", "--dry-run", "--ref", "tool-7"])
+    args = parser.parse_args(
+        [
+            "submit",
+            "tool-calibrate",
+            "--n-poses",
+            "9",
+            "--max-tilt-deg",
+            "15",
+            "--tip-position",
+            "0.6",
+            "0",
+            "0.45",
+            "--seed",
+            "4",
+            "--dry-run",
+            "--ref",
+            "tool-7",
+        ]
+    )
     message = _job_message(args)
-    assert message == {"kind": "tool-calibrate", "n_poses": 9, "max_tilt_deg": 15.0, "tip_position": [0.6, 0.0, 0.45], "seed": 4,
-                       "dry_run": True, "ref": "tool-7"}
+    assert message == {
+        "kind": "tool-calibrate",
+        "n_poses": 9,
+        "max_tilt_deg": 15.0,
+        "tip_position": [0.6, 0.0, 0.45],
+        "seed": 4,
+        "dry_run": True,
+        "ref": "tool-7",
+    }
     assert schema.parse_submit(schema.encode(message)) == schema.ToolCalibrateJob(
-        n_poses=9, max_tilt=pytest.approx(0.2617993877991494), tip_position=(0.6, 0.0, 0.45), seed=4, dry_run=True, ref="tool-7")
+        n_poses=9, max_tilt=pytest.approx(0.2617993877991494), tip_position=(0.6, 0.0, 0.45), seed=4, dry_run=True, ref="tool-7"
+    )

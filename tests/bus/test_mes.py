@@ -175,9 +175,26 @@ def test_the_example_mes_client_runs_a_job_end_to_end(cell, tmp_path: Path) -> N
     endpoint = cell.bus.listen[0]
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     r = subprocess.run(
-        [sys.executable, "-I", str(EXAMPLE), "--endpoint", endpoint, "--cell", cell.keys.cell, "--schemas", str(bundle),
-         "--request-id", "example-1", "--job", '{"kind": "health", "ref": "example"}'],
-        capture_output=True, text=True, timeout=60, cwd=tmp_path, env=env,
+        [
+            sys.executable,
+            "-I",
+            str(EXAMPLE),
+            "--endpoint",
+            endpoint,
+            "--cell",
+            cell.keys.cell,
+            "--schemas",
+            str(bundle),
+            "--request-id",
+            "example-1",
+            "--job",
+            '{"kind": "health", "ref": "example"}',
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=tmp_path,
+        env=env,
     )
     assert r.returncode == 0, r.stderr
     lines = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]

@@ -67,7 +67,11 @@ def test_integral_floats_count_as_integers() -> None:
         ({"kind": "calibrate", "e_required_mm": -0.1}, "$.e_required_mm", "expected a value >= 0.0"),
         ({"kind": "calibrate", "poses": [[0, 0, 0, 0, 0, 0]] * 3}, "$.poses", "expected at least 4 items, got 3"),
         ({"kind": "calibrate", "poses": [[0, 0, 0, 0, 0, 0]] * 3 + [[0, 0, 0, 0, 0]]}, "$.poses[3]", "expected exactly 6 items, got 5"),
-        ({"kind": "calibrate", "poses": [[0, 0, 0, 0, 0, 0]] * 3 + [[0, 0, 9, 0, 0, 0]]}, "$.poses[3][2]", "expected a value <= 2.5, got 9"),
+        (
+            {"kind": "calibrate", "poses": [[0, 0, 0, 0, 0, 0]] * 3 + [[0, 0, 9, 0, 0, 0]]},
+            "$.poses[3][2]",
+            "expected a value <= 2.5, got 9",
+        ),
         ({"kind": "calibrate", "poses": [[0, 0, 0, 0, 0, 0]] * 4, "n_poses": 4}, "$.n_poses", "either poses or n_poses"),
         ({"kind": "calibrate", "colour": "red"}, "$.colour", "unknown field"),
         ({"kind": "weld", "delta_d_mm": 0}, "$.delta_d_mm", "expected a value > 0.0, got 0"),
@@ -135,6 +139,7 @@ def test_other_requests() -> None:
 
 # -- round trip and fuzz ------------------------------------------------------------
 
+
 @settings(max_examples=100, deadline=None)
 @given(valid_jobs)
 def test_job_to_message_round_trips(message: dict) -> None:
@@ -183,7 +188,12 @@ def test_schemas_are_valid_json_schema(name: str) -> None:
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.one_of(valid_jobs, st.builds(lambda m, k, v: {**m, k: v}, valid_jobs, st.sampled_from(["n_poses", "poses", "target", "arc", "zz"]), json_values)))
+@given(
+    st.one_of(
+        valid_jobs,
+        st.builds(lambda m, k, v: {**m, k: v}, valid_jobs, st.sampled_from(["n_poses", "poses", "target", "arc", "zz"]), json_values),
+    )
+)
 def test_checker_agrees_with_the_reference_validator(message: dict) -> None:
     """Same verdict as jsonschema on the same schema (cross-field checks aside)."""
     jsonschema = pytest.importorskip("jsonschema", reason="the reference validator is only a test aid")
@@ -210,8 +220,13 @@ def test_tool_calibrate_converts_degrees_and_checks_its_ranges() -> None:
 
 
 def test_tool_calibration_replies_match_their_schemas() -> None:
-    quality = {"verdict": "ok", "passed": True, "reasons": [], "warnings": [],
-               "poses": [{"id": "000", "residual_mm": 0.02, "used": True, "outlier": False, "reason": ""}]}
+    quality = {
+        "verdict": "ok",
+        "passed": True,
+        "reasons": [],
+        "warnings": [],
+        "poses": [{"id": "000", "residual_mm": 0.02, "used": True, "outlier": False, "reason": ""}],
+    }
     tool = {"job": "j2", "tip_tcp_mm": [0.8, -1.1, 200.9], "quality": quality}
     schema.check_message("accept-reply", {"ok": True, "job": "j2", "kind": "tool-calibrate", "tool": tool})
     schema.check_message("calibration-reply", {"ok": True, "calibration": None, "tool": tool})

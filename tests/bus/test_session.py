@@ -68,9 +68,7 @@ def test_acl_gives_each_user_its_own_request_keys_and_its_roles_requests() -> No
     assert sorted(policies) == ["olga", "oscar", "vic"], "one subject, one policy per user"
 
     def allowed(user: str, message: str, flow: str, key: str) -> bool:
-        return any(
-            message in rules[r]["messages"] and flow in rules[r]["flows"] and key in rules[r]["key_exprs"] for r in policies[user]
-        )
+        return any(message in rules[r]["messages"] and flow in rules[r]["flows"] and key in rules[r]["key_exprs"] for r in policies[user])
 
     for q in ("submit", "cancel", "accept"):
         assert allowed("olga", "query", "ingress", KEYS.query(q, "olga"))

@@ -45,8 +45,23 @@ class CertAuthority:
         directory.mkdir(parents=True, exist_ok=True)
         key, cert = directory / f"{name}.key", directory / f"{name}.pem"
         _key(key)
-        _openssl("req", "-x509", "-new", "-key", str(key), "-out", str(cert), "-days", str(_DAYS), "-subj", f"/CN={name}",
-                 "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign")
+        _openssl(
+            "req",
+            "-x509",
+            "-new",
+            "-key",
+            str(key),
+            "-out",
+            str(cert),
+            "-days",
+            str(_DAYS),
+            "-subj",
+            f"/CN={name}",
+            "-addext",
+            "basicConstraints=critical,CA:TRUE",
+            "-addext",
+            "keyUsage=critical,keyCertSign,cRLSign",
+        )
         return cls(directory, cert, key)
 
     def issue(self, name: str, ip: str | None = None) -> Leaf:
@@ -60,6 +75,21 @@ class CertAuthority:
         )
         _key(key)
         _openssl("req", "-new", "-key", str(key), "-out", str(csr), "-subj", f"/CN={name}")
-        _openssl("x509", "-req", "-in", str(csr), "-CA", str(self.cert), "-CAkey", str(self.key), "-CAcreateserial",
-                 "-out", str(cert), "-days", str(_DAYS), "-extfile", str(ext))
+        _openssl(
+            "x509",
+            "-req",
+            "-in",
+            str(csr),
+            "-CA",
+            str(self.cert),
+            "-CAkey",
+            str(self.key),
+            "-CAcreateserial",
+            "-out",
+            str(cert),
+            "-days",
+            str(_DAYS),
+            "-extfile",
+            str(ext),
+        )
         return Leaf(cert, key)

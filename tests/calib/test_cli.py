@@ -43,7 +43,11 @@ def reference_session(root: Path, rng: np.random.Generator, n: int, sigma: float
     for i, T in enumerate(flange_poses(rng, n)):
         p_cam = apply(invert(T_BASE_CAM), T[:3, 3][None])[0] + rng.normal(0.0, sigma, 3) + outliers.get(i, 0.0)
         q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
-        doc[str(i)] = {"p_cam": (p_cam * 1e3).tolist(), "p_robot": T[:3, 3].tolist(), "robot_pose": T[:3, 3].tolist() + [q[3], q[0], q[1], q[2]]}
+        doc[str(i)] = {
+            "p_cam": (p_cam * 1e3).tolist(),
+            "p_robot": T[:3, 3].tolist(),
+            "robot_pose": T[:3, 3].tolist() + [q[3], q[0], q[1], q[2]],
+        }
     (root / "calib_data.json").write_text(json.dumps(doc))
 
 
@@ -183,7 +187,9 @@ def test_solve_takes_the_method_from_the_cell_config(tmp_path: Path, rng: np.ran
     (tmp_path / "cell.toml").write_text('[calibration]\nmethod = "svd"\nicp_max_distance_mm = 2.0\n')
     code, out = run(capsys, "calib", "solve", str(tmp_path / "ref"), "--json", "--config", str(tmp_path / "cell.toml"))
     assert code == 0 and out["method"] == "svd"
-    code, out = run(capsys, "calib", "solve", str(tmp_path / "ref"), "--json", "--config", str(tmp_path / "cell.toml"), "--method", "robust")
+    code, out = run(
+        capsys, "calib", "solve", str(tmp_path / "ref"), "--json", "--config", str(tmp_path / "cell.toml"), "--method", "robust"
+    )
     assert code == 0 and out["method"] == "robust"
     (tmp_path / "bad.toml").write_text('[calibration]\nmethod = "magic"\n')
     code, out = run(capsys, "calib", "solve", str(tmp_path / "ref"), "--json", "--config", str(tmp_path / "bad.toml"))

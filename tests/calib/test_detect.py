@@ -40,7 +40,14 @@ def roi_around(model_name: str, T_cam_flange: np.ndarray, half_size: float = 0.0
     return (max(int(v - h), 0), min(int(v + h), m.height_px), max(int(u - h), 0), min(int(u + h), m.width_px))
 
 
-def capture(model_name: str, T_base_flange: np.ndarray, flange: FlangeModel = UR10E, seed: int = 0, T_base_cam: np.ndarray = T_BASE_CAM, clutter: int | None = 3) -> OrganizedCloud:
+def capture(
+    model_name: str,
+    T_base_flange: np.ndarray,
+    flange: FlangeModel = UR10E,
+    seed: int = 0,
+    T_base_cam: np.ndarray = T_BASE_CAM,
+    clutter: int | None = 3,
+) -> OrganizedCloud:
     """A full-resolution capture, ray cast only in a window around the flange (fast)."""
     roi = roi_around(model_name, truth_in_camera(T_base_flange, T_base_cam))
     scanner = SimScanner(model_name, T_base_cam, seed=seed, roi_px=roi)

@@ -97,7 +97,9 @@ def eye_on_arm_data(rng: np.random.Generator, n: int, sigma: float) -> tuple[np.
     Ta, Tf, P, N = [], [], [], []
     for _ in range(n):
         A = transform_from(Rotation.from_rotvec(rng.normal(0.0, 0.5, 3)).as_matrix(), rng.uniform(-0.2, 0.2, 3))
-        F = A @ transform_from(Rotation.from_rotvec(rng.normal(0.0, 0.3, 3)).as_matrix(), np.array([0.4, 0.0, 0.0]) + rng.uniform(-0.1, 0.1, 3))
+        F = A @ transform_from(
+            Rotation.from_rotvec(rng.normal(0.0, 0.3, 3)).as_matrix(), np.array([0.4, 0.0, 0.0]) + rng.uniform(-0.1, 0.1, 3)
+        )
         T_cf = invert(A @ T_ARM_CAM) @ F
         Ta.append(A)
         Tf.append(F)

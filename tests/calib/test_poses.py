@@ -34,7 +34,10 @@ def test_poses_are_deterministic_for_a_seed() -> None:
     assert not np.array_equal(a, calibration_poses(T_V, [0.3, 0.3, 0.2], 8, 0.3, seed=5))
 
 
-@pytest.mark.parametrize(("box", "n", "tilt", "match"), [([0.3, 0.3], 8, 0.3, "edge lengths"), ([0.3, 0.3, 0.2], 3, 0.3, "at least 4"), ([0.3, 0.3, 0.2], 8, 2.0, "max_tilt")])
+@pytest.mark.parametrize(
+    ("box", "n", "tilt", "match"),
+    [([0.3, 0.3], 8, 0.3, "edge lengths"), ([0.3, 0.3, 0.2], 3, 0.3, "at least 4"), ([0.3, 0.3, 0.2], 8, 2.0, "max_tilt")],
+)
 def test_bad_arguments_are_refused(box: list, n: int, tilt: float, match: str) -> None:
     with pytest.raises(InputError, match=match):
         calibration_poses(T_V, box, n, tilt)

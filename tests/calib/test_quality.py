@@ -27,9 +27,7 @@ def box_pairs(rng: np.random.Generator, n: int, sigma: float = SIGMA) -> tuple[n
 
 def strip_pairs(rng: np.random.Generator, n: int, width: float, sigma: float = SIGMA) -> tuple[np.ndarray, np.ndarray]:
     """n centres in one plane (z = 0.45 m, 0.03 mm out of it): 300 mm along base x, ``width`` along y."""
-    P_base = np.column_stack(
-        [rng.uniform(0.45, 0.75, n), rng.uniform(-width / 2, width / 2, n), 0.45 + rng.uniform(-3e-5, 3e-5, n)]
-    )
+    P_base = np.column_stack([rng.uniform(0.45, 0.75, n), rng.uniform(-width / 2, width / 2, n), 0.45 + rng.uniform(-3e-5, 3e-5, n)])
     return P_base, apply(invert(T_BASE_CAM), P_base) + rng.normal(0.0, sigma, (n, 3))
 
 
@@ -115,8 +113,13 @@ def test_too_few_pairs(rng: np.random.Generator) -> None:
 def test_failed_detections_are_listed_and_count_against_the_pairs(rng: np.random.Generator) -> None:
     P_base, P_cam = box_pairs(rng, 4)
     fit = solve_rigid(P_base, P_cam)
-    lost = [RejectedPair("p4", -1, math.nan, "detection failed at circle: no rim"), RejectedPair("p5", -1, math.nan, "detection failed at plane: no plane")]
-    q = assess_calibration(list("abcd"), P_base, P_cam, fit.T_dst_src, used=range(4), uncertainty=fit.uncertainty, rejected=lost, e_icp=identity_e_icp())
+    lost = [
+        RejectedPair("p4", -1, math.nan, "detection failed at circle: no rim"),
+        RejectedPair("p5", -1, math.nan, "detection failed at plane: no plane"),
+    ]
+    q = assess_calibration(
+        list("abcd"), P_base, P_cam, fit.T_dst_src, used=range(4), uncertainty=fit.uncertainty, rejected=lost, e_icp=identity_e_icp()
+    )
     assert q.verdict == "too_few_pairs" and "only 4 of 6 captures" in q.reasons[0]
     assert [p.id for p in q.pairs] == ["a", "b", "c", "d", "p4", "p5"]
     assert math.isnan(q.pairs[4].residual) and q.pairs[4].reason == "detection failed at circle: no rim"
@@ -156,7 +159,9 @@ def test_many_outliers_are_poor_data(rng: np.random.Generator) -> None:
         P_cam[i, 0] += d
     ids = [f"p{i}" for i in range(9)]
     rob = solve_robust(P_base, P_cam, ids=ids)
-    q = assess_calibration(ids, P_base, P_cam, rob.T_base_cam, used=rob.inliers, uncertainty=rob.fit.uncertainty, rejected=rob.rejected, e_icp=identity_e_icp())
+    q = assess_calibration(
+        ids, P_base, P_cam, rob.T_base_cam, used=rob.inliers, uncertainty=rob.fit.uncertainty, rejected=rob.rejected, e_icp=identity_e_icp()
+    )
     assert q.verdict == "poor_data"
     assert "4 of the 9 pairs with a centre are outliers" in q.reasons[0]
 
@@ -172,7 +177,9 @@ def test_large_residuals_are_poor_data(rng: np.random.Generator) -> None:
 def test_e_icp_of_the_estimate_gates_it(rng: np.random.Generator) -> None:
     P_base, P_cam = box_pairs(rng, 12)
     failed = assess_fit(P_base, P_cam, IcpMetric.failed("fitness 0.12 below 0.50 at 3 mm"))
-    assert failed.verdict == "poor_data" and failed.reasons == ("e_icp (Eq. 13) of the estimate is infinite: fitness 0.12 below 0.50 at 3 mm",)
+    assert failed.verdict == "poor_data" and failed.reasons == (
+        "e_icp (Eq. 13) of the estimate is infinite: fitness 0.12 below 0.50 at 3 mm",
+    )
     far = IcpMetric(transform_from(Rotation.from_rotvec([0.0, 0.0, math.radians(0.8)]).as_matrix(), [0.003, 0.0, 0.0]), True, 0.9, 1e-4)
     q = assess_fit(P_base, P_cam, far)
     assert q.verdict == "poor_data"
@@ -201,7 +208,9 @@ def test_the_turn_about_the_flange_axis_judges_only_a_compensation(rng: np.rando
     assert any(w.startswith("e_icp (Eq. 13) turns 1.20 deg about the verification flange's axis") for w in q.warnings)
     stored = assess_fit(P_base, P_cam, e, flange_axis_cam=axis, compensated=True)
     assert stored.verdict == "poor_data"
-    assert stored.reasons[0].startswith("the compensation (Eq. 21) turns the stored transform 1.20 deg about the verification flange's axis")
+    assert stored.reasons[0].startswith(
+        "the compensation (Eq. 21) turns the stored transform 1.20 deg about the verification flange's axis"
+    )
     d = stored.as_dict()
     assert d["e_icp_turn_deg"] == pytest.approx(1.2) and d["e_icp_tilt_deg"] == pytest.approx(0.1)
 

@@ -105,7 +105,10 @@ def test_one_capture_measures_the_bias_from_the_face_over_the_painted_shoulder(r
 def test_no_finish_step_without_a_painted_shoulder_or_from_a_grazing_view(rng: np.random.Generator) -> None:
     T_cam_flange = invert(T_BASE_CAM) @ transform_from(np.eye(3), [0.6, 0.0, 0.3])
     bare = replace(WRIST, wrist_finish="metal")
-    assert bare.finish_step is None and measure_finish_step(flange_cloud(T_cam_flange, rng, flange=bare), T_cam_flange[:3, 3], T_cam_flange[:3, 2], bare) is None
+    assert (
+        bare.finish_step is None
+        and measure_finish_step(flange_cloud(T_cam_flange, rng, flange=bare), T_cam_flange[:3, 3], T_cam_flange[:3, 2], bare) is None
+    )
     flush = preset("iso9409-1-50-4-m6")  # the wrist no wider than the flange: no shoulder in view
     assert flush.finish_step is None
     grazing = invert(T_BASE_CAM) @ transform_from(Rotation.from_rotvec([1.35, 0.0, 0.0]).as_matrix(), [0.6, 0.0, 0.3])

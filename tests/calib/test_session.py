@@ -126,7 +126,9 @@ def test_a_solve_that_puts_the_camera_hundreds_of_metres_away_is_refused_with_th
 BIAS = 0.008  # m, metal reads long
 
 
-def tof_pairs(rng: np.random.Generator, n: int = 16, on_metal: bool = False, steps: bool = True) -> tuple[list[str], np.ndarray, np.ndarray, RangeBiasData]:
+def tof_pairs(
+    rng: np.random.Generator, n: int = 16, on_metal: bool = False, steps: bool = True
+) -> tuple[list[str], np.ndarray, np.ndarray, RangeBiasData]:
     ids, P_base, P_cam = box_pairs(rng, n, 0.3e-3)
     if on_metal:
         P_cam = P_cam + BIAS * P_cam / np.linalg.norm(P_cam, axis=1, keepdims=True)

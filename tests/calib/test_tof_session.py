@@ -56,7 +56,9 @@ def calibration() -> CalibrationResult:
     T_v = se3.transform_from(np.eye(3), CENTRE)
     verifier = verifier_from_cloud(scanner.capture(robot_scene(T_v, flange)).points, T_v, flange, params, detect)
     found = pairs.detections()
-    return solve_pairs(found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, range_data=range_bias_data(params, flange, found))
+    return solve_pairs(
+        found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, range_data=range_bias_data(params, flange, found)
+    )
 
 
 def test_the_wrist_circle_calibration_meets_its_target_and_estimates_the_bias(calibration: CalibrationResult) -> None:

@@ -32,7 +32,7 @@ T_BASE_CAM_TRUE = [[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, 
 def _write_config(path: Path, host: str, state_dir: Path) -> Path:
     path.write_text(
         f"""
-include = ["{ROOT / 'configs' / 'robots' / 'ur10e.toml'}", "{ROOT / 'configs' / 'cell-models' / 'sim-cell.toml'}"]
+include = ["{ROOT / "configs" / "robots" / "ur10e.toml"}", "{ROOT / "configs" / "cell-models" / "sim-cell.toml"}"]
 [cell]
 name = "e2e"
 state_dir = "{state_dir}"
@@ -113,8 +113,14 @@ def test_calibrate_over_the_bus_then_accept(daemon) -> None:
     assert any("e_icp" in e for e in entities), entities
     # The calibration recording: the cell and the arm, the flange model on the TCP, the
     # residuals, and the solved T_base_cam placing every capture in the base frame.
-    for entity in ("/world/cell/table", "/world/robot/arm", "/world/tcp/flange", "/world/calib/residuals",
-                   "/calib/residuals_mm", "/world/camera/clouds/pair"):
+    for entity in (
+        "/world/cell/table",
+        "/world/robot/arm",
+        "/world/tcp/flange",
+        "/world/calib/residuals",
+        "/calib/residuals_mm",
+        "/world/camera/clouds/pair",
+    ):
         assert entity in entities, (entity, entities)
     _, translation = read_component(rrd, "/world/camera", "Transform3D:translation", timeline="")
     np.testing.assert_allclose(np.asarray(translation[-1]).reshape(3), np.array(result["calibration"]["T_base_cam"])[:3, 3], atol=1e-9)

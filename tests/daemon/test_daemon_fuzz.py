@@ -76,9 +76,7 @@ def _object_text(pairs: list[tuple[str, str]]) -> str:
     return "{" + ",".join(f"{json.dumps(k)}:{v}" for k, v in pairs) + "}"
 
 
-_pose = st.tuples(
-    *[st.floats(-1.0, 1.0)] * 3, *[st.floats(-3.0, 3.0)] * 3
-).map(list)
+_pose = st.tuples(*[st.floats(-1.0, 1.0)] * 3, *[st.floats(-3.0, 3.0)] * 3).map(list)
 _joints = st.lists(st.floats(-3.0, 3.0), min_size=6, max_size=6)
 
 MOVE_JOINT = {"kind": "move", "target": {"space": "joint", "q": [0.1, -1.2, 1.5, -1.9, 1.6, 0.0]}}
@@ -186,7 +184,17 @@ def _out_of_range(f: Field) -> st.SearchStrategy[Any]:
 # -- the hostile payloads, by category -----------------------------------------------------
 
 
-_BAD_UTF8 = [b"\xff", b"\xfe\xff", b"\x80", b"\xc3\x28", b"\xc0\xaf", b"\xed\xa0\x80", b"\xf8\x88\x80\x80\x80", b"\xe2\x82", b"\xf4\x90\x80\x80"]
+_BAD_UTF8 = [
+    b"\xff",
+    b"\xfe\xff",
+    b"\x80",
+    b"\xc3\x28",
+    b"\xc0\xaf",
+    b"\xed\xa0\x80",
+    b"\xf8\x88\x80\x80\x80",
+    b"\xe2\x82",
+    b"\xf4\x90\x80\x80",
+]
 
 random_bytes = st.binary(max_size=1024)
 
@@ -233,9 +241,7 @@ deep = st.one_of(
 )
 
 _NOT_FINITE = ["NaN", "Infinity", "-Infinity", "1e400", "-1E999999", "nan", "inf", "-inf", "+1.0", "0x10", ".5", "1.", "01"]
-_numeric_places = [(k, p) for k, p, _ in _NUMERIC] + [
-    ("calibrate", "verification_pose"), ("move", "target.q"), ("move", "target.pose")
-]
+_numeric_places = [(k, p) for k, p, _ in _NUMERIC] + [("calibrate", "verification_pose"), ("move", "target.q"), ("move", "target.pose")]
 
 
 def _numeric_hole(place: tuple[str, str], index: int) -> dict[str, Any]:
@@ -362,9 +368,7 @@ unknown_kind = st.one_of(
         lambda s: _text({"kind": s, "check": "robot"}).encode()
     ),
     _BY_TYPE["null"].map(lambda v: _text({"kind": v}).encode()),
-    st.one_of(_BY_TYPE["integer"], _BY_TYPE["array"], _BY_TYPE["object"], _BY_TYPE["boolean"]).map(
-        lambda v: _text({"kind": v}).encode()
-    ),
+    st.one_of(_BY_TYPE["integer"], _BY_TYPE["array"], _BY_TYPE["object"], _BY_TYPE["boolean"]).map(lambda v: _text({"kind": v}).encode()),
     # A job's fields without its kind.
     _valid.map(lambda m: _text({k: v for k, v in m.items() if k != "kind"}).encode()),
 )
@@ -374,32 +378,54 @@ unknown_field = st.one_of(
     st.tuples(_valid, st.text(min_size=1, max_size=30).filter(lambda k: k not in _job_keys), _any_json).map(
         lambda t: _text({**t[0], t[1]: t[2]}).encode()
     ),
-    st.tuples(st.sampled_from([MOVE_JOINT, MOVE_CARTESIAN]), st.sampled_from(["speed", "frame", "q_deg", "pose_mm", "kind"]), _any_json).map(
-        lambda t: _text(_set(t[0], f"target.{t[1]}", t[2])).encode()
-    ),
+    st.tuples(
+        st.sampled_from([MOVE_JOINT, MOVE_CARTESIAN]), st.sampled_from(["speed", "frame", "q_deg", "pose_mm", "kind"]), _any_json
+    ).map(lambda t: _text(_set(t[0], f"target.{t[1]}", t[2])).encode()),
     # Fields of other messages: a record's state, an id, a reply's ok.
-    st.tuples(_valid, st.sampled_from([("state", "succeeded"), ("id", "20250101-000000-abcdef"), ("ok", True), ("job", "x"), ("result", "/etc/passwd")])).map(
-        lambda t: _text({**t[0], t[1][0]: t[1][1]}).encode()
-    ),
+    st.tuples(
+        _valid,
+        st.sampled_from([("state", "succeeded"), ("id", "20250101-000000-abcdef"), ("ok", True), ("job", "x"), ("result", "/etc/passwd")]),
+    ).map(lambda t: _text({**t[0], t[1][0]: t[1][1]}).encode()),
     # A field of another kind.
-    st.sampled_from([
-        {"kind": "health", "seed": 3}, {"kind": "move", "target": MOVE_JOINT["target"], "check": "robot"},
-        {"kind": "calibrate", "arc": False}, {"kind": "weld", "n_poses": 6}, {"kind": "health", "target": MOVE_JOINT["target"]},
-    ]).map(lambda m: _text(m).encode()),
+    st.sampled_from(
+        [
+            {"kind": "health", "seed": 3},
+            {"kind": "move", "target": MOVE_JOINT["target"], "check": "robot"},
+            {"kind": "calibrate", "arc": False},
+            {"kind": "weld", "n_poses": 6},
+            {"kind": "health", "target": MOVE_JOINT["target"]},
+        ]
+    ).map(lambda m: _text(m).encode()),
 )
 
-missing = st.sampled_from([
-    b"", b"{}", b" ", b"\n\t ", b"null", b"[]", b'""', b"0",
-    b'{"kind":"move"}', b'{"kind":"move","target":{}}', b'{"kind":"move","target":null}',
-    b'{"kind":"move","target":{"space":"joint"}}', b'{"kind":"move","target":{"space":"cartesian"}}',
-    b'{"kind":"move","target":{"q":[0,0,0,0,0,0]}}',
-    b'{"kind":"move","target":{"space":"cartesian","q":[0,0,0,0,0,0]}}',
-    b'{"kind":"move","target":{"space":"joint","pose":[0.5,0,0.5,0,3.1,0]}}',
-    b'{"kind":"move","target":{"space":"joint","q":[0,0,0,0,0,0],"pose":[0.5,0,0.5,0,3.1,0]}}',
-    b'{"kind":"move","target":{"space":"","q":[0,0,0,0,0,0]}}',
-    b'{"kind":""}', b'{"kind":"health","check":""}', b'{"kind":"health","check":null}',
-    b'{"kind":"calibrate","poses":[]}', b'{"kind":"weld","workpiece":""}', b'{"":""}',
-])
+missing = st.sampled_from(
+    [
+        b"",
+        b"{}",
+        b" ",
+        b"\n\t ",
+        b"null",
+        b"[]",
+        b'""',
+        b"0",
+        b'{"kind":"move"}',
+        b'{"kind":"move","target":{}}',
+        b'{"kind":"move","target":null}',
+        b'{"kind":"move","target":{"space":"joint"}}',
+        b'{"kind":"move","target":{"space":"cartesian"}}',
+        b'{"kind":"move","target":{"q":[0,0,0,0,0,0]}}',
+        b'{"kind":"move","target":{"space":"cartesian","q":[0,0,0,0,0,0]}}',
+        b'{"kind":"move","target":{"space":"joint","pose":[0.5,0,0.5,0,3.1,0]}}',
+        b'{"kind":"move","target":{"space":"joint","q":[0,0,0,0,0,0],"pose":[0.5,0,0.5,0,3.1,0]}}',
+        b'{"kind":"move","target":{"space":"","q":[0,0,0,0,0,0]}}',
+        b'{"kind":""}',
+        b'{"kind":"health","check":""}',
+        b'{"kind":"health","check":null}',
+        b'{"kind":"calibrate","poses":[]}',
+        b'{"kind":"weld","workpiece":""}',
+        b'{"":""}',
+    ]
+)
 
 not_an_object = st.one_of(
     _any_json.filter(lambda v: not isinstance(v, dict)).map(lambda v: _text(v).encode()),

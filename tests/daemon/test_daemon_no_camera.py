@@ -17,10 +17,10 @@ def test_without_its_camera_the_daemon_runs_reports_it_and_refuses_welds(tmp_pat
     cfg = tmp_path / "cell.toml"
     cfg.write_text(
         f"""
-include = ["{ROOT / 'configs' / 'sim-cell.toml'}"]
+include = ["{ROOT / "configs" / "sim-cell.toml"}"]
 [cell]
 name = "no-camera"
-state_dir = "{tmp_path / 'state'}"
+state_dir = "{tmp_path / "state"}"
 [robot]
 host = "{loopback_host}"
 [sim.scanner]

@@ -33,10 +33,10 @@ def _config(tmp_path: Path, host: str) -> Path:
     path = tmp_path / "cell.toml"
     path.write_text(
         f"""
-include = ["{ROOT / 'configs' / 'sim-cell.toml'}"]
+include = ["{ROOT / "configs" / "sim-cell.toml"}"]
 [cell]
 name = "tof-e2e"
-state_dir = "{tmp_path / 'state'}"
+state_dir = "{tmp_path / "state"}"
 [robot]
 host = "{host}"
 [scanner]
@@ -71,7 +71,9 @@ def test_calibrate_estimates_the_range_bias_and_the_weld_scan_is_placed_with_it(
         client, cfg, world = cell.client, cell.config, cell.world
         # The simulator's truth, to score only.
         true_bias = SCANNER_MODELS["azure-kinect"].metal_bias if world.scanner.metal_bias is None else world.scanner.metal_bias
-        assert world.scanner.model == "azure-kinect" and cfg.calibration.range_bias == "estimate"  # the default for a time-of-flight scanner
+        assert (
+            world.scanner.model == "azure-kinect" and cfg.calibration.range_bias == "estimate"
+        )  # the default for a time-of-flight scanner
 
         events: list[dict] = []
         _, record = client.submit_and_wait({"kind": "calibrate", "seed": 1}, on_event=events.append, timeout=900)

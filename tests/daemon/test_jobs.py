@@ -37,8 +37,13 @@ class Harness:
             self.events.append({"job": job, "state": state, "stage": stage, **kw})
 
         self.manager = JobManager(
-            self.journal, tmp_path, {"move": slow, "health": failing}, publish, stop,
-            cell="test", queue_depth=queue_depth,
+            self.journal,
+            tmp_path,
+            {"move": slow, "health": failing},
+            publish,
+            stop,
+            cell="test",
+            queue_depth=queue_depth,
         )
 
 
@@ -151,7 +156,12 @@ def _calibration(verdict_ok: bool) -> dict[str, Any]:
     P_base = np.column_stack([rng.uniform(0.45, 0.75, 8), rng.uniform(-width / 2, width / 2, 8), np.full(8, 0.45)])
     P_cam = apply(invert(T), P_base) + rng.normal(0.0, 2e-4, (8, 3))
     result = solve_pairs([f"p{i}" for i in range(8)], P_base, P_cam)
-    return {"T_base_cam": result.T_base_cam_stored.tolist(), "stored": result.stored, "method": result.method, "quality": result.quality.as_dict()}
+    return {
+        "T_base_cam": result.T_base_cam_stored.tolist(),
+        "stored": result.stored,
+        "method": result.method,
+        "quality": result.quality.as_dict(),
+    }
 
 
 def _calibrating_harness(tmp_path: Path, verdict_ok: bool, auto_accept: bool = False) -> Harness:

@@ -99,7 +99,9 @@ def test_a_dataset_that_cannot_be_deleted_is_skipped(tmp_path: Path, monkeypatch
     assert left(tmp_path) == ["j2", "j5", "j6"]
 
 
-@pytest.mark.parametrize(("keep_last", "keep_days", "match"), [(-1, 0, "keep_last"), (1.5, 0, "keep_last"), (1, -2, "keep_days"), (1, float("nan"), "keep_days")])
+@pytest.mark.parametrize(
+    ("keep_last", "keep_days", "match"), [(-1, 0, "keep_last"), (1.5, 0, "keep_last"), (1, -2, "keep_days"), (1, float("nan"), "keep_days")]
+)
 def test_bad_rules_are_refused(tmp_path: Path, keep_last, keep_days, match: str) -> None:
     with pytest.raises(InputError, match=match):
         prune_sessions(tmp_path, keep_last, keep_days)

@@ -93,7 +93,9 @@ def test_a_protective_stop_is_explained_refused_early_cleared_and_the_watchdog_k
                 client.robot("unlock")
             assert client.status()["robot"]["state"] == "protective_stop"
             # A job meanwhile fails, and says why.
-            _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": [0.62, 0.0, 0.45, 0, 0, 0]}}, timeout=60)
+            _, record = client.submit_and_wait(
+                {"kind": "move", "target": {"space": "cartesian", "pose": [0.62, 0.0, 0.45, 0, 0, 0]}}, timeout=60
+            )
             assert record["state"] == "failed", record
 
             time.sleep(max(0.0, t_stop + 5.5 - time.monotonic()))

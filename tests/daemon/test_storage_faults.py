@@ -144,13 +144,21 @@ class Harness:
 
         factory = None
         if recording:
+
             def factory(job_id: str, kind: str) -> JobRecording:
                 return JobRecording.for_job(state_dir, job_id, "other", RecordingConfig())
 
         options.setdefault("storage_retry_s", RETRY_S)
         self.manager = JobManager(
-            self.journal, state_dir, {"move": move, "health": health, "weld": weld, "calibrate": calibrate},
-            publish, stop, cell="test", queue_depth=8, recording_factory=factory, **options,
+            self.journal,
+            state_dir,
+            {"move": move, "health": health, "weld": weld, "calibrate": calibrate},
+            publish,
+            stop,
+            cell="test",
+            queue_depth=8,
+            recording_factory=factory,
+            **options,
         )
         self.manager.start()
 

@@ -36,10 +36,10 @@ def _config(tmp_path: Path, host: str) -> Path:
     path = tmp_path / "cell.toml"
     path.write_text(
         f"""
-include = ["{ROOT / 'configs' / 'sim-cell.toml'}"]
+include = ["{ROOT / "configs" / "sim-cell.toml"}"]
 [cell]
 name = "toolcal-e2e"
-state_dir = "{tmp_path / 'state'}"
+state_dir = "{tmp_path / "state"}"
 [robot]
 host = "{host}"
 [bus]
@@ -101,10 +101,12 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host:
             q = got[1]
         tip_arm = solve_tool_tip(np.array(T_rep), np.array(P_true)).p_tcp_tip
         err, err_built = tip - tip_arm, tip - tip_true
-        print(f"tool calibration: tip {np.linalg.norm(err) * 1e3:.4f} mm from the tip a perfect scanner gives ({np.round(err * 1e3, 4).tolist()}), "
-              f"{np.linalg.norm(err_built) * 1e3:.4f} mm from the tool as built ({np.round(err_built * 1e3, 4).tolist()}; the arm's part "
-              f"{np.round((tip_arm - tip_true) * 1e3, 4).tolist()}), the config {np.linalg.norm(tip_config - tip_true) * 1e3:.3f} mm; "
-              f"1-sigma {tool['tip_std_mm']} mm, rms {tool['quality']['rms_mm']:.4f} mm, {tool['poses']} poses")
+        print(
+            f"tool calibration: tip {np.linalg.norm(err) * 1e3:.4f} mm from the tip a perfect scanner gives ({np.round(err * 1e3, 4).tolist()}), "
+            f"{np.linalg.norm(err_built) * 1e3:.4f} mm from the tool as built ({np.round(err_built * 1e3, 4).tolist()}; the arm's part "
+            f"{np.round((tip_arm - tip_true) * 1e3, 4).tolist()}), the config {np.linalg.norm(tip_config - tip_true) * 1e3:.3f} mm; "
+            f"1-sigma {tool['tip_std_mm']} mm, rms {tool['quality']['rms_mm']:.4f} mm, {tool['poses']} poses"
+        )
         assert np.linalg.norm(err) <= TIP_TOLERANCE, (err, tool)
         assert np.linalg.norm(err_built) < np.linalg.norm(tip_config - tip_true)
 

@@ -42,8 +42,13 @@ class KinematicPlant:
 
     def cycle_input(self, **kw) -> CycleInput:
         base = dict(
-            state=self.state(), state_age=0.0, safety_bits=1, tactile=None, tactile_age=float("inf"),
-            setpoint=np.zeros(6), setpoint_age=float("inf"),
+            state=self.state(),
+            state_age=0.0,
+            safety_bits=1,
+            tactile=None,
+            tactile_age=float("inf"),
+            setpoint=np.zeros(6),
+            setpoint_age=float("inf"),
         )
         base.update(kw)
         return CycleInput(**base)
@@ -95,8 +100,13 @@ class JointPlant:
 
     def cycle_input(self, **kw) -> CycleInput:
         base = dict(
-            state=self.state(), state_age=0.0, safety_bits=1, tactile=None, tactile_age=float("inf"),
-            setpoint=np.zeros(6), setpoint_age=float("inf"),
+            state=self.state(),
+            state_age=0.0,
+            safety_bits=1,
+            tactile=None,
+            tactile_age=float("inf"),
+            setpoint=np.zeros(6),
+            setpoint_age=float("inf"),
         )
         base.update(kw)
         return CycleInput(**base)

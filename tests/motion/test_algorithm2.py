@@ -138,10 +138,15 @@ unit_angle = st.floats(-math.pi, math.pi, allow_nan=False)
 
 @settings(max_examples=400, deadline=None)
 @given(
-    vx=st.floats(-1.0, 1.0), vy=st.floats(-1.0, 1.0),
-    a_d=unit_angle, a_t=unit_angle,
-    d=st.floats(1e-4, 0.5), e=st.floats(-0.1, 0.1), k=st.floats(0.0, 20.0),
-    guard=st.floats(0.01, 0.9), omega_max=st.floats(0.01, 3.0),
+    vx=st.floats(-1.0, 1.0),
+    vy=st.floats(-1.0, 1.0),
+    a_d=unit_angle,
+    a_t=unit_angle,
+    d=st.floats(1e-4, 0.5),
+    e=st.floats(-0.1, 0.1),
+    k=st.floats(0.0, 20.0),
+    guard=st.floats(0.01, 0.9),
+    omega_max=st.floats(0.01, 3.0),
     perpendicular=st.booleans(),
 )
 def test_omega_is_bounded_for_any_geometry(vx, vy, a_d, a_t, d, e, k, guard, omega_max, perpendicular) -> None:
@@ -189,9 +194,16 @@ class Loop:
     replace a sample (faults).
     """
 
-    def __init__(self, length: float = 0.06, gap: tuple[float, float] | None = None, plan_offset: float = -0.002,
-                 fps: float = 60.0, latency: float = 0.006,
-                 process: bool = False, seam_offset: float = 0.0) -> None:
+    def __init__(
+        self,
+        length: float = 0.06,
+        gap: tuple[float, float] | None = None,
+        plan_offset: float = -0.002,
+        fps: float = 60.0,
+        latency: float = 0.006,
+        process: bool = False,
+        seam_offset: float = 0.0,
+    ) -> None:
         self.sensor, self.servo_cfg, self.tool = TactileConfig(), ServoConfig(), ToolConfig()
         self.motion = MotionLimits()
         self.limits = CartesianLimits.from_config(self.motion)
@@ -202,8 +214,9 @@ class Loop:
         self.walls = [Wall(w, free=-1.0) for w in walls]
         plan2 = np.column_stack([np.arange(0.0, length, 0.001), np.full(len(np.arange(0.0, length, 0.001)), plan_offset)])
         P_plan = np.column_stack([plan2, np.zeros(len(plan2))]) @ T_PLANE[:3, :3].T + T_PLANE[:3, 3]
-        self.plan = algorithm2_plan(P_plan, self.servo_cfg, self.tool, self.motion, T_base_plane=T_PLANE, process=process,
-                                    seam_offset=seam_offset)
+        self.plan = algorithm2_plan(
+            P_plan, self.servo_cfg, self.tool, self.motion, T_base_plane=T_PLANE, process=process, seam_offset=seam_offset
+        )
         self.core = MotionCore(
             CoreParams(self.limits, PERIOD, (-1.5, -1.5, -0.5), (1.5, 1.5, 1.5), 0.05, self.motion.tactile_stale),
             {NAME: make_algorithm2},
@@ -262,8 +275,11 @@ class Loop:
             age = (self.t_ns - self.latest.stamp_ns) * 1e-9 if self.latest is not None else math.inf
             starting = self.servo is None and self.t_ns * 1e-9 >= start_after and self.latest is not None
             cmd = start_servo(self.plan) if starting else None
-            out = self.core.step(CycleInput(state, 0.0, 1, self.latest, age, np.zeros(6), math.inf, cmd,
-                                            1 if starting else 0, stop=self.t_ns * 1e-9 >= stop_at))
+            out = self.core.step(
+                CycleInput(
+                    state, 0.0, 1, self.latest, age, np.zeros(6), math.inf, cmd, 1 if starting else 0, stop=self.t_ns * 1e-9 >= stop_at
+                )
+            )
             if starting:
                 self.servo = self.core.controller.law
             self.v, self._next = self._next, out.twist.copy()
@@ -379,7 +395,7 @@ def test_the_process_is_asked_for_only_while_the_torch_tracks_the_refined_path_a
     tracking = np.flatnonzero((phases == Phase.TRACK) | (phases == Phase.FINISH))
     first_on = int(np.argmax(on))
     assert on.any() and not on[tracking[0]] and first_on > tracking[0]
-    assert on[first_on:tracking[-1] + 1].all()
+    assert on[first_on : tracking[-1] + 1].all()
     # The torch moves at about V_const: it takes about (|d| - refine_window) / V_const to get there.
     dt = (first_on - tracking[0]) * 0.002
     assert dt == pytest.approx((loop.tool.torch_offset - loop.servo_cfg.refine_window) / loop.servo_cfg.v_const, rel=0.3)
@@ -426,8 +442,7 @@ def _scripted_refined_path(seam_offset: float, process: bool = False) -> tuple[n
     servo, tool, motion = ServoConfig(), ToolConfig(), MotionLimits()
     x = np.arange(0.0, 0.06, 0.001)
     P_plan = np.column_stack([x, np.full(len(x), -0.002), np.zeros(len(x))]) @ T_PLANE[:3, :3].T + T_PLANE[:3, 3]
-    law = make_algorithm2(algorithm2_plan(P_plan, servo, tool, motion, T_base_plane=T_PLANE, process=process,
-                                          seam_offset=seam_offset))
+    law = make_algorithm2(algorithm2_plan(P_plan, servo, tool, motion, T_base_plane=T_PLANE, process=process, seam_offset=seam_offset))
     T = np.eye(4)
     T[:3, :3] = np.diag([1.0, -1.0, -1.0])
     T[:3, 3] = P_plan[5] - np.array([0.0, 0.003, 0.0])
@@ -448,8 +463,7 @@ def test_seam_offset_moves_the_refined_path_by_exactly_the_offset_on_a_straight_
     # The wall side is +y (left): the seam lies towards -y. Same script, same points, shifted.
     np.testing.assert_allclose(R1 - R0, np.tile([0.0, -0.0012], (len(R0), 1)), rtol=0, atol=1e-12)
     # The telemetry's refined point is the latest one, in the base frame (the plane is parallel to base xy).
-    np.testing.assert_allclose(tel1[-1].refined_base, [R1[-1, 0] + T_PLANE[0, 3], R1[-1, 1] + T_PLANE[1, 3], T_PLANE[2, 3]],
-                               atol=1e-12)
+    np.testing.assert_allclose(tel1[-1].refined_base, [R1[-1, 0] + T_PLANE[0, 3], R1[-1, 1] + T_PLANE[1, 3], T_PLANE[2, 3]], atol=1e-12)
     assert np.all(np.isnan(tel0[0].refined_base)) and tel0[-1].phase == Phase.TRACK
     assert tel0[-1].delta_n == pytest.approx(ServoConfig().delta_d, abs=1e-12)
     # process is False in these plans: never asked for, whatever the phase.

@@ -38,8 +38,11 @@ def test_move_joints_round_trip_and_bad_targets() -> None:
 def test_stream_and_servo_round_trip(rng: np.random.Generator) -> None:
     assert cmd.decode(cmd.encode(cmd.stream(0.25))) == cmd.Stream(0.25)
     path = rng.normal(size=(500, 3))
-    plan = ServoPlan("algorithm2", {"P_base": path, "normals": rng.normal(size=(500, 3))},
-                     {"k_p": 2.0, "v_const": 0.01, "mode": "track", "closed": False, "n": 3})
+    plan = ServoPlan(
+        "algorithm2",
+        {"P_base": path, "normals": rng.normal(size=(500, 3))},
+        {"k_p": 2.0, "v_const": 0.01, "mode": "track", "closed": False, "n": 3},
+    )
     got = cmd.decode(cmd.encode(cmd.start_servo(plan)))
     assert isinstance(got, cmd.StartServo)
     assert got.plan.name == "algorithm2" and got.plan.params == plan.params

@@ -25,8 +25,7 @@ PROTECTIVE = 1 << 2
 
 
 def _core() -> MotionCore:
-    params = CoreParams(LIMITS, PERIOD, (-1.0, -1.0, 0.02), (1.0, 1.0, 1.2), state_stale=3 * PERIOD,
-                        tactile_stale=0.1)
+    params = CoreParams(LIMITS, PERIOD, (-1.0, -1.0, 0.02), (1.0, 1.0, 1.2), state_stale=3 * PERIOD, tactile_stale=0.1)
     return MotionCore(params)
 
 
@@ -68,8 +67,9 @@ def test_stop_request_ramps_to_rest_jerk_limited_and_cancels_nothing_else() -> N
     setpoint = np.array([0.2, 0.0, 0.1, 0.0, 0.0, 0.5])
     outs = []
     for k in range(600):
-        inp = plant.cycle_input(setpoint=setpoint, setpoint_age=0.0,
-                                **({"command": stream(), "command_id": 7} if k == 0 else {}), stop=(k == 250))
+        inp = plant.cycle_input(
+            setpoint=setpoint, setpoint_age=0.0, **({"command": stream(), "command_id": 7} if k == 0 else {}), stop=(k == 250)
+        )
         out = core.step(inp)
         plant.apply(out)
         outs.append(out)
@@ -84,8 +84,7 @@ def test_stop_request_ramps_to_rest_jerk_limited_and_cancels_nothing_else() -> N
 def test_streaming_dead_man_brings_the_robot_to_rest_and_holds() -> None:
     core = _core()
     plant = KinematicPlant(T0, PERIOD)
-    outs = run(core, plant, 50, command=stream(timeout=0.05), command_id=1,
-               setpoint=np.array([0.1, 0, 0, 0, 0, 0]), setpoint_age=0.0)
+    outs = run(core, plant, 50, command=stream(timeout=0.05), command_id=1, setpoint=np.array([0.1, 0, 0, 0, 0, 0]), setpoint_age=0.0)
     # After the first cycle the setpoint is "never written" (age inf): the twist ramps to zero.
     assert all(o.mode == Mode.ACTIVE for o in outs)
     assert outs[-1].status == ControlStatus.HOLD
@@ -131,8 +130,7 @@ def test_streaming_towards_a_wall_stops_inside_the_workspace() -> None:
     twist = np.array([0.25, 0.0, 0.0, 0.0, 0.0, 0.0])
     outs = []
     for k in range(800):
-        out = core.step(plant.cycle_input(setpoint=twist, setpoint_age=0.0,
-                                          **({"command": stream(), "command_id": 1} if k == 0 else {})))
+        out = core.step(plant.cycle_input(setpoint=twist, setpoint_age=0.0, **({"command": stream(), "command_id": 1} if k == 0 else {})))
         plant.apply(out)
         outs.append(out)
     assert outs[-1].mode == Mode.IDLE and outs[-1].status == ControlStatus.WORKSPACE
@@ -208,8 +206,9 @@ def test_servo_slot_runs_a_registered_law_and_stops_on_its_fault_or_stale_tactil
     outs = []
     for k in range(300):
         sample = _sample(ContactState.OVERLOAD if k >= 150 else ContactState.CONTACT)
-        out = core.step(plant.cycle_input(tactile=sample, tactile_age=0.01,
-                                          **({"command": start_servo(plan), "command_id": 2} if k == 0 else {})))
+        out = core.step(
+            plant.cycle_input(tactile=sample, tactile_age=0.01, **({"command": start_servo(plan), "command_id": 2} if k == 0 else {}))
+        )
         plant.apply(out)
         outs.append(out)
     assert outs[149].mode == Mode.ACTIVE and outs[149].twist[1] == pytest.approx(0.01)
@@ -225,8 +224,7 @@ def test_a_law_that_raises_is_a_fault_not_a_crash() -> None:
     core = MotionCore(_core().params, {"broken": Broken})
     plant = KinematicPlant(T0, PERIOD)
     plan = ServoPlan("broken", {}, {"speed": 0.01})
-    outs = run(core, plant, 5, command=start_servo(plan), command_id=1, tactile=_sample(ContactState.CONTACT),
-               tactile_age=0.0)
+    outs = run(core, plant, 5, command=start_servo(plan), command_id=1, tactile=_sample(ContactState.CONTACT), tactile_age=0.0)
     assert outs[-1].mode == Mode.IDLE and outs[-1].status == ControlStatus.FAULT
     assert any("boom" in o.event for o in outs)
 
@@ -236,8 +234,11 @@ def test_a_law_that_raises_is_a_fault_not_a_crash() -> None:
 
 def _probe_plan(process: bool = True, cycles: int = 200, process_from: int = 20) -> ServoPlan:
     """tests.motion.laws.Probe: asks for the process from its cycle ``process_from`` until it ends."""
-    return ServoPlan("probe", {"direction": np.array([0.0, 1.0, 0.0])},
-                     {"speed": 0.01, "cycles": cycles, "process": process, "process_from": process_from})
+    return ServoPlan(
+        "probe",
+        {"direction": np.array([0.0, 1.0, 0.0])},
+        {"speed": 0.01, "cycles": cycles, "process": process, "process_from": process_from},
+    )
 
 
 def _run_probe(plan: ServoPlan, cycles: int, at: int = -1, factory=make_probe, **at_kw) -> list:

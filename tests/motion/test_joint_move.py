@@ -23,8 +23,15 @@ PROTECTIVE = 1 << 2
 
 
 def _core() -> MotionCore:
-    params = CoreParams(CartesianLimits.from_config(MotionLimits()), PERIOD, (-1.5, -1.5, -0.5), (1.5, 1.5, 1.5),
-                        state_stale=3 * PERIOD, tactile_stale=0.1, joint_limits=JOINT_LIMITS)
+    params = CoreParams(
+        CartesianLimits.from_config(MotionLimits()),
+        PERIOD,
+        (-1.5, -1.5, -0.5),
+        (1.5, 1.5, 1.5),
+        state_stale=3 * PERIOD,
+        tactile_stale=0.1,
+        joint_limits=JOINT_LIMITS,
+    )
     return MotionCore(params)
 
 
@@ -145,8 +152,15 @@ def test_a_protective_stop_during_a_joint_move_ends_it_at_once() -> None:
 
 
 def test_a_joint_move_heading_out_of_the_workspace_box_stops() -> None:
-    params = CoreParams(CartesianLimits.from_config(MotionLimits()), PERIOD, (-1.5, -1.5, -0.5), (1.5, 1.5, 1.5),
-                        state_stale=3 * PERIOD, tactile_stale=0.1, joint_limits=JOINT_LIMITS)
+    params = CoreParams(
+        CartesianLimits.from_config(MotionLimits()),
+        PERIOD,
+        (-1.5, -1.5, -0.5),
+        (1.5, 1.5, 1.5),
+        state_stale=3 * PERIOD,
+        tactile_stale=0.1,
+        joint_limits=JOINT_LIMITS,
+    )
     # The TCP's y grows monotonically along this move (-0.305 m to 0.168 m):
     # put a wall of the box half-way.
     start_y, goal_y = float(kin.forward(Q0)[1, 3]), float(kin.forward(Q1)[1, 3])

@@ -54,8 +54,7 @@ class FakePort:
             T = from_ur_pose(self.pose)
             T[:3, 3] += self.twist[:3] * 0.002
             self.pose = to_ur_pose(T)
-        return RawState(self.stamp, [0.0] * 6, [0.0] * 6, self.pose.tolist(), self.twist.tolist(),
-                        self.safety_bits, self.runtime_state)
+        return RawState(self.stamp, [0.0] * 6, [0.0] * 6, self.pose.tolist(), self.twist.tolist(), self.safety_bits, self.runtime_state)
 
     def speed(self, twist: Sequence[float], accel: float) -> bool:
         self.sent.append(("speedL", list(twist)))
@@ -108,8 +107,7 @@ CORE = CoreParams(CartesianLimits.from_config(MotionLimits()), 0.002, (-1.0, -1.
 
 def _loop(channels: Channels, port: FakePort, clock: Clock, process_output: int = -1) -> MotionLoop:
     core = MotionCore(CORE, {"probe": make_probe})
-    return MotionLoop(port, core, channels, LoopParams(PERIOD_NS, speed_accel=8.0, process_output=process_output),
-                      clock=clock)
+    return MotionLoop(port, core, channels, LoopParams(PERIOD_NS, speed_accel=8.0, process_output=process_output), clock=clock)
 
 
 def _cycles(loop: MotionLoop, clock: Clock, n: int):
@@ -233,19 +231,22 @@ ARC = 3
 
 
 def _probe(cycles: int = 200, process_from: int = 20, process: bool = True) -> cmd.Command:
-    plan = ServoPlan("probe", {"direction": np.array([0.0, 1.0, 0.0])},
-                     {"speed": 0.01, "cycles": cycles, "process": process, "process_from": process_from})
+    plan = ServoPlan(
+        "probe",
+        {"direction": np.array([0.0, 1.0, 0.0])},
+        {"speed": 0.01, "cycles": cycles, "process": process, "process_from": process_from},
+    )
     return cmd.start_servo(plan)
 
 
-def _touching(loop: MotionLoop, channels: Channels, clock: Clock, n: int, port: FakePort | None = None,
-              ok_from: dict[int, bool] | None = None) -> list[int]:
+def _touching(
+    loop: MotionLoop, channels: Channels, clock: Clock, n: int, port: FakePort | None = None, ok_from: dict[int, bool] | None = None
+) -> list[int]:
     """``n`` cycles with a fresh tactile sample each; returns the loop cycle of each set_digital_out call."""
     at: list[int] = []
     for _ in range(n):
         clock.t += PERIOD_NS
-        channels.tactile.write(to_record(TactileSample(clock.t, loop.cycles + 1, np.zeros(3), ContactState.CONTACT,
-                                                       1.0, True, 0)))
+        channels.tactile.write(to_record(TactileSample(clock.t, loop.cycles + 1, np.zeros(3), ContactState.CONTACT, 1.0, True, 0)))
         if port is not None and ok_from and loop.cycles + 1 in ok_from:
             port.output_ok = ok_from[loop.cycles + 1]
         before = len(port.outputs) if port is not None else 0
@@ -331,9 +332,7 @@ def test_release_output_switches_it_off_after_the_loop_ended(channels: Channels)
     assert loop.release_output() and len(port.outputs) == 4  # known off: not written again
 
 
-def test_the_motion_process_switches_the_output_off_when_the_link_drops(
-    channels: Channels, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_the_motion_process_switches_the_output_off_when_the_link_drops(channels: Channels, monkeypatch: pytest.MonkeyPatch) -> None:
     from celld.motion import process
     from celld.realtime import RealtimeOptions
     from celld.robot import link
@@ -351,12 +350,14 @@ def test_the_motion_process_switches_the_output_off_when_the_link_drops(
     port.reads = 0
     monkeypatch.setattr(link.RtdeLink, "connect", classmethod(lambda cls, host, frequency_hz=500.0: port))
     monkeypatch.setattr(process.gc, "freeze", lambda: None)  # keep the test process's collector as it is
-    channels.tactile.write(to_record(TactileSample(time.monotonic_ns(), 1, np.zeros(3), ContactState.CONTACT,
-                                                   1.0, True, 0)))
+    channels.tactile.write(to_record(TactileSample(time.monotonic_ns(), 1, np.zeros(3), ContactState.CONTACT, 1.0, True, 0)))
     spec = process.MotionSpec(
-        host="fake", channels=channels.names, core=CORE._replace(tactile_stale=60.0),
+        host="fake",
+        channels=channels.names,
+        core=CORE._replace(tactile_stale=60.0),
         loop=LoopParams(PERIOD_NS, speed_accel=8.0, process_output=ARC),
-        realtime=RealtimeOptions(enabled=False), servo_laws=(("probe", "tests.motion.laws:make_probe"),),
+        realtime=RealtimeOptions(enabled=False),
+        servo_laws=(("probe", "tests.motion.laws:make_probe"),),
     )
     end = process.run(spec)
     assert end.status == ControlStatus.LINK_LOST

@@ -63,8 +63,7 @@ def sim(loopback_host: str):
         yield handle
 
 
-def _run(sim: Any, scenario: Callable[[MotionHandle], Awaitable[None]], config: Config | None = None,
-         **open_kw: Any) -> list[np.ndarray]:
+def _run(sim: Any, scenario: Callable[[MotionHandle], Awaitable[None]], config: Config | None = None, **open_kw: Any) -> list[np.ndarray]:
     """Open a handle on ``sim``, run ``scenario``, close; return every state record read."""
     records: list[np.ndarray] = []
 
@@ -304,8 +303,9 @@ def test_a_servo_law_switches_the_arc_output_of_the_simulated_controller(sim: An
     arc = 0  # the simulated cell's arc output
     config = _config()
     # The feeder below shares the event loop with the truth sampling: allow it a late frame.
-    config = dataclasses.replace(config, robot=dataclasses.replace(config.robot, arc_output=arc),
-                                 motion=dataclasses.replace(config.motion, tactile_stale=0.5))
+    config = dataclasses.replace(
+        config, robot=dataclasses.replace(config.robot, arc_output=arc), motion=dataclasses.replace(config.motion, tactile_stale=0.5)
+    )
     truth: list[np.ndarray] = []  # the simulator's own digital outputs, every cycle
     marks: dict[str, int] = {}
 
@@ -327,8 +327,9 @@ def test_a_servo_law_switches_the_arc_output_of_the_simulated_controller(sim: An
         feeder = asyncio.ensure_future(feed(motion, stop))
         await asyncio.sleep(0.05)  # a sample is in the slot before the servo starts
         # 600 cycles (1.2 s) at 10 mm/s; the process is asked for from the 100th to the end.
-        plan = ServoPlan("probe", {"direction": np.array([0.0, 1.0, 0.0])},
-                         {"speed": 0.01, "cycles": 600, "process": True, "process_from": 100})
+        plan = ServoPlan(
+            "probe", {"direction": np.array([0.0, 1.0, 0.0])}, {"speed": 0.01, "cycles": 600, "process": True, "process_from": 100}
+        )
         marks["start"] = time.monotonic_ns()
         cid = await motion.start_servo(plan)
         await motion.wait(cid, timeout=10.0)
@@ -367,9 +368,10 @@ def test_cli_status_reports_the_robot_and_the_loop(sim: Any) -> None:
     import sys
 
     out = subprocess.run(
-        [sys.executable, "-m", "celld.cli", "--log-level", "error", "motion", "status", "--host", sim.host,
-         "--seconds", "1", "--json"],
-        capture_output=True, text=True, timeout=120,
+        [sys.executable, "-m", "celld.cli", "--log-level", "error", "motion", "status", "--host", sim.host, "--seconds", "1", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout.strip().splitlines()[-1])
@@ -386,8 +388,9 @@ def test_kill_9_of_the_motion_process_with_the_arc_on(loopback_host: str, interl
 
     arc = 0
     config = _config()
-    config = dataclasses.replace(config, robot=dataclasses.replace(config.robot, arc_output=arc),
-                                 motion=dataclasses.replace(config.motion, tactile_stale=0.5))
+    config = dataclasses.replace(
+        config, robot=dataclasses.replace(config.robot, arc_output=arc), motion=dataclasses.replace(config.motion, tactile_stale=0.5)
+    )
     seen: dict[str, Any] = {}
 
     async def scenario(motion: MotionHandle) -> None:
@@ -395,15 +398,15 @@ def test_kill_9_of_the_motion_process_with_the_arc_on(loopback_host: str, interl
             seq = 0
             while True:
                 seq += 1
-                motion.ch.tactile.write(to_record(TactileSample(time.monotonic_ns(), seq, np.zeros(3), ContactState.CONTACT,
-                                                                1.0, True, 0)))
+                motion.ch.tactile.write(to_record(TactileSample(time.monotonic_ns(), seq, np.zeros(3), ContactState.CONTACT, 1.0, True, 0)))
                 await asyncio.sleep(1 / 60)
 
         feeder = asyncio.ensure_future(feed())
         await asyncio.sleep(0.05)  # a sample is in the slot before the servo starts
         try:
-            plan = ServoPlan("probe", {"direction": np.array([0.0, 1.0, 0.0])},
-                             {"speed": 0.005, "cycles": 100_000, "process": True, "process_from": 10})
+            plan = ServoPlan(
+                "probe", {"direction": np.array([0.0, 1.0, 0.0])}, {"speed": 0.005, "cycles": 100_000, "process": True, "process_from": 10}
+            )
             await motion.start_servo(plan)
             deadline = time.monotonic() + 10
             while not int(sim.status()["digital_out"]) & (1 << arc):

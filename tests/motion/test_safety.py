@@ -23,8 +23,13 @@ LIMITS = CartesianLimits.from_config(MotionLimits())
 
 @pytest.mark.parametrize(
     "bits, fault",
-    [(1, Fault.NONE), (1 << 2, Fault.PROTECTIVE_STOP), (1 << 4, Fault.PROTECTIVE_STOP),
-     (1 << 7, Fault.EMERGENCY_STOP), (1 << 9, Fault.ROBOT_FAULT)],
+    [
+        (1, Fault.NONE),
+        (1 << 2, Fault.PROTECTIVE_STOP),
+        (1 << 4, Fault.PROTECTIVE_STOP),
+        (1 << 7, Fault.EMERGENCY_STOP),
+        (1 << 9, Fault.ROBOT_FAULT),
+    ],
 )
 def test_robot_safety_bits(bits: int, fault: Fault) -> None:
     assert robot_faults(bits) == fault

@@ -12,12 +12,14 @@ from celld.motion import so3
 def _rotvecs(rng: np.random.Generator) -> np.ndarray:
     axes = rng.normal(size=(300, 3))
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    angles = np.concatenate([
-        rng.uniform(0.0, np.pi, 100),
-        rng.uniform(0.0, 1e-5, 50),  # the small-angle series
-        np.pi - rng.uniform(0.0, 1e-6, 50),  # next to pi: the symmetric-part branch
-        np.pi - rng.uniform(0.0, 0.5, 100),
-    ])
+    angles = np.concatenate(
+        [
+            rng.uniform(0.0, np.pi, 100),
+            rng.uniform(0.0, 1e-5, 50),  # the small-angle series
+            np.pi - rng.uniform(0.0, 1e-6, 50),  # next to pi: the symmetric-part branch
+            np.pi - rng.uniform(0.0, 0.5, 100),
+        ]
+    )
     return axes * angles[:, None]
 
 

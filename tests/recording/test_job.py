@@ -104,7 +104,16 @@ def _full_recording(path: Path, rng: np.random.Generator, config: RecordingConfi
         rec.log_e_icp(i, e, stamp_ns=t0 + i * 1_000_000_000)
     rec.log_event("weld done")
     rec.close()
-    return {"batch": batch, "tactile": tactile, "sent": sent, "n_cam": n_cam, "planned": planned, "e_icp": e_icp, "corners": corners, "t0": t0}
+    return {
+        "batch": batch,
+        "tactile": tactile,
+        "sent": sent,
+        "n_cam": n_cam,
+        "planned": planned,
+        "e_icp": e_icp,
+        "corners": corners,
+        "t0": t0,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -147,7 +156,15 @@ def test_the_file_holds_every_entity_of_the_layout(written: tuple[Path, dict]) -
 def test_the_blueprint_has_the_3d_2d_and_time_series_views(written: tuple[Path, dict]) -> None:
     views = read_views(written[0])
     assert ("3D", "/world") in views and ("2D", "/srm/camera") in views
-    for origin in (layout.SERVO_DELTA_N, layout.WELD, layout.SERVO_DELTA, layout.SERVO_V_R, layout.SERVO_OMEGA, layout.MOTION_LOOP, layout.CALIB_E_ICP):
+    for origin in (
+        layout.SERVO_DELTA_N,
+        layout.WELD,
+        layout.SERVO_DELTA,
+        layout.SERVO_V_R,
+        layout.SERVO_OMEGA,
+        layout.MOTION_LOOP,
+        layout.CALIB_E_ICP,
+    ):
         assert ("TimeSeries", origin) in views
 
 

@@ -31,9 +31,13 @@ def test_lateral_error_ignores_height_and_points_beyond_the_seam() -> None:
     g = model_geometry(wp, nominal_pose(wp), 0.004)
     z = g.T_base_plane[:3, 2]
     mid = len(g.seam_base) // 2
-    P = np.array([g.seam_base[mid] + 0.0003 * g.normals[mid] + 0.01 * z,  # 0.3 mm across, 10 mm up
-                  g.seam_base[mid + 5] - 0.0004 * g.normals[mid + 5],
-                  g.seam_base[-1] + 0.02 * g.tangents[-1]])  # beyond the end
+    P = np.array(
+        [
+            g.seam_base[mid] + 0.0003 * g.normals[mid] + 0.01 * z,  # 0.3 mm across, 10 mm up
+            g.seam_base[mid + 5] - 0.0004 * g.normals[mid + 5],
+            g.seam_base[-1] + 0.02 * g.tangents[-1],
+        ]
+    )  # beyond the end
     e = lateral_error(P, g.seam_base, g.T_base_plane)
     assert e["points"] == 2 and e["outside"] == 1
     assert abs(e["max_mm"] - 0.4) < 1e-6 and abs(e["rms_mm"] - np.sqrt((0.3**2 + 0.4**2) / 2)) < 1e-6

@@ -91,7 +91,9 @@ def _bowed_v_groove(bow: float) -> Workpiece:
     lat = np.tile([0.0, 1.0, 0.0], (len(x), 1))
     up = np.tile([0.0, 0.0, 1.0], (len(x), 1))
     left, right = wpm._v_profiles(p["thickness"], p["groove_angle"], p["root_gap"], p["root_face"], p["plate_width"])
-    V, F, L = wpm._merge(wpm._sweep(left, path, lat, up, labels={3: wpm.LEFT_WALL}), wpm._sweep(right, path, lat, up, labels={0: wpm.RIGHT_WALL}))
+    V, F, L = wpm._merge(
+        wpm._sweep(left, path, lat, up, labels={3: wpm.LEFT_WALL}), wpm._sweep(right, path, lat, up, labels={0: wpm.RIGHT_WALL})
+    )
     return Workpiece("bowed", V, F, path + [0.0, 0.0, p["root_face"]], ref.approach, L, ref.wall_band)
 
 
@@ -192,8 +194,20 @@ def test_cli_prints_one_json_object(vgroove_scan, tmp_path, capsys) -> None:
     np.save(tmp_path / "scan.npy", cloud)
     (tmp_path / "T_base_cam.json").write_text(json.dumps(T_BASE_CAM.tolist()))
     (tmp_path / "nominal.json").write_text(json.dumps(simscene.nominal_pose(wp).tolist()))
-    code = celld_main(["seam", "find", str(tmp_path / "scan.npy"), "--model", "v-groove", "--T-base-cam",
-                       str(tmp_path / "T_base_cam.json"), "--nominal", str(tmp_path / "nominal.json"), "--json"])
+    code = celld_main(
+        [
+            "seam",
+            "find",
+            str(tmp_path / "scan.npy"),
+            "--model",
+            "v-groove",
+            "--T-base-cam",
+            str(tmp_path / "T_base_cam.json"),
+            "--nominal",
+            str(tmp_path / "nominal.json"),
+            "--json",
+        ]
+    )
     out = json.loads(capsys.readouterr().out)
     assert code == 0 and out["ok"] is True
     seam = out["seam"]
@@ -202,13 +216,29 @@ def test_cli_prints_one_json_object(vgroove_scan, tmp_path, capsys) -> None:
     assert seam["quality"]["fitness"] > 0.97
 
     np.save(tmp_path / "mm.npy", cloud * 1000.0)
-    code = celld_main(["seam", "find", str(tmp_path / "mm.npy"), "--model", "v-groove", "--T-base-cam", str(tmp_path / "T_base_cam.json"), "--json"])
+    code = celld_main(
+        ["seam", "find", str(tmp_path / "mm.npy"), "--model", "v-groove", "--T-base-cam", str(tmp_path / "T_base_cam.json"), "--json"]
+    )
     out = json.loads(capsys.readouterr().out)
     assert code == 2 and out["ok"] is False
     assert out["error"]["type"] == "ScanError" and "millimetres" in out["error"]["reason"]
     # Read back in its own units, the same cloud is fine again.
-    code = celld_main(["seam", "find", str(tmp_path / "mm.npy"), "--cloud-units", "mm", "--model", "v-groove",
-                       "--T-base-cam", str(tmp_path / "T_base_cam.json"), "--nominal", str(tmp_path / "nominal.json"), "--json"])
+    code = celld_main(
+        [
+            "seam",
+            "find",
+            str(tmp_path / "mm.npy"),
+            "--cloud-units",
+            "mm",
+            "--model",
+            "v-groove",
+            "--T-base-cam",
+            str(tmp_path / "T_base_cam.json"),
+            "--nominal",
+            str(tmp_path / "nominal.json"),
+            "--json",
+        ]
+    )
     assert code == 0 and json.loads(capsys.readouterr().out)["ok"] is True
 
 
@@ -220,8 +250,21 @@ def test_cli_applies_the_range_bias_of_a_calibration_file(vgroove_scan, tmp_path
 
     def seam(calibration: dict, *extra: str) -> np.ndarray:
         (tmp_path / "cal.json").write_text(json.dumps(calibration))
-        code = celld_main(["seam", "find", str(tmp_path / "scan.npy"), "--model", "v-groove", "--T-base-cam", str(tmp_path / "cal.json"),
-                           "--nominal", str(tmp_path / "nominal.json"), "--json", *extra])
+        code = celld_main(
+            [
+                "seam",
+                "find",
+                str(tmp_path / "scan.npy"),
+                "--model",
+                "v-groove",
+                "--T-base-cam",
+                str(tmp_path / "cal.json"),
+                "--nominal",
+                str(tmp_path / "nominal.json"),
+                "--json",
+                *extra,
+            ]
+        )
         out = json.loads(capsys.readouterr().out)
         assert code == 0 and out["ok"] is True, out
         return np.array(out["seam"]["points_base"])
@@ -239,7 +282,19 @@ def test_cli_applies_the_range_bias_of_a_calibration_file(vgroove_scan, tmp_path
 def test_cli_refuses_a_range_bias_that_is_no_scanner_s(tmp_path, capsys) -> None:
     (tmp_path / "cal.json").write_text(json.dumps({"T_base_cam": T_BASE_CAM.tolist(), "range_bias_mm": "8"}))
     for extra in ([], ["--range-bias-mm", "800"]):
-        code = celld_main(["seam", "find", str(tmp_path / "scan.npy"), "--model", "v-groove", "--T-base-cam", str(tmp_path / "cal.json"), "--json", *extra])
+        code = celld_main(
+            [
+                "seam",
+                "find",
+                str(tmp_path / "scan.npy"),
+                "--model",
+                "v-groove",
+                "--T-base-cam",
+                str(tmp_path / "cal.json"),
+                "--json",
+                *extra,
+            ]
+        )
         out = json.loads(capsys.readouterr().out)
         assert code == 2 and out["ok"] is False and "range bias" in out["error"]["reason"], out
 

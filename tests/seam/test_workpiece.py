@@ -57,7 +57,6 @@ def test_curved_groove_seam_is_the_arc() -> None:
     assert wp.seam_length == pytest.approx(R * math.radians(40.0), rel=1e-4)
 
 
-
 def _write_mesh_mm(wp: Workpiece, path: Path) -> None:
     m = wp.mesh()
     m.vertices = o3d.utility.Vector3dVector(np.asarray(m.vertices) * 1e3)

@@ -22,9 +22,7 @@ def _parse(argv: list[str]) -> argparse.Namespace:
 def test_robot_subcommand_takes_the_workspace_and_limits() -> None:
     argv = ["sim", "robot", "--host", "127.0.0.40", "--workspace", "-1", "-1", "0", "1", "1", "1.2"]
     opts = from_args(_parse([*argv, "--tcp-speed-limit", "0.8"]))
-    expected = SimOptions(
-        host="127.0.0.40", workspace_min=(-1.0, -1.0, 0.0), workspace_max=(1.0, 1.0, 1.2), tcp_speed_limit=0.8
-    )
+    expected = SimOptions(host="127.0.0.40", workspace_min=(-1.0, -1.0, 0.0), workspace_max=(1.0, 1.0, 1.2), tcp_speed_limit=0.8)
     assert opts == expected
 
 

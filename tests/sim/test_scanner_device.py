@@ -74,8 +74,9 @@ def test_the_units_own_error_and_exposure_delay(flange) -> None:  # type: ignore
     assert 1e-6 < np.median(d) < 0.5e-3
     # The exposure comes a while after the capture is asked for: the scene is what is in view then.
     pose = {"T": T}
-    scanner = SimulatedScanner("phoxi-m", T_BASE_CAM, robot_scene_source(lambda: pose["T"], flange), seed=1, resolution_scale=SCALE,
-                               capture_delay=(0.2, 0.2))
+    scanner = SimulatedScanner(
+        "phoxi-m", T_BASE_CAM, robot_scene_source(lambda: pose["T"], flange), seed=1, resolution_scale=SCALE, capture_delay=(0.2, 0.2)
+    )
     timer = __import__("threading").Timer(0.1, lambda: pose.__setitem__("T", se3.from_xyz_rpy([0.55, 0.08, 0.40], [0.0, 0.0, 0.0])))
     t0 = time.monotonic()
     timer.start()

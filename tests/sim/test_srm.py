@@ -82,8 +82,9 @@ def test_the_simulated_camera_keeps_its_frame_rate_and_skips_frames_it_missed() 
 
     now = [0]
     srm = SimSrm(TactileConfig(), ToolConfig(), Wall(np.array([[-0.05, 0.0], [0.05, 0.0]]), free=-1.0), np.eye(4))
-    cam = SimSrmCamera(srm, lambda t: (_tool_pose(-0.003), np.zeros(6)), lambda: now[0],
-                       lambda s: now.__setitem__(0, now[0] + int(s * 1e9)))
+    cam = SimSrmCamera(
+        srm, lambda t: (_tool_pose(-0.003), np.zeros(6)), lambda: now[0], lambda s: now.__setitem__(0, now[0] + int(s * 1e9))
+    )
     cam.open()
     stamps = [cam.read()[0] for _ in range(3)]
     period = int(round(1e9 / 60.0))

@@ -45,8 +45,9 @@ def test_an_undistorted_part_is_the_model_at_its_place() -> None:
 
 
 def test_a_distorted_groove_bows_twists_and_varies_its_gap() -> None:
-    shape = PartShape(bow=0.002, bow_vertical=0.001, twist=math.radians(1.0), tacks=((0.5, 0.0003),), gap_amplitude=0.0003,
-                      gap_waves=1.0, gap_phase=0.0)
+    shape = PartShape(
+        bow=0.002, bow_vertical=0.001, twist=math.radians(1.0), tacks=((0.5, 0.0003),), gap_amplitude=0.0003, gap_waves=1.0, gap_phase=0.0
+    )
     wp, st = distorted_groove("v-groove", shape)
     mid = len(st.seam) // 2
     # Sideways: the bow plus the tack's kink at mid-length; up: the vertical bow (on top of the root face).

@@ -20,8 +20,12 @@ class Scene:
         self.tool_cfg = ToolConfig()
         self.tool = ToolGeometry.from_config(self.tool_cfg)
         self.renderer = TagRenderer(
-            cfg.tag_dictionary, cfg.tag_id if tag_id is None else tag_id, cfg.tag_size, cfg.intrinsics_px,
-            (cfg.width_px, cfg.height_px), seed=seed,
+            cfg.tag_dictionary,
+            cfg.tag_id if tag_id is None else tag_id,
+            cfg.tag_size,
+            cfg.intrinsics_px,
+            (cfg.width_px, cfg.height_px),
+            seed=seed,
         )
         self.detector = TagDetector.from_config(cfg)
         self.T_cam_tool = invert(self.tool.T_tool_cam)

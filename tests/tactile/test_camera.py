@@ -154,8 +154,15 @@ def test_a_finger_pressed_at_start_is_not_tared_until_it_is_free(tmp_path) -> No
         assert free.est.rest is not None and free.est.reference is None
         asked = iter([True])
         target = len(free.written) + free.cfg.tare_frames + 2
-        run_camera(free.camera, free.est, free.samples, free.counters, lambda: len(free.written) >= target,
-                   lambda: next(asked, False), on_reference=kept.append)
+        run_camera(
+            free.camera,
+            free.est,
+            free.samples,
+            free.counters,
+            lambda: len(free.written) >= target,
+            lambda: next(asked, False),
+            on_reference=kept.append,
+        )
         assert len(kept) == 1 and free.est.reference is not None
         save_reference(tmp_path / "rest.json", kept[0])
     finally:

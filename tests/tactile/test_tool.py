@@ -27,8 +27,7 @@ def test_default_tool_frame_matches_the_paper_axes() -> None:
 
 
 def test_tool_config_converts_units_once_and_refuses_bad_geometry() -> None:
-    t = config.parse({"tool": {"tip_tcp_mm": [0, 0, 12.5], "torch_offset_mm": 45, "wall_side": "right",
-                               "tool_x_tcp": [0, 2, 0]}}).tool
+    t = config.parse({"tool": {"tip_tcp_mm": [0, 0, 12.5], "torch_offset_mm": 45, "wall_side": "right", "tool_x_tcp": [0, 2, 0]}}).tool
     assert t.tip_tcp == pytest.approx((0.0, 0.0, 0.0125))
     assert t.torch_offset == pytest.approx(0.045)
     assert t.tool_x_tcp == pytest.approx((0.0, 1.0, 0.0))

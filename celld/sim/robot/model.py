@@ -130,9 +130,7 @@ class CartesianVelocity(Motion):
 
     cartesian = True
 
-    def __init__(
-        self, arm: Arm, target: Sequence[float], acc: float, acc_rot: float | None = None, stopping: bool = False
-    ) -> None:
+    def __init__(self, arm: Arm, target: Sequence[float], acc: float, acc_rot: float | None = None, stopping: bool = False) -> None:
         self.v = list(arm.current_twist())
         self.T = list(arm.T_tcp)
         self.stopping = stopping
@@ -411,10 +409,7 @@ class Arm:
         lim = self.limits
         for j in range(6):
             if not lim.joints.q_min[j] <= q[j] <= lim.joints.q_max[j]:
-                return (
-                    f"joint position limit: joint {j} at {q[j]:.4f} rad, "
-                    f"range [{lim.joints.q_min[j]:.4f}, {lim.joints.q_max[j]:.4f}]"
-                )
+                return f"joint position limit: joint {j} at {q[j]:.4f} rad, range [{lim.joints.q_min[j]:.4f}, {lim.joints.q_max[j]:.4f}]"
             qd = abs(q[j] - self.q[j]) / dt
             if qd > lim.joints.qd_max[j] * _SPEED_TOLERANCE:
                 return f"joint speed limit: joint {j} at {qd:.3f} rad/s, limit {lim.joints.qd_max[j]:.3f} rad/s"

@@ -153,12 +153,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = SimOptions()
     parser.add_argument("--host", required=True, help="loopback address to bind, 127.x.y.z")
     parser.add_argument("--model", default=d.model, choices=sorted(kin.MODELS), help="the UR model the controller is")
-    parser.add_argument("--arm-truth", default=None, metavar="JSON",
-                        help="how the physical arm differs from the controller's model (celld.sim.robot.truearm.ArmTruth as JSON)")
-    parser.add_argument("--q0", nargs=6, type=float, default=d.q0, metavar="RAD", help="initial joints")
     parser.add_argument(
-        "--tcp-offset", nargs=6, type=float, default=d.tcp_offset, metavar="V", help="TCP pose in the flange [m, rad]"
+        "--arm-truth",
+        default=None,
+        metavar="JSON",
+        help="how the physical arm differs from the controller's model (celld.sim.robot.truearm.ArmTruth as JSON)",
     )
+    parser.add_argument("--q0", nargs=6, type=float, default=d.q0, metavar="RAD", help="initial joints")
+    parser.add_argument("--tcp-offset", nargs=6, type=float, default=d.tcp_offset, metavar="V", help="TCP pose in the flange [m, rad]")
     parser.add_argument(
         "--workspace", nargs=6, type=float, default=(*d.workspace_min, *d.workspace_max),
         metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"), help="safety box of the TCP in the base frame, m",
@@ -173,8 +175,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-truth", action="store_true", help="do not publish the true state in shared memory")
     parser.add_argument("--realtime", action="store_true", help="run the tick at SCHED_FIFO where allowed")
     parser.add_argument("--no-text-messages", action="store_true", help="send no RTDE text messages")
-    parser.add_argument("--keep-outputs-at-stop", action="store_true",
-                        help="model a cell whose standard outputs stay as they are when the program stops (no arc interlock)")
+    parser.add_argument(
+        "--keep-outputs-at-stop",
+        action="store_true",
+        help="model a cell whose standard outputs stay as they are when the program stops (no arc interlock)",
+    )
     parser.add_argument("--parent-pid", type=int, default=0, help=argparse.SUPPRESS)
 
 

@@ -243,9 +243,7 @@ class PackageReader:
         while len(buf) >= HEADER.size:
             size, msg_type = HEADER.unpack_from(buf)
             if size < HEADER.size or size > MAX_PACKAGE_SIZE:
-                raise RtdeProtocolError(
-                    f"package size {size} outside [{HEADER.size}, {MAX_PACKAGE_SIZE}] (type {msg_type})"
-                )
+                raise RtdeProtocolError(f"package size {size} outside [{HEADER.size}, {MAX_PACKAGE_SIZE}] (type {msg_type})")
             if len(buf) < size:
                 return
             payload = bytes(buf[HEADER.size : size])
@@ -313,9 +311,7 @@ def parse_data(payload: bytes, recipes: dict[int, Recipe]) -> tuple[Recipe, tupl
         known = sorted(recipes) or "none"
         raise RtdeProtocolError(f"U: unknown input recipe id {payload[0]} (set up: {known})")
     if len(payload) != recipe.codec.size:
-        raise RtdeProtocolError(
-            f"U: recipe {recipe.recipe_id} expects {recipe.codec.size} bytes, got {len(payload)}"
-        )
+        raise RtdeProtocolError(f"U: recipe {recipe.recipe_id} expects {recipe.codec.size} bytes, got {len(payload)}")
     values = recipe.codec.unpack(payload)
     return recipe, values[1:]
 

@@ -42,9 +42,7 @@ _INT_OFFSET = re.compile(rb"reg_offset_int\s*=\s*#[^\n]*\n\s*(\d+)")
 _FLOAT_OFFSET = re.compile(rb"reg_offset_float\s*=\s*#[^\n]*\n\s*(\d+)")
 # The main loop of ur-rtde's control script.
 _CONTROL_LOOP = re.compile(rb"def rtde_cmd\(\):.*keep_running = process_cmd\(cmd\)", re.S)
-_WRITE_INT_REGISTER = re.compile(
-    rb"write_output_integer_register\(\s*(\d+)\s*(?:\+\s*(\d+)\s*)?,\s*(-?\d+)\s*\)"
-)
+_WRITE_INT_REGISTER = re.compile(rb"write_output_integer_register\(\s*(\d+)\s*(?:\+\s*(\d+)\s*)?,\s*(-?\d+)\s*\)")
 
 # Command ids processed on every cycle (the script's "realtime commands").
 REALTIME_COMMANDS = frozenset((24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71))

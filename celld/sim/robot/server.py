@@ -371,8 +371,9 @@ def serve(options: SimOptions) -> int:
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
     # Below the motion loop (80), above the tactile process (40); memory and CPU left as they are.
-    rt = make_realtime(RealtimeOptions(priority=_FIFO_PRIORITY if options.realtime else 0, cpu=None, lock_memory=False,
-                                       timer_slack_ns=_TIMER_SLACK_NS))
+    rt = make_realtime(
+        RealtimeOptions(priority=_FIFO_PRIORITY if options.realtime else 0, cpu=None, lock_memory=False, timer_slack_ns=_TIMER_SLACK_NS)
+    )
     if options.realtime:
         if rt.fifo:
             log.info("sim_robot_realtime", policy="SCHED_FIFO", priority=_FIFO_PRIORITY)

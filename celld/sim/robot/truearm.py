@@ -93,7 +93,9 @@ class ArmTruth:
             if not (math.isfinite(v) and 0.0 <= v <= 0.01):
                 raise ConfigError(_SOURCE, name, f"expected 0 <= value <= 0.01 rad, got {v!r}")
         if not (0.0 < self.settle_tau <= 10.0 and 0.0 <= self.settle_hz <= 1000.0):
-            raise ConfigError(_SOURCE, "settle_tau", f"expected 0 < tau <= 10 s and 0 <= f <= 1000 Hz, got {self.settle_tau}, {self.settle_hz}")
+            raise ConfigError(
+                _SOURCE, "settle_tau", f"expected 0 < tau <= 10 s and 0 <= f <= 1000 Hz, got {self.settle_tau}, {self.settle_hz}"
+            )
 
     def is_model(self, nominal: kin.DH) -> bool:
         """True when the arm is exactly the controller's ``nominal`` model and nothing is noisy."""

@@ -163,9 +163,7 @@ class TruthReader:
             raise RobotError("the simulated robot has not published a state yet")
         stamps = recs["stamp_ns"]
         if stamp_ns < stamps[0] or stamp_ns > stamps[-1] + 2_000_000:
-            raise InputError(
-                f"truth at {stamp_ns} ns: outside the history [{int(stamps[0])}, {int(stamps[-1])}] ns"
-            )
+            raise InputError(f"truth at {stamp_ns} ns: outside the history [{int(stamps[0])}, {int(stamps[-1])}] ns")
         i = int(np.searchsorted(stamps, stamp_ns, side="right"))
         if i >= len(recs):
             return _sample(recs[-1])
