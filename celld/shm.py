@@ -129,6 +129,11 @@ class _Segment:
                 pass
 
 
+# A read that meets the writer mid-write tries again this many times in all
+# before it falls back to the last good sample (a new reader has none yet).
+_READ_TRIES = 3
+
+
 class SeqlockSlot:
     """The latest sample of a numpy structured ``dtype``, behind a seqlock.
 
@@ -169,18 +174,19 @@ class SeqlockSlot:
         Returns False when no sample was ever written. On a torn read ``out``
         receives the last good sample and :attr:`torn_count` grows.
         """
-        s1 = int(self._seq[0])
-        if s1 == 0:
-            return False
-        if s1 % 2 == 0:
-            out[0] = self._value[0]
-            if int(self._seq[0]) == s1:
-                self._last[0] = out[0]
-                self._have_last = True
-                return True
+        for _ in range(_READ_TRIES):
+            s1 = int(self._seq[0])
+            if s1 == 0:
+                return False
+            if s1 % 2 == 0:
+                out[0] = self._value[0]
+                if int(self._seq[0]) == s1:
+                    self._last[0] = out[0]
+                    self._have_last = True
+                    return True
         self.torn_count += 1
         if not self._have_last:
-            return False
+            return False  # only torn reads so far: a sample exists, but none whole yet
         out[0] = self._last[0]
         return True
 

@@ -94,15 +94,19 @@ def test_the_simulator_reports_its_model_and_publishes_the_physical_arm(loopback
         r = rtde_receive.RTDEReceiveInterface(sim.host)
         try:
             time.sleep(0.2)
-            # Both from one RTDE packet: the encoders' noise differs from packet to packet.
-            for _ in range(50):
+            # Both from one RTDE packet: the encoders' noise differs from packet to packet, and
+            # ur-rtde's receive thread may update q and the pose between two getters.
+            consistent = 0
+            for _ in range(200):
                 q_rep, T_rep = np.array(r.getActualQ()), se3.from_ur_pose(r.getActualTCPPose())
-                if np.array_equal(q_rep, np.array(r.getActualQ())):
+                if np.array_equal(q_rep, np.array(r.getActualQ())) and np.allclose(T_rep, kin.forward(q_rep), atol=1e-9):
+                    consistent += 1
                     break
             _, T_true, q_true = sim.truth()
         finally:
             r.disconnect()
     # RTDE: the controller's nominal kinematics of the joints its encoders read (with their noise).
+    assert consistent, "no RTDE packet whose TCP pose is the nominal kinematics of its joints"
     np.testing.assert_allclose(T_rep, kin.forward(q_rep), atol=1e-9)
     # The truth: the arm's own kinematics of the physical joints, which are the encoders' plus the joint zeros.
     np.testing.assert_allclose(T_true, kin.forward(q_true, arm.dh), atol=1e-12)
