@@ -77,13 +77,11 @@ from celld.calib.rigid import (
     pair_residuals,
     rigid_jacobian,
 )
-from celld.calib.robust import RejectedPair
+from celld.calib.robust import CHI2_3_MEDIAN, RejectedPair
 from celld.errors import InputError
 
 # The verdicts; only "ok" passes the gate.
 VERDICTS = ("ok", "too_few_pairs", "poor_data", "insufficient_rotation", "insufficient_range_bias")
-# Median of |r|^2 / sigma^2 for a 3-D isotropic Gaussian residual (chi-square, 3 dof).
-_CHI2_3_MEDIAN = float(chi2.median(3))
 # A principal axis within this angle of a base axis is named after it (X, Y, Z).
 _AXIS_NAME_TOLERANCE = math.radians(20.0)
 # Positions whose second (third) principal spread is below this fraction of the
@@ -486,7 +484,7 @@ def assess_calibration(
     # Outliers: residual norm beyond k sigma, sigma from the median residual of
     # every pair (robust to up to half of them being false), never below the floor.
     residuals = pair_residuals(T, P_b, P_c, scale)
-    sigma_med = math.sqrt(float(np.median(residuals**2)) / _CHI2_3_MEDIAN)
+    sigma_med = math.sqrt(float(np.median(residuals**2)) / CHI2_3_MEDIAN)
     sigma_ref = max(sigma_med, params.sigma_floor)
     k = params.outlier_k
     threshold = k * sigma_ref

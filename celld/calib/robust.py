@@ -49,7 +49,7 @@ from celld.se3 import transform_from
 
 # Median of the chi-square distribution with 3 degrees of freedom: the median
 # of |r|^2 / sigma^2 for a 3-D isotropic Gaussian residual.
-_CHI2_3_MEDIAN = float(chi2.median(3))
+CHI2_3_MEDIAN = float(chi2.median(3))
 # Triangles thinner than this (second / first singular value) make no
 # hypothesis while fatter ones exist (a thin triangle's rotation about its long
 # side is mostly noise).
@@ -242,7 +242,7 @@ def solve_robust(
         raise InputError("ids: pair ids must be unique")
 
     T0, med2 = least_median_of_squares(P_dst, P_src, params)
-    sigma = math.sqrt(med2 / _CHI2_3_MEDIAN)
+    sigma = math.sqrt(med2 / CHI2_3_MEDIAN)
     k = params.k
     residuals = pair_residuals(T0, P_dst, P_src)
     inlier: NDArray[np.bool_] | None = None

@@ -62,9 +62,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.stats import chi2
 
-from celld.calib.robust import RejectedPair, RobustParams
+from celld.calib.robust import CHI2_3_MEDIAN, RejectedPair, RobustParams
 from celld.errors import CalibrationError, InputError
 
 Array = NDArray[np.float64]
@@ -72,8 +71,6 @@ Array = NDArray[np.float64]
 VERDICTS = ("ok", "too_few_poses", "poor_orientation_spread", "poor_data")
 # Fewest poses (T2) is solved from: three (two leave b and the axis of their relative turn free).
 MIN_SOLVE_POSES = 3
-# Median of chi-square with 3 dof: |r|^2 / sigma^2 of a 3-D isotropic Gaussian residual.
-_CHI2_3_MEDIAN = float(chi2.median(3))
 # Minimal samples whose own spread is below this (rad) make no hypothesis (their solve is ill-posed).
 _MIN_SAMPLE_SPREAD = 0.02
 
@@ -365,7 +362,7 @@ def solve_tool_tip(
         threshold = math.inf
     else:
         x, med2 = _lmeds(T, P, rp)
-        sigma = math.sqrt(med2 / _CHI2_3_MEDIAN)
+        sigma = math.sqrt(med2 / CHI2_3_MEDIAN)
         residuals = _residuals(T, P, x)
         inlier_prev: NDArray[np.bool_] | None = None
         rounds = 0

@@ -35,9 +35,12 @@ from numpy.typing import NDArray
 from celld import se3
 from celld.config import Config, MotionLimits
 from celld.errors import PathRefused
+from celld.log import get_logger
 from celld.robot import kinematics as kin
 from celld.robot.cellmodel import Box
 from celld.robot.collision import Checker, PathCheck, Refusal
+
+log = get_logger(__name__)
 
 Array = NDArray[np.float64]
 
@@ -230,6 +233,18 @@ class MotionPlanner:
             first = "; ".join(r.message for r in refused[:3])
             raise PathRefused(f"only {len(poses)} of {n} calibration poses can be reached without touching the cell: {first}")
         return CalibrationPlan(tuple(poses), tuple(joints), tuple(refused))
+
+
+def report_plan(ctx: Any, plan: CalibrationPlan, what: str) -> None:
+    """Log each refused pose of a generated plan and publish the plan's progress event (``ctx`` a JobContext)."""
+    for r in plan.refused:
+        log.warning(f"{what} pose replaced", job=ctx.job_id, reason=r.message)
+    ctx.progress(
+        "plan",
+        0.0,
+        f"{len(plan.poses)} poses planned, {len(plan.refused)} replaced (they would hit the cell or are out of reach)",
+        replaced=[r.message for r in plan.refused],
+    )
 
 
 def record_plan(rec: Any, checker: Checker, joints: Sequence[Sequence[float]], name: str = "pose") -> None:

@@ -57,7 +57,7 @@ from celld.calib.session import SolveParams, range_bias_data, solve_pairs, verif
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import CalibrationStore, JobContext, Runner
-from celld.daemon.planning import record_arm, record_cell, record_plan
+from celld.daemon.planning import record_arm, record_cell, record_plan, report_plan
 from celld.daemon.retention import prune_sessions
 from celld.errors import CalibrationError, CelldError, JobError
 from celld.log import get_logger
@@ -143,14 +143,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         candidates = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=seed)
         plan = await asyncio.to_thread(planner.plan_calibration, to_v.q_end, candidates, n, more)
     poses = np.array(plan.poses)
-    for r in plan.refused:
-        log.warning("calibration pose replaced", job=ctx.job_id, reason=r.message)
-    ctx.progress(
-        "plan",
-        0.0,
-        f"{len(poses)} poses planned, {len(plan.refused)} replaced (they would hit the cell or are out of reach)",
-        replaced=[r.message for r in plan.refused],
-    )
+    report_plan(ctx, plan, "calibration")
     if job.dry_run:
         record_plan(ctx.recording, planner.bare, [tuple(to_v.q_end), *plan.q])
         return {

@@ -43,7 +43,7 @@ from celld.calib.tooltip import TipDetectParams, detect_tip
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
-from celld.daemon.planning import record_arm, record_cell, record_plan
+from celld.daemon.planning import record_arm, record_cell, record_plan, report_plan
 from celld.daemon.weld import current_calibration
 from celld.errors import CalibrationError, JobError
 from celld.log import get_logger
@@ -78,14 +78,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
     planner = devices.planner
     plan = await asyncio.to_thread(planner.plan_calibration, await devices.current_q(), candidates, n, more, True)
     poses = np.array(plan.poses)
-    for r in plan.refused:
-        log.warning("tool calibration pose replaced", job=ctx.job_id, reason=r.message)
-    ctx.progress(
-        "plan",
-        0.0,
-        f"{len(poses)} poses planned, {len(plan.refused)} replaced (they would hit the cell or are out of reach)",
-        replaced=[r.message for r in plan.refused],
-    )
+    report_plan(ctx, plan, "tool calibration")
     if job.dry_run:
         record_plan(ctx.recording, planner.with_tool, list(plan.q))
         return {
