@@ -122,6 +122,24 @@ class RejectedPair:
         return {"id": self.id, "index": self.index, "residual_mm": self.residual * 1e3, "reason": self.reason}
 
 
+def outliers(
+    ids: Sequence[str], residuals: np.ndarray, inlier: np.ndarray, threshold: float, k: float, sigma: float
+) -> tuple[RejectedPair, ...]:
+    """The pairs outside ``inlier``, each with its residual and why: over ``threshold`` = ``k`` x the noise ``sigma`` (m)."""
+    return tuple(
+        RejectedPair(
+            id=ids[i],
+            index=int(i),
+            residual=float(residuals[i]),
+            reason=(
+                f"residual {residuals[i] * 1e3:.3f} mm exceeds the inlier threshold {threshold * 1e3:.3f} mm "
+                f"({k:.2f} x estimated noise {sigma * 1e3:.3f} mm per axis)"
+            ),
+        )
+        for i in np.flatnonzero(~inlier)
+    )
+
+
 @dataclass(frozen=True)
 class RobustFit:
     """Result of :func:`solve_robust`.
@@ -266,18 +284,7 @@ def solve_robust(
         # Noise scale from the inliers' residual sum of squares (dof taken out).
         if fit.uncertainty.dof > 0:
             sigma = fit.uncertainty.sigma
-    rejected = tuple(
-        RejectedPair(
-            id=ids_t[i],
-            index=int(i),
-            residual=float(residuals[i]),
-            reason=(
-                f"residual {residuals[i] * 1e3:.3f} mm exceeds the inlier threshold {threshold * 1e3:.3f} mm "
-                f"({k:.2f} x estimated noise {sigma * 1e3:.3f} mm per axis)"
-            ),
-        )
-        for i in np.flatnonzero(~inlier)
-    )
+    rejected = outliers(ids_t, residuals, inlier, threshold, k, sigma)
     return RobustFit(
         fit=fit,
         ids=ids_t,

@@ -63,7 +63,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from celld.calib.robust import CHI2_3_MEDIAN, RejectedPair, RobustParams
+from celld.calib.robust import CHI2_3_MEDIAN, RejectedPair, RobustParams, outliers
 from celld.errors import CalibrationError, InputError
 
 Array = NDArray[np.float64]
@@ -383,18 +383,7 @@ def solve_tool_tip(
             if dof > 0:
                 sigma = float(np.sqrt(np.sum(residuals[inlier] ** 2) / dof))
     used = np.flatnonzero(inlier)
-    rejected = tuple(
-        RejectedPair(
-            id=ids_t[i],
-            index=int(i),
-            residual=float(residuals[i]),
-            reason=(
-                f"residual {residuals[i] * 1e3:.3f} mm exceeds the inlier threshold {threshold * 1e3:.3f} mm "
-                f"({rp.k:.2f} x estimated noise {sigma * 1e3:.3f} mm per axis)"
-            ),
-        )
-        for i in np.flatnonzero(~inlier)
-    )
+    rejected = outliers(ids_t, residuals, inlier, threshold, rp.k, sigma)
     spread, axis = orientation_spread(T[used, :3, :3])
     sigma_used = max(sigma, params.sigma_floor) if math.isfinite(sigma) else params.sigma_floor
     source = "residuals" if math.isfinite(sigma) and sigma >= params.sigma_floor else "floor"

@@ -119,6 +119,9 @@ class MotionLoop:
         self._prev_wake = 0
         # Reused buffers: one record per channel, read into and written from.
         self._rec = np.zeros(1, STATE_DTYPE)
+        # The tactile sample's fields of the record change only with a new sample (set where it is read).
+        self._rec["delta_tool"] = np.nan
+        self._rec["contact"] = -1
         self._evt = np.zeros(1, EVENT_DTYPE)
         self._tac = np.zeros(1, TACTILE_DTYPE)
         self._sp = np.zeros(1, SETPOINT_DTYPE)
@@ -278,6 +281,8 @@ class MotionLoop:
             if seq != self._tactile_seq:
                 self._tactile_seq = seq
                 self._tactile = from_record(self._tac[0])
+                self._rec["delta_tool"] = self._tac["delta_tool"]
+                self._rec["contact"] = self._tac["contact"]
             tactile_age = (t_wake - int(self._tac["stamp_ns"][0])) * 1e-9
         setpoint_age = _INF
         if ch.setpoint.read_into(self._sp):
@@ -379,13 +384,6 @@ class MotionLoop:
         r["refined_base"] = tel.refined_base
         r["process_on"] = out.process_on
         r["delta_d"] = tel.delta_d
-        tac = self._tactile
-        if tac is None:
-            r["delta_tool"] = np.nan
-            r["contact"] = -1
-        else:
-            r["delta_tool"] = tac.delta_tool
-            r["contact"] = int(tac.contact)
         ch.state.append(r)
         self._prev_wake = t_wake
 
