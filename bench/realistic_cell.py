@@ -9,9 +9,9 @@ the simulated UR10e behind real ur-rtde and ``celld sim run``, driven over
 the bus (:func:`celld.sim.demo.run_jobs`):
 
 1. calibrate (the cell's 20 poses, Algorithm 1 may stop earlier) and accept;
-2. tool-calibrate and accept: the SRM tip measured with the scanner (the
-   realistic world's tool misses the configured one by up to 1-2 mm); the
-   weld then uses the measured tip (``--no-tool-calibrate`` welds with the
+2. tool-calibrate and accept: the SRM tip and the torch's wire end measured
+   with the scanner (the realistic world's tool misses the configured one by
+   up to 1-2 mm); the weld then uses the measured tip and torch (``--no-tool-calibrate`` welds with the
    configured one, ``--without tool_offsets`` as if the tool were drawn
    exactly);
 3. weld the V-groove: scan, seam, touch, Algorithm 2 with the arc.

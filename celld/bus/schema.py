@@ -219,10 +219,10 @@ _CALIBRATE["not"] = {"required": ["poses", "n_poses"], "description": "Give eith
 
 _TOOL_CALIBRATE = _submit_branch(
     "tool-calibrate",
-    "Measure the welding tool's SRM tip in the TCP frame (the torch follows: it sits torch_offset along -x "
-    "of the tool frame, whose origin the tip is): the tool is presented to the scanner at n_poses "
-    "orientations, turned about the tip, the tip ball is found in each capture with the current "
-    "calibration, and the tip solved by least squares with its residuals, outliers, 1-sigma and a verdict. "
+    "Measure the welding tool's SRM tip and its torch (the welding wire's end) in the TCP frame: the tool is "
+    "presented to the scanner at n_poses orientations, turned about the tip, the tip ball and the wire's end "
+    "are found in each capture with the current calibration, and each is solved by least squares with its "
+    "residuals, outliers, 1-sigma and a verdict. "
     "Needs a current calibration. The result becomes the current tool calibration only on an accept "
     "request (a failed verdict only with force) or when the config says so.",
     {
@@ -519,19 +519,35 @@ _TOOL_QUALITY = _object(
         "offset_base_mm": _vector("Where the scanner and the arm disagree at the tool's place (solved with the tip), base frame, mm.", 3),
         "offset_std_mm": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3},
         "missed": {"type": "array", "items": {"type": "object"}, "description": "Poses whose capture showed no tip, and why."},
+        "torch": {
+            "type": "object",
+            "description": "The torch's own report in the same keys (verdict, reasons, poses, tip_std_mm for its 1-sigma, missed); "
+            "its reasons are the job's, prefixed 'torch:', when the tip's verdict is ok and the torch's is not.",
+        },
     },
     ("verdict", "passed", "reasons", "warnings", "poses"),
 )
 
 _TOOL_CALIBRATION = _object(
-    "A tool calibration: the SRM tip measured in the TCP frame; it overrides tool.tip_tcp_mm once current.",
+    "A tool calibration: the SRM tip (and the torch) measured in the TCP frame; it overrides tool.tip_tcp_mm "
+    "(and, with torch_measured, the torch offset and the tool's x axis) once current.",
     {
         "job": _JOB_ID,
         "tip_tcp_mm": _vector("The tip's centre in the TCP frame, mm.", 3),
         "tip_std_mm": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3, "description": "Its 1-sigma, mm."},
         "nominal_tip_tcp_mm": _vector("The config's tool.tip_tcp_mm when it was measured.", 3),
         "delta_mm": _vector("Measured minus configured tip, TCP frame, mm.", 3),
-        "torch_tcp_mm": _vector("The torch point that follows (torch_offset along -x of the tool frame), TCP frame, mm.", 3),
+        "torch_tcp_mm": _vector(
+            "The torch point (the wire's end), TCP frame, mm: measured when torch_measured, else torch_offset along -x of the tool frame.",
+            3,
+        ),
+        "torch_measured": {
+            "type": "boolean",
+            "description": "The torch was measured: a weld takes torch_offset and the tool's x axis from the tip and this point.",
+        },
+        "torch_std_mm": {"type": "array", "items": _NUMBER_OR_NULL, "minItems": 3, "maxItems": 3, "description": "Its 1-sigma, mm."},
+        "nominal_torch_tcp_mm": _vector("Where the config put the torch when it was measured, TCP frame, mm.", 3),
+        "torch_delta_mm": _vector("Measured minus configured torch, TCP frame, mm.", 3),
         "calibration_job": {"type": "string", "description": "The hand-eye calibration the tips were placed with."},
         "poses": {"type": "integer", "minimum": 0, "description": "Poses with a tip measurement."},
         "quality": _TOOL_QUALITY,

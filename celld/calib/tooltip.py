@@ -1,4 +1,4 @@
-"""The SRM tip in a scanner cloud: the ball at the end of the finger, found near where it is believed (pure).
+"""The SRM tip and the torch's wire end in a scanner cloud, each found near where it is believed (pure).
 
 The finger ends in a small ball (``tool.tip_radius``, 1 mm on the SRM). The
 controller believes the tip is at ``p_pred`` (its tool config and the robot
@@ -16,7 +16,16 @@ may be a millimetre or two away. :func:`detect_tip` finds it:
    selection and fit repeated until the selection settles.
 
 With a known radius a visible cap suffices: the centre lies one radius
-behind the surface the scanner sees. Everything is in the camera frame, m.
+behind the surface the scanner sees.
+
+The torch point is the centre of the welding wire's cut end, a cylinder of
+the wire's radius ending in a flat face. :func:`detect_wire_end` finds it
+the same way: crop near the prediction, the extreme points along the wire's
+axis, then a least-squares fit of a capped cylinder of known radius and
+known axis (the tool's, from the robot pose) to the wire's last millimetres:
+the end face fixes the point along the axis, the face and the wire's side
+fix it across (an end-on view sees the face, an oblique one the side).
+Everything is in the camera frame, m.
 """
 
 from __future__ import annotations
@@ -26,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
 
 from celld.errors import CalibrationError, InputError
 
@@ -160,15 +170,7 @@ def detect_tip(
         No points in the window, too few on the ball, or a fit that does not
         hold (the message says which and the figures).
     """
-    p = np.asarray(p_pred, dtype=np.float64)
-    u = np.asarray(u_cam, dtype=np.float64)
-    if p.shape != (3,) or not np.all(np.isfinite(p)):
-        raise InputError(f"p_pred: expected a finite (3,) point, got {p.tolist()}")
-    if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
-        raise InputError(f"u_cam: expected a non-zero finite (3,) direction, got {u.tolist()}")
-    if not (math.isfinite(radius) and 0.0 < radius <= 0.02):
-        raise InputError(f"radius: expected 0 < radius <= 20 mm, got {radius!r} m")
-    u = u / np.linalg.norm(u)
+    p, u = _check_prediction(p_pred, u_cam, radius)
     W = window_points(points_cam, p, params.window)
     if len(W) == 0:
         raise CalibrationError(
@@ -207,3 +209,150 @@ def detect_tip(
             f"the fitted tip lies {offset * 1e3:.2f} mm from the prediction, outside the {params.window * 1e3:.1f} mm window"
         )
     return TipDetection(np.asarray(c, dtype=np.float64), n, rms, len(W), offset)
+
+
+@dataclass(frozen=True)
+class WireDetectParams:
+    """Parameters of :func:`detect_wire_end` (SI units).
+
+    Attributes
+    ----------
+    window : float
+        Radius of the search window around the predicted wire end, m.
+    apex_points : int
+        How many of the most extreme points give the wire's end.
+    length : float
+        How much of the wire, back from its end, the fit uses, m (the nozzle
+        and the contact tip lie further back).
+    shell : float
+        Points within this of the fitted surface are the wire's, m.
+    min_points : int
+        Fewest wire points for a detection.
+    max_rms : float
+        Largest RMS distance of the wire points from the fitted surface, m.
+    rounds : int
+        Most selection / fit rounds.
+    """
+
+    window: float = 0.015
+    apex_points: int = 3
+    length: float = 0.005
+    shell: float = 0.3e-3
+    min_points: int = 8
+    max_rms: float = 0.2e-3
+    rounds: int = 4
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.window) and 0.001 <= self.window <= 0.1):
+            raise InputError(f"window: expected 1 mm <= window <= 100 mm, got {self.window!r} m")
+        if not (math.isfinite(self.length) and 0.0005 <= self.length <= self.window):
+            raise InputError(f"length: expected 0.5 mm <= length <= window, got {self.length!r} m")
+        if not (math.isfinite(self.shell) and self.shell > 0.0 and math.isfinite(self.max_rms) and self.max_rms > 0.0):
+            raise InputError("shell and max_rms: expected finite values > 0")
+        if self.apex_points < 1 or self.min_points < 4 or self.rounds < 1:
+            raise InputError("apex_points >= 1, min_points >= 4 and rounds >= 1 expected")
+
+
+def capped_cylinder_distance(Q: Array, c: Array, u: Array, radius: float) -> Array:
+    """Signed distance (n,) of points from a solid half-infinite cylinder: end-face centre ``c``, axis ``u`` into the solid.
+
+    Positive outside, negative inside, m.
+    """
+    d = Q - c
+    a = d @ u  # along the axis, into the wire
+    rho = np.linalg.norm(d - np.outer(a, u), axis=1)
+    side = rho - radius
+    beyond = np.where(side > 0.0, np.hypot(side, a), -a)
+    inside = -np.minimum(a, -side)
+    return np.asarray(np.where(a >= 0.0, np.where(side >= 0.0, side, inside), beyond), dtype=np.float64)
+
+
+def _check_prediction(p_pred: ArrayLike, u_cam: ArrayLike, radius: float) -> tuple[Array, Array]:
+    p = np.asarray(p_pred, dtype=np.float64)
+    u = np.asarray(u_cam, dtype=np.float64)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise InputError(f"p_pred: expected a finite (3,) point, got {p.tolist()}")
+    if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
+        raise InputError(f"u_cam: expected a non-zero finite (3,) direction, got {u.tolist()}")
+    if not (math.isfinite(radius) and 0.0 < radius <= 0.02):
+        raise InputError(f"radius: expected 0 < radius <= 20 mm, got {radius!r} m")
+    return p, u / np.linalg.norm(u)
+
+
+def detect_wire_end(
+    points_cam: ArrayLike,
+    p_pred: ArrayLike,
+    u_cam: ArrayLike,
+    radius: float,
+    params: WireDetectParams = WireDetectParams(),
+) -> TipDetection:
+    """The centre of the welding wire's cut end in a cloud (module docstring), camera frame.
+
+    Parameters
+    ----------
+    points_cam : (H, W, 3) or (n, 3)
+        The cloud, camera frame, m; NaN where there is no return.
+    p_pred : (3,)
+        Where the tool config puts the wire's end, camera frame, m.
+    u_cam : (3,)
+        The wire's axis from its end back into the torch, camera frame (normalised here).
+    radius : float
+        The wire's radius, m.
+    params : WireDetectParams
+
+    Raises
+    ------
+    InputError
+        A prediction, axis or radius that is not usable.
+    CalibrationError
+        No points in the window, too few on the wire, or a fit that does not
+        hold (the message says which and the figures).
+    """
+    p, u = _check_prediction(p_pred, u_cam, radius)
+    W = window_points(points_cam, p, params.window)
+    if len(W) == 0:
+        raise CalibrationError(
+            f"no points within {params.window * 1e3:.1f} mm of the predicted wire end: the torch is out of "
+            "the scanner's view or hidden, or the tool config or the calibration is far off"
+        )
+    s = (W - p) @ (-u)
+    k = min(params.apex_points, len(W))
+    s_end = float(np.sort(s)[-k:].mean())
+    near_end = W[s >= s_end - radius]
+    # Across the axis: the end's points, centred (an oblique view's side points pull this by
+    # well under a radius; the fit takes it out). Along: the extreme.
+    lateral = near_end.mean(axis=0)
+    lateral = lateral - ((lateral - p) @ u) * u
+    c = lateral - s_end * u
+    sel: NDArray[np.bool_] | None = None
+    rms = math.inf
+    for _ in range(params.rounds):
+        a = (W - c) @ u
+        dist = capped_cylinder_distance(W, c, u, radius)
+        new = (np.abs(dist) <= params.shell) & (a <= params.length)
+        if sel is not None and np.array_equal(new, sel):
+            break
+        sel = new
+        if int(sel.sum()) < params.min_points:
+            break
+        Q = W[sel]
+        fit = least_squares(lambda x, Q=Q: capped_cylinder_distance(Q, x, u, radius), c, loss="soft_l1", f_scale=params.shell / 3.0)
+        c = np.asarray(fit.x, dtype=np.float64)
+        rms = float(np.sqrt(np.mean(capped_cylinder_distance(Q, c, u, radius) ** 2)))
+    n = int(sel.sum()) if sel is not None else 0
+    if n < params.min_points:
+        raise CalibrationError(
+            f"only {n} points on the wire's end ({len(W)} in the {params.window * 1e3:.1f} mm window); "
+            f"at least {params.min_points} are needed"
+        )
+    if not rms <= params.max_rms:
+        raise CalibrationError(
+            f"the wire's points lie {rms * 1e3:.3f} mm RMS off a {radius * 2e3:.2f} mm wire (at most "
+            f"{params.max_rms * 1e3:.3f} mm): not the wire"
+        )
+    offset = float(np.linalg.norm(c - p))
+    if offset > params.window:
+        raise CalibrationError(
+            f"the fitted wire end lies {offset * 1e3:.2f} mm from the prediction, outside the {params.window * 1e3:.1f} mm window"
+        )
+    return TipDetection(c, n, rms, len(W), offset)

@@ -138,6 +138,9 @@ class ToolConfig:
     # Which side of the tool the seam wall is on: "left" (+n_d) or "right" (-n_d).
     wall_side: str = "left"
     torch_offset: float = 0.03  # m, |d| of Eq. 14: the torch trails the tip by this much
+    # Diameter of the welding wire: the torch point is the centre of the
+    # wire's cut end, which a tool-calibrate job finds in the scanner's cloud.
+    wire_diameter: float = 0.0012  # m
     # Whether a weld needs the tip measured by an accepted tool-calibrate job
     # ("required": the measured tip overrides tip_tcp; a weld without one is
     # refused) or may run on tip_tcp as typed ("nominal": a tool known to be as
@@ -168,6 +171,7 @@ class ToolConfig:
             T_tool_cam=r.matrix4("T_tool_cam", [list(row) for row in cls.T_tool_cam]),
             wall_side=r.str("wall_side", cls.wall_side, choices=("left", "right")),
             torch_offset=r.float("torch_offset_mm", cls.torch_offset * 1e3, lo=lo, hi=hi, scale=1e-3, open_lo=True),
+            wire_diameter=r.float("wire_diameter_mm", cls.wire_diameter * 1e3, lo=0.2, hi=5.0, scale=1e-3),
             measured=r.str("measured", cls.measured, choices=TOOL_MEASURED),
         )
 

@@ -48,8 +48,8 @@ from celld.bus.schema import CalibrateJob, HealthJob, MoveJob
 from celld.calib.algorithm1 import Algorithm1
 from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
-from celld.calib.flange import preset
-from celld.calib.metrics import cost_function
+from celld.calib.flange import FlangeModel, preset
+from celld.calib.metrics import IcpVerifier, cost_function
 from celld.calib.pairs import Detections, PairCollector
 from celld.calib.poses import calibration_poses
 from celld.calib.rangebias import bias_from_steps, correct_range_bias
@@ -225,9 +225,15 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
             if rec is not None:
                 rec.log_e_icp(step.k, step.cost_optimal)
         ctx.progress("pair", (i + 1) / len(poses), f"pair {pid}", **data)
-        if alg.started and alg.done and pairs.n_pairs >= params.quality.min_pairs:
-            early = alg.reached
-            break
+        if alg.started and alg.done and pairs.n_pairs >= params.quality.min_pairs and i + 1 < len(poses):
+            # Algorithm 1 is done; stop early only when the pairs so far make a calibration that
+            # passes its quality gate (a realistic arm's pose-dependent error can leave a handful
+            # of pairs disagreeing although the cost is low): else the remaining poses go on.
+            why = await asyncio.to_thread(_not_yet, pairs.detections(), params, verifier, flange, pairs.n_captures)
+            if why is None:
+                early = alg.reached
+                break
+            ctx.progress("pair", (i + 1) / len(poses), f"Algorithm 1 is done but {why}: capturing more", pair=pid, detected=True)
 
     found = pairs.detections()
     if pairs.n_pairs < 4:
@@ -276,6 +282,19 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         "poses_planned": len(poses),
         "dataset": str(dataset),
     }
+
+
+def _not_yet(found: Detections, params: SolveParams, verifier: IcpVerifier, flange: FlangeModel, n_captures: int) -> str | None:
+    """Why the pairs found so far would not make an accepted calibration (None: they would)."""
+    try:
+        result = solve_pairs(
+            found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, n_captures, range_bias_data(params, flange, found)
+        )
+    except CalibrationError as exc:
+        return str(exc)
+    if result.quality.verdict != "ok":
+        return f"the quality gate says {result.quality.verdict} ({'; '.join(result.quality.reasons)})"
+    return None
 
 
 def _record_solution(

@@ -1,4 +1,4 @@
-"""The tool-calibrate job: measure the SRM tip in the TCP frame with the scanner.
+"""The tool-calibrate job: measure the SRM tip and the torch in the TCP frame with the scanner.
 
 Steps, each published as a progress event:
 
@@ -12,17 +12,25 @@ Steps, each published as a progress event:
 2. **pose** (each): move, settle (``calibration.settle_s``), capture, read
    the TCP pose from the robot, find the tip ball in the cloud near where the
    tool config puts it (:mod:`celld.calib.tooltip`, the cloud placed with the
-   *current* calibration, its range bias taken off); a capture without the
-   tip is reported and skipped.
-3. **solve**: the tip by linear least squares (:mod:`celld.calib.toolcal`,
-   T1-T2), with per-pose residuals, outliers, 1-sigma and the verdict.
+   *current* calibration, its range bias taken off), and the end of the
+   welding wire near where the config puts the torch (``torch_offset`` behind
+   the tip, :func:`celld.calib.tooltip.detect_wire_end`); a capture without
+   the tip or the wire is reported and skipped for that point.
+3. **solve**: the tip and the torch, each by linear least squares
+   (:mod:`celld.calib.toolcal`, T1-T2), with per-pose residuals, outliers,
+   1-sigma and a verdict; the job's verdict is the first of the two that is
+   not ``ok`` (the torch's reasons prefixed ``torch:``).
 
 The job needs a current calibration (an accepted calibrate job). Its result
 ``tool`` is a candidate: an ``accept`` of the job makes it the current tool
 calibration (``<state_dir>/tool.json``), refused when the verdict is not
 ``ok`` unless forced; a weld then uses its tip in place of
-``tool.tip_tcp_mm`` (:func:`celld.daemon.weld.current_tool`). The poses,
-the tips found and why a capture showed none are written to
+``tool.tip_tcp_mm``, and its torch for the configured torch offset and the
+direction from the torch to the tip (:func:`celld.daemon.weld.current_tool`):
+on a real tool the torch is bent, clamped and trimmed independently of the
+finger, and a torch a millimetre off the tip's line welds a millimetre off the
+seam that the finger tracks exactly. The poses, the points found and why a
+capture showed none are written to
 ``jobs/<job>/toolcal.json``, so the solve can be repeated offline.
 """
 
@@ -30,7 +38,8 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -38,8 +47,8 @@ import numpy as np
 from celld import fsutil, se3
 from celld.bus.schema import ToolCalibrateJob
 from celld.calib.rangebias import correct_range_bias
-from celld.calib.toolcal import ToolCalParams, solve_tool_tip, tool_calibration_poses
-from celld.calib.tooltip import TipDetectParams, detect_tip
+from celld.calib.toolcal import ToolCalParams, ToolTipFit, solve_tool_tip, tool_calibration_poses
+from celld.calib.tooltip import TipDetection, TipDetectParams, WireDetectParams, detect_tip, detect_wire_end
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
@@ -94,12 +103,9 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
     if rec is not None:
         record_cell(rec, planner.with_tool)
         rec.log_camera_pose(T_base_cam, static=True)
-    dparams = TipDetectParams()
-    ids: list[str] = []
-    T_found: list[np.ndarray] = []
-    P_found: list[np.ndarray] = []
-    missed: list[dict[str, Any]] = []
-    detections: list[dict[str, Any]] = []
+    dparams, wparams = TipDetectParams(), WireDetectParams()
+    p_tcp_torch_nominal = p_tcp_nominal - tool.torch_offset * x_tcp  # Eq. 14, as configured
+    tip, torch = _Points("tip"), _Points("torch")
     for i, T in enumerate(poses):
         pid = f"{i:03d}"
         await devices.move_to(T, tool=True)
@@ -110,40 +116,28 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         T_bt = state.T_base_tcp
         cloud = await devices.capture()
         points = correct_range_bias(cloud.points, range_bias) if range_bias else np.asarray(cloud.points)
-        p_pred = se3.apply(T_cam_base @ T_bt, p_tcp_nominal[None])[0]
-        u_cam = T_cam_base[:3, :3] @ T_bt[:3, :3] @ z_tcp
-        try:
-            det = await asyncio.to_thread(detect_tip, points, p_pred, u_cam, tool.tip_radius, dparams)
-        except CalibrationError as exc:
-            missed.append({"id": pid, "reason": str(exc)})
-            ctx.progress("pose", (i + 1) / len(poses), f"pose {pid}: no tip ({exc})", pose=pid, detected=False)
-            continue
-        p_base = se3.apply(T_base_cam, det.p_cam[None])[0]
-        ids.append(pid)
-        T_found.append(T_bt)
-        P_found.append(p_base)
-        detections.append(
-            {
-                "id": pid,
-                "T_base_tcp": T_bt.tolist(),
-                "p_base_tip": p_base.tolist(),
-                "points": det.n_points,
-                "rms_mm": det.rms * 1e3,
-                "offset_mm": det.offset * 1e3,
-            }
+        T_cam_tcp = T_cam_base @ T_bt
+        u_cam = T_cam_tcp[:3, :3] @ z_tcp  # along the finger and the wire, towards the flange
+        tip_pred, torch_pred = se3.apply(T_cam_tcp, np.array([p_tcp_nominal, p_tcp_torch_nominal]))
+        found_tip = await tip.detect(pid, T_bt, T_base_cam, partial(detect_tip, points, tip_pred, u_cam, tool.tip_radius, dparams))
+        found_torch = await torch.detect(
+            pid, T_bt, T_base_cam, partial(detect_wire_end, points, torch_pred, u_cam, tool.wire_diameter / 2.0, wparams)
         )
-        if rec is not None:
+        if rec is not None and (found_tip or found_torch):
             rec.log_tcp(T_bt)
             record_arm(rec, planner.with_tool, state.q)
         ctx.progress(
             "pose",
             (i + 1) / len(poses),
-            f"pose {pid}: tip {det.offset * 1e3:.2f} mm from the configured one",
+            f"pose {pid}: {tip.summary(found_tip)}, {torch.summary(found_torch)}",
             pose=pid,
-            detected=True,
-            points=det.n_points,
-            fit_rms_mm=round(det.rms * 1e3, 4),
-            offset_mm=round(det.offset * 1e3, 3),
+            detected=found_tip is not None,
+            torch_detected=found_torch is not None,
+            **(
+                {"points": found_tip.n_points, "fit_rms_mm": round(found_tip.rms * 1e3, 4), "offset_mm": round(found_tip.offset * 1e3, 3)}
+                if found_tip is not None
+                else {}
+            ),
         )
 
     dataset = ctx.result_dir() / "toolcal.json"
@@ -158,47 +152,143 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
             "range_bias_m": range_bias,
             "tip_tcp_config": p_tcp_nominal.tolist(),
             "tip_radius": tool.tip_radius,
-            "detections": detections,
-            "missed": missed,
+            "torch_tcp_config": p_tcp_torch_nominal.tolist(),
+            "wire_diameter": tool.wire_diameter,
+            "detections": tip.detections,
+            "missed": tip.missed,
+            "torch_detections": torch.detections,
+            "torch_missed": torch.missed,
         },
     )
-    ctx.progress("solve", None, f"solving the tip from {len(ids)} of {len(poses)} poses")
-    T_arr = np.array(T_found).reshape(-1, 4, 4)
-    P_arr = np.array(P_found).reshape(-1, 3)
-    fit = await asyncio.to_thread(solve_tool_tip, T_arr, P_arr, ids, ToolCalParams())
-    if not np.all(np.isfinite(fit.p_tcp_tip)):
+    ctx.progress("solve", None, f"solving the tip from {len(tip.ids)} and the torch from {len(torch.ids)} of {len(poses)} poses")
+    fit = await asyncio.to_thread(tip.solve)
+    torch_fit = await asyncio.to_thread(torch.solve)
+    if fit is None:
         raise CalibrationError(
-            f"only {len(ids)} of {len(poses)} captures showed the tip; at least 3 are needed"
-            + (f" (first miss: {missed[0]['reason']})" if missed else "")
+            f"only {len(tip.ids)} of {len(poses)} captures showed the tip; at least 3 are needed"
+            + (f" (first miss: {tip.missed[0]['reason']})" if tip.missed else "")
         )
     quality = fit.as_dict()
-    quality["missed"] = missed
-    if len(missed):
-        quality["warnings"].append(f"{len(missed)} of {len(poses)} captures showed no tip")
+    quality["missed"] = tip.missed
+    if tip.missed:
+        quality["warnings"].append(f"{len(tip.missed)} of {len(poses)} captures showed no tip")
+    quality["torch"] = _torch_quality(torch_fit, torch, len(poses))
+    if quality["torch"]["verdict"] != "ok" and quality["verdict"] == "ok":
+        # The job's verdict: the first of the tip's and the torch's that is not ok.
+        quality["verdict"], quality["passed"] = quality["torch"]["verdict"], False
+        quality["reasons"] = ["torch: " + r for r in quality["torch"]["reasons"]]
     if rec is not None:
-        b = fit.offset_base
-        P_robot = np.einsum("nij,j->ni", T_arr[:, :3, :3], fit.p_tcp_tip) + T_arr[:, :3, 3] + b
-        out = set(fit.inliers)
-        rec.log_residuals(ids, P_robot, P_arr, [i not in out for i in range(len(ids))])
-    tip = fit.p_tcp_tip
-    torch = tip - tool.torch_offset * x_tcp
-    result_tool = {
+        rec.log_residuals(*tip.residual_points(fit))
+    p_tip = fit.p_tcp_tip
+    result_tool: dict[str, Any] = {
         "job": ctx.job_id,
-        "tip_tcp_mm": (tip * 1e3).tolist(),
+        "tip_tcp_mm": (p_tip * 1e3).tolist(),
         "tip_std_mm": quality["tip_std_mm"],
         "nominal_tip_tcp_mm": (p_tcp_nominal * 1e3).tolist(),
-        "delta_mm": ((tip - p_tcp_nominal) * 1e3).tolist(),
-        "torch_tcp_mm": (torch * 1e3).tolist(),
+        "delta_mm": ((p_tip - p_tcp_nominal) * 1e3).tolist(),
         "calibration_job": cal_job,
-        "poses": len(ids),
+        "poses": len(tip.ids),
         "quality": quality,
     }
+    if torch_fit is not None:
+        p_torch = torch_fit.p_tcp_tip
+        result_tool |= {
+            "torch_measured": True,
+            "torch_tcp_mm": (p_torch * 1e3).tolist(),
+            "torch_std_mm": quality["torch"]["tip_std_mm"],
+            "nominal_torch_tcp_mm": (p_tcp_torch_nominal * 1e3).tolist(),
+            "torch_delta_mm": ((p_torch - p_tcp_torch_nominal) * 1e3).tolist(),
+        }
+    else:
+        # No torch measured: it follows the tip as configured (Eq. 14).
+        result_tool |= {"torch_measured": False, "torch_tcp_mm": ((p_tip - tool.torch_offset * x_tcp) * 1e3).tolist()}
     log.info(
         "tool calibration solved",
         job=ctx.job_id,
-        poses=len(ids),
-        verdict=fit.verdict,
-        tip_mm=np.round(tip * 1e3, 3).tolist(),
-        delta_mm=np.round((tip - p_tcp_nominal) * 1e3, 3).tolist(),
+        poses=len(tip.ids),
+        verdict=quality["verdict"],
+        tip_mm=np.round(p_tip * 1e3, 3).tolist(),
+        delta_mm=np.round((p_tip - p_tcp_nominal) * 1e3, 3).tolist(),
+        torch_delta_mm=np.round(result_tool["torch_delta_mm"], 3).tolist() if torch_fit is not None else None,
     )
-    return {"tool": result_tool, "poses_planned": len(poses), "poses_detected": len(ids), "dataset": str(dataset)}
+    return {
+        "tool": result_tool,
+        "poses_planned": len(poses),
+        "poses_detected": len(tip.ids),
+        "torch_detected": len(torch.ids),
+        "dataset": str(dataset),
+    }
+
+
+class _Points:
+    """One point of the tool (the tip or the torch) as the captures found it: poses, points, misses."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.ids: list[str] = []
+        self.T: list[np.ndarray] = []
+        self.P: list[np.ndarray] = []
+        self.missed: list[dict[str, Any]] = []
+        self.detections: list[dict[str, Any]] = []
+
+    async def detect(
+        self, pid: str, T_base_tcp: np.ndarray, T_base_cam: np.ndarray, find: Callable[[], TipDetection]
+    ) -> TipDetection | None:
+        """Run the detector ``find`` in a thread; keep its point (base frame) or the reason it found none."""
+        try:
+            det = await asyncio.to_thread(find)
+        except CalibrationError as exc:
+            self.missed.append({"id": pid, "reason": str(exc)})
+            return None
+        p_base = se3.apply(T_base_cam, det.p_cam[None])[0]
+        self.ids.append(pid)
+        self.T.append(T_base_tcp)
+        self.P.append(p_base)
+        self.detections.append(
+            {
+                "id": pid,
+                "T_base_tcp": T_base_tcp.tolist(),
+                f"p_base_{self.name}": p_base.tolist(),
+                "points": det.n_points,
+                "rms_mm": det.rms * 1e3,
+                "offset_mm": det.offset * 1e3,
+            }
+        )
+        return det
+
+    def summary(self, det: TipDetection | None) -> str:
+        if det is None:
+            return f"no {self.name} ({self.missed[-1]['reason']})"
+        return f"{self.name} {det.offset * 1e3:.2f} mm from the configured one"
+
+    def solve(self) -> ToolTipFit | None:
+        """T1-T2 on the points found; None when fewer than 3 leave it unsolved."""
+        T = np.array(self.T).reshape(-1, 4, 4)
+        P = np.array(self.P).reshape(-1, 3)
+        fit = solve_tool_tip(T, P, self.ids, ToolCalParams())
+        return fit if np.all(np.isfinite(fit.p_tcp_tip)) else None
+
+    def residual_points(self, fit: ToolTipFit) -> tuple[list[str], np.ndarray, np.ndarray, list[bool]]:
+        """Ids, the fitted point through each pose (plus the fit's base offset), the found points, and which are used."""
+        T = np.array(self.T).reshape(-1, 4, 4)
+        P_robot = np.einsum("nij,j->ni", T[:, :3, :3], fit.p_tcp_tip) + T[:, :3, 3] + fit.offset_base
+        out = set(fit.inliers)
+        return self.ids, P_robot, np.array(self.P).reshape(-1, 3), [i not in out for i in range(len(self.ids))]
+
+
+def _torch_quality(fit: ToolTipFit | None, torch: _Points, n_poses: int) -> dict[str, Any]:
+    """The torch's report: its fit's, or a ``poor_data`` verdict saying why there is none."""
+    if fit is None:
+        first = f" (first miss: {torch.missed[0]['reason']})" if torch.missed else ""
+        return {
+            "verdict": "poor_data",
+            "passed": False,
+            "reasons": [f"only {len(torch.ids)} of {n_poses} captures showed the welding wire's end; at least 3 are needed{first}"],
+            "warnings": [],
+            "missed": torch.missed,
+        }
+    quality = fit.as_dict()
+    quality["missed"] = torch.missed
+    if torch.missed:
+        quality["warnings"].append(f"{len(torch.missed)} of {n_poses} captures showed no wire end")
+    return quality

@@ -38,7 +38,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -56,7 +56,7 @@ from celld.recording import layout
 from celld.seam.figures import track_summary
 from celld.seam.weldpath import WeldGeometry, start_pose, tool_poses, wall_offset, weld_geometry
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
-from celld.tactile.tool import ToolGeometry
+from celld.tactile.tool import ToolGeometry, with_measured_torch
 
 log = get_logger(__name__)
 
@@ -129,33 +129,58 @@ def current_calibration(state_dir: Path) -> tuple[np.ndarray, float, str]:
     return T, float(bias_mm) * 1e-3, str(cal.get("job", ""))
 
 
-def current_tool(state_dir: Path, tool: ToolConfig) -> tuple[ToolConfig, str]:
-    """``tool`` with the current tool calibration's tip, and the job that measured it ("" for none).
+class CurrentTool(NamedTuple):
+    """The tool a weld runs with (:func:`current_tool`)."""
 
-    Refused without a current tool calibration unless ``tool.measured`` is
-    ``"nominal"``, and when the stored tip is unusable.
+    tool: ToolConfig
+    job: str  # the tool-calibrate job that measured it, "" for none
+    sensor_yaw: float = 0.0  # rad, Algorithm2Params.sensor_yaw
+    torch_measured: bool = False
+
+
+def current_tool(state_dir: Path, tool: ToolConfig) -> CurrentTool:
+    """``tool`` with the current tool calibration's tip and, when it measured it, its torch.
+
+    A measured torch sets the tool's x axis (from the torch to the tip, across
+    the configured finger axis) and ``torch_offset``
+    (:func:`celld.tactile.tool.with_measured_torch`). Refused without a current
+    tool calibration unless ``tool.measured`` is ``"nominal"``, and when the
+    stored tip or torch is unusable.
     """
     current = tool_store(state_dir).current()
     if current is None:
         if tool.measured == "nominal":
-            return tool, ""
+            return CurrentTool(tool, "")
         raise JobError(
             "$",
             "the tool's tip is not measured: run a tool-calibrate job and accept it first, or set "
             'tool.measured = "nominal" in the config to weld with tool.tip_tcp_mm as typed',
         )
-    tip_mm = current.get("tip_tcp_mm")
+    job = str(current.get("job", ""))
+    tip = _stored_point(current, "tip_tcp_mm")
+    tool = replace(tool, tip_tcp=(float(tip[0]), float(tip[1]), float(tip[2])))
+    if current.get("torch_measured") is not True:
+        return CurrentTool(tool, job)  # a calibration of the tip alone: the torch as configured
     try:
-        tip = np.asarray(tip_mm, dtype=np.float64) * 1e-3
+        measured = with_measured_torch(tool, _stored_point(current, "torch_tcp_mm"))
+    except InputError as exc:
+        raise JobError("$", f"the current tool calibration {job} is unusable: {exc}") from exc
+    return CurrentTool(measured.tool, job, measured.sensor_yaw, True)
+
+
+def _stored_point(current: Mapping[str, Any], key: str) -> np.ndarray:
+    value = current.get(key)
+    try:
+        p = np.asarray(value, dtype=np.float64) * 1e-3
     except (TypeError, ValueError) as exc:
-        raise JobError("$", f"the current tool calibration is unusable: tip_tcp_mm {tip_mm!r}") from exc
-    if tip.shape != (3,) or not np.all(np.isfinite(tip)) or np.linalg.norm(tip) > MAX_TIP_DISTANCE:
+        raise JobError("$", f"the current tool calibration is unusable: {key} {value!r}") from exc
+    if p.shape != (3,) or not np.all(np.isfinite(p)) or np.linalg.norm(p) > MAX_TIP_DISTANCE:
         raise JobError(
             "$",
-            f"the current tool calibration is unusable: tip_tcp_mm must be 3 finite numbers within "
-            f"{MAX_TIP_DISTANCE * 1e3:g} mm of the TCP, got {tip_mm!r}",
+            f"the current tool calibration is unusable: {key} must be 3 finite numbers within "
+            f"{MAX_TIP_DISTANCE * 1e3:g} mm of the TCP, got {value!r}",
         )
-    return replace(tool, tip_tcp=(float(tip[0]), float(tip[1]), float(tip[2]))), str(current.get("job", ""))
+    return p
 
 
 class _Collector:
@@ -206,7 +231,13 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         # The job's field of the refused value: its key in the section (delta_d_mm, ...).
         raise JobError("$." + exc.key.rsplit(".", 1)[-1], exc.reason) from exc
     T_base_cam, range_bias, cal_job = current_calibration(ctx.state_dir)
-    tool_cfg, tool_job = current_tool(ctx.state_dir, tool_cfg)
+    tool_cfg, tool_job, sensor_yaw, torch_measured = current_tool(ctx.state_dir, tool_cfg)
+    if torch_measured and job.torch_offset is not None:
+        raise JobError(
+            "$.torch_offset_mm",
+            f"the torch is measured (tool calibration {tool_job}: {tool_cfg.torch_offset * 1e3:.2f} mm behind the tip); "
+            "leave torch_offset_mm out, or measure the tool again",
+        )
     tool = ToolGeometry.from_config(tool_cfg)
     workpiece = resolve_workpiece(job.workpiece, config)
     # Prepared models by content (a user's model edited on disk is prepared again).
@@ -294,6 +325,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         T_base_plane=geometry.T_base_plane,
         process=bool(job.arc) and config.robot.arc_output >= 0,
         seam_offset=offset,
+        sensor_yaw=sensor_yaw,
     )
     collector = _Collector()
     motion.add_listener(collector)
@@ -362,6 +394,12 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     result["workpiece"] = workpiece.name
     result["calibration_job"] = cal_job
     result["tool_calibration_job"] = tool_job
+    # The torch the weld placed: measured (its offset and the tool's x turned by -sensor_yaw) or as configured.
+    result["torch"] = {
+        "measured": torch_measured,
+        "torch_offset_mm": round(tool_cfg.torch_offset * 1e3, 4),
+        "yaw_from_config_deg": round(-math.degrees(sensor_yaw), 4),
+    }
     if retract_error:
         result["retract_error"] = retract_error
     return result

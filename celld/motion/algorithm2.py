@@ -55,7 +55,7 @@ Departures from the paper, each for a reason stated where it is coded:
 5. Approach. Before tracking, the tool moves along the planned normal towards
    the wall at ``touch_speed`` until the deformation settles at ``delta_d``.
 
-Two plan parameters reach beyond the paper:
+Three plan parameters reach beyond the paper:
 
 - ``seam_offset`` (m, >= 0): the seam lies this far from the wall the finger
   touches, on the free side (against ``side n_s``). REFINE records the wall
@@ -64,6 +64,11 @@ Two plan parameters reach beyond the paper:
 - ``process`` (bool): the plan asks for the process (the welding arc).
   :meth:`Algorithm2Servo.telemetry` reports ``process_on`` while the phase is
   TRACK, SEARCH or FINISH; the motion core grants it (:mod:`celld.motion.core`).
+- ``sensor_yaw`` (rad): the tool frame of the plan was turned about its z
+  from the configured one by a measured torch
+  (:func:`celld.tactile.tool.with_measured_torch`); the finger's deformation
+  arrives in the configured frame and turns by it first. 0: the tool as
+  configured.
 
 Pure: the state, samples and plan come in as values; no clock, no I/O. The
 law allocates its buffers when built, not in the loop.
@@ -84,7 +89,7 @@ from celld.motion.plan import PlannedPath, prepare_plan, welding_plane
 from celld.motion.types import ControlStatus, RobotState, ServoInput, ServoPlan, ServoTelemetry
 from celld.se3 import check_points, check_transform
 from celld.tactile.sample import ContactState, TactileSample, TactileStatus
-from celld.tactile.tool import ToolGeometry
+from celld.tactile.tool import MAX_TORCH_YAW, ToolGeometry, yaw_in_plane
 
 Array = np.ndarray
 
@@ -235,6 +240,7 @@ class Algorithm2Params(NamedTuple):
     k_height: float  # 1/s, holds the tip's height above the plane
     process: bool = False  # the plan asks for the process (welding arc) while tracking
     seam_offset: float = 0.0  # m, seam's distance from the wall, on the free side (module docstring)
+    sensor_yaw: float = 0.0  # rad, the tactile frame's yaw from the tool frame's (module docstring)
 
     @classmethod
     def from_config(cls, servo: ServoConfig, tool: ToolConfig, motion: MotionLimits) -> Algorithm2Params:
@@ -263,7 +269,7 @@ class Algorithm2Params(NamedTuple):
     def from_plan(cls, params: dict[str, Any]) -> Algorithm2Params:
         """Read and check the parameters carried by a :class:`ServoPlan`.
 
-        Parameters with a default (``process``, ``seam_offset``) may be left out.
+        Parameters with a default (``process``, ``seam_offset``, ``sensor_yaw``) may be left out.
         """
         values: dict[str, Any] = {}
         for name in cls._fields:
@@ -289,6 +295,8 @@ class Algorithm2Params(NamedTuple):
             raise InputError(f"algorithm2 plan: side must be +1 or -1, got {p.side}")
         if p.tactile_stale <= 0.0 or min(p.tip_radius, p.k_height) < 0.0:
             raise InputError("algorithm2 plan: tactile_stale must be > 0, tip_radius and k_height >= 0")
+        if not abs(p.sensor_yaw) <= MAX_TORCH_YAW:
+            raise InputError(f"algorithm2 plan: sensor_yaw must be within {MAX_TORCH_YAW:.4f} rad of 0, got {p.sensor_yaw}")
         if not 0.0 <= p.seam_offset < p.torch_offset:
             # The torch trails the tip by |d|: it cannot reach a seam |d| or more off the wall.
             raise InputError(f"algorithm2 plan: seam_offset must be >= 0 and below torch_offset {p.torch_offset} m, got {p.seam_offset} m")
@@ -305,13 +313,15 @@ def algorithm2_plan(
     *,
     process: bool = False,
     seam_offset: float = 0.0,
+    sensor_yaw: float = 0.0,
 ) -> ServoPlan:
     """The :class:`ServoPlan` that starts Algorithm 2 on the planned seam ``P_base`` (n, 3).
 
     Built where the plan is made (the main process); the motion process turns
     it into the law with :func:`make_algorithm2`. ``process`` asks for the
     process output (welding arc) while tracking; ``seam_offset`` (m) is the
-    seam's distance from the wall the finger touches (module docstring).
+    seam's distance from the wall the finger touches and ``sensor_yaw`` (rad) the
+    tactile frame's yaw from the tool frame's (module docstring).
 
     Raises
     ------
@@ -321,7 +331,9 @@ def algorithm2_plan(
     P = check_points(P_base, "P_base", min_points=2)
     plane = welding_plane(P, normal_hint) if T_base_plane is None else check_transform(T_base_plane, "T_base_plane")
     geometry = ToolGeometry.from_config(tool)
-    params = Algorithm2Params.from_config(servo, tool, motion)._replace(process=bool(process), seam_offset=float(seam_offset))
+    params = Algorithm2Params.from_config(servo, tool, motion)._replace(
+        process=bool(process), seam_offset=float(seam_offset), sensor_yaw=float(sensor_yaw)
+    )
     Algorithm2Params.from_plan(dict(params._asdict()))  # refuse a bad plan where it is made
     return ServoPlan(NAME, {"P_base": P, "T_base_plane": plane, "T_tcp_tool": geometry.T_tcp_tool}, dict(params._asdict()))
 
@@ -573,7 +585,8 @@ class Algorithm2Servo:
         self.samples_used += 1
         self._last_valid = sample
         P_cap, t_cap = self._at(sample.stamp_ns)
-        delta = deformation_in_plane(sample.delta_tool, t_cap, _left(t_cap))
+        delta_tool = sample.delta_tool if self.p.sensor_yaw == 0.0 else yaw_in_plane(sample.delta_tool, self.p.sensor_yaw)
+        delta = deformation_in_plane(delta_tool, t_cap, _left(t_cap))
         self._delta_meas = delta
         self._P_r_cap = P_cap
         if sample.contact == ContactState.OVERLOAD:

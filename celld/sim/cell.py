@@ -103,6 +103,7 @@ class _CellScanner:
                 table=not objects,
                 extra=lambda: objects,
                 tool=self.world.tool.config,  # the tool as built, never the controller's [tool]
+                p_flange_torch=self.world.tool.p_flange_torch,
             ),
             seed=sc.noise_seed,
             resolution_scale=sc.resolution_scale,

@@ -7,7 +7,7 @@
    simulated UR10e in it (behind real ur-rtde, in real time) and the daemon on
    its devices as its own process (``celld sim run``);
 2. submits a calibrate job over zenoh, shows its progress, accepts the result;
-3. submits a tool-calibrate job (the SRM tip measured by the scanner) and
+3. submits a tool-calibrate job (the SRM tip and the torch measured by the scanner) and
    accepts it, unless ``--no-tool-calibrate``;
 4. submits a weld job: scan, seam, touch, Algorithm 2 with the arc, retract;
 5. prints, side by side against the world's truth: the calibration (its
@@ -21,7 +21,7 @@ Only this script reads the truth, after the jobs have ended (a recorder
 keeps the arm's true states while the weld runs, since the robot's shared
 history holds two seconds); the daemon never sees it. The ``realistic``
 world's tool differs from the configured one by up to 1-2 mm: the
-tool-calibrate job measures its tip (``--no-tool-calibrate`` welds with the
+tool-calibrate job measures its tip and torch (``--no-tool-calibrate`` welds with the
 configured tip, ``--without tool_offsets`` as if the tool were as drawn).
 """
 
@@ -187,7 +187,13 @@ def run_jobs(
                 tool_forced = True
             tip_true = np.asarray(world.tool.config.tip_tcp)
             err = np.asarray(tool["tip_tcp_mm"]) * 1e-3 - tip_true
+            torch_true = np.asarray(world.tool.p_flange_torch)
+            torch_err = np.asarray(tool["torch_tcp_mm"]) * 1e-3 - torch_true
             figures["tool"] = {
+                "torch_measured": bool(tool.get("torch_measured")),
+                "torch_error_mm": float(np.linalg.norm(torch_err) * 1e3),
+                "torch_error_xyz_mm": (torch_err * 1e3).tolist(),
+                "torch_config_error_mm": float(np.linalg.norm(np.asarray(world.tool.p_flange_torch_nominal) - torch_true) * 1e3),
                 "job": tc["id"],
                 "tip_error_mm": float(np.linalg.norm(err) * 1e3),
                 "tip_error_xyz_mm": (err * 1e3).tolist(),
@@ -200,7 +206,10 @@ def run_jobs(
             }
             say(
                 f"tool calibration {tc['id']} accepted: tip {figures['tool']['tip_error_mm']:.3f} mm from the true tip "
-                f"(the config's {figures['tool']['config_error_mm']:.3f} mm), verdict {tq['verdict']}"
+                f"(the config's {figures['tool']['config_error_mm']:.3f} mm), torch "
+                f"{figures['tool']['torch_error_mm']:.3f} mm from the true torch (the config's "
+                f"{figures['tool']['torch_config_error_mm']:.3f} mm{'' if figures['tool']['torch_measured'] else ', not measured'}), "
+                f"verdict {tq['verdict']}"
             )
         with TruthRecorder(cfg.robot.host) as recorder:
             weld = _job(cell.client, {"kind": "weld"}, say)

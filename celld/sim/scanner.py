@@ -370,6 +370,7 @@ def robot_scene_source(
     clutter_seed: int | None = None,
     extra: Callable[[], Sequence[SceneObject]] | None = None,
     tool: ToolConfig | None = None,
+    p_flange_torch: np.ndarray | None = None,
 ) -> SceneSource:
     """A scene source of the calibration scene at the robot's current pose.
 
@@ -386,11 +387,13 @@ def robot_scene_source(
         Returns more objects (a workpiece) to add to each capture.
     tool : ToolConfig, optional
         The welding tool as built on the flange (flange frame), drawn at each capture.
+    p_flange_torch : (3,) array, optional
+        The torch's wire end as built (flange frame): the torch is drawn too.
     """
 
     def scene() -> list[SceneObject]:
         T = se3.check_transform(T_base_flange(), "T_base_flange")
-        objects = list(robot_scene(T, flange, table=table, clutter_seed=clutter_seed, tool=tool))
+        objects = list(robot_scene(T, flange, table=table, clutter_seed=clutter_seed, tool=tool, p_flange_torch=p_flange_torch))
         if extra is not None:
             objects.extend(extra())
         return objects

@@ -12,7 +12,11 @@ finger as a thin shaft from the flange's centre to the tip, and the tip ball
 (the tool's ``tip_radius``) at the true tip, both matte. The shaft is thinner
 than the ball (:data:`_SHAFT_OF_TIP`), so the ball's end stands out, and thin
 enough to leave the flange's face and bore to the calibration's detector
-(only a shadow stripe of about a millimetre crosses them).
+(only a shadow stripe of about a millimetre crosses them). Given the true
+torch point, the torch is drawn too: the welding wire (the tool's
+``wire_diameter``, bare metal) sticking :data:`_STICK_OUT` out of a gas
+nozzle (a metal cylinder), both along the finger's axis, the wire's cut end
+at the torch point.
 
 Materials: the tool flange (face, chamfer, bore, holes, side wall) is bare
 machined metal; the wrist body it stands on (the shoulder annulus and the
@@ -57,6 +61,10 @@ _CLUTTER_MIN = (0.25, -0.35)
 _CLUTTER_MAX = (0.95, 0.35)
 # The finger's shaft radius as a fraction of the tip ball's.
 _SHAFT_OF_TIP = 0.6
+# The torch: the wire's stick-out from the nozzle, the nozzle's radius and length, m.
+_STICK_OUT = 0.015
+_NOZZLE_RADIUS = 0.008
+_NOZZLE_LENGTH = 0.04
 # Facets of the tip ball (30: the mesh lies within 3 um of a 1 mm sphere).
 _BALL_RESOLUTION = 30
 
@@ -173,13 +181,16 @@ def _clutter(seed: int) -> list[SceneObject]:
     return objects
 
 
-def tool_objects(T_base_flange: np.ndarray, tool: ToolConfig) -> list[SceneObject]:
-    """The welding tool as built on the flange: the finger's shaft and the tip ball (both matte).
+def tool_objects(T_base_flange: np.ndarray, tool: ToolConfig, p_flange_torch: np.ndarray | None = None) -> list[SceneObject]:
+    """The welding tool as built on the flange: the finger's shaft and the tip ball (both matte), and the torch.
 
     ``tool`` is in the keys of :class:`~celld.config.ToolConfig` with the
     flange as its TCP (the simulated world's :attr:`ToolTruth.config`): the
     ball's centre is ``tip_tcp``, the shaft runs from it along the tool's z
     axis (towards the flange) for the tip's distance from the flange's centre.
+    ``p_flange_torch`` (the world's :attr:`ToolTruth.p_flange_torch`), when
+    given, is the end of the welding wire: the wire and the nozzle run from it
+    along the same axis.
     """
     T = se3.check_transform(T_base_flange, "T_base_flange")
     tip = np.asarray(tool.tip_tcp, dtype=np.float64)
@@ -191,10 +202,19 @@ def tool_objects(T_base_flange: np.ndarray, tool: ToolConfig) -> list[SceneObjec
     shaft = cylinder(_SHAFT_OF_TIP * tool.tip_radius, length, resolution=24)
     ball = o3d.geometry.TriangleMesh.create_sphere(radius=tool.tip_radius, resolution=_BALL_RESOLUTION)
     ball.compute_triangle_normals()
-    return [
+    objects = [
         SceneObject("srm_finger", shaft, T_shaft, "matte"),
         SceneObject("srm_tip", ball, T @ se3.transform_from(np.eye(3), tip), "matte"),
     ]
+    if p_flange_torch is not None:
+        end = np.asarray(p_flange_torch, dtype=np.float64)
+        wire = cylinder(tool.wire_diameter / 2.0, _STICK_OUT, resolution=24)
+        nozzle = cylinder(_NOZZLE_RADIUS, _NOZZLE_LENGTH, resolution=48)
+        objects += [
+            SceneObject("torch_wire", wire, T @ se3.frame_from_z(end + _STICK_OUT * z, z), "metal"),
+            SceneObject("torch_nozzle", nozzle, T @ se3.frame_from_z(end + (_STICK_OUT + _NOZZLE_LENGTH) * z, z), "metal"),
+        ]
+    return objects
 
 
 def robot_scene(
@@ -203,6 +223,7 @@ def robot_scene(
     table: bool = True,
     clutter_seed: int | None = None,
     tool: ToolConfig | None = None,
+    p_flange_torch: np.ndarray | None = None,
 ) -> list[SceneObject]:
     """The calibration scene: flange on the wrist, robot links, table, optional clutter.
 
@@ -218,6 +239,8 @@ def robot_scene(
         Seed of the random clutter on the table; ``None`` for none.
     tool : ToolConfig or None
         The welding tool as built, flange frame (:func:`tool_objects`); ``None``: no tool.
+    p_flange_torch : (3,) array or None
+        The torch's wire end as built, flange frame (:func:`tool_objects`); ``None``: no torch.
 
     Returns
     -------
@@ -235,5 +258,5 @@ def robot_scene(
     if clutter_seed is not None:
         objects += _clutter(clutter_seed)
     if tool is not None:
-        objects += tool_objects(T_base_flange, tool)
+        objects += tool_objects(T_base_flange, tool, p_flange_torch)
     return objects

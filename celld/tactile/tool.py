@@ -33,11 +33,13 @@ Frames and points (all rigid with the TCP):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from celld.config import ToolConfig
+from celld.config import SERVO_BOUNDS, ToolConfig
+from celld.errors import InputError
 from celld.se3 import check_transform, transform_from
 
 Array = np.ndarray
@@ -91,3 +93,80 @@ class ToolGeometry:
     def torch_tool(self) -> Array:
         """The torch point in the tool frame, (3,): ``-|d| x`` (Eq. 14)."""
         return np.array([-self.torch_offset, 0.0, 0.0])
+
+
+# A measured torch a weld refuses: its direction from the tip this far (rad) from
+# the configured tool x, or this far (m) off the tip's height along the finger.
+MAX_TORCH_YAW = math.radians(10.0)
+MAX_TORCH_HEIGHT = 0.005
+
+
+@dataclass(frozen=True)
+class MeasuredTorch:
+    """The tool re-framed on a measured torch (:func:`with_measured_torch`).
+
+    Attributes
+    ----------
+    tool : ToolConfig
+        The tool with ``tool_x_tcp`` from the torch towards the tip (across the
+        configured finger axis ``tool_z_tcp``) and ``torch_offset`` the torch's
+        distance from the tip across that axis: the torch then sits exactly at
+        ``P_r - |d| t_d`` (Eq. 14).
+    sensor_yaw : float
+        Angle about the tool's z from the new x to the configured one, rad: the
+        finger camera's deformation (reported in the configured tool frame)
+        turns by it into the new frame.
+    height : float
+        The torch's offset from the tip along the finger axis (towards the flange), m.
+    """
+
+    tool: ToolConfig
+    sensor_yaw: float
+    height: float
+
+
+def with_measured_torch(cfg: ToolConfig, p_tcp_torch: np.ndarray) -> MeasuredTorch:
+    """``cfg`` with its torch where a tool calibration measured it (TCP frame, m).
+
+    The finger axis stays the configured one; the tool's x is the direction from
+    the torch to the tip across it, and ``torch_offset`` the distance across it.
+
+    Raises
+    ------
+    InputError
+        The measured torch is not a finite point, lies on the finger's axis, is
+        turned more than :data:`MAX_TORCH_YAW` from where the config puts it or
+        stands more than :data:`MAX_TORCH_HEIGHT` off the tip's height.
+    """
+    torch = np.asarray(p_tcp_torch, dtype=np.float64)
+    if torch.shape != (3,) or not np.all(np.isfinite(torch)):
+        raise InputError(f"measured torch: expected a finite (3,) point in the TCP frame, got {torch.tolist()}")
+    x_cfg = np.asarray(cfg.tool_x_tcp, dtype=np.float64)
+    z = np.asarray(cfg.tool_z_tcp, dtype=np.float64)
+    v = np.asarray(cfg.tip_tcp, dtype=np.float64) - torch
+    height = float(-(v @ z))
+    v_plane = v - (v @ z) * z
+    offset = float(np.linalg.norm(v_plane))
+    bound = SERVO_BOUNDS["torch_offset"]
+    if not bound.holds(offset):
+        raise InputError(f"measured torch: {offset * 1e3:.2f} mm from the tip across the finger; torch_offset_mm must be {bound.text(1e3)}")
+    x = v_plane / offset
+    yaw = math.atan2(float(z @ np.cross(x, x_cfg)), float(x @ x_cfg))
+    if abs(yaw) > MAX_TORCH_YAW:
+        raise InputError(
+            f"measured torch: {math.degrees(yaw):.1f} deg about the finger from where the config puts it "
+            f"(at most {math.degrees(MAX_TORCH_YAW):.0f}); check tool.tool_x_tcp and the torch"
+        )
+    if abs(height) > MAX_TORCH_HEIGHT:
+        raise InputError(
+            f"measured torch: its end stands {height * 1e3:.2f} mm off the tip's height along the finger "
+            f"(at most {MAX_TORCH_HEIGHT * 1e3:.0f} mm); trim the wire"
+        )
+    tool = replace(cfg, tool_x_tcp=(float(x[0]), float(x[1]), float(x[2])), torch_offset=offset)
+    return MeasuredTorch(tool, yaw, height)
+
+
+def yaw_in_plane(delta: np.ndarray, yaw: float) -> np.ndarray:
+    """The in-plane components ``delta[:2]`` turned by ``yaw`` about z (a frame turned by ``-yaw``), (2,)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([c * delta[0] - s * delta[1], s * delta[0] + c * delta[1]])

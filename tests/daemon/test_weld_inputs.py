@@ -76,16 +76,43 @@ def test_a_weld_takes_the_measured_tip_and_refuses_an_unmeasured_tool_unless_nom
     with pytest.raises(JobError, match='tool.measured = "nominal"'):
         current_tool(tmp_path, required)
     nominal = parse({"tool": {"tip_tcp_mm": [0, 0, 200], "measured": "nominal"}}).tool
-    assert current_tool(tmp_path, nominal) == (nominal, "")
+    assert current_tool(tmp_path, nominal) == (nominal, "", 0.0, False)
     store = tool_store(tmp_path)
     quality = {"verdict": "poor_data", "reasons": ["RMS residual 0.5 mm exceeds 0.3 mm"]}
     store.add_candidate("t1", {"job": "t1", "tip_tcp_mm": [0.8, -1.1, 200.9], "quality": quality})
     with pytest.raises(JobError, match="poor_data: RMS residual"):
         store.accept("t1")
     store.accept("t1", force=True)
-    tool, job = current_tool(tmp_path, required)
+    tool, job, yaw, torch_measured = current_tool(tmp_path, required)
     assert job == "t1" and tool.tip_tcp == pytest.approx((0.8e-3, -1.1e-3, 0.2009))
-    assert tool == ToolConfig(tip_tcp=tool.tip_tcp)  # only the tip changes
+    assert tool == ToolConfig(tip_tcp=tool.tip_tcp) and (yaw, torch_measured) == (0.0, False)  # only the tip changes
     fsutil.write_json(tmp_path / "tool.json", {"job": "t2", "tip_tcp_mm": [0.0, "x", 200.0]})
     with pytest.raises(JobError, match="unusable"):
         current_tool(tmp_path, nominal)
+
+
+def test_a_weld_takes_a_measured_torch_for_the_tool_x_axis_and_offset(tmp_path: Path) -> None:
+    from celld.daemon.jobs import tool_store
+    from celld.daemon.weld import current_tool
+
+    required = parse({"tool": {"tip_tcp_mm": [0, 0, 200]}}).tool
+    store = tool_store(tmp_path)
+    ok = {"verdict": "ok", "reasons": []}
+    # The torch 0.9 mm to the tool's -y of where the config puts it (TCP y = tool -y with the default axes).
+    entry = {"job": "t3", "tip_tcp_mm": [0.0, 0.0, 200.0], "torch_measured": True, "torch_tcp_mm": [-30.0, 0.9, 200.0], "quality": ok}
+    store.add_candidate("t3", entry)
+    store.accept("t3")
+    got = current_tool(tmp_path, required)
+    assert got.job == "t3" and got.torch_measured
+    assert got.tool.torch_offset == pytest.approx(np.hypot(30.0, 0.9) * 1e-3)
+    np.testing.assert_allclose(got.tool.tool_x_tcp, np.array([30.0, -0.9, 0.0]) / np.hypot(30.0, 0.9))
+    assert abs(got.sensor_yaw) == pytest.approx(np.arctan2(0.9, 30.0))
+    # A stored torch that no tool can have is refused, naming it; one not measured leaves the torch as configured.
+    fsutil.write_json(tmp_path / "tool.json", {**entry, "torch_tcp_mm": [-30.0, 9.0, 200.0]})
+    with pytest.raises(JobError, match="t3 is unusable: measured torch: -16.7 deg"):
+        current_tool(tmp_path, required)
+    fsutil.write_json(tmp_path / "tool.json", {**entry, "torch_tcp_mm": [-30.0, None, 200.0]})
+    with pytest.raises(JobError, match="torch_tcp_mm"):
+        current_tool(tmp_path, required)
+    fsutil.write_json(tmp_path / "tool.json", {**entry, "torch_measured": False})
+    assert current_tool(tmp_path, required) == (required, "t3", 0.0, False)

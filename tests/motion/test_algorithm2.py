@@ -436,13 +436,21 @@ def test_a_tactile_fault_mid_seam_drops_the_process() -> None:
     assert loop.outs[first_stop].status == ControlStatus.STALE_TACTILE
 
 
-def _scripted_refined_path(seam_offset: float, process: bool = False) -> tuple[np.ndarray, list]:
+def _scripted_refined_path(
+    seam_offset: float, process: bool = False, sensor_yaw: float = 0.0, sample_yaw: float = 0.0
+) -> tuple[np.ndarray, list]:
     """Algorithm 2 fed a fixed script: the tip slides along +x at 10 mm/s, 3 mm off the plan, pressed
-    into the wall by exactly delta_d each cycle. Returns the refined path and the telemetry per cycle."""
+    into the wall by exactly delta_d each cycle (seen in a frame turned by ``-sample_yaw`` about z).
+    Returns the refined path and the telemetry per cycle."""
     servo, tool, motion = ServoConfig(), ToolConfig(), MotionLimits()
     x = np.arange(0.0, 0.06, 0.001)
     P_plan = np.column_stack([x, np.full(len(x), -0.002), np.zeros(len(x))]) @ T_PLANE[:3, :3].T + T_PLANE[:3, 3]
-    law = make_algorithm2(algorithm2_plan(P_plan, servo, tool, motion, T_base_plane=T_PLANE, process=process, seam_offset=seam_offset))
+    plan = algorithm2_plan(
+        P_plan, servo, tool, motion, T_base_plane=T_PLANE, process=process, seam_offset=seam_offset, sensor_yaw=sensor_yaw
+    )
+    law = make_algorithm2(plan)
+    c, s = math.cos(-sample_yaw), math.sin(-sample_yaw)
+    delta = np.array([-s * servo.delta_d, c * servo.delta_d, 0.0])
     T = np.eye(4)
     T[:3, :3] = np.diag([1.0, -1.0, -1.0])
     T[:3, 3] = P_plan[5] - np.array([0.0, 0.003, 0.0])
@@ -450,7 +458,7 @@ def _scripted_refined_path(seam_offset: float, process: bool = False) -> tuple[n
     tel = []
     for k in range(1, 500):
         T[0, 3] += 0.01 * PERIOD
-        sample = TactileSample(k * 2_000_000, k, np.array([0.0, servo.delta_d, 0.0]), ContactState.CONTACT, 1.0, True, 0)
+        sample = TactileSample(k * 2_000_000, k, delta, ContactState.CONTACT, 1.0, True, 0)
         law.step(ServoInput(RobotState(k * 2_000_000, np.zeros(6), np.zeros(6), T.copy(), np.zeros(6)), sample, 0.0))
         tel.append(law.telemetry())
     return law.refined_plane, tel
@@ -497,5 +505,22 @@ def test_the_new_plan_parameters_are_checked() -> None:
     with pytest.raises(InputError, match="process"):
         make_algorithm2(plan._replace(params={**plan.params, "process": 1}))
     # A plan that leaves them out gets the defaults: no process, the wall is the seam.
-    older = {k: v for k, v in plan.params.items() if k not in ("process", "seam_offset")}
-    assert make_algorithm2(plan._replace(params=older)).p[-2:] == (False, 0.0)
+    older = {k: v for k, v in plan.params.items() if k not in ("process", "seam_offset", "sensor_yaw")}
+    assert make_algorithm2(plan._replace(params=older)).p[-3:] == (False, 0.0, 0.0)
+    for bad_yaw in (0.2, -0.2, math.nan):
+        with pytest.raises(InputError, match="sensor_yaw"):
+            make_algorithm2(plan._replace(params={**plan.params, "sensor_yaw": bad_yaw}))
+
+
+def test_sensor_yaw_turns_the_deformation_into_the_measured_tool_frame() -> None:
+    """A tool re-framed on its measured torch: the finger camera still reports in the configured
+    frame, turned 3 deg from the plan's; with sensor_yaw the law sees the same deformation as an
+    unturned tool, without it the wall reads 3 deg off (a tangential part, a shorter normal)."""
+    yaw = math.radians(3.0)
+    R0, _ = _scripted_refined_path(0.0)
+    R1, tel1 = _scripted_refined_path(0.0, sensor_yaw=yaw, sample_yaw=yaw)
+    R2, tel2 = _scripted_refined_path(0.0, sample_yaw=yaw)
+    np.testing.assert_allclose(R1, R0, rtol=0, atol=1e-12)
+    assert tel1[-1].delta_n == pytest.approx(ServoConfig().delta_d, abs=1e-12)
+    assert tel2[-1].delta_n == pytest.approx(ServoConfig().delta_d * math.cos(yaw), abs=1e-9)
+    assert np.max(np.abs(R2 - R0)) > 0.05 * ServoConfig().delta_d

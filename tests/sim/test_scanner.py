@@ -234,3 +234,25 @@ def test_the_tool_is_drawn_as_built_a_thin_finger_ending_in_the_tip_ball() -> No
     across = np.linalg.norm((V - p_tip) - np.outer(along, axis), axis=1)
     assert along.min() == pytest.approx(0.0, abs=1e-9) and along.max() == pytest.approx(np.linalg.norm(built.tip_tcp) - 1e-3, abs=1e-9)
     assert across.max() < built.tip_radius  # thinner than the ball: the ball's end stands out
+
+
+def test_the_torch_is_drawn_as_built_the_wire_ending_at_the_torch_point_out_of_a_metal_nozzle() -> None:
+    from celld.config import ToolConfig
+    from celld.sim.scene import tool_objects
+
+    T = se3.from_xyz_rpy([0.6, 0.0, 0.25], [0.2, -0.1, 0.3])
+    built = ToolConfig(tip_tcp=(0.0008, -0.0011, 0.2009), wire_diameter=0.0012)
+    p_torch = np.array([-0.0296, -0.0019, 0.2004])
+    objects = tool_objects(T, built, p_torch)
+    assert [(o.name, o.material) for o in objects[2:]] == [("torch_wire", "metal"), ("torch_nozzle", "metal")]
+    wire, nozzle = objects[2:]
+    end = se3.apply(T, p_torch[None])[0]
+    axis = T[:3, :3] @ np.asarray(built.tool_z_tcp)  # along the finger, towards the flange
+    for obj, radius, first, last in ((wire, 0.0006, 0.0, 0.015), (nozzle, 0.008, 0.015, 0.055)):
+        V = se3.apply(obj.T_base_obj, np.asarray(obj.mesh.vertices))
+        along = (V - end) @ axis
+        across = np.linalg.norm((V - end) - np.outer(along, axis), axis=1)
+        assert along.min() == pytest.approx(first, abs=1e-9) and along.max() == pytest.approx(last, abs=1e-9)
+        assert across.max() == pytest.approx(radius, abs=1e-9)
+    # Without a torch point, the finger alone.
+    assert len(tool_objects(T, built)) == 2
