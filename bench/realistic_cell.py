@@ -83,9 +83,10 @@ def cell_config(work: Path, quick: bool) -> Path:
 
 
 # Job failures that are the shared machine's, not the cell's: the RTDE watchdog
-# stopped the robot program because the motion process was starved (other
-# real-time processes on the same two cores). A run that ends so is run again.
-INFRASTRUCTURE = ("robot program stopped", "robot link")
+# stopped the robot program, or the motion loop stopped on a stale robot state,
+# because a process was starved (other real-time processes on the same two
+# cores). A run that ends so is run again, and the table says so.
+INFRASTRUCTURE = ("robot program stopped", "robot link", "stale state")
 
 
 def run_seed(
@@ -161,7 +162,8 @@ def summarise(preset: str, sources: list[str], runs: list[dict[str, Any]]) -> di
         "preset": preset,
         "sources": sources,
         "seeds": [r["seed"] for r in runs],
-        "tool_calibration": "not run (no tool-calibrate job yet)",
+        # Each seed's tool calibration: its verdict, or why there is none.
+        "tool_calibration": [tc["verdict"] if isinstance(tc := r.get("tool_calibration"), dict) else tc for r in runs],
         "targeting_mean_mm": float(np.mean(tmean)) if tmean else None,
         "targeting_mean_worst_mm": max(tmean) if tmean else None,
         "targeting_max_mm": max(col(cal, "calibration", "targeting", "calibration", "max_mm")) if cal else None,
@@ -238,11 +240,15 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(tc, dict):
             say(
                 f"  tool calibration: tip {tc['tip_error_mm']:.3f} mm from the true tip (config {tc['config_error_mm']:.3f} mm), "
+                f"torch {tc['torch_error_mm']:.3f} mm from the true torch (config {tc['torch_config_error_mm']:.3f} mm, "
+                f"across the tool (TCP y) {tc['torch_error_xyz_mm'][1]:+.3f} mm), "
                 f"1-sigma {tc['tip_std_mm']} mm, RMS {tc['rms_mm']} mm, {tc['poses']} poses, verdict {tc['verdict']}"
             )
     sources = sorted(((set(SOURCES) if args.preset == "realistic" else set()) | set(options.on)) - set(options.off))
     summary = summarise(label, sources, runs)
-    summary["tool_tip_error_mm"] = [r["tool_calibration"]["tip_error_mm"] for r in runs if isinstance(r.get("tool_calibration"), dict)]
+    measured = [r["tool_calibration"] for r in runs if isinstance(r.get("tool_calibration"), dict)]
+    summary["tool_tip_error_mm"] = [tc["tip_error_mm"] for tc in measured]
+    summary["tool_torch_error_mm"] = [tc["torch_error_mm"] for tc in measured]
     say("")
     say(f"preset: {label} (sources on: {', '.join(sources) or 'none'})")
     for line in table(runs):

@@ -136,6 +136,10 @@ class LinkLost(RobotError):
     """The RTDE link dropped or its data went stale."""
 
 
+class StaleState(LinkLost):
+    """The motion loop stopped a command on robot state older than its limit (the link itself stayed up)."""
+
+
 class SafetyStop(RobotError):
     """A protective stop, an e-stop or a limit breach stopped the robot."""
 

@@ -22,7 +22,7 @@ import asyncio
 import math
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -31,7 +31,7 @@ import numpy as np
 
 from celld.config import Config
 from celld.daemon.planning import MotionPlanner
-from celld.errors import CelldError, ConfigError, DeviceError, InputError
+from celld.errors import CelldError, ConfigError, DeviceError, InputError, StaleState
 from celld.log import get_logger
 from celld.motion.algorithm2 import NAME as ALGORITHM2
 from celld.motion.handle import MotionHandle
@@ -53,6 +53,11 @@ SERVO_LAWS = {ALGORITHM2: "celld.motion.algorithm2:make_algorithm2"}
 STATE_WAIT = 5.0
 # Longest a stop may take before the daemon gives up waiting, s.
 STOP_TIMEOUT = 5.0
+# A point-to-point move the motion loop stopped on a stale robot state (the
+# loop starved of state for a few cycles while the link stayed up; the stop
+# was jerk-limited) is checked again from where the arm came to rest and
+# posted again, this many times, before the job fails.
+STALE_RETRIES = 1
 # How often the daemon's heartbeat beats, s (its children wait motion.parent_timeout for it).
 HEARTBEAT_PERIOD = 0.02
 # A beat this much later than the last one is logged (s).
@@ -258,9 +263,13 @@ class CellDevices:
             The move would hit the cell or cannot be reached; the robot did not move.
         """
         motion = self.require_motion()
-        q = await self.current_q()
-        await asyncio.to_thread(self.planner.check_move, q, T_base_tcp, tool)
-        return await motion.move_to(T_base_tcp, speed_scale=speed_scale)
+
+        async def move() -> RobotState:
+            q = await self.current_q()
+            await asyncio.to_thread(self.planner.check_move, q, T_base_tcp, tool)
+            return await motion.move_to(T_base_tcp, speed_scale=speed_scale)
+
+        return await self._after_stale(move, "move")
 
     async def move_joints(self, q_goal: np.ndarray, speed_scale: float = 1.0, *, tool: bool = True) -> RobotState:
         """A jerk-limited joint move, checked against the cell and the workspace box first, and slowed so the
@@ -272,16 +281,37 @@ class CellDevices:
             The move would hit the cell, leave the workspace or cross a joint limit; the robot did not move.
         """
         motion = self.require_motion()
-        q = await self.current_q()
-        plan = await asyncio.to_thread(self.planner.plan_joint_move, q, q_goal, speed_scale, tool)
-        if plan.speed_scale < speed_scale:
-            log.info(
-                "joint move slowed for the TCP's limits",
-                asked=speed_scale,
-                scale=round(plan.speed_scale, 4),
-                tcp_speed=round(plan.tcp_speed, 4),
-            )
-        return await motion.move_joints(q_goal, speed_scale=plan.speed_scale)
+
+        async def move() -> RobotState:
+            q = await self.current_q()
+            plan = await asyncio.to_thread(self.planner.plan_joint_move, q, q_goal, speed_scale, tool)
+            if plan.speed_scale < speed_scale:
+                log.info(
+                    "joint move slowed for the TCP's limits",
+                    asked=speed_scale,
+                    scale=round(plan.speed_scale, 4),
+                    tcp_speed=round(plan.tcp_speed, 4),
+                )
+            return await motion.move_joints(q_goal, speed_scale=plan.speed_scale)
+
+        return await self._after_stale(move, "joint move")
+
+    async def _after_stale(self, move: Callable[[], Awaitable[RobotState]], what: str) -> RobotState:
+        """Run ``move``; after a stop on stale robot state, wait for rest and fresh state and run it again
+        (:data:`STALE_RETRIES` times). Any other failure, or a link that does not come back, is raised."""
+        motion = self.require_motion()
+        retries = 0
+        while True:
+            try:
+                return await move()
+            except StaleState as exc:
+                if retries >= STALE_RETRIES:
+                    raise
+                retries += 1
+                log.warning("a move stopped on a stale robot state; checking it again from where the arm rests", move=what, reason=str(exc))
+                await motion.wait_idle(STOP_TIMEOUT)
+                if not await motion.wait_ready(STATE_WAIT):
+                    raise
 
     async def current_q(self, timeout: float = STATE_WAIT) -> np.ndarray:
         """The robot's joints now, waiting up to ``timeout`` s for the first state; DeviceError without one."""

@@ -284,7 +284,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     }
 
 
-def _not_yet(found: Detections, params: SolveParams, verifier: IcpVerifier, flange: FlangeModel, n_captures: int) -> str | None:
+def _not_yet(found: Detections, params: SolveParams, verifier: IcpVerifier | None, flange: FlangeModel, n_captures: int) -> str | None:
     """Why the pairs found so far would not make an accepted calibration (None: they would)."""
     try:
         result = solve_pairs(

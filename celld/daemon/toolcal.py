@@ -123,7 +123,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         found_torch = await torch.detect(
             pid, T_bt, T_base_cam, partial(detect_wire_end, points, torch_pred, u_cam, tool.wire_diameter / 2.0, wparams)
         )
-        if rec is not None and (found_tip or found_torch):
+        if rec is not None and (found_tip is not None or found_torch is not None):
             rec.log_tcp(T_bt)
             record_arm(rec, planner.with_tool, state.q)
         ctx.progress(

@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from celld.config import Config
-from celld.errors import CelldError, InputError, LinkLost, MotionError, SafetyStop
+from celld.errors import CelldError, InputError, LinkLost, MotionError, SafetyStop, StaleState
 from celld.log import get_logger
 from celld.motion import commands as cmd
 from celld.motion.channels import (
@@ -98,6 +98,8 @@ def error_for(status: ControlStatus, reason: str) -> CelldError:
     text = reason or f"motion ended with status {status.name}"
     if status in _SAFETY:
         return SafetyStop(text)
+    if status == ControlStatus.STALE_STATE:
+        return StaleState(text)
     if status in _LINK:
         return LinkLost(text)
     return MotionError(text)

@@ -18,6 +18,8 @@ import argparse
 import json
 import math
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,10 +31,10 @@ from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
 from celld.calib.pairs import PairCollector
 from celld.calib.poses import calibration_poses
-from celld.calib.session import SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
+from celld.calib.session import CalibrationResult, SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
 from celld.sim.scanner import SimScanner, scanner_model
 from celld.sim.scene import robot_scene
-from celld.sim.world import add_world_arguments, options_from_args, world_of
+from celld.sim.world import World, add_world_arguments, options_from_args, world_of
 
 # The simulated cell the demo runs on, relative to the repository.
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim-cell.toml"
@@ -50,24 +52,33 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
+@dataclass(frozen=True)
+class OfflineCalibration:
+    """What :func:`calibrate_in_world` returns: the solve, the true T_base_cam, the time it took (s)."""
 
+    result: CalibrationResult
+    T_base_cam_true: np.ndarray
+    seconds: float
+
+
+def calibrate_in_world(
+    cfg: config_mod.Config, world: World, n: int, seed: int, writer: SessionWriter | None = None, say: Callable[[str], None] | None = None
+) -> OfflineCalibration:
+    """Calibrate the scanner of ``world`` from the flange at ``n`` generated poses, as the cell ``cfg`` believes it.
+
+    The controller's side (its flange model, detector parameters, solve
+    parameters, poses) comes from ``cfg``; the scene (the scanner as mounted
+    and measuring, the flange as made, where the arm truly puts it) from
+    ``world``, which the solve never reads.
+    """
     from celld.sim.score import true_flange
 
-    cfg = config_mod.load(args.config)
     cal = cfg.calibration
     model_name = cfg.scanner.model  # the controller's scanner: its detector parameters
     flange = preset(cal.flange)  # the controller's flange model
-    n = args.poses if args.poses is not None else cal.n_poses
-    # The simulator's truth: it renders the scene, the estimator never reads it.
-    world = world_of(cfg, options_from_args(args))
     sc = world.scanner
     unit = scanner_model(sc.model) if sc.metal_bias is None else replace(scanner_model(sc.model), metal_bias=sc.metal_bias)
-    scanner = SimScanner(
-        unit, sc.T_base_cam, seed=args.seed, resolution_scale=sc.resolution_scale, measure=None if sc.ideal else sc.measure
-    )
-    T_base_cam_true = sc.T_base_cam
+    scanner = SimScanner(unit, sc.T_base_cam, seed=seed, resolution_scale=sc.resolution_scale, measure=None if sc.ideal else sc.measure)
     home = cfg.robot.home_q
 
     def seen(T_cmd: np.ndarray) -> np.ndarray:
@@ -76,20 +87,18 @@ def run(args: argparse.Namespace) -> int:
         return scanner.capture(robot_scene(T_cmd if got is None else got[0], world.flange)).points
 
     dparams: DetectParams = PARAMS_BY_SCANNER[model_name]
-    out = Path(args.out) if args.out else Path(cfg.cell.state_dir) / "sim-calibrate" / time.strftime("%Y%m%d-%H%M%S")
-    writer = SessionWriter(out, flange=cal.flange, scanner=model_name)
-    say = _printer(args.json)
-
     T_v = se3.from_ur_pose(cal.verification_pose)
-    poses = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=args.seed)
-    say(f"celld sim calibrate: {sc.model} at T_base_cam (simulated), flange {flange.name}, {n} poses; {world.describe()}")
+    poses = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=seed)
     t0 = time.perf_counter()
     P_v = seen(T_v)
-    writer.set_verification(T_v, P_v)
+    if writer is not None:
+        writer.set_verification(T_v, P_v)
     pairs = PairCollector(flange, dparams, writer)
     for T in poses:
         got = pairs.capture(T, seen(T))
         det = got.detection
+        if say is None:
+            continue
         if got.rejected is not None or det is None:
             say(f"  pair {got.id}: no flange ({got.rejected.reason if got.rejected else 'no detection'})")
             continue
@@ -103,7 +112,23 @@ def run(args: argparse.Namespace) -> int:
     result = solve_pairs(
         found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, n_pairs=n, range_data=range_bias_data(params, flange, found)
     )
-    seconds = time.perf_counter() - t0
+    return OfflineCalibration(result, sc.T_base_cam, time.perf_counter() - t0)
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = config_mod.load(args.config)
+    n = args.poses if args.poses is not None else cfg.calibration.n_poses
+    # The simulator's truth: it renders the scene, the estimator never reads it.
+    world = world_of(cfg, options_from_args(args))
+    out = Path(args.out) if args.out else Path(cfg.cell.state_dir) / "sim-calibrate" / time.strftime("%Y%m%d-%H%M%S")
+    writer = SessionWriter(out, flange=cfg.calibration.flange, scanner=cfg.scanner.model)
+    say = _printer(args.json)
+    say(
+        f"celld sim calibrate: {world.scanner.model} at T_base_cam (simulated), flange {cfg.calibration.flange}, {n} poses; "
+        f"{world.describe()}"
+    )
+    done = calibrate_in_world(cfg, world, n, args.seed, writer, say)
+    result, T_base_cam_true, seconds = done.result, done.T_base_cam_true, done.seconds
 
     dt, dr = se3.error(result.T_base_cam, T_base_cam_true)
     report = result.as_dict()

@@ -1,13 +1,16 @@
-"""CellDevices' supervision of the tactile process (the motion process's has its own tests)."""
+"""CellDevices' supervision of the tactile process (the motion process's has its own tests) and its moves after a stale state."""
 
 from __future__ import annotations
 
 import asyncio
 
+import numpy as np
+import pytest
+
 from celld.config import Config
 from celld.daemon import devices as devices_mod
 from celld.daemon.devices import CellDevices
-from celld.errors import DeviceError
+from celld.errors import DeviceError, LinkLost, StaleState
 from celld.supervision import Backoff
 
 
@@ -58,3 +61,82 @@ def test_a_dead_tactile_process_is_restarted_with_a_delay_between_attempts(monke
         await dev.supervise_tactile()  # a cell without a finger camera: nothing to do
 
     asyncio.run(asyncio.wait_for(scenario(), 10))
+
+
+class FakeMotion:
+    """A motion handle whose first ``stale`` moves end on a stale robot state."""
+
+    def __init__(self, stale: int, ready: bool = True) -> None:
+        self.stale, self.ready = stale, ready
+        self.posted: list[object] = []
+        self.waits: list[str] = []
+
+    def state(self):
+        from celld.motion.types import RobotState
+
+        return RobotState(0, np.zeros(6), np.zeros(6), np.eye(4), np.zeros(6))
+
+    async def move_to(self, T, speed_scale: float = 1.0):
+        self.posted.append(T)
+        if self.stale:
+            self.stale -= 1
+            raise StaleState("robot state is 12 cycles old (limit 10): stopped")
+        return self.state()
+
+    async def wait_idle(self, timeout: float) -> None:
+        self.waits.append("idle")
+
+    async def wait_ready(self, timeout: float) -> bool:
+        self.waits.append("ready")
+        return self.ready
+
+
+class FakePlanner:
+    def __init__(self) -> None:
+        self.checked = 0
+
+    def check_move(self, q, T, tool) -> None:
+        self.checked += 1
+
+
+def test_a_move_stopped_on_a_stale_state_is_checked_and_posted_again_once() -> None:
+    async def scenario() -> None:
+        dev = CellDevices(Config())
+        dev.planner = FakePlanner()
+        # Stale once: after rest and fresh state, checked again from there and posted again.
+        dev.motion = FakeMotion(stale=1)
+        await dev.move_to(np.eye(4))
+        assert len(dev.motion.posted) == 2 and dev.motion.waits == ["idle", "ready"] and dev.planner.checked == 2
+        # Stale twice: the job gets the error.
+        dev.motion = FakeMotion(stale=2)
+        with pytest.raises(StaleState, match="cycles old"):
+            await dev.move_to(np.eye(4))
+        assert len(dev.motion.posted) == 2
+        # State that does not come back fresh: no second post.
+        dev.motion = FakeMotion(stale=1, ready=False)
+        with pytest.raises(StaleState):
+            await dev.move_to(np.eye(4))
+        assert len(dev.motion.posted) == 1
+        # Any other failure is never retried.
+        dev.motion = FakeMotion(stale=0)
+
+        async def lost(T, speed_scale: float = 1.0):
+            dev.motion.posted.append(T)
+            raise LinkLost("the robot link is restarting")
+
+        dev.motion.move_to = lost
+        with pytest.raises(LinkLost):
+            await dev.move_to(np.eye(4))
+        assert len(dev.motion.posted) == 1 and dev.motion.waits == []
+
+    asyncio.run(asyncio.wait_for(scenario(), 10))
+
+
+def test_a_stale_state_is_its_own_link_error_and_a_lost_link_is_not_one() -> None:
+    from celld.motion.handle import error_for
+    from celld.motion.types import ControlStatus
+
+    stale = error_for(ControlStatus.STALE_STATE, "")
+    assert isinstance(stale, StaleState) and isinstance(stale, LinkLost) and "STALE_STATE" in str(stale)
+    lost = error_for(ControlStatus.LINK_LOST, "rtde dropped")
+    assert isinstance(lost, LinkLost) and not isinstance(lost, StaleState)

@@ -29,7 +29,9 @@ from celld.sim.score import TruthRecorder, lateral, open_loop_torch, true_flange
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[2]
-WORLD_SEED = 2  # its tool's tip is 0.9 mm from the drawing
+# This test's world: its tool's tip is 0.55 mm and its torch 1.4 mm off the drawing, and its part as
+# placed and distorted leaves the plan alone 1.5 mm RMS off the seam (bench/realistic_cell.py, seed 5).
+WORLD_SEED = 5
 # The measured tip against the tip a perfect scanner gives through this arm, m: a
 # fifth of the tip's own radius, well inside the 1-2 mm a typed tool is off.
 TIP_TOLERANCE = 0.2e-3
@@ -94,7 +96,7 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host:
         tip = np.asarray(tool["tip_tcp_mm"]) * 1e-3
         # The tip as this arm can know it: what a perfect scanner gives at the same poses through the
         # controller's nominal kinematics (the true flange from the world's arm). The arm's own error
-        # (here its d6 is 0.3 mm short) moves it off the tool as built along the finger, and the
+        # (its link lengths and offsets) moves it off the tool as built, and the
         # controller carries that error into every TCP pose: this is the tip it needs.
         dataset = json.loads(Path(result["dataset"]).read_text())
         q = np.asarray(cfg.robot.home_q, dtype=np.float64)
