@@ -31,7 +31,9 @@ Everything is in the camera frame, m.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -170,45 +172,21 @@ def detect_tip(
         No points in the window, too few on the ball, or a fit that does not
         hold (the message says which and the figures).
     """
-    p, u = _check_prediction(p_pred, u_cam, radius)
-    W = window_points(points_cam, p, params.window)
-    if len(W) == 0:
-        raise CalibrationError(
-            f"no points within {params.window * 1e3:.1f} mm of the predicted tip: the tip is out of "
-            "the scanner's view or hidden, or the tool config or the calibration is far off"
-        )
-    s = (W - p) @ (-u)
-    k = min(params.apex_points, len(W))
-    apex = W[np.argsort(s)[-k:]].mean(axis=0)
-    c = apex + radius * u
-    sel: NDArray[np.bool_] | None = None
-    rms = math.inf
-    for _ in range(params.rounds):
+
+    def start(W: Array, p: Array, u: Array) -> Array:
+        s = (W - p) @ (-u)
+        apex = W[np.argsort(s)[-min(params.apex_points, len(W)) :]].mean(axis=0)
+        return np.asarray(apex + radius * u, dtype=np.float64)
+
+    def select(W: Array, c: Array, u: Array) -> NDArray[np.bool_]:
         d = W - c
-        new = (np.abs(np.linalg.norm(d, axis=1) - radius) <= params.shell) & (d @ u <= params.axial_cut * radius)
-        if sel is not None and np.array_equal(new, sel):
-            break
-        sel = new
-        if int(sel.sum()) < params.min_points:
-            break
-        c, rms = fit_sphere_known_radius(W[sel], c, radius)
-    n = int(sel.sum()) if sel is not None else 0
-    if n < params.min_points:
-        raise CalibrationError(
-            f"only {n} points on the tip ball ({len(W)} in the {params.window * 1e3:.1f} mm window); "
-            f"at least {params.min_points} are needed"
-        )
-    if not rms <= params.max_rms:
-        raise CalibrationError(
-            f"the tip ball's points lie {rms * 1e3:.3f} mm RMS off a {radius * 1e3:.2f} mm sphere "
-            f"(at most {params.max_rms * 1e3:.3f} mm): not the tip"
-        )
-    offset = float(np.linalg.norm(c - p))
-    if offset > params.window:
-        raise CalibrationError(
-            f"the fitted tip lies {offset * 1e3:.2f} mm from the prediction, outside the {params.window * 1e3:.1f} mm window"
-        )
-    return TipDetection(np.asarray(c, dtype=np.float64), n, rms, len(W), offset)
+        return np.asarray((np.abs(np.linalg.norm(d, axis=1) - radius) <= params.shell) & (d @ u <= params.axial_cut * radius))
+
+    def fit(Q: Array, c: Array, u: Array) -> tuple[Array, float]:
+        return fit_sphere_known_radius(Q, c, radius)
+
+    names = _Names("tip", "the tip", "the tip ball", "the tip ball's points", f"a {radius * 1e3:.2f} mm sphere", "the tip", "tip")
+    return _detect(points_cam, p_pred, u_cam, radius, params, names, start, select, fit)
 
 
 @dataclass(frozen=True)
@@ -279,6 +257,67 @@ def _check_prediction(p_pred: ArrayLike, u_cam: ArrayLike, radius: float) -> tup
     return p, u / np.linalg.norm(u)
 
 
+class _Names(NamedTuple):
+    """How :func:`_detect`'s messages name what it looks for."""
+
+    predicted: str  # "no points within ... of the predicted <predicted>"
+    hidden: str  # "<hidden> is out of the scanner's view"
+    part: str  # "only n points on <part>"
+    points: str  # "<points> lie ... RMS off"
+    surface: str  # "lie ... RMS off <surface>"
+    not_what: str  # "...: not <not_what>"
+    fitted: str  # "the fitted <fitted> lies ... from the prediction"
+
+
+def _detect(
+    points_cam: ArrayLike,
+    p_pred: ArrayLike,
+    u_cam: ArrayLike,
+    radius: float,
+    params: TipDetectParams | WireDetectParams,
+    names: _Names,
+    start: Callable[[Array, Array, Array], Array],
+    select: Callable[[Array, Array, Array], NDArray[np.bool_]],
+    fit: Callable[[Array, Array, Array], tuple[Array, float]],
+) -> TipDetection:
+    """The shared detection: the window about the prediction, a start ``c`` from its points,
+    then rounds of selecting the points near the shape at ``c`` and fitting it to them, and the checks."""
+    p, u = _check_prediction(p_pred, u_cam, radius)
+    W = window_points(points_cam, p, params.window)
+    if len(W) == 0:
+        raise CalibrationError(
+            f"no points within {params.window * 1e3:.1f} mm of the predicted {names.predicted}: {names.hidden} is out of "
+            "the scanner's view or hidden, or the tool config or the calibration is far off"
+        )
+    c = start(W, p, u)
+    sel: NDArray[np.bool_] | None = None
+    rms = math.inf
+    for _ in range(params.rounds):
+        new = select(W, c, u)
+        if sel is not None and np.array_equal(new, sel):
+            break
+        sel = new
+        if int(sel.sum()) < params.min_points:
+            break
+        c, rms = fit(W[sel], c, u)
+    n = int(sel.sum()) if sel is not None else 0
+    if n < params.min_points:
+        raise CalibrationError(
+            f"only {n} points on {names.part} ({len(W)} in the {params.window * 1e3:.1f} mm window); "
+            f"at least {params.min_points} are needed"
+        )
+    if not rms <= params.max_rms:
+        raise CalibrationError(
+            f"{names.points} lie {rms * 1e3:.3f} mm RMS off {names.surface} (at most {params.max_rms * 1e3:.3f} mm): not {names.not_what}"
+        )
+    offset = float(np.linalg.norm(c - p))
+    if offset > params.window:
+        raise CalibrationError(
+            f"the fitted {names.fitted} lies {offset * 1e3:.2f} mm from the prediction, outside the {params.window * 1e3:.1f} mm window"
+        )
+    return TipDetection(np.asarray(c, dtype=np.float64), n, rms, len(W), offset)
+
+
 def detect_wire_end(
     points_cam: ArrayLike,
     p_pred: ArrayLike,
@@ -308,51 +347,23 @@ def detect_wire_end(
         No points in the window, too few on the wire, or a fit that does not
         hold (the message says which and the figures).
     """
-    p, u = _check_prediction(p_pred, u_cam, radius)
-    W = window_points(points_cam, p, params.window)
-    if len(W) == 0:
-        raise CalibrationError(
-            f"no points within {params.window * 1e3:.1f} mm of the predicted wire end: the torch is out of "
-            "the scanner's view or hidden, or the tool config or the calibration is far off"
-        )
-    s = (W - p) @ (-u)
-    k = min(params.apex_points, len(W))
-    s_end = float(np.sort(s)[-k:].mean())
-    near_end = W[s >= s_end - radius]
-    # Across the axis: the end's points, centred (an oblique view's side points pull this by
-    # well under a radius; the fit takes it out). Along: the extreme.
-    lateral = near_end.mean(axis=0)
-    lateral = lateral - ((lateral - p) @ u) * u
-    c = lateral - s_end * u
-    sel: NDArray[np.bool_] | None = None
-    rms = math.inf
-    for _ in range(params.rounds):
-        a = (W - c) @ u
-        dist = capped_cylinder_distance(W, c, u, radius)
-        new = (np.abs(dist) <= params.shell) & (a <= params.length)
-        if sel is not None and np.array_equal(new, sel):
-            break
-        sel = new
-        if int(sel.sum()) < params.min_points:
-            break
-        Q = W[sel]
-        fit = least_squares(lambda x, Q=Q: capped_cylinder_distance(Q, x, u, radius), c, loss="soft_l1", f_scale=params.shell / 3.0)
-        c = np.asarray(fit.x, dtype=np.float64)
-        rms = float(np.sqrt(np.mean(capped_cylinder_distance(Q, c, u, radius) ** 2)))
-    n = int(sel.sum()) if sel is not None else 0
-    if n < params.min_points:
-        raise CalibrationError(
-            f"only {n} points on the wire's end ({len(W)} in the {params.window * 1e3:.1f} mm window); "
-            f"at least {params.min_points} are needed"
-        )
-    if not rms <= params.max_rms:
-        raise CalibrationError(
-            f"the wire's points lie {rms * 1e3:.3f} mm RMS off a {radius * 2e3:.2f} mm wire (at most "
-            f"{params.max_rms * 1e3:.3f} mm): not the wire"
-        )
-    offset = float(np.linalg.norm(c - p))
-    if offset > params.window:
-        raise CalibrationError(
-            f"the fitted wire end lies {offset * 1e3:.2f} mm from the prediction, outside the {params.window * 1e3:.1f} mm window"
-        )
-    return TipDetection(c, n, rms, len(W), offset)
+
+    def start(W: Array, p: Array, u: Array) -> Array:
+        s = (W - p) @ (-u)
+        s_end = float(np.sort(s)[-min(params.apex_points, len(W)) :].mean())
+        # Across the axis: the end's points, centred (an oblique view's side points pull this by
+        # well under a radius; the fit takes it out). Along: the extreme.
+        lateral = W[s >= s_end - radius].mean(axis=0)
+        lateral = lateral - ((lateral - p) @ u) * u
+        return np.asarray(lateral - s_end * u, dtype=np.float64)
+
+    def select(W: Array, c: Array, u: Array) -> NDArray[np.bool_]:
+        return np.asarray((np.abs(capped_cylinder_distance(W, c, u, radius)) <= params.shell) & ((W - c) @ u <= params.length))
+
+    def fit(Q: Array, c: Array, u: Array) -> tuple[Array, float]:
+        got = least_squares(lambda x: capped_cylinder_distance(Q, x, u, radius), c, loss="soft_l1", f_scale=params.shell / 3.0)
+        c = np.asarray(got.x, dtype=np.float64)
+        return c, float(np.sqrt(np.mean(capped_cylinder_distance(Q, c, u, radius) ** 2)))
+
+    names = _Names("wire end", "the torch", "the wire's end", "the wire's points", f"a {radius * 2e3:.2f} mm wire", "the wire", "wire end")
+    return _detect(points_cam, p_pred, u_cam, radius, params, names, start, select, fit)

@@ -53,7 +53,7 @@ from celld.calib.metrics import IcpVerifier, cost_function
 from celld.calib.pairs import Detections, PairCollector
 from celld.calib.poses import calibration_poses
 from celld.calib.rangebias import bias_from_steps, correct_range_bias
-from celld.calib.session import SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
+from celld.calib.session import CalibrationResult, SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import CalibrationStore, JobContext, Runner
@@ -180,6 +180,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
 
     pairs = PairCollector(flange, dparams, writer)
     early = False
+    result: CalibrationResult | None = None  # solved at an early stop
     for i, T in enumerate(poses):
         T_bf = await _settled_flange_pose(devices, T, cal.settle)
         cloud = await devices.capture()
@@ -229,8 +230,8 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
             # Algorithm 1 is done; stop early only when the pairs so far make a calibration that
             # passes its quality gate (a realistic arm's pose-dependent error can leave a handful
             # of pairs disagreeing although the cost is low): else the remaining poses go on.
-            why = await asyncio.to_thread(_not_yet, pairs.detections(), params, verifier, flange, pairs.n_captures)
-            if why is None:
+            result, why = await asyncio.to_thread(_gated_solve, pairs.detections(), params, verifier, flange, pairs.n_captures)
+            if result is not None:
                 early = alg.reached
                 break
             ctx.progress("pair", (i + 1) / len(poses), f"Algorithm 1 is done but {why}: capturing more", pair=pid, detected=True)
@@ -239,10 +240,18 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     if pairs.n_pairs < 4:
         raise CalibrationError(f"only {pairs.n_pairs} of {len(poses)} captures showed the flange; at least 4 are needed")
     ctx.progress("solve", None, f"solving from {pairs.n_pairs} pairs")
-    range_data = range_bias_data(params, flange, found)
-    result = await asyncio.to_thread(
-        solve_pairs, found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, pairs.n_captures, range_data
-    )
+    if result is None:  # not solved already at an early stop
+        result = await asyncio.to_thread(
+            solve_pairs,
+            found.ids,
+            found.P_base,
+            found.P_cam,
+            params,
+            verifier,
+            found.rejected,
+            pairs.n_captures,
+            range_bias_data(params, flange, found),
+        )
     report = result.as_dict()
     if rec is not None:
         _record_solution(rec, result.T_base_cam, result.bias, found, report["quality"], flange.circle_on_metal)
@@ -284,17 +293,19 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     }
 
 
-def _not_yet(found: Detections, params: SolveParams, verifier: IcpVerifier | None, flange: FlangeModel, n_captures: int) -> str | None:
-    """Why the pairs found so far would not make an accepted calibration (None: they would)."""
+def _gated_solve(
+    found: Detections, params: SolveParams, verifier: IcpVerifier | None, flange: FlangeModel, n_captures: int
+) -> tuple[CalibrationResult | None, str]:
+    """The calibration from the pairs found so far if it passes its quality gate, else None and why not."""
     try:
         result = solve_pairs(
             found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, n_captures, range_bias_data(params, flange, found)
         )
     except CalibrationError as exc:
-        return str(exc)
+        return None, str(exc)
     if result.quality.verdict != "ok":
-        return f"the quality gate says {result.quality.verdict} ({'; '.join(result.quality.reasons)})"
-    return None
+        return None, f"the quality gate says {result.quality.verdict} ({'; '.join(result.quality.reasons)})"
+    return result, ""
 
 
 def _record_solution(

@@ -585,8 +585,7 @@ class Algorithm2Servo:
         self.samples_used += 1
         self._last_valid = sample
         P_cap, t_cap = self._at(sample.stamp_ns)
-        delta_tool = sample.delta_tool if self.p.sensor_yaw == 0.0 else yaw_in_plane(sample.delta_tool, self.p.sensor_yaw)
-        delta = deformation_in_plane(delta_tool, t_cap, _left(t_cap))
+        delta = deformation_in_plane(yaw_in_plane(sample.delta_tool, self.p.sensor_yaw), t_cap, _left(t_cap))
         self._delta_meas = delta
         self._P_r_cap = P_cap
         if sample.contact == ContactState.OVERLOAD:

@@ -3,8 +3,8 @@
 Algorithm 1 can be done (its cost under e_required) after five pairs while two
 of them disagree with the rest by a few tenths of a millimetre, as a realistic
 arm's pose-dependent error makes them: stopping there fails the job although
-fifteen poses remain. :func:`celld.daemon.runners._not_yet` is the check the
-runner makes before it stops.
+fifteen poses remain. :func:`celld.daemon.runners._gated_solve` is the check the
+runner makes before it stops (its result is the job's when it stops).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from celld import se3
 from celld.calib.flange import preset
 from celld.calib.pairs import Detections
 from celld.calib.session import SolveParams
-from celld.daemon.runners import _not_yet
+from celld.daemon.runners import _gated_solve
 
 T_BASE_CAM = se3.from_xyz_rpy([0.6, 0.1, 1.2], [np.pi, 0.05, 0.1])
 
@@ -31,8 +31,10 @@ def _pairs(n: int, off: dict[int, float], seed: int = 3) -> Detections:
 
 def test_consistent_pairs_let_the_job_stop_and_disagreeing_ones_keep_it_capturing() -> None:
     params, flange = SolveParams(), preset("ur10e")
-    assert _not_yet(_pairs(8, {}), params, None, flange, 8) is None
-    why = _not_yet(_pairs(5, {1: 0.4e-3, 3: -0.3e-3}), params, None, flange, 5)
-    assert why is not None and why.startswith("only 3 of 5 pairs agree"), why
+    result, why = _gated_solve(_pairs(8, {}), params, None, flange, 8)
+    assert result is not None and result.quality.verdict == "ok" and why == ""
+    result, why = _gated_solve(_pairs(5, {1: 0.4e-3, 3: -0.3e-3}), params, None, flange, 5)
+    assert result is None and why.startswith("only 3 of 5 pairs agree"), why
     # Three more poses outvote them: the two are named outliers and the gate passes.
-    assert _not_yet(_pairs(8, {1: 0.4e-3, 3: -0.3e-3}), params, None, flange, 8) is None
+    result, why = _gated_solve(_pairs(8, {1: 0.4e-3, 3: -0.3e-3}), params, None, flange, 8)
+    assert result is not None and why == "" and sorted(r.id for r in result.rejected) == ["p001", "p003"], why

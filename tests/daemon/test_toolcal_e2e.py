@@ -60,6 +60,21 @@ seed = {WORLD_SEED}
     return path
 
 
+def _as_this_arm_knows_it(world, cfg, detections: list[dict], p_flange: np.ndarray) -> np.ndarray:
+    """The point ``p_flange`` of the tool as built, solved (T1-T2) from where a perfect scanner sees it at
+    the detections' TCP poses, the flange truly placed by the world's arm."""
+    q = np.asarray(cfg.robot.home_q, dtype=np.float64)
+    T_rep, P_true = [], []
+    for det in detections:
+        T = np.asarray(det["T_base_tcp"])
+        got = true_flange(world, T, q)
+        assert got is not None
+        T_rep.append(T)
+        P_true.append(se3.apply(got[0], p_flange[None])[0])
+        q = got[1]
+    return solve_tool_tip(np.array(T_rep), np.array(P_true)).p_tcp_tip
+
+
 def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host: str) -> None:
     cfg_path = _config(tmp_path, loopback_host)
     with run_cell(cfg_path, tmp_path / "daemon.log", timeout=120) as cell:
@@ -100,27 +115,10 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host:
         # (its link lengths and offsets) moves it off the tool as built, and the
         # controller carries that error into every TCP pose: this is the tip it needs.
         dataset = json.loads(Path(result["dataset"]).read_text())
-        q = np.asarray(cfg.robot.home_q, dtype=np.float64)
-        T_rep, P_true = [], []
-        for det in dataset["detections"]:
-            T = np.asarray(det["T_base_tcp"])
-            got = true_flange(world, T, q)
-            assert got is not None
-            T_rep.append(T)
-            P_true.append(se3.apply(got[0], tip_true[None])[0])
-            q = got[1]
-        tip_arm = solve_tool_tip(np.array(T_rep), np.array(P_true)).p_tcp_tip
+        tip_arm = _as_this_arm_knows_it(world, cfg, dataset["detections"], tip_true)
         assert tool["torch_measured"] is True and tool["quality"]["torch"]["verdict"] == "ok", tool["quality"]["torch"]
         torch = np.asarray(tool["torch_tcp_mm"]) * 1e-3
-        T_rep, P_torch = [], []
-        for det in dataset["torch_detections"]:
-            T = np.asarray(det["T_base_tcp"])
-            got = true_flange(world, T, q)
-            assert got is not None
-            T_rep.append(T)
-            P_torch.append(se3.apply(got[0], torch_true[None])[0])
-            q = got[1]
-        torch_arm = solve_tool_tip(np.array(T_rep), np.array(P_torch)).p_tcp_tip
+        torch_arm = _as_this_arm_knows_it(world, cfg, dataset["torch_detections"], torch_true)
         err, err_built = tip - tip_arm, tip - tip_true
         print(
             f"tool calibration: tip {np.linalg.norm(err) * 1e3:.4f} mm from the tip a perfect scanner gives ({np.round(err * 1e3, 4).tolist()}), "
