@@ -225,9 +225,6 @@ class _Points:
 
     def __init__(self, name: str) -> None:
         self.name = name
-        self.ids: list[str] = []
-        self.T: list[np.ndarray] = []
-        self.P: list[np.ndarray] = []
         self.missed: list[dict[str, Any]] = []
         self.detections: list[dict[str, Any]] = []
 
@@ -241,9 +238,6 @@ class _Points:
             self.missed.append({"id": pid, "reason": str(exc)})
             return None
         p_base = se3.apply(T_base_cam, det.p_cam[None])[0]
-        self.ids.append(pid)
-        self.T.append(T_base_tcp)
-        self.P.append(p_base)
         self.detections.append(
             {
                 "id": pid,
@@ -261,19 +255,27 @@ class _Points:
             return f"no {self.name} ({self.missed[-1]['reason']})"
         return f"{self.name} {det.offset * 1e3:.2f} mm from the configured one"
 
+    @property
+    def ids(self) -> list[str]:
+        return [d["id"] for d in self.detections]
+
+    def _arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """The TCP poses (n, 4, 4) and the points found (n, 3), base frame."""
+        T = np.array([d["T_base_tcp"] for d in self.detections], dtype=np.float64).reshape(-1, 4, 4)
+        P = np.array([d[f"p_base_{self.name}"] for d in self.detections], dtype=np.float64).reshape(-1, 3)
+        return T, P
+
     def solve(self) -> ToolTipFit | None:
         """T1-T2 on the points found; None when fewer than 3 leave it unsolved."""
-        T = np.array(self.T).reshape(-1, 4, 4)
-        P = np.array(self.P).reshape(-1, 3)
-        fit = solve_tool_tip(T, P, self.ids, ToolCalParams())
+        fit = solve_tool_tip(*self._arrays(), self.ids, ToolCalParams())
         return fit if np.all(np.isfinite(fit.p_tcp_tip)) else None
 
     def residual_points(self, fit: ToolTipFit) -> tuple[list[str], np.ndarray, np.ndarray, list[bool]]:
         """Ids, the fitted point through each pose (plus the fit's base offset), the found points, and which are used."""
-        T = np.array(self.T).reshape(-1, 4, 4)
+        T, P = self._arrays()
         P_robot = np.einsum("nij,j->ni", T[:, :3, :3], fit.p_tcp_tip) + T[:, :3, 3] + fit.offset_base
         out = set(fit.inliers)
-        return self.ids, P_robot, np.array(self.P).reshape(-1, 3), [i not in out for i in range(len(self.ids))]
+        return self.ids, P_robot, P, [i not in out for i in range(len(T))]
 
 
 def _torch_quality(fit: ToolTipFit | None, torch: _Points, n_poses: int) -> dict[str, Any]:
