@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import numpy as np
@@ -11,10 +12,10 @@ import rtde_control
 import rtde_receive
 
 from celld import se3
-from celld.errors import InputError
+from celld.errors import InputError, RobotError
 from celld.robot import kinematics as kin
 from celld.sim.robot import SimRobotHandle, TruthReader
-from celld.sim.robot.truth import HISTORY_CAPACITY, TruthPublisher
+from celld.sim.robot.truth import HISTORY_CAPACITY, TRUTH_DTYPE, TruthPublisher
 
 
 def _rows(T: np.ndarray) -> list[float]:
@@ -55,6 +56,33 @@ def test_history_keeps_the_last_two_seconds(loopback_host: str) -> None:
         stamps = reader.history()["stamp_ns"]
         assert len(stamps) == HISTORY_CAPACITY
         assert stamps[-1] == (HISTORY_CAPACITY + 99) * 2_000_000 and np.all(np.diff(stamps) == 2_000_000)
+    finally:
+        reader.close()
+        pub.close()
+
+
+def test_latest_waits_out_a_write_in_progress_instead_of_answering_an_old_state(loopback_host: str) -> None:
+    pub = TruthPublisher(loopback_host)
+    reader = TruthReader(loopback_host, timeout=1.0)
+    try:
+        q = np.zeros(6)
+        pub.publish(1_000_000, q, q, _rows(np.eye(4)), _rows(np.eye(4)), 0, (7, 1, 2))
+        assert reader.latest().stamp_ns == 1_000_000  # the reader now holds a whole copy of that state
+        # The simulator is caught half-way through a write (its seqlock counter odd), minutes later.
+        seq = pub._slot._seq
+        seq[0] += 1
+        rec = np.zeros(1, TRUTH_DTYPE)
+        rec["stamp_ns"], rec["q"] = 120_000_000_000, 0.5
+        pub._slot._value[0] = rec[0]
+        done = threading.Timer(0.05, lambda: seq.__setitem__(0, seq[0] + 1))
+        done.start()
+        latest = reader.latest()
+        done.join()
+        assert latest.stamp_ns == 120_000_000_000 and np.all(latest.q == 0.5)
+        # A write that never completes is an error, not the old state.
+        seq[0] += 1
+        with pytest.raises(RobotError, match="torn"):
+            reader.latest()
     finally:
         reader.close()
         pub.close()

@@ -45,6 +45,8 @@ TRUTH_DTYPE = np.dtype(
 )
 # Records in the history ring: 1024 cycles = 2.048 s at 500 Hz.
 HISTORY_CAPACITY = 1024
+# How long :meth:`TruthReader.latest` reads again after torn reads, s (the simulator writes every 2 ms).
+_LATEST_TIMEOUT = 0.5
 
 
 class TruthSample(NamedTuple):
@@ -141,11 +143,23 @@ class TruthReader:
                 time.sleep(0.05)
 
     def latest(self) -> TruthSample:
-        """The most recent state; raises RobotError when the simulator has not written one yet."""
-        rec, _ = self._slot.read()
-        if rec is None:
-            raise RobotError("the simulated robot has not published a state yet")
-        return _sample(rec)
+        """The most recent state; raises RobotError when the simulator has not written one yet.
+
+        A torn read (the simulator wrote while it was copied, every try) is read
+        again rather than answered with the slot's last whole copy, which may be
+        arbitrarily old on a starved machine: a check of where the arm is now must
+        not see where it was minutes ago.
+        """
+        deadline = time.monotonic() + _LATEST_TIMEOUT
+        while True:
+            rec, torn = self._slot.read()
+            if rec is None:
+                raise RobotError("the simulated robot has not published a state yet")
+            if not torn:
+                return _sample(rec)
+            if time.monotonic() > deadline:
+                raise RobotError(f"the simulated robot's state was torn on every read for {_LATEST_TIMEOUT:g} s")
+            time.sleep(0.0005)
 
     def history(self) -> NDArray[np.void]:
         """The records of the last ~2 s, oldest first (``TRUTH_DTYPE``)."""
