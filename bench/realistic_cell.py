@@ -137,6 +137,8 @@ def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool,
     w = figures["weld"]
     out["weld"] = {k: w[k] for k in ("plan_alone_error", "plan_error", "torch_error", "torch_believed_error")}
     out["weld"]["tracked_mm"] = w["figures"]["tracked_mm"]
+    out["weld"]["height_probe"] = w.get("height_probe")
+    out["weld"]["wall_offset_used_mm"] = w["figures"].get("wall_offset_used_mm")
     out["weld"]["arc_on_s"] = w["figures"]["arc_on_s"]
     torch = w["torch_error"]
     out["success"] = bool(w["figures"]["tracked_mm"] >= TRACKED_MIN and torch["points"] > 0 and torch["max_mm"] <= TORCH_MAX)
@@ -185,8 +187,9 @@ def summarise(preset: str, sources: list[str], runs: list[dict[str, Any]]) -> di
 
 def table(runs: list[dict[str, Any]]) -> list[str]:
     lines = [
-        "| seed | cal. vs truth mm / deg | targeting mean / max mm (cal. box) | (over the table) | plan alone RMS / max mm | torch RMS / max mm | tracked mm | success |",
-        "|---|---|---|---|---|---|---|---|",
+        "| seed | cal. vs truth mm / deg | targeting mean / max mm (cal. box) | (over the table) | plan alone RMS / max mm "
+        "| height probed, corrected mm | torch RMS / max mm | tracked mm | success |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
         c = r.get("calibration")
@@ -199,10 +202,12 @@ def table(runs: list[dict[str, Any]]) -> list[str]:
         pa = f"{w['plan_alone_error']['rms_mm']:.3f} / {w['plan_alone_error']['max_mm']:.3f}" if w else "-"
         to = f"{w['torch_error']['rms_mm']:.3f} / {w['torch_error']['max_mm']:.3f}" if w else "-"
         tr = f"{w['tracked_mm']:.0f}" if w else "-"
+        hp = (w or {}).get("height_probe") or {}
+        hc = f"{hp['height_correction_mm']:+.3f}" if hp.get("probed") else "-"
         ok = "yes" if r.get("success") else "no" + (f" ({r['failed'].get('reason', '')[:80]})" if "failed" in r else "")
         if r.get("retried_after"):
             ok += f" (run {len(r['retried_after']) + 1}: the robot link was starved before)"
-        lines.append(f"| {r['seed']} | {cal} | {tc} | {tt} | {pa} | {to} | {tr} | {ok} |")
+        lines.append(f"| {r['seed']} | {cal} | {tc} | {tt} | {pa} | {hc} | {to} | {tr} | {ok} |")
     return lines
 
 

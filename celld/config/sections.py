@@ -538,6 +538,11 @@ class WeldConfig:
     speed_scale: float = 0.5
     # The longest a weld may run before it is stopped, s.
     timeout: float = 600.0
+    # Before tracking, the finger touches both walls of a groove whose walls open upwards (a V): the
+    # joint's width there gives the tip's height in it, and the plan moves to the height it should have.
+    probe_height: bool = True
+    # A probed height further than this off the plan's is refused (the calibration or the tool is off), m.
+    max_height_correction: float = 0.002
 
     @classmethod
     def read(cls, r: TableReader) -> WeldConfig:
@@ -553,6 +558,10 @@ class WeldConfig:
             retract_height=r.float("retract_height_mm", cls.retract_height * 1e3, lo=1.0, hi=500.0, scale=1e-3),
             speed_scale=r.float("speed_scale", cls.speed_scale, lo=0.0, hi=1.0, open_lo=True),
             timeout=r.float("timeout_s", cls.timeout, lo=1.0, hi=36_000.0),
+            probe_height=r.bool("probe_height", cls.probe_height),
+            max_height_correction=r.float(
+                "max_height_correction_mm", cls.max_height_correction * 1e3, lo=0.0, hi=20.0, open_lo=True, scale=1e-3
+            ),
         )
 
 

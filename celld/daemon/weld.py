@@ -52,9 +52,18 @@ from celld.daemon.planning import record_arm, record_cell, record_plan
 from celld.errors import CelldError, ConfigError, InputError, JobError, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
+from celld.motion.types import ServoPlan
 from celld.recording import layout
-from celld.seam.figures import track_summary
-from celld.seam.weldpath import WeldGeometry, start_pose, tool_poses, wall_offset, weld_geometry
+from celld.seam.figures import contact_across, track_summary
+from celld.seam.weldpath import (
+    WeldGeometry,
+    height_from_width,
+    measured_offsets,
+    start_pose,
+    tool_poses,
+    wall_offset,
+    weld_geometry,
+)
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
 from celld.tactile.tool import ToolGeometry, with_measured_torch
 
@@ -200,6 +209,119 @@ class _Collector:
         return np.concatenate(self.batches) if self.batches else None
 
 
+async def _retract(ctx: JobContext, devices: CellDevices, z: np.ndarray, height: float, T_scan: np.ndarray, speed: float) -> str:
+    """Stop, the tool straight up by ``height`` (m, along ``z``) and back to the scan pose; why not, or ""."""
+    try:
+        await devices.stop_robot()
+        state = devices.require_motion().state()
+        if state is not None:
+            T_up = state.T_base_tcp.copy()
+            T_up[:3, 3] += height * z
+            ctx.progress("retract", None, "tool up and away")
+            await devices.move_to(T_up, speed_scale=min(speed, 0.2))
+            await devices.move_to(T_scan, speed_scale=speed)
+    except CelldError as exc:
+        log.error("retract after the weld failed", job=ctx.job_id, error=str(exc))
+        return str(exc)
+    return ""
+
+
+def _start_clearance(geometry: WeldGeometry, seam: Any) -> float:
+    """How far off the finger wall the tip starts: mid-way across the joint where the scan measured its
+    other wall at the start (as far from either wall as it can be), else :data:`CLEARANCE`."""
+    i = _start_station(geometry)
+    far = seam.far_wall_across[i]
+    width = float(geometry.offsets[i] + far[0] + far[1] * geometry.tip_height)
+    return width / 2.0 if math.isfinite(width) and width > 0.0 else CLEARANCE
+
+
+def _start_station(geometry: WeldGeometry) -> int:
+    """The station where the finger starts (LEAD_IN along the wall line)."""
+    s = polyline.arc_length(geometry.wall_base)
+    return min(int(np.searchsorted(s, LEAD_IN)), len(s) - 1)
+
+
+async def _probe_height(
+    ctx: JobContext,
+    devices: CellDevices,
+    config: Config,
+    geometry: WeldGeometry,
+    seam: Any,
+    servo: ServoConfig,
+    tool_cfg: ToolConfig,
+    sensor_yaw: float,
+    T_start: np.ndarray,
+    speed: float,
+) -> tuple[dict[str, Any], WeldGeometry, np.ndarray]:
+    """Touch the far wall and the finger wall at the start; from the joint's width there and the scan's
+    walls (:func:`height_from_width`), the tip's height in the joint. Returns what was found, the
+    geometry moved to the planned height and the start pose on it (unchanged when not probed)."""
+    wc = config.weld
+    i = _start_station(geometry)
+    finger, far = seam.wall_across[i], seam.far_wall_across[i]
+    if not wc.probe_height:
+        return {"probed": False, "why": "weld.probe_height is off"}, geometry, T_start
+    try:
+        height_from_width(float(finger[0] + far[0]), finger, far)  # the joint can tell a height
+    except WorkpieceError as exc:
+        return {"probed": False, "why": str(exc)}, geometry, T_start
+    motion = devices.require_motion()
+    tool = ToolGeometry.from_config(tool_cfg)
+    z = geometry.T_base_plane[:3, 2]
+    N = geometry.normals[i] - float(geometry.normals[i] @ z) * z
+    N /= np.linalg.norm(N)
+    # The far wall at the tip's height, where the scan measured it (its neighbours' between).
+    t_far = seam.far_wall_across[:, 0] + seam.far_wall_across[:, 1] * geometry.tip_height
+    k = np.arange(len(t_far))
+    ok = np.isfinite(t_far)
+    far_line = geometry.seam_base - np.interp(k, k[ok], t_far[ok])[:, None] * geometry.normals
+    other = replace(tool_cfg, wall_side="right" if tool_cfg.wall_side == "left" else "left")
+    touches = {}
+    for name, line, cfg in (("far", far_line, other), ("finger", geometry.wall_base, tool_cfg)):
+        ctx.progress("probe", None, f"touching the {name} wall of the joint")
+        plan = algorithm2_plan(line, servo, cfg, config.motion, T_base_plane=geometry.T_base_plane, touch_only=True, sensor_yaw=sensor_yaw)
+        records = await _run_servo(motion, plan, wc.timeout)
+        touches[name] = contact_across(records, tool, geometry.T_base_plane[:3, 3], N, tool.side, servo.delta_d)
+        await devices.move_to(T_start, speed_scale=speed)
+    width = touches["finger"] - touches["far"] + 2.0 * tool.tip_radius
+    height = height_from_width(width, finger, far)
+    dh = height - geometry.tip_height
+    found = {
+        "probed": True,
+        "joint_width_mm": round(width * 1e3, 4),
+        "scan_width_mm": round(float(finger[0] + far[0] + (finger[1] + far[1]) * geometry.tip_height) * 1e3, 4),
+        "height_mm": round(height * 1e3, 4),
+        "height_correction_mm": round(-dh * 1e3, 4),
+    }
+    if abs(dh) > wc.max_height_correction:
+        raise WorkpieceError(
+            f"the tip stands {height * 1e3:.2f} mm above the seam where the plan puts it at {geometry.tip_height * 1e3:.2f} mm "
+            f"(the joint is {width * 1e3:.2f} mm wide there; at most {wc.max_height_correction * 1e3:.1f} mm off is corrected): "
+            "check the calibration and the tool"
+        )
+    log.info("tip height probed", job=ctx.job_id, **found)
+    moved = weld_geometry(seam.points_base, seam.tangents, seam.normals, seam.plane_normal, geometry.offsets, geometry.tip_height - dh)
+    T_start = start_pose(moved, tool.T_tcp_tool, LEAD_IN, _start_clearance(geometry, seam))
+    await devices.move_to(T_start, speed_scale=speed)
+    return found, moved, T_start
+
+
+async def _run_servo(motion: Any, plan: ServoPlan, timeout: float) -> np.ndarray:
+    """Run a servo plan to its end; the motion records of it."""
+    collector = _Collector()
+    motion.add_listener(collector)
+    try:
+        cid = await motion.start_servo(plan)
+        collector.command_id = cid
+        await motion.wait(cid, timeout=timeout)
+    finally:
+        motion.remove_listener(collector)
+    records = collector.records()
+    if records is None:
+        raise CelldError("a touch ran but no motion record of it was read")
+    return records
+
+
 async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache: dict[str, Any]) -> Mapping[str, Any]:
     job = ctx.job
     if not isinstance(job, WeldJob):
@@ -280,7 +402,10 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     ctx.progress("seam", None, f"finding the seam of {workpiece.name} with calibration {cal_job or '(unnamed)'}")
     nominal = se3.from_ur_pose(wc.nominal_pose) if wc.nominal_pose else None
     seam = await asyncio.to_thread(find_seam, points, prepared, T_base_cam, seam_params, nominal)
-    geometry = weld_geometry(seam.points_base, seam.tangents, seam.normals, seam.plane_normal, offset, wc.tip_height)
+    # The finger wall where the scan measured it beside the seam (a part's gap and twist move it; the
+    # model's constant offset where it was not measured, or where the config trusts the model alone).
+    offsets = offset if seam_params.seam_source == "model" else measured_offsets(seam.wall_across, wc.tip_height, offset)
+    geometry = weld_geometry(seam.points_base, seam.tangents, seam.normals, seam.plane_normal, offsets, wc.tip_height)
     if rec is not None:
         rec.log_path_base("planned", geometry.seam_base)
         # The part model where the scan placed it.
@@ -289,7 +414,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
 
     # 3. the whole path, checked against the cell before the tool moves to it:
     # above the start, down, along the seam, up and back to the scan pose.
-    T_start = start_pose(geometry, tool.T_tcp_tool, LEAD_IN, CLEARANCE)
+    T_start = start_pose(geometry, tool.T_tcp_tool, LEAD_IN, _start_clearance(geometry, seam))
     z = geometry.T_base_plane[:3, 2]
     T_above = T_start.copy()
     T_above[:3, 3] += wc.approach_height * z
@@ -316,6 +441,16 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     ctx.progress("tare", None, "taring the SRM, finger free")
     await asyncio.to_thread(devices.tactile.tare)
 
+    # The tip's height in the joint, probed by touch: the plan's height error moves where the finger
+    # meets a sloping wall, and so where the torch goes. The plan moves to the height it should have.
+    try:
+        height_probe, geometry, T_start = await _probe_height(
+            ctx, devices, config, geometry, seam, servo, tool_cfg, sensor_yaw, T_start, min(speed, 0.2)
+        )
+    except CelldError:
+        await _retract(ctx, devices, z, wc.retract_height, T_scan, speed)
+        raise
+
     # 4. touch and track
     plan = algorithm2_plan(
         geometry.wall_base,
@@ -324,7 +459,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         config.motion,
         T_base_plane=geometry.T_base_plane,
         process=bool(job.arc) and config.robot.arc_output >= 0,
-        seam_offset=offset,
+        seam_offset=geometry.offsets,
         sensor_yaw=sensor_yaw,
     )
     collector = _Collector()
@@ -372,20 +507,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         failure = CelldError(f"the motion loop reported during the weld: {'; '.join(trouble)}")
 
     # 5. retract (also after a failed track, while the robot can still be moved)
-    retract_error = ""
-    if failure is None or motion.link_running():
-        try:
-            await devices.stop_robot()
-            state = motion.state()
-            if state is not None:
-                T_up = state.T_base_tcp.copy()
-                T_up[:3, 3] += wc.retract_height * z
-                ctx.progress("retract", None, "tool up and away")
-                await devices.move_to(T_up, speed_scale=min(speed, 0.2))
-                await devices.move_to(T_scan, speed_scale=speed)
-        except CelldError as exc:
-            retract_error = str(exc)
-            log.error("retract after the weld failed", job=ctx.job_id, error=retract_error)
+    retract_error = await _retract(ctx, devices, z, wc.retract_height, T_scan, speed) if failure is None or motion.link_running() else ""
     if failure is not None:
         raise failure
 
@@ -400,6 +522,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         "torch_offset_mm": round(tool_cfg.torch_offset * 1e3, 4),
         "yaw_from_config_deg": round(-math.degrees(sensor_yaw), 4),
     }
+    result["height_probe"] = height_probe
     if retract_error:
         result["retract_error"] = retract_error
     return result
@@ -469,7 +592,13 @@ def _summarise(
             rec.log_path_base("refined", track.refined)
         if len(track.torch) > 1:
             rec.log_path_base("torch", track.torch)
-    figures = {**track.figures, "wall_offset_mm": round(offset * 1e3, 4), "seam_length_mm": round(seam.length * 1e3, 2)}
+    figures = {
+        **track.figures,
+        "wall_offset_mm": round(offset * 1e3, 4),
+        # The finger wall's distance from the seam as the weld used it (the scan's, where it measured it).
+        "wall_offset_used_mm": [round(float(geometry.offsets.min()) * 1e3, 4), round(float(geometry.offsets.max()) * 1e3, 4)],
+        "seam_length_mm": round(seam.length * 1e3, 2),
+    }
     return {
         "figures": figures,
         "paths": str(path_file),

@@ -64,6 +64,13 @@ Three plan parameters reach beyond the paper:
 - ``process`` (bool): the plan asks for the process (the welding arc).
   :meth:`Algorithm2Servo.telemetry` reports ``process_on`` while the phase is
   TRACK, SEARCH or FINISH; the motion core grants it (:mod:`celld.motion.core`).
+- ``seam_offsets`` (optional array (n,), m, one per planned point): the
+  seam's distance from the wall where it changes along the seam (a part's gap
+  variation and twist, as the scan measured the wall); REFINE takes it at the
+  tip's arc position on the plan. Without it ``seam_offset`` holds everywhere.
+- ``touch_only`` (bool): the law touches the wall and reports ``DONE`` once the
+  deformation has settled, without tracking (a probe of the wall's position;
+  the caller reads it from the loop's records).
 - ``sensor_yaw`` (rad): the tool frame of the plan was turned about its z
   from the configured one by a measured torch
   (:func:`celld.tactile.tool.with_measured_torch`); the finger's deformation
@@ -240,6 +247,7 @@ class Algorithm2Params(NamedTuple):
     k_height: float  # 1/s, holds the tip's height above the plane
     process: bool = False  # the plan asks for the process (welding arc) while tracking
     seam_offset: float = 0.0  # m, seam's distance from the wall, on the free side (module docstring)
+    touch_only: bool = False  # touch the wall, settle, report DONE (module docstring)
     sensor_yaw: float = 0.0  # rad, the tactile frame's yaw from the tool frame's (module docstring)
 
     @classmethod
@@ -269,7 +277,7 @@ class Algorithm2Params(NamedTuple):
     def from_plan(cls, params: dict[str, Any]) -> Algorithm2Params:
         """Read and check the parameters carried by a :class:`ServoPlan`.
 
-        Parameters with a default (``process``, ``seam_offset``, ``sensor_yaw``) may be left out.
+        Parameters with a default (``process``, ``seam_offset``, ``touch_only``, ``sensor_yaw``) may be left out.
         """
         values: dict[str, Any] = {}
         for name in cls._fields:
@@ -278,9 +286,9 @@ class Algorithm2Params(NamedTuple):
                     continue
                 raise InputError(f"algorithm2 plan: parameter {name!r} is missing")
             v = params[name]
-            if name == "process":
+            if name in ("process", "touch_only"):
                 if not isinstance(v, bool):
-                    raise InputError(f"algorithm2 plan: parameter 'process' must be true or false, got {v!r}")
+                    raise InputError(f"algorithm2 plan: parameter {name!r} must be true or false, got {v!r}")
                 values[name] = v
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
@@ -312,16 +320,19 @@ def algorithm2_plan(
     normal_hint: Array = np.array([0.0, 0.0, 1.0]),
     *,
     process: bool = False,
-    seam_offset: float = 0.0,
+    seam_offset: float | Array = 0.0,
     sensor_yaw: float = 0.0,
+    touch_only: bool = False,
 ) -> ServoPlan:
     """The :class:`ServoPlan` that starts Algorithm 2 on the planned seam ``P_base`` (n, 3).
 
     Built where the plan is made (the main process); the motion process turns
     it into the law with :func:`make_algorithm2`. ``process`` asks for the
     process output (welding arc) while tracking; ``seam_offset`` (m) is the
-    seam's distance from the wall the finger touches and ``sensor_yaw`` (rad) the
-    tactile frame's yaw from the tool frame's (module docstring).
+    seam's distance from the wall the finger touches, one value or one per
+    point of ``P_base``; ``sensor_yaw`` (rad) the tactile frame's yaw from the
+    tool frame's; ``touch_only`` ends the law once the finger has settled on
+    the wall (module docstring).
 
     Raises
     ------
@@ -331,11 +342,18 @@ def algorithm2_plan(
     P = check_points(P_base, "P_base", min_points=2)
     plane = welding_plane(P, normal_hint) if T_base_plane is None else check_transform(T_base_plane, "T_base_plane")
     geometry = ToolGeometry.from_config(tool)
+    arrays = {"P_base": P, "T_base_plane": plane, "T_tcp_tool": geometry.T_tcp_tool}
+    offsets = np.asarray(seam_offset, dtype=np.float64)
+    if offsets.ndim:
+        _offset_profile(P, plane, offsets, tool.torch_offset)  # one per point, each valid
+        arrays["seam_offsets"] = offsets
+        seam_offset = float(np.median(offsets))
     params = Algorithm2Params.from_config(servo, tool, motion)._replace(
-        process=bool(process), seam_offset=float(seam_offset), sensor_yaw=float(sensor_yaw)
+        process=bool(process), seam_offset=float(seam_offset), sensor_yaw=float(sensor_yaw), touch_only=bool(touch_only)
     )
-    Algorithm2Params.from_plan(dict(params._asdict()))  # refuse a bad plan where it is made
-    return ServoPlan(NAME, {"P_base": P, "T_base_plane": plane, "T_tcp_tool": geometry.T_tcp_tool}, dict(params._asdict()))
+    plan = ServoPlan(NAME, arrays, dict(params._asdict()))
+    make_algorithm2(plan)  # refuse a bad plan where it is made
+    return plan
 
 
 def make_algorithm2(plan: ServoPlan) -> Algorithm2Servo:
@@ -345,7 +363,26 @@ def make_algorithm2(plan: ServoPlan) -> Algorithm2Servo:
             raise InputError(f"algorithm2 plan: array {key!r} is missing")
     params = Algorithm2Params.from_plan(dict(plan.params))
     path = prepare_plan(plan.arrays["P_base"], plan.arrays["T_base_plane"], params.plan_smoothing)
-    return Algorithm2Servo(path, params, check_transform(plan.arrays["T_tcp_tool"], "T_tcp_tool"))
+    offsets = None
+    if "seam_offsets" in plan.arrays:
+        offsets = _offset_profile(plan.arrays["P_base"], plan.arrays["T_base_plane"], plan.arrays["seam_offsets"], params.torch_offset)
+    return Algorithm2Servo(path, params, check_transform(plan.arrays["T_tcp_tool"], "T_tcp_tool"), offsets)
+
+
+def _offset_profile(P_base: Array, T_base_plane: Array, seam_offsets: Array, torch_offset: float) -> tuple[Array, Array]:
+    """``(s, offset)``: the seam offsets of the planned points at their arc positions in the plane
+    (as :func:`~celld.motion.plan.prepare_plan` measures them); checked like ``seam_offset``."""
+    P = np.asarray(P_base, dtype=np.float64)
+    off = np.asarray(seam_offsets, dtype=np.float64)
+    if off.shape != (len(P),):
+        raise InputError(f"algorithm2 plan: seam_offsets must hold one value per planned point ({len(P)}), got shape {off.shape}")
+    if not np.all(np.isfinite(off)) or off.min() < 0.0 or off.max() >= torch_offset:
+        raise InputError(f"algorithm2 plan: seam_offsets must be finite, >= 0 and below torch_offset {torch_offset} m")
+    T = np.asarray(T_base_plane, dtype=np.float64)
+    Q = (P - T[:3, 3]) @ T[:3, :2]
+    s = polyline.arc_length(Q)
+    keep = np.concatenate([[True], np.diff(s) > 1e-9])
+    return s[keep], off[keep]
 
 
 # -- the law -------------------------------------------------------------------------
@@ -389,9 +426,12 @@ class Algorithm2Servo:
         The tool frame (undeformed tip) in the TCP frame.
     """
 
-    def __init__(self, path: PlannedPath, params: Algorithm2Params, T_tcp_tool: Array) -> None:
+    def __init__(
+        self, path: PlannedPath, params: Algorithm2Params, T_tcp_tool: Array, seam_offsets: tuple[Array, Array] | None = None
+    ) -> None:
         self.path = path
         self.p = params
+        self._offsets = seam_offsets
         self.T_tcp_tool = np.array(T_tcp_tool, dtype=np.float64)
         self._tip_offset = bool(np.any(self.T_tcp_tool[:3, 3] != 0.0))
         self._R_bp = path.T_base_plane[:3, :3]
@@ -599,12 +639,13 @@ class Algorithm2Servo:
         self._contact_run += 1
         if self.phase in (Phase.TRACK, Phase.SEARCH):
             # REFINE, lines 16-20, at the sample's capture time.
-            _, t_s, n_s, _, _ = self._plan_at(P_cap)
+            _, t_s, n_s, s_cap, _ = self._plan_at(P_cap)
             P_s = refine_point(P_cap, delta, t_s, n_s)
             # The tip's centre rides tip_radius off the wall: record the wall,
             # moved to the seam seam_offset off it on the free side.
             P_wall = P_s + self.p.side * self.p.tip_radius * n_s
-            P_seam = P_wall - self.p.side * self.p.seam_offset * n_s
+            offset = self.p.seam_offset if self._offsets is None else float(np.interp(s_cap, *self._offsets))
+            P_seam = P_wall - self.p.side * offset * n_s
             self._append_refined(P_seam, t_s)
         return latency
 
@@ -664,6 +705,9 @@ class Algorithm2Servo:
             else:
                 self._settled_run = 0
             if self._settled_run >= self.p.contact_loss_samples:
+                if self.p.touch_only:
+                    self.phase = Phase.DONE
+                    return self._out(_ZERO6, ControlStatus.DONE, latency)
                 self.phase = Phase.TRACK
             elif float(np.hypot(*(P_r - self._P_touch0))) > self.p.touch_distance:
                 self._fault(ControlStatus.CONTACT_LOST, f"no wall within the touch distance of {self.p.touch_distance * 1e3:.1f} mm")

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from celld import polyline, se3
+from celld.errors import CelldError
 from celld.seam.weldpath import WeldGeometry, in_plane
 from celld.tactile.tool import ToolGeometry
 
@@ -119,3 +120,34 @@ def track_summary(records: np.ndarray, geometry: WeldGeometry, tool: ToolGeometr
         "frame_to_command_p99_ms": round(float(np.percentile(latency_ms, 99)), 3) if len(latency_ms) else None,
     }
     return TrackSummary(refined, torch_weld, figures)
+
+
+# Records of a touch averaged for its contact: the last this many settled cycles (50 ms at 500 Hz).
+_CONTACT_RECORDS = 25
+# A touch's cycle counts as settled with |delta_n| within this share of delta_d.
+_SETTLED = 0.2
+
+
+def contact_across(records: np.ndarray, tool: ToolGeometry, origin: Array, across: Array, side: float, delta_d: float) -> float:
+    """Where a touch found its wall: the deformed tip centre's coordinate (m) along ``across`` from ``origin``.
+
+    ``records`` are the motion loop's records of a touch-only Algorithm 2 plan
+    (:func:`celld.motion.algorithm2.algorithm2_plan`); the contact is the
+    undeformed tip of the TCP pose minus the deformation the law used (Eq. 15,
+    ``P_s = P_r - delta``), averaged over the last settled cycles of the touch.
+    ``across`` (3,) is unit, in the welding plane, towards the finger wall;
+    ``side`` the finger wall's side (+1 left of the travel, as the law's
+    ``delta_n`` is signed), whichever wall was touched.
+
+    Raises
+    ------
+    CelldError
+        The touch never settled on a wall.
+    """
+    touch = records[(records["servo_phase"] == 0) & np.isfinite(records["delta_n"])]
+    settled = touch[np.abs(np.abs(touch["delta_n"]) - delta_d) < _SETTLED * delta_d][-_CONTACT_RECORDS:]
+    if len(settled) == 0:
+        raise CelldError("the touch ended without settling on a wall")
+    T_tool = np.array([se3.from_ur_pose(p) for p in settled["tcp_pose"]]) @ tool.T_tcp_tool
+    y = (T_tool[:, :3, 3] - np.asarray(origin, dtype=np.float64)) @ np.asarray(across, dtype=np.float64)
+    return float(np.mean(y - side * settled["delta_n"]))

@@ -299,6 +299,42 @@ def lateral_offsets(scan: GrooveFit, model: GrooveFit, seam: Array, approach: Ar
     return shift, sigma, valid
 
 
+def wall_distances(
+    fit: GrooveFit, side: int, points: Array, toward: Array, approach: Array
+) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
+    """How far one wall stands across the seam, per window, as the scan measured it.
+
+    From the seam point ``x`` raised by ``h`` along ``approach``, the ray along
+    ``toward`` meets the wall's fitted plane ``n . y = d`` at ``t(h) = t0 +
+    slope h`` (a plane: linear in the height). A finger pressing that wall at
+    height h stands t(h) off the seam; a part's gap variation, twist and tacks
+    move it, its model does not.
+
+    Parameters
+    ----------
+    fit : the scan's groove fit (model frame)
+    side : 0 for the left wall, 1 for the right one
+    points : (w, 3) the seam at the window centres
+    toward : (w, 3) unit directions across the seam towards the wall
+    approach : (3,) unit direction out of the joint
+
+    Returns
+    -------
+    t0 (w,) m, slope (w,), the 1-sigma of t0 (w,) m from the wall's fit, and the
+    mask of windows whose wall was fitted, agrees with the model and meets the ray
+    at an angle.
+    """
+    n, d = fit.normals[:, side], fit.offsets[:, side]
+    nu = np.einsum("ij,ij->i", n, toward)
+    ok = np.all(np.isfinite(n), axis=1) & np.isfinite(d) & (fit.status != CONTRADICTS) & (fit.status != UNSEEN)
+    ok &= np.abs(np.nan_to_num(nu)) > 0.2
+    safe = np.where(ok, nu, 1.0)
+    t0 = np.where(ok, (d - np.einsum("ij,ij->i", n, points)) / safe, np.nan)
+    slope = np.where(ok, -(n @ approach) / safe, np.nan)
+    sigma = np.where(ok, np.sqrt(np.abs(fit.offset_var[:, side])) / np.abs(safe), np.nan)
+    return t0, slope, sigma, ok
+
+
 def _bisector_distance(fit: GrooveFit, k: int, x: Array) -> tuple[Array, float]:
     """Unit normal of the walls' bisector plane and the signed distance of x from it."""
     n1, n2 = fit.normals[k]

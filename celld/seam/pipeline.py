@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -55,7 +55,7 @@ from celld import polyline, se3
 from celld.errors import GrooveError, RegistrationError, ScanError
 from celld.log import get_logger
 from celld.scanner.base import OrganizedCloud
-from celld.seam.groove import CONTRADICTS, GrooveFit, fit_groove, lateral_offsets, smooth_offsets
+from celld.seam.groove import CONTRADICTS, GrooveFit, fit_groove, lateral_offsets, smooth_offsets, wall_distances
 from celld.seam.params import SeamParams
 from celld.seam.register import PreparedModel, prepare_model, register
 from celld.seam.workpiece import NO_WALL, Workpiece
@@ -137,6 +137,11 @@ class SeamPath:
     model_points_base : (n, 3) the registered model's seam at the same stations
     T_base_obj : (4, 4) registered pose of the part model
     quality : SeamQuality
+    wall_across : (n, 2) the finger wall as the scan measured it beside each
+        point: rows ``(t0, slope)``, the wall ``t0 + slope h`` m across from the
+        point (along ``normals``) at ``h`` above it; NaN where unmeasured
+    far_wall_across : (n, 2) the joint's other wall the same way, across from
+        each point against ``normals``
     """
 
     points_base: Array
@@ -147,9 +152,23 @@ class SeamPath:
     model_points_base: Array
     T_base_obj: Array
     quality: SeamQuality
+    wall_across: Array = field(default_factory=lambda: np.zeros((0, 2)))
+    far_wall_across: Array = field(default_factory=lambda: np.zeros((0, 2)))
 
     def __post_init__(self) -> None:
-        for name in ("points_base", "tangents", "normals", "plane_normal", "model_points_base", "T_base_obj"):
+        for name in ("wall_across", "far_wall_across"):
+            if len(getattr(self, name)) == 0:  # not measured
+                object.__setattr__(self, name, np.full((len(self.points_base), 2), np.nan))
+        for name in (
+            "points_base",
+            "tangents",
+            "normals",
+            "plane_normal",
+            "model_points_base",
+            "T_base_obj",
+            "wall_across",
+            "far_wall_across",
+        ):
             a = np.array(getattr(self, name), dtype=np.float64)
             a.setflags(write=False)
             object.__setattr__(self, name, a)
@@ -170,8 +189,15 @@ class SeamPath:
             "plane_normal": self.plane_normal.tolist(),
             "model_points_base": self.model_points_base.tolist(),
             "T_base_obj": self.T_base_obj.tolist(),
+            "wall_across": _rows(self.wall_across),
+            "far_wall_across": _rows(self.far_wall_across),
             "quality": self.quality.to_dict(),
         }
+
+
+def _rows(a: Array | None) -> list[list[float | None]]:
+    """JSON-ready rows, NaN as null."""
+    return [[v if math.isfinite(v) else None for v in row] for row in np.asarray(a).tolist()]
 
 
 @dataclass(frozen=True, eq=False)
@@ -358,7 +384,8 @@ def find_seam(
 
     cam_obj = se3.apply(T_obj_base, cam_base[None])[0]
     coverage, across, support = _check_seam_seen(prepared, P_near, proj, near, stations, reach, cam_obj, params, figures)
-    points_obj, source, reason, gq = _seam_points(prepared, P_near, stations, params, figures)
+    points_obj, source, reason, gq, fit = _seam_points(prepared, P_near, stations, params, figures)
+    stations_obj = points_obj
     along = _along_shift(P_obj[near], proj, near, wp, params)
     if math.isfinite(along):
         points_obj = polyline.slide(points_obj, along)
@@ -371,8 +398,12 @@ def find_seam(
         reversed_ = bool(nominal_dir @ found_dir < 0)
     points_base = se3.apply(T_base_obj, points_obj)
     model_base = se3.apply(T_base_obj, stations)
+    # The finger wall is on its side of the travel, so on the model's other side when the order is reversed.
+    finger_left = (params.finger_wall == "left") != reversed_
+    wall_across = _wall_across(fit, stations_obj, wp, params, finger_left)
+    far_across = _wall_across(fit, stations_obj, wp, params, not finger_left)
     if reversed_:
-        points_base, model_base = points_base[::-1], model_base[::-1]
+        points_base, model_base, wall_across, far_across = points_base[::-1], model_base[::-1], wall_across[::-1], far_across[::-1]
     plane_normal = se3.rotate(T_base_obj, wp.approach)
     tangents = _tangents(points_base, max(1, int(round(params.tangent_span / 2.0 / spacing))))
     normals: np.ndarray = np.cross(plane_normal, tangents)
@@ -396,7 +427,34 @@ def find_seam(
         **gq,
     )
     log.debug("seam found", workpiece=wp.name, source=source, fitness=round(quality.fitness, 4), duration=round(quality.duration, 3))
-    return SeamPath(points_base, tangents, normals, plane_normal, spacing, model_base, T_base_obj, quality)
+    return SeamPath(points_base, tangents, normals, plane_normal, spacing, model_base, T_base_obj, quality, wall_across, far_across)
+
+
+def _wall_across(fit: GrooveFit | None, points: Array, wp: Workpiece, params: SeamParams, model_left: bool) -> Array:
+    """A wall (the model's left wall if ``model_left``) across from each seam station as the scan
+    measured it (:func:`wall_distances`), smoothed along the seam like the seam's own shifts: (k, 2) rows
+    ``(t0 m, slope)``, NaN where the groove was not measured (no fit, or no good window within ``max_gap / 2``)."""
+    out = np.full((len(points), 2), np.nan)
+    if fit is None:
+        return out
+    arc_st = np.linspace(0.0, wp.seam_length, len(points))
+    at_windows = np.column_stack([np.interp(fit.arc, arc_st, points[:, k]) for k in range(3)])
+    T = np.gradient(at_windows, axis=0)
+    toward = np.cross(wp.approach, T)
+    toward /= np.linalg.norm(toward, axis=1, keepdims=True)
+    side = 0 if model_left else 1
+    if side:
+        toward = -toward
+    t0, slope, sigma, ok = wall_distances(fit, side, at_windows, toward, np.asarray(wp.approach, dtype=np.float64))
+    if not np.any(ok):
+        return out
+    span, step = params.deviation_span, params.groove.step
+    t0_st, se = smooth_offsets(fit.arc, t0, sigma, fit.length, ok, arc_st, span, step)
+    slope_st, _ = smooth_offsets(fit.arc, slope, sigma, fit.length, ok, arc_st, span, step)
+    gap = np.abs(arc_st[:, None] - fit.arc[ok][None, :]).min(axis=1)
+    measured = np.isfinite(se) & np.isfinite(slope_st) & (gap <= params.max_gap / 2.0 + 1e-9)
+    out[measured, 0], out[measured, 1] = t0_st[measured], slope_st[measured]
+    return out
 
 
 def _check_seam_seen(
@@ -500,8 +558,9 @@ def _wall_support(prepared: PreparedWorkpiece, P_near: Array, cam_obj: Array, pa
 
 def _seam_points(
     prepared: PreparedWorkpiece, P_near: Array, stations: Array, params: SeamParams, figures: dict[str, float]
-) -> tuple[Array, str, str, dict[str, float]]:
-    """The seam at the stations (model frame): measured groove or registered model."""
+) -> tuple[Array, str, str, dict[str, float], GrooveFit | None]:
+    """The seam at the stations (model frame): measured groove or registered model; and the scan's groove fit
+    where it covers enough of the seam to measure the finger wall by (None otherwise)."""
     nan = math.nan
     gq = dict(
         groove_coverage=nan,
@@ -518,7 +577,7 @@ def _seam_points(
     if prior is None:
         if params.seam_source == "groove":
             raise GrooveError(f"{wp.name}: the model has no labelled joint walls, so the groove cannot be measured", figures)
-        return stations, "model", "the model has no labelled joint walls", gq
+        return stations, "model", "the model has no labelled joint walls", gq, None
 
     d, idx = prepared.model.tree.query(P_near, distance_upper_bound=params.label_distance)
     labels = np.full(len(P_near), NO_WALL, dtype=np.int8)
@@ -553,7 +612,7 @@ def _seam_points(
         why = f"the groove was measured along {groove_cov:.0%} of the seam, expected at least {params.min_groove_coverage:.0%}"
         if params.seam_source == "groove":
             raise GrooveError(why, figures)
-        return stations, "model", why, gq
+        return stations, "model", why, gq, None
 
     # Bridge the short unmeasured stretches from their neighbours; move the
     # stations across the seam, in the seam plane.
@@ -576,7 +635,7 @@ def _seam_points(
             figures,
         )
     if params.seam_source == "model":
-        return stations, "model", "seam_source is 'model'", gq
+        return stations, "model", "seam_source is 'model'", gq, fit
     z = float(np.max(dev / se))
     if params.seam_source == "auto" and z < params.deviation_sigmas:
         # The registered model seam is the more precise of the two here.
@@ -584,8 +643,8 @@ def _seam_points(
             f"the measured groove agrees with the model within its uncertainty "
             f"(largest deviation {z:.1f} sigma, below {params.deviation_sigmas:.1f})"
         )
-        return stations, "model", why, gq
-    return stations + Dst, "groove", "", gq
+        return stations, "model", why, gq, fit
+    return stations + Dst, "groove", "", gq, fit
 
 
 def _along_shift(P: Array, proj: polyline.Projection, near: NDArray[np.bool_], wp: Workpiece, params: SeamParams) -> float:

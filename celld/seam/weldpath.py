@@ -21,6 +21,7 @@ Pure: arrays in, arrays out, SI units, base frame unless a name says otherwise.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -40,6 +41,10 @@ _STATIONS = 9
 _MAX_SPREAD = 2e-4
 # Rays longer than this (m) miss: no wall of a joint stands that far off its seam.
 _MAX_REACH = 0.05
+# How far (m) the scan's finger wall may stand off the model's before the weld is refused.
+MAX_WALL_DEVIATION = 1.0e-3
+# The least widening of a joint per unit of height (both walls' slopes) for its width to tell the height.
+MIN_OPENING = 0.3
 
 
 class WeldGeometry(NamedTuple):
@@ -53,8 +58,9 @@ class WeldGeometry(NamedTuple):
     seam_base : (n, 3) the seam moved up to the tip height (the torch's line)
     tangents : (n, 3) unit travel directions
     normals : (n, 3) unit, in the plane, pointing from the seam to the finger wall
-    offset : m from the seam line to the wall line
+    offset : m from the seam line to the wall line (the median of ``offsets``)
     tip_height : m above the seam along the plane normal
+    offsets : (n,) m from each seam point to the wall line
     """
 
     T_base_plane: Array
@@ -64,6 +70,7 @@ class WeldGeometry(NamedTuple):
     normals: Array
     offset: float
     tip_height: float
+    offsets: Array
 
 
 def _side_label(finger_wall: str) -> int:
@@ -137,12 +144,15 @@ def _plane(origin: Array, tangent: Array, normal: Array) -> Array:
     return se3.transform_from(np.column_stack([x, np.cross(normal, x), normal]), origin)
 
 
-def weld_geometry(points: Array, tangents: Array, normals: Array, plane_normal: Array, offset: float, tip_height: float) -> WeldGeometry:
+def weld_geometry(
+    points: Array, tangents: Array, normals: Array, plane_normal: Array, offset: float | Array, tip_height: float
+) -> WeldGeometry:
     """The wall line, the torch's line and the welding plane of a seam (base frame).
 
     ``points``, ``tangents``, ``normals`` (n, 3) and ``plane_normal`` (3,) are a
     seam in the conventions of :class:`~celld.seam.pipeline.SeamPath` (normals
-    towards the finger wall); ``offset`` from :func:`wall_offset`.
+    towards the finger wall); ``offset`` from :func:`wall_offset`, or one per
+    point (:func:`measured_offsets`).
     """
     P = np.asarray(points, dtype=np.float64)
     T = np.asarray(tangents, dtype=np.float64)
@@ -153,9 +163,42 @@ def weld_geometry(points: Array, tangents: Array, normals: Array, plane_normal: 
         raise WorkpieceError(
             f"seam: expected matching (n, 3) points, tangents and normals with n >= 2, got {P.shape}, {T.shape}, {N.shape}"
         )
+    offsets = np.broadcast_to(np.asarray(offset, dtype=np.float64), (len(P),)).copy()
+    if not np.all(np.isfinite(offsets)):
+        raise WorkpieceError("seam: the wall offsets must be finite")
     seam_up = P + tip_height * z
-    wall = seam_up + offset * N
-    return WeldGeometry(_plane(wall[0], T[0], z), wall, seam_up, T, N, float(offset), float(tip_height))
+    wall = seam_up + offsets[:, None] * N
+    return WeldGeometry(_plane(wall[0], T[0], z), wall, seam_up, T, N, float(np.median(offsets)), float(tip_height), offsets)
+
+
+def measured_offsets(wall_across: Array, tip_height: float, model_offset: float, max_deviation: float = MAX_WALL_DEVIATION) -> Array:
+    """The finger wall's distance from each seam point at ``tip_height``, as the scan measured it.
+
+    ``wall_across`` (n, 2) are a :class:`~celld.seam.pipeline.SeamPath`'s rows
+    ``(t0, slope)``; points where it is NaN take their measured neighbours'
+    (interpolated along the seam), and the model's ``model_offset`` (from
+    :func:`wall_offset`) when none was measured.
+
+    Raises
+    ------
+    WorkpieceError
+        The measured wall stands more than ``max_deviation`` (m) off the model's
+        somewhere: the finger would press a wall the plan does not know.
+    """
+    W = np.asarray(wall_across, dtype=np.float64)
+    t = W[:, 0] + W[:, 1] * tip_height
+    ok = np.isfinite(t)
+    if not np.any(ok):
+        return np.full(len(W), float(model_offset))
+    k = np.arange(len(t))
+    t = np.interp(k, k[ok], t[ok])
+    dev = float(np.abs(t - model_offset).max())
+    if dev > max_deviation:
+        raise WorkpieceError(
+            f"the finger wall in the scan stands up to {dev * 1e3:.2f} mm off the model's ({model_offset * 1e3:.2f} mm from the seam "
+            f"at {tip_height * 1e3:.1f} mm), more than the {max_deviation * 1e3:.1f} mm accepted: check the joint's fit-up"
+        )
+    return t
 
 
 def model_geometry(workpiece: Workpiece, T_base_obj: Array, tip_height: float, finger_wall: str = "left") -> WeldGeometry:
@@ -201,3 +244,30 @@ def tool_poses(geometry: WeldGeometry, T_tcp_tool: Array, leads: np.ndarray, cle
         p = W[i] - clearance * geometry.normals[i]
         out[k] = se3.transform_from(np.column_stack([t, np.cross(z, t), z]), p) @ T_tool_tcp
     return out
+
+
+def height_from_width(width: float, finger: Array, far: Array) -> float:
+    """The height (m) above the seam at which the joint is ``width`` (m) wide between its walls.
+
+    ``finger`` and ``far`` are one station's rows of a
+    :class:`~celld.seam.pipeline.SeamPath`'s ``wall_across`` and
+    ``far_wall_across``: each wall stands ``t0 + slope h`` across from the seam,
+    so the joint is ``(t0_f + t0_r) + (slope_f + slope_r) h`` wide at height h.
+    A V-groove's bevels open upwards (slopes tan(a/2) each); a joint whose
+    walls do not (a fillet's web, a square butt) gives no height.
+
+    Raises
+    ------
+    WorkpieceError
+        A wall was not measured there, or the walls open by less than
+        :data:`MIN_OPENING` per unit of height.
+    """
+    f, r = np.asarray(finger, dtype=np.float64), np.asarray(far, dtype=np.float64)
+    if not (np.all(np.isfinite(f)) and np.all(np.isfinite(r)) and math.isfinite(width)):
+        raise WorkpieceError("the scan did not measure both walls of the joint there")
+    opening = float(f[1] + r[1])
+    if opening < MIN_OPENING:
+        raise WorkpieceError(
+            f"the joint's walls open by {opening:.2f} per unit of height (at least {MIN_OPENING}): its width tells no height"
+        )
+    return (width - float(f[0] + r[0])) / opening

@@ -74,7 +74,7 @@ def srm_source(world: World, robot_host: str, part: SimWorkpiece | None) -> SimS
         wall = np.array([[_FAR, _FAR], [_FAR + 1.0, _FAR]])
         side = 1.0 if tool.wall_side == "left" else -1.0
         return SimSrmSource(robot_host, wall, -side, np.eye(4), tool, params)
-    return SimSrmSource(robot_host, part.wall, part.wall.free, part.T_base_plane, tool, params)
+    return SimSrmSource(robot_host, part.wall, part.wall.free, part.T_base_plane, tool, params, far_wall=part.far_wall)
 
 
 class _CellScanner:

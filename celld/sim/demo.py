@@ -231,6 +231,8 @@ def run_jobs(
             # The torch as the daemon believes it went (its kinematics and tool config).
             "torch_believed_error": lateral(part, np.array(res["torch_path"])),
             "figures": res["figures"],
+            # The tip's height in the joint, probed by touch before tracking, and the correction made.
+            "height_probe": res.get("height_probe"),
             "recording": res.get("recording"),
             "paths": res.get("paths"),
         }
@@ -254,9 +256,19 @@ def summary_lines(figures: dict[str, Any]) -> list[str]:
         f"  torch, tracked by touch (Algorithm 2)        {to['rms_mm']:7.3f}  {to['max_mm']:7.3f}",
         f"  (the plan's points as placed                 {pl['rms_mm']:7.3f}  {pl['max_mm']:7.3f})",
         f"  (the torch as the daemon believes it went    {tb['rms_mm']:7.3f}  {tb['max_mm']:7.3f})",
+        _probe_line(w.get("height_probe")),
         f"tracked {w['figures']['tracked_mm']:.0f} mm, arc on {w['figures']['arc_on_s']:.1f} s, "
         f"delta_n error {w['figures']['delta_n_error_rms_mm']} mm RMS",
     ]
+
+
+def _probe_line(probe: dict[str, Any] | None) -> str:
+    if not probe or not probe.get("probed"):
+        return f"height probe: not made ({(probe or {}).get('why', 'no figures')})"
+    return (
+        f"height probe: the joint {probe['joint_width_mm']:.3f} mm wide at the tip (the scan: {probe['scan_width_mm']:.3f} at the planned "
+        f"height), the tip {probe['height_mm']:.3f} mm above the seam; plan moved {probe['height_correction_mm']:+.3f} mm"
+    )
 
 
 def _job(client: Any, message: dict[str, Any], say: Any) -> dict[str, Any]:

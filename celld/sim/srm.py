@@ -454,15 +454,25 @@ class SimSrm:
     T_base_plane : (4, 4)
         The welding plane (z along the finger, away from the work).
     params : SrmSimParams
+    far_wall : WallSurface, optional
+        The joint's other wall: the tip meets it when moved across the joint
+        (a probe of the joint's width), else only ``wall``.
     """
 
     def __init__(
-        self, cfg: TactileConfig, tool: ToolConfig, wall: Wall | WallSurface, T_base_plane: Array, params: SrmSimParams = SrmSimParams()
+        self,
+        cfg: TactileConfig,
+        tool: ToolConfig,
+        wall: Wall | WallSurface,
+        T_base_plane: Array,
+        params: SrmSimParams = SrmSimParams(),
+        far_wall: WallSurface | None = None,
     ) -> None:
         from celld.tactile.tool import ToolGeometry
 
         self.cfg = cfg
         self.wall = wall
+        self.far_wall = far_wall
         self.tool = ToolGeometry.from_config(tool)
         self.T_base_plane = np.asarray(T_base_plane, dtype=np.float64)
         self.params = params
@@ -482,7 +492,12 @@ class SimSrm:
         p_plane = (T_bt[:3, 3] - o_bp) @ R_bp
         v_rest = np.asarray(v_base_tip, dtype=np.float64) @ R_bp[:, :2]
         wall = self.wall.at(p_plane) if isinstance(self.wall, WallSurface) else self.wall
-        c, tag_plane = self.finger.touch(p_plane[:2], v_rest, wall, self.tool.tip_radius)
+        r, contact = self.tool.tip_radius, self.params.contact
+        if self.far_wall is not None and not finger_contact(p_plane[:2], v_rest, wall, r, contact).in_contact:
+            far = self.far_wall.at(p_plane)
+            if finger_contact(p_plane[:2], v_rest, far, r, contact).in_contact:
+                wall = far
+        c, tag_plane = self.finger.touch(p_plane[:2], v_rest, wall, r)
         R_tb = T_bt[:3, :3].T
         return c, R_tb @ (R_bp[:, :2] @ c.tip_shift_plane), R_tb @ (R_bp[:, :2] @ tag_plane)
 
@@ -677,6 +692,7 @@ class SimSrmSource:
     ``fps`` 0 takes the camera's configured rate. With ``truth_slot`` (a
     :data:`SRM_TRUTH_DTYPE` slot the caller created) each frame's true
     deformation is shared there, for benchmarks; the estimator never reads it.
+    ``far_wall``: the joint's other wall (:class:`SimSrm`).
     """
 
     robot_host: str
@@ -686,6 +702,7 @@ class SimSrmSource:
     tool: ToolConfig = ToolConfig()
     params: SrmSimParams | None = None
     truth_slot: str = ""
+    far_wall: WallSurface | None = None
 
     def __call__(self, cfg: TactileConfig) -> _TruthSharingCamera:
         from dataclasses import replace
@@ -697,5 +714,5 @@ class SimSrmSource:
         params = self.params or SrmSimParams(fps=cfg.fps)
         if params.fps <= 0.0:
             params = replace(params, fps=cfg.fps)
-        srm = SimSrm(cfg, self.tool, wall, self.T_base_plane, params)
+        srm = SimSrm(cfg, self.tool, wall, self.T_base_plane, params, self.far_wall)
         return _TruthSharingCamera(SimSrmCamera(srm, _pose_at(reader.history)), reader.close, self.truth_slot)

@@ -258,7 +258,8 @@ class SimWorkpiece(NamedTuple):
     the torch must follow); ``T_base_plane`` the welding plane (z out of the
     joint, x along the seam's chord, origin on its first station); ``wall``
     the finger wall in that plane, at heights above the root (what the SRM
-    touches); ``wall_side`` which wall the finger presses.
+    touches); ``wall_side`` which wall the finger presses; ``far_wall`` the
+    joint's other wall (None for a joint with one).
     """
 
     workpiece: Workpiece
@@ -267,6 +268,7 @@ class SimWorkpiece(NamedTuple):
     T_base_plane: Array
     wall: WallSurface
     wall_side: str
+    far_wall: WallSurface | None = None
 
 
 def place(part: object, workpiece: Workpiece) -> Array:
@@ -300,16 +302,37 @@ def on_table(workpiece: Workpiece, stations: Stations, T_base_obj: Array, wall_s
     """
     if wall_side not in ("left", "right"):
         raise WorkpieceError(f"wall_side: expected 'left' or 'right', got {wall_side!r}")
-    label = LEFT_WALL if wall_side == "left" else RIGHT_WALL
+    T = np.asarray(T_base_obj, dtype=np.float64)
+    hit, W_base, heights = _wall_hits(workpiece, stations, T, wall_side)
+    seam_base = se3.apply(T, stations.seam[hit])
+    z = T[:3, :3] @ np.asarray(workpiece.approach, dtype=np.float64)
+    x = seam_base[-1] - seam_base[0]
+    x -= (x @ z) * z
+    x /= np.linalg.norm(x)
+    T_base_plane = se3.transform_from(np.column_stack([x, np.cross(z, x), z]), seam_base[0])
+    wall = _surface(W_base, heights, seam_base, T_base_plane, wall_side)
+    far_side = "right" if wall_side == "left" else "left"
+    try:
+        far_hit, far_base, _ = _wall_hits(workpiece, stations, T, far_side)
+        far_wall = _surface(far_base, heights, se3.apply(T, stations.seam[far_hit]), T_base_plane, far_side)
+    except WorkpieceError:
+        far_wall = None  # a joint with one wall (a fillet's web): nothing across
+    return SimWorkpiece(workpiece, T, seam_base, T_base_plane, wall, wall_side, far_wall)
+
+
+def _wall_hits(workpiece: Workpiece, stations: Stations, T_base_obj: Array, side: str) -> tuple[NDArray[np.bool_], Array, Array]:
+    """Where rays across the joint from the seam meet the ``side`` wall: the stations hit at every
+    height (n,), the wall points there (k, m, 3) in the base frame, and the heights (k,) above the root."""
+    label = LEFT_WALL if side == "left" else RIGHT_WALL
     tris = workpiece.triangles[workpiece.wall_labels == label]
     if len(tris) == 0:
-        raise WorkpieceError(f"{workpiece.name}: no triangle is labelled as the {wall_side} wall")
+        raise WorkpieceError(f"{workpiece.name}: no triangle is labelled as the {side} wall")
     p = workpiece.params
     depth = p.get("thickness", 0.01) - p.get("root_face", 0.0)
     heights = np.arange(_WALL_MARGIN, depth - _WALL_MARGIN + 1e-9, _WALL_STEP)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(workpiece.vertices.astype(np.float32)), o3d.core.Tensor(tris.astype(np.uint32)))
-    sign = 1.0 if wall_side == "left" else -1.0
+    sign = 1.0 if side == "left" else -1.0
     n, k = len(stations.seam), len(heights)
     origins = stations.seam[None, :, :] + heights[:, None, None] * stations.up[None, :, :]  # (k, n, 3)
     dirs = np.broadcast_to(sign * stations.lateral, (k, n, 3))
@@ -317,20 +340,15 @@ def on_table(workpiece: Workpiece, stations: Stations, T_base_obj: Array, wall_s
     t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64).reshape(k, n)
     hit = np.all(np.isfinite(t_hit) & (t_hit < 0.05), axis=0)
     if hit.sum() < 2:
-        raise WorkpieceError(f"{workpiece.name}: no ray across the joint meets the {wall_side} wall")
+        raise WorkpieceError(f"{workpiece.name}: no ray across the joint meets the {side} wall")
     # Stations where a ray slips past the wall's end are left out (at most the end ones).
     W_obj = origins[:, hit] + t_hit[:, hit, None] * dirs[:, hit]
-    T = np.asarray(T_base_obj, dtype=np.float64)
-    seam_base = se3.apply(T, stations.seam[hit])
-    W_base = se3.apply(T, W_obj.reshape(-1, 3)).reshape(k, -1, 3)
-    z = T[:3, :3] @ np.asarray(workpiece.approach, dtype=np.float64)
-    x = seam_base[-1] - seam_base[0]
-    x -= (x @ z) * z
-    x /= np.linalg.norm(x)
-    T_base_plane = se3.transform_from(np.column_stack([x, np.cross(z, x), z]), seam_base[0])
+    return hit.astype(bool), se3.apply(T_base_obj, W_obj.reshape(-1, 3)).reshape(k, -1, 3), np.asarray(heights, dtype=np.float64)
+
+
+def _surface(W_base: Array, heights: Array, seam_base: Array, T_base_plane: Array, side: str) -> WallSurface:
     o, R = T_base_plane[:3, 3], T_base_plane[:3, :3]
     lines = (W_base - o) @ R[:, :2]
     root_z = (seam_base - o) @ R[:, 2]
     # The free side (where the tip is) is right of the wall's travel for a left wall.
-    wall = WallSurface(lines, heights, root_z, -sign)
-    return SimWorkpiece(workpiece, T, seam_base, T_base_plane, wall, wall_side)
+    return WallSurface(lines, heights, root_z, -1.0 if side == "left" else 1.0)

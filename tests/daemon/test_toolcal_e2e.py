@@ -29,15 +29,20 @@ from celld.sim.score import TruthRecorder, lateral, open_loop_torch, true_flange
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[2]
-# This test's world: its tool's tip is 0.6 mm and its torch 1.2 mm off the drawing, and its part as
-# placed and distorted leaves the plan alone 0.28 mm RMS off the seam (bench/realistic_cell.py, seed 1).
-# (Seed 5's part, 1.5 mm RMS off, is refused by the seam finder after this test's 10-pose calibration.)
-WORLD_SEED = 1
+# This test's world: its tool's tip is about 1.1 mm and its torch 1.3 mm off the drawing, and the arm's
+# error over the table (the calibration never saw it) leaves the plan alone 0.6-0.8 mm RMS off the seam
+# and the tip half a millimetre low in the groove (bench/realistic_cell.py, seed 3).
+# (Seed 1's plan alone is only 0.22-0.29 mm off: too close to the target to show it missed.)
+WORLD_SEED = 3
 # The measured tip against the tip a perfect scanner gives through this arm, m: a
 # fifth of the tip's own radius, well inside the 1-2 mm a typed tool is off.
 TIP_TOLERANCE = 0.2e-3
-# The same for the wire's end: six times the 0.1 mm noise of one capture over a few dozen wire points.
-TORCH_TOLERANCE = 0.25e-3
+# The wire's end, across the tool (what moves the torch off the seam), m: its fit is tighter across
+# the wire than along it, and this is what a weld needs of it.
+TORCH_ACROSS_TOLERANCE = 0.1e-3
+# Each axis of it within this many of the job's own 1-sigma (the cut end's cap fit spreads 0.05-0.09 mm
+# per axis over 8 poses; along the tool's x it only sets how far behind the tip the torch is).
+TORCH_SIGMAS = 4.0
 
 
 def _config(tmp_path: Path, host: str) -> Path:
@@ -134,7 +139,9 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host:
             f"({np.round(t_err * 1e3, 4).tolist()}), the config {np.linalg.norm(torch_config - torch_true) * 1e3:.3f} mm from the "
             f"torch as built; 1-sigma {tool['torch_std_mm']} mm, {len(dataset['torch_detections'])} poses"
         )
-        assert np.linalg.norm(t_err) <= TORCH_TOLERANCE, (t_err, tool)
+        across = np.cross(cfg.tool.tool_z_tcp, cfg.tool.tool_x_tcp)
+        assert abs(float(t_err @ across)) <= TORCH_ACROSS_TOLERANCE, (t_err, tool)
+        assert np.all(np.abs(t_err) <= TORCH_SIGMAS * np.asarray(tool["torch_std_mm"]) * 1e-3), (t_err, tool)
         assert np.linalg.norm(torch - torch_true) < np.linalg.norm(torch_config - torch_true)
 
         accepted = client.accept(tc["id"])

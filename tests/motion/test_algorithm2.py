@@ -203,6 +203,7 @@ class Loop:
         latency: float = 0.006,
         process: bool = False,
         seam_offset: float = 0.0,
+        touch_only: bool = False,
     ) -> None:
         self.sensor, self.servo_cfg, self.tool = TactileConfig(), ServoConfig(), ToolConfig()
         self.motion = MotionLimits()
@@ -215,7 +216,14 @@ class Loop:
         plan2 = np.column_stack([np.arange(0.0, length, 0.001), np.full(len(np.arange(0.0, length, 0.001)), plan_offset)])
         P_plan = np.column_stack([plan2, np.zeros(len(plan2))]) @ T_PLANE[:3, :3].T + T_PLANE[:3, 3]
         self.plan = algorithm2_plan(
-            P_plan, self.servo_cfg, self.tool, self.motion, T_base_plane=T_PLANE, process=process, seam_offset=seam_offset
+            P_plan,
+            self.servo_cfg,
+            self.tool,
+            self.motion,
+            T_base_plane=T_PLANE,
+            process=process,
+            seam_offset=seam_offset,
+            touch_only=touch_only,
         )
         self.core = MotionCore(
             CoreParams(self.limits, PERIOD, (-1.5, -1.5, -0.5), (1.5, 1.5, 1.5), 0.05, self.motion.tactile_stale),
@@ -437,7 +445,7 @@ def test_a_tactile_fault_mid_seam_drops_the_process() -> None:
 
 
 def _scripted_refined_path(
-    seam_offset: float, process: bool = False, sensor_yaw: float = 0.0, sample_yaw: float = 0.0
+    seam_offset: float | np.ndarray, process: bool = False, sensor_yaw: float = 0.0, sample_yaw: float = 0.0
 ) -> tuple[np.ndarray, list]:
     """Algorithm 2 fed a fixed script: the tip slides along +x at 10 mm/s, 3 mm off the plan, pressed
     into the wall by exactly delta_d each cycle (seen in a frame turned by ``-sample_yaw`` about z).
@@ -505,8 +513,15 @@ def test_the_new_plan_parameters_are_checked() -> None:
     with pytest.raises(InputError, match="process"):
         make_algorithm2(plan._replace(params={**plan.params, "process": 1}))
     # A plan that leaves them out gets the defaults: no process, the wall is the seam.
-    older = {k: v for k, v in plan.params.items() if k not in ("process", "seam_offset", "sensor_yaw")}
-    assert make_algorithm2(plan._replace(params=older)).p[-3:] == (False, 0.0, 0.0)
+    older = {k: v for k, v in plan.params.items() if k not in ("process", "seam_offset", "touch_only", "sensor_yaw")}
+    p = make_algorithm2(plan._replace(params=older)).p
+    assert (p.process, p.seam_offset, p.touch_only, p.sensor_yaw) == (False, 0.0, False, 0.0)
+    with pytest.raises(InputError, match="touch_only"):
+        make_algorithm2(plan._replace(params={**plan.params, "touch_only": 0}))
+    # Seam offsets along the plan: one per planned point, each a valid seam_offset.
+    for bad_offsets in (np.full(49, 0.002), np.r_[np.full(49, 0.002), -0.001], np.r_[np.full(49, 0.002), np.nan]):
+        with pytest.raises(InputError, match="seam_offsets"):
+            algorithm2_plan(P, servo, tool, motion, seam_offset=bad_offsets)
     for bad_yaw in (0.2, -0.2, math.nan):
         with pytest.raises(InputError, match="sensor_yaw"):
             make_algorithm2(plan._replace(params={**plan.params, "sensor_yaw": bad_yaw}))
@@ -524,3 +539,28 @@ def test_sensor_yaw_turns_the_deformation_into_the_measured_tool_frame() -> None
     assert tel1[-1].delta_n == pytest.approx(ServoConfig().delta_d, abs=1e-12)
     assert tel2[-1].delta_n == pytest.approx(ServoConfig().delta_d * math.cos(yaw), abs=1e-9)
     assert np.max(np.abs(R2 - R0)) > 0.05 * ServoConfig().delta_d
+
+
+def test_seam_offsets_along_the_plan_move_each_refined_point_by_the_offset_where_the_tip_was() -> None:
+    x = np.arange(0.0, 0.06, 0.001)
+    offsets = 0.001 + 0.01 * x  # 1 mm at the start, growing 0.01 mm per mm of seam
+    R0, _ = _scripted_refined_path(0.0)
+    R1, _ = _scripted_refined_path(offsets)
+    assert len(R0) > 50 and len(R1) == len(R0)
+    # The plan starts at x = 0 in the plane; its points are 1 mm apart: the offset at the tip's x.
+    np.testing.assert_allclose(R1[:, 1] - R0[:, 1], -(0.001 + 0.01 * R0[:, 0]), rtol=0, atol=1e-9)
+
+
+def test_touch_only_settles_on_the_wall_and_ends_without_tracking() -> None:
+    loop = Loop(length=0.06, touch_only=True)
+    loop.run(10.0)
+    assert loop.core.mode == Mode.IDLE and loop.statuses[-1] == ControlStatus.DONE
+    assert Phase.TRACK not in loop.phases and loop.servo.phase == Phase.DONE
+    assert len(loop.servo.refined_plane) == 0
+    # It ended pressed into the wall y = 0 (on the tip's +y side) by about delta_d: the undeformed tip
+    # centre delta_d - tip_radius beyond it (settled: within a fifth of delta_d, and the ramp to rest).
+    y_tip = float(loop.T[1, 3] - T_PLANE[1, 3])
+    assert abs(y_tip - (loop.servo_cfg.delta_d - loop.tool.tip_radius)) < 0.25 * loop.servo_cfg.delta_d
+    # At rest: it moved along the normal only, and stopped.
+    assert np.linalg.norm(loop.twists[-1]) == 0.0
+    loop.assert_jerk_limited()

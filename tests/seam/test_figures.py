@@ -41,3 +41,34 @@ def test_lateral_error_ignores_height_and_points_beyond_the_seam() -> None:
     e = lateral_error(P, g.seam_base, g.T_base_plane)
     assert e["points"] == 2 and e["outside"] == 1
     assert abs(e["max_mm"] - 0.4) < 1e-6 and abs(e["rms_mm"] - np.sqrt((0.3**2 + 0.4**2) / 2)) < 1e-6
+
+
+def test_a_touch_finds_the_deformed_tip_where_the_settled_cycles_put_it() -> None:
+    import pytest
+
+    from celld.config import ToolConfig
+    from celld.errors import CelldError
+    from celld.motion.channels import STATE_DTYPE
+    from celld.seam.figures import contact_across
+    from celld.tactile.tool import ToolGeometry
+
+    tool = ToolGeometry.from_config(ToolConfig(tip_tcp=(0.0, 0.0, 0.2)))
+    delta_d = 0.0015
+    recs = np.zeros(60, STATE_DTYPE)
+    recs["servo_phase"] = 0
+    recs["delta_n"] = np.r_[np.full(30, np.nan), np.linspace(0.0002, 0.0008, 10), np.full(20, 0.0014)]
+    # The TCP over the tool: the tool's +y is base +y here (tool x along base x, z down).
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = [0.5, 0.0102, 0.4]
+    recs["tcp_pose"] = se3.to_ur_pose(T)
+    across = np.array([0.0, 1.0, 0.0])
+    # A finger on the left (+1): the deformed tip is the undeformed one minus delta_n along +y; only the
+    # settled cycles count (|delta_n| within a fifth of delta_d).
+    y = contact_across(recs, tool, np.zeros(3), across, 1.0, delta_d)
+    assert y == pytest.approx(0.0102 - 0.0014, abs=1e-12)
+    # The same cycles seen by a finger on the right: the deformation counts the other way.
+    assert contact_across(recs, tool, np.zeros(3), -across, -1.0, delta_d) == pytest.approx(-0.0102 + 0.0014, abs=1e-12)
+    recs["delta_n"][40:] = 0.0005  # never settled
+    with pytest.raises(CelldError, match="without settling"):
+        contact_across(recs, tool, np.zeros(3), across, 1.0, delta_d)

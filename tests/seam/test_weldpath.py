@@ -9,7 +9,7 @@ import pytest
 
 from celld import se3
 from celld.errors import WorkpieceError
-from celld.seam.weldpath import in_plane, model_geometry, start_pose, wall_offset, weld_geometry
+from celld.seam.weldpath import height_from_width, in_plane, measured_offsets, model_geometry, start_pose, wall_offset, weld_geometry
 from celld.seam.workpiece import curved_groove, fillet_t_joint, v_groove_butt
 
 
@@ -67,3 +67,38 @@ def test_a_bowed_groove_keeps_its_wall_beside_its_seam() -> None:
     assert wall_offset(bowed, 0.004) == pytest.approx(wall_offset(straight, 0.004), abs=2e-5)
     with pytest.raises(WorkpieceError, match="bow"):
         v_groove_butt(bow=0.1)
+
+
+def test_the_scan_measured_wall_sets_the_offset_per_point_and_fills_what_it_missed() -> None:
+    # Rows (t0, slope): a V's bevel at tan(30 deg), its gap opening from 2.0 to 2.4 mm along the seam.
+    n = 11
+    t0 = np.linspace(0.0010, 0.0012, n)
+    rows = np.column_stack([t0, np.full(n, math.tan(math.radians(30.0)))])
+    rows[3:5] = np.nan  # not measured there: its neighbours' between
+    got = measured_offsets(rows, 0.004, 0.0033)
+    expected = np.linspace(0.0010, 0.0012, n) + 0.004 * math.tan(math.radians(30.0))
+    np.testing.assert_allclose(got, expected, atol=1e-12)
+    # Nothing measured: the model's offset everywhere.
+    np.testing.assert_allclose(measured_offsets(np.full((n, 2), np.nan), 0.004, 0.0033), 0.0033)
+    # A wall far off the model's is a different joint, not a correction.
+    with pytest.raises(WorkpieceError, match="off the model"):
+        measured_offsets(rows, 0.004, 0.0033 + 0.0012)
+    # The plan's wall line follows the offsets.
+    P = np.column_stack([np.linspace(0, 0.1, n), np.zeros(n), np.zeros(n)])
+    T = np.tile([1.0, 0.0, 0.0], (n, 1))
+    N = np.tile([0.0, 1.0, 0.0], (n, 1))
+    g = weld_geometry(P, T, N, np.array([0.0, 0.0, 1.0]), got, 0.004)
+    np.testing.assert_allclose(g.wall_base[:, 1], got, atol=1e-15)
+    assert g.offset == pytest.approx(float(np.median(got)))
+
+
+@pytest.mark.parametrize("h", [0.003, 0.004, 0.0055])
+def test_a_v_grooves_width_tells_the_height_and_a_fillets_does_not(h: float) -> None:
+    slope = math.tan(math.radians(30.0))
+    finger, far = np.array([0.0011, slope]), np.array([0.0009, slope])  # an off-centre gap of 2 mm
+    width = 0.002 + 2.0 * slope * h
+    assert height_from_width(width, finger, far) == pytest.approx(h, abs=1e-12)
+    with pytest.raises(WorkpieceError, match="open by"):
+        height_from_width(0.004, np.array([0.0, 0.0]), np.array([0.004, 0.1]))  # an upright web
+    with pytest.raises(WorkpieceError, match="both walls"):
+        height_from_width(width, finger, np.array([np.nan, slope]))

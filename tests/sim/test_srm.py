@@ -176,3 +176,23 @@ def test_the_camera_stamps_are_off_the_exposure_and_frames_arrive_late() -> None
     off = np.array(asked) - (np.arange(50) * int(round(1e9 / 60.0)))
     assert 0.0002 < np.std(off) * 1e-9 < 0.001
     assert min(late) >= 2_000_000 and max(late) > 4_000_000 and max(late) <= 6_000_000
+
+
+def test_a_tip_moved_across_the_joint_meets_its_other_wall() -> None:
+    from celld.config import TactileConfig, ToolConfig
+    from celld.sim.srm import SimSrm, WallSurface
+
+    # The finger wall at y = 0 (on the tool's left), the joint's other wall 6 mm across at y = -6 mm.
+    finger = Wall(np.array([[-0.05, 0.0], [0.05, 0.0]]), free=-1.0)
+    line = np.array([[-0.05, -0.006], [0.05, -0.006]])
+    far = WallSurface(np.stack([line, line]), np.array([0.0, 0.01]), np.zeros(2), free=1.0)
+    srm = SimSrm(TactileConfig(), ToolConfig(), finger, np.eye(4), far_wall=far)
+    pressed = srm.frame(0, _tool_pose(-0.0005), np.zeros(3), 0.0)  # 0.5 mm into the finger wall
+    assert pressed.in_contact and pressed.delta_true[1] == pytest.approx(0.0005)
+    between = srm.frame(0, _tool_pose(-0.003), np.zeros(3), 0.0)
+    assert not between.in_contact
+    across = srm.frame(0, _tool_pose(-0.0058), np.zeros(3), 0.0)  # the tip's surface 0.8 mm past the far wall
+    assert across.in_contact and across.delta_true[1] == pytest.approx(-0.0008)
+    # Without the other wall the tip passes through where it stands.
+    alone = SimSrm(TactileConfig(), ToolConfig(), finger, np.eye(4)).frame(0, _tool_pose(-0.0058), np.zeros(3), 0.0)
+    assert not alone.in_contact
