@@ -14,7 +14,9 @@ the bus (:func:`celld.sim.demo.run_jobs`):
    up to 1-2 mm); the weld then uses the measured tip and torch (``--no-tool-calibrate`` welds with the
    configured one, ``--without tool_offsets`` as if the tool were drawn
    exactly);
-3. weld the V-groove: scan, seam, touch, Algorithm 2 with the arc.
+3. weld the V-groove: scan, seam (both walls measured beside it), the
+   height probe (the finger touches both walls at the start; the joint's
+   width gives the tip's height in it), touch, Algorithm 2 with the arc.
 
 Per seed, against the world's truth (read after the jobs):
 
