@@ -124,12 +124,15 @@ def test_the_simulator_reports_its_model_and_publishes_the_physical_arm(loopback
             time.sleep(0.2)
             # Both from one RTDE packet: the encoders' noise differs from packet to packet, and
             # ur-rtde's receive thread may update q and the pose between two getters.
+            # Looked for over a second of packets (a loaded machine may leave few whole ones).
             consistent = 0
-            for _ in range(200):
+            deadline = time.monotonic() + 1.0
+            while not consistent and time.monotonic() < deadline:
                 q_rep, T_rep = np.array(r.getActualQ()), se3.from_ur_pose(r.getActualTCPPose())
                 if np.array_equal(q_rep, np.array(r.getActualQ())) and np.allclose(T_rep, kin.forward(q_rep), atol=1e-9):
                     consistent += 1
-                    break
+                else:
+                    time.sleep(0.0005)
             _, T_true, q_true = sim.truth()
         finally:
             r.disconnect()
