@@ -58,9 +58,11 @@ from celld.seam.figures import contact_across, track_summary
 from celld.seam.weldpath import (
     WeldGeometry,
     height_from_width,
+    joint_width,
     measured_offsets,
     start_pose,
     tool_poses,
+    wall_at_height,
     wall_offset,
     weld_geometry,
 )
@@ -193,11 +195,19 @@ def _stored_point(current: Mapping[str, Any], key: str) -> np.ndarray:
 
 
 class _Collector:
-    """Motion state records of one command, gathered from the handle's batches."""
+    """Motion state records of one command, gathered from the handle's batches while in a ``with`` block."""
 
-    def __init__(self) -> None:
+    def __init__(self, motion: Any) -> None:
+        self.motion = motion
         self.batches: list[np.ndarray] = []
         self.command_id = 0
+
+    def __enter__(self) -> _Collector:
+        self.motion.add_listener(self)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.motion.remove_listener(self)
 
     def __call__(self, batch: np.ndarray) -> None:
         if self.command_id:
@@ -229,16 +239,9 @@ async def _retract(ctx: JobContext, devices: CellDevices, z: np.ndarray, height:
 def _start_clearance(geometry: WeldGeometry, seam: Any) -> float:
     """How far off the finger wall the tip starts: mid-way across the joint where the scan measured its
     other wall at the start (as far from either wall as it can be), else :data:`CLEARANCE`."""
-    i = _start_station(geometry)
-    far = seam.far_wall_across[i]
-    width = float(geometry.offsets[i] + far[0] + far[1] * geometry.tip_height)
-    return width / 2.0 if math.isfinite(width) and width > 0.0 else CLEARANCE
-
-
-def _start_station(geometry: WeldGeometry) -> int:
-    """The station where the finger starts (LEAD_IN along the wall line)."""
-    s = polyline.arc_length(geometry.wall_base)
-    return min(int(np.searchsorted(s, LEAD_IN)), len(s) - 1)
+    i = int(geometry.stations([LEAD_IN])[0])
+    width = geometry.offsets[i] + wall_at_height(seam.far_wall_across[i : i + 1], geometry.tip_height)[0]
+    return float(width) / 2.0 if math.isfinite(width) and width > 0.0 else CLEARANCE
 
 
 async def _probe_height(
@@ -257,7 +260,7 @@ async def _probe_height(
     walls (:func:`height_from_width`), the tip's height in the joint. Returns what was found, the
     geometry moved to the planned height and the start pose on it (unchanged when not probed)."""
     wc = config.weld
-    i = _start_station(geometry)
+    i = int(geometry.stations([LEAD_IN])[0])
     finger, far = seam.wall_across[i], seam.far_wall_across[i]
     if not wc.probe_height:
         return {"probed": False, "why": "weld.probe_height is off"}, geometry, T_start
@@ -271,10 +274,7 @@ async def _probe_height(
     N = geometry.normals[i] - float(geometry.normals[i] @ z) * z
     N /= np.linalg.norm(N)
     # The far wall at the tip's height, where the scan measured it (its neighbours' between).
-    t_far = seam.far_wall_across[:, 0] + seam.far_wall_across[:, 1] * geometry.tip_height
-    k = np.arange(len(t_far))
-    ok = np.isfinite(t_far)
-    far_line = geometry.seam_base - np.interp(k, k[ok], t_far[ok])[:, None] * geometry.normals
+    far_line = geometry.seam_base - wall_at_height(seam.far_wall_across, geometry.tip_height)[:, None] * geometry.normals
     other = replace(tool_cfg, wall_side="right" if tool_cfg.wall_side == "left" else "left")
     touches = {}
     for name, line, cfg in (("far", far_line, other), ("finger", geometry.wall_base, tool_cfg)):
@@ -289,7 +289,7 @@ async def _probe_height(
     found = {
         "probed": True,
         "joint_width_mm": round(width * 1e3, 4),
-        "scan_width_mm": round(float(finger[0] + far[0] + (finger[1] + far[1]) * geometry.tip_height) * 1e3, 4),
+        "scan_width_mm": round(joint_width(finger, far, geometry.tip_height) * 1e3, 4),
         "height_mm": round(height * 1e3, 4),
         "height_correction_mm": round(-dh * 1e3, 4),
     }
@@ -308,14 +308,9 @@ async def _probe_height(
 
 async def _run_servo(motion: Any, plan: ServoPlan, timeout: float) -> np.ndarray:
     """Run a servo plan to its end; the motion records of it."""
-    collector = _Collector()
-    motion.add_listener(collector)
-    try:
-        cid = await motion.start_servo(plan)
-        collector.command_id = cid
-        await motion.wait(cid, timeout=timeout)
-    finally:
-        motion.remove_listener(collector)
+    with _Collector(motion) as collector:
+        collector.command_id = await motion.start_servo(plan)
+        await motion.wait(collector.command_id, timeout=timeout)
     records = collector.records()
     if records is None:
         raise CelldError("a touch ran but no motion record of it was read")
@@ -462,11 +457,9 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         seam_offset=geometry.offsets,
         sensor_yaw=sensor_yaw,
     )
-    collector = _Collector()
-    motion.add_listener(collector)
     events_before = motion.loop_event_count
     failure: CelldError | None = None
-    try:
+    with _Collector(motion) as collector:
         cid = await motion.start_servo(plan)
         collector.command_id = cid
         ctx.progress(
@@ -498,8 +491,6 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         finally:
             if not waiting.done():
                 waiting.cancel()
-    finally:
-        motion.remove_listener(collector)
     # The loop's own trouble during the track (a failed arc write): the weld is not good.
     new_events = min(motion.loop_event_count - events_before, len(motion.loop_events))
     trouble = list(motion.loop_events)[-new_events:] if new_events > 0 else []

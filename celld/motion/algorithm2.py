@@ -351,9 +351,8 @@ def algorithm2_plan(
     params = Algorithm2Params.from_config(servo, tool, motion)._replace(
         process=bool(process), seam_offset=float(seam_offset), sensor_yaw=float(sensor_yaw), touch_only=bool(touch_only)
     )
-    plan = ServoPlan(NAME, arrays, dict(params._asdict()))
-    make_algorithm2(plan)  # refuse a bad plan where it is made
-    return plan
+    Algorithm2Params.from_plan(dict(params._asdict()))  # refuse a bad plan where it is made
+    return ServoPlan(NAME, arrays, dict(params._asdict()))
 
 
 def make_algorithm2(plan: ServoPlan) -> Algorithm2Servo:

@@ -195,7 +195,7 @@ class SeamPath:
         }
 
 
-def _rows(a: Array | None) -> list[list[float | None]]:
+def _rows(a: Array) -> list[list[float | None]]:
     """JSON-ready rows, NaN as null."""
     return [[v if math.isfinite(v) else None for v in row] for row in np.asarray(a).tolist()]
 
@@ -399,9 +399,7 @@ def find_seam(
     points_base = se3.apply(T_base_obj, points_obj)
     model_base = se3.apply(T_base_obj, stations)
     # The finger wall is on its side of the travel, so on the model's other side when the order is reversed.
-    finger_left = (params.finger_wall == "left") != reversed_
-    wall_across = _wall_across(fit, stations_obj, wp, params, finger_left)
-    far_across = _wall_across(fit, stations_obj, wp, params, not finger_left)
+    wall_across, far_across = _walls_across(fit, stations_obj, wp, params, (params.finger_wall == "left") != reversed_)
     if reversed_:
         points_base, model_base, wall_across, far_across = points_base[::-1], model_base[::-1], wall_across[::-1], far_across[::-1]
     plane_normal = se3.rotate(T_base_obj, wp.approach)
@@ -430,31 +428,35 @@ def find_seam(
     return SeamPath(points_base, tangents, normals, plane_normal, spacing, model_base, T_base_obj, quality, wall_across, far_across)
 
 
-def _wall_across(fit: GrooveFit | None, points: Array, wp: Workpiece, params: SeamParams, model_left: bool) -> Array:
-    """A wall (the model's left wall if ``model_left``) across from each seam station as the scan
-    measured it (:func:`wall_distances`), smoothed along the seam like the seam's own shifts: (k, 2) rows
-    ``(t0 m, slope)``, NaN where the groove was not measured (no fit, or no good window within ``max_gap / 2``)."""
-    out = np.full((len(points), 2), np.nan)
+def _walls_across(fit: GrooveFit | None, points: Array, wp: Workpiece, params: SeamParams, finger_left: bool) -> tuple[Array, Array]:
+    """The finger wall (the model's left wall if ``finger_left``) and the joint's other wall across from
+    each seam station as the scan measured them (:func:`wall_distances`), smoothed along the seam like
+    the seam's own shifts: (k, 2) rows ``(t0 m, slope)`` each, NaN where the groove was not measured
+    (no fit, or no good window within ``max_gap / 2``)."""
     if fit is None:
-        return out
+        return np.full((len(points), 2), np.nan), np.full((len(points), 2), np.nan)
     arc_st = np.linspace(0.0, wp.seam_length, len(points))
     at_windows = np.column_stack([np.interp(fit.arc, arc_st, points[:, k]) for k in range(3)])
-    T = np.gradient(at_windows, axis=0)
-    toward = np.cross(wp.approach, T)
-    toward /= np.linalg.norm(toward, axis=1, keepdims=True)
-    side = 0 if model_left else 1
-    if side:
-        toward = -toward
-    t0, slope, sigma, ok = wall_distances(fit, side, at_windows, toward, np.asarray(wp.approach, dtype=np.float64))
-    if not np.any(ok):
-        return out
+    left = np.cross(wp.approach, np.gradient(at_windows, axis=0))
+    left /= np.linalg.norm(left, axis=1, keepdims=True)
+    approach = np.asarray(wp.approach, dtype=np.float64)
     span, step = params.deviation_span, params.groove.step
-    t0_st, se = smooth_offsets(fit.arc, t0, sigma, fit.length, ok, arc_st, span, step)
-    slope_st, _ = smooth_offsets(fit.arc, slope, sigma, fit.length, ok, arc_st, span, step)
-    gap = np.abs(arc_st[:, None] - fit.arc[ok][None, :]).min(axis=1)
-    measured = np.isfinite(se) & np.isfinite(slope_st) & (gap <= params.max_gap / 2.0 + 1e-9)
-    out[measured, 0], out[measured, 1] = t0_st[measured], slope_st[measured]
-    return out
+    out = []
+    for is_left in (finger_left, not finger_left):
+        rows = np.full((len(points), 2), np.nan)
+        t0, slope, sigma, ok = wall_distances(fit, 0 if is_left else 1, at_windows, left if is_left else -left, approach)
+        if np.any(ok):
+            t0_st, se = smooth_offsets(fit.arc, t0, sigma, fit.length, ok, arc_st, span, step)
+            slope_st, _ = smooth_offsets(fit.arc, slope, sigma, fit.length, ok, arc_st, span, step)
+            measured = np.isfinite(se) & np.isfinite(slope_st) & _near_windows(arc_st, fit.arc[ok], params)
+            rows[measured, 0], rows[measured, 1] = t0_st[measured], slope_st[measured]
+        out.append(rows)
+    return out[0], out[1]
+
+
+def _near_windows(arc_st: NDArray[np.floating], arc_w: NDArray[np.floating], params: SeamParams) -> NDArray[np.bool_]:
+    """Stations (arc positions) within ``max_gap / 2`` of a good window's centre (``arc_w``)."""
+    return np.asarray(np.abs(arc_st[:, None] - arc_w[None, :]).min(axis=1) <= params.max_gap / 2.0 + 1e-9)
 
 
 def _check_seam_seen(
@@ -603,8 +605,7 @@ def _seam_points(
     measured = np.isfinite(se)
     if np.any(measured):
         # Stations beyond max_gap / 2 of a good window count as unmeasured.
-        gap = np.abs(arc_st[:, None] - fit.arc[valid][None, :]).min(axis=1)
-        measured &= gap <= params.max_gap / 2.0 + 1e-9
+        measured &= _near_windows(arc_st, fit.arc[valid], params)
     groove_cov = float(np.mean(measured))
     gq["groove_coverage"] = groove_cov
     figures["groove_coverage"] = groove_cov

@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 import open3d as o3d
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from celld import polyline, se3
 from celld.errors import WorkpieceError
@@ -58,7 +58,6 @@ class WeldGeometry(NamedTuple):
     seam_base : (n, 3) the seam moved up to the tip height (the torch's line)
     tangents : (n, 3) unit travel directions
     normals : (n, 3) unit, in the plane, pointing from the seam to the finger wall
-    offset : m from the seam line to the wall line (the median of ``offsets``)
     tip_height : m above the seam along the plane normal
     offsets : (n,) m from each seam point to the wall line
     """
@@ -68,9 +67,18 @@ class WeldGeometry(NamedTuple):
     seam_base: Array
     tangents: Array
     normals: Array
-    offset: float
     tip_height: float
     offsets: Array
+
+    @property
+    def offset(self) -> float:
+        """m from the seam line to the wall line: the median of ``offsets``."""
+        return float(np.median(self.offsets))
+
+    def stations(self, leads: ArrayLike) -> NDArray[np.intp]:
+        """The indices of the wall line's points ``leads`` (m) along it."""
+        s = polyline.arc_length(self.wall_base)
+        return np.minimum(np.searchsorted(s, np.asarray(leads, dtype=np.float64)), len(s) - 1)
 
 
 def _side_label(finger_wall: str) -> int:
@@ -168,7 +176,7 @@ def weld_geometry(
         raise WorkpieceError("seam: the wall offsets must be finite")
     seam_up = P + tip_height * z
     wall = seam_up + offsets[:, None] * N
-    return WeldGeometry(_plane(wall[0], T[0], z), wall, seam_up, T, N, float(np.median(offsets)), float(tip_height), offsets)
+    return WeldGeometry(_plane(wall[0], T[0], z), wall, seam_up, T, N, float(tip_height), offsets)
 
 
 def measured_offsets(wall_across: Array, tip_height: float, model_offset: float, max_deviation: float = MAX_WALL_DEVIATION) -> Array:
@@ -185,13 +193,9 @@ def measured_offsets(wall_across: Array, tip_height: float, model_offset: float,
         The measured wall stands more than ``max_deviation`` (m) off the model's
         somewhere: the finger would press a wall the plan does not know.
     """
-    W = np.asarray(wall_across, dtype=np.float64)
-    t = W[:, 0] + W[:, 1] * tip_height
-    ok = np.isfinite(t)
-    if not np.any(ok):
-        return np.full(len(W), float(model_offset))
-    k = np.arange(len(t))
-    t = np.interp(k, k[ok], t[ok])
+    t = wall_at_height(wall_across, tip_height)
+    if not np.all(np.isfinite(t)):
+        return np.full(len(t), float(model_offset))
     dev = float(np.abs(t - model_offset).max())
     if dev > max_deviation:
         raise WorkpieceError(
@@ -199,6 +203,25 @@ def measured_offsets(wall_across: Array, tip_height: float, model_offset: float,
             f"at {tip_height * 1e3:.1f} mm), more than the {max_deviation * 1e3:.1f} mm accepted: check the joint's fit-up"
         )
     return t
+
+
+def wall_at_height(wall_across: Array, h: float) -> Array:
+    """A measured wall's distance (m) across from each seam point at ``h`` above it (rows ``(t0, slope)``
+    of a :class:`~celld.seam.pipeline.SeamPath`); points not measured take their measured neighbours'
+    (interpolated along the seam); all NaN when none was measured."""
+    W = np.asarray(wall_across, dtype=np.float64)
+    t = W[:, 0] + W[:, 1] * h
+    ok = np.isfinite(t)
+    if not np.any(ok):
+        return t
+    k = np.arange(len(t))
+    return np.interp(k, k[ok], t[ok])
+
+
+def joint_width(finger: Array, far: Array, h: float) -> float:
+    """The joint's width (m) between its walls at ``h`` above the seam, from one station's rows of a
+    :class:`~celld.seam.pipeline.SeamPath`'s ``wall_across`` and ``far_wall_across`` (NaN if unmeasured)."""
+    return float(finger[0] + far[0] + (finger[1] + far[1]) * h)
 
 
 def model_geometry(workpiece: Workpiece, T_base_obj: Array, tip_height: float, finger_wall: str = "left") -> WeldGeometry:
@@ -233,12 +256,10 @@ def tool_poses(geometry: WeldGeometry, T_tcp_tool: Array, leads: np.ndarray, cle
     its z along the plane normal (what the weld's path check moves through).
     """
     W = geometry.wall_base
-    s = polyline.arc_length(W)
     z = geometry.T_base_plane[:3, 2]
     T_tool_tcp = se3.invert(np.asarray(T_tcp_tool, dtype=np.float64))
     out = np.empty((len(leads), 4, 4))
-    for k, lead in enumerate(np.asarray(leads, dtype=np.float64)):
-        i = min(int(np.searchsorted(s, lead)), len(W) - 1)
+    for k, i in enumerate(geometry.stations(leads)):
         t = geometry.tangents[i] - float(geometry.tangents[i] @ z) * z
         t /= np.linalg.norm(t)
         p = W[i] - clearance * geometry.normals[i]
@@ -252,7 +273,8 @@ def height_from_width(width: float, finger: Array, far: Array) -> float:
     ``finger`` and ``far`` are one station's rows of a
     :class:`~celld.seam.pipeline.SeamPath`'s ``wall_across`` and
     ``far_wall_across``: each wall stands ``t0 + slope h`` across from the seam,
-    so the joint is ``(t0_f + t0_r) + (slope_f + slope_r) h`` wide at height h.
+    so the joint is ``(t0_f + t0_r) + (slope_f + slope_r) h`` wide at height h
+    (:func:`joint_width`), which is inverted here.
     A V-groove's bevels open upwards (slopes tan(a/2) each); a joint whose
     walls do not (a fillet's web, a square butt) gives no height.
 
@@ -270,4 +292,4 @@ def height_from_width(width: float, finger: Array, far: Array) -> float:
         raise WorkpieceError(
             f"the joint's walls open by {opening:.2f} per unit of height (at least {MIN_OPENING}): its width tells no height"
         )
-    return (width - float(f[0] + r[0])) / opening
+    return (width - joint_width(f, r, 0.0)) / opening
