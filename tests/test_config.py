@@ -121,6 +121,7 @@ def test_values_are_frozen() -> None:
         ({"robot": {"workspace_min": [0, 0, 0], "workspace_max": [1, -1, 1]}}, "robot.workspace_max", "above"),
         ({"scanner": {"kind": "kinect"}}, "scanner.kind", "expected one of"),
         ({"scanner": {"T_base_cam": [[1, 0], [0, 1]]}}, "scanner.T_base_cam", "4x4"),
+        ({"scanner": {"mount": "wrist"}}, "scanner.mount", "expected one of"),
         ({"tactile": {"intrinsics_px": [1, 2, 3]}}, "tactile.intrinsics_px", "list of 4"),
         ({"bus": {"users": [{"name": "a", "password": "b", "role": "admin"}]}}, "bus.users[0].role", "operator"),
         ({"cell": {"name": "a/b"}}, "cell.name", "zenoh key"),

@@ -60,6 +60,7 @@ import numpy as np
 
 from celld import fsutil
 from celld.bus.checker import check_schema, describe, validate
+from celld.calib.mount import MOUNTS
 from celld.config.tactile import SERVO_BOUNDS, servo_key
 from celld.errors import JobError
 
@@ -440,17 +441,27 @@ _QUALITY = _object(
     ("verdict", "passed", "reasons", "warnings", "pairs"),
 )
 
+_MATRIX4 = {
+    "type": "array",
+    "items": _vector("A row.", 4),
+    "minItems": 4,
+    "maxItems": 4,
+    "description": "4x4 homogeneous transform, rows, metres.",
+}
+
 _CALIBRATION = _object(
-    "A calibration of the scanner: T_base_cam, the pose of the camera in the robot base frame.",
+    "A calibration of the scanner: T_base_cam, the pose of the camera in the robot base frame; for a scanner on "
+    "the arm (mount link1-3, Eq. 8) T_linkN_cam, its pose in that link's frame, with the robot's DH table.",
     {
         "job": _JOB_ID,
-        "T_base_cam": {
-            "type": "array",
-            "items": _vector("A row.", 4),
-            "minItems": 4,
-            "maxItems": 4,
-            "description": "4x4 homogeneous transform, rows, metres.",
-        },
+        "T_base_cam": _MATRIX4,
+        "mount": {"enum": list(MOUNTS), "description": "Where the scanner is fixed (absent: the base)."},
+        "dh": _object(
+            "The robot's DH table the link frame is computed with (m, rad).",
+            {k: _vector(k, 6) for k in ("d", "a", "alpha")},
+            ("d", "a", "alpha"),
+        ),
+        **{f"T_{m}_cam": _MATRIX4 for m in MOUNTS[1:]},
         "cost_mm": {"type": ["number", "null"], "description": "Final cost of Algorithm 1, mm."},
         "pairs": {"type": "integer", "minimum": 0, "description": "Pairs in the final pool."},
         "accepted": {"type": "string", "description": "When it became current, UTC ISO 8601."},
@@ -473,7 +484,7 @@ _CALIBRATION = _object(
         },
         "range_bias_std_mm": {**_NUMBER_OR_NULL, "description": "Its 1-sigma, mm; null when not estimated."},
     },
-    ("job", "T_base_cam", "accepted"),
+    ("job", "accepted"),
 )
 
 _TOOL_QUALITY = _object(

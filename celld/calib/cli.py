@@ -11,8 +11,10 @@ outliers, uncertainty at the workspace centre, e_icp), ``range_bias``
 (the scanner's range bias on metal, ``bias_mm`` and ``std_mm``, estimated
 with ``--range-bias estimate``, the default for a time-of-flight session),
 plus the details of
-:meth:`~celld.calib.session.CalibrationResult.as_dict`. A failed verdict is a
-result, not an error: the exit code stays 0.
+:meth:`~celld.calib.session.CalibrationResult.as_dict`. A session of a
+scanner on the arm (:mod:`celld.calib.mount`) is solved in its link's frame,
+and its transforms are named so (``T_link1_cam``, ...) with ``mount`` beside
+them. A failed verdict is a result, not an error: the exit code stays 0.
 
 ``celld calib detect CLOUD --flange PRESET --units mm|m [--json]`` finds the
 flange in one cloud (PLY or PCD, a ``.npy`` array (n, 3) or (H, W, 3), or a
@@ -85,8 +87,9 @@ def _solve(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(out, allow_nan=False))
         return 0
-    print(f"T_base_cam ({out['method']}, {out['stored']}, {len(out['pairs'])} of {out['n_pairs']} pairs, rms {out['rms_mm']:.3f} mm):")
-    for row in out["T_base_cam"]:
+    key = "T_base_cam" if "mount" not in out else f"T_{out['mount']}_cam"
+    print(f"{key} ({out['method']}, {out['stored']}, {len(out['pairs'])} of {out['n_pairs']} pairs, rms {out['rms_mm']:.3f} mm):")
+    for row in out[key]:
         print("  " + "  ".join(f"{x:+.6f}" for x in row))
     for r in out["rejected_detail"]:
         print(f"rejected {r['id']}: {r['reason']}")
@@ -112,6 +115,7 @@ def _solve_dict(args: argparse.Namespace) -> dict[str, Any]:
     from celld import config
     from celld.calib.dataset import load_session
     from celld.calib.flange import preset
+    from celld.calib.mount import in_frame
     from celld.calib.session import SolveParams, calibrate_session
 
     session = load_session(args.dir)
@@ -129,8 +133,10 @@ def _solve_dict(args: argparse.Namespace) -> dict[str, Any]:
         overrides["compensate"] = True
     params = SolveParams.from_config(cal, **overrides)
     result = calibrate_session(session, flange, params, redetect=args.redetect)
-    out = result.as_dict()
+    out = in_frame(result.as_dict(), session.mount)
     out.update({"source": str(Path(args.dir)), "format": session.kind, "flange": name})
+    if session.mount.on_arm:
+        out["mount"] = session.mount.name
     return out
 
 

@@ -19,6 +19,15 @@ offline (``celld calib solve DIR``). A session directory holds::
                       "T_base_flan": [[...4 x 4, metres...]]},
      "pairs": [{"id": "p000", "cloud": "p000.cloud.json", "T_base_flan": [[...]]}, ...]}
 
+A scanner on the arm (eye-on-arm, :mod:`celld.calib.mount`) moves with the
+joints: its session (version 3) adds the mount and the robot's DH table to
+the header and each capture's joints, so that the flange is placed in the
+scanner's link frame as the daemon placed it::
+
+    {..., "version": 3, "mount": "link1",
+     "dh": {"d": [...], "a": [...], "alpha": [...]},
+     "pairs": [{"id": "p000", ..., "T_base_flan": [[...]], "q": [6 joints, rad]}, ...]}
+
 Every file is written atomically (:mod:`celld.fsutil`: temporary file,
 fsync, rename, fsync of the directory); a cloud's sidecar JSON after its
 images, ``poses.json`` after each cloud, so a session interrupted at any
@@ -93,20 +102,26 @@ from celld.calib.compact import DEPTH_UNIT, CompactCloud, Image16, Pinhole, Quan
 from celld.calib.detect import FlangeDetection, coarse_grid, detect_flange, to_metres
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import FlangeModel, preset
+from celld.calib.mount import ScannerMount, mount_from
 from celld.calib.rigid import Array, solve_rigid
 from celld.cloudfile import check_cloud_file
 from celld.errors import CelldError, InputError
 from celld.fsutil import atomic_open, write_bytes, write_json
 from celld.log import get_logger
+from celld.robot.kinematics import check_q
 from celld.se3 import apply, check_transform, from_xyz_quat_wxyz, invert
 
 log = get_logger(__name__)
 
 # Name and version of the session format written here; the versions read.
-# Version 2 adds the compact clouds (a version-1 reader would not open them).
+# Version 2 adds the compact clouds (a version-1 reader would not open them);
+# version 3 the scanner's mount on the arm and the joints of each capture (a
+# version-2 reader would solve it in the wrong frame). A session of a scanner
+# fixed in the base frame is written as version 2.
 FORMAT = "celld.calib.session"
 VERSION = 2
-_VERSIONS_READ = (1, 2)
+VERSION_ON_ARM = 3
+_VERSIONS_READ = (1, 2, 3)
 POSES_FILE = "poses.json"
 REFERENCE_FILE = "calib_data.json"
 # Name and version of a compact cloud's sidecar, and the end of its file name.
@@ -149,6 +164,8 @@ class PairRecord:
         The cloud file, if any.
     p_cam : (3,) array | None
         A flange centre recorded with the session (reference format), metres.
+    q : (6,) array | None
+        The robot's joints at the capture, rad (sessions of a scanner on the arm).
     """
 
     id: str
@@ -156,6 +173,7 @@ class PairRecord:
     T_base_flan: Array | None
     cloud_path: Path | None
     p_cam: Array | None = None
+    q: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -169,10 +187,23 @@ class Session:
     flange: str | None
     scanner: str | None
     units: str  # units of the cloud files
+    mount: ScannerMount = ScannerMount()  # where the scanner was fixed
 
     @property
     def ids(self) -> tuple[str, ...]:
         return tuple(p.id for p in self.pairs)
+
+    def flange_position(self, record: PairRecord) -> Array:
+        """The flange centre of ``record`` in the frame the scanner is fixed in (the base, or its link), m."""
+        if not self.mount.on_arm:
+            return record.p_base
+        return self.flange_pose(record)[:3, 3].copy()
+
+    def flange_pose(self, record: PairRecord) -> Array:
+        """The flange pose of ``record`` in the frame the scanner is fixed in (``T_base_flan`` or ``T_link_flan``)."""
+        if record.T_base_flan is None:
+            raise InputError(f"pair {record.id!r}: the session has no flange pose for it")
+        return self.mount.to_link(record.T_base_flan, record.q)
 
     def cloud(self, record: PairRecord) -> Array:
         """The cloud of ``record`` in the camera frame, metres, (n, 3)."""
@@ -485,6 +516,8 @@ class SessionWriter:
         Write organized clouds in the compact form (False: float32 PLY).
     depth_unit : float
         Metres per count of the depth images.
+    mount : ScannerMount
+        Where the scanner is fixed; on the arm, every capture needs its joints.
     """
 
     def __init__(
@@ -496,6 +529,7 @@ class SessionWriter:
         resume: bool = False,
         compact: bool = True,
         depth_unit: float = DEPTH_UNIT,
+        mount: ScannerMount = ScannerMount(),
     ) -> None:
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
@@ -511,13 +545,19 @@ class SessionWriter:
             "verification": None,
             "pairs": [],
         }
+        self.mount = mount
+        if mount.on_arm:
+            self._doc |= {"version": VERSION_ON_ARM, "mount": mount.name, "dh": mount.dh._asdict()}
         existing = self.root / POSES_FILE
         if existing.exists():
             if not resume:
                 raise InputError(f"{existing}: a session is already there (resume it, or choose another directory)")
             self._doc = _read_json(existing)
             _check_header(self._doc, existing)
-            self._doc["version"] = VERSION
+            got = mount_from(self._doc, str(existing))
+            if got.name != mount.name or (mount.on_arm and got.dh != mount.dh):
+                raise InputError(f"{existing}: the session's scanner mount is not this writer's ({mount.name})")
+            self._doc["version"] = VERSION_ON_ARM if mount.on_arm else VERSION
         self._flange: FlangeModel | None
         try:
             self._flange = preset(flange)
@@ -530,12 +570,27 @@ class SessionWriter:
     def ids(self) -> list[str]:
         return [p["id"] for p in self._doc["pairs"]]
 
-    def set_verification(self, T_base_flan: ArrayLike, P_cam: ArrayLike, *, detection: FlangeDetection | None = None) -> None:
-        """Save the verification cloud and its flange pose (``detection``: the caller's, if it has one)."""
+    def set_verification(
+        self, T_base_flan: ArrayLike, P_cam: ArrayLike, *, detection: FlangeDetection | None = None, q: ArrayLike | None = None
+    ) -> None:
+        """Save the verification cloud and its flange pose (``detection``: the caller's, if it has one; ``q``: the joints)."""
         T = check_transform(T_base_flan, "T_base_flan")
-        name = self._write_cloud("verification", T, P_cam, detection, verification=True)
-        self._doc["verification"] = {"id": "verification", "cloud": name, "T_base_flan": _matrix(T)}
+        joints = self._joints(q, "verification")
+        name = self._write_cloud("verification", self.mount.to_link(T, joints), P_cam, detection, verification=True)
+        self._doc["verification"] = {"id": "verification", "cloud": name, "T_base_flan": _matrix(T)} | self._q_entry(joints)
         write_json(self.root / POSES_FILE, self._doc)
+
+    def _joints(self, q: ArrayLike | None, what: str) -> Array | None:
+        """The joints of a capture, required when the scanner is on the arm."""
+        if not self.mount.on_arm:
+            return None
+        if q is None:
+            raise InputError(f"{what}: the scanner is on {self.mount.name}: the capture needs the robot's joints")
+        return check_q(q, f"{what}.q")
+
+    @staticmethod
+    def _q_entry(q: Array | None) -> dict[str, Any]:
+        return {} if q is None else {"q": [float(v) for v in q]}
 
     def add_pair(
         self,
@@ -544,11 +599,13 @@ class SessionWriter:
         pair_id: str | None = None,
         *,
         detection: FlangeDetection | CelldError | None = None,
+        q: ArrayLike | None = None,
     ) -> str:
         """Save one calibration capture; return its id.
 
         ``detection`` is the caller's detection of the flange in ``P_cam`` (or
-        the error it failed with), to spare the writer its own.
+        the error it failed with), to spare the writer its own; ``q`` the
+        robot's joints (required when the scanner is on the arm).
         """
         T = check_transform(T_base_flan, "T_base_flan")
         pid = pair_id if pair_id is not None else f"p{len(self._doc['pairs']):03d}"
@@ -556,15 +613,19 @@ class SessionWriter:
             raise InputError(f"pair id: expected 1-64 letters, digits, '_', '.' or '-' (not 'verification'), got {pid!r}")
         if pid in self.ids:
             raise InputError(f"pair id {pid!r}: already in the session")
-        name = self._write_cloud(pid, T, P_cam, detection, verification=False)
-        self._doc["pairs"].append({"id": pid, "cloud": name, "T_base_flan": _matrix(T)})
+        joints = self._joints(q, f"pair {pid}")
+        name = self._write_cloud(pid, self.mount.to_link(T, joints), P_cam, detection, verification=False)
+        self._doc["pairs"].append({"id": pid, "cloud": name, "T_base_flan": _matrix(T)} | self._q_entry(joints))
         write_json(self.root / POSES_FILE, self._doc)
         return pid
 
     def _write_cloud(
         self, stem: str, T: Array, P_cam: ArrayLike, detection: FlangeDetection | CelldError | None, verification: bool
     ) -> str:
-        """Write one cloud, compact where it can be; return its file name."""
+        """Write one cloud, compact where it can be; return its file name.
+
+        ``T`` is the flange pose in the frame the scanner is fixed in (the base, or its link).
+        """
         P = np.asarray(P_cam)
         if self.compact and P.ndim == 3 and P.shape[2] == 3:
             found = self._window(P, T, detection, verification)
@@ -609,15 +670,16 @@ class SessionWriter:
         return None if expected is None else (expected, "expected")
 
     def _expected_window(self, P: np.ndarray, T: Array) -> tuple[int, int, int, int] | None:
-        """Around the flange centre that T_base_cam, fitted to the flanges found so far, predicts."""
+        """Around the flange centre that the scanner's pose in its frame (``T_base_cam``, or ``T_link_cam``
+        on the arm), fitted to the flanges found so far, predicts; ``T`` is the flange in that frame."""
         if len(self._found) < _MIN_PAIRS_TO_PREDICT:
             return None
-        P_base, P_cam = (np.array(v) for v in zip(*self._found))
+        P_ref, P_cam = (np.array(v) for v in zip(*self._found))
         try:
-            T_base_cam = solve_rigid(P_base, P_cam).T_dst_src
+            T_ref_cam = solve_rigid(P_ref, P_cam).T_dst_src
         except CelldError:
             return None
-        p = apply(invert(T_base_cam), T[:3, 3][None])[0]
+        p = apply(invert(T_ref_cam), T[:3, 3][None])[0]
         pinhole = fit_pinhole(P)
         if pinhole is None or p[2] <= _EXPECTED_RADIUS:
             return None
@@ -698,7 +760,7 @@ def check_reach(p_base: Any, where: str) -> Array:
     return p
 
 
-def _record(entry: Any, root: Path, where: str) -> PairRecord:
+def _record(entry: Any, root: Path, where: str, on_arm: bool = False) -> PairRecord:
     if not isinstance(entry, dict):
         raise InputError(f"{where}: expected an object, got {type(entry).__name__}")
     pid = entry.get("id")
@@ -715,20 +777,28 @@ def _record(entry: Any, root: Path, where: str) -> PairRecord:
     cloud = entry.get("cloud")
     if cloud is not None and (not isinstance(cloud, str) or Path(cloud).name != cloud):
         raise InputError(f"{where}.cloud: expected a file name in the session directory, got {cloud!r}")
-    return PairRecord(id=pid, p_base=T[:3, 3].copy(), T_base_flan=T, cloud_path=None if cloud is None else root / cloud)
+    q = None
+    if on_arm:
+        q = _vector(entry.get("q"), 6, f"{where}.q")
+        if q is None:
+            raise InputError(f"{where}.q: missing (the robot's joints, rad: the scanner is on the arm)")
+    return PairRecord(id=pid, p_base=T[:3, 3].copy(), T_base_flan=T, cloud_path=None if cloud is None else root / cloud, q=q)
 
 
 def _load_celld(root: Path) -> Session:
     path = root / POSES_FILE
     doc = _read_json(path)
     _check_header(doc, path)
-    pairs = tuple(_record(e, root, f"{path.name}: pairs[{i}]") for i, e in enumerate(doc["pairs"]))
+    mount = mount_from(doc, str(path))
+    if mount.on_arm and doc["version"] < VERSION_ON_ARM:
+        raise InputError(f"{path}: a session of a scanner on {mount.name} is version {VERSION_ON_ARM}, got {doc['version']}")
+    pairs = tuple(_record(e, root, f"{path.name}: pairs[{i}]", mount.on_arm) for i, e in enumerate(doc["pairs"]))
     ids = [p.id for p in pairs]
     if len(set(ids)) != len(ids):
         raise InputError(f"{path}: pair ids must be unique")
     ver = doc.get("verification")
-    verification = None if ver is None else _record(ver, root, f"{path.name}: verification")
-    return Session(root, "celld", pairs, verification, doc.get("flange"), doc.get("scanner"), doc["units"])
+    verification = None if ver is None else _record(ver, root, f"{path.name}: verification", mount.on_arm)
+    return Session(root, "celld", pairs, verification, doc.get("flange"), doc.get("scanner"), doc["units"], mount)
 
 
 def _vector(value: Any, n: int, where: str) -> Array | None:

@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from celld.calib.detect import FlangeDetection, detect_flange
 from celld.calib.detect_params import DetectParams
 from celld.calib.flange import FlangeModel
+from celld.calib.mount import ScannerMount
 from celld.calib.rangebias import FinishStep
 from celld.calib.robust import RejectedPair
 from celld.errors import DetectionError, InputError
@@ -78,12 +79,20 @@ class PairCollector:
     writer : celld.calib.dataset.SessionWriter, optional
         Stores each capture (pose and cloud) before it is detected; the
         writer names the pair.
+    mount : ScannerMount, optional
+        Where the scanner is fixed: on the arm, a pair's robot side is the
+        flange in the scanner's link frame (the writer's mount when not given).
     """
 
-    def __init__(self, flange: FlangeModel | None, detect_params: DetectParams | None = None, writer: Any = None) -> None:
+    def __init__(
+        self, flange: FlangeModel | None, detect_params: DetectParams | None = None, writer: Any = None, mount: ScannerMount | None = None
+    ) -> None:
         self.flange = flange
         self.detect_params = detect_params
         self.writer = writer
+        self.mount = mount if mount is not None else (writer.mount if writer is not None else ScannerMount())
+        if writer is not None and writer.mount != self.mount:
+            raise InputError(f"pairs: the writer's scanner mount ({writer.mount.name}) is not the collector's ({self.mount.name})")
         self._ids: list[str] = []
         self._P_base: list[Array] = []
         self._P_cam: list[Array] = []
@@ -91,15 +100,18 @@ class PairCollector:
         self._rejected: list[RejectedPair] = []
         self._count = 0
 
-    def capture(self, T_base_flange: ArrayLike, cloud: ArrayLike) -> PairOutcome:
+    def capture(self, T_base_flange: ArrayLike, cloud: ArrayLike, q: ArrayLike | None = None) -> PairOutcome:
         """A capture at the flange pose ``T_base_flange`` (4, 4): detected, then stored (with a writer).
 
         The writer gets the detection, so a compact dataset keeps exact the
-        pixels the detector read (:mod:`celld.calib.dataset`).
+        pixels the detector read (:mod:`celld.calib.dataset`). With the scanner
+        on the arm, ``q`` are the joints of the capture and the pair's robot
+        side is the flange in the scanner's link frame (Eq. 8).
         """
         T = np.asarray(T_base_flange, dtype=np.float64)
         found = self._detect(cloud) if self.flange is not None else None
-        pair_id = self.writer.add_pair(T, cloud, detection=found) if self.writer is not None else str(self._count)
+        pair_id = self.writer.add_pair(T, cloud, detection=found, q=q) if self.writer is not None else str(self._count)
+        T = self.mount.to_link(T, q)
         if found is None:
             return self.add(pair_id, T[:3, 3], cloud=cloud)
         return self._outcome(pair_id, T[:3, 3], found)

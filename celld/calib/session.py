@@ -435,6 +435,10 @@ def detect_pairs(
 ) -> Detections:
     """Flange centres of every pair: recorded ones (reference sessions) unless ``redetect``, else detected in the cloud.
 
+    Each pair's flange position is in the frame the scanner is fixed in
+    (:meth:`~celld.calib.dataset.Session.flange_position`: the base, or the
+    scanner's link for a scanner on the arm).
+
     A pair whose detection fails, or that has neither a centre nor a cloud,
     is rejected with the reason (:class:`~celld.calib.pairs.PairCollector`).
     """
@@ -442,7 +446,7 @@ def detect_pairs(
     for rec in session.pairs:
         p_cam = None if redetect else rec.p_cam
         cloud = session.cloud(rec) if p_cam is None and rec.cloud_path is not None else None
-        collector.add(rec.id, rec.p_base, cloud=cloud, p_cam=p_cam)
+        collector.add(rec.id, session.flange_position(rec), cloud=cloud, p_cam=p_cam)
     return collector.detections()
 
 
@@ -499,7 +503,7 @@ def verification_verifier(
     rec = session.verification
     if rec is None or rec.cloud_path is None or rec.T_base_flan is None:
         return None
-    return verifier_from_cloud(session.cloud(rec), rec.T_base_flan, flange, params, detect_params)
+    return verifier_from_cloud(session.cloud(rec), session.flange_pose(rec), flange, params, detect_params)
 
 
 def calibrate_session(

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from celld.bus.keys import check_prefix
+from celld.calib.mount import MOUNTS
 from celld.config.reader import TableReader
 from celld.errors import BusError
 from celld.robot.kinematics import MODELS as UR_MODELS
@@ -197,6 +198,10 @@ class ScannerConfig:
 
     kind: str = "sim"
     model: str = "phoxi-m"
+    # Where the scanner is fixed: "base" (over the cell, eye-on-base) or on the
+    # arm after joint 1, 2 or 3 ("link1", "link2", "link3": eye-on-arm, Eq. 8;
+    # celld.calib.mount). A calibration is made for one mount and used only with it.
+    mount: str = "base"
     # Nominal pose of the camera in the base frame, as the cell was drawn (the
     # offline seam tools place a scan with it). celld never reads it as an
     # estimate: calibration starts without it. A simulated scanner is placed
@@ -246,6 +251,7 @@ class ScannerConfig:
         return cls(
             kind=r.str("kind", "sim", choices=SCANNER_KINDS),
             model=r.str("model", "phoxi-m", choices=SCANNER_MODELS),
+            mount=r.str("mount", cls.mount, choices=MOUNTS),
             T_base_cam=r.matrix4("T_base_cam", [list(row) for row in cls.T_base_cam]),
             replay_dir=r.str("replay_dir", ""),
             replay_units=r.str("replay_units", cls.replay_units, choices=("m", "mm")),

@@ -25,6 +25,11 @@ worker threads so the event loop keeps answering the bus.
   Algorithm 1 starts with the bias its first four captures' finish steps
   say (the verification cloud's metal points, and the centres when they lie
   on metal, corrected by it).
+  With the scanner on the arm (``scanner.mount`` = link1-3, eye-on-arm,
+  Eq. 8) each capture's flange pose is moved into the scanner's link frame
+  by the joints of that capture, and the same solve, Algorithm 1, e_icp and
+  quality gate give ``T_linkN_cam``; the calibration stores it with the
+  mount and the DH table (:mod:`celld.calib.mount`).
 - **move**: a jerk-limited straight move of the TCP to a pose, or a
   jerk-limited joint move (straight in joint space, sent as speedJ) to joint
   positions; both checked against the cell first (planning module).
@@ -39,6 +44,7 @@ from __future__ import annotations
 import asyncio
 import math
 from collections.abc import Mapping
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -50,6 +56,7 @@ from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import FlangeModel, preset
 from celld.calib.metrics import IcpVerifier, cost_function
+from celld.calib.mount import ScannerMount, in_frame, mount_entry
 from celld.calib.pairs import Detections, PairCollector
 from celld.calib.poses import calibration_poses
 from celld.calib.rangebias import bias_from_steps, correct_range_bias
@@ -96,16 +103,16 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
 # -- calibrate ---------------------------------------------------------------------
 
 
-async def _settled_flange_pose(devices: CellDevices, T_target: np.ndarray, settle: float) -> np.ndarray:
+async def _settled_flange_pose(devices: CellDevices, T_target: np.ndarray, settle: float) -> tuple[np.ndarray, np.ndarray]:
     """Move to ``T_target`` (the tool is off: the scanner must see the flange), let the arm settle, and
-    return the flange pose the robot reports."""
+    return the flange pose the robot reports and its joints."""
     motion = devices.require_motion()
     await devices.move_to(T_target, tool=False)
     await asyncio.sleep(settle)
     state = motion.state()
     if state is None:
         raise CalibrationError("no robot state after the move")
-    return state.T_base_tcp
+    return state.T_base_tcp, np.asarray(state.q, dtype=np.float64)
 
 
 async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -> Mapping[str, Any]:
@@ -156,7 +163,9 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
             },
         }
     dataset = ctx.result_dir() / "dataset"
-    writer = SessionWriter(dataset, flange=cal.flange, scanner=config.scanner.model)
+    # A scanner on the arm: every pair's robot side is the flange in the scanner's link frame (Eq. 8).
+    mount = ScannerMount.of(config.scanner.mount, config.robot.model)
+    writer = SessionWriter(dataset, flange=cal.flange, scanner=config.scanner.model, mount=mount)
     rec = ctx.recording
     if rec is not None:
         # The cell, and the flange model carried by the TCP (the flange: tcp_offset is zero here) at each pose.
@@ -166,12 +175,12 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
 
     # Verification pose first: its cloud scores every estimate (Eq. 13).
     ctx.progress("verify", 0.0, "verification pose")
-    T_v_robot = await _settled_flange_pose(devices, T_v, cal.settle)
+    T_v_robot, q_v = await _settled_flange_pose(devices, T_v, cal.settle)
     cloud_v = await devices.capture()
-    await asyncio.to_thread(writer.set_verification, T_v_robot, cloud_v.points)
+    await asyncio.to_thread(partial(writer.set_verification, T_v_robot, cloud_v.points, q=q_v))
     if rec is not None:
         rec.log_cloud_cam("verification", cloud_v.points)
-    verifier = await asyncio.to_thread(verifier_from_cloud, cloud_v.points, T_v_robot, flange, params, dparams)
+    verifier = await asyncio.to_thread(verifier_from_cloud, cloud_v.points, mount.to_link(T_v_robot, q_v), flange, params, dparams)
     alg = Algorithm1(
         verifier, cost_function(params.cost, params.work_radius), e_required=params.e_required, k_max=params.k_max or len(poses)
     )
@@ -181,10 +190,12 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     pairs = PairCollector(flange, dparams, writer)
     early = False
     result: CalibrationResult | None = None  # solved at an early stop
+    q_of: dict[str, np.ndarray] = {}  # each capture's joints, by pair id
     for i, T in enumerate(poses):
-        T_bf = await _settled_flange_pose(devices, T, cal.settle)
+        T_bf, q = await _settled_flange_pose(devices, T, cal.settle)
         cloud = await devices.capture()
-        got = await asyncio.to_thread(pairs.capture, T_bf, cloud.points)
+        got = await asyncio.to_thread(pairs.capture, T_bf, cloud.points, q)
+        q_of[got.id] = q
         pid, det = got.id, got.detection
         if got.rejected is not None or det is None:
             reason = got.rejected.reason if got.rejected is not None else "no detection"
@@ -252,14 +263,17 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
             pairs.n_captures,
             range_bias_data(params, flange, found),
         )
-    report = result.as_dict()
+    report = in_frame(result.as_dict(), mount)
     if rec is not None:
-        _record_solution(rec, result.T_base_cam, result.bias, found, report["quality"], flange.circle_on_metal)
+        T_base_link = [mount.T_base_link(q_of[pid]) for pid in found.ids]
+        _record_solution(
+            rec, result.T_base_cam, result.bias, found, report["quality"], flange.circle_on_metal, T_base_link, mount.T_base_link(q_v)
+        )
     a1 = alg.result() if alg.started else None
     cost_mm = a1.cost * 1e3 if a1 is not None and math.isfinite(a1.cost) else None
     calibration = {
         "job": ctx.job_id,
-        "T_base_cam": result.T_base_cam_stored.tolist(),
+        **mount_entry(mount, result.T_base_cam_stored),
         "stored": result.stored,
         "cost_mm": cost_mm,
         "pairs": len(result.pair_ids),
@@ -309,16 +323,28 @@ def _gated_solve(
 
 
 def _record_solution(
-    rec: Any, T_base_cam: np.ndarray, bias: float, found: Detections, quality: Mapping[str, Any], circle_on_metal: bool
+    rec: Any,
+    T_ref_cam: np.ndarray,
+    bias: float,
+    found: Detections,
+    quality: Mapping[str, Any],
+    circle_on_metal: bool,
+    T_base_ref: list[np.ndarray],
+    T_base_ref_v: np.ndarray,
 ) -> None:
     """The solved calibration in its recording: the camera placed for the whole
-    recording (every capture then lies in the base frame) and each pair's
-    residual, robot centre to scanner centre (the centre corrected by the range
-    bias where the circle lies on metal, as the solve used it)."""
-    rec.log_camera_pose(T_base_cam, static=True)
+    recording (every capture then lies in the base frame; a scanner on the arm
+    is placed where it was at the verification pose) and each pair's residual,
+    robot centre to scanner centre (the centre corrected by the range bias where
+    the circle lies on metal, as the solve used it). ``T_ref_cam`` is the
+    scanner in the frame it is fixed in, ``T_base_ref`` that frame at each
+    pair (the identity on the base) and ``T_base_ref_v`` at the verification pose."""
+    rec.log_camera_pose(T_base_ref_v @ T_ref_cam, static=True)
     P_cam = correct_range_bias(found.P_cam, bias) if (bias and circle_on_metal) else found.P_cam
     left_out = {str(p["id"]): bool(p["outlier"] or not p["used"]) for p in quality.get("pairs", [])}
-    rec.log_residuals(list(found.ids), found.P_base, se3.apply(T_base_cam, P_cam), [left_out.get(i, False) for i in found.ids])
+    P_robot = np.array([se3.apply(T, p[None])[0] for T, p in zip(T_base_ref, found.P_base)]).reshape(-1, 3)
+    P_scanner = np.array([se3.apply(T @ T_ref_cam, p[None])[0] for T, p in zip(T_base_ref, P_cam)]).reshape(-1, 3)
+    rec.log_residuals(list(found.ids), P_robot, P_scanner, [left_out.get(i, False) for i in found.ids])
 
 
 # -- move ----------------------------------------------------------------------------

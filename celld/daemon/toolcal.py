@@ -46,6 +46,7 @@ import numpy as np
 
 from celld import fsutil, se3
 from celld.bus.schema import ToolCalibrateJob
+from celld.calib.mount import mount_entry
 from celld.calib.rangebias import correct_range_bias
 from celld.calib.toolcal import ToolCalParams, ToolTipFit, solve_tool_tip, tool_calibration_poses
 from celld.calib.tooltip import TipDetection, TipDetectParams, WireDetectParams, detect_tip, detect_wire_end
@@ -68,8 +69,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
     job = ctx.job
     if not isinstance(job, ToolCalibrateJob):
         raise JobError("$.kind", "not a tool-calibrate job")
-    T_base_cam, range_bias, cal_job = current_calibration(ctx.state_dir)
-    T_cam_base = se3.invert(T_base_cam)
+    placement, range_bias, cal_job = current_calibration(ctx.state_dir, config.scanner.mount)
     tool = config.tool
     p_tcp_nominal = np.asarray(tool.tip_tcp, dtype=np.float64)
     z_tcp = np.asarray(tool.tool_z_tcp, dtype=np.float64)
@@ -102,7 +102,8 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
     rec = ctx.recording
     if rec is not None:
         record_cell(rec, planner.with_tool)
-        rec.log_camera_pose(T_base_cam, static=True)
+        if not placement.mount.on_arm:
+            rec.log_camera_pose(placement.T_ref_cam, static=True)
     dparams, wparams = TipDetectParams(), WireDetectParams()
     p_tcp_torch_nominal = p_tcp_nominal - tool.torch_offset * x_tcp  # Eq. 14, as configured
     tip, torch = _Points("tip"), _Points("torch")
@@ -116,7 +117,10 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         T_bt = state.T_base_tcp
         cloud = await devices.capture()
         points = correct_range_bias(cloud.points, range_bias) if range_bias else np.asarray(cloud.points)
-        T_cam_tcp = T_cam_base @ T_bt
+        T_base_cam = placement.T_base_cam(state.q)  # a scanner on the arm moves with its link (Eq. 8)
+        if rec is not None and placement.mount.on_arm:
+            rec.log_camera_pose(T_base_cam)
+        T_cam_tcp = se3.invert(T_base_cam) @ T_bt
         u_cam = T_cam_tcp[:3, :3] @ z_tcp  # along the finger and the wire, towards the flange
         tip_pred, torch_pred = se3.apply(T_cam_tcp, np.array([p_tcp_nominal, p_tcp_torch_nominal]))
         found_tip = await tip.detect(pid, T_bt, T_base_cam, partial(detect_tip, points, tip_pred, u_cam, tool.tip_radius, dparams))
@@ -148,7 +152,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
             "frame": "base",
             "units": "m",
             "calibration_job": cal_job,
-            "T_base_cam": T_base_cam.tolist(),
+            **mount_entry(placement.mount, placement.T_ref_cam),
             "range_bias_m": range_bias,
             "tip_tcp_config": p_tcp_nominal.tolist(),
             "tip_radius": tool.tip_radius,

@@ -44,6 +44,7 @@ import numpy as np
 
 from celld import fsutil, polyline, se3
 from celld.bus.schema import WeldJob
+from celld.calib.mount import Placement, placement_of
 from celld.calib.rangebias import correct_range_bias
 from celld.config import Config, ServoConfig, ToolConfig, with_overrides
 from celld.daemon.devices import CellDevices
@@ -118,10 +119,12 @@ def resolve_workpiece(name: str, config: Config) -> Workpiece:
         raise JobError("$.workpiece", f"workpiece {name!r} cannot be used: {exc}") from exc
 
 
-def current_calibration(state_dir: Path) -> tuple[np.ndarray, float, str]:
-    """The accepted calibration: ``T_base_cam``, the scanner's range bias on metal (m) and the job that made it.
+def current_calibration(state_dir: Path, mount: str = "base") -> tuple[Placement, float, str]:
+    """The accepted calibration: the scanner's placement (``T_base_cam``, or its pose on its link of the
+    arm), the scanner's range bias on metal (m) and the job that made it.
 
-    Refused without one, or when either value is unusable. A calibration
+    Refused without one, when either value is unusable, or when it was made
+    for a scanner mounted elsewhere than the config's ``mount``. A calibration
     without a range bias (structured light, or written before it existed)
     has none: 0.
     """
@@ -129,15 +132,21 @@ def current_calibration(state_dir: Path) -> tuple[np.ndarray, float, str]:
     if cal is None:
         raise JobError("$", "the cell has no current calibration: run a calibrate job and accept it first")
     try:
-        T = se3.check_transform(cal.get("T_base_cam", []), "calibration.T_base_cam")
-    except (InputError, ValueError, TypeError) as exc:
+        placement = placement_of(cal)
+    except InputError as exc:
         raise JobError("$", f"the current calibration is unusable: {exc}") from exc
+    if placement.mount.name != mount:
+        raise JobError(
+            "$",
+            f"the current calibration is of a scanner on {placement.mount.name}, and scanner.mount is {mount!r}: "
+            "calibrate the scanner where it is mounted now",
+        )
     bias_mm = cal.get("range_bias_mm", 0.0)
     if isinstance(bias_mm, bool) or not isinstance(bias_mm, (int, float)) or not abs(bias_mm) <= MAX_RANGE_BIAS_MM:
         raise JobError(
             "$", f"the current calibration is unusable: range_bias_mm must be a number within +-{MAX_RANGE_BIAS_MM:g} mm, got {bias_mm!r}"
         )
-    return T, float(bias_mm) * 1e-3, str(cal.get("job", ""))
+    return placement, float(bias_mm) * 1e-3, str(cal.get("job", ""))
 
 
 class CurrentTool(NamedTuple):
@@ -347,7 +356,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     except ConfigError as exc:
         # The job's field of the refused value: its key in the section (delta_d_mm, ...).
         raise JobError("$." + exc.key.rsplit(".", 1)[-1], exc.reason) from exc
-    T_base_cam, range_bias, cal_job = current_calibration(ctx.state_dir)
+    placement, range_bias, cal_job = current_calibration(ctx.state_dir, config.scanner.mount)
     tool_cfg, tool_job, sensor_yaw, torch_measured = current_tool(ctx.state_dir, tool_cfg)
     if torch_measured and job.torch_offset is not None:
         raise JobError(
@@ -384,7 +393,10 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     else:
         ctx.progress("scan", 0.0, "arm to the scan pose, scanning")
         await devices.move_to(T_scan, speed_scale=speed)
+    here = motion.state()
     cloud = await devices.capture()
+    # The scanner where it is now (a scanner on the arm moves with its link, Eq. 8).
+    T_base_cam = placement.T_base_cam(None if here is None else here.q)
     # The calibration's range bias on metal: the scan (a metal part on a steel
     # table) moved back along its rays, as the calibration was solved.
     points = correct_range_bias(cloud.points, range_bias) if range_bias else np.asarray(cloud.points)

@@ -29,6 +29,7 @@ from celld import se3
 from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
+from celld.calib.mount import ScannerMount, in_frame
 from celld.calib.pairs import PairCollector
 from celld.calib.poses import calibration_poses
 from celld.calib.session import CalibrationResult, SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
@@ -54,10 +55,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 @dataclass(frozen=True)
 class OfflineCalibration:
-    """What :func:`calibrate_in_world` returns: the solve, the true T_base_cam, the time it took (s)."""
+    """What :func:`calibrate_in_world` returns: the solve (in the frame the scanner is fixed in), the scanner's
+    true pose there (``T_base_cam``, or ``T_linkN_cam`` on the arm), the controller's joints at the
+    verification pose and the time it took (s)."""
 
     result: CalibrationResult
-    T_base_cam_true: np.ndarray
+    T_mount_cam_true: np.ndarray
+    q_verification: np.ndarray
     seconds: float
 
 
@@ -69,33 +73,40 @@ def calibrate_in_world(
     The controller's side (its flange model, detector parameters, solve
     parameters, poses) comes from ``cfg``; the scene (the scanner as mounted
     and measuring, the flange as made, where the arm truly puts it) from
-    ``world``, which the solve never reads.
+    ``world``, which the solve never reads. A scanner on the arm (the
+    config's ``scanner.mount``, the world's own) moves with the arm's true
+    joints and is calibrated on its link (Eq. 8).
     """
-    from celld.sim.score import true_flange
+    from celld.sim.score import true_camera, true_flange
 
     cal = cfg.calibration
     model_name = cfg.scanner.model  # the controller's scanner: its detector parameters
     flange = preset(cal.flange)  # the controller's flange model
     sc = world.scanner
     unit = scanner_model(sc.model) if sc.metal_bias is None else replace(scanner_model(sc.model), metal_bias=sc.metal_bias)
-    scanner = SimScanner(unit, sc.T_base_cam, seed=seed, resolution_scale=sc.resolution_scale, measure=None if sc.ideal else sc.measure)
-    home = cfg.robot.home_q
+    home = np.asarray(cfg.robot.home_q, dtype=np.float64)
+    scanner = SimScanner(
+        unit, true_camera(world, home), seed=seed, resolution_scale=sc.resolution_scale, measure=None if sc.ideal else sc.measure
+    )
+    mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model)
 
-    def seen(T_cmd: np.ndarray) -> np.ndarray:
-        """The scene with the flange where the arm truly puts it when told ``T_cmd``."""
+    def seen(T_cmd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The scene with the flange where the arm truly puts it when told ``T_cmd``, and the controller's joints."""
         got = true_flange(world, T_cmd, home)
-        return scanner.capture(robot_scene(T_cmd if got is None else got[0], world.flange)).points
+        T_true, q = (T_cmd, home) if got is None else got  # out of the nominal reach: drawn where commanded
+        scanner.move_to(true_camera(world, q))
+        return scanner.capture(robot_scene(T_true, world.flange)).points, q
 
     dparams: DetectParams = PARAMS_BY_SCANNER[model_name]
     T_v = se3.from_ur_pose(cal.verification_pose)
     poses = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=seed)
     t0 = time.perf_counter()
-    P_v = seen(T_v)
+    P_v, q_v = seen(T_v)
     if writer is not None:
-        writer.set_verification(T_v, P_v)
-    pairs = PairCollector(flange, dparams, writer)
+        writer.set_verification(T_v, P_v, q=q_v)
+    pairs = PairCollector(flange, dparams, writer, mount)
     for T in poses:
-        got = pairs.capture(T, seen(T))
+        got = pairs.capture(T, *seen(T))
         det = got.detection
         if say is None:
             continue
@@ -107,12 +118,12 @@ def calibrate_in_world(
             f"residual {det.residual * 1e6:.0f} um"
         )
     params = SolveParams.from_config(cal)
-    verifier = verifier_from_cloud(P_v, T_v, flange, params, dparams)
+    verifier = verifier_from_cloud(P_v, mount.to_link(T_v, q_v), flange, params, dparams)
     found = pairs.detections()
     result = solve_pairs(
         found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, n_pairs=n, range_data=range_bias_data(params, flange, found)
     )
-    return OfflineCalibration(result, sc.T_base_cam, time.perf_counter() - t0)
+    return OfflineCalibration(result, sc.T_mount_cam, q_v, time.perf_counter() - t0)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -121,17 +132,16 @@ def run(args: argparse.Namespace) -> int:
     # The simulator's truth: it renders the scene, the estimator never reads it.
     world = world_of(cfg, options_from_args(args))
     out = Path(args.out) if args.out else Path(cfg.cell.state_dir) / "sim-calibrate" / time.strftime("%Y%m%d-%H%M%S")
-    writer = SessionWriter(out, flange=cfg.calibration.flange, scanner=cfg.scanner.model)
+    mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model)
+    writer = SessionWriter(out, flange=cfg.calibration.flange, scanner=cfg.scanner.model, mount=mount)
     say = _printer(args.json)
-    say(
-        f"celld sim calibrate: {world.scanner.model} at T_base_cam (simulated), flange {cfg.calibration.flange}, {n} poses; "
-        f"{world.describe()}"
-    )
+    name = f"T_{mount.frame}_cam"
+    say(f"celld sim calibrate: {world.scanner.model} at {name} (simulated), flange {cfg.calibration.flange}, {n} poses; {world.describe()}")
     done = calibrate_in_world(cfg, world, n, args.seed, writer, say)
-    result, T_base_cam_true, seconds = done.result, done.T_base_cam_true, done.seconds
+    result, T_true, seconds = done.result, done.T_mount_cam_true, done.seconds
 
-    dt, dr = se3.error(result.T_base_cam, T_base_cam_true)
-    report = result.as_dict()
+    dt, dr = se3.error(result.T_base_cam, T_true)
+    report = in_frame(result.as_dict(), mount)
     report.update(
         dataset=str(out),
         seconds=seconds,
@@ -141,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(report))
         return 0
     np.set_printoptions(precision=5, suppress=True)
-    say(f"\nT_base_cam ({result.method}, {len(result.pair_ids)} of {n} pairs, {seconds:.1f} s):\n{result.T_base_cam}")
+    say(f"\n{name} ({result.method}, {len(result.pair_ids)} of {n} pairs, {seconds:.1f} s):\n{result.T_base_cam}")
     for r in result.rejected:
         say(f"  rejected {r.id}: {r.reason}")
     if result.e_icp is not None:

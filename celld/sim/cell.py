@@ -94,9 +94,15 @@ class _CellScanner:
         # One table: the part's scene brings the steel welding table (the robot
         # scene's would lie in the same plane, a matte twin a time-of-flight
         # camera reads 8 mm apart from it).
+        arm = self.world.arm
+
+        def T_base_cam() -> np.ndarray:
+            # A scanner on the arm is where the arm's true joints put its link now.
+            return sc.T_base_cam_at(truth.latest().q, arm.dh)
+
         return SimulatedScanner(
             model,
-            sc.T_base_cam,
+            T_base_cam if sc.link else sc.T_base_cam,
             robot_scene_source(
                 lambda: truth.latest().T_base_flange,
                 self.world.flange,

@@ -121,9 +121,10 @@ def run_jobs(
     (and the figures say so); otherwise it ends the run. Raises CelldError
     when the cell does not come up.
     """
+    from celld.calib.mount import placement_of
     from celld.errors import JobError
     from celld.sim.cell import run_cell, sim_part
-    from celld.sim.score import TruthRecorder, lateral, open_loop_torch, targeting, true_torch_path
+    from celld.sim.score import TruthRecorder, lateral, open_loop_torch, targeting, true_camera, true_torch_path
 
     figures: dict[str, Any] = {}
     t0 = time.monotonic()
@@ -154,8 +155,11 @@ def run_jobs(
                     "failed": {"job": cal["id"], "state": "not accepted", "reason": str(exc), "verdict": quality.get("verdict")},
                 }
             accepted, forced = cell.client.accept(cal["id"], force=True), True
-        T_est = np.array(accepted["calibration"]["T_base_cam"])
-        dt, dr = se3.error(T_est, world.scanner.T_base_cam)
+        # The scanner's pose where it is fixed (on the arm: on its link, scored where the arm holds it at
+        # the verification pose, the joints the session recorded there).
+        placed = placement_of(accepted["calibration"])
+        dt, dr = se3.error(placed.T_ref_cam, world.scanner.T_mount_cam)
+        q_v = _verification_joints(cal_result["calibration"]["dataset"]) if placed.mount.on_arm else None
         figures["calibration"] = {
             "job": cal["id"],
             "translation_error_mm": dt * 1e3,
@@ -164,11 +168,11 @@ def run_jobs(
             "recording": cal_result.get("recording"),
             "verdict": quality.get("verdict"),
             "forced": forced,
-            "targeting": targeting(world, T_est, cfg),
+            "targeting": targeting(world, placed.T_base_cam(q_v), cfg, true_camera(world, q_v) if q_v is not None else None),
         }
         say(
             f"calibration {cal['id']} accepted{' (forced past its quality gate)' if forced else ''}: "
-            f"{dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg from the true T_base_cam"
+            f"{dt * 1e3:.3f} mm, {math.degrees(dr):.4f} deg from the true T_{placed.mount.frame}_cam"
         )
         if tool_calibrate:
             tc = _job(cell.client, {"kind": "tool-calibrate", "seed": calibrate_seed or 0}, say)
@@ -288,3 +292,14 @@ def _job(client: Any, message: dict[str, Any], say: Any) -> dict[str, Any]:
 def _failed(record: dict[str, Any], say: Any) -> dict[str, Any]:
     say(f"job {record['id']} {record['state']}: {record.get('reason') or record}")
     return {"job": record["id"], "state": record["state"], "reason": record.get("reason")}
+
+
+def _verification_joints(dataset: str) -> np.ndarray:
+    """The joints a calibration session recorded at its verification pose (a scanner on the arm)."""
+    from celld.calib.dataset import load_session
+    from celld.errors import CelldError
+
+    v = load_session(dataset).verification
+    if v is None or v.q is None:
+        raise CelldError(f"{dataset}: the session has no joints at its verification pose")
+    return v.q

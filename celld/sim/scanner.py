@@ -264,6 +264,11 @@ class SimScanner:
         self._dir_norm = np.linalg.norm(self._dirs, axis=1)
         self._rays = o3d.core.Tensor(np.hstack([np.zeros_like(self._dirs), self._dirs]))
 
+    def move_to(self, T_base_cam: np.ndarray) -> None:
+        """Put the scanner at ``T_base_cam`` (4, 4) for the next captures (a scanner on the arm)."""
+        self.T_base_cam = se3.check_transform(T_base_cam, "T_base_cam")
+        self._T_cam_base = se3.invert(self.T_base_cam)
+
     def capture(self, objects: Sequence[SceneObject]) -> OrganizedCloud:
         """Ray cast ``objects`` and return the noisy organized cloud."""
         return self.capture_labelled(objects)[0]
@@ -409,8 +414,10 @@ class SimulatedScanner:
     model : str or ScannerModel
         Scanner model of :data:`SCANNER_MODELS` (``"phoxi-m"``, ...), or one
         changed from it (the world's unit: its own metal bias).
-    T_base_cam : array_like
-        (4, 4) true pose of the camera in the base frame (the simulator's truth).
+    T_base_cam : array_like or callable
+        (4, 4) true pose of the camera in the base frame (the simulator's
+        truth), or a callable that returns it at the exposure (a scanner on
+        the arm moves with it).
     scene : callable
         Returns the scene objects in view at capture time.
     seed : int
@@ -430,7 +437,7 @@ class SimulatedScanner:
     def __init__(
         self,
         model: str | ScannerModel,
-        T_base_cam: np.ndarray,
+        T_base_cam: np.ndarray | Callable[[], np.ndarray],
         scene: SceneSource,
         seed: int = 0,
         resolution_scale: float = 1.0,
@@ -446,9 +453,9 @@ class SimulatedScanner:
             raise InputError(f"simulated scanner: capture_delay must be 0 <= lo <= hi <= 10 s, got {capture_delay}")
         self.model_name = model if isinstance(model, str) else model.name
         self._scene = scene
-        self._sim = SimScanner(
-            model, np.asarray(T_base_cam, dtype=np.float64), seed=seed, resolution_scale=resolution_scale, clock=clock, measure=measure
-        )
+        self._pose = T_base_cam if callable(T_base_cam) else None
+        T0 = np.eye(4) if callable(T_base_cam) else np.asarray(T_base_cam, dtype=np.float64)  # a moving one is placed at each capture
+        self._sim = SimScanner(model, T0, seed=seed, resolution_scale=resolution_scale, clock=clock, measure=measure)
         self._delay = (float(lo), float(hi))
         self._delay_rng = np.random.default_rng([seed, 0xDE1A])
         self._seed = seed
@@ -466,6 +473,8 @@ class SimulatedScanner:
             if self._delay[1] > 0.0:
                 time.sleep(self._delay_rng.uniform(*self._delay))
             try:
+                if self._pose is not None:
+                    self._sim.move_to(self._pose())
                 cloud = self._sim.capture(self._scene())
             except InputError as exc:
                 self._stats.failure(exc)

@@ -51,12 +51,26 @@ def true_flange(world: World, T_base_flange_cmd: ArrayLike, q_near: ArrayLike) -
     return kin.forward(q + np.asarray(world.arm.joint_offsets), world.arm.dh), q
 
 
-def measured_in_camera(world: World, P_base: ArrayLike, metal: bool = True) -> Array:
-    """Where the world's scanner measures true base points (n, 3), in its camera frame (no noise)."""
+def true_camera(world: World, q: ArrayLike) -> Array:
+    """Where the world's scanner truly is (4, 4) with the controller's joints ``q``: where it is fixed, or
+    where the arm's true kinematics put its link."""
+    sc = world.scanner
+    if not sc.link:
+        return sc.T_base_cam
+    return sc.T_base_cam_at(np.asarray(q, dtype=np.float64) + np.asarray(world.arm.joint_offsets), world.arm.dh)
+
+
+def measured_in_camera(world: World, P_base: ArrayLike, metal: bool = True, T_base_cam: ArrayLike | None = None) -> Array:
+    """Where the world's scanner measures true base points (n, 3), in its camera frame (no noise).
+
+    ``T_base_cam`` is the scanner's true pose (default: where it is fixed;
+    a scanner on the arm needs it, where the arm holds it).
+    """
     from celld.sim.scanner import scanner_model
 
     sc = world.scanner
-    P_cam = se3.apply(se3.invert(sc.T_base_cam), np.asarray(P_base, dtype=np.float64).reshape(-1, 3))
+    T = sc.T_base_cam if T_base_cam is None else np.asarray(T_base_cam, dtype=np.float64)
+    P_cam = se3.apply(se3.invert(T), np.asarray(P_base, dtype=np.float64).reshape(-1, 3))
     M = sc.measure(P_cam)
     bias = sc.metal_bias if sc.metal_bias is not None else scanner_model(sc.model).metal_bias
     if metal and bias:
@@ -64,14 +78,22 @@ def measured_in_camera(world: World, P_base: ArrayLike, metal: bool = True) -> A
     return M
 
 
-def targeting_errors(world: World, T_base_cam_est: ArrayLike, P_base: ArrayLike, R_base_flange: ArrayLike, q_near: ArrayLike) -> Array:
+def targeting_errors(
+    world: World,
+    T_base_cam_est: ArrayLike,
+    P_base: ArrayLike,
+    R_base_flange: ArrayLike,
+    q_near: ArrayLike,
+    T_base_cam_true: ArrayLike | None = None,
+) -> Array:
     """Distances (n,) between true points and where the flange lands when sent to them through the calibration, m.
 
     ``R_base_flange`` (3, 3) is the flange's orientation for every target;
-    points out of reach give NaN.
+    points out of reach give NaN. ``T_base_cam_true`` is where the scanner
+    truly is when it sees them (default: where it is fixed).
     """
     P = np.asarray(P_base, dtype=np.float64).reshape(-1, 3)
-    targets = se3.apply(np.asarray(T_base_cam_est, dtype=np.float64), measured_in_camera(world, P))
+    targets = se3.apply(np.asarray(T_base_cam_est, dtype=np.float64), measured_in_camera(world, P, T_base_cam=T_base_cam_true))
     out = np.full(len(P), np.nan)
     q = np.asarray(q_near, dtype=np.float64)
     for i, (p, t) in enumerate(zip(P, targets)):
@@ -89,21 +111,23 @@ def box_grid(centre: ArrayLike, size: ArrayLike, n: Sequence[int] = (5, 5, 3)) -
     return np.array(list(itertools.product(*axes)))
 
 
-def targeting(world: World, T_base_cam_est: ArrayLike, config: Any) -> dict[str, Any]:
+def targeting(world: World, T_base_cam_est: ArrayLike, config: Any, T_base_cam_true: ArrayLike | None = None) -> dict[str, Any]:
     """The calibration's targeting error (mm) over two workspaces of a cell config.
 
     ``calibration``: the box the calibration poses span about the verification
     pose, the flange as at the verification pose (facing the scanner); ``table``:
     a 300 x 300 x 150 mm box over the part's place, 150-300 mm above the
     table, the flange facing down, as when the tool works on the table.
-    Joints near the robot's home.
+    Joints near the robot's home. ``T_base_cam_true``: where the scanner truly
+    is when it sees the points (default: where it is fixed; a scanner on the
+    arm, where the arm holds it, with ``T_base_cam_est`` its estimate there).
     """
     cal = config.calibration
     T_v = se3.from_ur_pose(cal.verification_pose)
     home = np.asarray(config.robot.home_q, dtype=np.float64)
-    e_cal = targeting_errors(world, T_base_cam_est, box_grid(T_v[:3, 3], cal.pose_box), T_v[:3, :3], home)
+    e_cal = targeting_errors(world, T_base_cam_est, box_grid(T_v[:3, 3], cal.pose_box), T_v[:3, :3], home, T_base_cam_true)
     R_down = se3.from_xyz_rpy([0.0, 0.0, 0.0], [math.pi, 0.0, math.pi / 2])[:3, :3]
-    e_tab = targeting_errors(world, T_base_cam_est, box_grid([0.6, 0.0, 0.225], [0.3, 0.3, 0.15]), R_down, home)
+    e_tab = targeting_errors(world, T_base_cam_est, box_grid([0.6, 0.0, 0.225], [0.3, 0.3, 0.15]), R_down, home, T_base_cam_true)
 
     def stats(e: Array) -> dict[str, Any]:
         ok = e[np.isfinite(e)]

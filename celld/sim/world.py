@@ -28,7 +28,8 @@ its drawing, the world the simulated cell had before it owned one) and
     seed = 0                  # the world's seed
     robot = "ur10e"           # the arm's model (its nominal DH table)
     flange = "ur10e"          # the flange preset on the wrist, as drawn
-    [sim.scanner]             # model, T_base_cam (as mounted by drawing), resolution_scale, seed (noise)
+    [sim.scanner]             # model, mount (base | link1-3), T_base_cam or T_link_cam (as mounted by drawing),
+                              # resolution_scale, seed (noise)
     [sim.tool]                # the welding tool as drawn, flange frame: the keys of [tool]
     [sim.part]                # workpiece ("" for none), pose (UR pose; default the nominal place), bow_mm
     [sim.errors]              # <source> = true|false, and magnitudes (ERROR_KEYS) over the preset's
@@ -57,6 +58,7 @@ from scipy.spatial.transform import Rotation
 from celld import se3
 from celld.calib.flange import FlangeModel
 from celld.calib.flange import preset as flange_preset
+from celld.calib.mount import MOUNTS
 from celld.config import ToolConfig
 from celld.config.reader import TableReader
 from celld.errors import ConfigError, InputError
@@ -279,6 +281,9 @@ class NominalCell:
     flange: str = "ur10e"
     scanner: str = "phoxi-m"
     T_base_cam: tuple[tuple[float, ...], ...] = DEFAULT_T_BASE_CAM
+    # On the arm (mount link1-3, celld.calib.mount): the scanner's pose in its link's frame; then T_base_cam is not read.
+    scanner_mount: str = "base"
+    T_link_cam: tuple[tuple[float, ...], ...] | None = None
     resolution_scale: float = 1.0  # image scale of the simulated scanner (0.01 to 1)
     scanner_seed: int = 0  # seed of the scanner's noise (mixed with the world's)
     # The welding tool as drawn, in the flange frame (the keys of [tool]).
@@ -298,11 +303,22 @@ class NominalCell:
         pose = part.vector("pose", 6) if part.has("pose") else ()
         from celld.seam.workpiece import EXAMPLES
 
+        mount = sc.str("mount", "base", choices=MOUNTS)
+        T_link_cam = None
+        if mount != "base":
+            if not sc.has("T_link_cam"):
+                raise sc.error("T_link_cam", f"the scanner is on {mount}: give its pose in that link's frame (T_link_cam)")
+            T_link_cam = sc.matrix4("T_link_cam")
+        elif sc.has("T_link_cam"):
+            raise sc.error("T_link_cam", "only a scanner on the arm (mount = link1-3) has a pose on a link")
+
         out = cls(
             robot=r.str("robot", cls.robot, choices=ROBOT_MODELS),
             flange=r.str("flange", cls.flange),
             scanner=sc.str("model", cls.scanner, choices=SCANNER_MODELS),
             T_base_cam=sc.matrix4("T_base_cam", [list(row) for row in DEFAULT_T_BASE_CAM]),
+            scanner_mount=mount,
+            T_link_cam=T_link_cam,
             resolution_scale=sc.float("resolution_scale", 1.0, lo=0.01, hi=1.0),
             scanner_seed=sc.int("seed", 0, lo=0),
             tool=ToolConfig.read(tool_r),
@@ -412,16 +428,36 @@ class DepthField:
 
 @dataclass(frozen=True)
 class ScannerTruth:
-    """The scanner as it is: where it is, how it measures, when it exposes."""
+    """The scanner as it is: where it is, how it measures, when it exposes.
+
+    A scanner on the arm (``link`` 1-3) is fixed on that link: ``T_mount_cam``
+    is its true pose in the link's frame, and its pose in the base frame
+    follows the arm's true joints (:meth:`T_base_cam_at`).
+    """
 
     model: str
-    T_base_cam: Array  # (4, 4) the true pose
+    T_mount_cam: Array  # (4, 4) the true pose in the frame it is fixed in (the base, or its link)
     depth_scale: float  # relative: a range r is measured as r (1 + depth_scale)
     field: DepthField | None
     metal_bias: float | None  # m, the unit's bias on metal (None: the model's)
     capture_delay: tuple[float, float]  # s, uniform range from the request to the exposure
     resolution_scale: float
     noise_seed: int
+    link: int = 0  # 0: fixed in the base frame; k: on the frame after joint k
+
+    @property
+    def T_base_cam(self) -> Array:
+        """The true pose in the base frame of a scanner fixed there."""
+        if self.link:
+            raise InputError(f"the scanner is on link {self.link}: its pose in the base frame follows the joints (T_base_cam_at)")
+        return self.T_mount_cam
+
+    def T_base_cam_at(self, q_true: Sequence[float] | Array, dh_true: kin.DH) -> Array:
+        """The true pose in the base frame with the arm's true joints ``q_true`` and DH table."""
+        if not self.link:
+            return self.T_mount_cam
+        T_base_link = kin.matrix_from_rows(kin.forward_all_rows(list(q_true), dh_true)[self.link - 1])
+        return np.asarray(T_base_link @ self.T_mount_cam, dtype=np.float64)
 
     def measure(self, P_cam: Array) -> Array:
         """Where the scanner measures true points (n, 3) of its camera frame, m: scale and distortion (no noise)."""
@@ -597,7 +633,8 @@ def _draw_scanner(nominal: NominalCell, b: ErrorBudget, seed: int) -> ScannerTru
     model = scanner_model(nominal.scanner)
     # The scanner's errors are sized for the PhoXi M's 0.1 mm class and scale with each model's noise.
     klass = model.sigma / 1e-4
-    T = np.array(nominal.T_base_cam, dtype=np.float64)
+    link = MOUNTS.index(nominal.scanner_mount)
+    T = np.array(nominal.T_base_cam if nominal.T_link_cam is None else nominal.T_link_cam, dtype=np.float64)
     if b.on("scanner_mount"):
         r = _rng(seed, "scanner_mount")
         dT = se3.transform_from(Rotation.from_rotvec(_tnormal(r, b.mount_rotation, 3)).as_matrix(), _tnormal(r, b.mount_translation, 3))
@@ -611,7 +648,7 @@ def _draw_scanner(nominal: NominalCell, b: ErrorBudget, seed: int) -> ScannerTru
         bias = max(0.0, model.metal_bias + float(_tnormal(_rng(seed, "metal_bias"), b.metal_bias, 1)[0]))
     delay = b.capture_delay if b.on("capture_delay") else (0.0, 0.0)
     noise_seed = nominal.scanner_seed + 1_000_003 * seed
-    return ScannerTruth(nominal.scanner, T, scale, dfield, bias, delay, nominal.resolution_scale, noise_seed)
+    return ScannerTruth(nominal.scanner, T, scale, dfield, bias, delay, nominal.resolution_scale, noise_seed, link)
 
 
 # ISO 9409-1 fits of the 50-4-M6 face as a ratio of the nominal: d2 h8 on 63 mm is -46..0 um, d3 H7 on 31.5 mm 0..+25 um.

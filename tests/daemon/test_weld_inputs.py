@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from celld import fsutil
+from celld.calib.mount import ScannerMount, mount_entry
 from celld.config import parse
 from celld.daemon.weld import current_calibration, resolve_workpiece
 from celld.errors import JobError
@@ -54,8 +55,8 @@ def test_a_weld_needs_a_usable_current_calibration(tmp_path: Path) -> None:
     T[:3, 3] = [0.6, 0.0, 1.0]
     # Without a range bias (structured light, or a calibration from before it): none.
     fsutil.write_json(tmp_path / "calibration.json", {"job": "j2", "T_base_cam": T.tolist()})
-    T_read, bias, job = current_calibration(tmp_path)
-    assert job == "j2" and np.allclose(T_read, T) and bias == 0.0
+    placed, bias, job = current_calibration(tmp_path)
+    assert job == "j2" and np.allclose(placed.T_base_cam(None), T) and bias == 0.0
     # A time-of-flight calibration's range bias comes in metres.
     fsutil.write_json(tmp_path / "calibration.json", {"job": "j3", "T_base_cam": T.tolist(), "range_bias_mm": 8.1})
     assert current_calibration(tmp_path)[1] == pytest.approx(0.0081)
@@ -64,6 +65,21 @@ def test_a_weld_needs_a_usable_current_calibration(tmp_path: Path) -> None:
         (tmp_path / "calibration.json").write_text(f'{{"job": "j4", "T_base_cam": {json.dumps(T.tolist())}, "range_bias_mm": {bad}}}')
         with pytest.raises(JobError, match="range_bias_mm"):
             current_calibration(tmp_path)
+
+
+def test_a_calibration_is_used_only_with_the_scanner_mount_it_was_made_for(tmp_path: Path) -> None:
+    T = np.eye(4)
+    T[:3, 3] = [-0.578, 0.82, 0.162]
+    on_arm = ScannerMount.of("link1", "ur10e")
+    fsutil.write_json(tmp_path / "calibration.json", {"job": "j1", **mount_entry(on_arm, T)})
+    with pytest.raises(JobError, match="a scanner on link1, and scanner.mount is 'base'"):
+        current_calibration(tmp_path)
+    placed, _, _ = current_calibration(tmp_path, "link1")
+    q = np.array([2.8, -1.4, 2.3, -2.5, 1.6, -1.3])
+    np.testing.assert_allclose(placed.T_base_cam(q), on_arm.T_base_link(q) @ T, atol=1e-15)
+    fsutil.write_json(tmp_path / "calibration.json", {"job": "j2", "T_base_cam": T.tolist()})
+    with pytest.raises(JobError, match="a scanner on base, and scanner.mount is 'link1'"):
+        current_calibration(tmp_path, "link1")
 
 
 def test_a_weld_takes_the_measured_tip_and_refuses_an_unmeasured_tool_unless_nominal(tmp_path: Path) -> None:

@@ -33,4 +33,4 @@ def test_the_offline_calibration_solves_in_the_ideal_world_and_saves_a_session_t
 
     cfg = load(calib_demo.DEFAULT_CONFIG)
     done = calib_demo.calibrate_in_world(cfg, world_of(cfg, WorldOptions(preset="ideal", seed=1)), 6, 0)
-    np.testing.assert_allclose(done.result.T_base_cam, done.T_base_cam_true, atol=5e-4)
+    np.testing.assert_allclose(done.result.T_base_cam, done.T_mount_cam_true, atol=5e-4)

@@ -206,10 +206,32 @@ def test_the_sim_table_is_read_and_checked_by_the_simulator() -> None:
         ({**TABLE, "errors": {"tip_offset_mm": -1.0}}, "sim.errors.tip_offset_mm"),
         ({**TABLE, "part": {"workpiece": "fillet-t", "bow_mm": 1.0}}, "sim.part.bow_mm"),
         ({**TABLE, "scanner": {"model": "kinect"}}, "sim.scanner.model"),
+        ({**TABLE, "scanner": {"mount": "link1"}}, "sim.scanner.T_link_cam"),
+        ({**TABLE, "scanner": {"T_link_cam": np.eye(4).tolist()}}, "sim.scanner.T_link_cam"),
+        ({**TABLE, "scanner": {"mount": "elbow"}}, "sim.scanner.mount"),
     ):
         with pytest.raises(ConfigError) as exc:
             world_of(parse({"sim": table}))
         assert exc.value.key == key, (exc.value.key, key)
+
+
+def test_a_scanner_on_the_arm_is_where_the_true_joints_put_its_link() -> None:
+    T_link_cam = [[0.0, -1.0, 0.0, -0.578], [0.0, 0.0, -1.0, 0.82], [1.0, 0.0, 0.0, 0.162], [0.0, 0.0, 0.0, 1.0]]
+    w = world_of(parse({"sim": {**TABLE, "scanner": {"mount": "link1", "T_link_cam": T_link_cam}}}))
+    sc = w.scanner
+    assert sc.link == 1
+    with pytest.raises(InputError, match="follows the joints"):
+        sc.T_base_cam  # noqa: B018 - the property refuses
+    # The boom's mounting error is drawn in the link's frame, within the budget.
+    dt, dr = se3.error(sc.T_mount_cam, np.array(T_link_cam))
+    b = w.budget
+    assert 0.0 < dt <= TRUNCATE * b.mount_translation * math.sqrt(3) and 0.0 < dr <= TRUNCATE * b.mount_rotation * math.sqrt(3)
+    q = np.array([2.847, -1.401, 2.311, -2.481, 1.571, -1.276])
+    T1 = kin.matrix_from_rows(kin.forward_all_rows(list(q), w.arm.dh)[0])
+    np.testing.assert_allclose(sc.T_base_cam_at(q, w.arm.dh), T1 @ sc.T_mount_cam, atol=1e-15)
+    # Joints after the first do not move it; the first turns it about the base's z.
+    np.testing.assert_allclose(sc.T_base_cam_at(q + [0, 0.3, 0.2, 0.1, 0.4, 0.5], w.arm.dh), T1 @ sc.T_mount_cam, atol=1e-12)
+    assert not np.allclose(sc.T_base_cam_at(q + [0.1, 0, 0, 0, 0, 0], w.arm.dh), T1 @ sc.T_mount_cam, atol=1e-3)
 
 
 def test_world_options_go_through_the_command_line() -> None:

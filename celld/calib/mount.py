@@ -1,0 +1,180 @@
+"""Where the scanner is fixed: in the base frame (eye-on-base) or on a link of the arm (eye-on-arm, Eq. 8).
+
+Owns the one difference the scanner's mount makes to a flange calibration.
+A scanner fixed over the cell sees the flange from a pose ``T_base_cam``
+that never changes: Eq. 9-12 fit the flange centres it sees to the robot's
+flange positions in the base frame. A scanner fixed on a link of the arm
+(the shoulder, the upper arm or the forearm: ``link1`` ... ``link3``, the
+frame after that joint in the robot's DH table) moves with the joints before
+it, and sees the flange moved by the joints after it. Eq. 8 with the mark the
+flange centre::
+
+    T_base_flan p = T_base_arm(q) T_arm_cam p_cam
+
+so with ``p_arm = T_base_arm(q)^-1 T_base_flan p`` (the flange centre in the
+link's frame at the joints ``q`` of the capture) ``T_arm_cam`` is the rigid
+fit of Eq. 9-12 in the link's frame: the same pairs, Algorithm 1, e_icp
+(with the verification pose in the link's frame) and quality gate as on the
+base, only in another frame. Once calibrated, the scanner's pose at a
+capture is ``T_base_arm(q) T_arm_cam`` with the joints of that capture.
+
+``T_base_arm(q)`` is the robot's nominal forward kinematics of its first
+joints, as the controller reports its own poses.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from celld.errors import InputError
+from celld.robot import kinematics as kin
+from celld.se3 import check_transform, invert
+
+Array = NDArray[np.float64]
+
+# The mounts a scanner can have: fixed in the base frame, or on the frame after joint 1, 2 or 3.
+MOUNTS = ("base", "link1", "link2", "link3")
+
+
+@dataclass(frozen=True)
+class ScannerMount:
+    """The frame a scanner is fixed in, and the robot whose joints move it.
+
+    Attributes
+    ----------
+    name : str
+        One of :data:`MOUNTS`.
+    dh : kinematics.DH
+        The robot's DH table (the controller's nominal one).
+    """
+
+    name: str = "base"
+    dh: kin.DH = kin.UR10E
+
+    def __post_init__(self) -> None:
+        if self.name not in MOUNTS:
+            raise InputError(f"scanner mount: expected one of {', '.join(MOUNTS)}, got {self.name!r}")
+
+    @classmethod
+    def of(cls, name: str, robot_model: str) -> ScannerMount:
+        """The mount ``name`` on the robot model ``robot_model`` (a key of :data:`celld.robot.kinematics.MODELS`)."""
+        return cls(name, kin.model(robot_model).dh)
+
+    @property
+    def link(self) -> int:
+        """The link the scanner is on: 0 for the base, else the joint after which its frame is."""
+        return MOUNTS.index(self.name)
+
+    @property
+    def on_arm(self) -> bool:
+        return self.link > 0
+
+    @property
+    def frame(self) -> str:
+        """The name of the frame the scanner is fixed in, for reports and transform names."""
+        return "base" if self.link == 0 else f"link{self.link}"
+
+    def T_base_link(self, q: ArrayLike | None) -> Array:
+        """The pose (4, 4) of the scanner's frame in the base frame at joints ``q`` (6,) rad.
+
+        The identity for a base mount (``q`` may then be None).
+        """
+        if self.link == 0:
+            return np.eye(4)
+        if q is None:
+            raise InputError(f"the scanner is on {self.frame}: its pose needs the robot's joints")
+        qq = kin.check_q(q)
+        return kin.matrix_from_rows(kin.forward_all_rows(qq.tolist(), self.dh)[self.link - 1])
+
+    def to_link(self, T_base_x: ArrayLike, q: ArrayLike | None) -> Array:
+        """A pose (4, 4) of the base frame in the scanner's frame at joints ``q``: ``T_link_x``."""
+        T = check_transform(T_base_x, "T_base_x")
+        return T if self.link == 0 else invert(self.T_base_link(q)) @ T
+
+    def T_base_cam(self, T_link_cam: ArrayLike, q: ArrayLike | None) -> Array:
+        """The scanner's pose in the base frame at joints ``q`` (Eq. 8), from its calibrated pose on its link."""
+        T = check_transform(T_link_cam, "T_link_cam")
+        return T if self.link == 0 else self.T_base_link(q) @ T
+
+
+def _key(frame: str) -> str:
+    return f"T_{frame}_cam"
+
+
+def in_frame(report: Any, mount: ScannerMount) -> Any:
+    """A solve's report with its transforms named in the mount's frame (``T_base_cam...`` -> ``T_link1_cam...``)."""
+    if not mount.on_arm:
+        return report
+    old, new = _key("base"), _key(mount.frame)
+    if isinstance(report, Mapping):
+        return {(new + k[len(old) :] if k.startswith(old) else k): in_frame(v, mount) for k, v in report.items()}
+    if isinstance(report, list):
+        return [in_frame(v, mount) for v in report]
+    return report
+
+
+def mount_entry(mount: ScannerMount, T_ref_cam: ArrayLike) -> dict[str, Any]:
+    """A calibration's entries for the scanner's pose in its frame: ``T_base_cam``, or the mount, the robot's
+    DH table and ``T_linkN_cam`` for a scanner on the arm (read back by :func:`placement_of`)."""
+    T = check_transform(T_ref_cam, "T_ref_cam").tolist()
+    if not mount.on_arm:
+        return {_key("base"): T}
+    return {"mount": mount.name, "dh": {k: list(v) for k, v in mount.dh._asdict().items()}, _key(mount.frame): T}
+
+
+@dataclass(frozen=True)
+class Placement:
+    """A calibrated scanner: its mount and its pose in the mount's frame (``T_base_cam`` or ``T_linkN_cam``)."""
+
+    mount: ScannerMount
+    T_ref_cam: Array
+
+    def T_base_cam(self, q: ArrayLike | None) -> Array:
+        """The scanner's pose in the base frame at joints ``q`` (any for a scanner on the base)."""
+        return self.mount.T_base_cam(self.T_ref_cam, q)
+
+
+def mount_from(doc: Mapping[str, Any], where: str) -> ScannerMount:
+    """The mount a stored document names (``mount``, absent for the base) with its ``dh`` table.
+
+    Raises
+    ------
+    InputError
+        A mount this project does not know, or a missing or malformed DH table.
+    """
+    name = doc.get("mount", "base")
+    if name not in MOUNTS:
+        raise InputError(f"{where}.mount: expected one of {', '.join(MOUNTS)}, got {name!r}")
+    if name == "base":
+        return ScannerMount()
+    dh = doc.get("dh")
+    try:
+        rows = [tuple(float(v) for v in dh[k]) for k in ("d", "a", "alpha")] if isinstance(dh, Mapping) else None
+    except (KeyError, TypeError, ValueError):
+        rows = None
+    if rows is None or any(len(r) != 6 or not all(math.isfinite(v) for v in r) for r in rows):
+        raise InputError(f"{where}.dh: expected the robot's DH table (d, a, alpha: 6 numbers each) for a scanner on {name}")
+    return ScannerMount(name, kin.DH(*rows))  # type: ignore[arg-type]
+
+
+def placement_of(calibration: Mapping[str, Any], where: str = "calibration") -> Placement:
+    """The :class:`Placement` of a stored calibration (:func:`mount_entry`'s entries).
+
+    Raises
+    ------
+    InputError
+        A mount this project does not know, a missing or malformed DH table or transform.
+    """
+    mount = mount_from(calibration, where)
+    key = _key(mount.frame)
+    try:
+        T = check_transform(calibration.get(key, []), f"{where}.{key}")
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"{where}.{key}: expected a 4x4 rigid transform: {exc}") from exc
+    return Placement(mount, T)

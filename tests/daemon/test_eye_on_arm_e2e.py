@@ -1,0 +1,135 @@
+"""A scanner on the arm end to end over the bus: calibrate it on its link (Eq. 8), solve it again offline,
+and place a scan taken at other joints with it.
+
+The simulated cell of ``configs/sim-cell-eye-on-arm.toml`` (its scanner on a
+boom on link 1, turning with the base joint) in a realistic world: the arm's
+true kinematics, repeatability and encoder noise, the boom's mounting error,
+the scanner's scale and distortion, the flange as made. The daemon's
+calibrate job solves ``T_link1_cam`` from the flange at each capture placed
+in link 1's frame by the joints of that capture; the weld's scan at the scan
+pose (the base joint elsewhere than at any calibration pose) is placed with
+the joints there. Scored against the simulator's truth only at the end. Slow
+(the cell's calibration at half resolution and a dry-run weld, about two minutes).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from celld import polyline, se3
+from celld.bus import schema
+from celld.calib.dataset import load_session
+from celld.calib.mount import ScannerMount
+from celld.sim.cell import run_cell, sim_part
+from celld.sim.score import targeting, true_camera
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[2]
+WORLD_SEED = 2
+# Where the flange lands when sent to points the scanner saw, mean over the calibration box, m:
+# the issue's target for the cell's scanner (the paper's hardware: 0.28 mm).
+TARGETING_MEAN = 0.25e-3
+
+
+def _config(tmp_path: Path, host: str) -> Path:
+    path = tmp_path / "cell.toml"
+    path.write_text(
+        f"""
+include = ["{ROOT / "configs" / "sim-cell-eye-on-arm.toml"}"]
+[cell]
+name = "eye-on-arm-e2e"
+state_dir = "{tmp_path / "state"}"
+[robot]
+host = "{host}"
+[bus]
+listen = ["tcp/{host}:7447"]
+[sim]
+preset = "realistic"
+seed = {WORLD_SEED}
+[sim.scanner]
+resolution_scale = 0.5
+"""
+    )
+    return path
+
+
+def test_a_scanner_on_the_arm_is_calibrated_on_its_link_and_places_a_scan_at_other_joints(tmp_path: Path, loopback_host: str) -> None:
+    with run_cell(_config(tmp_path, loopback_host), tmp_path / "daemon.log", timeout=120) as cell:
+        client, cfg, world = cell.client, cell.config, cell.world
+        assert cfg.scanner.mount == "link1" and world.scanner.link == 1
+
+        # Every pose of the cell's 20 (no early stop): the realistic arm's error needs the pairs, as on the base.
+        _, record = client.submit_and_wait({"kind": "calibrate", "seed": 1, "e_required_mm": 0.01}, timeout=900)
+        assert record["state"] == "succeeded", record["reason"]
+        result = json.loads(Path(record["result"]).read_text())
+        calibration = result["calibration"]
+        # Stored in the link's frame, with the DH table it was solved with; no T_base_cam (it moves).
+        assert calibration["mount"] == "link1" and "T_base_cam" not in calibration
+        T_link_cam = np.array(calibration["T_link1_cam"])
+        report = result["report"]
+        assert "T_link1_cam" in report and "T_base_cam" not in report
+        quality = report["quality"]
+        assert quality["verdict"] == "ok", quality["reasons"]
+        assert len(quality["pairs"]) >= 6 and all(np.isfinite(quality["translation_std_mm"]))
+
+        # Against the truth: the boom's pose on the link absorbs some of the arm's kinematic error, so the
+        # score is the targeting error, with the scanner where the arm holds it at the verification pose.
+        mount = ScannerMount.of("link1", cfg.robot.model)
+        session = load_session(calibration["dataset"])
+        assert session.mount == mount and session.verification is not None and session.verification.q is not None
+        q_v = session.verification.q
+        aim = targeting(world, mount.T_base_cam(T_link_cam, q_v), cfg, true_camera(world, q_v))
+        assert aim["calibration"]["mean_mm"] <= TARGETING_MEAN * 1e3, aim
+        dt, dr = se3.error(T_link_cam, world.scanner.T_mount_cam)
+        assert dt < 2e-3 and math.degrees(dr) < 0.2, (dt * 1e3, math.degrees(dr))
+
+        # The saved session solves again offline, in the link's frame, to the same transform.
+        out = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "celld.cli",
+                "calib",
+                "solve",
+                calibration["dataset"],
+                "--json",
+                "--config",
+                str(tmp_path / "cell.toml"),
+            ],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert out.returncode == 0, out.stderr
+        offline = json.loads(out.stdout)
+        assert offline["mount"] == "link1"
+        np.testing.assert_allclose(np.array(offline["T_link1_cam"]), T_link_cam, atol=1e-9)
+
+        accepted = client.accept(record["id"])
+        schema.check_message("accept-reply", accepted)
+        current = client.calibration()
+        schema.check_message("calibration-reply", {"ok": True, "calibration": current})
+        assert current["T_link1_cam"] == calibration["T_link1_cam"]
+
+        # A scan at the scan pose (the base joint and the boom elsewhere than at the calibration poses),
+        # placed with the joints there: the plan against the part's true root line at the tip's height.
+        _, moved = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": list(cfg.weld.scan_pose)}}, timeout=120)
+        assert moved["state"] == "succeeded", moved["reason"]
+        _, dry = client.submit_and_wait({"kind": "weld", "dry_run": True}, timeout=300)
+        assert dry["state"] == "succeeded", dry["reason"]
+        planned = np.array(json.loads(Path(dry["result"]).read_text())["planned_path"])
+        part = sim_part(world)
+        assert part is not None
+        truth, _ = polyline.resample(part.seam_base + cfg.weld.tip_height * part.T_base_plane[:3, 2], 2e-4)
+        d = polyline.distance(planned, truth)
+        # Without the joints at the scan the boom would be placed where it was at the verification pose,
+        # centimetres off; with them, within the arm's own error over the table (about a millimetre).
+        assert float(np.sqrt(np.mean(d**2))) <= 1.5e-3, (float(np.sqrt(np.mean(d**2))) * 1e3, float(d.max()) * 1e3)
