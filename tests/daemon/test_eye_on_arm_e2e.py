@@ -2,14 +2,16 @@
 and place a scan taken at other joints with it.
 
 The simulated cell of ``configs/sim-cell-eye-on-arm.toml`` (its scanner on a
-boom on link 1, turning with the base joint) in a realistic world: the arm's
-true kinematics, repeatability and encoder noise, the boom's mounting error,
-the scanner's scale and distortion, the flange as made. The daemon's
-calibrate job solves ``T_link1_cam`` from the flange at each capture placed
-in link 1's frame by the joints of that capture; the weld's scan at the scan
-pose (the base joint elsewhere than at any calibration pose) is placed with
-the joints there. Scored against the simulator's truth only at the end. Slow
-(the cell's calibration at half resolution and a dry-run weld, about two minutes).
+boom on link 1, turning with the base joint) in its ideal world, so that
+what is measured is the plumbing: the daemon's calibrate job solves
+``T_link1_cam`` from the flange at each capture placed in link 1's frame by
+the joints of that capture, and the weld's scan at the scan pose (the base
+joint elsewhere than at every calibration pose) is placed with the joints
+there (placed with the verification pose's, it would land 14 mm off). The
+realistic worlds (the arm's kinematic error, the boom's mounting error, the
+scanner's) are benchmark 4 of bench/calib_accuracy.py. Scored against the
+simulator's truth only at the end. Slow (eight poses at half resolution and
+a dry-run weld, about a minute).
 """
 
 from __future__ import annotations
@@ -34,9 +36,13 @@ pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[2]
 WORLD_SEED = 2
-# Where the flange lands when sent to points the scanner saw, mean over the calibration box, m:
-# the issue's target for the cell's scanner (the paper's hardware: 0.28 mm).
+# Where the flange lands when sent to points the scanner saw, mean over the calibration box, m: the
+# cell's target (issue 13; the paper's hardware 0.28 mm). Here only the scanner's noise at half
+# resolution over seven or eight pairs spends it (0.03-0.11 mm in these runs); a pose solved in the
+# wrong frame would miss by centimetres.
 TARGETING_MEAN = 0.25e-3
+# The scan's plan against the true root line, RMS, m: the scanner's noise and the seam fit.
+SCAN_RMS = 0.3e-3
 
 
 def _config(tmp_path: Path, host: str) -> Path:
@@ -51,8 +57,10 @@ state_dir = "{tmp_path / "state"}"
 host = "{host}"
 [bus]
 listen = ["tcp/{host}:7447"]
+[calibration]
+n_poses = 8
 [sim]
-preset = "realistic"
+preset = "ideal"
 seed = {WORLD_SEED}
 [sim.scanner]
 resolution_scale = 0.5
@@ -66,8 +74,7 @@ def test_a_scanner_on_the_arm_is_calibrated_on_its_link_and_places_a_scan_at_oth
         client, cfg, world = cell.client, cell.config, cell.world
         assert cfg.scanner.mount == "link1" and world.scanner.link == 1
 
-        # Every pose of the cell's 20 (no early stop): the realistic arm's error needs the pairs, as on the base.
-        _, record = client.submit_and_wait({"kind": "calibrate", "seed": 1, "e_required_mm": 0.01}, timeout=900)
+        _, record = client.submit_and_wait({"kind": "calibrate", "seed": 1}, timeout=900)
         assert record["state"] == "succeeded", record["reason"]
         result = json.loads(Path(record["result"]).read_text())
         calibration = result["calibration"]
@@ -80,8 +87,8 @@ def test_a_scanner_on_the_arm_is_calibrated_on_its_link_and_places_a_scan_at_oth
         assert quality["verdict"] == "ok", quality["reasons"]
         assert len(quality["pairs"]) >= 6 and all(np.isfinite(quality["translation_std_mm"]))
 
-        # Against the truth: the boom's pose on the link absorbs some of the arm's kinematic error, so the
-        # score is the targeting error, with the scanner where the arm holds it at the verification pose.
+        # Against the truth: where the arm lands when sent to what the scanner saw, with the scanner
+        # where the arm holds it at the verification pose.
         mount = ScannerMount.of("link1", cfg.robot.model)
         session = load_session(calibration["dataset"])
         assert session.mount == mount and session.verification is not None and session.verification.q is not None
@@ -89,7 +96,7 @@ def test_a_scanner_on_the_arm_is_calibrated_on_its_link_and_places_a_scan_at_oth
         aim = targeting(world, mount.T_base_cam(T_link_cam, q_v), cfg, true_camera(world, q_v))
         assert aim["calibration"]["mean_mm"] <= TARGETING_MEAN * 1e3, aim
         dt, dr = se3.error(T_link_cam, world.scanner.T_mount_cam)
-        assert dt < 2e-3 and math.degrees(dr) < 0.2, (dt * 1e3, math.degrees(dr))
+        assert dt < 1e-3 and math.degrees(dr) < 0.1, (dt * 1e3, math.degrees(dr))
 
         # The saved session solves again offline, in the link's frame, to the same transform.
         out = subprocess.run(
@@ -130,6 +137,11 @@ def test_a_scanner_on_the_arm_is_calibrated_on_its_link_and_places_a_scan_at_oth
         assert part is not None
         truth, _ = polyline.resample(part.seam_base + cfg.weld.tip_height * part.T_base_plane[:3, 2], 2e-4)
         d = polyline.distance(planned, truth)
-        # Without the joints at the scan the boom would be placed where it was at the verification pose,
-        # centimetres off; with them, within the arm's own error over the table (about a millimetre).
-        assert float(np.sqrt(np.mean(d**2))) <= 1.5e-3, (float(np.sqrt(np.mean(d**2))) * 1e3, float(d.max()) * 1e3)
+        assert float(np.sqrt(np.mean(d**2))) <= SCAN_RMS, (float(np.sqrt(np.mean(d**2))) * 1e3, float(d.max()) * 1e3)
+        # The joints matter: placed where the boom was at the verification pose, the same scan would be off by
+        # far more than that (14 mm here: the base joint turns 0.03 rad between the two).
+        result = json.loads(Path(dry["result"]).read_text())
+        assert result["calibration_job"] == record["id"]
+        q_scan = np.asarray(cell.robot.truth()[2])  # the arm is still at the scan pose
+        swing = se3.error(mount.T_base_cam(T_link_cam, q_scan), mount.T_base_cam(T_link_cam, q_v))[0]
+        assert swing > 10 * SCAN_RMS, swing
