@@ -98,7 +98,7 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
         _, record = client.submit_and_wait({"kind": "weld"}, timeout=60)
         assert record["state"] == "failed" and "no current calibration" in record["reason"]
 
-        _, cal = client.submit_and_wait({"kind": "calibrate", "seed": 5, "n_poses": 10}, timeout=900)
+        _, cal = client.submit_and_wait({"kind": "calibrate", "seed": 5, "n_poses": 8}, timeout=900)
         assert cal["state"] == "succeeded", (cal["reason"], robot.status())
         accepted = client.accept(cal["id"])
         # The real daemon's replies match their exported schemas.
