@@ -162,6 +162,7 @@ def run_jobs(
         q_v = _verification_joints(cal_result["calibration"]["dataset"]) if placed.mount.on_arm else None
         figures["calibration"] = {
             "job": cal["id"],
+            "transform": f"T_{placed.mount.frame}_cam",
             "translation_error_mm": dt * 1e3,
             "rotation_error_deg": math.degrees(dr),
             "pairs": cal_result["calibration"]["pairs"],
@@ -251,7 +252,7 @@ def summary_lines(figures: dict[str, Any]) -> list[str]:
     return [
         "",
         f"world: preset {figures['world']['preset']}, seed {figures['world']['seed']}",
-        f"calibration: {c['translation_error_mm']:.3f} mm, {c['rotation_error_deg']:.4f} deg from the true T_base_cam ({c['pairs']} pairs, "
+        f"calibration: {c['translation_error_mm']:.3f} mm, {c['rotation_error_deg']:.4f} deg from the true {c['transform']} ({c['pairs']} pairs, "
         f"quality gate {c['verdict']}{', accepted by force' if c['forced'] else ''})",
         f"  targeting (the flange sent to points the scanner saw): mean {tc['mean_mm']:.3f} mm, max {tc['max_mm']:.3f} mm "
         f"in the calibration box; mean {tt['mean_mm']:.3f}, max {tt['max_mm']:.3f} mm over the table",
