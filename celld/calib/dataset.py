@@ -547,15 +547,14 @@ class SessionWriter:
         }
         self.mount = mount
         if mount.on_arm:
-            self._doc |= {"version": VERSION_ON_ARM, "mount": mount.name, "dh": mount.dh._asdict()}
+            self._doc |= {"version": VERSION_ON_ARM, "mount": mount.name, "dh": mount.dh_entry()}
         existing = self.root / POSES_FILE
         if existing.exists():
             if not resume:
                 raise InputError(f"{existing}: a session is already there (resume it, or choose another directory)")
             self._doc = _read_json(existing)
             _check_header(self._doc, existing)
-            got = mount_from(self._doc, str(existing))
-            if got.name != mount.name or (mount.on_arm and got.dh != mount.dh):
+            if mount_from(self._doc, str(existing)) != mount:
                 raise InputError(f"{existing}: the session's scanner mount is not this writer's ({mount.name})")
             self._doc["version"] = VERSION_ON_ARM if mount.on_arm else VERSION
         self._flange: FlangeModel | None

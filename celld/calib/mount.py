@@ -63,8 +63,18 @@ class ScannerMount:
 
     @classmethod
     def of(cls, name: str, robot_model: str) -> ScannerMount:
-        """The mount ``name`` on the robot model ``robot_model`` (a key of :data:`celld.robot.kinematics.MODELS`)."""
-        return cls(name, kin.model(robot_model).dh)
+        """The mount ``name`` on the robot model ``robot_model`` (a key of :data:`celld.robot.kinematics.MODELS`).
+
+        A scanner on the base does not move with the joints: its mount is
+        the one base mount, whatever the robot, so that mounts compare by
+        what they mean.
+        """
+        kin.model(robot_model)  # a model this project knows, on the base too
+        return cls() if name == "base" else cls(name, kin.model(robot_model).dh)
+
+    def dh_entry(self) -> dict[str, list[float]]:
+        """The DH table as stored beside a scanner on the arm (read back by :func:`mount_from`)."""
+        return {k: [float(x) for x in v] for k, v in self.dh._asdict().items()}
 
     @property
     def link(self) -> int:
@@ -125,7 +135,7 @@ def mount_entry(mount: ScannerMount, T_ref_cam: ArrayLike) -> dict[str, Any]:
     T = check_transform(T_ref_cam, "T_ref_cam").tolist()
     if not mount.on_arm:
         return {_key("base"): T}
-    return {"mount": mount.name, "dh": {k: list(v) for k, v in mount.dh._asdict().items()}, _key(mount.frame): T}
+    return {"mount": mount.name, "dh": mount.dh_entry(), _key(mount.frame): T}
 
 
 @dataclass(frozen=True)

@@ -240,8 +240,7 @@ class SimScanner:
         base = scanner_model(model) if isinstance(model, str) else model
         self.model = base.scaled(resolution_scale)
         self._measure = measure
-        self.T_base_cam = se3.check_transform(T_base_cam, "T_base_cam")
-        self._T_cam_base = se3.invert(self.T_base_cam)
+        self.move_to(T_base_cam)
         self._rng = np.random.default_rng(seed)
         self._clock = clock
         m = self.model

@@ -25,12 +25,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from celld import polyline, se3
+from celld import se3
 from celld.bus import schema
 from celld.calib.dataset import load_session
 from celld.calib.mount import ScannerMount
-from celld.sim.cell import run_cell, sim_part
+from celld.sim.cell import run_cell
 from celld.sim.score import targeting, true_camera
+from tests.daemon.scans import planned_from_the_scan_pose, rms_mm
 
 pytestmark = pytest.mark.slow
 
@@ -128,20 +129,11 @@ def test_a_scanner_on_the_arm_is_calibrated_on_its_link_and_places_a_scan_at_oth
 
         # A scan at the scan pose (the base joint and the boom elsewhere than at the calibration poses),
         # placed with the joints there: the plan against the part's true root line at the tip's height.
-        _, moved = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": list(cfg.weld.scan_pose)}}, timeout=120)
-        assert moved["state"] == "succeeded", moved["reason"]
-        _, dry = client.submit_and_wait({"kind": "weld", "dry_run": True}, timeout=300)
-        assert dry["state"] == "succeeded", dry["reason"]
-        planned = np.array(json.loads(Path(dry["result"]).read_text())["planned_path"])
-        part = sim_part(world)
-        assert part is not None
-        truth, _ = polyline.resample(part.seam_base + cfg.weld.tip_height * part.T_base_plane[:3, 2], 2e-4)
-        d = polyline.distance(planned, truth)
-        assert float(np.sqrt(np.mean(d**2))) <= SCAN_RMS, (float(np.sqrt(np.mean(d**2))) * 1e3, float(d.max()) * 1e3)
+        result, d = planned_from_the_scan_pose(client, cfg, world)
+        assert float(np.sqrt(np.mean(d**2))) <= SCAN_RMS, rms_mm(d)
+        assert result["calibration_job"] == record["id"]
         # The joints matter: placed where the boom was at the verification pose, the same scan would be off by
         # far more than that (14 mm here: the base joint turns 0.03 rad between the two).
-        result = json.loads(Path(dry["result"]).read_text())
-        assert result["calibration_job"] == record["id"]
         q_scan = np.asarray(cell.robot.truth()[2])  # the arm is still at the scan pose
         swing = se3.error(mount.T_base_cam(T_link_cam, q_scan), mount.T_base_cam(T_link_cam, q_v))[0]
         assert swing > 10 * SCAN_RMS, swing
