@@ -59,6 +59,33 @@ class Backoff:
 HEARTBEAT_DTYPE = np.dtype([("t_ns", np.int64), ("pid", np.int64)])
 # PR_SET_PDEATHSIG of prctl(2): the signal a child gets when its parent ends.
 _PR_SET_PDEATHSIG = 1
+# PF_EXITING of the kernel's task flags (include/linux/sched.h): set as a thread starts to exit.
+_PF_EXITING = 0x4
+# SIGKILL in the pending-signals bitmap of /proc/<pid>/stat.
+_SIGKILL_BIT = 1 << (signal.SIGKILL - 1)
+
+
+def exiting(stat: bytes) -> str:
+    """Why the process of a ``/proc/<pid>/stat`` line is on its way out, or "" (proc(5)).
+
+    A process killed with SIGKILL has the signal pending in its main thread
+    at once, then the kernel's PF_EXITING flag while it frees its memory and
+    closes its files, then it is a zombie. Only then does the kernel
+    re-parent its children and send them the parent-death signal: for a
+    large daemon that can take a tenth of a second or more, where a stop is
+    due at once. The fields read: 3 (state), 9 (flags), 31 (pending
+    signals). Raises ValueError on a line that is not one.
+    """
+    # The command name (field 2) may hold spaces and parentheses: split after its closing one.
+    fields = stat[stat.rindex(b")") + 2 :].split()
+    state, flags, pending = fields[0], int(fields[6]), int(fields[28])
+    if state in (b"Z", b"X"):
+        return "the daemon has exited"
+    if flags & _PF_EXITING:
+        return "the daemon is exiting"
+    if pending & _SIGKILL_BIT:
+        return "the daemon is being killed (SIGKILL)"
+    return ""
 
 
 class Heartbeat:
@@ -90,6 +117,8 @@ class ParentWatch:
 
     The daemon is gone when
 
+    - it is being killed or exits: its ``/proc/<pid>/stat`` says so
+      (:func:`exiting`), long before its children are re-parented;
     - this process was re-parented (the daemon died: ``getppid()`` changed);
     - a signal said so: the parent-death signal (``prctl(PR_SET_PDEATHSIG)``,
       delivered when the daemon's thread that started this process ends),
@@ -97,9 +126,11 @@ class ParentWatch:
     - its heartbeat (:class:`Heartbeat`) is older than ``timeout_ns``: the
       daemon hangs.
 
-    :meth:`check` is cheap (a system call and a seqlock read) and never
-    raises; a real-time loop may call it every few cycles. The signal
-    handlers only set a flag. Build it in the child, in its main thread.
+    :meth:`check` is cheap (three system calls and a seqlock read) and
+    never raises; a real-time loop may call it every few cycles. The signal
+    handlers only set a flag. Build it in the child, in its main thread,
+    while the daemon is there (its ``/proc`` entry is opened then, so a
+    recycled pid cannot stand in for it).
     """
 
     def __init__(self, parent_pid: int, heartbeat: str = "", timeout_ns: int = 3_000_000_000, signals: bool = True) -> None:
@@ -108,6 +139,10 @@ class ParentWatch:
         self._slot = SeqlockSlot.attach(heartbeat, HEARTBEAT_DTYPE) if heartbeat else None
         self._rec = np.zeros(1, HEARTBEAT_DTYPE)
         self._signalled = ""
+        try:
+            self._stat: int | None = os.open(f"/proc/{parent_pid}/stat", os.O_RDONLY | os.O_CLOEXEC)
+        except OSError:
+            self._stat = None  # no such process (or no /proc): getppid() below says it is gone
         if signals:
             for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGUSR1):
                 signal.signal(sig, self._on_signal)
@@ -121,6 +156,13 @@ class ParentWatch:
         """Why the daemon counts as gone, or "" while it is there."""
         if self._signalled:
             return self._signalled
+        if self._stat is not None:
+            try:
+                why = exiting(os.pread(self._stat, 1024, 0))
+            except (OSError, ValueError, IndexError):  # reaped: ESRCH; getppid() below says so
+                why = ""
+            if why:
+                return why
         if os.getppid() != self.parent_pid:
             return f"the daemon (pid {self.parent_pid}) is gone"
         if self._slot is not None and self._slot.read_into(self._rec):
@@ -133,6 +175,9 @@ class ParentWatch:
         if self._slot is not None:
             self._slot.close()
             self._slot = None
+        if self._stat is not None:
+            os.close(self._stat)
+            self._stat = None
 
 
 # -- the children of a daemon that was killed ----------------------------------------

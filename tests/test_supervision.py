@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from celld.shm import SeqlockSlot
-from celld.supervision import HEARTBEAT_DTYPE, Backoff, ChildRecords, Heartbeat, ParentWatch
+from celld.supervision import HEARTBEAT_DTYPE, Backoff, ChildRecords, Heartbeat, ParentWatch, exiting
 
 
 def test_backoff_grows_to_its_last_delay_and_a_stable_run_resets_it() -> None:
@@ -45,6 +45,39 @@ def test_another_parent_or_a_signal_means_the_daemon_is_gone() -> None:
     watch = ParentWatch(os.getppid(), signals=False)
     watch._on_signal(signal.SIGTERM, None)
     assert watch.check() == "SIGTERM received"
+
+
+def _with_fields(stat: bytes, **fields: bytes) -> bytes:
+    """A /proc/<pid>/stat line with some fields (numbered as in proc(5)) replaced."""
+    head, tail = stat[: stat.rindex(b")") + 1], stat[stat.rindex(b")") + 2 :].split()
+    for name, value in fields.items():
+        tail[int(name[1:]) - 3] = value
+    return head + b" " + b" ".join(tail) + b"\n"
+
+
+def test_the_parents_proc_entry_says_when_it_is_killed_exiting_or_a_zombie() -> None:
+    # A command name with spaces and parentheses, as a process may set it.
+    alive = Path("/proc/self/stat").read_bytes().replace(b"(python", b"(py (thon) x", 1)
+    assert exiting(alive) == ""
+    assert "SIGKILL" in exiting(_with_fields(alive, f31=b"256"))  # bit 8: signal 9 pending
+    assert exiting(_with_fields(alive, f31=b"2")) == ""  # SIGINT pending is no death
+    assert exiting(_with_fields(alive, f9=str(0x400000 | 0x4).encode())) == "the daemon is exiting"
+    assert exiting(_with_fields(alive, f9=b"4194560")) == ""  # PF_EXITING clear
+    assert exiting(_with_fields(alive, f3=b"Z")) == "the daemon has exited"
+    with pytest.raises(ValueError):
+        exiting(b"not a stat line")
+
+    # A real zombie (exited, not yet reaped) is seen as one, before anything is re-parented.
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    try:
+        watch = ParentWatch(child.pid, signals=False)
+        deadline = time.monotonic() + 10
+        while watch.check() != "the daemon has exited":
+            assert time.monotonic() < deadline, watch.check()
+            time.sleep(0.01)
+        watch.close()
+    finally:
+        child.wait(10)
 
 
 def _orphan(parent_ready, result, heartbeat: str) -> None:  # type: ignore[no-untyped-def]

@@ -107,6 +107,7 @@ class MotionLoop:
         self.port = port
         self.parent = parent
         self.orphaned = ""  # why the loop took its daemon for gone, "" while it is there
+        self.orphaned_ns = 0  # when it did (the cycle's wake-up, monotonic ns), 0 while it is there
         self.core = core
         self.ch = channels
         self.params = params
@@ -293,6 +294,8 @@ class MotionLoop:
         shutdown = False
         if self.parent is not None and not self.orphaned and self.cycles % _PARENT_CHECK_CYCLES == 0:
             self.orphaned = self.parent.check(t_wake)
+            if self.orphaned:
+                self.orphaned_ns = t_wake
         if ch.control.read_into(self._ctl):
             epoch = int(self._ctl["stop_epoch"][0])
             if epoch != self._stop_epoch:

@@ -145,7 +145,14 @@ def run(spec: MotionSpec) -> LoopExit:
             gc.enable()
         # Say why at once: closing the link below can take a while.
         _report(ch, Phase.EXITED, rt, end.status, end.reason)
-        log.info("motion loop ended", status=end.status.name, reason=end.reason, cycles=loop.cycles, overruns=loop.overruns)
+        log.info(
+            "motion loop ended",
+            status=end.status.name,
+            reason=end.reason,
+            cycles=loop.cycles,
+            overruns=loop.overruns,
+            orphaned_ns=loop.orphaned_ns,  # monotonic: when the loop took its daemon for gone (0: it did not)
+        )
         return end
     finally:
         if loop is not None and not loop.release_output():

@@ -48,3 +48,10 @@ def after_kill(robot, t_kill_ns: int, arc_output: int, window: float = 1.5) -> A
     on_after = np.flatnonzero(after & (arc == 1))
     arc_off = 0.0 if not len(on_after) else (float(t[on_after[-1] + 1]) if on_after[-1] + 1 < len(t) else float("inf"))
     return AfterKill(moving_at_kill, at_rest, arc_off)
+
+
+def motion_exits(log_path) -> list[str]:  # type: ignore[no-untyped-def]
+    """The daemon log's "motion loop ended" lines (why and when each motion process saw its daemon go)."""
+    with open(log_path, "rb") as f:
+        text = f.read().decode(errors="replace")
+    return [line for line in text.splitlines() if "motion loop ended" in line]

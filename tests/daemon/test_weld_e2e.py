@@ -30,7 +30,7 @@ from celld.recording import layout
 from celld.recording.readback import read_entities, read_scalars
 from celld.sim.cell import run_cell, sim_part, start_daemon, stop_daemon
 from celld.sim.score import TruthRecorder, lateral, open_loop_torch, targeting, true_torch_path
-from tests.daemon.orphans import after_kill
+from tests.daemon.orphans import after_kill, motion_exits
 
 pytestmark = pytest.mark.slow
 
@@ -194,8 +194,9 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
         cell.daemon.wait(10)
         seen = after_kill(robot, t_kill, arc_output=ARC)
         assert seen.moving_at_kill > 0.002, seen  # tracking at V_const (10 mm/s)
-        assert seen.arc_off_s < 0.1, seen
-        assert seen.at_rest_s < 0.5, seen
+        # The motion process looks for its daemon every 10 ms (its /proc entry shows the kill at once).
+        assert seen.arc_off_s < 0.05, (seen, motion_exits(tmp_path / "daemon.log"))
+        assert seen.at_rest_s < 0.5, (seen, motion_exits(tmp_path / "daemon.log"))
         journal = Journal(Path(cfg.cell.state_dir) / "journal.db")  # the killed daemon held it
         assert journal.get(job).state == "cancelled"
         assert journal.check() == []
