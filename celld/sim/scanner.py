@@ -341,8 +341,10 @@ class SimScanner:
         """Structured light: points the projector lights, at an angle it can be decoded."""
         origin = np.array([self.model.baseline, 0.0, 0.0], dtype=np.float32)
         to_point = P - origin
-        rays = o3d.core.Tensor(np.hstack([np.broadcast_to(origin, P.shape), to_point]).astype(np.float32))
-        shadowed = scene.test_occlusions(rays, tnear=0.0, tfar=1.0 - _SHADOW_EPS).numpy().astype(bool)
+        rays = np.empty((len(P), 6), dtype=np.float32)
+        rays[:, :3] = origin
+        rays[:, 3:] = to_point
+        shadowed = scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0 - _SHADOW_EPS).numpy().astype(bool)
         cos_proj = np.abs(np.einsum("ij,ij->i", N, to_point)) / np.linalg.norm(to_point, axis=1)
         return ~shadowed & self._incidence_keep(cos_proj)
 

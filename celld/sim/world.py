@@ -415,11 +415,19 @@ class DepthField:
     z_half: float
 
     def basis(self, P: Array) -> Array:
+        """The (n, 9) basis at points (n, 3), filled in place (a capture has millions of points)."""
         z = P[:, 2]
-        u = P[:, 0] / z / self.u_half
-        v = P[:, 1] / z / self.v_half
-        w = (z - self.z_mid) / self.z_half
-        return np.stack([u, v, w, u * u, v * v, w * w, u * v, u * w, v * w], axis=1)
+        B = np.empty((len(P), 9), dtype=np.float64)
+        u, v, w = B[:, 0], B[:, 1], B[:, 2]
+        np.divide(P[:, 0], z, out=u)
+        u /= self.u_half
+        np.divide(P[:, 1], z, out=v)
+        v /= self.v_half
+        np.subtract(z, self.z_mid, out=w)
+        w /= self.z_half
+        for k, (a, b) in enumerate(((u, u), (v, v), (w, w), (u, v), (u, w), (v, w)), start=3):
+            np.multiply(a, b, out=B[:, k])
+        return B
 
     def displacement(self, P_cam: Array) -> Array:
         """The field's displacement (n, 3) at points (n, 3), m."""
@@ -464,7 +472,7 @@ class ScannerTruth:
         P = np.asarray(P_cam, dtype=np.float64)
         out = P * (1.0 + self.depth_scale)
         if self.field is not None:
-            out = out + self.field.displacement(P)
+            out += self.field.displacement(P)
         return out
 
     @property
