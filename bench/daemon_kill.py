@@ -1,4 +1,4 @@
-"""``kill -9`` mid-weld, the arc on, of the daemon, its camera process or its motion process.
+"""``kill -9`` mid-weld, the arc on, of the daemon, its camera process or its motion process; a hung daemon.
 
 bench/safety.py kills a small stand-in that owns the motion process; this
 kills the processes of ``celld sim run`` itself, tracking a seam by touch at
@@ -6,7 +6,7 @@ kills the processes of ``celld sim run`` itself, tracking a seam by touch at
 world (half-resolution scans): it is calibrated once, then each trial
 
 1. submits a weld and waits for the arc;
-2. sends SIGKILL to the target, noting the time;
+2. sends SIGKILL (SIGSTOP for ``hang``) to the target, noting the time;
 3. reads the simulator's record of the true arm and outputs: when the arc
    output went low and when the TCP came to rest (below 0.1 mm/s);
 4. goes on: after the daemon's death a new daemon is started (the motion
@@ -29,6 +29,10 @@ Targets:
 - ``motion``: nothing of celld's can act; the robot's RTDE watchdog stops
   the program within one period (``motion.rtde_watchdog_hz``), the outputs
   low with it.
+- ``hang``: the daemon stopped (SIGSTOP) rather than killed. Its children
+  take it for hung once its heartbeat is ``motion.parent_timeout`` (3 s)
+  old, and stop as for its death; meanwhile the servo goes on tracking in
+  the motion process. The bench then kills it, as systemd's watchdog would.
 
 ``--trials N`` per target (default 10; about 45 s each after a 2-minute
 calibration); ``--targets`` a subset. ``--quick``: one trial per target
@@ -89,14 +93,14 @@ resolution_scale = 0.5
     return path
 
 
-def _after_kill(robot: Any, t_kill_ns: int) -> dict[str, float]:
+def _after_kill(robot: Any, t_kill_ns: int, window: float = WINDOW) -> dict[str, float]:
     """From the simulator's truth: the TCP speed at the kill, when the arc went off, and when the arm stopped.
 
     "Stopped" is the first time after the kill from which the TCP stays below
     REST_SPEED for REST_HOLD s: after a child's death the weld job then
     retracts the tool on purpose (a checked move), which is not part of the stop.
     """
-    time.sleep(max(0.0, WINDOW - (time.monotonic_ns() - t_kill_ns) * 1e-9))
+    time.sleep(max(0.0, window - (time.monotonic_ns() - t_kill_ns) * 1e-9))
     h = robot.truth_history()
     t = (h["stamp_ns"].astype(np.int64) - t_kill_ns) * 1e-9
     p = h["T_base_tcp"][:, :3, 3]
@@ -113,7 +117,7 @@ def _after_kill(robot: Any, t_kill_ns: int) -> dict[str, float]:
     on = np.flatnonzero((t >= 0.0) & (arc == 1))
     arc_off = 0.0 if not len(on) else (float(t[on[-1] + 1]) if on[-1] + 1 < len(t) else float("inf"))
     return {
-        "speed_at_kill_mm_s": float(np.median(v[max(i0 - 5, 1) : i0 + 1])) * 1e3,
+        "speed_at_kill_mm_s": float(np.median(v[max(i0 - 5, 1) : i0 + 1])) * 1e3 if i0 > 0 else float("nan"),
         "rest_s": rest,
         "arc_off_s": arc_off,
         "travel_mm": float(np.linalg.norm(p[i_rest] - p[i0])) * 1e3,
@@ -125,13 +129,13 @@ def _seen_by_motion(log_text: str, t_kill_ns: int) -> tuple[float, str]:
     for line in log_text.splitlines():
         if "motion loop ended" in line:
             at = re.search(r"orphaned_ns=(\d+)", line)
-            why = re.search(r"reason='([^':]*)", line)
+            why = re.search(r"""reason=(?:'([^':]*)|"([^":]*))""", line)
             if at and int(at.group(1)):
-                return (int(at.group(1)) - t_kill_ns) * 1e-9, why.group(1) if why else "?"
+                return (int(at.group(1)) - t_kill_ns) * 1e-9, (why.group(1) or why.group(2)) if why else "?"
     return float("nan"), "no exit line"
 
 
-TARGETS = ("daemon", "tactile", "motion")
+TARGETS = ("daemon", "tactile", "motion", "hang")
 
 
 def _weld_until_the_arc(client: Any, robot: Any, ref: str) -> str:
@@ -165,12 +169,16 @@ def bounds(cfg: Any) -> dict[str, tuple[float, float]]:
       ``motion.tactile_stale``, at most a frame period after the last one; the
       arc goes off within 0.1 s of that stop beginning;
     - the motion process: only the robot can act, when its RTDE watchdog
-      (``motion.rtde_watchdog_hz``) stops the program: within one period.
+      (``motion.rtde_watchdog_hz``) stops the program: within one period;
+    - a hung daemon (SIGSTOP): its children take it for hung when its
+      heartbeat is ``motion.parent_timeout`` old, then as for its death.
     """
     stop_begins = cfg.motion.tactile_stale + 1.0 / cfg.tactile.fps
     watchdog = 1.0 / cfg.motion.rtde_watchdog_hz
+    hung = cfg.motion.parent_timeout
     return {
         "daemon": (TARGET_ARC_OFF_S, TARGET_REST_S),
+        "hang": (hung + TARGET_ARC_OFF_S, hung + TARGET_REST_S),
         "tactile": (stop_begins + TARGET_ARC_OFF_S, stop_begins + TARGET_REST_S),
         "motion": (watchdog + 0.01, watchdog + TARGET_REST_S),
     }
@@ -218,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
                     for i in range(trials):
                         job = _weld_until_the_arc(client, robot, f"kill {target} {i}")
                         row: dict[str, Any] = {}
-                        if target == "daemon":
+                        if target in ("daemon", "hang"):
                             status = Path(f"/proc/{proc.pid}/status").read_text()
                             row["rss_gb"] = int(re.search(r"VmRSS:\s+(\d+)", status).group(1)) / 1e6  # type: ignore[union-attr]
                             row["threads"] = int(re.search(r"Threads:\s+(\d+)", status).group(1))  # type: ignore[union-attr]
@@ -227,14 +235,20 @@ def main(argv: list[str] | None = None) -> int:
                             pid = int(json.loads((run_dir / f"{target}.json").read_text())["pid"])
                         log_from = log_path.stat().st_size
                         t_kill = time.monotonic_ns()
-                        os.kill(pid, signal.SIGKILL)
+                        os.kill(pid, signal.SIGSTOP if target == "hang" else signal.SIGKILL)
                         if target == "daemon":
                             proc.wait(10)
                             row["reaped_s"] = (time.monotonic_ns() - t_kill) * 1e-9
-                        row.update(_after_kill(robot, t_kill))
-                        if target == "daemon":
+                        # A hang is seen after parent_timeout: read the simulator's last 2 s past it.
+                        row.update(_after_kill(robot, t_kill, cfg.motion.parent_timeout + WINDOW if target == "hang" else WINDOW))
+                        if target == "hang":
+                            del row["travel_mm"]  # the window starts after the kill: the weld went on meanwhile
+                        if target in ("daemon", "hang"):
                             time.sleep(1.0)  # the motion process has logged its end
                             row["seen_s"], row["why"] = _seen_by_motion(log_path.read_bytes()[log_from:].decode(errors="replace"), t_kill)
+                            if target == "hang":  # the hung daemon is ended for good, as systemd's watchdog would
+                                proc.kill()
+                                proc.wait(10)
                             client.close()
                             with open(log_path, "ab") as log:
                                 daemon = start_daemon(cfg_path, log, timeout=120)
@@ -250,9 +264,10 @@ def main(argv: list[str] | None = None) -> int:
                         rows[target].append(row)
                         seen = f"{row['seen_s'] * 1e3:8.1f}" if "seen_s" in row else f"{'-':>8}"
                         reaped = f"{row['reaped_s'] * 1e3:9.1f}" if "reaped_s" in row else f"{'-':>9}"
+                        travel = f"{row['travel_mm']:9.2f}" if "travel_mm" in row else f"{'-':>9}"
                         print(
                             f"{target:<8} {i + 1:>5} {row['arc_off_s'] * 1e3:>10.1f} {row['rest_s'] * 1e3:>10.1f} "
-                            f"{row['travel_mm']:>9.2f} {seen} {reaped}  {row['why']}",
+                            f"{travel} {seen} {reaped}  {row['why']}",
                             flush=True,
                         )
                         target_pose = {"space": "cartesian", "pose": list(cfg.weld.scan_pose)}
