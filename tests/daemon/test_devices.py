@@ -9,7 +9,7 @@ import pytest
 
 from celld.config import Config
 from celld.daemon import devices as devices_mod
-from celld.daemon.devices import CellDevices
+from celld.daemon.devices import STALE_RETRIES, CellDevices
 from celld.errors import DeviceError, LinkLost, StaleState
 from celld.supervision import Backoff
 
@@ -99,7 +99,7 @@ class FakePlanner:
         self.checked += 1
 
 
-def test_a_move_stopped_on_a_stale_state_is_checked_and_posted_again_once() -> None:
+def test_a_move_stopped_on_a_stale_state_is_checked_and_posted_again_a_few_times() -> None:
     async def scenario() -> None:
         dev = CellDevices(Config())
         dev.planner = FakePlanner()
@@ -107,11 +107,15 @@ def test_a_move_stopped_on_a_stale_state_is_checked_and_posted_again_once() -> N
         dev.motion = FakeMotion(stale=1)
         await dev.move_to(np.eye(4))
         assert len(dev.motion.posted) == 2 and dev.motion.waits == ["idle", "ready"] and dev.planner.checked == 2
-        # Stale twice: the job gets the error.
-        dev.motion = FakeMotion(stale=2)
+        # Stale as often as it is retried: the last post arrives.
+        dev.motion = FakeMotion(stale=STALE_RETRIES)
+        await dev.move_to(np.eye(4))
+        assert len(dev.motion.posted) == STALE_RETRIES + 1
+        # Stale once more than that: the job gets the error, after the last retry.
+        dev.motion = FakeMotion(stale=STALE_RETRIES + 1)
         with pytest.raises(StaleState, match="cycles old"):
             await dev.move_to(np.eye(4))
-        assert len(dev.motion.posted) == 2
+        assert len(dev.motion.posted) == STALE_RETRIES + 1
         # State that does not come back fresh: no second post.
         dev.motion = FakeMotion(stale=1, ready=False)
         with pytest.raises(StaleState):
