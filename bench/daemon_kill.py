@@ -55,17 +55,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from celld.sim.cell import run_cell, start_daemon, stop_daemon  # noqa: E402
+from celld.sim.score import after_fault  # noqa: E402
 
 HOST = "127.0.0.7"
 ARC = 0  # the arc's digital output in configs/sim-cell.toml
-REST_SPEED = 1e-4  # m/s
-REST_HOLD = 0.05  # s the TCP must stay below REST_SPEED to count as stopped
 WINDOW = 1.5  # s of the simulator's truth read after each kill
 TARGET_ARC_OFF_S = 0.1
 TARGET_REST_S = 0.5
@@ -94,33 +91,14 @@ resolution_scale = 0.5
 
 
 def _after_kill(robot: Any, t_kill_ns: int, window: float = WINDOW) -> dict[str, float]:
-    """From the simulator's truth: the TCP speed at the kill, when the arc went off, and when the arm stopped.
-
-    "Stopped" is the first time after the kill from which the TCP stays below
-    REST_SPEED for REST_HOLD s: after a child's death the weld job then
-    retracts the tool on purpose (a checked move), which is not part of the stop.
-    """
+    """The simulator's truth ``window`` s after the kill (celld.sim.score.after_fault)."""
     time.sleep(max(0.0, window - (time.monotonic_ns() - t_kill_ns) * 1e-9))
-    h = robot.truth_history()
-    t = (h["stamp_ns"].astype(np.int64) - t_kill_ns) * 1e-9
-    p = h["T_base_tcp"][:, :3, 3]
-    v = np.r_[0.0, np.linalg.norm(np.diff(p, axis=0), axis=1) / np.maximum(np.diff(t), 1e-9)]
-    i0 = int(np.argmax(t >= 0.0))
-    still = v <= REST_SPEED
-    rest, i_rest = float("inf"), len(t) - 1
-    for i in range(i0, len(t)):
-        j = int(np.searchsorted(t, t[i] + REST_HOLD))
-        if j < len(t) and still[i:j].all():
-            rest, i_rest = max(float(t[i]), 0.0), i
-            break
-    arc = (h["digital_out"].astype(np.int64) >> ARC) & 1
-    on = np.flatnonzero((t >= 0.0) & (arc == 1))
-    arc_off = 0.0 if not len(on) else (float(t[on[-1] + 1]) if on[-1] + 1 < len(t) else float("inf"))
+    seen = after_fault(robot.truth_history(), t_kill_ns, ARC)
     return {
-        "speed_at_kill_mm_s": float(np.median(v[max(i0 - 5, 1) : i0 + 1])) * 1e3 if i0 > 0 else float("nan"),
-        "rest_s": rest,
-        "arc_off_s": arc_off,
-        "travel_mm": float(np.linalg.norm(p[i_rest] - p[i0])) * 1e3,
+        "speed_at_kill_mm_s": seen.speed_at_fault * 1e3,
+        "rest_s": seen.stopped_s,
+        "arc_off_s": seen.arc_off_s,
+        "travel_mm": seen.travel * 1e3,
     }
 
 

@@ -16,6 +16,8 @@ is read afterwards); the daemon never sees the world.
   went during a weld (the true flange x the true torch point).
 - :func:`lateral`: a path's lateral distance from the part's true seam in the
   welding plane (RMS and max, mm; :func:`celld.seam.figures.lateral_error`).
+- :func:`after_fault`: what the true arm and the arc output did after a fault
+  (a process killed): the arc off, the arm stopped, how far it went.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import itertools
 import math
 import threading
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -231,3 +233,43 @@ def true_torch_path(world: World, records: np.ndarray, arc_output: int) -> Array
 def lateral(part: Any, P_base: ArrayLike) -> dict[str, float]:
     """Lateral distance (RMS, max mm) of a path from the part's true seam in its welding plane."""
     return lateral_error(np.asarray(P_base, dtype=np.float64), part.seam_base, part.T_base_plane)
+
+
+# A TCP slower than this counts as at rest, m/s.
+REST_SPEED = 1e-4
+# ... and it must stay so this long, s, for the arm to count as stopped.
+REST_HOLD = 0.05
+
+
+class AfterFault(NamedTuple):
+    """The true arm and arc after a fault, from the simulator's truth history (times from the fault, s)."""
+
+    speed_at_fault: float  # TCP speed just before the fault, m/s (nan: the history starts after it)
+    stopped_s: float  # the first time from which the TCP stays at rest REST_HOLD s (inf: not in the history)
+    travel: float  # TCP distance from the fault (or the history's start) to where it stopped, m
+    arc_off_s: float  # the arc output off for good (0: it was off already; inf: still on at the history's end)
+
+
+def after_fault(history: np.ndarray, t_fault_ns: int, arc_output: int) -> AfterFault:
+    """Read a truth history (the simulated robot's ``truth_history()``, :data:`TRUTH_DTYPE`) after ``t_fault_ns``.
+
+    "Stopped" is the first lasting rest: a job may move the arm again on
+    purpose later (a weld retracts after a failed track), which is no part of
+    the stop.
+    """
+    t = (history["stamp_ns"].astype(np.int64) - t_fault_ns) * 1e-9
+    p = history["T_base_tcp"][:, :3, 3]
+    v = np.r_[0.0, np.linalg.norm(np.diff(p, axis=0), axis=1) / np.maximum(np.diff(t), 1e-9)]
+    i0 = int(np.argmax(t >= 0.0))
+    still = v <= REST_SPEED
+    stopped, i_stop = math.inf, len(t) - 1
+    for i in range(i0, len(t)):
+        j = int(np.searchsorted(t, t[i] + REST_HOLD))
+        if j < len(t) and still[i:j].all():
+            stopped, i_stop = max(float(t[i]), 0.0), i
+            break
+    arc = (history["digital_out"].astype(np.int64) >> arc_output) & 1
+    on = np.flatnonzero((t >= 0.0) & (arc == 1))
+    arc_off = 0.0 if not len(on) else (float(t[on[-1] + 1]) if on[-1] + 1 < len(t) else math.inf)
+    speed = float(np.median(v[max(i0 - 5, 1) : i0 + 1])) if i0 > 0 else math.nan
+    return AfterFault(speed, stopped, float(np.linalg.norm(p[i_stop] - p[i0])), arc_off)

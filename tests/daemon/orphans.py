@@ -7,13 +7,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-# A TCP slower than this counts as at rest, m/s.
-REST_SPEED = 1e-4
+from celld.sim.score import after_fault
 
 
 class AfterKill(NamedTuple):
     moving_at_kill: float  # TCP speed when the daemon died, m/s
-    at_rest_s: float  # from the kill until the TCP stays at rest, s (inf: never within the window)
+    at_rest_s: float  # from the kill until the TCP stopped for good, s (inf: never within the window)
     arc_off_s: float  # from the kill until the arc output is off, s (0: it was off already; inf: never)
 
 
@@ -35,19 +34,8 @@ def wait_moving(robot, min_speed: float = 0.005, timeout: float = 60.0) -> None:
 def after_kill(robot, t_kill_ns: int, arc_output: int, window: float = 1.5) -> AfterKill:  # type: ignore[no-untyped-def]
     """Read the truth of the ``window`` s after the kill (within the simulator's ~2 s history)."""
     time.sleep(max(0.0, window - (time.monotonic_ns() - t_kill_ns) * 1e-9))
-    h = robot.truth_history()
-    t = (h["stamp_ns"].astype(np.int64) - t_kill_ns) * 1e-9
-    p = h["T_base_tcp"][:, :3, 3]
-    v = np.r_[0.0, np.linalg.norm(np.diff(p, axis=0), axis=1) / np.maximum(np.diff(t), 1e-9)]
-    after = t >= 0.0
-    i0 = int(np.argmax(after))
-    moving_at_kill = float(np.median(v[max(i0 - 5, 1) : i0 + 1]))
-    moving = np.flatnonzero(after & (v > REST_SPEED))
-    at_rest = float(t[moving[-1] + 1]) if len(moving) and moving[-1] + 1 < len(t) else (0.0 if not len(moving) else float("inf"))
-    arc = (h["digital_out"].astype(np.int64) >> arc_output) & 1
-    on_after = np.flatnonzero(after & (arc == 1))
-    arc_off = 0.0 if not len(on_after) else (float(t[on_after[-1] + 1]) if on_after[-1] + 1 < len(t) else float("inf"))
-    return AfterKill(moving_at_kill, at_rest, arc_off)
+    seen = after_fault(robot.truth_history(), t_kill_ns, arc_output)
+    return AfterKill(seen.speed_at_fault, seen.stopped_s, seen.arc_off_s)
 
 
 def motion_exits(log_path) -> list[str]:  # type: ignore[no-untyped-def]
