@@ -20,10 +20,20 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(0)
 
 
-@pytest.fixture
-def loopback_host() -> str:
+def _next_host() -> str:
     n = next(_hosts)
     return f"127.0.{n // 250}.{n % 250 + 2}"
+
+
+@pytest.fixture
+def loopback_host() -> str:
+    return _next_host()
+
+
+@pytest.fixture
+def loopback_host2() -> str:
+    """A second address of this test's own, for a second simulated robot."""
+    return _next_host()
 
 
 @pytest.fixture

@@ -222,3 +222,39 @@ def test_a_jobs_servo_overrides_are_held_to_the_configs_rules() -> None:
     with pytest.raises(ConfigError, match=r"at most motion.max_linear_speed \(250 mm/s\)") as info:
         config.with_overrides(cfg.servo, cfg.tactile, cfg.tool, "weld job", cfg.motion.max_linear_speed, v_const=0.3)
     assert info.value.key == "servo.v_const_mm_s"
+
+
+ROBOT2 = {"host": "127.0.0.3", "base_pose": [1.25, 0.0, 0.0, 0.0, 0.0, math.pi], "home_q": [1.6, -1.1, 2.3, -2.8, 1.57, 0.0]}
+
+
+def test_a_second_robot_is_read_with_its_own_link_and_checked() -> None:
+    assert config.parse({}).robot2 is None
+    r2 = config.parse({"robot2": ROBOT2}).robot2
+    assert r2 is not None and r2.robot.host == "127.0.0.3" and r2.robot.arc_output == -1 and r2.base_pose[0] == 1.25
+    assert r2.robot.home_q == tuple(ROBOT2["home_q"]) and r2.flange == ""
+    bad = [
+        ({k: v for k, v in ROBOT2.items() if k != "base_pose"}, "robot2.base_pose", "base in robot 1's base frame"),
+        ({**ROBOT2, "host": "127.0.0.1"}, "robot2.host", "own address"),
+        ({**ROBOT2, "arc_output": 0}, "robot2.arc_output", "no welding tool"),
+        ({**ROBOT2, "tcp_offset": [0.0, 0.0, 0.1, 0.0, 0.0, 0.0]}, "robot2.tcp_offset", "must be zero"),
+        ({**ROBOT2, "verification_pose": [3.0, 0.0, 0.45, 0.0, 0.0, 0.0]}, "robot2.verification_pose", "workspace box"),
+        ({**ROBOT2, "speed": 1}, "robot2.speed", ""),
+    ]
+    for table, key, why in bad:
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.") + ".*" + why):
+            config.parse({"robot2": table}, "two.toml")
+    with pytest.raises(ConfigError, match=r"robot2: two robots are calibrated through a scanner fixed in the cell"):
+        config.parse({"robot2": ROBOT2, "scanner": {"mount": "link1"}})
+
+
+def test_the_shipped_two_robot_cell_places_its_second_robot_across_the_table() -> None:
+    from celld.daemon.devices import robot2_config
+
+    cfg = config.load(Path(__file__).resolve().parents[1] / "configs" / "sim-cell-two-robots.toml")
+    assert cfg.robot2 is not None
+    seen = robot2_config(cfg)
+    assert seen.robot == cfg.robot2.robot and seen.robot2 is None and seen.cell_model.tool == ()
+    assert seen.calibration.verification_pose == cfg.robot2.verification_pose
+    # The table, 0.6 m in front of robot 1, lies 0.65 m in front of robot 2 (its base 1.25 m away, turned round).
+    table = next(o for o in seen.cell_model.objects if o.name == "table")
+    assert table.T_base_obj[:3, 3] == pytest.approx([0.65, 0.0, -0.4], abs=1e-6)

@@ -71,6 +71,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--compensate", action="store_true", help="store the estimate compensated by Eq. 21")
     c.add_argument("--seed", type=int, help="seed of the pose generator")
     c.add_argument("--dry-run", action="store_true", help="plan and check the poses against the cell, do not move")
+    c.add_argument("--robot2", action="store_true", help="calibrate the cell's second robot too, and its base in robot 1's (Eq. 5-6)")
 
     t = kinds.add_parser("tool-calibrate", parents=[job_common], help="measure the SRM tip in the TCP frame with the scanner")
     t.add_argument("--n-poses", type=int, help="orientations to present the tool at (default 12)")
@@ -196,6 +197,8 @@ def _job_message(args: argparse.Namespace) -> dict[str, Any]:
             m["compensate"] = True
         if args.dry_run:
             m["dry_run"] = True
+        if args.robot2:
+            m["robot2"] = True
     elif kind == "tool-calibrate":
         _put(m, "n_poses", args.n_poses)
         _put(m, "max_tilt_deg", args.max_tilt_deg)

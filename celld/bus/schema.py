@@ -213,6 +213,12 @@ _CALIBRATE: dict[str, Any] = _submit_branch(
             "description": "Store the estimate compensated by Eq. 21 (it is then what accept makes current); the calibration's stored field says which was stored.",
         },
         "seed": _integer("Seed of the pose generator (default: a fresh one).", 0, 2**32 - 1),
+        "robot2": {
+            "type": "boolean",
+            "default": False,
+            "description": "Calibrate the cell's second robot ([robot2]) through the same scanner in the same job, after robot 1, "
+            "and give T_base1_base2 (Eq. 5-6 with the camera fixed); its poses are generated (no poses).",
+        },
         "dry_run": _DRY_RUN,
     },
 )
@@ -449,6 +455,25 @@ _MATRIX4 = {
     "description": "4x4 homogeneous transform, rows, metres.",
 }
 
+_ROBOT2_CALIBRATION = _object(
+    "The cell's second robot calibrated through the same scanner (a calibrate job with robot2): Eq. 6b for each "
+    "robot with the camera fixed, and Eq. 6c, T_base1_base2 = T_base1_cam T_base2_cam^-1.",
+    {
+        "T_base2_cam": _MATRIX4,
+        "T_base1_base2": _MATRIX4,
+        "quality": _QUALITY,
+        "translation_std_mm": _vector("T_base1_base2's translation 1-sigma along robot 1's base axes, mm.", 3),
+        "rotation_std_deg": _vector("Its rotation 1-sigma about robot 1's base axes, deg.", 3),
+        "from_drawing_mm": {"type": "number", "description": "How far the calibrated base 2 lies from robot2.base_pose, mm."},
+        "from_drawing_deg": {"type": "number", "description": "The angle between them, deg."},
+        "cost_mm": {"type": ["number", "null"], "description": "Final cost of robot 2's Algorithm 1, mm."},
+        "pairs": {"type": "integer", "minimum": 0, "description": "Robot 2's pairs in the final pool."},
+        "dataset": {"type": "string", "description": "Path of robot 2's saved dataset."},
+        "stored": {"enum": ["estimate", "compensated"], "description": "T_base2_cam is the estimate or Eq. 21's."},
+    },
+    ("T_base2_cam", "T_base1_base2", "quality"),
+)
+
 _CALIBRATION = _object(
     "A calibration of the scanner: T_base_cam, the pose of the camera in the robot base frame; for a scanner on "
     "the arm (mount link1-3, Eq. 8) T_linkN_cam, its pose in that link's frame, with the robot's DH table.",
@@ -483,6 +508,7 @@ _CALIBRATION = _object(
             "calibration has its points moved back along their rays by it.",
         },
         "range_bias_std_mm": {**_NUMBER_OR_NULL, "description": "Its 1-sigma, mm; null when not estimated."},
+        "robot2": _ROBOT2_CALIBRATION,
     },
     ("job", "accepted"),
 )
@@ -599,6 +625,7 @@ _ROBOT_CONDITION = _object(
         "reason": {"type": "string", "description": "Why the robot cannot move; empty when ready."},
         "remedy": {"type": "string", "description": "What clears it, e.g. `celld robot unlock`."},
         "link": {"enum": ["up", "down", "unknown"], "description": "The RTDE link."},
+        "robot2_link": {"enum": ["up", "down", "unknown"], "description": "The second robot's RTDE link, when the cell has one."},
         "mode": {"type": ["string", "null"], "description": "Dashboard robot mode (RUNNING, IDLE, POWER_OFF, ...), null when not read."},
         "safety": {
             "type": ["string", "null"],
@@ -778,6 +805,7 @@ class CalibrateJob:
     compensate: bool = False
     seed: int | None = None
     dry_run: bool = False
+    robot2: bool = False  # calibrate the second robot too, and T_base1_base2
     ref: str = ""
     request_id: str = ""  # the client's id of the submit
     kind: ClassVar[str] = "calibrate"
@@ -1000,6 +1028,7 @@ def _build_calibrate(m: Mapping[str, Any]) -> CalibrateJob:
         compensate=bool(m.get("compensate", False)),
         seed=_int_or_none(m.get("seed")),
         dry_run=bool(m.get("dry_run", False)),
+        robot2=bool(m.get("robot2", False)),
         ref=m.get("ref", ""),
         request_id=m.get("request_id", ""),
     )
@@ -1154,6 +1183,8 @@ def job_to_message(job: Job) -> dict[str, Any]:
             m["dry_run"] = True
         if job.seed is not None:
             m["seed"] = job.seed
+        if job.robot2:
+            m["robot2"] = True
     elif isinstance(job, WeldJob):
         if job.workpiece:
             m["workpiece"] = job.workpiece

@@ -173,14 +173,39 @@ def solve_shared_camera(
     """
     f1 = solve_robust(P_base1, P_cam1, ids=ids1, params=robust)
     f2 = solve_robust(P_base2, P_cam2, ids=ids2, params=robust)
+    T_b1b2, unc = robots_through_camera(f1.T_base_cam, f1.fit.uncertainty, f2.T_base_cam, f2.fit.uncertainty)
+    return SharedCameraFit(f1.T_base_cam, f2.T_base_cam, T_b1b2, unc, f1, f2)
+
+
+def robots_through_camera(
+    T_base1_cam: ArrayLike, unc1: Uncertainty, T_base2_cam: ArrayLike, unc2: Uncertainty
+) -> tuple[Array, Uncertainty]:
+    """Eq. 6c with the camera fixed: ``T_base1_base2 = T_base1_cam T_base2_cam^-1``, and its uncertainty.
+
+    The two calibrations are independent (each from its own robot's
+    captures); the covariance is propagated to first order, in the
+    convention of :mod:`celld.calib.rigid`.
+    """
+    T1 = check_transform(T_base1_cam, "T_base1_cam")
+    T2 = check_transform(T_base2_cam, "T_base2_cam")
 
     def compose(T_b1c: Array, T_b2c: Array) -> Array:
-        return T_b1c @ invert(T_b2c)
+        return T_b1c @ invert(T_b2c)  # Eq. 6c
 
-    cov = propagate(compose, [f1.T_base_cam, f2.T_base_cam], [f1.fit.uncertainty.covariance, f2.fit.uncertainty.covariance])
-    unc = Uncertainty(
-        covariance=cov,
-        sigma=float(np.hypot(f1.fit.uncertainty.sigma, f2.fit.uncertainty.sigma)),
-        dof=f1.fit.uncertainty.dof + f2.fit.uncertainty.dof,
-    )
-    return SharedCameraFit(f1.T_base_cam, f2.T_base_cam, compose(f1.T_base_cam, f2.T_base_cam), unc, f1, f2)
+    cov = propagate(compose, [T1, T2], [unc1.covariance, unc2.covariance])
+    unc = Uncertainty(covariance=cov, sigma=float(np.hypot(unc1.sigma, unc2.sigma)), dof=unc1.dof + unc2.dof)
+    return compose(T1, T2), unc
+
+
+def point_std(T_a_b: ArrayLike, unc: Uncertainty, p_b: ArrayLike) -> Array:
+    """1-sigma (3,) along frame a's axes of the point ``p_b`` placed by ``T_a_b``, m.
+
+    In the convention of :mod:`celld.calib.rigid` the rotation perturbs about
+    frame a's origin, so a point far from it (robot 2's workspace seen from
+    base 1) takes the rotation's error times its lever.
+    """
+    T = check_transform(T_a_b, "T_a_b")
+    lever = T[:3, :3] @ np.asarray(p_b, dtype=np.float64).reshape(3)
+    J = np.hstack([-np.cross(np.eye(3), lever), np.eye(3)])  # d(T p) / d[w, t]: w x lever + t
+    cov = J @ unc.covariance @ J.T
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None))

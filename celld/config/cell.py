@@ -28,6 +28,7 @@ from celld.config.sections import (
     CellConfig,
     MotionLimits,
     RecordingConfig,
+    Robot2Config,
     RobotConfig,
     ScannerConfig,
     WeldConfig,
@@ -63,6 +64,8 @@ class Config:
     # The simulated cell's own description of the true cell ([sim]), kept as
     # the raw table: only the simulator reads and checks it (celld.sim.world).
     sim: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    # A second robot in view of the scanner ([robot2]), None for a one-robot cell.
+    robot2: Robot2Config | None = None
 
     def T_base_cam_nominal(self) -> np.ndarray:
         return np.array(self.scanner.T_base_cam, dtype=np.float64)
@@ -134,6 +137,10 @@ def parse(data: dict[str, Any], source: str = "<dict>") -> Config:
     sub = top.table("cell_model")
     values["cell_model"] = read_cell_model(sub)
     sub.done()
+    if top.has("robot2"):
+        sub = top.table("robot2")
+        values["robot2"] = Robot2Config.read(sub)
+        sub.done()
     top.done()
     check_servo(values["servo"], values["tactile"], values["tool"], source, values["motion"].max_linear_speed)
     if values["calibration"].range_bias is None:
@@ -159,6 +166,14 @@ def check_cell(config: Config) -> None:
     for key, pose in (("calibration.verification_pose", config.calibration.verification_pose), ("weld.scan_pose", config.weld.scan_pose)):
         if not all(lo[i] <= pose[i] <= hi[i] for i in range(3)):
             raise ConfigError(src, key, f"expected a position inside the workspace box {list(lo)} .. {list(hi)} m, got {list(pose[:3])}")
+    r2 = config.robot2
+    if r2 is not None:
+        if r2.robot.host == config.robot.host:
+            raise ConfigError(src, "robot2.host", f"expected the second robot's own address, got robot.host's {r2.robot.host!r}")
+        if config.scanner.mount != "base":
+            raise ConfigError(
+                src, "robot2", f"two robots are calibrated through a scanner fixed in the cell, not one on {config.scanner.mount}"
+            )
 
 
 def load(path: str | Path) -> Config:

@@ -125,6 +125,57 @@ class RobotConfig:
 
 
 @dataclass(frozen=True)
+class Robot2Config:
+    """A second robot in view of the cell's scanner, calibrated to robot 1 through it (Eq. 5-6).
+
+    It has its own link (``robot``: host, model, workspace box in its own
+    base frame, ``home_q``) and no welding tool or arc: a calibrate job with
+    ``robot2`` set calibrates the scanner to both robots and gives
+    ``T_base1_base2`` (:mod:`celld.calib.comanip`). While one robot works the
+    other waits at its ``home_q``, which must keep its flange out of the
+    scanner's view and clear of the other arm (celld does not check arm
+    against arm).
+
+    Attributes
+    ----------
+    robot : RobotConfig
+        Its link, in the keys of ``[robot]`` (``arc_output`` -1, ``tcp_offset`` zero).
+    base_pose : tuple of 6 float
+        Its base in robot 1's base frame as drawn (UR pose, m and rad): places
+        the cell model for its moves and is compared with the calibration.
+    flange : str
+        Its flange model; "" for ``calibration.flange``.
+    verification_pose : tuple of 6 float
+        Its calibration's verification pose, its own base frame (UR pose).
+    """
+
+    robot: RobotConfig
+    base_pose: tuple[float, ...]
+    flange: str = ""
+    verification_pose: tuple[float, ...] = (0.6, 0.0, 0.45, 0.0, 0.0, 0.0)
+
+    @classmethod
+    def read(cls, r: TableReader) -> Robot2Config:
+        if not r.has("base_pose"):
+            raise r.error("base_pose", "give the second robot's base in robot 1's base frame as drawn (UR pose, m and rad)")
+        base_pose = r.vector("base_pose", 6, bound=MAX_CELL_EXTENT, what=" m (no cell is larger)")
+        flange = r.str("flange", "")
+        verification_pose = r.vector("verification_pose", 6, list(cls.verification_pose))
+        robot = RobotConfig.read(r)
+        if robot.arc_output != -1:
+            raise r.error("arc_output", "the second robot carries no welding tool: leave arc_output out")
+        if any(abs(v) > 0.0 for v in robot.tcp_offset):
+            raise r.error("tcp_offset", "the second robot is calibrated by its flange: its tcp_offset must be zero")
+        lo, hi = robot.workspace_min, robot.workspace_max
+        if not all(lo[i] <= verification_pose[i] <= hi[i] for i in range(3)):
+            raise r.error(
+                "verification_pose",
+                f"expected a position inside its workspace box {list(lo)} .. {list(hi)} m, got {list(verification_pose[:3])}",
+            )
+        return cls(robot=robot, base_pose=base_pose, flange=flange, verification_pose=verification_pose)
+
+
+@dataclass(frozen=True)
 class MotionLimits:
     """The limits every command obeys in every cycle (SI): Cartesian for the TCP, per joint for joint moves."""
 

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from celld import se3
 from celld.config import Config
 from celld.daemon.planning import MotionPlanner
 from celld.errors import CelldError, ConfigError, DeviceError, InputError, StaleState
@@ -135,122 +136,61 @@ def make_tactile(
     )
 
 
-class CellDevices:
-    """Robot, tactile sensor and scanner of one cell.
+def robot2_config(config: Config) -> Config:
+    """The cell as the second robot sees it (``[robot2]``): its link, its calibration's verification pose and
+    flange, the cell model moved into its base frame by its drawn place, no tool on its flange.
 
-    Parameters
-    ----------
-    config : Config
-    factories : DeviceFactories
-        How to open the scanner and the SRM camera (:func:`real_devices`
-        unless the simulated cell hands its own). With ``tactile.kind =
-        "none"`` the cell runs without a tactile process, and weld jobs are
-        refused.
+    Raises
+    ------
+    ConfigError
+        The config has no ``[robot2]``.
+    """
+    r2 = config.robot2
+    if r2 is None:
+        raise ConfigError(config.source, "robot2", "the cell has no second robot")
+    T_base2_base1 = se3.invert(se3.from_ur_pose(r2.base_pose))
+    cal = replace(config.calibration, verification_pose=r2.verification_pose, flange=r2.flange or config.calibration.flange)
+    return replace(
+        config, robot=r2.robot, calibration=cal, cell_model=config.cell_model.seen_from(T_base2_base1).without_tool(), robot2=None
+    )
+
+
+class Arm:
+    """One robot as the daemon drives it: its motion process and every move checked first.
+
+    ``config`` is the robot's view of the cell: its ``[robot]`` section and
+    the cell model in its base frame (:func:`robot2_config` makes the second
+    robot's). :class:`CellDevices` is robot 1's; a cell with ``[robot2]``
+    has one more (:attr:`CellDevices.robot2`), opened by :meth:`open_motion`.
     """
 
-    def __init__(self, config: Config, factories: DeviceFactories | None = None) -> None:
+    def __init__(self, config: Config) -> None:
         self.config = config
         self.motion: MotionHandle | None = None
-        self.tactile: TactileProcess | None = None
-        self.scanner: Scanner | None = None
-        self._factories = factories or real_devices()
-        self._recordings: list[Any] = []
-        self._tactile_restart_at = -math.inf
-        self._tactile_failures = 0
-        self.tactile_error = ""  # why the tactile process is not running, "" while it is
         self.planner = MotionPlanner(config)
-        self.heartbeat: Heartbeat | None = None
-        self._beating: asyncio.Task[None] | None = None
-        self.leftovers: list[str] = []  # what was cleaned up after a previous daemon
-        self.dashboard = Dashboard(config.robot.host)
-        self._reading: asyncio.Task[None] | None = None
 
-    # -- life cycle ----------------------------------------------------------------
-
-    async def open(self) -> None:
+    async def open_motion(self, heartbeat: str, records: ChildRecords) -> None:
+        """Start its motion process (no servo law, no tactile sensor); the supervisor keeps connecting."""
         cfg = self.config
-        # A daemon that was killed may have left children that still drive the
-        # robot (they stop on their own within the heartbeat timeout) and
-        # shared memory: clean up before starting our own.
-        records = ChildRecords(Path(cfg.cell.state_dir) / "run")
-        self.leftovers = await asyncio.to_thread(records.reap)
-        self.heartbeat = Heartbeat(f"celld-{uuid.uuid4().hex[:8]}-heartbeat")
-        self._beating = asyncio.get_running_loop().create_task(self._beat(self.heartbeat), name="celld-heartbeat")
-        self.tactile = make_tactile(cfg, self._factories.camera, self.heartbeat.name, records)
-        if self.tactile is not None:
-            try:
-                await asyncio.to_thread(self.tactile.start)
-            except CelldError as exc:
-                # The cell still calibrates and moves; welds are refused until
-                # the supervision brings the camera back (supervise_tactile).
-                self.tactile_error = str(exc)
-                self._tactile_restart_at = time.monotonic()
-                log.error("the tactile process did not start; retrying in the background", error=str(exc))
         self.motion = await MotionHandle.open(
             cfg,
-            servo_laws=SERVO_LAWS,
-            tactile_slot=None if self.tactile is None else self.tactile.slot_name,
             link_timeout=cfg.motion.link_timeout,
             watchdog_hz=cfg.motion.rtde_watchdog_hz,
-            wait=False,  # the supervisor keeps (re)connecting; see wait_robot()
-            heartbeat=self.heartbeat.name,
+            wait=False,
+            heartbeat=heartbeat,
             records=records,
         )
-        self.motion.add_listener(self._on_state_batch)
-        self._reading = asyncio.get_running_loop().create_task(self._read_dashboard(), name="celld-dashboard")
-        self.scanner = await asyncio.to_thread(self._factories.scanner, cfg)
-        log.info(
-            "devices open",
-            robot=cfg.robot.host,
-            scanner=f"{cfg.scanner.kind}/{cfg.scanner.model}",
-            tactile=cfg.tactile.kind if self.tactile is not None else "none",
-        )
 
-    async def close(self) -> None:
-        if self.motion is not None:
-            try:
-                await self.stop_robot()
-            except CelldError as exc:
-                log.error("stop before close failed", error=str(exc))
-            await self.motion.close()
-            self.motion = None
-        if self.scanner is not None:
-            await asyncio.to_thread(self.scanner.close)
-            self.scanner = None
-        if self.tactile is not None:
-            await asyncio.to_thread(self.tactile.stop)
-            self.tactile = None
-        if self._reading is not None:
-            self._reading.cancel()
-            await asyncio.gather(self._reading, return_exceptions=True)
-            self._reading = None
-            await self.dashboard.close()
-        if self._beating is not None:
-            self._beating.cancel()
-            await asyncio.gather(self._beating, return_exceptions=True)
-            self._beating = None
-        if self.heartbeat is not None:
-            self.heartbeat.close()
-            self.heartbeat = None
-
-    @staticmethod
-    async def _beat(heartbeat: Heartbeat) -> None:
-        """The daemon's heartbeat for its children, from the event loop: a hung loop stops the robot.
-
-        A beat that comes much later than asked for says the event loop was
-        held up (work that should run in a thread, or a library holding the
-        GIL): logged, as the children see it too.
-        """
-        last = time.monotonic()
-        while True:
-            heartbeat.beat()
-            now = time.monotonic()
-            if now - last > STALL_WARNING:
-                log.warning("the event loop was held up", ms=round((now - last) * 1e3))
-            last = now
-            await asyncio.sleep(HEARTBEAT_PERIOD)
-
-    # -- robot ----------------------------------------------------------------------
+    async def close_motion(self) -> None:
+        """A jerk-limited stop, then the end of its motion process."""
+        if self.motion is None:
+            return
+        try:
+            await self.stop_robot()
+        except CelldError as exc:
+            log.error("stop before close failed", robot=self.config.robot.host, error=str(exc))
+        await self.motion.close()
+        self.motion = None
 
     async def wait_robot(self, timeout: float) -> bool:
         """Wait until the motion loop runs and has read the robot; False on timeout."""
@@ -345,6 +285,134 @@ class CellDevices:
         except CelldError as exc:
             log.warning("robot not confirmed at rest after a stop", error=str(exc))
 
+    def link_state(self) -> str:
+        if self.motion is None:
+            return "unknown"
+        return "up" if self.motion.link_running() else "down"
+
+
+class CellDevices(Arm):
+    """Robot, tactile sensor and scanner of one cell.
+
+    Parameters
+    ----------
+    config : Config
+    factories : DeviceFactories
+        How to open the scanner and the SRM camera (:func:`real_devices`
+        unless the simulated cell hands its own). With ``tactile.kind =
+        "none"`` the cell runs without a tactile process, and weld jobs are
+        refused.
+    """
+
+    def __init__(self, config: Config, factories: DeviceFactories | None = None) -> None:
+        super().__init__(config)
+        # The second robot, when the cell has one ([robot2]): calibrate jobs with robot2 set drive it.
+        self.robot2: Arm | None = Arm(robot2_config(config)) if config.robot2 is not None else None
+        self.tactile: TactileProcess | None = None
+        self.scanner: Scanner | None = None
+        self._factories = factories or real_devices()
+        self._recordings: list[Any] = []
+        self._tactile_restart_at = -math.inf
+        self._tactile_failures = 0
+        self.tactile_error = ""  # why the tactile process is not running, "" while it is
+        self.heartbeat: Heartbeat | None = None
+        self._beating: asyncio.Task[None] | None = None
+        self.leftovers: list[str] = []  # what was cleaned up after a previous daemon
+        self.dashboard = Dashboard(config.robot.host)
+        self._reading: asyncio.Task[None] | None = None
+
+    # -- life cycle ----------------------------------------------------------------
+
+    async def open(self) -> None:
+        cfg = self.config
+        # A daemon that was killed may have left children that still drive the
+        # robot (they stop on their own within the heartbeat timeout) and
+        # shared memory: clean up before starting our own.
+        records = ChildRecords(Path(cfg.cell.state_dir) / "run")
+        self.leftovers = await asyncio.to_thread(records.reap)
+        self.heartbeat = Heartbeat(f"celld-{uuid.uuid4().hex[:8]}-heartbeat")
+        self._beating = asyncio.get_running_loop().create_task(self._beat(self.heartbeat), name="celld-heartbeat")
+        self.tactile = make_tactile(cfg, self._factories.camera, self.heartbeat.name, records)
+        if self.tactile is not None:
+            try:
+                await asyncio.to_thread(self.tactile.start)
+            except CelldError as exc:
+                # The cell still calibrates and moves; welds are refused until
+                # the supervision brings the camera back (supervise_tactile).
+                self.tactile_error = str(exc)
+                self._tactile_restart_at = time.monotonic()
+                log.error("the tactile process did not start; retrying in the background", error=str(exc))
+        self.motion = await MotionHandle.open(
+            cfg,
+            servo_laws=SERVO_LAWS,
+            tactile_slot=None if self.tactile is None else self.tactile.slot_name,
+            link_timeout=cfg.motion.link_timeout,
+            watchdog_hz=cfg.motion.rtde_watchdog_hz,
+            wait=False,  # the supervisor keeps (re)connecting; see wait_robot()
+            heartbeat=self.heartbeat.name,
+            records=records,
+        )
+        self.motion.add_listener(self._on_state_batch)
+        if self.robot2 is not None:
+            await self.robot2.open_motion(self.heartbeat.name, records)
+        self._reading = asyncio.get_running_loop().create_task(self._read_dashboard(), name="celld-dashboard")
+        self.scanner = await asyncio.to_thread(self._factories.scanner, cfg)
+        log.info(
+            "devices open",
+            robot=cfg.robot.host,
+            scanner=f"{cfg.scanner.kind}/{cfg.scanner.model}",
+            tactile=cfg.tactile.kind if self.tactile is not None else "none",
+        )
+
+    async def close(self) -> None:
+        if self.robot2 is not None:
+            await self.robot2.close_motion()
+        await self.close_motion()
+        if self.scanner is not None:
+            await asyncio.to_thread(self.scanner.close)
+            self.scanner = None
+        if self.tactile is not None:
+            await asyncio.to_thread(self.tactile.stop)
+            self.tactile = None
+        if self._reading is not None:
+            self._reading.cancel()
+            await asyncio.gather(self._reading, return_exceptions=True)
+            self._reading = None
+            await self.dashboard.close()
+        if self._beating is not None:
+            self._beating.cancel()
+            await asyncio.gather(self._beating, return_exceptions=True)
+            self._beating = None
+        if self.heartbeat is not None:
+            self.heartbeat.close()
+            self.heartbeat = None
+
+    @staticmethod
+    async def _beat(heartbeat: Heartbeat) -> None:
+        """The daemon's heartbeat for its children, from the event loop: a hung loop stops the robot.
+
+        A beat that comes much later than asked for says the event loop was
+        held up (work that should run in a thread, or a library holding the
+        GIL): logged, as the children see it too.
+        """
+        last = time.monotonic()
+        while True:
+            heartbeat.beat()
+            now = time.monotonic()
+            if now - last > STALL_WARNING:
+                log.warning("the event loop was held up", ms=round((now - last) * 1e3))
+            last = now
+            await asyncio.sleep(HEARTBEAT_PERIOD)
+
+    # -- robot ----------------------------------------------------------------------
+
+    async def stop_robot(self) -> None:
+        """Jerk-limited stop of every robot of the cell; returns once they hold still (or their links are gone)."""
+        if self.robot2 is None:
+            await super().stop_robot()
+            return
+        await asyncio.gather(super().stop_robot(), self.robot2.stop_robot())
+
     async def _read_dashboard(self) -> None:
         previous = ""
         while True:
@@ -368,6 +436,8 @@ class CellDevices:
         out["mode"] = r.robot_mode if r is not None and r.reachable else None
         out["safety"] = r.safety if r is not None and r.reachable else None
         out["dashboard"] = "reachable" if r is not None and r.reachable else (r.error if r is not None else "not read yet")
+        if self.robot2 is not None:
+            out["robot2_link"] = self.robot2.link_state()
         return out
 
     async def robot_action(self, action: str) -> dict[str, Any]:
@@ -410,11 +480,6 @@ class CellDevices:
                 "arc output was not left on, which would show the setting missing"
             ),
         }
-
-    def link_state(self) -> str:
-        if self.motion is None:
-            return "unknown"
-        return "up" if self.motion.link_running() else "down"
 
     def supervised(self, max_age: float = 1.0) -> bool:
         """The motion process is supervised: its supervisor runs and made progress within ``max_age`` s.

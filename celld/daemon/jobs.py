@@ -168,14 +168,18 @@ class CalibrationStore:
         if not path.exists():
             raise JobError("$.job", f"job {job_id} left no calibration to accept (not a finished {self.kind} job)")
         calibration = json.loads(path.read_text())
-        quality = calibration.get("quality")
-        verdict = quality.get("verdict") if isinstance(quality, dict) else None
-        if verdict is not None and verdict != "ok":
+        # Its own verdict, and a second robot's (a calibrate job with robot2) when it has one.
+        robot2 = calibration.get("robot2")
+        gates = [("the ", calibration.get("quality")), ("robot 2's ", robot2.get("quality") if isinstance(robot2, dict) else None)]
+        failed = [(who, q) for who, q in gates if isinstance(q, dict) and q.get("verdict") not in (None, "ok")]
+        if failed:
             if not force:
+                who, quality = failed[0]
                 reasons = "; ".join(str(r) for r in quality.get("reasons", []))
                 raise JobError(
                     "$.job",
-                    f"the calibration of job {job_id} failed its quality gate ({verdict}: {reasons}); accept it with force to override",
+                    f"{who}calibration of job {job_id} failed its quality gate ({quality['verdict']}: {reasons}); "
+                    "accept it with force to override",
                 )
             calibration["forced"] = True
         calibration["accepted"] = utc_now()

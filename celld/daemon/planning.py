@@ -44,6 +44,8 @@ log = get_logger(__name__)
 
 Array = NDArray[np.float64]
 
+# A joint move shorter than this (rad, every joint) is no move: below the motion loop's arrival tolerance (5e-5 rad).
+STILL = 1e-5
 # Rounds of replacement poses a calibration plan draws before it gives up.
 _REPLACEMENT_ROUNDS = 6
 
@@ -70,9 +72,11 @@ def joint_move_scale(
     The move runs on the line ``Q(s)`` (samples ``Q`` (n, 6) at ``s`` (n,) in
     [0, 1]) with every joint bounded by the joint limits; the synchronised
     planner lets the path parameter reach at most ``s' = v_j / max|dq|`` and
-    ``s'' = a_j / max|dq|``, all scaled by the speed scale ``k``. The TCP's
-    speed is then at most ``k s' max|dp/ds|`` and its acceleration at most
-    ``k s'' max|dp/ds| + k^2 s'^2 max|d2p/ds2|`` <= ``k (...)`` for ``k <= 1``
+    ``s'' = a_j / max|dq|``, all scaled by the speed scale ``k``; on the unit
+    path ``s'^2`` also stays below ``k s''`` (half the path to speed up, half
+    to stop). The TCP's speed is then at most ``k s' max|dp/ds|`` and its
+    acceleration at most ``k s'' max|dp/ds| + min(k^2 s'^2, k s'')
+    max|d2p/ds2|`` <= ``k (...)`` for ``k <= 1``
     (the same for the rotation), which gives ``k``. The derivatives come from
     finite differences of the forward kinematics over the samples; the jerk
     is not bounded this way.
@@ -83,7 +87,9 @@ def joint_move_scale(
     (m/s) and angular (rad/s) speed bounds at that scale.
     """
     span = float(np.abs(Q[-1] - Q[0]).max())
-    if span <= 0.0 or len(s) < 2:
+    if span <= STILL or len(s) < 2:
+        # Already there (a joint move to where the arm stands): finite differences
+        # of so short a line are rounding noise, which would scale the move to nothing.
         return 1.0, 0.0, 0.0
     T = np.array([kin.forward(q, dh, T_flange_tcp) for q in Q])
     ds = np.diff(s)
@@ -100,13 +106,16 @@ def joint_move_scale(
         ang2 = np.abs(np.diff(ang1)) / mid
     sd = limits.max_joint_speed / span
     sdd = limits.max_joint_accel / span
+    # On the unit path s' cannot outgrow sqrt(s''): a short move is over before
+    # it reaches the joint speed, so its centripetal term stays bounded.
+    sd2 = min(sd * sd, sdd)
     L1, W1, L2, W2 = float(lin1.max()), float(ang1.max()), float(lin2.max()), float(ang2.max())
     k = min(
         1.0,
         limits.max_linear_speed / max(sd * L1, 1e-12),
         limits.max_angular_speed / max(sd * W1, 1e-12),
-        limits.max_linear_accel / max(sdd * L1 + sd * sd * L2, 1e-12),
-        limits.max_angular_accel / max(sdd * W1 + sd * sd * W2, 1e-12),
+        limits.max_linear_accel / max(sdd * L1 + sd2 * L2, 1e-12),
+        limits.max_angular_accel / max(sdd * W1 + sd2 * W2, 1e-12),
     )
     return k, k * sd * L1, k * sd * W1
 

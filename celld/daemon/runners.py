@@ -43,7 +43,8 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Mapping
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
@@ -62,13 +63,14 @@ from celld.calib.poses import calibration_poses
 from celld.calib.rangebias import bias_from_steps, correct_range_bias
 from celld.calib.session import CalibrationResult, SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
 from celld.config import Config
-from celld.daemon.devices import CellDevices
+from celld.daemon.devices import Arm, CellDevices
 from celld.daemon.jobs import CalibrationStore, JobContext, Runner
 from celld.daemon.planning import record_arm, record_cell, record_plan, report_plan
 from celld.daemon.retention import prune_sessions
 from celld.errors import CalibrationError, CelldError, JobError
 from celld.log import get_logger
 from celld.recording import layout
+from celld.scanner.base import OrganizedCloud
 
 log = get_logger(__name__)
 
@@ -103,11 +105,11 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
 # -- calibrate ---------------------------------------------------------------------
 
 
-async def _settled_flange_pose(devices: CellDevices, T_target: np.ndarray, settle: float) -> tuple[np.ndarray, np.ndarray]:
+async def _settled_flange_pose(arm: Arm, T_target: np.ndarray, settle: float) -> tuple[np.ndarray, np.ndarray]:
     """Move to ``T_target`` (the tool is off: the scanner must see the flange), let the arm settle, and
     return the flange pose the robot reports and its joints."""
-    motion = devices.require_motion()
-    await devices.move_to(T_target, tool=False)
+    motion = arm.require_motion()
+    await arm.move_to(T_target, tool=False)
     await asyncio.sleep(settle)
     state = motion.state()
     if state is None:
@@ -119,6 +121,52 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     job = ctx.job
     if not isinstance(job, CalibrateJob):
         raise JobError("$.kind", "not a calibrate job")
+    if job.robot2:
+        from celld.daemon.two_robots import run_calibrate_two
+
+        return await run_calibrate_two(ctx, config, devices, job)
+    done = await calibrate_arm(ctx, config, devices, devices.capture, job)
+    await prune_calibrations(ctx, config)
+    return done.output
+
+
+async def prune_calibrations(ctx: JobContext, config: Config) -> None:
+    """Old calibration datasets pruned by the config's retention rules, never this job's or the current calibration's."""
+    cal = config.calibration
+    current = CalibrationStore(ctx.state_dir).current() or {}
+    await asyncio.to_thread(prune_sessions, ctx.state_dir / "jobs", cal.keep_sessions, cal.keep_days, (ctx.job_id, current.get("job")))
+
+
+@dataclass(frozen=True)
+class ArmCalibration:
+    """One robot's calibration as a job made it: the job's output, and the solve (None for a dry run)."""
+
+    output: dict[str, Any]
+    result: CalibrationResult | None
+
+
+async def calibrate_arm(
+    ctx: JobContext,
+    config: Config,
+    arm: Arm,
+    capture: Callable[[], Awaitable[OrganizedCloud]],
+    job: CalibrateJob,
+    *,
+    dataset_name: str = "dataset",
+    robot: int = 1,
+) -> ArmCalibration:
+    """Calibrate the scanner to the flange of ``arm``, whose view of the cell is ``config``.
+
+    Robot 1 (the cell's) records into the job's recording; another robot
+    (``robot`` 2) saves its dataset under ``dataset_name`` and tags its
+    progress events with its number.
+    """
+    tag = {} if robot == 1 else {"robot": robot}
+    who = "" if robot == 1 else f"robot {robot}: "
+
+    def progress(stage: str, fraction: float | None, message: str = "", **data: Any) -> None:
+        ctx.progress(stage, fraction, who + message, **tag, **data)
+
     cal = config.calibration
     if any(abs(v) > 1e-12 for v in config.robot.tcp_offset):
         raise JobError("$", "calibration reads the flange pose: set robot.tcp_offset to zero for a calibrate job")
@@ -135,8 +183,8 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     T_v = se3.from_ur_pose(job.verification_pose if job.verification_pose is not None else cal.verification_pose)
     # The plan, checked against the cell before the robot moves: the verification
     # pose, then the poses; generated ones that fail are replaced, given ones refuse the job.
-    planner = devices.planner
-    to_v = await asyncio.to_thread(planner.check_move, await devices.current_q(), T_v, False)
+    planner = arm.planner
+    to_v = await asyncio.to_thread(planner.check_move, await arm.current_q(), T_v, False)
     seed = job.seed or 0
     if job.poses:
         candidates = np.array([se3.from_ur_pose(p) for p in job.poses])
@@ -150,23 +198,26 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         candidates = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=seed)
         plan = await asyncio.to_thread(planner.plan_calibration, to_v.q_end, candidates, n, more)
     poses = np.array(plan.poses)
-    report_plan(ctx, plan, "calibration")
+    report_plan(ctx, plan, who + "calibration")
+    rec = ctx.recording if robot == 1 else None
     if job.dry_run:
-        record_plan(ctx.recording, planner.bare, [tuple(to_v.q_end), *plan.q])
-        return {
-            "dry_run": True,
-            "plan": {
-                "verification_pose": se3.to_ur_pose(T_v).tolist(),
-                "poses": [se3.to_ur_pose(T).tolist() for T in plan.poses],
-                "joints": [list(to_v.q_end), *[list(q) for q in plan.q]],
-                "refused": [{"pose": list(r.target), "reason": r.reason, "message": r.message} for r in plan.refused],
+        record_plan(rec, planner.bare, [tuple(to_v.q_end), *plan.q])
+        return ArmCalibration(
+            {
+                "dry_run": True,
+                "plan": {
+                    "verification_pose": se3.to_ur_pose(T_v).tolist(),
+                    "poses": [se3.to_ur_pose(T).tolist() for T in plan.poses],
+                    "joints": [list(to_v.q_end), *[list(q) for q in plan.q]],
+                    "refused": [{"pose": list(r.target), "reason": r.reason, "message": r.message} for r in plan.refused],
+                },
             },
-        }
-    dataset = ctx.result_dir() / "dataset"
+            None,
+        )
+    dataset = ctx.result_dir() / dataset_name
     # A scanner on the arm: every pair's robot side is the flange in the scanner's link frame (Eq. 8).
     mount = ScannerMount.of(config.scanner.mount, config.robot.model)
     writer = SessionWriter(dataset, flange=cal.flange, scanner=config.scanner.model, mount=mount)
-    rec = ctx.recording
     if rec is not None:
         # The cell, and the flange model carried by the TCP (the flange: tcp_offset is zero here) at each pose.
         record_cell(rec, planner.bare)
@@ -174,9 +225,9 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         rec.log_mesh(layout.FLANGE, np.asarray(mesh.vertices), np.asarray(mesh.triangles), static=True)
 
     # Verification pose first: its cloud scores every estimate (Eq. 13).
-    ctx.progress("verify", 0.0, "verification pose")
-    T_v_robot, q_v = await _settled_flange_pose(devices, T_v, cal.settle)
-    cloud_v = await devices.capture()
+    progress("verify", 0.0, "verification pose")
+    T_v_robot, q_v = await _settled_flange_pose(arm, T_v, cal.settle)
+    cloud_v = await capture()
     await asyncio.to_thread(partial(writer.set_verification, T_v_robot, cloud_v.points, q=q_v))
     if rec is not None:
         rec.log_cloud_cam("verification", cloud_v.points)
@@ -192,20 +243,20 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     result: CalibrationResult | None = None  # solved at an early stop
     q_of: dict[str, np.ndarray] = {}  # each capture's joints, by pair id
     for i, T in enumerate(poses):
-        T_bf, q = await _settled_flange_pose(devices, T, cal.settle)
-        cloud = await devices.capture()
+        T_bf, q = await _settled_flange_pose(arm, T, cal.settle)
+        cloud = await capture()
         got = await asyncio.to_thread(pairs.capture, T_bf, cloud.points, q)
         q_of[got.id] = q
         pid, det = got.id, got.detection
         if got.rejected is not None or det is None:
             reason = got.rejected.reason if got.rejected is not None else "no detection"
-            ctx.progress("pair", (i + 1) / len(poses), f"pair {pid}: no flange ({reason})", pair=pid, detected=False)
+            progress("pair", (i + 1) / len(poses), f"pair {pid}: no flange ({reason})", pair=pid, detected=False)
             continue
         if rec is not None:
             rec.log_cloud_cam("pair", cloud.points)
             rec.log_circle_cam("flange", det.center, det.normal, det.radius)
             rec.log_tcp(T_bf)
-            here = devices.require_motion().state()
+            here = arm.require_motion().state()
             if here is not None:
                 record_arm(rec, planner.bare, here.q)
         data: dict[str, Any] = {"pair": pid, "detected": True, "radius_mm": det.radius * 1e3, "inliers": det.inliers}
@@ -236,7 +287,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
             data["pool"] = list(step.pool_ids)
             if rec is not None:
                 rec.log_e_icp(step.k, step.cost_optimal)
-        ctx.progress("pair", (i + 1) / len(poses), f"pair {pid}", **data)
+        progress("pair", (i + 1) / len(poses), f"pair {pid}", **data)
         if alg.started and alg.done and pairs.n_pairs >= params.quality.min_pairs and i + 1 < len(poses):
             # Algorithm 1 is done; stop early only when the pairs so far make a calibration that
             # passes its quality gate (a realistic arm's pose-dependent error can leave a handful
@@ -245,12 +296,12 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
             if result is not None:
                 early = alg.reached
                 break
-            ctx.progress("pair", (i + 1) / len(poses), f"Algorithm 1 is done but {why}: capturing more", pair=pid, detected=True)
+            progress("pair", (i + 1) / len(poses), f"Algorithm 1 is done but {why}: capturing more", pair=pid, detected=True)
 
     found = pairs.detections()
     if pairs.n_pairs < 4:
         raise CalibrationError(f"only {pairs.n_pairs} of {len(poses)} captures showed the flange; at least 4 are needed")
-    ctx.progress("solve", None, f"solving from {pairs.n_pairs} pairs")
+    progress("solve", None, f"solving from {pairs.n_pairs} pairs")
     if result is None:  # not solved already at an early stop
         result = await asyncio.to_thread(
             solve_pairs,
@@ -288,6 +339,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     log.info(
         "calibration solved",
         job=ctx.job_id,
+        robot=robot,
         pairs=len(result.pair_ids),
         cost_mm=cost_mm,
         early_stop=early,
@@ -295,9 +347,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         stored=result.stored,
         range_bias_mm=round(result.bias * 1e3, 3),
     )
-    current = CalibrationStore(ctx.state_dir).current() or {}
-    await asyncio.to_thread(prune_sessions, ctx.state_dir / "jobs", cal.keep_sessions, cal.keep_days, (ctx.job_id, current.get("job")))
-    return {
+    output = {
         "calibration": calibration,
         "report": report,
         "early_stop": early,
@@ -305,6 +355,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
         "poses_planned": len(poses),
         "dataset": str(dataset),
     }
+    return ArmCalibration(output, result)
 
 
 def _gated_solve(

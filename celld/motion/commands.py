@@ -89,6 +89,8 @@ Command = MoveTo | MoveJoints | Stream | StartServo
 
 # Largest joint target accepted, rad: UR joints turn +-360 deg.
 _MAX_JOINT = 2.0 * math.pi
+# The slowest move a command may ask for, as a share of the limits.
+MIN_SPEED_SCALE = 1e-3
 
 
 def _positive(name: str, value: Any, hi: float = math.inf) -> float:
@@ -100,11 +102,19 @@ def _positive(name: str, value: Any, hi: float = math.inf) -> float:
     return v
 
 
+def _speed_scale(value: Any) -> float:
+    """A move's speed scale: (0, 1], and not so small that the move would take ages (the loop's plan degenerates)."""
+    v = _positive("speed_scale", value, 1.0)
+    if v < MIN_SPEED_SCALE:
+        raise InputError(f"speed_scale: expected at least {MIN_SPEED_SCALE} (a move a thousand times slower than the limits), got {v}")
+    return v
+
+
 def move_to(T_base_tcp: ArrayLike, speed_scale: float = 1.0, tolerance: float = 5e-5, angle_tolerance: float = 5e-4) -> MoveTo:
     """Return a validated :class:`MoveTo`."""
     return MoveTo(
         check_transform(T_base_tcp, "T_base_tcp").copy(),
-        _positive("speed_scale", speed_scale, 1.0),
+        _speed_scale(speed_scale),
         _positive("tolerance", tolerance, 0.01),
         _positive("angle_tolerance", angle_tolerance, 0.1),
     )
@@ -117,7 +127,7 @@ def move_joints(q_goal: ArrayLike, speed_scale: float = 1.0, tolerance: float = 
         raise InputError(f"q_goal: expected 6 finite joint positions (rad), got {np.asarray(q_goal).tolist()!r}")
     if np.any(np.abs(q) > _MAX_JOINT):
         raise InputError(f"q_goal: every joint must lie within +-2 pi rad, got {q.tolist()}")
-    return MoveJoints(q, _positive("speed_scale", speed_scale, 1.0), _positive("tolerance", tolerance, 0.01))
+    return MoveJoints(q, _speed_scale(speed_scale), _positive("tolerance", tolerance, 0.01))
 
 
 def stream(timeout: float = 0.1) -> Stream:

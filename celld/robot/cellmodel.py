@@ -300,6 +300,11 @@ class CellModel:
         """A new model with ``obj`` added (e.g. the registered workpiece before a weld)."""
         return replace(self, objects=(*self.objects, obj))
 
+    def seen_from(self, T_new_base: Array) -> CellModel:
+        """The same objects in another robot's base frame: ``T_new_base`` is this model's base in that frame."""
+        T = se3.check_transform(T_new_base, "T_new_base")
+        return replace(self, objects=tuple(replace(o, T_base_obj=T @ o.T_base_obj) for o in self.objects))
+
     def without_tool(self) -> CellModel:
         """A new model with no tool on the flange (e.g. a calibration with the tool taken off)."""
         return replace(self, tool=())

@@ -45,6 +45,7 @@ from celld.scanner.base import Scanner
 from celld.sim.robot import SimRobotHandle, launch
 from celld.sim.robot.truth import TruthReader
 from celld.sim.scanner import SceneObject, SimulatedScanner, robot_scene_source, scanner_model
+from celld.sim.scene import robot_scene
 from celld.sim.srm import ContactParams, SimSrmSource, SrmSimParams
 from celld.sim.workpiece import SimWorkpiece, true_part, workpiece_scene
 from celld.sim.world import World, WorldOptions, world_of
@@ -95,6 +96,21 @@ class _CellScanner:
         # scene's would lie in the same plane, a matte twin a time-of-flight
         # camera reads 8 mm apart from it).
         arm = self.world.arm
+        robot2 = self.world.robot2
+        # The second robot (its simulator on the controller's address for it), if the cell has one.
+        truth2 = TruthReader(config.robot2.robot.host) if robot2 is not None and config.robot2 is not None else None
+        closers = [truth.close] if truth2 is None else [truth.close, truth2.close]
+
+        def extra() -> list[SceneObject]:
+            if robot2 is None or truth2 is None:
+                return objects
+            # Its flange and wrist where its true base and joints put them.
+            T_base1_flange2 = robot2.T_base1_base2 @ truth2.latest().T_base_flange
+            return [*objects, *robot_scene(T_base1_flange2, robot2.flange, table=False)]
+
+        def close() -> None:
+            for c in closers:
+                c()
 
         def T_base_cam() -> np.ndarray:
             # A scanner on the arm is where the arm's true joints put its link now.
@@ -107,13 +123,13 @@ class _CellScanner:
                 lambda: truth.latest().T_base_flange,
                 self.world.flange,
                 table=not objects,
-                extra=lambda: objects,
+                extra=extra,
                 tool=self.world.tool.config,  # the tool as built, never the controller's [tool]
                 p_flange_torch=self.world.tool.p_flange_torch,
             ),
             seed=sc.noise_seed,
             resolution_scale=sc.resolution_scale,
-            on_close=truth.close,
+            on_close=close,
             measure=None if sc.ideal else sc.measure,
             capture_delay=sc.capture_delay,
         )
@@ -132,6 +148,21 @@ def robot_options(world: World) -> dict[str, Any]:
     return {"model": world.nominal.robot, "arm": arm}
 
 
+def robot2_options(world: World) -> dict[str, Any]:
+    """The simulated second robot's options, as :func:`robot_options`; the world must have one."""
+    r2 = world.robot2
+    if r2 is None:
+        raise ConfigError("[sim]", "sim.robot2", "the world has no second robot")
+    return {"model": r2.model, "arm": None if r2.arm.is_model(r2.nominal_dh) else r2.arm}
+
+
+def check_robot2(config: Config, world: World) -> None:
+    """A config's [robot2] and its world's [sim.robot2] come together or not at all."""
+    if (config.robot2 is None) != (world.robot2 is None):
+        have, lack = ("[robot2]", "[sim.robot2]") if config.robot2 is not None else ("[sim.robot2]", "[robot2]")
+        raise ConfigError(config.source, "robot2", f"the config has {have} but no {lack}: the simulated cell needs both for a second robot")
+
+
 def serve_daemon(config_path: str | Path, options: WorldOptions = WorldOptions()) -> int:
     """``celld sim run``: the daemon of a cell config on the simulated devices of its world (the part built once)."""
     from celld.daemon.app import serve
@@ -139,6 +170,7 @@ def serve_daemon(config_path: str | Path, options: WorldOptions = WorldOptions()
 
     cfg = config_mod.load(config_path)
     world = world_of(cfg, options)
+    check_robot2(cfg, world)
     get_logger(__name__).info("sim_world", world=world.describe())
     serve(cfg, sim_devices(cfg, world, sim_part(world)))
     return 0
@@ -155,6 +187,7 @@ class RunningCell(NamedTuple):
     config: Config
     robot: SimRobotHandle
     world: World
+    robot2: SimRobotHandle | None = None  # the second robot's simulator, when the cell has one
 
 
 class DaemonProcess(NamedTuple):
@@ -240,10 +273,17 @@ def run_cell(
         cfg = config_mod.load(config_path)
         w = world_of(cfg, world)  # a bad [sim] table is refused before anything starts
         sim_part(w)
-        with launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(w)) as robot, open(log_path, "ab") as log:
+        check_robot2(cfg, w)
+        with contextlib.ExitStack() as stack:
+            robot = stack.enter_context(launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(w)))
+            robot2 = None
+            if cfg.robot2 is not None:
+                r2 = cfg.robot2.robot
+                robot2 = stack.enter_context(launch(r2.host, realtime=True, q0=tuple(r2.home_q), **robot2_options(w)))
+            log = stack.enter_context(open(log_path, "ab"))
             daemon = start_daemon(config_path, log, timeout, world)
             try:
-                yield RunningCell(daemon.client, daemon.process, cfg, robot, w)
+                yield RunningCell(daemon.client, daemon.process, cfg, robot, w, robot2)
             finally:
                 daemon.client.close()
                 stop_daemon(daemon.process)

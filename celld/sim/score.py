@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from celld import polyline, se3
+from celld.errors import InputError
 from celld.robot import kinematics as kin
 from celld.seam.figures import TORCH_STEP, lateral_error
 from celld.sim.robot.truth import TRUTH_DTYPE, TruthReader, flange_of
@@ -103,6 +104,47 @@ def targeting_errors(
         if got is not None:
             out[i] = float(np.linalg.norm(got[0][:3, 3] - p))
             q = got[1]
+    return out
+
+
+def handover_errors(
+    world: World,
+    T_base1_base2_est: ArrayLike,
+    P_base2: ArrayLike,
+    R_base2_flange: ArrayLike,
+    q1_near: ArrayLike,
+    q2_near: ArrayLike,
+) -> Array:
+    """Distances (n,) between the two flanges when robot 1 is sent to meet robot 2's, m.
+
+    Robot 2's controller puts its flange at each point of ``P_base2`` (its own
+    base frame, orientation ``R_base2_flange``); robot 1's controller is sent
+    to the same pose placed in base 1 by ``T_base1_base2_est``, its flange
+    turned to face robot 2's (a hand-over). Both arms are the world's (their
+    kinematic errors count, as on a real cell), and robot 2 stands at its true
+    place. Points out of either robot's reach give NaN.
+    """
+    r2 = world.robot2
+    if r2 is None:
+        raise InputError("handover_errors: the world has no second robot")
+    T_est = se3.check_transform(T_base1_base2_est, "T_base1_base2_est")
+    R2 = np.asarray(R_base2_flange, dtype=np.float64)
+    flip = np.diag([1.0, -1.0, -1.0])  # face to face: robot 1's flange turned half a turn about its x
+    q1, q2 = np.asarray(q1_near, dtype=np.float64), np.asarray(q2_near, dtype=np.float64)
+    P = np.asarray(P_base2, dtype=np.float64).reshape(-1, 3)
+    out = np.full(len(P), np.nan)
+    for i, p in enumerate(P):
+        T2_cmd = se3.transform_from(R2, p)
+        q2_cmd = kin.inverse(T2_cmd, q2, r2.nominal_dh)
+        if q2_cmd is None:
+            continue
+        p2_true = (r2.T_base1_base2 @ kin.forward(q2_cmd + np.asarray(r2.arm.joint_offsets), r2.arm.dh))[:3, 3]
+        T1_cmd = T_est @ T2_cmd
+        got = true_flange(world, se3.transform_from(T1_cmd[:3, :3] @ flip, T1_cmd[:3, 3]), q1)
+        if got is None:
+            continue
+        out[i] = float(np.linalg.norm(got[0][:3, 3] - p2_true))
+        q1, q2 = got[1], q2_cmd
     return out
 
 

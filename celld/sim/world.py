@@ -73,6 +73,7 @@ SOURCES: tuple[str, ...] = (
     "kinematics",  # true DH table and joint zeros: pose-dependent absolute error
     "repeatability",  # a new rest error at every stop
     "encoder_noise",  # noise on the joints the controller reports
+    "robot2_placement",  # a second robot's base is not exactly where the drawing puts it
     # time
     "settle",  # the arm rings down after a stop
     "capture_delay",  # the scanner exposes a while after the state was read
@@ -126,6 +127,11 @@ class ErrorBudget:
     # Noise on the reported joints, 1 sigma; plausible (UR's absolute encoders
     # resolve about 1e-6 rad; the reading jitters by a few of those).
     encoder_noise: float = 2.0e-6  # rad
+    # A second robot's base against its drawing, 1 sigma per axis: a base
+    # bolted to a floor plate or pedestal, placed by tape and square.
+    # Plausible; robot-robot calibration exists because it is not known.
+    base_translation: float = 3.0e-3  # m
+    base_rotation: float = math.radians(0.3)  # rad
 
     # -- time ------------------------------------------------------------------
     # Settling after a stop: kick per joint (1 sigma; about 0.05 mm at a 1 m
@@ -235,6 +241,8 @@ ERROR_KEYS: dict[str, tuple[str, float, float]] = {
     "joint_offset": ("joint_offset_deg", math.pi / 180, 1.0),
     "repeatability": ("repeatability_deg", math.pi / 180, 0.1),
     "encoder_noise": ("encoder_noise_deg", math.pi / 180, 0.1),
+    "base_translation": ("base_translation_mm", 1e-3, 100.0),
+    "base_rotation": ("base_rotation_deg", math.pi / 180, 10.0),
     "settle_amplitude": ("settle_amplitude_deg", math.pi / 180, 0.5),
     "settle_tau": ("settle_tau_ms", 1e-3, 5000.0),
     "settle_hz": ("settle_hz", 1.0, 200.0),
@@ -293,6 +301,11 @@ class NominalCell:
     part_pose: tuple[float, ...] = ()
     # A sideways bow of the part where its model is straight, before the budget's shape errors, m.
     part_bow: float = 0.0
+    # A second robot in the scanner's view ([sim.robot2]): its model ("" for
+    # none), its base in robot 1's base frame as drawn (UR pose) and its flange.
+    robot2: str = ""
+    robot2_pose: tuple[float, ...] = ()
+    robot2_flange: str = ""
 
     @classmethod
     def read(cls, r: TableReader) -> NominalCell:
@@ -301,6 +314,15 @@ class NominalCell:
         tool_r = r.table("tool")
         part = r.table("part")
         pose = part.vector("pose", 6) if part.has("pose") else ()
+        r2 = r.table("robot2")
+        robot2, robot2_flange = "", ""
+        robot2_pose: tuple[float, ...] = ()
+        if r.has("robot2"):
+            if not r2.has("base_pose"):
+                raise r2.error("base_pose", "give the second robot's base in robot 1's base frame as drawn (UR pose, m and rad)")
+            robot2 = r2.str("robot", "ur10e", choices=ROBOT_MODELS)
+            robot2_pose = r2.vector("base_pose", 6)
+            robot2_flange = r2.str("flange", "")
         from celld.seam.workpiece import EXAMPLES
 
         mount = sc.str("mount", "base", choices=MOUNTS)
@@ -325,13 +347,21 @@ class NominalCell:
             workpiece=part.str("workpiece", "", choices=("", *EXAMPLES)),
             part_pose=pose,
             part_bow=part.float("bow_mm", 0.0, lo=-10.0, hi=10.0, scale=1e-3),
+            robot2=robot2,
+            robot2_pose=robot2_pose,
+            robot2_flange=robot2_flange,
         )
-        for sub in (sc, tool_r, part):
+        for sub in (sc, tool_r, part, r2):
             sub.done()
         try:
             flange_preset(out.flange)
         except InputError as exc:
             raise r.error("flange", str(exc)) from exc
+        if out.robot2_flange:
+            try:
+                flange_preset(out.robot2_flange)
+            except InputError as exc:
+                raise r2.error("flange", str(exc)) from exc
         if out.part_bow != 0.0 and out.workpiece not in ("v-groove", "curved-groove"):
             raise part.error("bow_mm", f"only a groove can bow, not {out.workpiece or 'no part'!r}")
         return out
@@ -543,6 +573,26 @@ class PartTruth:
 
 
 @dataclass(frozen=True)
+class Robot2Truth:
+    """A second robot as installed: its physical arm, its flange as made, its base in robot 1's base frame.
+
+    ``T_base1_base2`` is the truth a robot-robot calibration estimates;
+    ``T_base1_base2_drawn`` is where the drawing puts it.
+    """
+
+    model: str
+    arm: ArmTruth
+    flange: FlangeModel
+    T_base1_base2: Array
+    T_base1_base2_drawn: Array
+
+    @property
+    def nominal_dh(self) -> kin.DH:
+        """The DH table its controller believes."""
+        return kin.model(self.model).dh
+
+
+@dataclass(frozen=True)
 class World:
     """One true cell: drawn from a nominal cell and a budget by a seed (see :func:`draw_world`)."""
 
@@ -557,6 +607,7 @@ class World:
     finger: FingerTruth
     camera: CameraTiming
     part: PartTruth | None
+    robot2: Robot2Truth | None = None
 
     @property
     def nominal_dh(self) -> kin.DH:
@@ -596,11 +647,12 @@ def _seed_of(seed: int, source: str) -> int:
     return int(_rng(seed, source).integers(0, 2**31 - 1))
 
 
-def _draw_arm(nominal: NominalCell, b: ErrorBudget, seed: int) -> ArmTruth:
-    dh = kin.model(nominal.robot).dh
+def _draw_arm(model: str, b: ErrorBudget, seed: int, tag: str = "") -> ArmTruth:
+    """The physical arm of a robot ``model``; ``tag`` names a second robot's own draws."""
+    dh = kin.model(model).dh
     offsets = (0.0,) * 6
     if b.on("kinematics"):
-        r = _rng(seed, "kinematics")
+        r = _rng(seed, "kinematics" + tag)
         d = np.asarray(dh.d) + _tnormal(r, b.dh_length, 6)
         a = np.asarray(dh.a) + _tnormal(r, b.dh_length, 6)
         alpha = np.asarray(dh.alpha) + _tnormal(r, b.dh_twist, 6)
@@ -615,7 +667,7 @@ def _draw_arm(nominal: NominalCell, b: ErrorBudget, seed: int) -> ArmTruth:
         settle_amplitude=b.settle_amplitude if settle else 0.0,
         settle_tau=b.settle_tau if settle and b.settle_tau > 0.0 else ArmTruth.settle_tau,
         settle_hz=b.settle_hz if settle else ArmTruth.settle_hz,
-        seed=_seed_of(seed, "arm-noise"),
+        seed=_seed_of(seed, "arm-noise" + tag),
     )
 
 
@@ -667,12 +719,13 @@ _PITCH_TOL = 20e-6
 _THICKNESS_TOL = 50e-6
 
 
-def _draw_flange(nominal: NominalCell, b: ErrorBudget, seed: int) -> FlangeModel:
-    f = flange_preset(nominal.flange)
+def _draw_flange(name: str, b: ErrorBudget, seed: int, tag: str = "") -> FlangeModel:
+    """The flange ``name`` as made; ``tag`` names a second robot's own draws."""
+    f = flange_preset(name)
     face_circle = abs(f.circle_radius - f.face_radius) < 1e-12 and f.circle_z == 0.0
     changes: dict[str, Any] = {}
     if b.on("flange_tolerance"):
-        r = _rng(seed, "flange_tolerance")
+        r = _rng(seed, "flange_tolerance" + tag)
         changes.update(
             outer_diameter=f.outer_diameter * (1.0 - _H8_63 * r.uniform()),
             bore_diameter=f.bore_diameter * (1.0 + _H7_31 * r.uniform()),
@@ -680,7 +733,7 @@ def _draw_flange(nominal: NominalCell, b: ErrorBudget, seed: int) -> FlangeModel
             thickness=f.thickness + r.uniform(-_THICKNESS_TOL, _THICKNESS_TOL),
         )
     if b.on("flange_variant"):
-        r = _rng(seed, "flange_variant")
+        r = _rng(seed, "flange_variant" + tag)
         changes.update(
             chamfer=r.uniform(*b.chamfer),
             bore_depth=f.bore_depth + r.uniform(-b.bore_depth, b.bore_depth),
@@ -740,6 +793,26 @@ def _draw_camera(b: ErrorBudget, seed: int) -> CameraTiming:
     return CameraTiming(b.camera_stamp_sigma, b.camera_delivery_jitter, srm_seed)
 
 
+def _draw_robot2(nominal: NominalCell, b: ErrorBudget, seed: int) -> Robot2Truth | None:
+    if not nominal.robot2:
+        return None
+    T_drawn = se3.from_ur_pose(nominal.robot2_pose)
+    T_true = T_drawn
+    if b.on("robot2_placement"):
+        r = _rng(seed, "robot2_placement")
+        dp = _tnormal(r, b.base_translation, 3)
+        dR = Rotation.from_rotvec(_tnormal(r, b.base_rotation, 3)).as_matrix()
+        T_true = se3.transform_from(dR @ T_drawn[:3, :3], T_drawn[:3, 3] + dp)
+    tag = "/robot2"
+    return Robot2Truth(
+        model=nominal.robot2,
+        arm=_draw_arm(nominal.robot2, b, seed, tag),
+        flange=_draw_flange(nominal.robot2_flange or nominal.flange, b, seed, tag),
+        T_base1_base2=T_true,
+        T_base1_base2_drawn=T_drawn,
+    )
+
+
 def _draw_part(nominal: NominalCell, b: ErrorBudget, seed: int) -> PartTruth | None:
     if not nominal.workpiece:
         return None
@@ -780,13 +853,14 @@ def draw_world(nominal: NominalCell, budget: ErrorBudget, seed: int, preset: str
         seed=seed,
         budget=budget,
         nominal=nominal,
-        arm=_draw_arm(nominal, budget, seed),
+        arm=_draw_arm(nominal.robot, budget, seed),
         scanner=_draw_scanner(nominal, budget, seed),
-        flange=_draw_flange(nominal, budget, seed),
+        flange=_draw_flange(nominal.flange, budget, seed),
         tool=_draw_tool(nominal, budget, seed),
         finger=_draw_finger(budget, seed),
         camera=_draw_camera(budget, seed),
         part=_draw_part(nominal, budget, seed),
+        robot2=_draw_robot2(nominal, budget, seed),
     )
 
 

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from celld.calib.comanip import solve_comanipulation, solve_shared_camera
+from celld.calib.comanip import point_std, robots_through_camera, solve_comanipulation, solve_shared_camera
+from celld.calib.rigid import Uncertainty, perturb
 from celld.errors import CalibrationError, InputError
-from celld.se3 import error, invert, transform_from
+from celld.se3 import apply, error, invert, transform_from
 
 # Robot 1 carries the camera on its flange; robot 2's base sits 1.2 m away, turned.
 T_FLAN1_CAM = transform_from(Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix(), [0.03, -0.05, 0.08])
@@ -92,3 +93,21 @@ def test_fixed_camera_seeing_both_flanges() -> None:
     dt, dr = error(fit.T_base1_base2, T_BASE1_BASE2)
     assert dt < 4 * fit.uncertainty.translation_error and dr < 4 * fit.uncertainty.rotation_error
     assert error(fit.T_base2_cam, T_base2_cam)[0] < 0.002
+
+
+def test_a_point_where_the_robots_meet_takes_the_rotation_error_times_its_lever() -> None:
+    # Monte Carlo of the composition's covariance, against point_std's first order.
+    rng = np.random.default_rng(4)
+    T_base1_cam = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
+    T_base2_cam = invert(T_BASE1_BASE2) @ T_base1_cam
+    cov = np.diag([3e-4, 2e-4, 1e-4, 1e-4, 2e-4, 1e-4]) ** 2
+    unc = Uncertainty(cov, 1e-4, 30)
+    T_b1b2, both = robots_through_camera(T_base1_cam, unc, T_base2_cam, unc)
+    np.testing.assert_allclose(T_b1b2, T_BASE1_BASE2, atol=1e-12)
+    p2 = np.array([0.65, 0.0, 0.45])
+    samples = []
+    for _ in range(4000):
+        T1 = perturb(T_base1_cam, rng.multivariate_normal(np.zeros(6), cov))
+        T2 = perturb(T_base2_cam, rng.multivariate_normal(np.zeros(6), cov))
+        samples.append(apply(T1 @ invert(T2), p2[None])[0])
+    np.testing.assert_allclose(point_std(T_b1b2, both, p2), np.std(samples, axis=0), rtol=0.08)

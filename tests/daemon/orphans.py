@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import re
 import time
 from typing import NamedTuple
 
@@ -43,3 +45,12 @@ def motion_exits(log_path) -> list[str]:  # type: ignore[no-untyped-def]
     with open(log_path, "rb") as f:
         text = f.read().decode(errors="replace")
     return [line for line in text.splitlines() if "motion loop ended" in line]
+
+
+def seen_after(log_path, host: str, t_kill_ns: int) -> float:  # type: ignore[no-untyped-def]
+    """How long after ``t_kill_ns`` the motion process of the robot at ``host`` saw its daemon go, s (inf: not seen)."""
+    for line in motion_exits(log_path):
+        m = re.search(r"host=(\S+) .*orphaned_ns=(\d+)", line)
+        if m and m.group(1) == host:
+            return (int(m.group(2)) - t_kill_ns) * 1e-9
+    return math.inf

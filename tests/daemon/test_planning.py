@@ -63,6 +63,20 @@ def test_a_wrist_turn_keeps_the_asked_scale_when_the_tcp_stays_slow(planner: Mot
     assert planner.plan_joint_move(HOME, q1, speed_scale=0.5).speed_scale <= 0.5
 
 
+def test_a_joint_move_to_where_the_arm_stands_keeps_the_asked_scale(planner: MotionPlanner) -> None:
+    # The arm parked at a home position it already holds (to rounding): no move, not a move slowed to nothing.
+    for nudge in (0.0, 1e-12, 1e-9, 1e-6):
+        plan = planner.plan_joint_move(HOME, HOME + nudge, speed_scale=0.5)
+        assert plan.speed_scale == 0.5, (nudge, plan.speed_scale)
+    # A short real move gets a bound it keeps, not one that grows without end as the move shrinks.
+    for span in (0.002, 0.05):
+        q1 = HOME + np.array([0.0, span, -span, span, 0.0, 0.0])
+        plan = planner.plan_joint_move(HOME, q1)
+        assert 0.05 < plan.speed_scale < 1.0, (span, plan.speed_scale)
+        lin, ang = _tcp_peaks(planner, HOME, q1, plan.speed_scale)
+        assert lin <= CONFIG.motion.max_linear_speed * 1.01 and ang <= CONFIG.motion.max_angular_speed * 1.01
+
+
 def test_joint_moves_out_of_the_box_into_the_table_or_past_a_joint_limit_are_refused(planner: MotionPlanner) -> None:
     with pytest.raises(PathRefused, match="table"):
         planner.plan_joint_move(HOME, np.array([2.9, -0.3, 2.2, -2.4, 1.5, -1.1]))

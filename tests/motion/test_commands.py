@@ -71,6 +71,8 @@ def test_truncated_arrays_and_bad_values_are_refused() -> None:
         cmd.decode(good[:-8])
     with pytest.raises(InputError, match="speed_scale"):
         cmd.move_to(np.eye(4), speed_scale=2.0)
+    with pytest.raises(InputError, match="speed_scale: expected at least"):
+        cmd.move_joints(np.zeros(6), speed_scale=1e-9)  # a plan degenerate enough to stall the loop
     with pytest.raises(InputError, match="rotation"):
         cmd.move_to(np.diag([1.0, 2.0, 1.0, 1.0]))
     with pytest.raises(InputError, match="NaN"):

@@ -37,7 +37,10 @@ TABLE: dict[str, Any] = {
     "tool": {"tip_tcp_mm": [0.0, 0.0, 200.0]},
     "part": {"workpiece": "v-groove", "bow_mm": 1.0},
 }
-NOMINAL = NominalCell(tool=world_from_table(TABLE).nominal.tool, workpiece="v-groove")
+# With a second robot across the table, so that its own draws (base, arm, flange) are checked too.
+NOMINAL = NominalCell(
+    tool=world_from_table(TABLE).nominal.tool, workpiece="v-groove", robot2="ur10e", robot2_pose=(1.25, 0.0, 0.0, 0.0, 0.0, math.pi)
+)
 REALISTIC = PRESETS["realistic"]
 
 
@@ -47,20 +50,23 @@ def _components(w: Any) -> dict[str, str]:
     def t(*values: Any) -> str:
         return repr([np.asarray(v).round(15).tolist() if isinstance(v, np.ndarray) else v for v in values])
 
-    f, sc, a, p = w.flange, w.scanner, w.arm, w.part
+    f, sc, a, p, r2 = w.flange, w.scanner, w.arm, w.part, w.robot2
+    # A world without a second robot compares as one with its first robot's arm and flange twice.
+    a2, f2 = (a, f) if r2 is None else (r2.arm, r2.flange)
     return {
-        "kinematics": t(a.dh, a.joint_offsets),
-        "repeatability": t(a.repeatability),
-        "encoder_noise": t(a.encoder_noise),
-        "settle": t(a.settle_amplitude),
+        "kinematics": t(a.dh, a.joint_offsets, a2.dh, a2.joint_offsets),
+        "repeatability": t(a.repeatability, a2.repeatability),
+        "encoder_noise": t(a.encoder_noise, a2.encoder_noise),
+        "robot2_placement": t(None if r2 is None else r2.T_base1_base2),
+        "settle": t(a.settle_amplitude, a2.settle_amplitude),
         "capture_delay": t(sc.capture_delay),
         "camera_jitter": t(w.camera.stamp_sigma, w.camera.delivery_jitter),
         "scanner_mount": t(sc.T_base_cam),
         "depth_scale": t(sc.depth_scale),
         "distortion": t(sc.field),
         "metal_bias": t(sc.metal_bias),
-        "flange_tolerance": t(f.outer_diameter, f.bore_diameter, f.pitch_diameter, f.thickness),
-        "flange_variant": t(f.chamfer, f.bore_depth, f.hole_depth, f.dowel_depth),
+        "flange_tolerance": t(*(g.outer_diameter for g in (f, f2)), *(g.bore_diameter for g in (f, f2)), f.pitch_diameter, f2.thickness),
+        "flange_variant": t(f.chamfer, f2.chamfer, f.bore_depth, f2.hole_depth, f.dowel_depth),
         "tool_offsets": t(w.tool.config, w.tool.p_flange_torch),
         "finger": t(w.finger),
         "part_placement": t(p.offset_xy, p.yaw),
@@ -72,7 +78,9 @@ def test_a_world_is_a_function_of_its_seed() -> None:
     a, b = draw_world(NOMINAL, REALISTIC, 7), draw_world(NOMINAL, REALISTIC, 7)
     assert _components(a) == _components(b)
     c = draw_world(NOMINAL, REALISTIC, 8)
-    assert all(_components(a)[s] != _components(c)[s] for s in ("kinematics", "scanner_mount", "tool_offsets", "part_shape"))
+    assert all(
+        _components(a)[s] != _components(c)[s] for s in ("kinematics", "scanner_mount", "tool_offsets", "part_shape", "robot2_placement")
+    )
     # From the config's table too, and the command line's seed wins over the table's.
     assert _components(world_from_table(TABLE)) == _components(world_from_table({**TABLE, "seed": 9}, options=WorldOptions(seed=4)))
 
@@ -83,6 +91,8 @@ def test_the_ideal_world_is_its_drawing() -> None:
     np.testing.assert_array_equal(w.scanner.T_base_cam, np.array(NOMINAL.T_base_cam))
     assert w.scanner.ideal and w.scanner.metal_bias is None and w.scanner.capture_delay == (0.0, 0.0)
     assert w.flange == preset("ur10e")
+    assert w.robot2 is not None and w.robot2.arm.is_model(kin.UR10E) and w.robot2.flange == preset("ur10e")
+    np.testing.assert_array_equal(w.robot2.T_base1_base2, w.robot2.T_base1_base2_drawn)
     assert w.tool.config == NOMINAL.tool
     np.testing.assert_allclose(w.tool.p_flange_torch, [-0.03, 0.0, 0.2])
     assert w.finger.hysteresis == 0.0 and w.finger.static_friction_ratio == 1.0 and math.isinf(w.finger.stiffening)
@@ -251,3 +261,32 @@ def test_arm_truth_survives_the_command_line() -> None:
     assert ArmTruth.from_json(a.to_json()) == a
     with pytest.raises(ConfigError):
         ArmTruth.from_json("{}x")
+
+
+def test_a_second_robot_stands_off_its_drawing_by_the_budget_with_an_arm_of_its_own() -> None:
+    offsets, angles = [], []
+    for seed in range(30):
+        w = draw_world(NOMINAL, REALISTIC, seed)
+        assert w.robot2 is not None
+        dt, dr = se3.error(w.robot2.T_base1_base2, w.robot2.T_base1_base2_drawn)
+        offsets.append(dt)
+        angles.append(dr)
+        # Its own kinematic error, not a copy of robot 1's.
+        assert w.robot2.arm.dh != w.arm.dh and w.robot2.arm.seed != w.arm.seed
+    bound = TRUNCATE * math.sqrt(3)
+    assert max(offsets) <= bound * REALISTIC.base_translation and max(angles) <= bound * REALISTIC.base_rotation
+    assert np.median(offsets) > 0.5 * REALISTIC.base_translation and np.median(angles) > 0.5 * REALISTIC.base_rotation
+
+
+def test_a_second_robot_in_the_sim_table_needs_its_drawn_base_and_the_configs_robot2() -> None:
+    from celld.sim.cell import check_robot2
+
+    with pytest.raises(ConfigError, match=r"sim\.robot2\.base_pose"):
+        world_from_table({**TABLE, "robot2": {"robot": "ur10e"}})
+    with pytest.raises(ConfigError, match=r"sim\.robot2\.flange"):
+        world_from_table({**TABLE, "robot2": {"base_pose": [1.25, 0, 0, 0, 0, 3.1], "flange": "nope"}})
+    w = world_from_table({**TABLE, "robot2": {"base_pose": [1.25, 0, 0, 0, 0, 3.1]}})
+    assert w.robot2 is not None and w.robot2.model == "ur10e"
+    with pytest.raises(ConfigError, match=r"robot2: the config has \[sim.robot2\] but no \[robot2\]"):
+        check_robot2(parse({}), w)
+    check_robot2(parse({}), world_from_table(TABLE))  # neither: a one-robot cell

@@ -1,0 +1,119 @@
+"""A calibrate job with ``robot2``: the scanner calibrated to both robots of the cell, and robot 2's base in robot 1's.
+
+The paper's co-manipulation (Eq. 5) has robot 1 hold the camera and robot 2
+show the mark; Eq. 6 splits it into an eye-in-hand problem (a), an
+eye-on-base problem (b) and a composition (c). This cell's scanner is fixed
+above the table and sees either robot's flange, so (a) is not needed: each
+robot is an eye-on-base problem of its own (Eq. 9-12, Algorithm 1, the ICP
+metric and the quality gate, exactly as a calibrate job), and (c) becomes
+``T_base1_base2 = T_base1_cam T_base2_cam^-1``
+(:func:`celld.calib.comanip.robots_through_camera`).
+
+The job, one robot at a time:
+
+1. robot 2 to its ``home_q`` (a checked joint move): out of the scanner's view;
+2. robot 1's calibration, as a calibrate job without ``robot2`` (recorded,
+   its dataset in ``dataset/``);
+3. robot 1 to its ``home_q``;
+4. robot 2's calibration from its ``[robot2]`` verification pose with its
+   flange, its moves checked against the cell model seen from its base (its
+   dataset in ``dataset-robot2/``);
+5. robot 2 back to its ``home_q``;
+6. ``T_base1_base2`` with its 1-sigma at robot 2's verification position
+   (where the two robots work together) and its distance from the drawn
+   ``robot2.base_pose``.
+
+The calibration it leaves is robot 1's (``T_base_cam``, made current by an
+accept as any calibrate job's) with a ``robot2`` entry: ``T_base2_cam``,
+``T_base1_base2`` and robot 2's quality report; accept refuses it when
+either verdict failed, unless forced. A fault at any step stops both arms
+(jerk-limited: the job manager's stop reaches every robot of the cell).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from celld import se3
+from celld.bus.schema import CalibrateJob
+from celld.calib.comanip import point_std, robots_through_camera
+from celld.config import Config
+from celld.daemon.devices import Arm, CellDevices
+from celld.daemon.jobs import JobContext
+from celld.daemon.runners import ArmCalibration, calibrate_arm, prune_calibrations
+from celld.errors import JobError
+from celld.log import get_logger
+
+log = get_logger(__name__)
+
+
+async def _park(ctx: JobContext, arm: Arm, who: str) -> None:
+    """A checked, jerk-limited joint move of ``arm`` to its ``home_q``, out of the scanner's view."""
+    ctx.progress("park", None, f"{who} to its home position")
+    await arm.move_joints(np.asarray(arm.config.robot.home_q, dtype=np.float64), tool=False)
+
+
+async def run_calibrate_two(ctx: JobContext, config: Config, devices: CellDevices, job: CalibrateJob) -> Mapping[str, Any]:
+    """The calibrate job with ``robot2`` (module docstring)."""
+    r2 = config.robot2
+    arm2 = devices.robot2
+    if r2 is None or arm2 is None:
+        raise JobError("$.robot2", "this cell has no second robot ([robot2] in its config)")
+    if job.poses:
+        raise JobError("$.poses", "a job with robot2 generates both robots' poses: give n_poses, not poses")
+    job2 = replace(job, verification_pose=None)  # robot 2's comes from [robot2]
+    if job.dry_run:
+        one = await calibrate_arm(ctx, config, devices, devices.capture, job)
+        two = await calibrate_arm(ctx, arm2.config, arm2, devices.capture, job2, robot=2)
+        return {**one.output, "robot2_plan": two.output["plan"]}
+
+    await _park(ctx, arm2, "robot 2")
+    one = await calibrate_arm(ctx, config, devices, devices.capture, job)
+    await _park(ctx, devices, "robot 1")
+    two = await calibrate_arm(ctx, arm2.config, arm2, devices.capture, job2, dataset_name="dataset-robot2", robot=2)
+    await _park(ctx, arm2, "robot 2")
+    entry = robot2_entry(one, two, r2.base_pose, r2.verification_pose)
+    await prune_calibrations(ctx, config)
+    out = dict(one.output)
+    out["calibration"] = {**out["calibration"], "robot2": entry}
+    out["robot2"] = {key: two.output[key] for key in ("report", "early_stop", "poses_captured", "poses_planned", "dataset")}
+    log.info(
+        "robots calibrated",
+        job=ctx.job_id,
+        from_drawing_mm=round(entry["from_drawing_mm"], 3),
+        translation_std_mm=[round(v, 3) for v in entry["translation_std_mm"]],
+        verdict=entry["quality"].get("verdict"),
+    )
+    return out
+
+
+def robot2_entry(
+    one: ArmCalibration, two: ArmCalibration, base_pose: tuple[float, ...], verification_pose: tuple[float, ...]
+) -> dict[str, Any]:
+    """The calibration's ``robot2`` entry from both robots' solves (Eq. 6c with the camera fixed)."""
+    if one.result is None or two.result is None:
+        raise JobError("$.dry_run", "a dry run has no calibration to compose")
+    r1, r2 = one.result, two.result
+    T_b1b2, unc = robots_through_camera(r1.T_base_cam_stored, r1.uncertainty, r2.T_base_cam_stored, r2.uncertainty)
+    # The 1-sigma where the robots meet: robot 2's verification position, in base 1.
+    std = point_std(T_b1b2, unc, np.asarray(verification_pose[:3]))
+    off, angle = se3.error(T_b1b2, se3.from_ur_pose(base_pose))
+    cal2 = two.output["calibration"]
+    return {
+        "T_base2_cam": cal2["T_base_cam"],
+        "T_base1_base2": T_b1b2.tolist(),
+        "quality": cal2["quality"],
+        "translation_std_mm": (std * 1e3).tolist(),
+        "rotation_std_deg": np.degrees(unc.rotation_std).tolist(),
+        "from_drawing_mm": off * 1e3,
+        "from_drawing_deg": math.degrees(angle),
+        "cost_mm": cal2["cost_mm"],
+        "pairs": cal2["pairs"],
+        "dataset": cal2["dataset"],
+        "stored": cal2["stored"],
+    }
