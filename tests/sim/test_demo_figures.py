@@ -1,0 +1,29 @@
+"""The demo's robot-robot figures: the calibrated base 2 against the truth where the robots meet."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from celld import se3
+from celld.sim.demo import _robot2_lines, robot2_figures
+
+
+def test_robot2_figures_measure_the_miss_where_the_robots_meet() -> None:
+    T_true = se3.from_ur_pose([1.25, 0.0, 0.0, 0.0, 0.0, math.pi])
+    # The estimate turned 1 mrad about the vertical through base 2's origin: 1 mm off per metre of lever.
+    T_est = se3.transform_from(se3.from_xyz_rpy([0, 0, 0], [0, 0, 1e-3])[:3, :3] @ T_true[:3, :3], T_true[:3, 3])
+    entry = {
+        "T_base1_base2": T_est.tolist(),
+        "translation_std_mm": [0.03, 0.04, 0.0],
+        "from_drawing_mm": 3.2,
+        "quality": {"verdict": "ok"},
+    }
+    verification = (0.65, 0.0, 0.45, 0.0, 0.0, 0.0)
+    f = robot2_figures(entry, T_true, verification)
+    lever = se3.apply(T_true, np.array([verification[:3]]))[0] - T_true[:3, 3]  # 0.65 m across, 0.45 m up
+    assert f["meet_mm"] == pytest.approx(1e-3 * np.hypot(*lever[:2]) * 1e3, rel=1e-3)
+    assert f["meet_std_mm"] == pytest.approx(0.05) and f["rotation_deg"] == pytest.approx(math.degrees(1e-3), rel=1e-6)
+    assert "0.650 mm where the robots meet" in _robot2_lines(f)[0] and _robot2_lines(None) == []
