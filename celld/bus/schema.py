@@ -462,7 +462,11 @@ _ROBOT2_CALIBRATION = _object(
         "T_base2_cam": _MATRIX4,
         "T_base1_base2": _MATRIX4,
         "quality": _QUALITY,
-        "translation_std_mm": _vector("T_base1_base2's translation 1-sigma along robot 1's base axes, mm.", 3),
+        "translation_std_mm": _vector(
+            "1-sigma of robot 2's verification position placed in base 1 by T_base1_base2 (where the robots meet), along "
+            "robot 1's base axes, mm: the scanner's noise through both calibrations, not the arms' absolute error.",
+            3,
+        ),
         "rotation_std_deg": _vector("Its rotation 1-sigma about robot 1's base axes, deg.", 3),
         "from_drawing_mm": {"type": "number", "description": "How far the calibrated base 2 lies from robot2.base_pose, mm."},
         "from_drawing_deg": {"type": "number", "description": "The angle between them, deg."},

@@ -38,7 +38,7 @@ detector first.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -180,6 +180,10 @@ class CalibrationResult:
     range_bias : RangeBiasFit | None
         The range bias on metal estimated with the transform (``range_bias =
         "estimate"``), None when not estimated.
+    gated : tuple of str
+        Pairs the robust estimate used that the quality gate found to be
+        outliers; the estimate was solved again without them (they are in
+        ``rejected`` with that reason).
     """
 
     T_base_cam: Array
@@ -196,6 +200,8 @@ class CalibrationResult:
     quality: CalibrationQuality
     stored: str = "estimate"
     range_bias: RangeBiasFit | None = None
+    # Pairs the robust estimate used that its quality gate found to be outliers: left out and solved again.
+    gated: tuple[str, ...] = ()
 
     @property
     def bias(self) -> float:
@@ -272,6 +278,11 @@ def solve_pairs(
 ) -> CalibrationResult:
     """Solve ``T_base_cam`` from detected centre pairs (the pure core).
 
+    With the robust method, pairs the estimate used that its quality gate
+    finds to be outliers are left out once and the estimate solved again
+    (:attr:`CalibrationResult.gated`; each is in ``rejected`` with why),
+    when enough pairs remain for the gate.
+
     Parameters
     ----------
     ids : sequence of str
@@ -326,90 +337,38 @@ def solve_pairs(
     if verifier is not None and len(P_b) >= 4:
         a1 = run_algorithm1(ids_t, P_b, P_c, verifier, cost, e_required=params.e_required, k_max=params.k_max, with_scale=params.with_scale)
 
-    rejected = list(pre_rejected)
-    if params.method == "robust" and rb is not None and rob_rb is not None:
-        # The joint fit on the consistent pairs: its covariance carries the bias's.
-        T, used, unc, scale = rb.T_base_cam, list(rob_rb.inliers), rb.uncertainty, 1.0
-        rejected += list(rob_rb.rejected)
-    elif params.method == "robust":
-        rob = solve_robust(P_b, P_c, ids=ids_t, params=replace(params.robust, with_scale=params.with_scale))
-        T, used, unc, scale = rob.T_base_cam, list(rob.inliers), rob.fit.uncertainty, rob.fit.scale
-        rejected += list(rob.rejected)
-    elif params.method == "svd" and rb is not None and range_data is not None:
-        rb = solve_range_bias(P_b, P_c_measured, range_data, ids=ids_t)  # every pair, as measured
-        T, used, unc, scale = rb.T_base_cam, list(range(len(P_b))), rb.uncertainty, 1.0
-        if range_data.centres_on_metal:
-            P_c = rb.P_cam_corrected
-    elif params.method == "svd":
-        fit = solve_rigid(P_b, P_c, with_scale=params.with_scale)
-        T, used, unc, scale = fit.T_dst_src, list(range(len(P_b))), fit.uncertainty, fit.scale
-    else:
-        if a1 is None or a1.fit is None or a1.T_base_cam is None:
-            raise CalibrationError("Algorithm 1 found no solvable pool of four pairs")
-        used = sorted(ids_t.index(i) for i in a1.pool_ids)
-        T, unc, scale = a1.T_base_cam, a1.fit.uncertainty, a1.fit.scale
-        rejected += [RejectedPair(ids_t[i], i, float("nan"), "not in Algorithm 1's final pool") for i in range(len(P_b)) if i not in used]
-    d_cam = float(np.linalg.norm(T[:3, 3]))
-    if d_cam > MAX_CAMERA_DISTANCE:
-        raise CalibrationError(
-            f"the solve puts the camera {d_cam:.3g} m from the robot base, which no cell has (at most "
-            f"{MAX_CAMERA_DISTANCE:g} m): the poses and the clouds are likely in different units (poses must be "
-            "in metres, clouds in the session's declared unit)"
-        )
+    # The robust estimate leaves out, once, the pairs the quality gate finds to be
+    # outliers among those it used (its consistency test and the gate's read the
+    # noise differently when an arm's pose-dependent error gives the residuals a
+    # long tail), and is solved and judged again; each such pair is reported.
+    gated: dict[int, str] = {}
+    while True:
+        est = _estimate(ids_t, P_b, P_c, P_c_measured, params, verifier, pre_rejected, a1, rb, rob_rb, range_data, gated)
+        flagged = {ids_t.index(q.id): q.residual for q in est.quality.pairs if q.used and q.outlier}
+        if params.method != "robust" or rb is not None or gated or not flagged or len(est.used) - len(flagged) < params.quality.min_pairs:
+            break
+        gated = {
+            i: f"an outlier of the quality gate (residual {r * 1e3:.3f} mm) among the pairs the robust estimate used: "
+            "left out, and the estimate solved again"
+            for i, r in flagged.items()
+        }
+    T, used, unc, scale, quality, P_c, rb = est.T, est.used, est.uncertainty, est.scale, est.quality, est.P_c, est.rb
     res_all = pair_residuals(T, P_b, P_c, scale)
-    for k, r in enumerate(rejected):
-        if r.id in ids_t and not np.isfinite(r.residual):
-            rejected[k] = replace(r, residual=float(res_all[ids_t.index(r.id)]))
-
-    e_final = None
-    T_comp = None
-    notes = []
-    if verifier is not None:
-        e_final = verifier.strict()(T)
-        if params.compensate and e_final.ok:
-            T_comp = compensate(T, e_final)
-    if params.compensate and T_comp is None:
-        why = "no verification cloud" if e_final is None else f"e_icp is infinite ({e_final.reason})"
-        notes.append(f"compensation (Eq. 21) was asked for but not applied: {why}; the estimate is stored")
-    # The verification flange's axis in the camera frame, by the estimate: e_icp's
-    # turn about it is fixed only by the flange's holes (quality module).
-    T_base_flan_v = getattr(verifier, "T_base_flan_v", None)
-    axis_cam = centre_cam = None
-    if T_base_flan_v is not None:
-        T_cam_flan_v = se3.invert(T) @ np.asarray(T_base_flan_v)
-        axis_cam, centre_cam = T_cam_flan_v[:3, 2], T_cam_flan_v[:3, 3]
-    quality = assess_calibration(
-        ids_t,
-        P_b,
-        P_c,
-        T,
-        used=used,
-        uncertainty=unc,
-        scale=scale,
-        with_scale=params.with_scale,
-        rejected=rejected,
-        e_icp=e_final,
-        flange_axis_cam=axis_cam,
-        flange_centre_cam=centre_cam,
-        compensated=T_comp is not None,
-        notes=notes,
-        range_bias=rb,
-        params=params.quality,
-    )
     return CalibrationResult(
         T_base_cam=T,
         method=params.method,
         pair_ids=tuple(ids_t[i] for i in used),
         residuals=res_all[used],
-        rejected=tuple(rejected),
+        rejected=tuple(est.rejected),
         uncertainty=unc,
         all_residuals={i: float(r) for i, r in zip(ids_t, res_all)},
-        e_icp=e_final,
-        T_base_cam_compensated=T_comp,
+        e_icp=est.e_icp,
+        T_base_cam_compensated=est.T_compensated,
         algorithm1=a1,
         n_pairs=n_pairs if n_pairs is not None else len(P_b) + len(pre_rejected),
         quality=quality,
-        stored="compensated" if T_comp is not None else "estimate",
+        stored="compensated" if est.T_compensated is not None else "estimate",
+        gated=tuple(ids_t[i] for i in sorted(gated)),
         range_bias=rb,
     )
 
@@ -549,3 +508,112 @@ def calibrate_session(
     for warning in result.quality.warnings:
         log.warning("calib.quality", warning=warning)
     return result
+
+
+@dataclass(frozen=True)
+class _Estimate:
+    """One estimate of :func:`solve_pairs` and what was judged with it."""
+
+    T: Array
+    used: list[int]
+    uncertainty: Uncertainty
+    scale: float
+    rejected: list[RejectedPair]
+    e_icp: IcpMetric | None
+    T_compensated: Array | None
+    quality: CalibrationQuality
+    P_c: Array  # the centres as solved (corrected by a range bias solved with them)
+    rb: RangeBiasFit | None
+
+
+def _estimate(
+    ids_t: tuple[str, ...],
+    P_b: Array,
+    P_c: Array,
+    P_c_measured: Array,
+    params: SolveParams,
+    verifier: IcpVerifier | None,
+    pre_rejected: Sequence[RejectedPair],
+    a1: Algorithm1Result | None,
+    rb: RangeBiasFit | None,
+    rob_rb: Any,
+    range_data: RangeBiasData | None,
+    gated: Mapping[int, str],
+) -> _Estimate:
+    """One estimate of :func:`solve_pairs` by its method, its e_icp, compensation and quality verdict.
+
+    ``gated`` maps pairs left out by an earlier verdict (robust method) to why.
+    """
+    rejected = list(pre_rejected)
+    if params.method == "robust" and rb is not None and rob_rb is not None:
+        # The joint fit on the consistent pairs: its covariance carries the bias's.
+        T, used, unc, scale = rb.T_base_cam, list(rob_rb.inliers), rb.uncertainty, 1.0
+        rejected += list(rob_rb.rejected)
+    elif params.method == "robust":
+        keep = [i for i in range(len(P_b)) if i not in gated]
+        rob = solve_robust(P_b[keep], P_c[keep], ids=[ids_t[i] for i in keep], params=replace(params.robust, with_scale=params.with_scale))
+        T, used, unc, scale = rob.T_base_cam, [keep[j] for j in rob.inliers], rob.fit.uncertainty, rob.fit.scale
+        rejected += [replace(r, index=keep[r.index]) for r in rob.rejected]
+        rejected += [RejectedPair(ids_t[i], i, float("nan"), why) for i, why in gated.items()]
+    elif params.method == "svd" and rb is not None and range_data is not None:
+        rb = solve_range_bias(P_b, P_c_measured, range_data, ids=ids_t)  # every pair, as measured
+        T, used, unc, scale = rb.T_base_cam, list(range(len(P_b))), rb.uncertainty, 1.0
+        if range_data.centres_on_metal:
+            P_c = rb.P_cam_corrected
+    elif params.method == "svd":
+        fit = solve_rigid(P_b, P_c, with_scale=params.with_scale)
+        T, used, unc, scale = fit.T_dst_src, list(range(len(P_b))), fit.uncertainty, fit.scale
+    else:
+        if a1 is None or a1.fit is None or a1.T_base_cam is None:
+            raise CalibrationError("Algorithm 1 found no solvable pool of four pairs")
+        used = sorted(ids_t.index(i) for i in a1.pool_ids)
+        T, unc, scale = a1.T_base_cam, a1.fit.uncertainty, a1.fit.scale
+        rejected += [RejectedPair(ids_t[i], i, float("nan"), "not in Algorithm 1's final pool") for i in range(len(P_b)) if i not in used]
+    d_cam = float(np.linalg.norm(T[:3, 3]))
+    if d_cam > MAX_CAMERA_DISTANCE:
+        raise CalibrationError(
+            f"the solve puts the camera {d_cam:.3g} m from the robot base, which no cell has (at most "
+            f"{MAX_CAMERA_DISTANCE:g} m): the poses and the clouds are likely in different units (poses must be "
+            "in metres, clouds in the session's declared unit)"
+        )
+    res_all = pair_residuals(T, P_b, P_c, scale)
+    for k, r in enumerate(rejected):
+        if r.id in ids_t and not np.isfinite(r.residual):
+            rejected[k] = replace(r, residual=float(res_all[ids_t.index(r.id)]))
+
+    e_final = None
+    T_comp = None
+    notes = []
+    if verifier is not None:
+        e_final = verifier.strict()(T)
+        if params.compensate and e_final.ok:
+            T_comp = compensate(T, e_final)
+    if params.compensate and T_comp is None:
+        why = "no verification cloud" if e_final is None else f"e_icp is infinite ({e_final.reason})"
+        notes.append(f"compensation (Eq. 21) was asked for but not applied: {why}; the estimate is stored")
+    # The verification flange's axis in the camera frame, by the estimate: e_icp's
+    # turn about it is fixed only by the flange's holes (quality module).
+    T_base_flan_v = getattr(verifier, "T_base_flan_v", None)
+    axis_cam = centre_cam = None
+    if T_base_flan_v is not None:
+        T_cam_flan_v = se3.invert(T) @ np.asarray(T_base_flan_v)
+        axis_cam, centre_cam = T_cam_flan_v[:3, 2], T_cam_flan_v[:3, 3]
+    quality = assess_calibration(
+        ids_t,
+        P_b,
+        P_c,
+        T,
+        used=used,
+        uncertainty=unc,
+        scale=scale,
+        with_scale=params.with_scale,
+        rejected=rejected,
+        e_icp=e_final,
+        flange_axis_cam=axis_cam,
+        flange_centre_cam=centre_cam,
+        compensated=T_comp is not None,
+        notes=notes,
+        range_bias=rb,
+        params=params.quality,
+    )
+    return _Estimate(T, used, unc, scale, rejected, e_final, T_comp, quality, P_c, rb)

@@ -370,6 +370,10 @@ def _gated_solve(
         return None, str(exc)
     if result.quality.verdict != "ok":
         return None, f"the quality gate says {result.quality.verdict} ({'; '.join(result.quality.reasons)})"
+    if result.gated:
+        # An early stop wants a session the gate passes as the estimator left it; the
+        # final solve may still leave the gate's outliers out (solve_pairs).
+        return None, f"the quality gate found the pairs {', '.join(result.gated)} to be outliers"
     return result, ""
 
 

@@ -8,9 +8,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from celld import se3
 from celld.calib.flange import preset
 from celld.calib.metrics import IcpMetric, IcpParams, IcpVerifier, model_cloud_with_normals
+from celld.calib.quality import assess_calibration
 from celld.calib.rangebias import RangeBiasData
+from celld.calib.robust import solve_robust
 from celld.calib.session import SolveParams, solve_pairs
 from celld.errors import CalibrationError, InputError
 from celld.se3 import apply, error, invert, transform_from
@@ -202,3 +205,26 @@ def test_range_bias_settings_and_data_are_checked(rng: np.random.Generator) -> N
         solve_pairs(ids, P_base, P_cam, SolveParams(range_bias="estimate"))
     with pytest.raises(InputError, match="range_data"):
         solve_pairs(ids, P_base, P_cam, SolveParams(range_bias="estimate"), range_data=data.subset(range(5)))
+
+
+def test_a_pair_the_robust_estimate_kept_and_the_gate_flags_is_left_out_and_solved_again() -> None:
+    # Long-tailed residuals (Student t, as an arm's pose-dependent error gives them): the robust
+    # estimate's noise read from its inliers keeps p003 (0.25 mm), the gate's read from the median
+    # flags it. The estimate is solved again without it, and it is reported with why.
+    T = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
+    gen = np.random.default_rng(4)
+    P_b = gen.uniform(-0.5, 0.5, (20, 3)) * [0.3, 0.3, 0.2] + [0.6, 0.0, 0.45]
+    P_c = se3.apply(se3.invert(T), P_b) + gen.standard_t(2.5, (20, 3)) * 4e-5
+    ids = [f"p{i:03d}" for i in range(20)]
+    result = solve_pairs(ids, P_b, P_c, SolveParams())
+    assert result.gated == ("p003",) and "p003" not in result.pair_ids
+    why = next(r for r in result.rejected if r.id == "p003")
+    assert why.index == 3 and "outlier of the quality gate" in why.reason and why.residual > 0.2e-3
+    assert result.quality.verdict == "ok" and not [q for q in result.quality.pairs if q.used and q.outlier]
+    # Without the second solve the same pairs fail the gate: the robust estimate alone used p003.
+    first = solve_robust(P_b, P_c, ids=ids)
+    assert 3 in first.inliers
+    q = assess_calibration(ids, P_b, P_c, first.T_base_cam, used=list(first.inliers), uncertainty=first.fit.uncertainty)
+    assert q.verdict == "poor_data" and "p003" in q.outliers
+    # Other methods are left as they are.
+    assert solve_pairs(ids, P_b, P_c, SolveParams(method="svd")).gated == ()

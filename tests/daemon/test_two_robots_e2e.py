@@ -81,6 +81,16 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, loopback_
         off, _ = se3.error(T_true, world.robot2.T_base1_base2_drawn)
         assert off > 1e-3, "the world should put robot 2 off its drawing"
 
+        # A dry run plans both robots and moves neither; given poses are refused (both robots' are generated).
+        q1_before, q2_before = np.asarray(cell.robot.truth()[2]), np.asarray(cell.robot2.truth()[2])
+        _, dry = client.submit_and_wait({"kind": "calibrate", "seed": 1, "robot2": True, "dry_run": True}, timeout=120)
+        assert dry["state"] == "succeeded", dry["reason"]
+        plans = json.loads(Path(dry["result"]).read_text())
+        assert len(plans["plan"]["poses"]) == 6 and len(plans["robot2_plan"]["poses"]) == 6
+        assert np.allclose(cell.robot.truth()[2], q1_before, atol=1e-4) and np.allclose(cell.robot2.truth()[2], q2_before, atol=1e-4)
+        _, given = client.submit_and_wait({"kind": "calibrate", "robot2": True, "poses": [[0.6, 0.0, 0.45, 0.0, 0.0, 0.0]] * 4}, timeout=60)
+        assert given["state"] == "failed" and "$.poses" in given["reason"], given
+
         _, record = client.submit_and_wait({"kind": "calibrate", "seed": 1, "robot2": True}, timeout=900)
         assert record["state"] == "succeeded", record["reason"]
         result = json.loads(Path(record["result"]).read_text())
