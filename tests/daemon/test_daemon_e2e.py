@@ -74,11 +74,11 @@ def daemon(tmp_path: Path, loopback_host: str):
 
     cfg_path = _write_config(tmp_path / "cell.toml", loopback_host, tmp_path / "state")
     with run_cell(cfg_path, tmp_path / "daemon.log", timeout=60) as cell:
-        yield cell  # (client, daemon process, config, simulated robot)
+        yield cell  # a RunningCell: client, daemon process, config, simulated robot, world
 
 
 def test_calibrate_over_the_bus_then_accept(daemon) -> None:
-    client, proc, cfg, _, _ = daemon
+    client, proc, cfg = daemon.client, daemon.daemon, daemon.config
     events: list[dict] = []
     reply, record = client.submit_and_wait({"kind": "calibrate", "seed": 3}, on_event=events.append, timeout=400)
     assert record["state"] == "succeeded", record["reason"]
@@ -135,7 +135,7 @@ def test_calibrate_over_the_bus_then_accept(daemon) -> None:
 
 
 def test_move_and_health_and_a_refused_job(daemon) -> None:
-    client, _, _, robot, _ = daemon
+    client, robot = daemon.client, daemon.robot
     _, record = client.submit_and_wait({"kind": "health", "check": "all"}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
     health = json.loads(Path(record["result"]).read_text())
@@ -184,7 +184,7 @@ def test_move_and_health_and_a_refused_job(daemon) -> None:
 
 
 def test_a_calibration_dry_run_plans_and_checks_without_moving(daemon) -> None:
-    client, _, _, robot, _ = daemon
+    client, robot = daemon.client, daemon.robot
     q_before = robot.truth()[2]
     _, record = client.submit_and_wait({"kind": "calibrate", "n_poses": 6, "seed": 2, "dry_run": True}, timeout=120)
     assert record["state"] == "succeeded", record["reason"]
@@ -221,7 +221,7 @@ def _wait_end(client: CellClient, job: str, timeout: float) -> dict:
 
 
 def test_cancel_during_a_job_stops_the_robot_and_ends_cancelled(daemon) -> None:
-    client, _, _, sim, _ = daemon
+    client, sim = daemon.client, daemon.robot
     job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 1}, "pair")
     reply = client.cancel(job, "operator")
     assert reply["state"] == "cancelled"
@@ -236,7 +236,7 @@ def test_cancel_during_a_job_stops_the_robot_and_ends_cancelled(daemon) -> None:
 
 
 def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(daemon) -> None:
-    client, proc, _, sim, _ = daemon
+    client, proc, sim = daemon.client, daemon.daemon, daemon.robot
     job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 2}, "pair")
     sim.inject("drop_all", down_ms=3000)
     record = _wait_end(client, job, 120)
@@ -255,7 +255,7 @@ def test_kill_9_of_the_daemon_mid_calibration_stops_the_arm_and_the_next_daemon_
     from celld.sim.cell import start_daemon, stop_daemon
     from tests.daemon.orphans import after_kill, wait_moving
 
-    client, proc, cfg, robot, _ = daemon
+    client, proc, cfg, robot = daemon.client, daemon.daemon, daemon.config, daemon.robot
     job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 4}, "pair")
     wait_moving(robot, min_speed=0.03)  # on its way to the next calibration pose
     t_kill = time.monotonic_ns()

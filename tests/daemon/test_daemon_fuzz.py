@@ -518,7 +518,7 @@ def _same_reason(daemon_reason: str, local_reason: str) -> bool:
 
 
 def test_hostile_submits_are_all_refused_and_the_daemon_stays_up_with_an_intact_journal(daemon, tmp_path: Path) -> None:  # noqa: F811
-    _, proc, cfg, _, _ = daemon
+    proc, cfg = daemon.daemon, daemon.config
     log_path = tmp_path / "daemon.log"
     journal_path = Path(cfg.cell.state_dir) / "journal.db"
     sent: collections.Counter[str] = collections.Counter()

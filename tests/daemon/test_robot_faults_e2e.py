@@ -77,7 +77,8 @@ def test_a_protective_stop_is_explained_refused_early_cleared_and_the_watchdog_k
     monkeypatch.setenv("WATCHDOG_USEC", str(WATCHDOG_USEC))
     cfg_path = _write_config(tmp_path / "cell.toml", loopback_host, tmp_path / "state")
     try:
-        with run_cell(cfg_path, tmp_path / "daemon.log", timeout=60) as (client, _, _, robot, _):
+        with run_cell(cfg_path, tmp_path / "daemon.log", timeout=60) as cell:
+            client, robot = cell.client, cell.robot
             _wait(lambda: any(m == "READY=1" for _, m in receiver.messages), 30, "READY=1")
             t_ready = time.monotonic()
             status = _wait(lambda: client.status()["robot"]["ready"] and client.status(), 10, "robot ready")

@@ -111,7 +111,8 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, loopback_
 
         # Each robot's dataset: robot 1's flange poses in its own base, robot 2's in its own.
         one, two = load_session(calibration["dataset"]), load_session(entry["dataset"])
-        assert Path(entry["dataset"]).name == "dataset-robot2" and len(one.pairs) >= 6 and len(two.pairs) >= 6
+        # (A robot may stop early once Algorithm 1 and the gate are satisfied: at the gate's five pairs.)
+        assert Path(entry["dataset"]).name == "dataset-robot2" and len(one.pairs) >= 5 and len(two.pairs) >= 5
         v2 = two.verification
         assert v2 is not None and np.allclose(v2.p_base, p2, atol=2e-3)
 
