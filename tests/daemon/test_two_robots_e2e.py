@@ -107,7 +107,10 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, loopback_
         # Its report: the 1-sigma there is of the size of the miss, not of the drawing's error.
         assert all(0.0 < s < 1.0 for s in entry["translation_std_mm"]), entry["translation_std_mm"]
         assert entry["from_drawing_mm"] == pytest.approx(se3.error(T_b1b2, world.robot2.T_base1_base2_drawn)[0] * 1e3)
-        assert abs(entry["from_drawing_mm"] - off * 1e3) < 0.5
+        # The drawing's error is measured, not echoed: base 2's origin lies 0.8 m from where the robots
+        # meet, so the rotation's bound there adds to the translation's.
+        lever = float(np.linalg.norm(p2))
+        assert abs(entry["from_drawing_mm"] - off * 1e3) <= (AT_VERIFICATION + ROTATION * lever) * 1e3 < off * 1e3
 
         # Each robot's dataset: robot 1's flange poses in its own base, robot 2's in its own.
         one, two = load_session(calibration["dataset"]), load_session(entry["dataset"])
