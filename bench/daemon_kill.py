@@ -59,7 +59,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from celld.sim.cell import run_cell, start_daemon, stop_daemon  # noqa: E402
-from celld.sim.score import after_fault  # noqa: E402
+from celld.sim.score import after_fault, orphaned_after  # noqa: E402
 
 HOST = "127.0.0.7"
 ARC = 0  # the arc's digital output in configs/sim-cell.toml
@@ -100,17 +100,6 @@ def _after_kill(robot: Any, t_kill_ns: int, window: float = WINDOW) -> dict[str,
         "arc_off_s": seen.arc_off_s,
         "travel_mm": seen.travel * 1e3,
     }
-
-
-def _seen_by_motion(log_text: str, t_kill_ns: int) -> tuple[float, str]:
-    """When (s after the kill) and why the motion process took its daemon for gone, from its exit line."""
-    for line in log_text.splitlines():
-        if "motion loop ended" in line:
-            at = re.search(r"orphaned_ns=(\d+)", line)
-            why = re.search(r"""reason=(?:'([^':]*)|"([^":]*))""", line)
-            if at and int(at.group(1)):
-                return (int(at.group(1)) - t_kill_ns) * 1e-9, (why.group(1) or why.group(2)) if why else "?"
-    return float("nan"), "no exit line"
 
 
 TARGETS = ("daemon", "tactile", "motion", "hang")
@@ -223,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
                             del row["travel_mm"]  # the window starts after the kill: the weld went on meanwhile
                         if target in ("daemon", "hang"):
                             time.sleep(1.0)  # the motion process has logged its end
-                            row["seen_s"], row["why"] = _seen_by_motion(log_path.read_bytes()[log_from:].decode(errors="replace"), t_kill)
+                            row["seen_s"], row["why"] = orphaned_after(log_path.read_bytes()[log_from:].decode(errors="replace"), t_kill)
                             if target == "hang":  # the hung daemon is ended for good, as systemd's watchdog would
                                 proc.kill()
                                 proc.wait(10)

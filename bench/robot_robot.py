@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import statistics
 import sys
 import tempfile
@@ -51,6 +50,7 @@ sys.path.insert(0, str(ROOT))
 
 from celld import se3  # noqa: E402
 from celld.sim.cell import run_cell  # noqa: E402
+from celld.sim.demo import robot2_figures  # noqa: E402
 from celld.sim.score import box_grid, handover_errors  # noqa: E402
 
 HOST, HOST2 = "127.0.0.8", "127.0.0.9"
@@ -103,10 +103,7 @@ def run_seed(workdir: Path, seed: int, n_poses: int, resolution: float) -> dict[
     entry = cal["robot2"]
     T_est, T_true, T_drawn = np.array(entry["T_base1_base2"]), world.robot2.T_base1_base2, world.robot2.T_base1_base2_drawn
     T_v2 = se3.from_ur_pose(cfg.robot2.verification_pose)
-    p_meet = T_v2[:3, 3]
-    miss = float(np.linalg.norm(se3.apply(T_est, p_meet[None])[0] - se3.apply(T_true, p_meet[None])[0]))
-    _, rot = se3.error(T_est, T_true)
-    grid = box_grid(p_meet, cfg.calibration.pose_box)
+    grid = box_grid(T_v2[:3, 3], cfg.calibration.pose_box)
     q1 = np.array([2.847, -1.401, 2.311, -2.481, 1.571, -1.276])  # robot 1 facing down over the table
     q2 = np.array([2.87, -1.332, 2.218, -2.457, 1.571, -1.3])  # robot 2 at its verification pose
     handover = {
@@ -114,10 +111,7 @@ def run_seed(workdir: Path, seed: int, n_poses: int, resolution: float) -> dict[
         for name, T in (("calibrated", T_est), ("true", T_true), ("drawn", T_drawn))
     }
     row.update(
-        meet_mm=miss * 1e3,
-        rotation_deg=math.degrees(rot),
-        meet_std_mm=float(np.linalg.norm(entry["translation_std_mm"])),
-        from_drawing_mm=entry["from_drawing_mm"],
+        robot2_figures(entry, T_true, cfg.robot2.verification_pose),  # meet_mm, meet_std_mm, rotation_deg, from_drawing_mm
         from_drawing_deg=entry["from_drawing_deg"],
         handover=handover,
         verdict1=cal["quality"]["verdict"],

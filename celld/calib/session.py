@@ -342,34 +342,31 @@ def solve_pairs(
     # noise differently when an arm's pose-dependent error gives the residuals a
     # long tail), and is solved and judged again; each such pair is reported.
     gated: dict[int, str] = {}
-    while True:
-        est = _estimate(ids_t, P_b, P_c, P_c_measured, params, verifier, pre_rejected, a1, rb, rob_rb, range_data, gated)
-        flagged = {ids_t.index(q.id): q.residual for q in est.quality.pairs if q.used and q.outlier}
-        if params.method != "robust" or rb is not None or gated or not flagged or len(est.used) - len(flagged) < params.quality.min_pairs:
-            break
+    est = _estimate(ids_t, P_b, P_c, P_c_measured, params, verifier, pre_rejected, a1, rb, rob_rb, range_data, gated)
+    flagged = {ids_t.index(q.id): q.residual for q in est.quality.pairs if q.used and q.outlier}
+    if params.method == "robust" and rb is None and flagged and len(est.used) - len(flagged) >= params.quality.min_pairs:
         gated = {
             i: f"an outlier of the quality gate (residual {r * 1e3:.3f} mm) among the pairs the robust estimate used: "
             "left out, and the estimate solved again"
             for i, r in flagged.items()
         }
-    T, used, unc, scale, quality, P_c, rb = est.T, est.used, est.uncertainty, est.scale, est.quality, est.P_c, est.rb
-    res_all = pair_residuals(T, P_b, P_c, scale)
+        est = _estimate(ids_t, P_b, P_c, P_c_measured, params, verifier, pre_rejected, a1, rb, rob_rb, range_data, gated)
     return CalibrationResult(
-        T_base_cam=T,
+        T_base_cam=est.T,
         method=params.method,
-        pair_ids=tuple(ids_t[i] for i in used),
-        residuals=res_all[used],
+        pair_ids=tuple(ids_t[i] for i in est.used),
+        residuals=est.residuals[est.used],
         rejected=tuple(est.rejected),
-        uncertainty=unc,
-        all_residuals={i: float(r) for i, r in zip(ids_t, res_all)},
+        uncertainty=est.uncertainty,
+        all_residuals={i: float(r) for i, r in zip(ids_t, est.residuals)},
         e_icp=est.e_icp,
         T_base_cam_compensated=est.T_compensated,
         algorithm1=a1,
         n_pairs=n_pairs if n_pairs is not None else len(P_b) + len(pre_rejected),
-        quality=quality,
+        quality=est.quality,
         stored="compensated" if est.T_compensated is not None else "estimate",
         gated=tuple(ids_t[i] for i in sorted(gated)),
-        range_bias=rb,
+        range_bias=est.rb,
     )
 
 
@@ -517,12 +514,11 @@ class _Estimate:
     T: Array
     used: list[int]
     uncertainty: Uncertainty
-    scale: float
     rejected: list[RejectedPair]
     e_icp: IcpMetric | None
     T_compensated: Array | None
     quality: CalibrationQuality
-    P_c: Array  # the centres as solved (corrected by a range bias solved with them)
+    residuals: Array  # (n,) every pair's, against T, m
     rb: RangeBiasFit | None
 
 
@@ -616,4 +612,4 @@ def _estimate(
         range_bias=rb,
         params=params.quality,
     )
-    return _Estimate(T, used, unc, scale, rejected, e_final, T_comp, quality, P_c, rb)
+    return _Estimate(T, used, unc, rejected, e_final, T_comp, quality, res_all, rb)

@@ -169,17 +169,23 @@ class Arm:
         self.motion: MotionHandle | None = None
         self.planner = MotionPlanner(config)
 
-    async def open_motion(self, heartbeat: str, records: ChildRecords) -> None:
-        """Start its motion process (no servo law, no tactile sensor); the supervisor keeps connecting."""
+    async def open_motion(
+        self, heartbeat: str, records: ChildRecords, servo_laws: dict[str, str] | None = None, tactile_slot: str | None = None
+    ) -> MotionHandle:
+        """Start its motion process, watching the daemon's ``heartbeat``; the supervisor keeps (re)connecting
+        (see :meth:`wait_robot`). Without ``servo_laws`` and ``tactile_slot`` it only moves and holds."""
         cfg = self.config
         self.motion = await MotionHandle.open(
             cfg,
+            servo_laws=servo_laws,
+            tactile_slot=tactile_slot,
             link_timeout=cfg.motion.link_timeout,
             watchdog_hz=cfg.motion.rtde_watchdog_hz,
             wait=False,
             heartbeat=heartbeat,
             records=records,
         )
+        return self.motion
 
     async def close_motion(self) -> None:
         """A jerk-limited stop, then the end of its motion process."""
@@ -342,17 +348,9 @@ class CellDevices(Arm):
                 self.tactile_error = str(exc)
                 self._tactile_restart_at = time.monotonic()
                 log.error("the tactile process did not start; retrying in the background", error=str(exc))
-        self.motion = await MotionHandle.open(
-            cfg,
-            servo_laws=SERVO_LAWS,
-            tactile_slot=None if self.tactile is None else self.tactile.slot_name,
-            link_timeout=cfg.motion.link_timeout,
-            watchdog_hz=cfg.motion.rtde_watchdog_hz,
-            wait=False,  # the supervisor keeps (re)connecting; see wait_robot()
-            heartbeat=self.heartbeat.name,
-            records=records,
-        )
-        self.motion.add_listener(self._on_state_batch)
+        tactile_slot = None if self.tactile is None else self.tactile.slot_name
+        motion = await self.open_motion(self.heartbeat.name, records, SERVO_LAWS, tactile_slot)
+        motion.add_listener(self._on_state_batch)
         if self.robot2 is not None:
             await self.robot2.open_motion(self.heartbeat.name, records)
         self._reading = asyncio.get_running_loop().create_task(self._read_dashboard(), name="celld-dashboard")
@@ -408,10 +406,8 @@ class CellDevices(Arm):
 
     async def stop_robot(self) -> None:
         """Jerk-limited stop of every robot of the cell; returns once they hold still (or their links are gone)."""
-        if self.robot2 is None:
-            await super().stop_robot()
-            return
-        await asyncio.gather(super().stop_robot(), self.robot2.stop_robot())
+        others = [] if self.robot2 is None else [self.robot2.stop_robot()]
+        await asyncio.gather(super().stop_robot(), *others)
 
     async def _read_dashboard(self) -> None:
         previous = ""

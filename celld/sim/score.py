@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 import threading
 from collections.abc import Sequence
 from typing import Any, NamedTuple
@@ -315,3 +316,16 @@ def after_fault(history: np.ndarray, t_fault_ns: int, arc_output: int) -> AfterF
     arc_off = 0.0 if not len(on) else (float(t[on[-1] + 1]) if on[-1] + 1 < len(t) else math.inf)
     speed = float(np.median(v[max(i0 - 5, 1) : i0 + 1])) if i0 > 0 else math.nan
     return AfterFault(speed, stopped, float(np.linalg.norm(p[i_stop] - p[i0])), arc_off)
+
+
+def orphaned_after(log_text: str, t_fault_ns: int, host: str = "") -> tuple[float, str]:
+    """When (s after ``t_fault_ns``) and why a motion process took its daemon for gone, from its exit line in
+    the daemon's log (``orphaned_ns``, monotonic); ``host`` picks a robot's. (nan, "no exit line") without one."""
+    for line in log_text.splitlines():
+        if "motion loop ended" not in line or (host and f"host={host} " not in line):
+            continue
+        at = re.search(r"orphaned_ns=(\d+)", line)
+        why = re.search(r"""reason=(?:'([^':]*)|"([^":]*))""", line)
+        if at and int(at.group(1)):
+            return (int(at.group(1)) - t_fault_ns) * 1e-9, (why.group(1) or why.group(2)) if why else "?"
+    return math.nan, "no exit line"

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import math
-import re
 import time
 from typing import NamedTuple
 
 import numpy as np
 
-from celld.sim.score import after_fault
+from celld.sim.score import after_fault, orphaned_after
 
 
 class AfterKill(NamedTuple):
@@ -48,9 +46,6 @@ def motion_exits(log_path) -> list[str]:  # type: ignore[no-untyped-def]
 
 
 def seen_after(log_path, host: str, t_kill_ns: int) -> float:  # type: ignore[no-untyped-def]
-    """How long after ``t_kill_ns`` the motion process of the robot at ``host`` saw its daemon go, s (inf: not seen)."""
-    for line in motion_exits(log_path):
-        m = re.search(r"host=(\S+) .*orphaned_ns=(\d+)", line)
-        if m and m.group(1) == host:
-            return (int(m.group(2)) - t_kill_ns) * 1e-9
-    return math.inf
+    """How long after ``t_kill_ns`` the motion process of the robot at ``host`` saw its daemon go, s (nan: not seen)."""
+    with open(log_path, "rb") as f:
+        return orphaned_after(f.read().decode(errors="replace"), t_kill_ns, host)[0]
