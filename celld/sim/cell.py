@@ -197,8 +197,14 @@ class DaemonProcess(NamedTuple):
     client: CellClient
 
 
+def _links_up(status: dict[str, Any]) -> bool:
+    """Whether the status reply has every robot link of the cell up (the second robot's too, when there is one)."""
+    robot2 = status.get("robot", {}).get("robot2_link")
+    return status.get("robot_link") == "up" and robot2 in (None, "up")
+
+
 def start_daemon(config_path: str | Path, log: IO[bytes], timeout: float = 90.0, world: WorldOptions = WorldOptions()) -> DaemonProcess:
-    """Start ``celld sim run`` on a cell config (its robot must be up, in the same ``world``) and wait for its bus and robot link.
+    """Start ``celld sim run`` on a cell config (its robot must be up, in the same ``world``) and wait for its bus and robot links.
 
     Raises
     ------
@@ -229,7 +235,7 @@ def start_daemon(config_path: str | Path, log: IO[bytes], timeout: float = 90.0,
                 client = CellClient(cfg.bus, cfg.cell.name, timeout=20.0)
             except BusError:
                 time.sleep(0.5)
-        while client.status().get("robot_link") != "up":
+        while not _links_up(client.status()):
             check("the robot link")
             time.sleep(0.5)
     except BaseException:
@@ -260,7 +266,7 @@ def run_cell(
     (the same one: it is drawn deterministically). The daemon runs as its own
     process, as systemd would start it, with its output in ``log_path``; it
     gets SIGTERM on exit. Yields a :class:`RunningCell` once the bus answers
-    and the robot link is up.
+    and the robot links are up.
 
     Raises
     ------
