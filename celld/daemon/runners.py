@@ -199,7 +199,11 @@ async def calibrate_arm(
         plan = await asyncio.to_thread(planner.plan_calibration, to_v.q_end, candidates, n, more)
     poses = np.array(plan.poses)
     report_plan(ctx, plan, who + "calibration")
+    # Robot 1's calibration draws the cell, its arm and its solution in the job's recording (base 1's
+    # frame); another robot's adds what the scanner saw of it, named for it, in the camera's frame.
     rec = ctx.recording if robot == 1 else None
+    seen = ctx.recording
+    seen_as = "" if robot == 1 else f"robot{robot}-"
     if job.dry_run:
         record_plan(rec, planner.bare, [tuple(to_v.q_end), *plan.q])
         return ArmCalibration(
@@ -229,8 +233,8 @@ async def calibrate_arm(
     T_v_robot, q_v = await _settled_flange_pose(arm, T_v, cal.settle)
     cloud_v = await capture()
     await asyncio.to_thread(partial(writer.set_verification, T_v_robot, cloud_v.points, q=q_v))
-    if rec is not None:
-        rec.log_cloud_cam("verification", cloud_v.points)
+    if seen is not None:
+        seen.log_cloud_cam(seen_as + "verification", cloud_v.points)
     verifier = await asyncio.to_thread(verifier_from_cloud, cloud_v.points, mount.to_link(T_v_robot, q_v), flange, params, dparams)
     alg = Algorithm1(
         verifier, cost_function(params.cost, params.work_radius), e_required=params.e_required, k_max=params.k_max or len(poses)
@@ -252,9 +256,10 @@ async def calibrate_arm(
             reason = got.rejected.reason if got.rejected is not None else "no detection"
             progress("pair", (i + 1) / len(poses), f"pair {pid}: no flange ({reason})", pair=pid, detected=False)
             continue
+        if seen is not None:
+            seen.log_cloud_cam(seen_as + "pair", cloud.points)
+            seen.log_circle_cam(seen_as + "flange", det.center, det.normal, det.radius)
         if rec is not None:
-            rec.log_cloud_cam("pair", cloud.points)
-            rec.log_circle_cam("flange", det.center, det.normal, det.radius)
             rec.log_tcp(T_bf)
             here = arm.require_motion().state()
             if here is not None:
@@ -444,6 +449,11 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
             problems.append(f"robot link {h.link}")
         if not condition.ready:
             problems.append(f"robot {condition.state}: {condition.reason} ({condition.remedy})")
+        if devices.robot2 is not None:
+            h2 = devices.robot2.require_motion().health()
+            out["robot2"] = h2._asdict()
+            if h2.link != "running":
+                problems.append(f"robot 2 link {h2.link}")
         out["arc_interlock"] = devices.interlock_report()
         if out["arc_interlock"]["missing_seen"]:
             problems.append(out["arc_interlock"]["detail"])

@@ -17,11 +17,12 @@ The job, one robot at a time:
 3. robot 1 to its ``home_q``;
 4. robot 2's calibration from its ``[robot2]`` verification pose with its
    flange, its moves checked against the cell model seen from its base (its
-   dataset in ``dataset-robot2/``);
+   dataset in ``dataset-robot2/``; the job's recording gets its clouds and
+   circles in the camera's frame, named ``robot2-*``);
 5. robot 2 back to its ``home_q``;
 6. ``T_base1_base2`` with its 1-sigma at robot 2's verification position
    (where the two robots work together) and its distance from the drawn
-   ``robot2.base_pose``.
+   ``robot2.base_pose``; the recording draws robot 2's base there.
 
 The calibration it leaves is robot 1's (``T_base_cam``, made current by an
 accept as any calibrate job's) with a ``robot2`` entry: ``T_base2_cam``,
@@ -78,6 +79,8 @@ async def run_calibrate_two(ctx: JobContext, config: Config, devices: CellDevice
     two = await calibrate_arm(ctx, arm2.config, arm2, devices.capture, job2, dataset_name="dataset-robot2", robot=2)
     await _park(ctx, arm2, "robot 2")
     entry = robot2_entry(one, two, r2.base_pose, r2.verification_pose)
+    if ctx.recording is not None:
+        ctx.recording.log_robot2_base(np.asarray(entry["T_base1_base2"]))
     await prune_calibrations(ctx, config)
     out = dict(one.output)
     out["calibration"] = {**out["calibration"], "robot2": entry}

@@ -433,6 +433,11 @@ class JobRecording:
         """
         self._log_pose(layout.CAMERA, T_base_cam, "T_base_cam", stamp_ns, static)
 
+    def log_robot2_base(self, T_base1_base2: ArrayLike) -> None:
+        """Log a second robot's base ``T_base1_base2`` (4, 4), as a robot-robot calibration solved it, at
+        ``/world/robot2`` for the whole recording (its clouds lie in the camera's frame, named ``robot2-*``)."""
+        self._log_pose(layout.ROBOT2, T_base1_base2, "T_base1_base2", None, static=True)
+
     def log_mesh(
         self,
         entity: str,

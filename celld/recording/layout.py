@@ -14,6 +14,7 @@ daemon, the viewer layout and the tests agree on one tree::
       /world/workpiece          the part model where the scan placed it
       /world/cell/<object>      the cell model's objects (table, scanner, fixtures)
       /world/robot/<name>       the arm and its tool as capsules (at planned poses; "arm" as it moved)
+      /world/robot2             a second robot's base, T_base1_base2 as a robot-robot calibration solved it
       /world/calib/residuals    per-pair residuals, robot centre to scanner centre (x20)
     /srm/camera                 the SRM finger camera image
       /srm/camera/tag           the detected ArUco tag outline, pixels
@@ -60,6 +61,7 @@ FLANGE = "/world/tcp/flange"  # the flange model, carried by the TCP at each pos
 RESIDUALS = "/world/calib/residuals"  # robot centre -> scanner centre, per pair
 CALIB_RESIDUALS = "/calib/residuals_mm"  # the same, a bar per pair, mm
 ROBOT = "/world/robot"  # the arm and its tool at planned poses
+ROBOT2 = "/world/robot2"  # a second robot's base (robot-robot calibration)
 SRM_CAMERA = "/srm/camera"
 SRM_TAG = "/srm/camera/tag"
 SERVO = "/servo"

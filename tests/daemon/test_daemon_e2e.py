@@ -88,9 +88,13 @@ def test_calibrate_over_the_bus_then_accept(daemon) -> None:
 
     result = json.loads(Path(record["result"]).read_text())
     T = np.array(result["calibration"]["T_base_cam"])
-    dt, dr = se3.error(T, np.array(T_BASE_CAM_TRUE))
-    # Six half-resolution PhoXi M captures: well under a millimetre and a tenth of a degree.
-    assert dt < 0.5e-3 and math.degrees(dr) < 0.1, (dt, math.degrees(dr))
+    _, dr = se3.error(T, np.array(T_BASE_CAM_TRUE))
+    # Six half-resolution PhoXi M captures: a fifth of a millimetre where the flange was seen (the
+    # verification position, the workspace's centre), and under a tenth of a degree. (At the scanner's
+    # own origin, 0.55 m above it, a rotation error of 0.06 deg alone moves the estimate 0.5 mm.)
+    p_v = np.asarray(cfg.calibration.verification_pose[:3])[None]
+    miss = np.linalg.norm(se3.apply(T @ se3.invert(np.array(T_BASE_CAM_TRUE)), p_v) - p_v)
+    assert miss < 0.2e-3 and math.degrees(dr) < 0.1, (miss, math.degrees(dr))
     assert Path(result["dataset"], "poses.json").exists()
     # The dataset is compact, and solved again offline it gives the job's transform.
     from celld.calib.dataset import load_session

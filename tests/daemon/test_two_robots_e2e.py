@@ -25,6 +25,7 @@ import pytest
 from celld import se3
 from celld.bus import schema
 from celld.calib.dataset import load_session
+from celld.recording.readback import read_component, read_entities
 from celld.sim.cell import run_cell
 from tests.daemon.orphans import after_kill, motion_exits, seen_after, tcp_speed, wait_moving
 
@@ -112,6 +113,20 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, loopback_
         lever = float(np.linalg.norm(p2))
         assert abs(entry["from_drawing_mm"] - off * 1e3) <= (AT_VERIFICATION + ROTATION * lever) * 1e3 < off * 1e3
 
+        # The job's recording: what the scanner saw of robot 2, named for it, and robot 2's base where
+        # the job put it.
+        rrd = Path(result["recording"])
+        entities = read_entities(rrd)
+        for entity in (
+            "/world/camera/clouds/pair",
+            "/world/camera/clouds/robot2-pair",
+            "/world/camera/circles/robot2-flange",
+            "/world/robot2",
+        ):
+            assert entity in entities, (entity, entities)
+        _, translation = read_component(rrd, "/world/robot2", "Transform3D:translation", timeline="")
+        np.testing.assert_allclose(np.asarray(translation[-1]).reshape(3), T_b1b2[:3, 3], atol=1e-9)
+
         # Each robot's dataset: robot 1's flange poses in its own base, robot 2's in its own.
         one, two = load_session(calibration["dataset"]), load_session(entry["dataset"])
         # (A robot may stop early once Algorithm 1 and the gate are satisfied: at the gate's five pairs.)
@@ -129,6 +144,10 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, loopback_
         current = client.calibration()
         schema.check_message("calibration-reply", {"ok": True, "calibration": current})
         assert current["robot2"]["T_base1_base2"] == entry["T_base1_base2"]
+        # The health job reads robot 2's link beside robot 1's.
+        _, checked = client.submit_and_wait({"kind": "health", "check": "robot"}, timeout=60)
+        health = json.loads(Path(checked["result"]).read_text())
+        assert health["robot2"]["link"] == "running" and health["problems"] == [], health
 
         # A kill -9 of the daemon while robot 2 moves to its first pose of another job: robot 2's own
         # motion process sees its daemon go and stops the arm; robot 1 waits at rest where it parked.

@@ -487,10 +487,18 @@ def test_a_solved_calibration_places_every_capture_in_the_base_frame_with_its_re
     P_scanner = P_robot + [[1e-4, 0.0, 0.0], [0.0, -2e-4, 0.0], [0.0, 0.0, 3e-3]]
     rec.log_camera_pose(T, static=True)
     rec.log_residuals(["p000", "p001", "p002"], P_robot, P_scanner, [False, False, True])
+    # A robot-robot calibration: the second robot's base, for the whole recording; a matrix that is no
+    # rigid transform is refused.
+    T_base1_base2 = se3.from_ur_pose([1.2, 0.05, 0.0, 0.0, 0.0, np.pi])
+    rec.log_robot2_base(T_base1_base2)
+    with pytest.raises(InputError, match="T_base1_base2"):
+        rec.log_robot2_base(np.diag([2.0, 1.0, 1.0, 1.0]))
     rec.close()
 
     entities = read_entities(path)
-    assert {layout.FLANGE, layout.RESIDUALS, layout.CALIB_RESIDUALS, layout.CAMERA} <= entities
+    assert {layout.FLANGE, layout.RESIDUALS, layout.CALIB_RESIDUALS, layout.CAMERA, layout.ROBOT2} <= entities
+    _, base2 = read_component(path, layout.ROBOT2, "Transform3D:translation", timeline="")
+    np.testing.assert_allclose(np.asarray(base2[0]).reshape(3), T_base1_base2[:3, 3])
     # Static: no time on any timeline, so it holds for the captures logged before it.
     _, translation = read_component(path, layout.CAMERA, "Transform3D:translation", timeline="")
     np.testing.assert_allclose(np.asarray(translation[0]).reshape(3), T[:3, 3])
