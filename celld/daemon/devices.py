@@ -19,10 +19,11 @@ the daemon's event loop never stalls.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import time
 import uuid
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,7 @@ from celld.motion.algorithm2 import NAME as ALGORITHM2
 from celld.motion.handle import MotionHandle
 from celld.motion.loop import INTERLOCK_MISSING
 from celld.motion.types import RobotState
+from celld.robot.cellmodel import CellObject
 from celld.robot.dashboard import ACTIONS, Dashboard, RobotCondition, robot_condition
 from celld.scanner.base import OrganizedCloud, Scanner
 from celld.scanner.factory import open_scanner
@@ -168,6 +170,17 @@ class Arm:
         self.config = config
         self.motion: MotionHandle | None = None
         self.planner = MotionPlanner(config)
+
+    @contextlib.contextmanager
+    def avoiding(self, objects: Sequence[CellObject]) -> Iterator[None]:
+        """Within the block, every move and plan of this arm is checked against ``objects`` too (another
+        robot's arm where it waits: :func:`~celld.daemon.planning.arm_obstacles`)."""
+        planner = self.planner
+        self.planner = planner.with_objects(objects)
+        try:
+            yield
+        finally:
+            self.planner = planner
 
     async def open_motion(
         self, heartbeat: str, records: ChildRecords, servo_laws: dict[str, str] | None = None, tactile_slot: str | None = None

@@ -17,6 +17,11 @@ the tool is off). The daemon asks it
   same box, and reported; poses a job gives are checked, and a refused one
   refuses the job before the robot moves.
 
+In a cell with a second robot, a job that moves one robot while the other
+waits checks the moving one against the waiting arm: :func:`arm_obstacles`
+turns an arm at its joints into capsule objects of the other's base frame,
+and :meth:`MotionPlanner.with_objects` adds them to the checks.
+
 A refusal raises :class:`~celld.errors.PathRefused` with the checker's
 message: the pose, the reason, which link or tool part and which object, and
 where along the path. The checks are pure and take tens of milliseconds per
@@ -25,6 +30,7 @@ move (bench/collision_check.py); the daemon runs them in a worker thread.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -37,7 +43,7 @@ from celld.config import Config, MotionLimits
 from celld.errors import PathRefused
 from celld.log import get_logger
 from celld.robot import kinematics as kin
-from celld.robot.cellmodel import Box
+from celld.robot.cellmodel import Box, CellObject, Rod
 from celld.robot.collision import Checker, PathCheck, Refusal
 
 log = get_logger(__name__)
@@ -140,6 +146,16 @@ class MotionPlanner:
         self.T_flange_tcp = T_flange_tcp
         self.with_tool = Checker(self.arm, config.cell_model, T_flange_tcp)
         self.bare = Checker(self.arm, config.cell_model.without_tool(), T_flange_tcp)
+
+    def with_objects(self, objects: Sequence[CellObject]) -> MotionPlanner:
+        """The same checks with ``objects`` added to the cell (another robot's arm where it waits)."""
+        new = copy.copy(self)
+        cell = self.with_tool.cell
+        for obj in objects:
+            cell = cell.with_object(obj)
+        new.with_tool = Checker(self.arm, cell, self.T_flange_tcp, self.with_tool.params)
+        new.bare = Checker(self.arm, cell.without_tool(), self.T_flange_tcp, self.bare.params)
+        return new
 
     def _checker(self, tool: bool) -> Checker:
         return self.with_tool if tool else self.bare
@@ -285,3 +301,27 @@ def record_arm(rec: Any, checker: Checker, q: Sequence[float] | np.ndarray, stam
         return
     _, ends, radii = checker.segments(np.asarray(q, dtype=np.float64))
     rec.log_capsules("arm", ends, radii, stamp_ns=stamp_ns)
+
+
+# What another robot's arm keeps from this one's on top of the cell's margin, m: its base is placed by
+# its drawing, which may be off by millimetres (a robot-robot calibration measures how far).
+ARM_CLEARANCE = 0.02
+
+
+def arm_obstacles(checker: Checker, q: Sequence[float] | Array, T_here_there: Array, prefix: str) -> tuple[CellObject, ...]:
+    """Another robot's arm at its joints ``q`` as capsule objects of this robot's base frame.
+
+    ``checker`` is the other robot's (its arm's capsules, without its tool),
+    ``T_here_there`` its base in this robot's base frame; every capsule is
+    swollen by :data:`ARM_CLEARANCE` and named ``<prefix>-<link>``.
+    """
+    names, ends, radii = checker.segments(q)
+    T = se3.check_transform(T_here_there, "T_here_there")
+    objects = []
+    for name, (p0, p1), r in zip(names, ends, radii, strict=True):
+        a, b = se3.apply(T, np.array([p0, p1]))
+        axis = b - a
+        length = float(np.linalg.norm(axis))
+        frame = se3.frame_from_z((a + b) / 2, axis if length > 1e-9 else [0.0, 0.0, 1.0])
+        objects.append(CellObject(f"{prefix}-{name}", Rod(float(r) + ARM_CLEARANCE, length), frame))
+    return tuple(objects)

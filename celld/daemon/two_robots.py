@@ -24,6 +24,12 @@ The job, one robot at a time:
    (where the two robots work together) and its distance from the drawn
    ``robot2.base_pose``; the recording draws robot 2's base there.
 
+Every move of either robot, and each robot's plan, is checked against the
+other robot's arm where it waits (its capsules at its joints, placed by the
+drawn ``robot2.base_pose`` and swollen by
+:data:`~celld.daemon.planning.ARM_CLEARANCE`); a dry run plans each robot
+with the other at its ``home_q``.
+
 The calibration it leaves is robot 1's (``T_base_cam``, made current by an
 accept as any calibrate job's) with a ``robot2`` entry: ``T_base2_cam``,
 ``T_base1_base2`` and robot 2's quality report; accept refuses it when
@@ -46,9 +52,11 @@ from celld.calib.comanip import point_std, robots_through_camera
 from celld.config import Config
 from celld.daemon.devices import Arm, CellDevices
 from celld.daemon.jobs import JobContext
+from celld.daemon.planning import arm_obstacles
 from celld.daemon.runners import ArmCalibration, calibrate_arm, prune_calibrations
 from celld.errors import JobError
 from celld.log import get_logger
+from celld.robot.cellmodel import CellObject
 
 log = get_logger(__name__)
 
@@ -68,16 +76,32 @@ async def run_calibrate_two(ctx: JobContext, config: Config, devices: CellDevice
     if job.poses:
         raise JobError("$.poses", "a job with robot2 generates both robots' poses: give n_poses, not poses")
     job2 = replace(job, verification_pose=None)  # robot 2's comes from [robot2]
-    if job.dry_run:
-        one = await calibrate_arm(ctx, config, devices, devices.capture, job)
-        two = await calibrate_arm(ctx, arm2.config, arm2, devices.capture, job2, robot=2)
+    # Each robot's moves are checked against the other's arm where it waits, placed by the drawn base.
+    T_b1b2 = se3.from_ur_pose(r2.base_pose)
+    T_b2b1 = se3.invert(T_b1b2)
+
+    def robot2_at(q2: np.ndarray) -> tuple[CellObject, ...]:
+        return arm_obstacles(arm2.planner.bare, q2, T_b1b2, "robot2")
+
+    def robot1_at(q1: np.ndarray) -> tuple[CellObject, ...]:
+        return arm_obstacles(devices.planner.with_tool, q1, T_b2b1, "robot1")
+
+    home1, home2 = (np.asarray(c.robot.home_q, dtype=np.float64) for c in (config, arm2.config))
+    if job.dry_run:  # each robot planned with the other where the job parks it
+        with devices.avoiding(robot2_at(home2)):
+            one = await calibrate_arm(ctx, config, devices, devices.capture, job)
+        with arm2.avoiding(robot1_at(home1)):
+            two = await calibrate_arm(ctx, arm2.config, arm2, devices.capture, job2, robot=2)
         return {**one.output, "robot2_plan": two.output["plan"]}
 
-    await _park(ctx, arm2, "robot 2")
-    one = await calibrate_arm(ctx, config, devices, devices.capture, job)
-    await _park(ctx, devices, "robot 1")
-    two = await calibrate_arm(ctx, arm2.config, arm2, devices.capture, job2, dataset_name="dataset-robot2", robot=2)
-    await _park(ctx, arm2, "robot 2")
+    with arm2.avoiding(robot1_at(await devices.current_q())):
+        await _park(ctx, arm2, "robot 2")
+    with devices.avoiding(robot2_at(await arm2.current_q())):
+        one = await calibrate_arm(ctx, config, devices, devices.capture, job)
+        await _park(ctx, devices, "robot 1")
+    with arm2.avoiding(robot1_at(await devices.current_q())):
+        two = await calibrate_arm(ctx, arm2.config, arm2, devices.capture, job2, dataset_name="dataset-robot2", robot=2)
+        await _park(ctx, arm2, "robot 2")
     entry = robot2_entry(one, two, r2.base_pose, r2.verification_pose)
     if ctx.recording is not None:
         ctx.recording.log_robot2_base(np.asarray(entry["T_base1_base2"]))

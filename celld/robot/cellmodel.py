@@ -5,7 +5,8 @@ What the collision checks (:mod:`celld.robot.collision`) test the arm against:
 - **objects** of the cell, fixed in the base frame: the table, the scanner
   and its mount, fixtures, free-standing obstacles. Each is a primitive
   (:class:`Box`, :class:`Cylinder`, :class:`Sphere`) or a closed triangle
-  :class:`Mesh` (STL, PLY, OBJ), placed by ``T_base_obj``;
+  :class:`Mesh` (STL, PLY, OBJ), placed by ``T_base_obj``; a job adds
+  another robot's arm where it waits as :class:`Rod` objects (capsules);
 - the **tool** on the flange: its parts (the SRM finger, the torch, a
   housing) as capsules, a segment and a radius in the flange frame;
 - **allowed contacts**: an object lists the arm links or tool parts that may
@@ -147,6 +148,25 @@ class Sphere:
         return np.linalg.norm(P_obj, axis=1) - self.radius
 
 
+@dataclass(frozen=True)
+class Rod:
+    """A segment along its frame's z axis, centred on the frame, swept by a sphere of ``radius`` (m): a
+    capsule, the shape of an arm link (another robot's arm as an obstacle). ``length`` 0 is a sphere."""
+
+    radius: float
+    length: float
+
+    def __post_init__(self) -> None:
+        _positive("rod radius", self.radius)
+        if not (math.isfinite(self.length) and self.length >= 0.0):
+            raise InputError(f"rod length: expected a length >= 0 m, got {self.length}")
+
+    def signed_distance(self, P_obj: Array) -> Array:
+        """Signed distance (n,) of points ``P_obj`` (n, 3) in the rod frame, m."""
+        z = np.clip(P_obj[:, 2], -0.5 * self.length, 0.5 * self.length)
+        return np.hypot(np.hypot(P_obj[:, 0], P_obj[:, 1]), P_obj[:, 2] - z) - self.radius
+
+
 @dataclass(frozen=True, eq=False)
 class Mesh:
     """A closed triangle mesh in its own frame, metres.
@@ -209,7 +229,7 @@ class Mesh:
         return d.numpy().astype(np.float64)
 
 
-Shape = Box | Cylinder | Sphere | Mesh
+Shape = Box | Cylinder | Sphere | Rod | Mesh
 
 
 @dataclass(frozen=True, eq=False)

@@ -89,3 +89,37 @@ def test_joint_moves_out_of_the_box_into_the_table_or_past_a_joint_limit_are_ref
     past[0] = 7.0
     with pytest.raises(PathRefused, match="joint limits"):
         planner.plan_joint_move(HOME, past)
+
+
+def test_a_second_robot_where_it_waits_is_an_obstacle_of_the_first() -> None:
+    from celld import se3
+    from celld.calib.poses import calibration_poses
+    from celld.daemon.devices import robot2_config
+    from celld.daemon.planning import ARM_CLEARANCE, arm_obstacles
+
+    cfg = load(ROOT / "configs" / "sim-cell-two-robots.toml")
+    assert cfg.robot2 is not None
+    one, two = MotionPlanner(cfg), MotionPlanner(robot2_config(cfg))
+    T_b1b2 = se3.from_ur_pose(cfg.robot2.base_pose)
+    home1, home2 = np.asarray(cfg.robot.home_q), np.asarray(cfg.robot2.robot.home_q)
+
+    # Robot 2's capsules, named for it, in robot 1's base frame, swollen by the clearance.
+    waiting = arm_obstacles(two.bare, home2, T_b1b2, "robot2")
+    names, ends, radii = two.bare.segments(home2)
+    assert [o.name for o in waiting] == [f"robot2-{n}" for n in names]
+    for obj, (p0, p1), r in zip(waiting, ends, radii, strict=True):
+        on_axis = se3.apply(T_b1b2, np.array([p0, (p0 + p1) / 2, p1]))
+        np.testing.assert_allclose(obj.signed_distance(on_axis), -(r + ARM_CLEARANCE), atol=1e-9)
+
+    # The shipped cell's homes are clear: robot 1's calibration plan loses no pose to robot 2 at its home.
+    T_v = se3.from_ur_pose(cfg.calibration.verification_pose)
+    candidates = calibration_poses(T_v, cfg.calibration.pose_box, 12, cfg.calibration.max_tilt, seed=1)
+    plan = one.with_objects(waiting).plan_calibration(home1, candidates, 12)
+    assert len(plan.poses) == 12 and not [r for r in plan.refused if "robot2-" in r.message], plan.refused
+
+    # Robot 2 at its verification pose, where the robots meet (robot 1's verification flange goes to the
+    # same point): robot 1's move there, accepted with robot 2 at home, is refused naming robot 2's part.
+    q2 = two.check_move(home2, se3.from_ur_pose(cfg.robot2.verification_pose), tool=False).q_end
+    one.with_objects(waiting).check_move(home1, T_v, tool=False)
+    with pytest.raises(PathRefused, match="robot2-"):
+        one.with_objects(arm_obstacles(two.bare, q2, T_b1b2, "robot2")).check_move(home1, T_v, tool=False)

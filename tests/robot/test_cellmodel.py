@@ -22,6 +22,7 @@ from celld.robot.cellmodel import (
     CellObject,
     Cylinder,
     Mesh,
+    Rod,
     Sphere,
     ToolPart,
 )
@@ -48,6 +49,16 @@ def test_cylinder_and_sphere_signed_distance() -> None:
     P = np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.0, 0.0, 0.5], [0.4, 0.0, 0.6], [0.05, 0.0, 0.15]])
     np.testing.assert_allclose(cyl.signed_distance(P), [-0.1, 0.2, 0.3, math.hypot(0.3, 0.4), -0.05], atol=1e-12)
     np.testing.assert_allclose(Sphere(0.2).signed_distance(np.array([[0.0, 0.3, 0.4], [0.0, 0.0, 0.1]])), [0.3, -0.1])
+
+
+def test_rod_signed_distance_is_a_capsules() -> None:
+    # Beside the segment, past its ends (round, not flat like a cylinder's), on its axis; length 0 is a sphere.
+    rod = Rod(radius=0.1, length=0.4)
+    P = np.array([[0.3, 0.0, 0.1], [0.0, 0.0, 0.5], [0.3, 0.0, 0.6], [0.0, 0.0, 0.0], [0.0, 0.0, 0.25]])
+    np.testing.assert_allclose(rod.signed_distance(P), [0.2, 0.2, math.hypot(0.3, 0.4) - 0.1, -0.1, -0.05], atol=1e-12)
+    np.testing.assert_allclose(Rod(0.2, 0.0).signed_distance(np.array([[0.0, 0.3, 0.4]])), [0.3])
+    with pytest.raises(InputError, match="rod length"):
+        Rod(0.1, -0.1)
 
 
 def test_object_distance_uses_its_pose() -> None:
