@@ -23,7 +23,7 @@ import contextlib
 import math
 import time
 import uuid
-from collections.abc import Awaitable, Callable, Iterator, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -32,7 +32,7 @@ import numpy as np
 
 from celld import se3
 from celld.config import Config
-from celld.daemon.planning import MotionPlanner
+from celld.daemon.planning import MotionPlanner, arm_obstacles
 from celld.errors import CelldError, ConfigError, DeviceError, InputError, StaleState
 from celld.log import get_logger
 from celld.motion.algorithm2 import NAME as ALGORITHM2
@@ -339,6 +339,41 @@ class CellDevices(Arm):
         self.leftovers: list[str] = []  # what was cleaned up after a previous daemon
         self.dashboard = Dashboard(config.robot.host)
         self._reading: asyncio.Task[None] | None = None
+
+    # -- the second robot as an obstacle ------------------------------------------------
+
+    def robot2_obstacles(self, q2: np.ndarray) -> tuple[CellObject, ...]:
+        """Robot 2's arm at its joints ``q2`` as obstacles of robot 1 (placed by its drawn base)."""
+        if self.robot2 is None or self.config.robot2 is None:
+            return ()
+        return arm_obstacles(self.robot2.planner.bare, q2, se3.from_ur_pose(self.config.robot2.base_pose), "robot2")
+
+    def robot1_obstacles(self, q1: np.ndarray) -> tuple[CellObject, ...]:
+        """Robot 1's arm and tool at its joints ``q1`` as obstacles of robot 2 (none in a one-robot cell)."""
+        if self.config.robot2 is None:
+            return ()
+        return arm_obstacles(self.planner.with_tool, q1, se3.invert(se3.from_ur_pose(self.config.robot2.base_pose)), "robot1")
+
+    @contextlib.asynccontextmanager
+    async def beside_robot2(self) -> AsyncIterator[None]:
+        """Within the block, robot 1's moves are checked against robot 2's arm where it stands now (nothing
+        moves robot 2 meanwhile); in a one-robot cell, nothing changes.
+
+        Raises
+        ------
+        DeviceError
+            Robot 2's joints cannot be read (its link is down): robot 1 does not move beside an arm whose
+            place is unknown.
+        """
+        if self.robot2 is None:
+            yield
+            return
+        try:
+            q2 = await self.robot2.current_q()
+        except DeviceError as exc:
+            raise DeviceError(f"robot 2's place is unknown ({exc}); robot 1 does not move beside it") from exc
+        with self.avoiding(self.robot2_obstacles(q2)):
+            yield
 
     # -- life cycle ----------------------------------------------------------------
 

@@ -287,12 +287,15 @@ def record_plan(rec: Any, checker: Checker, joints: Sequence[Sequence[float]], n
 
 
 def record_cell(rec: Any, checker: Checker) -> None:
-    """Draw the cell model's box objects in a job recording (``rec`` None: nothing to do)."""
+    """Draw the cell model's box objects, and another robot's waiting arm, in a job recording (``rec`` None: nothing to do)."""
     if rec is None:
         return
     for obj in checker.cell.objects:
         if isinstance(obj.shape, Box):
             rec.log_boxes(obj.name, obj.T_base_obj[None], np.asarray(obj.shape.size)[None])
+        elif isinstance(obj.shape, Rod):  # another robot's arm where it waits
+            half = se3.apply(obj.T_base_obj, np.array([[0.0, 0.0, -0.5], [0.0, 0.0, 0.5]]) * obj.shape.length)
+            rec.log_capsules(obj.name, half[None], [obj.shape.radius])
 
 
 def record_arm(rec: Any, checker: Checker, q: Sequence[float] | np.ndarray, stamp_ns: int | None = None) -> None:

@@ -78,11 +78,18 @@ log = get_logger(__name__)
 def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
     """The runners of every job kind this cell can run."""
 
+    # A job that moves robot 1 alone checks its moves against robot 2 where it stands (a two-robot cell);
+    # a calibrate job with robot2 moves both and checks each against the other (celld.daemon.two_robots).
+
     async def calibrate(ctx: JobContext) -> Mapping[str, Any]:
-        return await run_calibrate(ctx, config, devices)
+        if isinstance(ctx.job, CalibrateJob) and ctx.job.robot2:
+            return await run_calibrate(ctx, config, devices)
+        async with devices.beside_robot2():
+            return await run_calibrate(ctx, config, devices)
 
     async def move(ctx: JobContext) -> Mapping[str, Any]:
-        return await run_move(ctx, devices)
+        async with devices.beside_robot2():
+            return await run_move(ctx, devices)
 
     async def health(ctx: JobContext) -> Mapping[str, Any]:
         return await run_health(ctx, devices)
@@ -92,12 +99,14 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
     async def weld(ctx: JobContext) -> Mapping[str, Any]:
         from celld.daemon.weld import run_weld
 
-        return await run_weld(ctx, config, devices, weld_cache)
+        async with devices.beside_robot2():
+            return await run_weld(ctx, config, devices, weld_cache)
 
     async def tool_calibrate(ctx: JobContext) -> Mapping[str, Any]:
         from celld.daemon.toolcal import run_tool_calibrate
 
-        return await run_tool_calibrate(ctx, config, devices)
+        async with devices.beside_robot2():
+            return await run_tool_calibrate(ctx, config, devices)
 
     return {"calibrate": calibrate, "move": move, "health": health, "weld": weld, "tool-calibrate": tool_calibrate}
 

@@ -52,11 +52,9 @@ from celld.calib.comanip import point_std, robots_through_camera
 from celld.config import Config
 from celld.daemon.devices import Arm, CellDevices
 from celld.daemon.jobs import JobContext
-from celld.daemon.planning import arm_obstacles
 from celld.daemon.runners import ArmCalibration, calibrate_arm, prune_calibrations
 from celld.errors import JobError
 from celld.log import get_logger
-from celld.robot.cellmodel import CellObject
 
 log = get_logger(__name__)
 
@@ -77,15 +75,7 @@ async def run_calibrate_two(ctx: JobContext, config: Config, devices: CellDevice
         raise JobError("$.poses", "a job with robot2 generates both robots' poses: give n_poses, not poses")
     job2 = replace(job, verification_pose=None)  # robot 2's comes from [robot2]
     # Each robot's moves are checked against the other's arm where it waits, placed by the drawn base.
-    T_b1b2 = se3.from_ur_pose(r2.base_pose)
-    T_b2b1 = se3.invert(T_b1b2)
-
-    def robot2_at(q2: np.ndarray) -> tuple[CellObject, ...]:
-        return arm_obstacles(arm2.planner.bare, q2, T_b1b2, "robot2")
-
-    def robot1_at(q1: np.ndarray) -> tuple[CellObject, ...]:
-        return arm_obstacles(devices.planner.with_tool, q1, T_b2b1, "robot1")
-
+    robot1_at, robot2_at = devices.robot1_obstacles, devices.robot2_obstacles
     home1, home2 = (np.asarray(c.robot.home_q, dtype=np.float64) for c in (config, arm2.config))
     if job.dry_run:  # each robot planned with the other where the job parks it
         with devices.avoiding(robot2_at(home2)):

@@ -117,7 +117,9 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, loopback_
         # the job put it.
         rrd = Path(result["recording"])
         entities = read_entities(rrd)
+        # (Robot 1's calibration drew robot 2's waiting arm, which its moves were checked against.)
         for entity in (
+            "/world/robot/robot2-upper_arm",
             "/world/camera/clouds/pair",
             "/world/camera/clouds/robot2-pair",
             "/world/camera/circles/robot2-flange",
@@ -148,6 +150,13 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, loopback_
         _, checked = client.submit_and_wait({"kind": "health", "check": "robot"}, timeout=60)
         health = json.loads(Path(checked["result"]).read_text())
         assert health["robot2"]["link"] == "running" and health["problems"] == [], health
+        # A move of robot 1 alone is checked against robot 2 where it stands: into robot 2's upper arm
+        # (a path clear without robot 2 in the model), refused before any motion, naming robot 2's part.
+        q_before = cell.robot.truth()[2]
+        into_robot2 = {"kind": "move", "target": {"space": "cartesian", "pose": [1.0, 0.15, 0.45, math.pi, 0.0, 0.0]}}
+        _, refused = client.submit_and_wait(into_robot2, timeout=60)
+        assert refused["state"] == "failed" and "'robot2-upper_arm'" in refused["reason"], refused
+        assert np.max(np.abs(cell.robot.truth()[2] - q_before)) < 1e-6
 
         # A kill -9 of the daemon while robot 2 moves to its first pose of another job: robot 2's own
         # motion process sees its daemon go and stops the arm; robot 1 waits at rest where it parked.
