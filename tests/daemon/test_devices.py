@@ -144,3 +144,23 @@ def test_a_stale_state_is_its_own_link_error_and_a_lost_link_is_not_one() -> Non
     assert isinstance(stale, StaleState) and isinstance(stale, LinkLost) and "STALE_STATE" in str(stale)
     lost = error_for(ControlStatus.LINK_LOST, "rtde dropped")
     assert isinstance(lost, LinkLost) and not isinstance(lost, StaleState)
+
+
+def test_robot_1_does_not_move_beside_a_second_robot_whose_place_is_unknown() -> None:
+    from pathlib import Path
+
+    from celld.config import load
+
+    async def scenario() -> None:
+        one = CellDevices(Config())
+        planner = one.planner
+        async with one.beside_robot2():  # a one-robot cell: nothing to avoid
+            assert one.planner is planner
+        two = CellDevices(load(Path(__file__).resolve().parents[2] / "configs" / "sim-cell-two-robots.toml"))
+        planner = two.planner
+        with pytest.raises(DeviceError, match="robot 2's place is unknown .*the robot is not connected"):
+            async with two.beside_robot2():
+                pytest.fail("robot 1 would move beside robot 2 with its link down")
+        assert two.planner is planner
+
+    asyncio.run(scenario())
