@@ -611,5 +611,6 @@ def _estimate(
         notes=notes,
         range_bias=rb,
         params=params.quality,
+        pool=params.method == "algorithm1",
     )
     return _Estimate(T, used, unc, rejected, e_final, T_comp, quality, res_all, rb)
