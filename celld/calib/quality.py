@@ -44,10 +44,7 @@ Verdicts, in the order they are decided (the first that applies wins; every
 reason is listed):
 
 - ``too_few_pairs``: fewer pairs with a flange centre than
-  :attr:`QualityParams.min_pairs`, or an estimate that uses fewer than that
-  (the robust estimate left the others out: four pairs fix a transform but
-  cannot outvote one of them that is wrong); Algorithm 1's final pool of
-  four, by its method, is exempt (``pool``);
+  :attr:`QualityParams.min_pairs`;
 - ``poor_data``: a pair the estimate uses is an outlier, too many pairs are
   outliers, the residuals of the pairs used are too large, e_icp of the
   estimate is infinite or too large, or a stored compensation turns the
@@ -386,7 +383,6 @@ def assess_calibration(
     notes: Sequence[str] = (),
     range_bias: RangeBiasFit | None = None,
     params: QualityParams = QualityParams(),
-    pool: bool = False,
 ) -> CalibrationQuality:
     """The quality gate of one estimate (module docstring). Pure: arrays in, a value out.
 
@@ -426,9 +422,6 @@ def assess_calibration(
         The range bias estimated with the transform; ``P_cam`` are then the
         centres corrected by it.
     params : QualityParams
-    pool : bool
-        The estimate is Algorithm 1's final pool of four pairs (its method):
-        how many pairs it uses is not judged.
 
     Raises
     ------
@@ -519,11 +512,6 @@ def assess_calibration(
         too_few.append(
             f"only {n} of {n_session} captures gave a flange centre; at least {params.min_pairs} are needed "
             "(four for Eq. 9-12, one more to outvote a false detection)"
-        )
-    elif not pool and len(used_idx) < params.min_pairs:
-        too_few.append(
-            f"the estimate uses only {len(used_idx)} of the {n} pairs with a centre (the others disagree with them); "
-            f"at least {params.min_pairs} are needed (four for Eq. 9-12, one more to outvote a false detection): add poses"
         )
     used_outliers = [ids_t[i] for i in np.flatnonzero(is_outlier & is_used)]
     if used_outliers:

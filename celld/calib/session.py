@@ -611,6 +611,5 @@ def _estimate(
         notes=notes,
         range_bias=rb,
         params=params.quality,
-        pool=params.method == "algorithm1",
     )
     return _Estimate(T, used, unc, rejected, e_final, T_comp, quality, res_all, rb)
