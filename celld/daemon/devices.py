@@ -174,7 +174,8 @@ class Arm:
     @contextlib.contextmanager
     def avoiding(self, objects: Sequence[CellObject]) -> Iterator[None]:
         """Within the block, every move and plan of this arm is checked against ``objects`` too (another
-        robot's arm where it waits: :func:`~celld.daemon.planning.arm_obstacles`)."""
+        robot's arm where it waits: :func:`~celld.daemon.planning.arm_obstacles`); a block inside it puts
+        its own objects in their place."""
         planner = self.planner
         self.planner = planner.with_objects(objects)
         try:

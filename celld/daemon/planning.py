@@ -144,13 +144,15 @@ class MotionPlanner:
         self.workspace = (np.asarray(config.robot.workspace_min), np.asarray(config.robot.workspace_max))
         T_flange_tcp = se3.from_ur_pose(config.robot.tcp_offset)
         self.T_flange_tcp = T_flange_tcp
+        self.cell = config.cell_model  # the config's cell: what with_objects adds to
         self.with_tool = Checker(self.arm, config.cell_model, T_flange_tcp)
         self.bare = Checker(self.arm, config.cell_model.without_tool(), T_flange_tcp)
 
     def with_objects(self, objects: Sequence[CellObject]) -> MotionPlanner:
-        """The same checks with ``objects`` added to the cell (another robot's arm where it waits)."""
+        """The same checks with ``objects`` added to the config's cell (another robot's arm where it waits);
+        objects an earlier call added are not kept."""
         new = copy.copy(self)
-        cell = self.with_tool.cell
+        cell = self.cell
         for obj in objects:
             cell = cell.with_object(obj)
         new.with_tool = Checker(self.arm, cell, self.T_flange_tcp, self.with_tool.params)

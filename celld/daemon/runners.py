@@ -78,18 +78,11 @@ log = get_logger(__name__)
 def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
     """The runners of every job kind this cell can run."""
 
-    # A job that moves robot 1 alone checks its moves against robot 2 where it stands (a two-robot cell);
-    # a calibrate job with robot2 moves both and checks each against the other (celld.daemon.two_robots).
-
     async def calibrate(ctx: JobContext) -> Mapping[str, Any]:
-        if isinstance(ctx.job, CalibrateJob) and ctx.job.robot2:
-            return await run_calibrate(ctx, config, devices)
-        async with devices.beside_robot2():
-            return await run_calibrate(ctx, config, devices)
+        return await run_calibrate(ctx, config, devices)
 
     async def move(ctx: JobContext) -> Mapping[str, Any]:
-        async with devices.beside_robot2():
-            return await run_move(ctx, devices)
+        return await run_move(ctx, devices)
 
     async def health(ctx: JobContext) -> Mapping[str, Any]:
         return await run_health(ctx, devices)
@@ -99,16 +92,25 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
     async def weld(ctx: JobContext) -> Mapping[str, Any]:
         from celld.daemon.weld import run_weld
 
-        async with devices.beside_robot2():
-            return await run_weld(ctx, config, devices, weld_cache)
+        return await run_weld(ctx, config, devices, weld_cache)
 
     async def tool_calibrate(ctx: JobContext) -> Mapping[str, Any]:
         from celld.daemon.toolcal import run_tool_calibrate
 
-        async with devices.beside_robot2():
-            return await run_tool_calibrate(ctx, config, devices)
+        return await run_tool_calibrate(ctx, config, devices)
 
-    return {"calibrate": calibrate, "move": move, "health": health, "weld": weld, "tool-calibrate": tool_calibrate}
+    def beside_robot2(run: Runner) -> Runner:
+        """A job that moves robot 1, its moves checked against robot 2 where it stands (a two-robot cell;
+        a calibrate job with robot2 puts robot 2 where it parks it, celld.daemon.two_robots)."""
+
+        async def checked(ctx: JobContext) -> Mapping[str, Any]:
+            async with devices.beside_robot2():
+                return await run(ctx)
+
+        return checked
+
+    moving = {"calibrate": calibrate, "move": move, "weld": weld, "tool-calibrate": tool_calibrate}
+    return {"health": health, **{kind: beside_robot2(run) for kind, run in moving.items()}}
 
 
 # -- calibrate ---------------------------------------------------------------------

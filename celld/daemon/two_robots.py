@@ -75,21 +75,20 @@ async def run_calibrate_two(ctx: JobContext, config: Config, devices: CellDevice
         raise JobError("$.poses", "a job with robot2 generates both robots' poses: give n_poses, not poses")
     job2 = replace(job, verification_pose=None)  # robot 2's comes from [robot2]
     # Each robot's moves are checked against the other's arm where it waits, placed by the drawn base.
-    robot1_at, robot2_at = devices.robot1_obstacles, devices.robot2_obstacles
     home1, home2 = (np.asarray(c.robot.home_q, dtype=np.float64) for c in (config, arm2.config))
     if job.dry_run:  # each robot planned with the other where the job parks it
-        with devices.avoiding(robot2_at(home2)):
+        with devices.avoiding(devices.robot2_obstacles(home2)):
             one = await calibrate_arm(ctx, config, devices, devices.capture, job)
-        with arm2.avoiding(robot1_at(home1)):
+        with arm2.avoiding(devices.robot1_obstacles(home1)):
             two = await calibrate_arm(ctx, arm2.config, arm2, devices.capture, job2, robot=2)
         return {**one.output, "robot2_plan": two.output["plan"]}
 
-    with arm2.avoiding(robot1_at(await devices.current_q())):
+    with arm2.avoiding(devices.robot1_obstacles(await devices.current_q())):
         await _park(ctx, arm2, "robot 2")
-    with devices.avoiding(robot2_at(await arm2.current_q())):
+    with devices.avoiding(devices.robot2_obstacles(await arm2.current_q())):
         one = await calibrate_arm(ctx, config, devices, devices.capture, job)
         await _park(ctx, devices, "robot 1")
-    with arm2.avoiding(robot1_at(await devices.current_q())):
+    with arm2.avoiding(devices.robot1_obstacles(await devices.current_q())):
         two = await calibrate_arm(ctx, arm2.config, arm2, devices.capture, job2, dataset_name="dataset-robot2", robot=2)
         await _park(ctx, arm2, "robot 2")
     entry = robot2_entry(one, two, r2.base_pose, r2.verification_pose)

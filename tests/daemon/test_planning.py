@@ -111,6 +111,10 @@ def test_a_second_robot_where_it_waits_is_an_obstacle_of_the_first() -> None:
         on_axis = se3.apply(T_b1b2, np.array([p0, (p0 + p1) / 2, p1]))
         np.testing.assert_allclose(obj.signed_distance(on_axis), -(r + ARM_CLEARANCE), atol=1e-9)
 
+    # Objects given again replace those given before (a job's block inside another's), never pile up.
+    again = one.with_objects(waiting).with_objects(waiting)
+    assert len(again.bare.cell.objects) == len(one.bare.cell.objects) + len(waiting)
+
     # The shipped cell's homes are clear: robot 1's calibration plan loses no pose to robot 2 at its home.
     T_v = se3.from_ur_pose(cfg.calibration.verification_pose)
     candidates = calibration_poses(T_v, cfg.calibration.pose_box, 12, cfg.calibration.max_tilt, seed=1)
