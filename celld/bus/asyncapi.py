@@ -1,10 +1,11 @@
-"""The bus as one AsyncAPI 2.6 document: channels (key expressions), operations, messages.
+"""The bus as one AsyncAPI 2.6 document: channels (key expressions), operations, messages; and the bundle's export.
 
 ``celld bus schema --out DIR`` writes it as ``DIR/asyncapi.json`` beside the
-JSON Schemas; each message's payload is a ``$ref`` to ``<name>.schema.json``
-in the same directory, so the document and the schemas the cell enforces are
-one bundle. It is made from :data:`celld.bus.keys.KEY_TABLE` and
-:data:`celld.bus.schema.SCHEMAS`; nothing in it is written by hand twice.
+JSON Schemas (:func:`export_schemas`); each message's payload is a ``$ref`` to
+``<name>.schema.json`` in the same directory, so the document and the schemas
+the cell enforces are one bundle. It is made from
+:data:`celld.bus.keys.KEY_TABLE` and :data:`celld.bus.schema.SCHEMAS`;
+nothing in it is written by hand twice.
 
 How zenoh maps onto AsyncAPI 2.6 (which has no request/reply of its own):
 
@@ -24,9 +25,10 @@ open bus and ``{prefix}/{cell}/u/{user}`` on a bus with users.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
-from celld import __version__
+from celld import __version__, fsutil
 from celld.bus.keys import KEY_TABLE, KeySpec
 from celld.bus.schema import DIALECT, SCHEMAS
 
@@ -136,3 +138,18 @@ def asyncapi_document() -> dict[str, Any]:
         "channels": {channel_name(spec): _channel(spec) for spec in KEY_TABLE},
         "components": {"messages": _messages(KEY_TABLE), "parameters": _PARAMETERS},
     }
+
+
+def export_schemas(directory: str | Path) -> list[Path]:
+    """Write the bundle into ``directory`` (created); returns the paths.
+
+    Every schema of :data:`celld.bus.schema.SCHEMAS` as ``<name>.schema.json``,
+    and ``asyncapi.json``: the document of :func:`asyncapi_document`, listing
+    the key expressions (channels), the operations on them and their messages,
+    whose payloads are ``$ref``s to the schema files beside it.
+    """
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [fsutil.write_json(out / SCHEMA_FILE.format(name=name), schema) for name, schema in SCHEMAS.items()]
+    paths.append(fsutil.write_json(out / "asyncapi.json", asyncapi_document()))
+    return paths

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from celld import config
-from celld.bus import schema
+from celld.bus import asyncapi, schema
 from celld.bus.client import CellClient, discover_cells
 from celld.bus.session import open_client
 from celld.errors import BusError, ConfigError, JobError
@@ -454,6 +454,6 @@ def _print_robot(robot: dict[str, Any]) -> None:
 
 
 def _schema(args: argparse.Namespace) -> int:
-    for path in schema.export_schemas(args.out):
+    for path in asyncapi.export_schemas(args.out):
         print(path)
     return 0

@@ -2,7 +2,7 @@
 
 Every message on the bus is a UTF-8 JSON object. Its schema (JSON Schema draft
 2020-12) lives here as a plain dict in :data:`SCHEMAS`, is exported for other
-languages by ``celld bus schema --out DIR`` (:func:`export_schemas`), and
+languages by ``celld bus schema --out DIR`` (:func:`celld.bus.asyncapi.export_schemas`), and
 drives the checker of :mod:`celld.bus.checker`, so the exported contract and
 the enforced one are the same object.
 
@@ -53,12 +53,10 @@ import json
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
-from celld import fsutil
 from celld.bus.checker import check_schema, describe, validate
 from celld.calib.mount import MOUNTS
 from celld.config.tactile import SERVO_BOUNDS, servo_key
@@ -1249,20 +1247,3 @@ def encode(message: Mapping[str, Any]) -> bytes:
 def error_reply(field: str, reason: str) -> dict[str, Any]:
     """The reply to a refused request."""
     return {"ok": False, "error": {"field": field, "reason": reason}}
-
-
-def export_schemas(directory: str | Path) -> list[Path]:
-    """Write the bundle into ``directory`` (created); returns the paths.
-
-    Every schema as ``<name>.schema.json``, and ``asyncapi.json``: one
-    AsyncAPI 2.6 document listing the key expressions (channels), the
-    operations on them and their messages, whose payloads are ``$ref``s to
-    the schema files beside it (:mod:`celld.bus.asyncapi`).
-    """
-    from celld.bus.asyncapi import asyncapi_document
-
-    out = Path(directory)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = [fsutil.write_json(out / f"{name}.schema.json", schema) for name, schema in SCHEMAS.items()]
-    paths.append(fsutil.write_json(out / "asyncapi.json", asyncapi_document()))
-    return paths

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from celld.bus import schema
-from celld.bus.asyncapi import channel_name
+from celld.bus.asyncapi import channel_name, export_schemas
 from celld.bus.client import CellClient
 from celld.bus.keys import KEY_TABLE
 from celld.errors import JobError
@@ -134,7 +134,7 @@ def test_poses_and_n_poses_together_are_refused_by_the_exported_schema_itself() 
 
 
 def test_the_bundle_has_an_asyncapi_document_of_every_key(tmp_path: Path) -> None:
-    paths = schema.export_schemas(tmp_path)
+    paths = export_schemas(tmp_path)
     doc = json.loads((tmp_path / "asyncapi.json").read_text())
     assert doc["asyncapi"] == "2.6.0" and paths[-1].name == "asyncapi.json"
     assert list(doc["channels"]) == [channel_name(s) for s in KEY_TABLE]
@@ -171,7 +171,7 @@ def test_the_example_mes_client_imports_only_zenoh_the_standard_library_and_json
 
 def test_the_example_mes_client_runs_a_job_end_to_end(cell, tmp_path: Path) -> None:
     bundle = tmp_path / "bundle"
-    schema.export_schemas(bundle)
+    export_schemas(bundle)
     endpoint = cell.bus.listen[0]
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     r = subprocess.run(

@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from celld.bus import schema
+from celld.bus.asyncapi import export_schemas
 from celld.bus.schema import CalibrateJob, HealthJob, MoveJob, WeldJob, parse, parse_submit
 from celld.errors import JobError
 from tests.bus.strategies import json_values, valid_jobs
@@ -173,7 +174,7 @@ def test_a_valid_job_with_one_field_replaced_gives_a_job_or_names_a_field(messag
 
 
 def test_every_schema_is_draft_2020_12_and_exported(tmp_path) -> None:
-    paths = schema.export_schemas(tmp_path / "schemas")
+    paths = export_schemas(tmp_path / "schemas")
     assert {p.name for p in paths} == {f"{n}.schema.json" for n in schema.SCHEMAS} | {"asyncapi.json"}
     for p in paths[:-1]:
         data = json.loads(p.read_text())
