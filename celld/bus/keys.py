@@ -41,18 +41,18 @@ key                                        kind         what
 
 Several cells share one zenoh network under one prefix; ``<prefix>/*/alive``
 finds them all. The prefix may have several chunks (``plant/line-2/celld``);
-the cell name, a user name and a job id are one chunk each.
+the cell name, a user name and a job id are one chunk each. What a chunk may
+hold is :mod:`celld.keychunk`'s rule, which the config checks ``bus.prefix``
+with too.
 """
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 
 from celld.errors import BusError
+from celld.keychunk import check_chunk, check_prefix, is_chunk
 
-# One key chunk as celld writes it: no wildcards, no '$', '?', '#', no '@' (admin space).
-_CHUNK = re.compile(r"^[A-Za-z0-9_.-]+$")
 # The queryables with a fixed key, in the order a server declares them; ``result``
 # has one key per job (``<req>/result/<job>``).
 QUERYABLES = ("submit", "status", "cancel", "list", "accept", "calibration", "robot")
@@ -186,28 +186,6 @@ KEY_TABLE: tuple[KeySpec, ...] = (
 )
 
 
-def check_prefix(prefix: str) -> str:
-    """Return ``prefix`` if every ``/``-separated chunk is a plain key chunk.
-
-    Raises
-    ------
-    BusError
-        Naming the offending chunk.
-    """
-    chunks = prefix.split("/")
-    for chunk in chunks:
-        if not _CHUNK.match(chunk) or chunk in (".", ".."):
-            raise BusError(f"bus prefix {prefix!r}: expected chunks of letters, digits, '_', '.', '-' separated by '/', got {chunk!r}")
-    return prefix
-
-
-def check_chunk(name: str, what: str) -> str:
-    """Return ``name`` if it is one plain key chunk (a cell name, a job id)."""
-    if not _CHUNK.match(name):
-        raise BusError(f"{what} {name!r}: expected letters, digits, '_', '.' or '-' (one zenoh key chunk)")
-    return name
-
-
 @dataclass(frozen=True)
 class CellKeys:
     """Every key of one cell. Build with :meth:`of` to have both parts checked."""
@@ -272,4 +250,4 @@ def cell_of_alive_key(prefix: str, key: str) -> str | None:
     if not key.startswith(head) or not key.endswith("/alive"):
         return None
     cell = key[len(head) : -len("/alive")]
-    return cell if _CHUNK.match(cell) else None
+    return cell if is_chunk(cell) else None

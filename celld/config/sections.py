@@ -14,10 +14,10 @@ import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from celld.bus.keys import check_prefix
 from celld.calib.mount import MOUNTS
 from celld.config.reader import TableReader
 from celld.errors import BusError
+from celld.keychunk import check_prefix
 from celld.robot.kinematics import MODELS as UR_MODELS
 from celld.seam.params import PRESETS as SEAM_PRESETS
 from celld.seam.params import SEAM_SOURCES, SeamParams

@@ -10,9 +10,10 @@ import pytest
 
 from celld import config
 from celld.bus import session
-from celld.bus.keys import CellKeys, alive_all, cell_of_alive_key, check_prefix
+from celld.bus.keys import CellKeys, alive_all, cell_of_alive_key
 from celld.config import BusConfig, BusUser
 from celld.errors import BusError, ConfigError
+from celld.keychunk import check_prefix
 
 KEYS = CellKeys.of("plant/line-2/celld", "cell-01")
 USERS = (BusUser("olga", "pw1", "operator"), BusUser("vic", "pw2", "viewer"), BusUser("oscar", "pw3", "operator"))
