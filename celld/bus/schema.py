@@ -58,7 +58,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from celld.bus.checker import check_schema, describe, validate
-from celld.calib.mount import MOUNTS
+from celld.config import SCANNER_MOUNTS
 from celld.config.tactile import SERVO_BOUNDS, servo_key
 from celld.errors import JobError
 
@@ -482,13 +482,13 @@ _CALIBRATION = _object(
     {
         "job": _JOB_ID,
         "T_base_cam": _MATRIX4,
-        "mount": {"enum": list(MOUNTS), "description": "Where the scanner is fixed (absent: the base)."},
+        "mount": {"enum": list(SCANNER_MOUNTS), "description": "Where the scanner is fixed (absent: the base)."},
         "dh": _object(
             "The robot's DH table the link frame is computed with (m, rad).",
             {k: _vector(k, 6) for k in ("d", "a", "alpha")},
             ("d", "a", "alpha"),
         ),
-        **{f"T_{m}_cam": _MATRIX4 for m in MOUNTS[1:]},
+        **{f"T_{m}_cam": _MATRIX4 for m in SCANNER_MOUNTS[1:]},
         "cost_mm": {"type": ["number", "null"], "description": "Final cost of Algorithm 1, mm."},
         "pairs": {"type": "integer", "minimum": 0, "description": "Pairs in the final pool."},
         "accepted": {"type": "string", "description": "When it became current, UTC ISO 8601."},

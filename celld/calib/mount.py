@@ -32,14 +32,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from celld.config import SCANNER_MOUNTS
 from celld.errors import InputError
 from celld.robot import kinematics as kin
 from celld.se3 import check_transform, invert
 
 Array = NDArray[np.float64]
-
-# The mounts a scanner can have: fixed in the base frame, or on the frame after joint 1, 2 or 3.
-MOUNTS = ("base", "link1", "link2", "link3")
 
 
 @dataclass(frozen=True)
@@ -49,7 +47,7 @@ class ScannerMount:
     Attributes
     ----------
     name : str
-        One of :data:`MOUNTS`.
+        One of :data:`celld.config.SCANNER_MOUNTS`.
     dh : kinematics.DH
         The robot's DH table (the controller's nominal one).
     """
@@ -58,8 +56,8 @@ class ScannerMount:
     dh: kin.DH = kin.UR10E
 
     def __post_init__(self) -> None:
-        if self.name not in MOUNTS:
-            raise InputError(f"scanner mount: expected one of {', '.join(MOUNTS)}, got {self.name!r}")
+        if self.name not in SCANNER_MOUNTS:
+            raise InputError(f"scanner mount: expected one of {', '.join(SCANNER_MOUNTS)}, got {self.name!r}")
 
     @classmethod
     def of(cls, name: str, robot_model: str) -> ScannerMount:
@@ -79,7 +77,7 @@ class ScannerMount:
     @property
     def link(self) -> int:
         """The link the scanner is on: 0 for the base, else the joint after which its frame is."""
-        return MOUNTS.index(self.name)
+        return SCANNER_MOUNTS.index(self.name)
 
     @property
     def on_arm(self) -> bool:
@@ -159,8 +157,8 @@ def mount_from(doc: Mapping[str, Any], where: str) -> ScannerMount:
         A mount this project does not know, or a missing or malformed DH table.
     """
     name = doc.get("mount", "base")
-    if name not in MOUNTS:
-        raise InputError(f"{where}.mount: expected one of {', '.join(MOUNTS)}, got {name!r}")
+    if name not in SCANNER_MOUNTS:
+        raise InputError(f"{where}.mount: expected one of {', '.join(SCANNER_MOUNTS)}, got {name!r}")
     if name == "base":
         return ScannerMount()
     dh = doc.get("dh")

@@ -14,7 +14,6 @@ import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from celld.calib.mount import MOUNTS
 from celld.config.reader import TableReader
 from celld.errors import BusError
 from celld.keychunk import check_prefix
@@ -226,6 +225,8 @@ class MotionLimits:
 
 SCANNER_KINDS = ("sim", "replay", "phoxi", "azure-kinect", "realsense")
 SCANNER_MODELS = ("phoxi-s", "phoxi-m", "azure-kinect")
+# Where a scanner can be fixed: in the base frame, or on the frame after joint 1, 2 or 3 (celld.calib.mount).
+SCANNER_MOUNTS = ("base", "link1", "link2", "link3")
 # calibration.range_bias: estimate the range bias on metal with T_base_cam, or not.
 RANGE_BIAS_MODES = ("estimate", "none")
 # Scanners that read bare metal long (time of flight, and the RealSense
@@ -302,7 +303,7 @@ class ScannerConfig:
         return cls(
             kind=r.str("kind", "sim", choices=SCANNER_KINDS),
             model=r.str("model", "phoxi-m", choices=SCANNER_MODELS),
-            mount=r.str("mount", cls.mount, choices=MOUNTS),
+            mount=r.str("mount", cls.mount, choices=SCANNER_MOUNTS),
             T_base_cam=r.matrix4("T_base_cam", [list(row) for row in cls.T_base_cam]),
             replay_dir=r.str("replay_dir", ""),
             replay_units=r.str("replay_units", cls.replay_units, choices=("m", "mm")),

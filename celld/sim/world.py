@@ -58,8 +58,7 @@ from scipy.spatial.transform import Rotation
 from celld import se3
 from celld.calib.flange import FlangeModel
 from celld.calib.flange import preset as flange_preset
-from celld.calib.mount import MOUNTS
-from celld.config import ToolConfig
+from celld.config import SCANNER_MOUNTS, ToolConfig
 from celld.config.reader import TableReader
 from celld.errors import ConfigError, InputError
 from celld.robot import kinematics as kin
@@ -325,7 +324,7 @@ class NominalCell:
             robot2_flange = r2.str("flange", "")
         from celld.seam.workpiece import EXAMPLES
 
-        mount = sc.str("mount", "base", choices=MOUNTS)
+        mount = sc.str("mount", "base", choices=SCANNER_MOUNTS)
         T_link_cam = None
         if mount != "base":
             if not sc.has("T_link_cam"):
@@ -693,7 +692,7 @@ def _draw_scanner(nominal: NominalCell, b: ErrorBudget, seed: int) -> ScannerTru
     model = scanner_model(nominal.scanner)
     # The scanner's errors are sized for the PhoXi M's 0.1 mm class and scale with each model's noise.
     klass = model.sigma / 1e-4
-    link = MOUNTS.index(nominal.scanner_mount)
+    link = SCANNER_MOUNTS.index(nominal.scanner_mount)
     T = np.array(nominal.T_base_cam if nominal.T_link_cam is None else nominal.T_link_cam, dtype=np.float64)
     if b.on("scanner_mount"):
         r = _rng(seed, "scanner_mount")
