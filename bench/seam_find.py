@@ -57,9 +57,9 @@ from celld import (
     se3,
 )
 from celld.calib.rangebias import correct_range_bias
+from celld.config.seam import SeamParams
 from celld.errors import SeamError
 from celld.log import configure
-from celld.seam.params import SeamParams
 from celld.seam.pipeline import find_seam, prepare
 from celld.seam.workpiece import example
 from celld.sim import workpiece as simscene

@@ -8,11 +8,13 @@ renamed or moved (the message names the new key).
 
 - :mod:`celld.config.reader`: :class:`TableReader` and the unit-suffix rule;
 - :mod:`celld.config.sections`: cell, robot, motion, scanner, calibration,
-  bus, recording, weld, and the seam finder's table; the ``[sim]`` table is
+  bus, recording, weld; the ``[sim]`` table is
   kept raw in :attr:`Config.sim` (only a table is required): the simulator
   reads and checks it (:mod:`celld.sim.world`), production code never does;
 - :mod:`celld.config.tactile`: the SRM sensor, the tool and the servo, with
   the servo's bounds stated once;
+- :mod:`celld.config.seam`: the seam finder's parameters, its presets per
+  scanner and the ``[seam]`` table;
 - :mod:`celld.config.cell`: :class:`Config`, :func:`load` and :func:`parse`.
 """
 

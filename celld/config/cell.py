@@ -22,6 +22,7 @@ import numpy as np
 
 from celld.config.cell_model import read_cell_model
 from celld.config.reader import TableReader
+from celld.config.seam import SeamParams, read_seam
 from celld.config.sections import (
     BusConfig,
     CalibrationConfig,
@@ -33,12 +34,10 @@ from celld.config.sections import (
     ScannerConfig,
     WeldConfig,
     range_bias_default,
-    read_seam,
 )
 from celld.config.tactile import ServoConfig, TactileConfig, ToolConfig, check_servo
 from celld.errors import ConfigError
 from celld.robot.cellmodel import CellModel
-from celld.seam.params import SeamParams
 
 
 @dataclass(frozen=True)

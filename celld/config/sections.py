@@ -1,4 +1,4 @@
-"""The cell config's sections other than the welding tool's: one frozen dataclass each, and the seam finder's table.
+"""The cell config's sections other than the welding tool's and the seam finder's: one frozen dataclass each.
 
 Each section reads its own TOML table through a
 :class:`~celld.config.reader.TableReader` (types, ranges, unit suffixes
@@ -11,15 +11,13 @@ from __future__ import annotations
 import ipaddress
 import math
 import re
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from celld.config.reader import TableReader
 from celld.errors import BusError
 from celld.keychunk import check_prefix
 from celld.robot.kinematics import MODELS as UR_MODELS
-from celld.seam.params import PRESETS as SEAM_PRESETS
-from celld.seam.params import SEAM_SOURCES, SeamParams
 
 # A cell's workspace, poses and offsets lie within this of the robot base, m.
 MAX_CELL_EXTENT = 5.0
@@ -621,35 +619,3 @@ class WeldConfig:
                 "max_height_correction_mm", cls.max_height_correction * 1e3, lo=0.0, hi=20.0, open_lo=True, scale=1e-3
             ),
         )
-
-
-# A seam region of interest beyond this from the base is not a cell's, m.
-_ROI_BOUND = 5.0
-
-
-def read_seam(r: TableReader, scanner_model: str, finger_wall: str) -> SeamParams:
-    """Read the ``[seam]`` table: the scanner's preset with ``seam_source``,
-    ``spacing_mm``, ``table_z`` (omit to measure the table),
-    ``max_model_deviation_mm``, ``seed`` and the region of interest
-    ``roi_min`` / ``roi_max`` (base frame, m: where the part may be; a
-    wide-angle camera such as the Azure Kinect sees the robot's base inside
-    the default box) over it. The finger's wall is the tool's (``[tool] wall_side``)."""
-    r.refuse_moved({"finger_wall": "[tool] wall_side (the seam's normals point to the finger's wall)"})
-    base = SeamParams.for_scanner(r.str("preset", scanner_model, choices=tuple(SEAM_PRESETS)))
-    table_z = r.float("table_z", 0.0, lo=-2.0, hi=2.0) if r.has("table_z") else None
-    x0, y0, z0 = r.vector("roi_min", 3, list(base.roi_min), bound=_ROI_BOUND, what=" m (base frame)")
-    x1, y1, z1 = r.vector("roi_max", 3, list(base.roi_max), bound=_ROI_BOUND, what=" m (base frame)")
-    roi_min, roi_max = (x0, y0, z0), (x1, y1, z1)
-    if not all(a < b for a, b in zip(roi_min, roi_max)):
-        raise r.error("roi_max", f"expected above roi_min {list(roi_min)} on every axis, got {list(roi_max)}")
-    return replace(
-        base,
-        roi_min=roi_min,
-        roi_max=roi_max,
-        seam_source=r.str("seam_source", base.seam_source, choices=SEAM_SOURCES),
-        spacing=r.float("spacing_mm", base.spacing * 1e3, lo=0.1, hi=50.0, scale=1e-3),
-        finger_wall=finger_wall,
-        table_z=table_z,
-        max_model_deviation=r.float("max_model_deviation_mm", base.max_model_deviation * 1e3, lo=0.0, hi=50.0, open_lo=True, scale=1e-3),
-        registration=replace(base.registration, seed=r.int("seed", base.registration.seed, lo=0)),
-    )

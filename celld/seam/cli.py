@@ -94,7 +94,7 @@ def _find(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> Any:
     # Imported here so `celld --help` stays fast.
-    from celld.seam.params import SeamParams
+    from celld.config.seam import SeamParams
     from celld.seam.pipeline import find_seam
     from celld.seam.workpiece import EXAMPLES, example, load_workpiece
 

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from celld import polyline
-from celld.seam.params import GrooveParams
+from celld.config.seam import GrooveParams
 from celld.seam.workpiece import LEFT_WALL, RIGHT_WALL
 
 Array = NDArray[np.float64]

@@ -52,11 +52,11 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from celld import polyline, se3
+from celld.config.seam import SeamParams
 from celld.errors import GrooveError, RegistrationError, ScanError
 from celld.log import get_logger
 from celld.scanner.base import OrganizedCloud
 from celld.seam.groove import CONTRADICTS, GrooveFit, fit_groove, lateral_offsets, smooth_offsets, wall_distances
-from celld.seam.params import SeamParams
 from celld.seam.register import PreparedModel, prepare_model, register
 from celld.seam.workpiece import NO_WALL, Workpiece
 

@@ -37,8 +37,8 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from celld import se3
+from celld.config.seam import RegistrationParams
 from celld.errors import RegistrationError
-from celld.seam.params import RegistrationParams
 from celld.seam.workpiece import Workpiece, sample_surface
 
 Array = NDArray[np.float64]

@@ -19,7 +19,7 @@ from celld.calib.flange import preset
 from celld.calib.pairs import PairCollector
 from celld.calib.rangebias import correct_range_bias
 from celld.calib.session import CalibrationResult, SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
-from celld.seam.params import SeamParams
+from celld.config.seam import SeamParams
 from celld.seam.pipeline import find_seam
 from celld.seam.workpiece import example
 from celld.sim import workpiece as simscene

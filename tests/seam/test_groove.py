@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from celld.config.seam import GrooveParams
 from celld.seam import groove as gm
 from celld.seam.groove import CONTRADICTS, OK, UNSEEN, fit_groove, lateral_offsets, smooth_offsets
-from celld.seam.params import GrooveParams
 from celld.seam.workpiece import LEFT_WALL, RIGHT_WALL, sample_surface, v_groove_butt
 
 T, ALPHA, B, C = 0.010, math.radians(60.0), 0.002, 0.001

@@ -14,9 +14,9 @@ import pytest
 
 from celld import polyline, se3
 from celld.cli import main as celld_main
+from celld.config.seam import SeamParams
 from celld.errors import GrooveError, RegistrationError, ScanError, SeamError
 from celld.seam import workpiece as wpm
-from celld.seam.params import SeamParams
 from celld.seam.pipeline import find_seam, prepare
 from celld.seam.workpiece import Workpiece, example
 from celld.sim import workpiece as simscene
@@ -301,7 +301,7 @@ def test_cli_refuses_a_range_bias_that_is_no_scanner_s(tmp_path, capsys) -> None
 
 def test_seam_config_table_is_read_and_checked() -> None:
     from celld.config import TableReader
-    from celld.config.sections import read_seam
+    from celld.config.seam import read_seam
     from celld.errors import ConfigError
 
     r = TableReader({"preset": "azure-kinect", "spacing_mm": 2, "seam_source": "groove"}, "cell.toml", "seam")

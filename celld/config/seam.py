@@ -1,9 +1,10 @@
-"""The seam finder's parameters: registration, groove measurement and the seam, with presets per scanner.
+"""The seam finder's parameters: registration, groove measurement and the seam, with presets per scanner; and the ``[seam]`` table.
 
-Pure values, no Open3D: the cell config reads its ``[seam]`` table into a
-:class:`SeamParams` (:func:`celld.config.sections.read_seam`) without
-loading the point-cloud libraries that :mod:`celld.seam.register`,
-:mod:`celld.seam.groove` and :mod:`celld.seam.pipeline` use.
+Pure values, no Open3D: the seam finder (:mod:`celld.seam.register`,
+:mod:`celld.seam.groove`, :mod:`celld.seam.pipeline`) takes a
+:class:`SeamParams`, and the cell config reads its ``[seam]`` table into one
+(:func:`read_seam`: the scanner's preset with the table over it) without
+loading the point-cloud libraries the finder uses.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from celld.config.reader import TableReader
 from celld.errors import InputError
 
 SEAM_SOURCES = ("auto", "groove", "model")
@@ -188,3 +190,35 @@ PRESETS: dict[str, SeamParams] = {
         tangent_span=0.010,
     ),
 }
+
+
+# A seam region of interest beyond this from the base is not a cell's, m.
+_ROI_BOUND = 5.0
+
+
+def read_seam(r: TableReader, scanner_model: str, finger_wall: str) -> SeamParams:
+    """Read the ``[seam]`` table: the scanner's preset with ``seam_source``,
+    ``spacing_mm``, ``table_z`` (omit to measure the table),
+    ``max_model_deviation_mm``, ``seed`` and the region of interest
+    ``roi_min`` / ``roi_max`` (base frame, m: where the part may be; a
+    wide-angle camera such as the Azure Kinect sees the robot's base inside
+    the default box) over it. The finger's wall is the tool's (``[tool] wall_side``)."""
+    r.refuse_moved({"finger_wall": "[tool] wall_side (the seam's normals point to the finger's wall)"})
+    base = SeamParams.for_scanner(r.str("preset", scanner_model, choices=tuple(PRESETS)))
+    table_z = r.float("table_z", 0.0, lo=-2.0, hi=2.0) if r.has("table_z") else None
+    x0, y0, z0 = r.vector("roi_min", 3, list(base.roi_min), bound=_ROI_BOUND, what=" m (base frame)")
+    x1, y1, z1 = r.vector("roi_max", 3, list(base.roi_max), bound=_ROI_BOUND, what=" m (base frame)")
+    roi_min, roi_max = (x0, y0, z0), (x1, y1, z1)
+    if not all(a < b for a, b in zip(roi_min, roi_max)):
+        raise r.error("roi_max", f"expected above roi_min {list(roi_min)} on every axis, got {list(roi_max)}")
+    return replace(
+        base,
+        roi_min=roi_min,
+        roi_max=roi_max,
+        seam_source=r.str("seam_source", base.seam_source, choices=SEAM_SOURCES),
+        spacing=r.float("spacing_mm", base.spacing * 1e3, lo=0.1, hi=50.0, scale=1e-3),
+        finger_wall=finger_wall,
+        table_z=table_z,
+        max_model_deviation=r.float("max_model_deviation_mm", base.max_model_deviation * 1e3, lo=0.0, hi=50.0, open_lo=True, scale=1e-3),
+        registration=replace(base.registration, seed=r.int("seed", base.registration.seed, lo=0)),
+    )
