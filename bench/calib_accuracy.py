@@ -462,8 +462,8 @@ def realization_3(job: tuple[int, str, int, float]) -> dict[str, Any]:
     from dataclasses import replace
 
     from celld.calib.detect_params import PARAMS_BY_SCANNER
-    from celld.calib.pairs import PairCollector
-    from celld.calib.session import SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
+    from celld.calib.session import CalibrationSession
+    from celld.calib.solve import SolveParams, solve_pairs
     from celld.config import range_bias_default
     from celld.sim.scanner import SimScanner
     from celld.sim.scene import robot_scene
@@ -478,24 +478,21 @@ def realization_3(job: tuple[int, str, int, float]) -> dict[str, Any]:
     T_bf = tilted_poses(rng, P_base)
     T_v = transform_from(np.eye(3), centre)
     t0 = time.perf_counter()
-    pairs = PairCollector(flange, dparams)
-    for T in T_bf:
-        pairs.capture(T, scanner.capture(robot_scene(T, flange)).points)
-    found = pairs.detections()
     mode = range_bias_default("sim", scanner_name)
     # The cell's defaults (no compensation: the verdict is the one a calibrate job gets); Eq. 21 apart.
     params = SolveParams(method="robust", e_required=0.0, range_bias=mode)
-    out: dict[str, Any] = {"seed": seed, "setup": setup, "detected": pairs.n_pairs, "poses": n_poses, "range_bias_mode": mode}
+    session = CalibrationSession(flange, params, dparams, planned=n_poses, online=False)
+    for T in T_bf:
+        session.capture(T, scanner.capture(robot_scene(T, flange)).points)
+    found = session.detections()
+    out: dict[str, Any] = {"seed": seed, "setup": setup, "detected": session.n_pairs, "poses": n_poses, "range_bias_mode": mode}
     try:
-        verifier = verifier_from_cloud(scanner.capture(robot_scene(T_v, flange)).points, T_v, flange, params, dparams)
+        session.verify(T_v, scanner.capture(robot_scene(T_v, flange)).points)
     except CalibrationError as exc:
-        verifier = None
         out["verification_error"] = str(exc)
     try:
-        res = solve_pairs(
-            found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, range_data=range_bias_data(params, flange, found)
-        )
-        plain = solve_pairs(found.ids, found.P_base, found.P_cam, replace(params, range_bias="none"), verifier, found.rejected)
+        res = session.finish()
+        plain = solve_pairs(found.ids, found.P_base, found.P_cam, replace(params, range_bias="none"), session.verifier, found.rejected)
     except CalibrationError as exc:
         out["error"] = str(exc)
         for m in E2E_METHODS:

@@ -49,7 +49,8 @@ from celld.calib.detect import detect_flange
 from celld.calib.detect_params import PARAMS_BY_SCANNER
 from celld.calib.flange import preset
 from celld.calib.poses import calibration_poses
-from celld.calib.session import SolveParams, calibrate_session
+from celld.calib.session import calibrate_session
+from celld.calib.solve import SolveParams
 from celld.errors import DetectionError
 from celld.sim.scanner import SimScanner
 from celld.sim.scene import robot_scene

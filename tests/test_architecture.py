@@ -30,11 +30,6 @@ PACKAGE = "celld"
 ARCHITECTURE = ROOT / "docs" / "architecture.md"
 # The simulator: on top, and imported by nothing outside it.
 SIM = "sim/"
-# The one file circle allowed for now: the runners and the two-robot check
-# each import the other; that circle is being removed. A set of this one pair,
-# so any other circle (or a longer one through these two) still fails. Empty
-# it when the circle is gone.
-TEMPORARY_FILE_CIRCLES = {frozenset({"celld/daemon/runners.py", "celld/daemon/two_robots.py"})}
 
 
 class Import(NamedTuple):
@@ -214,7 +209,7 @@ def check_package_cycles(code: Code) -> list[str]:
     return problems
 
 
-def check_file_cycles(code: Code, allowed: set[frozenset[str]]) -> list[str]:
+def check_file_cycles(code: Code) -> list[str]:
     """No two files outside the simulator import each other, directly or round a longer loop."""
     graph: dict[str, set[str]] = {}
     edges: dict[tuple[str, str], Import] = {}
@@ -226,8 +221,6 @@ def check_file_cycles(code: Code, allowed: set[frozenset[str]]) -> list[str]:
         edges.setdefault((src, dst), imp)
     problems = []
     for component in strongly_connected(graph):
-        if frozenset(component) in allowed:
-            continue
         inside = sorted((s, d) for s, d in edges if s in component and d in component)
         problems.append(f"files {', '.join(component)} import each other: " + "; ".join(_where(edges[e]) for e in inside))
     return problems
@@ -265,7 +258,7 @@ def test_no_packages_import_each_other(code: Code) -> None:
 
 
 def test_no_files_outside_the_simulator_import_each_other(code: Code) -> None:
-    problems = check_file_cycles(code, TEMPORARY_FILE_CIRCLES)
+    problems = check_file_cycles(code)
     assert not problems, "\n".join(problems)
 
 
@@ -300,7 +293,7 @@ def test_the_checks_pass_a_package_that_follows_its_map() -> None:
     )
     assert check_map(toy, _TOY_LAYERS) == []
     assert check_layers(toy, _TOY_LAYERS) == check_sim(toy) == check_package_cycles(toy) == []
-    assert check_file_cycles(toy, set()) == []
+    assert check_file_cycles(toy) == []
 
 
 def test_the_checks_name_the_file_the_line_and_the_import() -> None:
@@ -326,11 +319,8 @@ def test_the_checks_find_circles_of_packages_and_of_files() -> None:
         "low/ -> high/ at celld/low/b.py:1: `from celld.high.c import g`"
     ]
     circle = "celld/high/c.py, celld/low/a.py, celld/low/b.py"
-    assert check_file_cycles(toy, set()) == [
+    assert check_file_cycles(toy) == [
         f"files {circle} import each other: celld/high/c.py:2: `from celld.low import a`; "
         "celld/low/a.py:1: `from celld.low.b import f`; celld/low/b.py:1: `from celld.high.c import g`"
     ]
-    # Allowing a pair does not allow a longer circle through it.
-    assert check_file_cycles(toy, {frozenset({"celld/low/a.py", "celld/low/b.py"})}) != []
-    assert check_file_cycles(toy, {frozenset(circle.split(", "))}) == []
     assert check_sim(toy) == ["celld/high/c.py:3: `import celld.sim.d`: imports the simulator from outside it"]

@@ -11,7 +11,7 @@ outliers, uncertainty at the workspace centre, e_icp), ``range_bias``
 (the scanner's range bias on metal, ``bias_mm`` and ``std_mm``, estimated
 with ``--range-bias estimate``, the default for a time-of-flight session),
 plus the details of
-:meth:`~celld.calib.session.CalibrationResult.as_dict`. A session of a
+:meth:`~celld.calib.solve.CalibrationResult.as_dict`. A session of a
 scanner on the arm (:mod:`celld.calib.mount`) is solved in its link's frame,
 and its transforms are named so (``T_link1_cam``, ...) with ``mount`` beside
 them. A failed verdict is a result, not an error: the exit code stays 0.
@@ -116,7 +116,8 @@ def _solve_dict(args: argparse.Namespace) -> dict[str, Any]:
     from celld.calib.dataset import load_session
     from celld.calib.flange import preset
     from celld.calib.mount import in_frame
-    from celld.calib.session import SolveParams, calibrate_session
+    from celld.calib.session import calibrate_session
+    from celld.calib.solve import SolveParams
 
     session = load_session(args.dir)
     name = args.flange or session.flange

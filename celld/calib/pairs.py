@@ -1,9 +1,10 @@
 """Calibration pairs: each capture becomes a (flange position, flange centre) pair or a rejection with its reason.
 
 :class:`PairCollector` is the one place where a calibration capture meets
-the detector, for every path that gathers pairs: the daemon's calibrate job,
-the simulated cell's offline calibration, a saved session solved again
-(:func:`celld.calib.session.detect_pairs`) and the calibration benchmark. A
+the detector; every path that gathers a session (the daemon's calibrate job,
+the simulated cell's offline calibration, a saved session solved again, the
+calibration benchmark) feeds it through
+:class:`celld.calib.session.CalibrationSession`. A
 pair is the robot's flange position ``p_base`` (the paper's Base p_i, the
 TCP with a zero TCP offset) and the flange centre ``p_cam`` found in the
 cloud (Cam p_i); a capture whose flange is not found is kept as a

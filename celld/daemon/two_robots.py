@@ -50,9 +50,9 @@ from celld import se3
 from celld.bus.schema import CalibrateJob
 from celld.calib.comanip import point_std, robots_through_camera
 from celld.config import Config
+from celld.daemon.calibrate import ArmCalibration, calibrate_arm, prune_calibrations
 from celld.daemon.devices import Arm, CellDevices
 from celld.daemon.jobs import JobContext
-from celld.daemon.runners import ArmCalibration, calibrate_arm, prune_calibrations
 from celld.errors import JobError
 from celld.log import get_logger
 

@@ -28,6 +28,10 @@ Results: the planned wall line, the refined path (the seam as the finger
 found it, which the torch followed) and the torch path, in the base frame,
 with the tracking figures; the paths are also written to
 ``jobs/<job>/paths.json`` and logged to the job's recording.
+
+What the weld is (the seam from the scan, the path, the probe's reading, the
+figures) is decided by :mod:`celld.weld.plan`; this runner moves the arm,
+captures, reports and records around it.
 """
 
 from __future__ import annotations
@@ -55,35 +59,18 @@ from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
 from celld.motion.types import ServoPlan
 from celld.recording import layout
-from celld.seam.figures import contact_across, track_summary
-from celld.seam.weldpath import (
-    WeldGeometry,
-    height_from_width,
-    joint_width,
-    measured_offsets,
-    start_pose,
-    tool_poses,
-    wall_at_height,
-    wall_offset,
-    weld_geometry,
-)
+from celld.seam.figures import contact_across
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
 from celld.tactile.tool import ToolGeometry, with_measured_torch
+from celld.weld.plan import WeldPlan, plan_weld, prepare_part, probe_across, probe_targets, probed_height, summarise
 
 log = get_logger(__name__)
 
-# The tool starts this far along the wall line (m) ...
-LEAD_IN = 0.005
-# ... and this far off the wall on the free side (m); the servo's touch then
-# travels it at touch_speed (bounded by servo.touch_distance).
-CLEARANCE = 0.004
 # A dry run scans only with the arm this close to the scan pose (m, rad).
 DRY_RUN_AT_SCAN = 0.002
 DRY_RUN_AT_SCAN_ANGLE = 0.01
 # A dry run draws the arm at this many configurations along the checked path.
 DRY_RUN_ROBOTS = 12
-# The weld's path check looks at the tool every this much along the seam, m.
-PATH_STEP = 0.01
 # Seconds between progress events while tracking.
 PROGRESS_PERIOD = 0.5
 # Seconds between SRM camera frames logged to the recording while tracking.
@@ -245,74 +232,41 @@ async def _retract(ctx: JobContext, devices: CellDevices, z: np.ndarray, height:
     return ""
 
 
-def _start_clearance(geometry: WeldGeometry, seam: Any) -> float:
-    """How far off the finger wall the tip starts: mid-way across the joint where the scan measured its
-    other wall at the start (as far from either wall as it can be), else :data:`CLEARANCE`."""
-    i = int(geometry.stations([LEAD_IN])[0])
-    width = geometry.offsets[i] + wall_at_height(seam.far_wall_across[i : i + 1], geometry.tip_height)[0]
-    return float(width) / 2.0 if math.isfinite(width) and width > 0.0 else CLEARANCE
-
-
 async def _probe_height(
     ctx: JobContext,
     devices: CellDevices,
     config: Config,
-    geometry: WeldGeometry,
-    seam: Any,
+    plan: WeldPlan,
     servo: ServoConfig,
     tool_cfg: ToolConfig,
     sensor_yaw: float,
-    T_start: np.ndarray,
     speed: float,
-) -> tuple[dict[str, Any], WeldGeometry, np.ndarray]:
-    """Touch the far wall and the finger wall at the start; from the joint's width there and the scan's
-    walls (:func:`height_from_width`), the tip's height in the joint. Returns what was found, the
-    geometry moved to the planned height and the start pose on it (unchanged when not probed)."""
+) -> tuple[dict[str, Any], WeldPlan]:
+    """Touch the far wall and the finger wall at the start; the tip's height in the joint from the width
+    there (:func:`celld.weld.plan.probed_height`). Returns what was found and the plan moved to that
+    height, the tool at its new start (unchanged when not probed)."""
     wc = config.weld
-    i = int(geometry.stations([LEAD_IN])[0])
-    finger, far = seam.wall_across[i], seam.far_wall_across[i]
     if not wc.probe_height:
-        return {"probed": False, "why": "weld.probe_height is off"}, geometry, T_start
-    try:
-        height_from_width(float(finger[0] + far[0]), finger, far)  # the joint can tell a height
-    except WorkpieceError as exc:
-        return {"probed": False, "why": str(exc)}, geometry, T_start
+        return {"probed": False, "why": "weld.probe_height is off"}, plan
+    targets, why = probe_targets(plan, tool_cfg)
+    if not targets:
+        return {"probed": False, "why": why}, plan
     motion = devices.require_motion()
     tool = ToolGeometry.from_config(tool_cfg)
-    z = geometry.T_base_plane[:3, 2]
-    N = geometry.normals[i] - float(geometry.normals[i] @ z) * z
-    N /= np.linalg.norm(N)
-    # The far wall at the tip's height, where the scan measured it (its neighbours' between).
-    far_line = geometry.seam_base - wall_at_height(seam.far_wall_across, geometry.tip_height)[:, None] * geometry.normals
-    other = replace(tool_cfg, wall_side="right" if tool_cfg.wall_side == "left" else "left")
+    origin, across = probe_across(plan)
     touches = {}
-    for name, line, cfg in (("far", far_line, other), ("finger", geometry.wall_base, tool_cfg)):
-        ctx.progress("probe", None, f"touching the {name} wall of the joint")
-        plan = algorithm2_plan(line, servo, cfg, config.motion, T_base_plane=geometry.T_base_plane, touch_only=True, sensor_yaw=sensor_yaw)
-        records = await _run_servo(motion, plan, wc.timeout)
-        touches[name] = contact_across(records, tool, geometry.T_base_plane[:3, 3], N, tool.side, servo.delta_d)
-        await devices.move_to(T_start, speed_scale=speed)
-    width = touches["finger"] - touches["far"] + 2.0 * tool.tip_radius
-    height = height_from_width(width, finger, far)
-    dh = height - geometry.tip_height
-    found = {
-        "probed": True,
-        "joint_width_mm": round(width * 1e3, 4),
-        "scan_width_mm": round(joint_width(finger, far, geometry.tip_height) * 1e3, 4),
-        "height_mm": round(height * 1e3, 4),
-        "height_correction_mm": round(-dh * 1e3, 4),
-    }
-    if abs(dh) > wc.max_height_correction:
-        raise WorkpieceError(
-            f"the tip stands {height * 1e3:.2f} mm above the seam where the plan puts it at {geometry.tip_height * 1e3:.2f} mm "
-            f"(the joint is {width * 1e3:.2f} mm wide there; at most {wc.max_height_correction * 1e3:.1f} mm off is corrected): "
-            "check the calibration and the tool"
+    for target in targets:
+        ctx.progress("probe", None, f"touching the {target.name} wall of the joint")
+        servo_plan = algorithm2_plan(
+            target.line, servo, target.tool, config.motion, T_base_plane=plan.geometry.T_base_plane, touch_only=True, sensor_yaw=sensor_yaw
         )
+        records = await _run_servo(motion, servo_plan, wc.timeout)
+        touches[target.name] = contact_across(records, tool, origin, across, tool.side, servo.delta_d)
+        await devices.move_to(plan.T_start, speed_scale=speed)
+    found, moved = probed_height(plan, touches, tool, tool.T_tcp_tool, wc.max_height_correction)
     log.info("tip height probed", job=ctx.job_id, **found)
-    moved = weld_geometry(seam.points_base, seam.tangents, seam.normals, seam.plane_normal, geometry.offsets, geometry.tip_height - dh)
-    T_start = start_pose(moved, tool.T_tcp_tool, LEAD_IN, _start_clearance(geometry, seam))
-    await devices.move_to(T_start, speed_scale=speed)
-    return found, moved, T_start
+    await devices.move_to(moved.T_start, speed_scale=speed)
+    return found, moved
 
 
 async def _run_servo(motion: Any, plan: ServoPlan, timeout: float) -> np.ndarray:
@@ -339,8 +293,6 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     motion = devices.require_motion()
     wc = config.weld
     seam_params = config.seam
-    from celld.seam.pipeline import find_seam, prepare
-
     try:
         servo, tool_cfg = with_overrides(
             config.servo,
@@ -370,10 +322,8 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     key = hashlib.sha1(workpiece.vertices.tobytes() + workpiece.triangles.tobytes() + workpiece.seam.tobytes()).hexdigest()
     if key not in cache:
         ctx.progress("prepare", None, f"preparing the model of {workpiece.name}")
-        prepared = await asyncio.to_thread(prepare, workpiece, seam_params)
-        offset = await asyncio.to_thread(wall_offset, workpiece, wc.tip_height, seam_params.finger_wall)
-        cache[key] = (prepared, offset)
-    prepared, offset = cache[key]
+        cache[key] = await asyncio.to_thread(prepare_part, workpiece, seam_params, wc.tip_height)
+    part = cache[key]
     rec = ctx.recording
     speed = wc.speed_scale
     T_scan = se3.from_ur_pose(wc.scan_pose)
@@ -405,30 +355,21 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         rec.log_camera_pose(T_base_cam)
         rec.log_cloud_cam("scan", points)
 
-    # 2. seam
+    # 2. seam, and the weld's plan
     ctx.progress("seam", None, f"finding the seam of {workpiece.name} with calibration {cal_job or '(unnamed)'}")
-    nominal = se3.from_ur_pose(wc.nominal_pose) if wc.nominal_pose else None
-    seam = await asyncio.to_thread(find_seam, points, prepared, T_base_cam, seam_params, nominal)
-    # The finger wall where the scan measured it beside the seam (a part's gap and twist move it; the
-    # model's constant offset where it was not measured, or where the config trusts the model alone).
-    offsets = offset if seam_params.seam_source == "model" else measured_offsets(seam.wall_across, wc.tip_height, offset)
-    geometry = weld_geometry(seam.points_base, seam.tangents, seam.normals, seam.plane_normal, offsets, wc.tip_height)
+    plan = await asyncio.to_thread(plan_weld, points, T_base_cam, part, wc, seam_params, tool.T_tcp_tool, T_scan)
+    seam = plan.seam
     if rec is not None:
-        rec.log_path_base("planned", geometry.seam_base)
+        rec.log_path_base("planned", plan.geometry.seam_base)
         # The part model where the scan placed it.
         rec.log_mesh(layout.WORKPIECE, workpiece.vertices, workpiece.triangles, seam.T_base_obj)
     ctx.progress("seam", None, f"seam found: {seam.length * 1e3:.1f} mm", length_mm=seam.length * 1e3, **_quality(seam))
 
     # 3. the whole path, checked against the cell before the tool moves to it:
     # above the start, down, along the seam, up and back to the scan pose.
-    T_start = start_pose(geometry, tool.T_tcp_tool, LEAD_IN, _start_clearance(geometry, seam))
-    z = geometry.T_base_plane[:3, 2]
-    T_above = T_start.copy()
-    T_above[:3, 3] += wc.approach_height * z
-    path = weld_path(geometry, tool.T_tcp_tool, T_above, T_start, T_scan, wc.retract_height)
     if rec is not None:
-        rec.log_path_base("plan", path[:, :3, 3])
-    check = await asyncio.to_thread(devices.planner.check_path, await devices.current_q(), path)
+        rec.log_path_base("plan", plan.path[:, :3, 3])
+    check = await asyncio.to_thread(devices.planner.check_path, await devices.current_q(), plan.path)
     if job.dry_run:
         stations = np.linspace(0, len(check.q) - 1, min(len(check.q), DRY_RUN_ROBOTS)).round().astype(int)
         record_plan(rec, devices.planner.with_tool, [tuple(check.q[i]) for i in stations])
@@ -437,29 +378,29 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
             "workpiece": workpiece.name,
             "calibration_job": cal_job,
             "tool_calibration_job": tool_job,
-            "planned_path": geometry.seam_base.tolist(),
-            "tcp_path": [se3.to_ur_pose(T).tolist() for T in path],
+            "planned_path": plan.geometry.seam_base.tolist(),
+            "tcp_path": [se3.to_ur_pose(T).tolist() for T in plan.path],
             "min_clearance_mm": round(check.min_clearance * 1e3, 2),
             "seam_length_mm": round(seam.length * 1e3, 2),
         }
     ctx.progress("approach", None, "tool to the seam's start")
-    await devices.move_to(T_above, speed_scale=speed)
-    await devices.move_to(T_start, speed_scale=min(speed, 0.2))
+    await devices.move_to(plan.T_above, speed_scale=speed)
+    await devices.move_to(plan.T_start, speed_scale=min(speed, 0.2))
     ctx.progress("tare", None, "taring the SRM, finger free")
     await asyncio.to_thread(devices.tactile.tare)
 
     # The tip's height in the joint, probed by touch: the plan's height error moves where the finger
     # meets a sloping wall, and so where the torch goes. The plan moves to the height it should have.
+    up = plan.up
     try:
-        height_probe, geometry, T_start = await _probe_height(
-            ctx, devices, config, geometry, seam, servo, tool_cfg, sensor_yaw, T_start, min(speed, 0.2)
-        )
+        height_probe, plan = await _probe_height(ctx, devices, config, plan, servo, tool_cfg, sensor_yaw, min(speed, 0.2))
     except CelldError:
-        await _retract(ctx, devices, z, wc.retract_height, T_scan, speed)
+        await _retract(ctx, devices, up, wc.retract_height, T_scan, speed)
         raise
+    geometry = plan.geometry
 
     # 4. touch and track
-    plan = algorithm2_plan(
+    servo_plan = algorithm2_plan(
         geometry.wall_base,
         servo,
         tool_cfg,
@@ -472,10 +413,12 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     events_before = motion.loop_event_count
     failure: CelldError | None = None
     with _Collector(motion) as collector:
-        cid = await motion.start_servo(plan)
+        cid = await motion.start_servo(servo_plan)
         collector.command_id = cid
         ctx.progress(
-            "track", 0.0, "touching the seam, then tracking" + (" with the arc on" if plan.params.get("process") else " (dry run, arc off)")
+            "track",
+            0.0,
+            "touching the seam, then tracking" + (" with the arc on" if servo_plan.params.get("process") else " (dry run, arc off)"),
         )
         waiting = asyncio.ensure_future(motion.wait(cid, timeout=wc.timeout))
         s_wall = polyline.arc_length(geometry.wall_base)
@@ -510,37 +453,39 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         failure = CelldError(f"the motion loop reported during the weld: {'; '.join(trouble)}")
 
     # 5. retract (also after a failed track, while the robot can still be moved)
-    retract_error = await _retract(ctx, devices, z, wc.retract_height, T_scan, speed) if failure is None or motion.link_running() else ""
+    retract_error = await _retract(ctx, devices, up, wc.retract_height, T_scan, speed) if failure is None or motion.link_running() else ""
     if failure is not None:
         raise failure
 
     records = collector.records()
-    result = _summarise(records, geometry, tool, servo, seam, offset, ctx.result_dir(), rec)
-    result["workpiece"] = workpiece.name
-    result["calibration_job"] = cal_job
-    result["tool_calibration_job"] = tool_job
-    # The torch the weld placed: measured (its offset and the tool's x turned by -sensor_yaw) or as configured.
-    result["torch"] = {
-        "measured": torch_measured,
-        "torch_offset_mm": round(tool_cfg.torch_offset * 1e3, 4),
-        "yaw_from_config_deg": round(-math.degrees(sensor_yaw), 4),
+    if records is None or len(records) == 0:
+        raise CelldError("the servo ran but no motion record of it was read")
+    figures, paths = summarise(records, plan, tool, servo.delta_d)
+    path_file = await asyncio.to_thread(fsutil.write_json, ctx.result_dir() / "paths.json", paths)
+    if rec is not None:
+        for name in ("refined", "torch"):
+            if len(paths[name]) > 1:
+                rec.log_path_base(name, np.asarray(paths[name]))
+    result: dict[str, Any] = {
+        "figures": figures,
+        "paths": str(path_file),
+        "refined_path": paths["refined"],
+        "torch_path": paths["torch"],
+        "planned_path": paths["planned"],
+        "workpiece": workpiece.name,
+        "calibration_job": cal_job,
+        "tool_calibration_job": tool_job,
+        # The torch the weld placed: measured (its offset and the tool's x turned by -sensor_yaw) or as configured.
+        "torch": {
+            "measured": torch_measured,
+            "torch_offset_mm": round(tool_cfg.torch_offset * 1e3, 4),
+            "yaw_from_config_deg": round(-math.degrees(sensor_yaw), 4),
+        },
+        "height_probe": height_probe,
     }
-    result["height_probe"] = height_probe
     if retract_error:
         result["retract_error"] = retract_error
     return result
-
-
-def weld_path(
-    geometry: WeldGeometry, T_tcp_tool: np.ndarray, T_above: np.ndarray, T_start: np.ndarray, T_scan: np.ndarray, retract_height: float
-) -> np.ndarray:
-    """The TCP poses (n, 4, 4) a weld passes through: above the start, the start, along the wall line
-    (every PATH_STEP), up by the retract height at the end, back to the scan pose."""
-    length = float(polyline.arc_length(geometry.wall_base)[-1])
-    track = tool_poses(geometry, T_tcp_tool, np.arange(LEAD_IN + PATH_STEP, length, PATH_STEP))
-    T_up = track[-1].copy() if len(track) else T_start.copy()
-    T_up[:3, 3] += retract_height * geometry.T_base_plane[:3, 2]
-    return np.concatenate([T_above[None], T_start[None], track, T_up[None], T_scan[None]])
 
 
 def _log_preview(devices: CellDevices, rec: Any, last_stamp: int) -> int:
@@ -565,47 +510,3 @@ def _log_preview(devices: CellDevices, rec: Any, last_stamp: int) -> int:
 def _quality(seam: Any) -> dict[str, Any]:
     q = seam.quality.to_dict()
     return {k: q[k] for k in ("source", "fitness", "inlier_rmse", "coverage") if k in q}
-
-
-def _summarise(
-    records: np.ndarray | None,
-    geometry: WeldGeometry,
-    tool: ToolGeometry,
-    servo: ServoConfig,
-    seam: Any,
-    offset: float,
-    out_dir: Path,
-    rec: Any,
-) -> dict[str, Any]:
-    """The paths and tracking figures of a finished track, written to paths.json and the recording."""
-    if records is None or len(records) == 0:
-        raise CelldError("the servo ran but no motion record of it was read")
-    track = track_summary(records, geometry, tool, servo.delta_d)
-    paths = {
-        "frame": "base",
-        "units": "m",
-        "planned": geometry.seam_base.tolist(),
-        "planned_wall": geometry.wall_base.tolist(),
-        "refined": track.refined.tolist(),
-        "torch": track.torch.tolist(),
-    }
-    path_file = fsutil.write_json(out_dir / "paths.json", paths)
-    if rec is not None:
-        if len(track.refined) > 1:
-            rec.log_path_base("refined", track.refined)
-        if len(track.torch) > 1:
-            rec.log_path_base("torch", track.torch)
-    figures = {
-        **track.figures,
-        "wall_offset_mm": round(offset * 1e3, 4),
-        # The finger wall's distance from the seam as the weld used it (the scan's, where it measured it).
-        "wall_offset_used_mm": [round(float(geometry.offsets.min()) * 1e3, 4), round(float(geometry.offsets.max()) * 1e3, 4)],
-        "seam_length_mm": round(seam.length * 1e3, 2),
-    }
-    return {
-        "figures": figures,
-        "paths": str(path_file),
-        "refined_path": paths["refined"],
-        "torch_path": paths["torch"],
-        "planned_path": paths["planned"],
-    }

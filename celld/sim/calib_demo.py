@@ -30,9 +30,9 @@ from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
 from celld.calib.mount import ScannerMount, in_frame
-from celld.calib.pairs import PairCollector
 from celld.calib.poses import calibration_poses
-from celld.calib.session import CalibrationResult, SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
+from celld.calib.session import CalibrationSession
+from celld.calib.solve import CalibrationResult, SolveParams
 from celld.sim.scanner import SimScanner, scanner_model
 from celld.sim.scene import robot_scene
 from celld.sim.world import World, add_world_arguments, options_from_args, world_of
@@ -101,12 +101,12 @@ def calibrate_in_world(
     T_v = se3.from_ur_pose(cal.verification_pose)
     poses = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=seed)
     t0 = time.perf_counter()
+    # Every pose, as the offline benchmark of a session: no early stop.
+    session = CalibrationSession(flange, SolveParams.from_config(cal), dparams, planned=n, mount=mount, writer=writer, online=False)
     P_v, q_v = seen(T_v)
-    if writer is not None:
-        writer.set_verification(T_v, P_v, q=q_v)
-    pairs = PairCollector(flange, dparams, writer, mount)
+    session.verify(T_v, P_v, q_v)
     for T in poses:
-        got = pairs.capture(T, *seen(T))
+        got = session.capture(T, *seen(T)).pair
         det = got.detection
         if say is None:
             continue
@@ -117,13 +117,7 @@ def calibrate_in_world(
             f"  pair {got.id}: centre found, radius {det.radius * 1e3:.2f} mm, {det.inliers} rim points, "
             f"residual {det.residual * 1e6:.0f} um"
         )
-    params = SolveParams.from_config(cal)
-    verifier = verifier_from_cloud(P_v, mount.to_link(T_v, q_v), flange, params, dparams)
-    found = pairs.detections()
-    result = solve_pairs(
-        found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, n_pairs=n, range_data=range_bias_data(params, flange, found)
-    )
-    return OfflineCalibration(result, sc.T_mount_cam, q_v, time.perf_counter() - t0)
+    return OfflineCalibration(session.finish(), sc.T_mount_cam, q_v, time.perf_counter() - t0)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -80,7 +80,7 @@ def test_solve_errors_are_json_with_a_reason(tmp_path: Path, rng: np.random.Gene
     assert code == 2 and "verification cloud" in out["error"]
     reference_session(tmp_path / "few", rng, 3, 0.0, {})
     code, out = run(capsys, "calib", "solve", str(tmp_path / "few"), "--json")
-    assert code == 2 and "only 3 of 3 pairs" in out["error"]
+    assert code == 2 and "only 3 of 3 captures showed the flange" in out["error"]
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation
 
 from celld.calib.dataset import SessionWriter, load_session
 from celld.calib.mount import ScannerMount, in_frame, mount_entry, placement_of
-from celld.calib.session import SolveParams, calibrate_session
+from celld.calib.session import calibrate_session
+from celld.calib.solve import SolveParams
 from celld.errors import InputError
 from celld.robot import kinematics as kin
 from celld.se3 import apply, error, invert, transform_from

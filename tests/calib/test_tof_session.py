@@ -16,9 +16,9 @@ import pytest
 from celld import polyline, se3
 from celld.calib.detect_params import PARAMS_BY_SCANNER
 from celld.calib.flange import preset
-from celld.calib.pairs import PairCollector
 from celld.calib.rangebias import correct_range_bias
-from celld.calib.session import CalibrationResult, SolveParams, range_bias_data, solve_pairs, verifier_from_cloud
+from celld.calib.session import CalibrationSession
+from celld.calib.solve import CalibrationResult, SolveParams
 from celld.config.seam import SeamParams
 from celld.seam.pipeline import find_seam
 from celld.seam.workpiece import example
@@ -50,15 +50,12 @@ def calibration() -> CalibrationResult:
     detect = PARAMS_BY_SCANNER["azure-kinect"]
     scanner = SimScanner("azure-kinect", T_BASE_CAM, seed=2)
     params = SolveParams(range_bias="estimate")
-    pairs = PairCollector(flange, detect)
+    session = CalibrationSession(flange, params, detect, planned=20, online=False)
     for T in poses(np.random.default_rng(2), 20):
-        pairs.capture(T, scanner.capture(robot_scene(T, flange)).points)
+        session.capture(T, scanner.capture(robot_scene(T, flange)).points)
     T_v = se3.transform_from(np.eye(3), CENTRE)
-    verifier = verifier_from_cloud(scanner.capture(robot_scene(T_v, flange)).points, T_v, flange, params, detect)
-    found = pairs.detections()
-    return solve_pairs(
-        found.ids, found.P_base, found.P_cam, params, verifier, found.rejected, range_data=range_bias_data(params, flange, found)
-    )
+    session.verify(T_v, scanner.capture(robot_scene(T_v, flange)).points)
+    return session.finish()
 
 
 def test_the_wrist_circle_calibration_meets_its_target_and_estimates_the_bias(calibration: CalibrationResult) -> None:

@@ -99,7 +99,8 @@ def test_calibrate_over_the_bus_then_accept(daemon) -> None:
     # The dataset is compact, and solved again offline it gives the job's transform.
     from celld.calib.dataset import load_session
     from celld.calib.flange import preset
-    from celld.calib.session import SolveParams, calibrate_session
+    from celld.calib.session import calibrate_session
+    from celld.calib.solve import SolveParams
 
     session = load_session(result["dataset"])
     assert [r.cloud_path.name for r in session.pairs] == [f"p{i:03d}.cloud.json" for i in range(6)]

@@ -147,7 +147,7 @@ def _calibration(verdict_ok: bool) -> dict[str, Any]:
     """A calibrate job's calibration with a real quality report: a wide or a narrow plane of poses."""
     import numpy as np
 
-    from celld.calib.session import solve_pairs
+    from celld.calib.solve import solve_pairs
     from celld.se3 import apply, invert
 
     T = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])

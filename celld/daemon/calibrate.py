@@ -1,0 +1,298 @@
+"""The calibrate job: the robot shows its flange to the scanner, pose after pose, and the session decides.
+
+The runner is the shell around a :class:`~celld.calib.session.CalibrationSession`
+(which holds the pairs, Algorithm 1 online with its range-bias restart, the
+early stop's quality gate and the final solve): it plans the poses and checks
+them against the cell, moves, settles, captures, hands each capture to the
+session, publishes what the session answered, records and stores.
+
+1. **plan**: the verification pose, then ``n_poses`` generated poses in the
+   calibration box (refused ones replaced) or the job's given poses (a refused
+   one refuses the job); a dry run stops here and returns the plan;
+2. **verify**: the verification cloud, which scores every estimate (Eq. 13);
+3. **pair** (each): move, settle, capture, the flange pose and joints the
+   robot reports; the session finds the flange, feeds Algorithm 1 and says
+   whether to stop early (only when the pairs so far pass the quality gate);
+4. **solve**: the session's result with Algorithm 1's history, the e_icp of
+   Eq. 13 and the quality gate's verdict (accept refuses a failed one unless
+   forced); with ``compensate`` the calibration stored is Eq. 21's
+   compensated estimate, and ``stored`` says so.
+
+The dataset is saved as it is captured, so the session can be solved again
+offline (``celld calib solve``); old datasets are then pruned by the config's
+retention rules (:mod:`celld.daemon.retention`). With
+``calibration.range_bias = "estimate"`` (time-of-flight scanners) the
+scanner's range bias on metal is estimated with the transform and stored with
+it (``range_bias_mm`` and its 1-sigma): every scan placed with this
+calibration is corrected by it. With the scanner on the arm
+(``scanner.mount`` = link1-3, eye-on-arm, Eq. 8) each capture's flange pose
+is moved into the scanner's link frame by the joints of that capture, and the
+same session gives ``T_linkN_cam``; the calibration stores it with the mount
+and the DH table (:mod:`celld.calib.mount`). A job with ``robot2`` runs this
+for each robot (:mod:`celld.daemon.two_robots`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from celld import se3
+from celld.bus.schema import CalibrateJob
+from celld.calib.dataset import SessionWriter
+from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
+from celld.calib.flange import preset
+from celld.calib.mount import ScannerMount, in_frame, mount_entry
+from celld.calib.pairs import Detections
+from celld.calib.poses import calibration_poses
+from celld.calib.rangebias import correct_range_bias
+from celld.calib.session import CalibrationSession
+from celld.calib.solve import CalibrationResult, SolveParams
+from celld.config import Config
+from celld.daemon.devices import Arm, CellDevices
+from celld.daemon.jobs import CalibrationStore, JobContext
+from celld.daemon.planning import record_arm, record_cell, record_plan, report_plan
+from celld.daemon.retention import prune_sessions
+from celld.errors import CalibrationError, JobError
+from celld.log import get_logger
+from celld.recording import layout
+from celld.scanner.base import OrganizedCloud
+
+log = get_logger(__name__)
+
+
+async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -> Mapping[str, Any]:
+    """A calibrate job of robot 1 (a job with ``robot2``: :func:`celld.daemon.two_robots.run_calibrate_two`)."""
+    job = ctx.job
+    if not isinstance(job, CalibrateJob):
+        raise JobError("$.kind", "not a calibrate job")
+    done = await calibrate_arm(ctx, config, devices, devices.capture, job)
+    await prune_calibrations(ctx, config)
+    return done.output
+
+
+async def prune_calibrations(ctx: JobContext, config: Config) -> None:
+    """Old calibration datasets pruned by the config's retention rules, never this job's or the current calibration's."""
+    cal = config.calibration
+    current = CalibrationStore(ctx.state_dir).current() or {}
+    await asyncio.to_thread(prune_sessions, ctx.state_dir / "jobs", cal.keep_sessions, cal.keep_days, (ctx.job_id, current.get("job")))
+
+
+@dataclass(frozen=True)
+class ArmCalibration:
+    """One robot's calibration as a job made it: the job's output, and the solve (None for a dry run)."""
+
+    output: dict[str, Any]
+    result: CalibrationResult | None
+
+
+async def _settled_flange_pose(arm: Arm, T_target: np.ndarray, settle: float) -> tuple[np.ndarray, np.ndarray]:
+    """Move to ``T_target`` (the tool is off: the scanner must see the flange), let the arm settle, and
+    return the flange pose the robot reports and its joints."""
+    motion = arm.require_motion()
+    await arm.move_to(T_target, tool=False)
+    await asyncio.sleep(settle)
+    state = motion.state()
+    if state is None:
+        raise CalibrationError("no robot state after the move")
+    return state.T_base_tcp, np.asarray(state.q, dtype=np.float64)
+
+
+def solve_params(config: Config, job: CalibrateJob) -> SolveParams:
+    """How the job's session is solved: the cell's ``[calibration]``, the job's overrides winning."""
+    overrides: dict[str, Any] = {}
+    if job.e_required is not None:
+        overrides["e_required"] = job.e_required
+    if job.k_max is not None:
+        overrides["k_max"] = job.k_max
+    if job.compensate:
+        overrides["compensate"] = True
+    return SolveParams.from_config(config.calibration, **overrides)
+
+
+async def calibrate_arm(
+    ctx: JobContext,
+    config: Config,
+    arm: Arm,
+    capture: Callable[[], Awaitable[OrganizedCloud]],
+    job: CalibrateJob,
+    *,
+    dataset_name: str = "dataset",
+    robot: int = 1,
+) -> ArmCalibration:
+    """Calibrate the scanner to the flange of ``arm``, whose view of the cell is ``config``.
+
+    Robot 1 (the cell's) records into the job's recording; another robot
+    (``robot`` 2) saves its dataset under ``dataset_name`` and tags its
+    progress events with its number.
+    """
+    tag = {} if robot == 1 else {"robot": robot}
+    who = "" if robot == 1 else f"robot {robot}: "
+
+    def progress(stage: str, fraction: float | None, message: str = "", **data: Any) -> None:
+        ctx.progress(stage, fraction, who + message, **tag, **data)
+
+    cal = config.calibration
+    if any(abs(v) > 1e-12 for v in config.robot.tcp_offset):
+        raise JobError("$", "calibration reads the flange pose: set robot.tcp_offset to zero for a calibrate job")
+    flange = preset(cal.flange)
+    params = solve_params(config, job)
+    T_v = se3.from_ur_pose(job.verification_pose if job.verification_pose is not None else cal.verification_pose)
+    # The plan, checked against the cell before the robot moves: the verification
+    # pose, then the poses; generated ones that fail are replaced, given ones refuse the job.
+    planner = arm.planner
+    to_v = await asyncio.to_thread(planner.check_move, await arm.current_q(), T_v, False)
+    seed = job.seed or 0
+    if job.poses:
+        candidates = np.array([se3.from_ur_pose(p) for p in job.poses])
+        plan = await asyncio.to_thread(planner.plan_calibration, to_v.q_end, candidates, len(candidates))
+    else:
+        n = job.n_poses if job.n_poses is not None else cal.n_poses
+
+        def more(count: int, rnd: int) -> np.ndarray:
+            return calibration_poses(T_v, cal.pose_box, count, cal.max_tilt, seed=seed + 1000 * (rnd + 1))
+
+        candidates = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=seed)
+        plan = await asyncio.to_thread(planner.plan_calibration, to_v.q_end, candidates, n, more)
+    poses = np.array(plan.poses)
+    report_plan(ctx, plan, who + "calibration")
+    # Robot 1's calibration draws the cell, its arm and its solution in the job's recording (base 1's
+    # frame); another robot's adds what the scanner saw of it, named for it, in the camera's frame.
+    rec = ctx.recording if robot == 1 else None
+    seen = ctx.recording
+    seen_as = "" if robot == 1 else f"robot{robot}-"
+    if job.dry_run:
+        record_plan(rec, planner.bare, [tuple(to_v.q_end), *plan.q])
+        return ArmCalibration(
+            {
+                "dry_run": True,
+                "plan": {
+                    "verification_pose": se3.to_ur_pose(T_v).tolist(),
+                    "poses": [se3.to_ur_pose(T).tolist() for T in plan.poses],
+                    "joints": [list(to_v.q_end), *[list(q) for q in plan.q]],
+                    "refused": [{"pose": list(r.target), "reason": r.reason, "message": r.message} for r in plan.refused],
+                },
+            },
+            None,
+        )
+    dataset = ctx.result_dir() / dataset_name
+    # A scanner on the arm: every pair's robot side is the flange in the scanner's link frame (Eq. 8).
+    mount = ScannerMount.of(config.scanner.mount, config.robot.model)
+    writer = SessionWriter(dataset, flange=cal.flange, scanner=config.scanner.model, mount=mount)
+    dparams = PARAMS_BY_SCANNER.get(config.scanner.model, DetectParams())
+    session = CalibrationSession(flange, params, dparams, planned=len(poses), mount=mount, writer=writer)
+    if rec is not None:
+        # The cell, and the flange model carried by the TCP (the flange: tcp_offset is zero here) at each pose.
+        record_cell(rec, planner.bare)
+        mesh = await asyncio.to_thread(flange.mesh)
+        rec.log_mesh(layout.FLANGE, np.asarray(mesh.vertices), np.asarray(mesh.triangles), static=True)
+
+    # Verification pose first: its cloud scores every estimate (Eq. 13).
+    progress("verify", 0.0, "verification pose")
+    T_v_robot, q_v = await _settled_flange_pose(arm, T_v, cal.settle)
+    cloud_v = await capture()
+    if seen is not None:
+        seen.log_cloud_cam(seen_as + "verification", cloud_v.points)
+    await asyncio.to_thread(session.verify, T_v_robot, cloud_v.points, q_v)
+
+    q_of: dict[str, np.ndarray] = {}  # each capture's joints, by pair id
+    for i, T in enumerate(poses):
+        T_bf, q = await _settled_flange_pose(arm, T, cal.settle)
+        cloud = await capture()
+        step = await asyncio.to_thread(session.capture, T_bf, cloud.points, q)
+        q_of[step.pair.id] = q
+        message, data = step.progress()
+        det = step.pair.detection
+        if det is not None:
+            if seen is not None:
+                seen.log_cloud_cam(seen_as + "pair", cloud.points)
+                seen.log_circle_cam(seen_as + "flange", det.center, det.normal, det.radius)
+            if rec is not None:
+                rec.log_tcp(T_bf)
+                here = arm.require_motion().state()
+                if here is not None:
+                    record_arm(rec, planner.bare, here.q)
+                if step.algorithm1 is not None:
+                    rec.log_e_icp(step.algorithm1.k, step.algorithm1.cost_optimal)
+        progress("pair", (i + 1) / len(poses), message, **data)
+        if step.stop:
+            break
+        if step.held:
+            progress("pair", (i + 1) / len(poses), f"Algorithm 1 is done but {step.held}: capturing more", pair=step.pair.id, detected=True)
+
+    progress("solve", None, f"solving from {session.n_pairs} pairs")
+    result = await asyncio.to_thread(session.finish)
+    found = session.detections()
+    report = in_frame(result.as_dict(), mount)
+    if rec is not None:
+        T_base_link = [mount.T_base_link(q_of[pid]) for pid in found.ids]
+        _record_solution(
+            rec, result.T_base_cam, result.bias, found, report["quality"], flange.circle_on_metal, T_base_link, mount.T_base_link(q_v)
+        )
+    a1 = session.algorithm1()
+    cost_mm = a1.cost * 1e3 if a1 is not None and math.isfinite(a1.cost) else None
+    early = session.stopped_early and session.reached
+    calibration = {
+        "job": ctx.job_id,
+        **mount_entry(mount, result.T_base_cam_stored),
+        "stored": result.stored,
+        "cost_mm": cost_mm,
+        "pairs": len(result.pair_ids),
+        "dataset": str(dataset),
+        "method": result.method,
+        "quality": report["quality"],
+        # The scanner's range bias on metal, to apply with T_base_cam (0 with mode none).
+        "range_bias": params.range_bias,
+        "range_bias_mm": result.bias * 1e3,
+        "range_bias_std_mm": None if result.range_bias is None else report["range_bias"]["std_mm"],
+    }
+    log.info(
+        "calibration solved",
+        job=ctx.job_id,
+        robot=robot,
+        pairs=len(result.pair_ids),
+        cost_mm=cost_mm,
+        early_stop=early,
+        verdict=result.quality.verdict,
+        stored=result.stored,
+        range_bias_mm=round(result.bias * 1e3, 3),
+    )
+    output = {
+        "calibration": calibration,
+        "report": report,
+        "early_stop": early,
+        "poses_captured": session.n_captures,
+        "poses_planned": len(poses),
+        "dataset": str(dataset),
+    }
+    return ArmCalibration(output, result)
+
+
+def _record_solution(
+    rec: Any,
+    T_ref_cam: np.ndarray,
+    bias: float,
+    found: Detections,
+    quality: Mapping[str, Any],
+    circle_on_metal: bool,
+    T_base_ref: list[np.ndarray],
+    T_base_ref_v: np.ndarray,
+) -> None:
+    """The solved calibration in its recording: the camera placed for the whole
+    recording (every capture then lies in the base frame; a scanner on the arm
+    is placed where it was at the verification pose) and each pair's residual,
+    robot centre to scanner centre (the centre corrected by the range bias where
+    the circle lies on metal, as the solve used it). ``T_ref_cam`` is the
+    scanner in the frame it is fixed in, ``T_base_ref`` that frame at each
+    pair (the identity on the base) and ``T_base_ref_v`` at the verification pose."""
+    rec.log_camera_pose(T_base_ref_v @ T_ref_cam, static=True)
+    P_cam = correct_range_bias(found.P_cam, bias) if (bias and circle_on_metal) else found.P_cam
+    left_out = {str(p["id"]): bool(p["outlier"] or not p["used"]) for p in quality.get("pairs", [])}
+    P_robot = np.array([se3.apply(T, p[None])[0] for T, p in zip(T_base_ref, found.P_base)]).reshape(-1, 3)
+    P_scanner = np.array([se3.apply(T @ T_ref_cam, p[None])[0] for T, p in zip(T_base_ref, P_cam)]).reshape(-1, 3)
+    rec.log_residuals(list(found.ids), P_robot, P_scanner, [left_out.get(i, False) for i in found.ids])

@@ -1,0 +1,242 @@
+"""A weld's plan from the scan, the calibration, the tool and the part model; the height probe; the figures.
+
+Pure: arrays and configs in, a plan out. The weld job
+(:mod:`celld.daemon.weld`) moves the arm, captures and records around it:
+
+1. :func:`prepare_part`: the part model sampled for the seam finder and its
+   finger wall's offset from the seam at the tip's height (once per model);
+2. :func:`plan_weld`: the seam found in the scan (registration of the model,
+   the groove measured) and placed in the base frame with the calibration;
+   the finger's wall line at ``weld.tip_height`` above it
+   (:mod:`celld.seam.weldpath`, the wall where the scan measured it beside the
+   seam); the tool's start pose ``LEAD_IN`` along the line, mid-way across
+   the joint; and every TCP pose the weld passes through, for the cell check;
+3. :func:`probe_targets` and :func:`probed_height`: where the finger touches
+   the joint's two walls at the start, and the tip's height in the joint
+   from the width found there (the plan moved to the height it should have);
+4. :func:`summarise`: the refined and torch paths of a finished track and its
+   figures.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from celld import polyline, se3
+from celld.config import ToolConfig, WeldConfig
+from celld.config.seam import SeamParams
+from celld.errors import WorkpieceError
+from celld.seam.figures import track_summary
+from celld.seam.pipeline import PreparedWorkpiece, SeamPath, find_seam, prepare
+from celld.seam.weldpath import (
+    WeldGeometry,
+    height_from_width,
+    joint_width,
+    measured_offsets,
+    start_pose,
+    tool_poses,
+    wall_at_height,
+    wall_offset,
+    weld_geometry,
+)
+from celld.seam.workpiece import Workpiece
+from celld.tactile.tool import ToolGeometry
+
+# The tool starts this far along the wall line (m) ...
+LEAD_IN = 0.005
+# ... and this far off the wall on the free side where the scan did not measure the joint's width (m);
+# the servo's touch then travels it at touch_speed (bounded by servo.touch_distance).
+CLEARANCE = 0.004
+# The weld's path check looks at the tool every this much along the seam, m.
+PATH_STEP = 0.01
+
+
+@dataclass(frozen=True)
+class PreparedPart:
+    """A part model ready for the seam finder, and its finger wall's offset from the seam at the tip's height (m)."""
+
+    model: PreparedWorkpiece
+    wall_offset: float
+
+
+def prepare_part(workpiece: Workpiece, params: SeamParams, tip_height: float) -> PreparedPart:
+    """Sample and describe ``workpiece`` for :func:`plan_weld` (once per model, params and tip height)."""
+    return PreparedPart(prepare(workpiece, params), wall_offset(workpiece, tip_height, params.finger_wall))
+
+
+@dataclass(frozen=True)
+class WeldPlan:
+    """Where the weld goes, base frame (m).
+
+    Attributes
+    ----------
+    seam : SeamPath
+        The seam as the scan placed it, with the walls it measured beside it.
+    geometry : WeldGeometry
+        The finger's wall line at the tip's height and its plane.
+    wall_offset : float
+        The model's finger wall offset from the seam at the tip's height.
+    T_start, T_above : (4, 4) arrays
+        The TCP at the start of the wall line, and ``approach_height`` above it.
+    path : (n, 4, 4) array
+        Every TCP pose the weld passes through (:func:`weld_path`).
+    """
+
+    seam: SeamPath
+    geometry: WeldGeometry
+    wall_offset: float
+    T_start: np.ndarray
+    T_above: np.ndarray
+    path: np.ndarray
+
+    @property
+    def up(self) -> np.ndarray:
+        """The seam plane's normal: the approach and retract direction."""
+        return self.geometry.T_base_plane[:3, 2]
+
+
+def plan_weld(
+    points_cam: np.ndarray,
+    T_base_cam: np.ndarray,
+    part: PreparedPart,
+    weld: WeldConfig,
+    seam_params: SeamParams,
+    T_tcp_tool: np.ndarray,
+    T_scan: np.ndarray,
+) -> WeldPlan:
+    """The weld of ``part`` from one scan (camera frame, m, range bias already taken off) placed by ``T_base_cam``.
+
+    Raises
+    ------
+    WorkpieceError, SeamError
+        The part or its seam is not found in the scan (the seam finder's reasons).
+    """
+    nominal = se3.from_ur_pose(weld.nominal_pose) if weld.nominal_pose else None
+    seam = find_seam(points_cam, part.model, T_base_cam, seam_params, nominal)
+    # The finger wall where the scan measured it beside the seam (a part's gap and twist move it; the
+    # model's constant offset where it was not measured, or where the config trusts the model alone).
+    offset = part.wall_offset
+    offsets = offset if seam_params.seam_source == "model" else measured_offsets(seam.wall_across, weld.tip_height, offset)
+    geometry = weld_geometry(seam.points_base, seam.tangents, seam.normals, seam.plane_normal, offsets, weld.tip_height)
+    # The whole path, to check against the cell before the tool moves to it:
+    # above the start, down, along the seam, up and back to the scan pose.
+    T_start = start_pose(geometry, T_tcp_tool, LEAD_IN, start_clearance(geometry, seam))
+    T_above = T_start.copy()
+    T_above[:3, 3] += weld.approach_height * geometry.T_base_plane[:3, 2]
+    path = weld_path(geometry, T_tcp_tool, T_above, T_start, T_scan, weld.retract_height)
+    return WeldPlan(seam, geometry, offset, T_start, T_above, path)
+
+
+def start_clearance(geometry: WeldGeometry, seam: SeamPath) -> float:
+    """How far off the finger wall the tip starts: mid-way across the joint where the scan measured its
+    other wall at the start (as far from either wall as it can be), else :data:`CLEARANCE`."""
+    i = int(geometry.stations([LEAD_IN])[0])
+    width = geometry.offsets[i] + wall_at_height(seam.far_wall_across[i : i + 1], geometry.tip_height)[0]
+    return float(width) / 2.0 if math.isfinite(width) and width > 0.0 else CLEARANCE
+
+
+def weld_path(
+    geometry: WeldGeometry, T_tcp_tool: np.ndarray, T_above: np.ndarray, T_start: np.ndarray, T_scan: np.ndarray, retract_height: float
+) -> np.ndarray:
+    """The TCP poses (n, 4, 4) a weld passes through: above the start, the start, along the wall line
+    (every PATH_STEP), up by the retract height at the end, back to the scan pose."""
+    length = float(polyline.arc_length(geometry.wall_base)[-1])
+    track = tool_poses(geometry, T_tcp_tool, np.arange(LEAD_IN + PATH_STEP, length, PATH_STEP))
+    T_up = track[-1].copy() if len(track) else T_start.copy()
+    T_up[:3, 3] += retract_height * geometry.T_base_plane[:3, 2]
+    return np.concatenate([T_above[None], T_start[None], track, T_up[None], T_scan[None]])
+
+
+@dataclass(frozen=True)
+class ProbeTarget:
+    """One wall the finger touches at the start: its name, the line to touch along, and the tool riding it."""
+
+    name: str
+    line: np.ndarray
+    tool: ToolConfig
+
+
+def probe_targets(plan: WeldPlan, tool_cfg: ToolConfig) -> tuple[list[ProbeTarget], str]:
+    """The joint's far wall, then the finger wall, at the tip's height where the scan measured them; or none
+    and why the joint cannot tell a height (its walls do not open upwards, or were not measured)."""
+    geometry, seam = plan.geometry, plan.seam
+    i = int(geometry.stations([LEAD_IN])[0])
+    finger, far = seam.wall_across[i], seam.far_wall_across[i]
+    try:
+        height_from_width(float(finger[0] + far[0]), finger, far)  # the joint can tell a height
+    except WorkpieceError as exc:
+        return [], str(exc)
+    # The far wall at the tip's height, where the scan measured it (its neighbours' between).
+    far_line = geometry.seam_base - wall_at_height(seam.far_wall_across, geometry.tip_height)[:, None] * geometry.normals
+    other = replace(tool_cfg, wall_side="right" if tool_cfg.wall_side == "left" else "left")
+    return [ProbeTarget("far", far_line, other), ProbeTarget("finger", geometry.wall_base, tool_cfg)], ""
+
+
+def probe_across(plan: WeldPlan) -> tuple[np.ndarray, np.ndarray]:
+    """Where a touch's contact is measured: the plane's origin and the direction across the joint at the start."""
+    geometry = plan.geometry
+    i = int(geometry.stations([LEAD_IN])[0])
+    z = geometry.T_base_plane[:3, 2]
+    N = geometry.normals[i] - float(geometry.normals[i] @ z) * z
+    return geometry.T_base_plane[:3, 3], N / np.linalg.norm(N)
+
+
+def probed_height(
+    plan: WeldPlan, touches: dict[str, float], tool: ToolGeometry, T_tcp_tool: np.ndarray, max_correction: float
+) -> tuple[dict[str, Any], WeldPlan]:
+    """The tip's height in the joint from where the finger met its two walls (``touches``: ``far`` and
+    ``finger``, m across the joint), and the plan moved to the height it should have.
+
+    Raises
+    ------
+    WorkpieceError
+        The probed height is more than ``max_correction`` off the plan's (the calibration or the tool is off).
+    """
+    geometry, seam = plan.geometry, plan.seam
+    i = int(geometry.stations([LEAD_IN])[0])
+    finger, far = seam.wall_across[i], seam.far_wall_across[i]
+    width = touches["finger"] - touches["far"] + 2.0 * tool.tip_radius
+    height = height_from_width(width, finger, far)
+    dh = height - geometry.tip_height
+    found = {
+        "probed": True,
+        "joint_width_mm": round(width * 1e3, 4),
+        "scan_width_mm": round(joint_width(finger, far, geometry.tip_height) * 1e3, 4),
+        "height_mm": round(height * 1e3, 4),
+        "height_correction_mm": round(-dh * 1e3, 4),
+    }
+    if abs(dh) > max_correction:
+        raise WorkpieceError(
+            f"the tip stands {height * 1e3:.2f} mm above the seam where the plan puts it at {geometry.tip_height * 1e3:.2f} mm "
+            f"(the joint is {width * 1e3:.2f} mm wide there; at most {max_correction * 1e3:.1f} mm off is corrected): "
+            "check the calibration and the tool"
+        )
+    moved = weld_geometry(seam.points_base, seam.tangents, seam.normals, seam.plane_normal, geometry.offsets, geometry.tip_height - dh)
+    T_start = start_pose(moved, T_tcp_tool, LEAD_IN, start_clearance(geometry, seam))
+    return found, replace(plan, geometry=moved, T_start=T_start)
+
+
+def summarise(records: np.ndarray, plan: WeldPlan, tool: ToolGeometry, delta_d: float) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The figures of a finished track and its paths (planned, planned wall, refined, torch; base frame, m)."""
+    geometry = plan.geometry
+    track = track_summary(records, geometry, tool, delta_d)
+    paths = {
+        "frame": "base",
+        "units": "m",
+        "planned": geometry.seam_base.tolist(),
+        "planned_wall": geometry.wall_base.tolist(),
+        "refined": track.refined.tolist(),
+        "torch": track.torch.tolist(),
+    }
+    figures = {
+        **track.figures,
+        "wall_offset_mm": round(plan.wall_offset * 1e3, 4),
+        # The finger wall's distance from the seam as the weld used it (the scan's, where it measured it).
+        "wall_offset_used_mm": [round(float(geometry.offsets.min()) * 1e3, 4), round(float(geometry.offsets.max()) * 1e3, 4)],
+        "seam_length_mm": round(plan.seam.length * 1e3, 2),
+    }
+    return figures, paths

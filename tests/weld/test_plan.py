@@ -1,0 +1,73 @@
+"""The weld's plan from a scan: the path the tool takes, the height probe's reading, the refusals."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from celld import se3
+from celld.config import ToolConfig, WeldConfig
+from celld.config.seam import SeamParams
+from celld.errors import WorkpieceError
+from celld.seam.weldpath import joint_width
+from celld.seam.workpiece import example
+from celld.sim import workpiece as simscene
+from celld.sim.scanner import SimScanner
+from celld.tactile.tool import ToolGeometry
+from celld.weld.plan import LEAD_IN, WeldPlan, plan_weld, prepare_part, probe_targets, probed_height
+
+pytestmark = pytest.mark.slow
+
+T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
+WELD = WeldConfig()
+TOOL = ToolConfig()
+
+
+@pytest.fixture(scope="module")
+def plan() -> WeldPlan:
+    wp = example("v-groove")
+    T_true = simscene.random_pose(wp, np.random.default_rng(4), math.radians(10.0), 0.02)
+    scan = SimScanner("phoxi-m", T_BASE_CAM, seed=1, resolution_scale=0.5).capture(simscene.workpiece_scene(wp, T_true)).points
+    weld = WeldConfig(nominal_pose=tuple(se3.to_ur_pose(simscene.nominal_pose(wp)).tolist()))
+    part = prepare_part(wp, SeamParams(), weld.tip_height)
+    return plan_weld(
+        scan, T_BASE_CAM, part, weld, SeamParams(), ToolGeometry.from_config(TOOL).T_tcp_tool, se3.from_ur_pose(weld.scan_pose)
+    )
+
+
+def test_the_path_comes_down_onto_the_start_runs_along_the_seam_and_goes_back_to_the_scan_pose(plan: WeldPlan) -> None:
+    path = plan.path
+    np.testing.assert_allclose(path[0], plan.T_above)
+    np.testing.assert_allclose(path[1], plan.T_start)
+    np.testing.assert_allclose(path[-1], se3.from_ur_pose(WELD.scan_pose))
+    np.testing.assert_allclose(plan.T_above[:3, 3] - plan.T_start[:3, 3], WELD.approach_height * plan.up, atol=1e-12)
+    # Along the seam: one pose every PATH_STEP of the wall line, then up by the retract height.
+    along = path[2:-2, :3, 3]
+    assert len(along) >= 10 and np.all(np.linalg.norm(np.diff(along, axis=0), axis=1) < 0.0105)
+    np.testing.assert_allclose(path[-2, :3, 3] - path[-3, :3, 3], WELD.retract_height * plan.up, atol=1e-9)
+
+
+def test_a_probe_that_finds_the_planned_width_leaves_the_plan_and_a_wider_joint_brings_it_down(plan: WeldPlan) -> None:
+    targets, why = probe_targets(plan, TOOL)
+    assert [t.name for t in targets] == ["far", "finger"] and why == ""
+    assert targets[0].tool.wall_side != TOOL.wall_side and targets[1].tool == TOOL
+    tool = ToolGeometry.from_config(TOOL)
+    i = int(plan.geometry.stations([LEAD_IN])[0])
+    finger, far = plan.seam.wall_across[i], plan.seam.far_wall_across[i]
+    planned = joint_width(finger, far, plan.geometry.tip_height)
+
+    def touches(width: float) -> dict[str, float]:  # where the tip's centre stood at each wall, across the joint
+        return {"far": 0.0, "finger": width - 2.0 * tool.tip_radius}
+
+    found, same = probed_height(plan, touches(planned), tool, tool.T_tcp_tool, WELD.max_height_correction)
+    assert found["probed"] and abs(found["height_correction_mm"]) < 1e-6
+    np.testing.assert_allclose(same.T_start, plan.T_start, atol=1e-9)
+    opening = finger[1] + far[1]
+    found, lifted = probed_height(plan, touches(planned + opening * 0.001), tool, tool.T_tcp_tool, WELD.max_height_correction)
+    # The joint is wider than planned: the tip stands 1 mm higher than the plan says, and the plan comes down by it.
+    assert found["height_correction_mm"] == pytest.approx(-1.0, abs=1e-6)
+    assert (plan.T_start[:3, 3] - lifted.T_start[:3, 3]) @ plan.up == pytest.approx(0.001, abs=1e-6)
+    with pytest.raises(WorkpieceError, match="check the calibration and the tool"):
+        probed_height(plan, touches(planned + opening * 0.003), tool, tool.T_tcp_tool, WELD.max_height_correction)
