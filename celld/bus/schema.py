@@ -315,6 +315,37 @@ def _reply(desc: str, properties: dict[str, Any], required: tuple[str, ...] = ()
     return _object(desc, {**ok, **properties}, ("ok", *required))
 
 
+_STALL = {
+    "type": ["object", "null"],
+    "description": "The worst stall of its kind so far (null: none).",
+    "properties": {
+        "late_ms": {"type": "number", "minimum": 0, "description": "How much later than asked the loop woke."},
+        "kind": {"enum": ["busy", "unscheduled"]},
+        "callback": {"type": "string", "description": "The longest callback in the gap (its task and coroutine), or empty."},
+        "callback_ms": {"type": "number", "minimum": 0},
+        "callback_cpu_ms": {
+            "type": "number",
+            "minimum": 0,
+            "description": "The CPU that callback had (less than its time: it waited for the GIL).",
+        },
+        "workers_cpu_ms": {"type": "number", "description": "The CPU the daemon's other threads had in the gap."},
+    },
+    "additionalProperties": False,
+}
+_LOOP = _object(
+    "How late the daemon's event loop ran: stalls over threshold_ms counted by kind (busy: a callback ran that long; "
+    "unscheduled: the loop was ready but did not run: the daemon's worker threads or other processes had the CPU).",
+    {
+        "threshold_ms": {"type": "number", "minimum": 0},
+        "busy": {"type": "integer", "minimum": 0},
+        "unscheduled": {"type": "integer", "minimum": 0},
+        "worst_busy": _STALL,
+        "worst_unscheduled": _STALL,
+    },
+    ("threshold_ms", "busy", "unscheduled"),
+)
+
+
 _JOB_RECORD = _object(
     "One job as the journal keeps it. Times are UTC wall clock, ISO 8601. A user who may not see "
     "the job in full (a viewer, or an operator looking at another user's job) gets it redacted: no "
@@ -727,6 +758,7 @@ _BODIES: dict[str, dict[str, Any]] = {
             "version": {"type": "string"},
             "message": {"type": "string", "description": "Why the cell is in fault (robot link, storage), else empty."},
             "storage": _STORAGE,
+            "loop": _LOOP,
         },
         ("cell", "state", "running", "queued"),
     ),

@@ -33,6 +33,7 @@ from celld.bus.session import callers, open_server
 from celld.config import Config
 from celld.daemon.devices import CellDevices, DeviceFactories
 from celld.daemon.jobs import JobManager, Runner
+from celld.daemon.loopwatch import LoopWatch
 from celld.daemon.runners import build_runners
 from celld.journal import Journal
 from celld.log import get_logger
@@ -73,11 +74,15 @@ class Daemon:
         self._journal: Journal | None = None
         self._stop = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
+        # How late the event loop runs, and why (every stall over 50 ms logged, counted in the status).
+        self.loop_watch = LoopWatch()
 
     # -- life cycle ---------------------------------------------------------------
 
     async def start(self) -> None:
         cfg = self.config
+        self.loop_watch.install()
+        self._tasks.append(asyncio.get_running_loop().create_task(self.loop_watch.run(), name="celld-loop-watch"))
         self.state_dir.mkdir(parents=True, exist_ok=True)
         fsutil.remove_stale_temporaries(self.state_dir)
         self._journal = Journal(self.state_dir / "journal.db")
@@ -99,6 +104,7 @@ class Daemon:
             auto_accept=cfg.calibration.auto_accept,
             robot_report=self.devices.robot_report,
             robot_action=self.devices.robot_action,
+            loop_report=self.loop_watch.report,
             min_free_mb=cfg.cell.min_free_mb,
             storage_retry_s=cfg.cell.storage_retry_s,
         )

@@ -65,8 +65,6 @@ STOP_TIMEOUT = 5.0
 STALE_RETRIES = 3
 # How often the daemon's heartbeat beats, s (its children wait motion.parent_timeout for it).
 HEARTBEAT_PERIOD = 0.02
-# A beat this much later than the last one is logged (s).
-STALL_WARNING = 0.2
 # Least time between two restarts of a dying tactile process, s: it doubles
 # after each failed restart, up to a minute.
 TACTILE_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 32.0, 60.0))
@@ -436,19 +434,10 @@ class CellDevices(Arm):
 
     @staticmethod
     async def _beat(heartbeat: Heartbeat) -> None:
-        """The daemon's heartbeat for its children, from the event loop: a hung loop stops the robot.
-
-        A beat that comes much later than asked for says the event loop was
-        held up (work that should run in a thread, or a library holding the
-        GIL): logged, as the children see it too.
-        """
-        last = time.monotonic()
+        """The daemon's heartbeat for its children, from the event loop: a hung loop stops the robot (how late
+        the loop runs is the daemon's loop watch's to log: :mod:`celld.daemon.loopwatch`)."""
         while True:
             heartbeat.beat()
-            now = time.monotonic()
-            if now - last > STALL_WARNING:
-                log.warning("the event loop was held up", ms=round((now - last) * 1e3))
-            last = now
             await asyncio.sleep(HEARTBEAT_PERIOD)
 
     # -- robot ----------------------------------------------------------------------

@@ -223,6 +223,8 @@ class JobManager:
     robot_action : coroutine function(action) -> dict, optional
         Sends an operator's recovery command (CellDevices.robot_action);
         refused while a job runs.
+    loop_report : callable() -> dict, optional
+        The event loop's stalls for the status reply (:meth:`celld.daemon.loopwatch.LoopWatch.report`).
     auto_accept : bool
         Make a calibrate (or tool-calibrate) job's result current when it succeeds (and its verdict is ok).
     min_free_mb : float
@@ -248,6 +250,7 @@ class JobManager:
         auto_accept: bool = False,
         robot_report: Callable[[], dict[str, Any]] | None = None,
         robot_action: Callable[[str], Awaitable[dict[str, Any]]] | None = None,
+        loop_report: Callable[[], dict[str, Any]] | None = None,
         min_free_mb: float = 0.0,
         storage_retry_s: float = STORAGE_RETRY_S,
         free_bytes: Callable[[], int | None] | None = None,
@@ -266,6 +269,7 @@ class JobManager:
         self.auto_accept = auto_accept
         self.robot_report = robot_report
         self.robot_action = robot_action
+        self.loop_report = loop_report
         self.storage = StorageGuard(self.state_dir, min_free_mb, free_bytes=free_bytes)
         self.storage_retry_s = storage_retry_s
         self.calibrations = CalibrationStore(self.state_dir)
@@ -423,6 +427,8 @@ class JobManager:
         }
         if self.robot_report is not None:
             reply["robot"] = self.robot_report()
+        if self.loop_report is not None:
+            reply["loop"] = self.loop_report()
         return reply
 
     def _note_recording_trouble(self) -> None:

@@ -251,6 +251,8 @@ def run_jobs(
             "recording": res.get("recording"),
             "paths": res.get("paths"),
         }
+        # How late the daemon's event loop ran over the jobs (celld.daemon.loopwatch).
+        figures["loop"] = cell.client.status().get("loop")
     return figures
 
 

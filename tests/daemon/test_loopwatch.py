@@ -1,0 +1,70 @@
+"""The loop watch tells a callback that held the loop from a loop that was ready but not run."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+from celld.daemon.loopwatch import LoopWatch
+
+
+async def _hold_the_loop(seconds: float) -> None:
+    time.sleep(seconds)  # a callback that blocks the loop itself
+
+
+def _spin(seconds: float) -> None:
+    """Pure Python in a worker thread: it holds the GIL for the switch interval at a time."""
+    end = time.perf_counter() + seconds
+    n = 0
+    while time.perf_counter() < end:
+        n += 1
+
+
+async def _watched(body) -> LoopWatch:  # type: ignore[no-untyped-def]
+    watch = LoopWatch(threshold=0.05)
+    watch.install()
+    ticker = asyncio.get_running_loop().create_task(watch.run())
+    await asyncio.sleep(0.05)
+    await body()
+    await asyncio.sleep(0.05)
+    ticker.cancel()
+    await asyncio.gather(ticker, return_exceptions=True)
+    return watch
+
+
+def test_a_callback_that_blocks_the_loop_is_a_busy_stall_and_is_named() -> None:
+    async def body() -> None:
+        await asyncio.get_running_loop().create_task(_hold_the_loop(0.15), name="holder")
+
+    watch = asyncio.run(_watched(body))
+    report = watch.report()
+    assert report["busy"] == 1 and report["unscheduled"] == 0, report
+    worst = report["worst_busy"]
+    assert worst["late_ms"] >= 100 and "holder" in worst["callback"] and "_hold_the_loop" in worst["callback"], worst
+    assert worst["callback_ms"] >= 140 and worst["callback_cpu_ms"] < 50, worst  # it slept: no CPU
+
+
+def test_a_short_sleep_on_the_loop_is_no_stall() -> None:
+    async def body() -> None:
+        await asyncio.get_running_loop().create_task(_hold_the_loop(0.02))
+
+    report = asyncio.run(_watched(body)).report()
+    assert report["busy"] == 0 and report["worst_busy"] is None, report
+
+
+def test_worker_threads_hogging_the_gil_are_not_blamed_on_a_callback() -> None:
+    async def body() -> None:
+        workers = [threading.Thread(target=_spin, args=(0.6,)) for _ in range(3)]
+        for w in workers:
+            w.start()
+        await asyncio.sleep(0.6)
+        for w in workers:
+            w.join()
+
+    report = asyncio.run(_watched(body)).report()
+    # Whether the GIL's switch interval (5 ms) lets the loop in on time depends on the machine; what any
+    # stall here must not be is a callback of the loop.
+    assert report["busy"] == 0, report
+    if report["unscheduled"]:
+        assert report["worst_unscheduled"]["workers_cpu_ms"] > 0, report
