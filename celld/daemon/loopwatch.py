@@ -4,14 +4,15 @@ A ticker on the loop asks to wake every :data:`TICK` s; how much later than
 asked it wakes is the loop's stall. Every stall over :data:`THRESHOLD` is
 logged and counted as one of two kinds:
 
-- **busy**: a callback on the loop ran that long itself (the stall names it:
-  its task and coroutine, or its function, and how much of its time it had
-  the CPU; a callback that ran long without the CPU was waiting for the GIL
-  a worker thread held);
-- **unscheduled**: no callback ran long, the loop was ready and did not run:
-  the daemon's own worker threads had the CPU (the GIL) meanwhile, or the OS
-  ran other processes (the cell's real-time motion and camera processes come
-  first by design, SCHED_FIFO over the daemon's SCHED_OTHER).
+- **busy**: a callback on the loop held it that long, computing (it had the
+  CPU for most of its time) or blocked (it did not, and neither did the
+  daemon's worker threads: a sleep, a file or a lock on the loop). The stall
+  names it: its task and coroutine, or its function;
+- **unscheduled**: the loop was ready and did not run: no callback ran long,
+  or the long one spent its time waiting for the GIL while the daemon's
+  worker threads had the CPU; or the OS ran other processes (the cell's
+  real-time motion and camera processes come first by design, SCHED_FIFO
+  over the daemon's SCHED_OTHER).
 
 Each callback's time is read where asyncio runs it (``Handle._run``, one
 ``perf_counter`` and one ``thread_time`` on each side: about a microsecond),
@@ -69,6 +70,16 @@ def describe(callback: Callable[..., Any]) -> str:
     return getattr(callback, "__qualname__", repr(callback))
 
 
+def classify(threshold: float, callback_s: float, callback_cpu_s: float, workers_cpu_s: float) -> str:
+    """A stall's kind from its longest callback (wall and CPU time) and the CPU the worker threads had, s."""
+    if callback_s <= threshold:
+        return "unscheduled"
+    if callback_cpu_s >= 0.5 * callback_s:
+        return "busy"  # it computed on the loop
+    waited = callback_s - callback_cpu_s
+    return "unscheduled" if workers_cpu_s >= 0.5 * waited else "busy"  # the GIL was the workers', or it blocked
+
+
 class LoopWatch:
     """Stalls of one event loop (module docstring). :meth:`install` on the loop's thread, then run :meth:`run`."""
 
@@ -122,7 +133,7 @@ class LoopWatch:
 
     def _stall(self, late: float, workers_cpu: float) -> None:
         dt, cpu, callback = self._longest
-        kind = "busy" if dt > self.threshold else "unscheduled"
+        kind = classify(self.threshold, dt, cpu, workers_cpu)
         stall = Stall(late, kind, describe(callback) if callback is not None else "", dt, cpu, workers_cpu)
         self.counts[kind] += 1
         worst = self.worst[kind]

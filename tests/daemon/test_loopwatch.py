@@ -6,7 +6,7 @@ import asyncio
 import threading
 import time
 
-from celld.daemon.loopwatch import LoopWatch
+from celld.daemon.loopwatch import LoopWatch, classify
 
 
 async def _hold_the_loop(seconds: float) -> None:
@@ -68,3 +68,10 @@ def test_worker_threads_hogging_the_gil_are_not_blamed_on_a_callback() -> None:
     assert report["busy"] == 0, report
     if report["unscheduled"]:
         assert report["worst_unscheduled"]["workers_cpu_ms"] > 0, report
+
+
+def test_a_long_callback_is_busy_when_it_computed_or_blocked_and_unscheduled_when_it_waited_for_the_workers() -> None:
+    assert classify(0.05, 0.04, 0.04, 0.0) == "unscheduled"  # nothing ran long
+    assert classify(0.05, 0.2, 0.19, 0.0) == "busy"  # computed on the loop
+    assert classify(0.05, 0.2, 0.001, 0.0) == "busy"  # slept or blocked on a file: the loop was held
+    assert classify(0.05, 0.2, 0.001, 0.18) == "unscheduled"  # the workers had the GIL meanwhile
