@@ -18,7 +18,7 @@ Figures (each against its target, written to bench/out/bus_load/):
 
 Against what:
 
-- by default a dummy cell (:mod:`celld.daemon.dummy`: the real bus server,
+- by default a dummy cell (``tests/standin.py``: the real bus server,
   journal and queueing, jobs that only wait) is started in a child process on
   127.0.0.5, fed made-up robot and tactile samples at 100 Hz (published at
   the bus's 20 Hz), and given a 'weld' that lasts the whole load phase;
@@ -103,7 +103,7 @@ class DummyCellProcess:
             [
                 sys.executable,
                 "-m",
-                "celld.daemon.dummy",
+                "tests.standin",
                 "--config",
                 str(self.config_path),
                 "--state-dir",
@@ -126,6 +126,7 @@ class DummyCellProcess:
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
             text=True,
+            cwd=ROOT,  # the stand-in cell is tests.standin, in the repository
         )
         line = self.proc.stdout.readline() if self.proc.stdout else ""
         if not line.startswith("ready"):

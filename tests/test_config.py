@@ -248,7 +248,7 @@ def test_a_second_robot_is_read_with_its_own_link_and_checked() -> None:
 
 
 def test_the_shipped_two_robot_cell_places_its_second_robot_across_the_table() -> None:
-    from celld.daemon.devices import robot2_config
+    from celld.daemon.arm import robot2_config
 
     cfg = config.load(Path(__file__).resolve().parents[1] / "configs" / "sim-cell-two-robots.toml")
     assert cfg.robot2 is not None

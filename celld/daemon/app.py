@@ -200,10 +200,10 @@ class Daemon:
             robot = self.devices.robot_state_message()
             if robot is not None:
                 self.bus.publish_robot_state(robot)
-            tactile = self.devices.tactile_state_message()
+            tactile = self.devices.tactile.state_message()
             if tactile is not None:
                 self.bus.publish_tactile_state(tactile)
-            await self.devices.supervise_tactile()
+            await self.devices.tactile.supervise()
             if self.manager is not None:
                 self.manager.set_fault("" if self._link_up() else "robot link down or motion loop stalled")
 

@@ -54,10 +54,12 @@ from celld.calib.rangebias import correct_range_bias
 from celld.calib.session import CalibrationSession
 from celld.calib.solve import CalibrationResult, SolveParams
 from celld.config import Config
-from celld.daemon.devices import Arm, CellDevices
-from celld.daemon.jobs import CalibrationStore, JobContext
+from celld.daemon.arm import Arm
+from celld.daemon.devices import CellDevices
+from celld.daemon.jobs import JobContext
 from celld.daemon.planning import record_arm, record_cell, record_plan, report_plan
 from celld.daemon.retention import prune_sessions
+from celld.daemon.store import CalibrationStore
 from celld.errors import CalibrationError, JobError
 from celld.log import get_logger
 from celld.recording import layout
@@ -71,7 +73,7 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
     job = ctx.job
     if not isinstance(job, CalibrateJob):
         raise JobError("$.kind", "not a calibrate job")
-    done = await calibrate_arm(ctx, config, devices, devices.capture, job)
+    done = await calibrate_arm(ctx, config, devices.robot, devices.scanner.capture, job)
     await prune_calibrations(ctx, config)
     return done.output
 

@@ -1,10 +1,15 @@
-"""The cell's devices as the daemon sees them: robot, scanner, tactile sensor.
+"""The cell's devices as the daemon sees them: robots, tactile sensor, scanner, and what keeps them.
 
-:class:`CellDevices` opens, in order, the motion process (through
+:class:`CellDevices` is composed of its parts: robot 1 and, on a cell with
+``[robot2]``, robot 2 (each an :class:`~celld.daemon.arm.Arm`: its motion
+process and its checked moves), the SRM camera's process (:class:`Tactile`),
+the scanner (:class:`CellScanner`) and the life cycle (:class:`Lifecycle`:
+the leftovers of a killed daemon, the heartbeat the children watch, robot
+1's dashboard). It opens, in order, the heartbeat, the tactile camera process
+when the cell has one, each robot's motion process (through
 :class:`~celld.motion.handle.MotionHandle`, which owns the robot link and
-restarts its process), the tactile camera process when the cell has one,
-and the scanner. It closes them in the reverse order, robot last, after a
-jerk-limited stop.
+restarts its process) and the scanner; it closes them in the reverse order,
+robots first, after a jerk-limited stop.
 
 The same code path serves the real cell and the simulated one. What differs
 is the :class:`DeviceFactories` the daemon is given: a real cell opens the
@@ -23,7 +28,7 @@ import contextlib
 import math
 import time
 import uuid
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Sequence
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -32,13 +37,12 @@ import numpy as np
 
 from celld import se3
 from celld.config import Config
-from celld.daemon.planning import MotionPlanner, arm_obstacles
-from celld.errors import CelldError, ConfigError, DeviceError, InputError, StaleState
+from celld.daemon.arm import Arm, robot2_config
+from celld.daemon.planning import arm_obstacles
+from celld.errors import CelldError, ConfigError, DeviceError, InputError
 from celld.log import get_logger
 from celld.motion.algorithm2 import NAME as ALGORITHM2
-from celld.motion.handle import MotionHandle
 from celld.motion.loop import INTERLOCK_MISSING
-from celld.motion.types import RobotState
 from celld.robot.cellmodel import CellObject
 from celld.robot.dashboard import ACTIONS, Dashboard, RobotCondition, robot_condition
 from celld.scanner.base import OrganizedCloud, Scanner
@@ -52,17 +56,6 @@ log = get_logger(__name__)
 
 # Servo laws the motion process may be asked to run, by name.
 SERVO_LAWS = {ALGORITHM2: "celld.motion.algorithm2:make_algorithm2"}
-# Longest a job waits for the robot's first state, s.
-STATE_WAIT = 5.0
-# Longest a stop may take before the daemon gives up waiting, s.
-STOP_TIMEOUT = 5.0
-# A point-to-point move the motion loop stopped on a stale robot state (the
-# loop starved of state for a few cycles while the link stayed up; the stop
-# was jerk-limited) is checked again from where the arm came to rest and
-# posted again, this many times, before the job fails. On a loaded two-core
-# cell PC two such stops have come within 2 s (a tool calibration's
-# detections running beside the move).
-STALE_RETRIES = 3
 # How often the daemon's heartbeat beats, s (its children wait motion.parent_timeout for it).
 HEARTBEAT_PERIOD = 0.02
 # Least time between two restarts of a dying tactile process, s: it doubles
@@ -136,181 +129,165 @@ def make_tactile(
     )
 
 
-def robot2_config(config: Config) -> Config:
-    """The cell as the second robot sees it (``[robot2]``): its link, its calibration's verification pose and
-    flange, the cell model moved into its base frame by its drawn place, no tool on its flange.
+class Tactile:
+    """The SRM camera's process as the daemon keeps it: started, watched, restarted with back-off.
 
-    Raises
-    ------
-    ConfigError
-        The config has no ``[robot2]``.
+    ``process`` is None on a cell without a finger camera (``tactile.kind =
+    "none"``); ``error`` says why the process is not running ("" while it is).
     """
-    r2 = config.robot2
-    if r2 is None:
-        raise ConfigError(config.source, "robot2", "the cell has no second robot")
-    T_base2_base1 = se3.invert(se3.from_ur_pose(r2.base_pose))
-    cal = replace(config.calibration, verification_pose=r2.verification_pose, flange=r2.flange or config.calibration.flange)
-    return replace(
-        config, robot=r2.robot, calibration=cal, cell_model=config.cell_model.seen_from(T_base2_base1).without_tool(), robot2=None
-    )
+
+    def __init__(self, config: Config, camera: FrameSourceFactory | None) -> None:
+        self.config = config
+        self._camera = camera
+        self.process: TactileProcess | None = None
+        self.error = ""
+        self._restart_at = -math.inf
+        self._failures = 0
+
+    async def open(self, heartbeat: str, records: ChildRecords) -> None:
+        """Start the process (when the cell has a finger camera); a failed start is retried by :meth:`supervise`."""
+        self.process = make_tactile(self.config, self._camera, heartbeat, records)
+        if self.process is None:
+            return
+        try:
+            await asyncio.to_thread(self.process.start)
+        except CelldError as exc:
+            # The cell still calibrates and moves; welds are refused until
+            # the supervision brings the camera back (supervise).
+            self.error = str(exc)
+            self._restart_at = time.monotonic()
+            log.error("the tactile process did not start; retrying in the background", error=str(exc))
+
+    async def close(self) -> None:
+        if self.process is not None:
+            await asyncio.to_thread(self.process.stop)
+            self.process = None
+
+    @property
+    def slot_name(self) -> str | None:
+        """The shared-memory slot the motion loop reads the samples from (None without a finger camera)."""
+        return None if self.process is None else self.process.slot_name
+
+    async def supervise(self) -> None:
+        """Restart the process if it died, waiting between attempts as TACTILE_BACKOFF says.
+
+        The daemon calls this periodically. While the process is down the
+        motion loop sees no fresh sample, so a running servo stops on a stale
+        sample with that reason; the restarted process tares before it
+        reports deformation again.
+        """
+        process = self.process
+        if process is None or process.alive():
+            return
+        now = time.monotonic()
+        delay = TACTILE_BACKOFF.delay(self._failures + 1)
+        if now - self._restart_at < delay:
+            return
+        self._restart_at = now
+        log.error("the tactile process is not running; restarting it", exitcode=process.exitcode, restarts=process.restarts)
+        try:
+            await asyncio.to_thread(process.restart)
+            self._failures = 0
+            self.error = ""
+            log.info("tactile process restarted", restarts=process.restarts)
+        except CelldError as exc:
+            self._failures += 1
+            self.error = str(exc)
+            log.error("tactile process restart failed", error=str(exc), next_try_s=TACTILE_BACKOFF.delay(self._failures + 1))
+
+    def sample(self) -> TactileSample | None:
+        return None if self.process is None else self.process.latest()
+
+    def state_message(self) -> dict[str, Any] | None:
+        sample = self.sample()
+        if sample is None:
+            return None
+        msg: dict[str, Any] = {"t_ns": max(0, sample.stamp_ns), "valid": bool(sample.valid), "contact": int(sample.contact) > 0}
+        if sample.valid:
+            msg["delta"] = np.asarray(sample.delta_tool).tolist()
+        return msg
 
 
-class Arm:
-    """One robot as the daemon drives it: its motion process and every move checked first.
+class CellScanner:
+    """The cell's scanner, opened by its factory in a worker thread; a capture runs in one too."""
 
-    ``config`` is the robot's view of the cell: its ``[robot]`` section and
-    the cell model in its base frame (:func:`robot2_config` makes the second
-    robot's). :class:`CellDevices` is robot 1's; a cell with ``[robot2]``
-    has one more (:attr:`CellDevices.robot2`), opened by :meth:`open_motion`.
-    """
+    def __init__(self, config: Config, factory: Callable[[Config], Scanner]) -> None:
+        self.config = config
+        self._factory = factory
+        self.device: Scanner | None = None
+
+    async def open(self) -> None:
+        self.device = await asyncio.to_thread(self._factory, self.config)
+
+    async def close(self) -> None:
+        if self.device is not None:
+            await asyncio.to_thread(self.device.close)
+            self.device = None
+
+    async def capture(self) -> OrganizedCloud:
+        if self.device is None:
+            raise DeviceError("the scanner is not open")
+        return await asyncio.to_thread(self.device.capture)
+
+
+class Lifecycle:
+    """What keeps the cell's processes honest: the leftovers of a killed daemon cleaned up, the daemon's
+    heartbeat for its children (a hung loop stops the robot), and robot 1's dashboard read periodically."""
 
     def __init__(self, config: Config) -> None:
-        self.config = config
-        self.motion: MotionHandle | None = None
-        self.planner = MotionPlanner(config)
+        self.records = ChildRecords(Path(config.cell.state_dir) / "run")
+        self.leftovers: list[str] = []  # what was cleaned up after a previous daemon
+        self.heartbeat: Heartbeat | None = None
+        self.dashboard = Dashboard(config.robot.host)
+        self._beating: asyncio.Task[None] | None = None
+        self._reading: asyncio.Task[None] | None = None
 
-    @contextlib.contextmanager
-    def avoiding(self, objects: Sequence[CellObject]) -> Iterator[None]:
-        """Within the block, every move and plan of this arm is checked against ``objects`` too (another
-        robot's arm where it waits: :func:`~celld.daemon.planning.arm_obstacles`); a block inside it puts
-        its own objects in their place."""
-        planner = self.planner
-        self.planner = planner.with_objects(objects)
-        try:
-            yield
-        finally:
-            self.planner = planner
+    async def open(self) -> Heartbeat:
+        """Clean up after a killed daemon and start beating; the heartbeat the children watch."""
+        # A daemon that was killed may have left children that still drive the
+        # robot (they stop on their own within the heartbeat timeout) and
+        # shared memory: clean up before starting our own.
+        self.leftovers = await asyncio.to_thread(self.records.reap)
+        self.heartbeat = Heartbeat(f"celld-{uuid.uuid4().hex[:8]}-heartbeat")
+        self._beating = asyncio.get_running_loop().create_task(self._beat(self.heartbeat), name="celld-heartbeat")
+        return self.heartbeat
 
-    async def open_motion(
-        self, heartbeat: str, records: ChildRecords, servo_laws: dict[str, str] | None = None, tactile_slot: str | None = None
-    ) -> MotionHandle:
-        """Start its motion process, watching the daemon's ``heartbeat``; the supervisor keeps (re)connecting
-        (see :meth:`wait_robot`). Without ``servo_laws`` and ``tactile_slot`` it only moves and holds."""
-        cfg = self.config
-        self.motion = await MotionHandle.open(
-            cfg,
-            servo_laws=servo_laws,
-            tactile_slot=tactile_slot,
-            link_timeout=cfg.motion.link_timeout,
-            watchdog_hz=cfg.motion.rtde_watchdog_hz,
-            wait=False,
-            heartbeat=heartbeat,
-            records=records,
-        )
-        return self.motion
+    def read_dashboard(self, on_reading: Callable[[], None]) -> None:
+        """Read the dashboard every :data:`DASHBOARD_PERIOD` s, calling ``on_reading`` after each reading."""
+        self._reading = asyncio.get_running_loop().create_task(self._read(on_reading), name="celld-dashboard")
 
-    async def close_motion(self) -> None:
-        """A jerk-limited stop, then the end of its motion process."""
-        if self.motion is None:
-            return
-        try:
-            await self.stop_robot()
-        except CelldError as exc:
-            log.error("stop before close failed", robot=self.config.robot.host, error=str(exc))
-        await self.motion.close()
-        self.motion = None
+    async def close(self) -> None:
+        if self._reading is not None:
+            self._reading.cancel()
+            await asyncio.gather(self._reading, return_exceptions=True)
+            self._reading = None
+            await self.dashboard.close()
+        if self._beating is not None:
+            self._beating.cancel()
+            await asyncio.gather(self._beating, return_exceptions=True)
+            self._beating = None
+        if self.heartbeat is not None:
+            self.heartbeat.close()
+            self.heartbeat = None
 
-    async def wait_robot(self, timeout: float) -> bool:
-        """Wait until the motion loop runs and has read the robot; False on timeout."""
-        return await self.require_motion().wait_ready(timeout)
-
-    async def move_to(self, T_base_tcp: np.ndarray, speed_scale: float = 1.0, *, tool: bool = True) -> RobotState:
-        """A jerk-limited straight move of the TCP, checked against the cell first (:class:`MotionPlanner`).
-
-        Raises
-        ------
-        PathRefused
-            The move would hit the cell or cannot be reached; the robot did not move.
-        """
-        motion = self.require_motion()
-
-        async def move() -> RobotState:
-            q = await self.current_q()
-            await asyncio.to_thread(self.planner.check_move, q, T_base_tcp, tool)
-            return await motion.move_to(T_base_tcp, speed_scale=speed_scale)
-
-        return await self._after_stale(move, "move")
-
-    async def move_joints(self, q_goal: np.ndarray, speed_scale: float = 1.0, *, tool: bool = True) -> RobotState:
-        """A jerk-limited joint move, checked against the cell and the workspace box first, and slowed so the
-        TCP keeps the Cartesian limits (:meth:`MotionPlanner.plan_joint_move`).
-
-        Raises
-        ------
-        PathRefused
-            The move would hit the cell, leave the workspace or cross a joint limit; the robot did not move.
-        """
-        motion = self.require_motion()
-
-        async def move() -> RobotState:
-            q = await self.current_q()
-            plan = await asyncio.to_thread(self.planner.plan_joint_move, q, q_goal, speed_scale, tool)
-            if plan.speed_scale < speed_scale:
-                log.info(
-                    "joint move slowed for the TCP's limits",
-                    asked=speed_scale,
-                    scale=round(plan.speed_scale, 4),
-                    tcp_speed=round(plan.tcp_speed, 4),
-                )
-            return await motion.move_joints(q_goal, speed_scale=plan.speed_scale)
-
-        return await self._after_stale(move, "joint move")
-
-    async def _after_stale(self, move: Callable[[], Awaitable[RobotState]], what: str) -> RobotState:
-        """Run ``move``; after a stop on stale robot state, wait for rest and fresh state and run it again
-        (:data:`STALE_RETRIES` times). Any other failure, or a link that does not come back, is raised."""
-        motion = self.require_motion()
-        retries = 0
+    @staticmethod
+    async def _beat(heartbeat: Heartbeat) -> None:
+        """The daemon's heartbeat for its children, from the event loop (how late the loop runs is the
+        daemon's loop watch's to log: :mod:`celld.daemon.loopwatch`)."""
         while True:
-            try:
-                return await move()
-            except StaleState as exc:
-                if retries >= STALE_RETRIES:
-                    raise
-                retries += 1
-                log.warning(
-                    "a move stopped on a stale robot state; checking it again from where the arm rests",
-                    move=what,
-                    reason=str(exc),
-                    retry=f"{retries} of {STALE_RETRIES}",
-                )
-                await motion.wait_idle(STOP_TIMEOUT)
-                if not await motion.wait_ready(STATE_WAIT):
-                    raise
+            heartbeat.beat()
+            await asyncio.sleep(HEARTBEAT_PERIOD)
 
-    async def current_q(self, timeout: float = STATE_WAIT) -> np.ndarray:
-        """The robot's joints now, waiting up to ``timeout`` s for the first state; DeviceError without one."""
-        motion = self.require_motion()
-        state = motion.state()
-        if state is None and await motion.wait_ready(timeout):
-            state = motion.state()
-        if state is None:
-            raise DeviceError(f"no robot state within {timeout:g} s: the robot link is not up")
-        return np.asarray(state.q, dtype=np.float64)
-
-    def require_motion(self) -> MotionHandle:
-        if self.motion is None:
-            raise DeviceError("the robot is not connected")
-        return self.motion
-
-    async def stop_robot(self) -> None:
-        """Jerk-limited stop; returns once the robot holds still (or the link is gone)."""
-        if self.motion is None:
-            return
-        self.motion.stop()
-        try:
-            await self.motion.wait_idle(STOP_TIMEOUT)
-        except CelldError as exc:
-            log.warning("robot not confirmed at rest after a stop", error=str(exc))
-
-    def link_state(self) -> str:
-        if self.motion is None:
-            return "unknown"
-        return "up" if self.motion.link_running() else "down"
+    async def _read(self, on_reading: Callable[[], None]) -> None:
+        while True:
+            await self.dashboard.read()
+            on_reading()
+            await asyncio.sleep(DASHBOARD_PERIOD)
 
 
-class CellDevices(Arm):
-    """Robot, tactile sensor and scanner of one cell.
+class CellDevices:
+    """The devices of one cell: robot 1, robot 2 when the cell has one, the tactile sensor, the scanner, and
+    the life cycle that keeps them.
 
     Parameters
     ----------
@@ -323,21 +300,16 @@ class CellDevices(Arm):
     """
 
     def __init__(self, config: Config, factories: DeviceFactories | None = None) -> None:
-        super().__init__(config)
+        factories = factories or real_devices()
+        self.config = config
+        self.robot = Arm(config)
         # The second robot, when the cell has one ([robot2]): calibrate jobs with robot2 set drive it.
         self.robot2: Arm | None = Arm(robot2_config(config)) if config.robot2 is not None else None
-        self.tactile: TactileProcess | None = None
-        self.scanner: Scanner | None = None
-        self._factories = factories or real_devices()
+        self.tactile = Tactile(config, factories.camera)
+        self.scanner = CellScanner(config, factories.scanner)
+        self.life = Lifecycle(config)
         self._recordings: list[Any] = []
-        self._tactile_restart_at = -math.inf
-        self._tactile_failures = 0
-        self.tactile_error = ""  # why the tactile process is not running, "" while it is
-        self.heartbeat: Heartbeat | None = None
-        self._beating: asyncio.Task[None] | None = None
-        self.leftovers: list[str] = []  # what was cleaned up after a previous daemon
-        self.dashboard = Dashboard(config.robot.host)
-        self._reading: asyncio.Task[None] | None = None
+        self._condition = ""
 
     # -- the second robot as an obstacle ------------------------------------------------
 
@@ -351,7 +323,7 @@ class CellDevices(Arm):
         """Robot 1's arm and tool at its joints ``q1`` as obstacles of robot 2 (none in a one-robot cell)."""
         if self.config.robot2 is None:
             return ()
-        return arm_obstacles(self.planner.with_tool, q1, se3.invert(se3.from_ur_pose(self.config.robot2.base_pose)), "robot1")
+        return arm_obstacles(self.robot.planner.with_tool, q1, se3.invert(se3.from_ur_pose(self.config.robot2.base_pose)), "robot1")
 
     @contextlib.asynccontextmanager
     async def beside_robot2(self) -> AsyncIterator[None]:
@@ -371,102 +343,69 @@ class CellDevices(Arm):
             q2 = await self.robot2.current_q()
         except DeviceError as exc:
             raise DeviceError(f"robot 2's place is unknown ({exc}); robot 1 does not move beside it") from exc
-        with self.avoiding(self.robot2_obstacles(q2)):
+        with self.robot.avoiding(self.robot2_obstacles(q2)):
             yield
 
     # -- life cycle ----------------------------------------------------------------
 
     async def open(self) -> None:
+        """The heartbeat, the tactile process, each robot's motion process, the dashboard reading, the scanner."""
         cfg = self.config
-        # A daemon that was killed may have left children that still drive the
-        # robot (they stop on their own within the heartbeat timeout) and
-        # shared memory: clean up before starting our own.
-        records = ChildRecords(Path(cfg.cell.state_dir) / "run")
-        self.leftovers = await asyncio.to_thread(records.reap)
-        self.heartbeat = Heartbeat(f"celld-{uuid.uuid4().hex[:8]}-heartbeat")
-        self._beating = asyncio.get_running_loop().create_task(self._beat(self.heartbeat), name="celld-heartbeat")
-        self.tactile = make_tactile(cfg, self._factories.camera, self.heartbeat.name, records)
-        if self.tactile is not None:
-            try:
-                await asyncio.to_thread(self.tactile.start)
-            except CelldError as exc:
-                # The cell still calibrates and moves; welds are refused until
-                # the supervision brings the camera back (supervise_tactile).
-                self.tactile_error = str(exc)
-                self._tactile_restart_at = time.monotonic()
-                log.error("the tactile process did not start; retrying in the background", error=str(exc))
-        tactile_slot = None if self.tactile is None else self.tactile.slot_name
-        motion = await self.open_motion(self.heartbeat.name, records, SERVO_LAWS, tactile_slot)
+        heartbeat = await self.life.open()
+        await self.tactile.open(heartbeat.name, self.life.records)
+        motion = await self.robot.open_motion(heartbeat.name, self.life.records, SERVO_LAWS, self.tactile.slot_name)
         motion.add_listener(self._on_state_batch)
         if self.robot2 is not None:
-            await self.robot2.open_motion(self.heartbeat.name, records)
-        self._reading = asyncio.get_running_loop().create_task(self._read_dashboard(), name="celld-dashboard")
-        self.scanner = await asyncio.to_thread(self._factories.scanner, cfg)
+            await self.robot2.open_motion(heartbeat.name, self.life.records)
+        self.life.read_dashboard(self._on_dashboard)
+        await self.scanner.open()
         log.info(
             "devices open",
             robot=cfg.robot.host,
             scanner=f"{cfg.scanner.kind}/{cfg.scanner.model}",
-            tactile=cfg.tactile.kind if self.tactile is not None else "none",
+            tactile=cfg.tactile.kind if self.tactile.process is not None else "none",
         )
 
     async def close(self) -> None:
         if self.robot2 is not None:
             await self.robot2.close_motion()
-        await self.close_motion()
-        if self.scanner is not None:
-            await asyncio.to_thread(self.scanner.close)
-            self.scanner = None
-        if self.tactile is not None:
-            await asyncio.to_thread(self.tactile.stop)
-            self.tactile = None
-        if self._reading is not None:
-            self._reading.cancel()
-            await asyncio.gather(self._reading, return_exceptions=True)
-            self._reading = None
-            await self.dashboard.close()
-        if self._beating is not None:
-            self._beating.cancel()
-            await asyncio.gather(self._beating, return_exceptions=True)
-            self._beating = None
-        if self.heartbeat is not None:
-            self.heartbeat.close()
-            self.heartbeat = None
+        await self.robot.close_motion()
+        await self.scanner.close()
+        await self.tactile.close()
+        await self.life.close()
 
-    @staticmethod
-    async def _beat(heartbeat: Heartbeat) -> None:
-        """The daemon's heartbeat for its children, from the event loop: a hung loop stops the robot (how late
-        the loop runs is the daemon's loop watch's to log: :mod:`celld.daemon.loopwatch`)."""
-        while True:
-            heartbeat.beat()
-            await asyncio.sleep(HEARTBEAT_PERIOD)
-
-    # -- robot ----------------------------------------------------------------------
+    # -- robots ----------------------------------------------------------------------
 
     async def stop_robot(self) -> None:
         """Jerk-limited stop of every robot of the cell; returns once they hold still (or their links are gone)."""
         others = [] if self.robot2 is None else [self.robot2.stop_robot()]
-        await asyncio.gather(super().stop_robot(), *others)
+        await asyncio.gather(self.robot.stop_robot(), *others)
 
-    async def _read_dashboard(self) -> None:
-        previous = ""
-        while True:
-            await self.dashboard.read()
-            cond = self.robot_condition()
-            if cond.state != previous:
-                (log.info if cond.ready else log.warning)("robot condition", state=cond.state, reason=cond.reason)
-                previous = cond.state
-            await asyncio.sleep(DASHBOARD_PERIOD)
+    def link_state(self) -> str:
+        """Robot 1's link: ``up``, ``down`` or ``unknown``."""
+        return self.robot.link_state()
+
+    async def wait_robot(self, timeout: float) -> bool:
+        """Wait until robot 1's motion loop runs and has read the robot; False on timeout."""
+        return await self.robot.wait_robot(timeout)
+
+    def _on_dashboard(self) -> None:
+        cond = self.robot_condition()
+        if cond.state != self._condition:
+            (log.info if cond.ready else log.warning)("robot condition", state=cond.state, reason=cond.reason)
+            self._condition = cond.state
 
     def robot_condition(self) -> RobotCondition:
-        """Whether the robot can move, and if not why and what clears it (:mod:`celld.robot.dashboard`)."""
-        last = self.motion.supervisor.last_exit if self.motion is not None else None
-        return robot_condition(self.link_state(), self.dashboard.last, last.reason if last is not None else "")
+        """Whether robot 1 can move, and if not why and what clears it (:mod:`celld.robot.dashboard`)."""
+        motion = self.robot.motion
+        last = motion.supervisor.last_exit if motion is not None else None
+        return robot_condition(self.robot.link_state(), self.life.dashboard.last, last.reason if last is not None else "")
 
     def robot_report(self) -> dict[str, Any]:
         """The robot's condition and the dashboard's last reading, for the status reply."""
-        r = self.dashboard.last
+        r = self.life.dashboard.last
         out: dict[str, Any] = self.robot_condition().as_dict()
-        out["link"] = self.link_state()
+        out["link"] = self.robot.link_state()
         out["mode"] = r.robot_mode if r is not None and r.reachable else None
         out["safety"] = r.safety if r is not None and r.reachable else None
         out["dashboard"] = "reachable" if r is not None and r.reachable else (r.error if r is not None else "not read yet")
@@ -489,10 +428,11 @@ class CellDevices(Arm):
         """
         if action not in ACTIONS:
             raise InputError(f"robot action: expected one of {', '.join(ACTIONS)}, got {action!r}")
-        reply = await self.dashboard.act(action)
-        if self.motion is not None:
-            self.motion.supervisor.retry_now()
-        await self.dashboard.read()
+        dashboard = self.life.dashboard
+        reply = await dashboard.act(action)
+        if self.robot.motion is not None:
+            self.robot.motion.supervisor.retry_now()
+        await dashboard.read()
         return {"action": action, "reply": reply, "robot": self.robot_report()}
 
     def interlock_report(self) -> dict[str, Any]:
@@ -503,7 +443,8 @@ class CellDevices(Arm):
         arc output was left on by the one before it (killed, or its link lost),
         which only happens without the setting.
         """
-        missing = [e for e in (self.motion.loop_events if self.motion is not None else ()) if e.startswith(INTERLOCK_MISSING)]
+        motion = self.robot.motion
+        missing = [e for e in (motion.loop_events if motion is not None else ()) if e.startswith(INTERLOCK_MISSING)]
         return {
             "verified": False,
             "missing_seen": bool(missing),
@@ -516,89 +457,42 @@ class CellDevices(Arm):
         }
 
     def supervised(self, max_age: float = 1.0) -> bool:
-        """The motion process is supervised: its supervisor runs and made progress within ``max_age`` s.
+        """Robot 1's motion process is supervised: its supervisor runs and made progress within ``max_age`` s.
 
         True through link losses, protective stops and restarts (the
         supervisor keeps trying); False when the supervision itself has
         stopped or hangs.
         """
-        if self.motion is None:
+        motion = self.robot.motion
+        if motion is None:
             return False
-        sup = self.motion.supervisor
+        sup = motion.supervisor
         return sup.running() and time.monotonic() - sup.last_tick < max_age
 
     def heartbeat_age(self) -> float | None:
-        if self.motion is None:
-            return None
-        return self.motion.heartbeat_age()
+        motion = self.robot.motion
+        return None if motion is None else motion.heartbeat_age()
 
     def robot_state_message(self) -> dict[str, Any] | None:
-        if self.motion is None:
+        motion = self.robot.motion
+        if motion is None:
             return None
-        rec = self.motion.last_record()
+        rec = motion.last_record()
         if rec is None:
             return {"t_ns": 0, "link": "down"}
         return {
             "t_ns": max(0, int(rec["t_ns"])),
-            "link": self.link_state(),
+            "link": self.robot.link_state(),
             "q": np.asarray(rec["q"]).tolist(),
             "qd": np.asarray(rec["qd"]).tolist(),
             "tcp_pose": np.asarray(rec["tcp_pose"]).tolist(),
             "tcp_speed": np.asarray(rec["tcp_speed"]).tolist(),
         }
 
-    # -- tactile --------------------------------------------------------------------
-
-    async def supervise_tactile(self) -> None:
-        """Restart the tactile process if it died, waiting between attempts as TACTILE_BACKOFF says.
-
-        The daemon calls this periodically. While the process is down the
-        motion loop sees no fresh sample, so a running servo stops on a stale
-        sample with that reason; the restarted process tares before it
-        reports deformation again.
-        """
-        tactile = self.tactile
-        if tactile is None or tactile.alive():
-            return
-        now = time.monotonic()
-        delay = TACTILE_BACKOFF.delay(self._tactile_failures + 1)
-        if now - self._tactile_restart_at < delay:
-            return
-        self._tactile_restart_at = now
-        log.error("the tactile process is not running; restarting it", exitcode=tactile.exitcode, restarts=tactile.restarts)
-        try:
-            await asyncio.to_thread(tactile.restart)
-            self._tactile_failures = 0
-            self.tactile_error = ""
-            log.info("tactile process restarted", restarts=tactile.restarts)
-        except CelldError as exc:
-            self._tactile_failures += 1
-            self.tactile_error = str(exc)
-            log.error("tactile process restart failed", error=str(exc), next_try_s=TACTILE_BACKOFF.delay(self._tactile_failures + 1))
-
-    def tactile_sample(self) -> TactileSample | None:
-        return None if self.tactile is None else self.tactile.latest()
-
-    def tactile_state_message(self) -> dict[str, Any] | None:
-        sample = self.tactile_sample()
-        if sample is None:
-            return None
-        msg: dict[str, Any] = {"t_ns": max(0, sample.stamp_ns), "valid": bool(sample.valid), "contact": int(sample.contact) > 0}
-        if sample.valid:
-            msg["delta"] = np.asarray(sample.delta_tool).tolist()
-        return msg
-
-    # -- scanner --------------------------------------------------------------------
-
-    async def capture(self) -> OrganizedCloud:
-        if self.scanner is None:
-            raise DeviceError("the scanner is not open")
-        return await asyncio.to_thread(self.scanner.capture)
-
     # -- recordings -----------------------------------------------------------------
 
     def attach_recording(self, recording: Any) -> None:
-        """Feed motion state batches to ``recording`` until it closes."""
+        """Feed robot 1's motion state batches to ``recording`` until it closes."""
         self._recordings.append(recording)
 
     def _on_state_batch(self, batch: np.ndarray) -> None:

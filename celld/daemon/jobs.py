@@ -71,6 +71,7 @@ from celld.bus.schema import (
 )
 from celld.bus.security import OPEN, Caller
 from celld.daemon.storage import StorageGuard
+from celld.daemon.store import CalibrationStore, tool_store
 from celld.errors import CelldError, JobError, JournalError, StorageError
 from celld.journal import JobRecord, Journal, utc_now
 from celld.log import get_logger
@@ -127,69 +128,6 @@ Runner = Callable[[JobContext], Awaitable[Mapping[str, Any]]]
 
 # Job kinds whose result an accept makes current, and the key of their result that holds it.
 ACCEPTED_KINDS = {"calibrate": "calibration", "tool-calibrate": "tool"}
-
-
-class CalibrationStore:
-    """The current calibration, and the candidates finished calibrate jobs left.
-
-    The current one is ``<state_dir>/calibration.json``; a candidate is
-    ``<state_dir>/calibrations/<job>.json``. Both are written atomically.
-    A candidate whose quality verdict (``quality.verdict``) is not ``ok`` is
-    accepted only with ``force``, and is then marked ``forced``; a candidate
-    without a verdict (written before the gate existed) is accepted as before.
-
-    The same store keeps the tool calibration (:func:`tool_store`:
-    ``tool.json`` and ``tool-calibrations/``): one accept, one verdict rule,
-    for whatever a job measured.
-    """
-
-    def __init__(
-        self, state_dir: Path, current: str = "calibration.json", candidates: str = "calibrations", kind: str = "calibrate"
-    ) -> None:
-        self.current_path = state_dir / current
-        self.candidates = state_dir / candidates
-        self.kind = kind
-        self.candidates.mkdir(parents=True, exist_ok=True)
-
-    def current(self) -> dict[str, Any] | None:
-        if not self.current_path.exists():
-            return None
-        try:
-            return json.loads(self.current_path.read_text())
-        except (OSError, ValueError) as exc:
-            log.error("current calibration unreadable; ignoring it", path=str(self.current_path), error=str(exc))
-            return None
-
-    def add_candidate(self, job_id: str, calibration: Mapping[str, Any]) -> Path:
-        return fsutil.write_json(self.candidates / f"{job_id}.json", dict(calibration))
-
-    def accept(self, job_id: str, force: bool = False) -> dict[str, Any]:
-        path = self.candidates / f"{job_id}.json"
-        if not path.exists():
-            raise JobError("$.job", f"job {job_id} left no calibration to accept (not a finished {self.kind} job)")
-        calibration = json.loads(path.read_text())
-        # Its own verdict, and a second robot's (a calibrate job with robot2) when it has one.
-        robot2 = calibration.get("robot2")
-        gates = [("the ", calibration.get("quality")), ("robot 2's ", robot2.get("quality") if isinstance(robot2, dict) else None)]
-        failed = [(who, q) for who, q in gates if isinstance(q, dict) and q.get("verdict") not in (None, "ok")]
-        if failed:
-            if not force:
-                who, quality = failed[0]
-                reasons = "; ".join(str(r) for r in quality.get("reasons", []))
-                raise JobError(
-                    "$.job",
-                    f"{who}calibration of job {job_id} failed its quality gate ({quality['verdict']}: {reasons}); "
-                    "accept it with force to override",
-                )
-            calibration["forced"] = True
-        calibration["accepted"] = utc_now()
-        fsutil.write_json(self.current_path, calibration)
-        return calibration
-
-
-def tool_store(state_dir: Path) -> CalibrationStore:
-    """The current tool calibration (``<state_dir>/tool.json``) and the candidates tool-calibrate jobs left."""
-    return CalibrationStore(state_dir, "tool.json", "tool-calibrations", "tool-calibrate")
 
 
 @dataclass(frozen=True)

@@ -87,7 +87,7 @@ async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
     target = np.asarray(job.target, dtype=np.float64)
     if job.space == "joint":
         ctx.progress("move", 0.0, f"joint move to {np.round(target, 4).tolist()} rad")
-        state = await devices.move_joints(target, speed_scale=job.speed_scale)
+        state = await devices.robot.move_joints(target, speed_scale=job.speed_scale)
         err = np.degrees(np.abs(np.asarray(state.q) - target))
         return {
             "q": np.asarray(state.q).tolist(),
@@ -96,7 +96,7 @@ async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
         }
     T = se3.from_ur_pose(target)
     ctx.progress("move", 0.0, f"moving to {np.round(target, 4).tolist()}")
-    state = await devices.move_to(T, speed_scale=job.speed_scale)
+    state = await devices.robot.move_to(T, speed_scale=job.speed_scale)
     dt, dr = se3.error(state.T_base_tcp, T)
     return {"tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(), "error_mm": dt * 1e3, "error_deg": math.degrees(dr)}
 
@@ -111,7 +111,7 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
     out: dict[str, Any] = {}
     problems: list[str] = []
     if job.check in ("all", "robot"):
-        h = devices.require_motion().health()
+        h = devices.robot.require_motion().health()
         out["robot"] = h._asdict()
         condition = devices.robot_condition()
         out["robot"]["condition"] = condition.as_dict()
@@ -129,7 +129,7 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
             problems.append(out["arc_interlock"]["detail"])
     if job.check in ("all", "scanner"):
         try:
-            cloud = await devices.capture()
+            cloud = await devices.scanner.capture()
             n = int(np.count_nonzero(np.all(np.isfinite(cloud.points), axis=-1)))
             out["scanner"] = {"ok": n > 0, "valid_points": n, "shape": list(cloud.points.shape[:2])}
             if n == 0:
@@ -138,12 +138,13 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
             out["scanner"] = {"ok": False, "error": str(exc)}
             problems.append(f"scanner: {exc}")
     if job.check in ("all", "tactile"):
-        sample = devices.tactile_sample()
-        if devices.tactile is None:
+        sample = devices.tactile.sample()
+        process = devices.tactile.process
+        if process is None:
             out["tactile"] = {"ok": False, "error": "no tactile sensor configured"}
         else:
-            running = devices.tactile.running()
-            counters = devices.tactile.read_counters()
+            running = process.running()
+            counters = process.read_counters()
             tared = bool(counters is not None and counters["tared"])
             refused = bool(counters is not None and counters["tare_refused"])
             offset = float(counters["tare_offset"]) if counters is not None else math.nan
@@ -153,10 +154,10 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
                 "valid": bool(sample and sample.valid),
                 "tared": tared,
                 "tare_offset_mm": offset * 1e3,
-                "error": devices.tactile_error,
+                "error": devices.tactile.error,
             }
             if not running:
-                problems.append(f"the tactile process is not running: {devices.tactile_error or 'it ended'}")
+                problems.append(f"the tactile process is not running: {devices.tactile.error or 'it ended'}")
             elif not tared and refused:
                 problems.append(f"the SRM is not tared: the finger is not free ({offset * 1e3:.2f} mm from its reference rest)")
             elif not tared:

@@ -26,7 +26,7 @@ The job needs a current calibration (an accepted calibrate job). Its result
 calibration (``<state_dir>/tool.json``), refused when the verdict is not
 ``ok`` unless forced; a weld then uses its tip in place of
 ``tool.tip_tcp_mm``, and its torch for the configured torch offset and the
-direction from the torch to the tip (:func:`celld.daemon.weld.current_tool`):
+direction from the torch to the tip (:func:`celld.daemon.store.current_tool`):
 on a real tool the torch is bent, clamped and trimmed independently of the
 finger, and a torch a millimetre off the tip's line welds a millimetre off the
 seam that the finger tracks exactly. The poses, the points found and why a
@@ -51,7 +51,7 @@ from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
 from celld.daemon.planning import record_arm, record_cell, record_plan, report_plan
-from celld.daemon.weld import current_calibration
+from celld.daemon.store import current_calibration
 from celld.errors import CalibrationError, JobError
 from celld.log import get_logger
 
@@ -80,8 +80,8 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         return tool_calibration_poses(T_v[:3, :3], p_tip, p_tcp_nominal, z_tcp, count + 1, max_tilt, seed + 1000 * (rnd + 1))[1:]
 
     candidates = tool_calibration_poses(T_v[:3, :3], p_tip, p_tcp_nominal, z_tcp, n, max_tilt, seed)
-    planner = devices.planner
-    plan = await asyncio.to_thread(planner.plan_calibration, await devices.current_q(), candidates, n, more, True)
+    planner = devices.robot.planner
+    plan = await asyncio.to_thread(planner.plan_calibration, await devices.robot.current_q(), candidates, n, more, True)
     poses = np.array(plan.poses)
     report_plan(ctx, plan, "tool calibration")
     if job.dry_run:
@@ -102,12 +102,12 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
             rec.log_camera_pose(placement.T_ref_cam, static=True)
     session = ToolCalibrationSession(config.tool, placement, range_bias)
     for i, T in enumerate(poses):
-        await devices.move_to(T, tool=True)
+        await devices.robot.move_to(T, tool=True)
         await asyncio.sleep(config.calibration.settle)
-        state = devices.require_motion().state()
+        state = devices.robot.require_motion().state()
         if state is None:
             raise CalibrationError("no robot state after the move")
-        cloud = await devices.capture()
+        cloud = await devices.scanner.capture()
         step = await asyncio.to_thread(session.capture, state.T_base_tcp, state.q, cloud.points)
         if rec is not None and placement.mount.on_arm:
             rec.log_camera_pose(step.T_base_cam)

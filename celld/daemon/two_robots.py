@@ -50,8 +50,9 @@ from celld import se3
 from celld.bus.schema import CalibrateJob
 from celld.calib.comanip import point_std, robots_through_camera
 from celld.config import Config
+from celld.daemon.arm import Arm
 from celld.daemon.calibrate import ArmCalibration, calibrate_arm, prune_calibrations
-from celld.daemon.devices import Arm, CellDevices
+from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
 from celld.errors import JobError
 from celld.log import get_logger
@@ -77,19 +78,19 @@ async def run_calibrate_two(ctx: JobContext, config: Config, devices: CellDevice
     # Each robot's moves are checked against the other's arm where it waits, placed by the drawn base.
     home1, home2 = (np.asarray(c.robot.home_q, dtype=np.float64) for c in (config, arm2.config))
     if job.dry_run:  # each robot planned with the other where the job parks it
-        with devices.avoiding(devices.robot2_obstacles(home2)):
-            one = await calibrate_arm(ctx, config, devices, devices.capture, job)
+        with devices.robot.avoiding(devices.robot2_obstacles(home2)):
+            one = await calibrate_arm(ctx, config, devices.robot, devices.scanner.capture, job)
         with arm2.avoiding(devices.robot1_obstacles(home1)):
-            two = await calibrate_arm(ctx, arm2.config, arm2, devices.capture, job2, robot=2)
+            two = await calibrate_arm(ctx, arm2.config, arm2, devices.scanner.capture, job2, robot=2)
         return {**one.output, "robot2_plan": two.output["plan"]}
 
-    with arm2.avoiding(devices.robot1_obstacles(await devices.current_q())):
+    with arm2.avoiding(devices.robot1_obstacles(await devices.robot.current_q())):
         await _park(ctx, arm2, "robot 2")
-    with devices.avoiding(devices.robot2_obstacles(await arm2.current_q())):
-        one = await calibrate_arm(ctx, config, devices, devices.capture, job)
-        await _park(ctx, devices, "robot 1")
-    with arm2.avoiding(devices.robot1_obstacles(await devices.current_q())):
-        two = await calibrate_arm(ctx, arm2.config, arm2, devices.capture, job2, dataset_name="dataset-robot2", robot=2)
+    with devices.robot.avoiding(devices.robot2_obstacles(await arm2.current_q())):
+        one = await calibrate_arm(ctx, config, devices.robot, devices.scanner.capture, job)
+        await _park(ctx, devices.robot, "robot 1")
+    with arm2.avoiding(devices.robot1_obstacles(await devices.robot.current_q())):
+        two = await calibrate_arm(ctx, arm2.config, arm2, devices.scanner.capture, job2, dataset_name="dataset-robot2", robot=2)
         await _park(ctx, arm2, "robot 2")
     entry = robot2_entry(one, two, r2.base_pose, r2.verification_pose)
     if ctx.recording is not None:

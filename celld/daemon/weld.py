@@ -40,28 +40,27 @@ import asyncio
 import hashlib
 import math
 from collections.abc import Mapping
-from dataclasses import replace
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from celld import fsutil, polyline, se3
 from celld.bus.schema import WeldJob
-from celld.calib.mount import Placement, placement_of
 from celld.calib.rangebias import correct_range_bias
 from celld.config import Config, ServoConfig, ToolConfig, with_overrides
 from celld.daemon.devices import CellDevices
-from celld.daemon.jobs import CalibrationStore, JobContext, tool_store
+from celld.daemon.jobs import JobContext
 from celld.daemon.planning import record_arm, record_cell, record_plan
-from celld.errors import CelldError, ConfigError, InputError, JobError, WorkpieceError
+from celld.daemon.store import current_calibration, current_tool
+from celld.errors import CelldError, ConfigError, JobError, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
 from celld.motion.types import ServoPlan
 from celld.recording import layout
 from celld.seam.figures import contact_across
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
-from celld.tactile.tool import ToolGeometry, with_measured_torch
+from celld.tactile.tool import ToolGeometry
 from celld.weld.plan import WeldPlan, plan_weld, prepare_part, probe_across, probe_targets, probed_height, summarise
 
 log = get_logger(__name__)
@@ -75,10 +74,6 @@ DRY_RUN_ROBOTS = 12
 PROGRESS_PERIOD = 0.5
 # Seconds between SRM camera frames logged to the recording while tracking.
 PREVIEW_PERIOD = 0.2
-# A calibration's range bias beyond this is not a scanner's (mm): refused as corrupt.
-MAX_RANGE_BIAS_MM = 100.0
-# A measured tip farther than this from the TCP is not a tool's (m): refused as corrupt.
-MAX_TIP_DISTANCE = 1.0
 
 
 def resolve_workpiece(name: str, config: Config) -> Workpiece:
@@ -104,90 +99,6 @@ def resolve_workpiece(name: str, config: Config) -> Workpiece:
         return load_workpiece(meshes[0], seams[0], mesh_units=wc.workpiece_units, name=name)
     except WorkpieceError as exc:
         raise JobError("$.workpiece", f"workpiece {name!r} cannot be used: {exc}") from exc
-
-
-def current_calibration(state_dir: Path, mount: str = "base") -> tuple[Placement, float, str]:
-    """The accepted calibration: the scanner's placement (``T_base_cam``, or its pose on its link of the
-    arm), the scanner's range bias on metal (m) and the job that made it.
-
-    Refused without one, when either value is unusable, or when it was made
-    for a scanner mounted elsewhere than the config's ``mount``. A calibration
-    without a range bias (structured light, or written before it existed)
-    has none: 0.
-    """
-    cal = CalibrationStore(state_dir).current()
-    if cal is None:
-        raise JobError("$", "the cell has no current calibration: run a calibrate job and accept it first")
-    try:
-        placement = placement_of(cal)
-    except InputError as exc:
-        raise JobError("$", f"the current calibration is unusable: {exc}") from exc
-    if placement.mount.name != mount:
-        raise JobError(
-            "$",
-            f"the current calibration is of a scanner on {placement.mount.name}, and scanner.mount is {mount!r}: "
-            "calibrate the scanner where it is mounted now",
-        )
-    bias_mm = cal.get("range_bias_mm", 0.0)
-    if isinstance(bias_mm, bool) or not isinstance(bias_mm, (int, float)) or not abs(bias_mm) <= MAX_RANGE_BIAS_MM:
-        raise JobError(
-            "$", f"the current calibration is unusable: range_bias_mm must be a number within +-{MAX_RANGE_BIAS_MM:g} mm, got {bias_mm!r}"
-        )
-    return placement, float(bias_mm) * 1e-3, str(cal.get("job", ""))
-
-
-class CurrentTool(NamedTuple):
-    """The tool a weld runs with (:func:`current_tool`)."""
-
-    tool: ToolConfig
-    job: str  # the tool-calibrate job that measured it, "" for none
-    sensor_yaw: float = 0.0  # rad, Algorithm2Params.sensor_yaw
-    torch_measured: bool = False
-
-
-def current_tool(state_dir: Path, tool: ToolConfig) -> CurrentTool:
-    """``tool`` with the current tool calibration's tip and, when it measured it, its torch.
-
-    A measured torch sets the tool's x axis (from the torch to the tip, across
-    the configured finger axis) and ``torch_offset``
-    (:func:`celld.tactile.tool.with_measured_torch`). Refused without a current
-    tool calibration unless ``tool.measured`` is ``"nominal"``, and when the
-    stored tip or torch is unusable.
-    """
-    current = tool_store(state_dir).current()
-    if current is None:
-        if tool.measured == "nominal":
-            return CurrentTool(tool, "")
-        raise JobError(
-            "$",
-            "the tool's tip is not measured: run a tool-calibrate job and accept it first, or set "
-            'tool.measured = "nominal" in the config to weld with tool.tip_tcp_mm as typed',
-        )
-    job = str(current.get("job", ""))
-    tip = _stored_point(current, "tip_tcp_mm")
-    tool = replace(tool, tip_tcp=(float(tip[0]), float(tip[1]), float(tip[2])))
-    if current.get("torch_measured") is not True:
-        return CurrentTool(tool, job)  # a calibration of the tip alone: the torch as configured
-    try:
-        measured = with_measured_torch(tool, _stored_point(current, "torch_tcp_mm"))
-    except InputError as exc:
-        raise JobError("$", f"the current tool calibration {job} is unusable: {exc}") from exc
-    return CurrentTool(measured.tool, job, measured.sensor_yaw, True)
-
-
-def _stored_point(current: Mapping[str, Any], key: str) -> np.ndarray:
-    value = current.get(key)
-    try:
-        p = np.asarray(value, dtype=np.float64) * 1e-3
-    except (TypeError, ValueError) as exc:
-        raise JobError("$", f"the current tool calibration is unusable: {key} {value!r}") from exc
-    if p.shape != (3,) or not np.all(np.isfinite(p)) or np.linalg.norm(p) > MAX_TIP_DISTANCE:
-        raise JobError(
-            "$",
-            f"the current tool calibration is unusable: {key} must be 3 finite numbers within "
-            f"{MAX_TIP_DISTANCE * 1e3:g} mm of the TCP, got {value!r}",
-        )
-    return p
 
 
 class _Collector:
@@ -219,13 +130,13 @@ async def _retract(ctx: JobContext, devices: CellDevices, z: np.ndarray, height:
     """Stop, the tool straight up by ``height`` (m, along ``z``) and back to the scan pose; why not, or ""."""
     try:
         await devices.stop_robot()
-        state = devices.require_motion().state()
+        state = devices.robot.require_motion().state()
         if state is not None:
             T_up = state.T_base_tcp.copy()
             T_up[:3, 3] += height * z
             ctx.progress("retract", None, "tool up and away")
-            await devices.move_to(T_up, speed_scale=min(speed, 0.2))
-            await devices.move_to(T_scan, speed_scale=speed)
+            await devices.robot.move_to(T_up, speed_scale=min(speed, 0.2))
+            await devices.robot.move_to(T_scan, speed_scale=speed)
     except CelldError as exc:
         log.error("retract after the weld failed", job=ctx.job_id, error=str(exc))
         return str(exc)
@@ -251,7 +162,7 @@ async def _probe_height(
     targets, why = probe_targets(plan, tool_cfg)
     if not targets:
         return {"probed": False, "why": why}, plan
-    motion = devices.require_motion()
+    motion = devices.robot.require_motion()
     tool = ToolGeometry.from_config(tool_cfg)
     origin, across = probe_across(plan)
     touches = {}
@@ -262,10 +173,10 @@ async def _probe_height(
         )
         records = await _run_servo(motion, servo_plan, wc.timeout)
         touches[target.name] = contact_across(records, tool, origin, across, tool.side, servo.delta_d)
-        await devices.move_to(plan.T_start, speed_scale=speed)
+        await devices.robot.move_to(plan.T_start, speed_scale=speed)
     found, moved = probed_height(plan, touches, tool, tool.T_tcp_tool, wc.max_height_correction)
     log.info("tip height probed", job=ctx.job_id, **found)
-    await devices.move_to(moved.T_start, speed_scale=speed)
+    await devices.robot.move_to(moved.T_start, speed_scale=speed)
     return found, moved
 
 
@@ -284,13 +195,14 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     job = ctx.job
     if not isinstance(job, WeldJob):
         raise JobError("$.kind", "not a weld job")
-    if devices.tactile is None:
+    srm = devices.tactile.process
+    if srm is None:
         raise JobError("$", "the cell has no tactile sensor (tactile.kind); it cannot track a seam")
-    if not devices.tactile.running():
+    if not srm.running():
         raise JobError(
-            "$", f"the tactile sensor is not running ({devices.tactile_error or 'its process ended'}); the daemon keeps restarting it"
+            "$", f"the tactile sensor is not running ({devices.tactile.error or 'its process ended'}); the daemon keeps restarting it"
         )
-    motion = devices.require_motion()
+    motion = devices.robot.require_motion()
     wc = config.weld
     seam_params = config.seam
     try:
@@ -342,16 +254,16 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         ctx.progress("scan", 0.0, "scanning (dry run: the arm stays where it is)")
     else:
         ctx.progress("scan", 0.0, "arm to the scan pose, scanning")
-        await devices.move_to(T_scan, speed_scale=speed)
+        await devices.robot.move_to(T_scan, speed_scale=speed)
     here = motion.state()
-    cloud = await devices.capture()
+    cloud = await devices.scanner.capture()
     # The scanner where it is now (a scanner on the arm moves with its link, Eq. 8).
     T_base_cam = placement.T_base_cam(None if here is None else here.q)
     # The calibration's range bias on metal: the scan (a metal part on a steel
     # table) moved back along its rays, as the calibration was solved.
     points = correct_range_bias(cloud.points, range_bias) if range_bias else np.asarray(cloud.points)
     if rec is not None:
-        record_cell(rec, devices.planner.with_tool)
+        record_cell(rec, devices.robot.planner.with_tool)
         rec.log_camera_pose(T_base_cam)
         rec.log_cloud_cam("scan", points)
 
@@ -369,10 +281,10 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     # above the start, down, along the seam, up and back to the scan pose.
     if rec is not None:
         rec.log_path_base("plan", plan.path[:, :3, 3])
-    check = await asyncio.to_thread(devices.planner.check_path, await devices.current_q(), plan.path)
+    check = await asyncio.to_thread(devices.robot.planner.check_path, await devices.robot.current_q(), plan.path)
     if job.dry_run:
         stations = np.linspace(0, len(check.q) - 1, min(len(check.q), DRY_RUN_ROBOTS)).round().astype(int)
-        record_plan(rec, devices.planner.with_tool, [tuple(check.q[i]) for i in stations])
+        record_plan(rec, devices.robot.planner.with_tool, [tuple(check.q[i]) for i in stations])
         return {
             "dry_run": True,
             "workpiece": workpiece.name,
@@ -384,10 +296,10 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
             "seam_length_mm": round(seam.length * 1e3, 2),
         }
     ctx.progress("approach", None, "tool to the seam's start")
-    await devices.move_to(plan.T_above, speed_scale=speed)
-    await devices.move_to(plan.T_start, speed_scale=min(speed, 0.2))
+    await devices.robot.move_to(plan.T_above, speed_scale=speed)
+    await devices.robot.move_to(plan.T_start, speed_scale=min(speed, 0.2))
     ctx.progress("tare", None, "taring the SRM, finger free")
-    await asyncio.to_thread(devices.tactile.tare)
+    await asyncio.to_thread(srm.tare)
 
     # The tip's height in the joint, probed by touch: the plan's height error moves where the finger
     # meets a sloping wall, and so where the torch goes. The plan moves to the height it should have.
@@ -490,18 +402,19 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
 
 def _log_preview(devices: CellDevices, rec: Any, last_stamp: int) -> int:
     """Log the SRM camera's latest shared frame (with the tag's outline) if it is new; its stamp."""
-    if rec is None or devices.tactile is None:
+    srm = devices.tactile.process
+    if rec is None or srm is None:
         return last_stamp
-    frame = devices.tactile.latest_preview()
+    frame = srm.latest_preview()
     if frame is None or frame[0] == last_stamp:
         return last_stamp
     stamp, image, corners = frame
     try:
         rec.log_camera_image(image, corners, stamp_ns=stamp)
         # The arm as it moves, at the rate of the previews.
-        here = devices.require_motion().state()
+        here = devices.robot.require_motion().state()
         if here is not None:
-            record_arm(rec, devices.planner.with_tool, here.q, stamp_ns=here.stamp_ns)
+            record_arm(rec, devices.robot.planner.with_tool, here.q, stamp_ns=here.stamp_ns)
     except CelldError as exc:
         log.warning("SRM frame not recorded", error=str(exc))
     return stamp

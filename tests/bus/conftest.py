@@ -16,8 +16,8 @@ from celld.bus.keys import CellKeys
 from celld.bus.server import BusServer
 from celld.bus.session import ServerSession, callers, open_server
 from celld.config import BusConfig, BusUser
-from celld.daemon.dummy import DummyCell
 from celld.journal import Journal
+from tests.standin import DummyCell
 
 
 def free_port(host: str) -> int:

@@ -1,4 +1,5 @@
-"""CellDevices' supervision of the tactile process (the motion process's has its own tests) and its moves after a stale state."""
+"""The cell's devices: the tactile process's supervision (the motion process's has its own tests), an arm's moves after a
+stale state, robot 1 beside a robot 2 whose place is unknown."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import pytest
 
 from celld.config import Config
 from celld.daemon import devices as devices_mod
-from celld.daemon.devices import STALE_RETRIES, CellDevices
+from celld.daemon.arm import STALE_RETRIES, Arm
+from celld.daemon.devices import CellDevices, Tactile
 from celld.errors import DeviceError, LinkLost, StaleState
 from celld.supervision import Backoff
 
@@ -34,31 +36,31 @@ class FakeTactile:
 
 def test_a_dead_tactile_process_is_restarted_with_a_delay_between_attempts(monkeypatch) -> None:
     async def scenario() -> None:
-        dev = CellDevices(Config())
-        dev.tactile = FakeTactile()
-        await dev.supervise_tactile()
-        assert dev.tactile.restarts == 0  # alive: left alone
-        dev.tactile.up, dev.tactile.exitcode = False, -9
-        await dev.supervise_tactile()
-        assert dev.tactile.restarts == 1 and dev.tactile.alive()
+        srm = Tactile(Config(), None)
+        srm.process = FakeTactile()  # type: ignore[assignment]
+        await srm.supervise()
+        assert srm.process.restarts == 0  # alive: left alone
+        srm.process.up, srm.process.exitcode = False, -9
+        await srm.supervise()
+        assert srm.process.restarts == 1 and srm.process.alive()
 
         failing = FakeTactile(fail=True)
         failing.up = False
-        dev.tactile = failing
+        srm.process = failing  # type: ignore[assignment]
         monkeypatch.setattr(devices_mod, "TACTILE_BACKOFF", Backoff(delays=(3600.0,)))
-        await dev.supervise_tactile()  # restarted just before: waits
+        await srm.supervise()  # restarted just before: waits
         assert failing.restarts == 0
         monkeypatch.setattr(devices_mod, "TACTILE_BACKOFF", Backoff(delays=(0.0,)))
-        await dev.supervise_tactile()
-        await dev.supervise_tactile()  # a failed restart is logged and tried again, never raised
+        await srm.supervise()
+        await srm.supervise()  # a failed restart is logged and tried again, never raised
         assert failing.restarts == 2 and not failing.alive()
-        assert dev._tactile_failures == 2 and "exited at start" in dev.tactile_error  # the wait doubles each time
+        assert srm._failures == 2 and "exited at start" in srm.error  # the wait doubles each time
         failing.fail = False
-        await dev.supervise_tactile()
-        assert failing.alive() and dev.tactile_error == "" and dev._tactile_failures == 0
+        await srm.supervise()
+        assert failing.alive() and srm.error == "" and srm._failures == 0
 
-        dev.tactile = None
-        await dev.supervise_tactile()  # a cell without a finger camera: nothing to do
+        srm.process = None
+        await srm.supervise()  # a cell without a finger camera: nothing to do
 
     asyncio.run(asyncio.wait_for(scenario(), 10))
 
@@ -101,8 +103,8 @@ class FakePlanner:
 
 def test_a_move_stopped_on_a_stale_state_is_checked_and_posted_again_a_few_times() -> None:
     async def scenario() -> None:
-        dev = CellDevices(Config())
-        dev.planner = FakePlanner()
+        dev = Arm(Config())
+        dev.planner = FakePlanner()  # type: ignore[assignment]
         # Stale once: after rest and fresh state, checked again from there and posted again.
         dev.motion = FakeMotion(stale=1)
         await dev.move_to(np.eye(4))
@@ -153,14 +155,14 @@ def test_robot_1_does_not_move_beside_a_second_robot_whose_place_is_unknown() ->
 
     async def scenario() -> None:
         one = CellDevices(Config())
-        planner = one.planner
+        planner = one.robot.planner
         async with one.beside_robot2():  # a one-robot cell: nothing to avoid
-            assert one.planner is planner
+            assert one.robot.planner is planner
         two = CellDevices(load(Path(__file__).resolve().parents[2] / "configs" / "sim-cell-two-robots.toml"))
-        planner = two.planner
+        planner = two.robot.planner
         with pytest.raises(DeviceError, match="robot 2's place is unknown .*the robot is not connected"):
             async with two.beside_robot2():
                 pytest.fail("robot 1 would move beside robot 2 with its link down")
-        assert two.planner is planner
+        assert two.robot.planner is planner
 
     asyncio.run(scenario())

@@ -94,7 +94,7 @@ def test_joint_moves_out_of_the_box_into_the_table_or_past_a_joint_limit_are_ref
 def test_a_second_robot_where_it_waits_is_an_obstacle_of_the_first() -> None:
     from celld import se3
     from celld.calib.poses import calibration_poses
-    from celld.daemon.devices import robot2_config
+    from celld.daemon.arm import robot2_config
     from celld.daemon.planning import ARM_CLEARANCE, arm_obstacles
 
     cfg = load(ROOT / "configs" / "sim-cell-two-robots.toml")

@@ -11,7 +11,8 @@ import pytest
 from celld import fsutil
 from celld.calib.mount import ScannerMount, mount_entry
 from celld.config import parse
-from celld.daemon.weld import current_calibration, resolve_workpiece
+from celld.daemon.store import current_calibration
+from celld.daemon.weld import resolve_workpiece
 from celld.errors import JobError
 from celld.seam.workpiece import v_groove_butt
 
@@ -84,8 +85,7 @@ def test_a_calibration_is_used_only_with_the_scanner_mount_it_was_made_for(tmp_p
 
 def test_a_weld_takes_the_measured_tip_and_refuses_an_unmeasured_tool_unless_nominal(tmp_path: Path) -> None:
     from celld.config import ToolConfig
-    from celld.daemon.jobs import tool_store
-    from celld.daemon.weld import current_tool
+    from celld.daemon.store import current_tool, tool_store
 
     required = parse({"tool": {"tip_tcp_mm": [0, 0, 200]}}).tool
     assert required.measured == "required"
@@ -108,8 +108,7 @@ def test_a_weld_takes_the_measured_tip_and_refuses_an_unmeasured_tool_unless_nom
 
 
 def test_a_weld_takes_a_measured_torch_for_the_tool_x_axis_and_offset(tmp_path: Path) -> None:
-    from celld.daemon.jobs import tool_store
-    from celld.daemon.weld import current_tool
+    from celld.daemon.store import current_tool, tool_store
 
     required = parse({"tool": {"tip_tcp_mm": [0, 0, 200]}}).tool
     store = tool_store(tmp_path)

@@ -1,4 +1,4 @@
-"""A cell without devices that answers the bus as the daemon does: for bus tests and the bus benchmark.
+"""A stand-in cell without devices that answers the bus as the daemon does: for bus tests and the bus benchmark.
 
 :class:`DummyCell` is the daemon's own :class:`~celld.daemon.jobs.JobManager`
 (the real journal, queueing, cancelling, results and calibration store)
@@ -8,7 +8,7 @@ succeeded calibrate job leaves the identity as its calibration, so
 ``accept`` and ``calibration`` can be exercised over the bus; it is not a
 calibration and nothing else may use it as one.
 
-``python -m celld.daemon.dummy --config FILE --state-dir DIR`` serves one such
+``python -m tests.standin --config FILE --state-dir DIR`` (from the repository) serves one such
 cell with the bus settings of FILE and prints ``ready <cell>`` on stdout
 when its queryables are declared; SIGTERM or SIGINT stop it. With
 ``--state-hz`` it also feeds made-up robot and tactile samples at that rate
@@ -178,7 +178,7 @@ async def serve(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m celld.daemon.dummy", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m tests.standin", description=__doc__.splitlines()[0])
     parser.add_argument("--config", required=True, help="cell config whose [cell] and [bus] are used")
     parser.add_argument("--state-dir", required=True, help="directory of the job journal")
     parser.add_argument("--job-duration", type=float, default=0.05, help="seconds each job waits")

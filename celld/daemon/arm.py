@@ -1,0 +1,217 @@
+"""One robot as the daemon drives it: its motion process, its planner, and every move checked first.
+
+An :class:`Arm` owns the :class:`~celld.motion.handle.MotionHandle` of one
+robot (the motion process it starts and supervises) and the
+:class:`~celld.daemon.planning.MotionPlanner` of its view of the cell: every
+straight or joint move is checked against the cell model before it is posted,
+and a move the loop stopped on a stale robot state is checked and posted again
+from where the arm came to rest. A cell's robots are composed by
+:class:`~celld.daemon.devices.CellDevices`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Awaitable, Callable, Iterator, Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from celld import se3
+from celld.config import Config
+from celld.daemon.planning import MotionPlanner
+from celld.errors import CelldError, ConfigError, DeviceError, StaleState
+from celld.log import get_logger
+from celld.motion.handle import MotionHandle
+from celld.motion.types import RobotState
+from celld.robot.cellmodel import CellObject
+from celld.supervision import ChildRecords
+
+log = get_logger(__name__)
+
+# Longest a job waits for the robot's first state, s.
+STATE_WAIT = 5.0
+# Longest a stop may take before the daemon gives up waiting, s.
+STOP_TIMEOUT = 5.0
+# A point-to-point move the motion loop stopped on a stale robot state (the
+# loop starved of state for a few cycles while the link stayed up; the stop
+# was jerk-limited) is checked again from where the arm came to rest and
+# posted again, this many times, before the job fails. On a loaded two-core
+# cell PC two such stops have come within 2 s (a tool calibration's
+# detections running beside the move).
+STALE_RETRIES = 3
+
+
+def robot2_config(config: Config) -> Config:
+    """The cell as the second robot sees it (``[robot2]``): its link, its calibration's verification pose and
+    flange, the cell model moved into its base frame by its drawn place, no tool on its flange.
+
+    Raises
+    ------
+    ConfigError
+        The config has no ``[robot2]``.
+    """
+    r2 = config.robot2
+    if r2 is None:
+        raise ConfigError(config.source, "robot2", "the cell has no second robot")
+    T_base2_base1 = se3.invert(se3.from_ur_pose(r2.base_pose))
+    cal = replace(config.calibration, verification_pose=r2.verification_pose, flange=r2.flange or config.calibration.flange)
+    return replace(
+        config, robot=r2.robot, calibration=cal, cell_model=config.cell_model.seen_from(T_base2_base1).without_tool(), robot2=None
+    )
+
+
+class Arm:
+    """One robot as the daemon drives it: its motion process and every move checked first.
+
+    ``config`` is the robot's view of the cell: its ``[robot]`` section and
+    the cell model in its base frame (:func:`robot2_config` makes the second
+    robot's). :class:`~celld.daemon.devices.CellDevices` has robot 1's
+    (:attr:`~celld.daemon.devices.CellDevices.robot`) and, on a cell with
+    ``[robot2]``, one more (:attr:`~celld.daemon.devices.CellDevices.robot2`).
+    """
+
+    def __init__(self, config: Config) -> None:
+        self.config = config
+        self.motion: MotionHandle | None = None
+        self.planner = MotionPlanner(config)
+
+    @contextlib.contextmanager
+    def avoiding(self, objects: Sequence[CellObject]) -> Iterator[None]:
+        """Within the block, every move and plan of this arm is checked against ``objects`` too (another
+        robot's arm where it waits: :func:`~celld.daemon.planning.arm_obstacles`); a block inside it puts
+        its own objects in their place."""
+        planner = self.planner
+        self.planner = planner.with_objects(objects)
+        try:
+            yield
+        finally:
+            self.planner = planner
+
+    async def open_motion(
+        self, heartbeat: str, records: ChildRecords, servo_laws: dict[str, str] | None = None, tactile_slot: str | None = None
+    ) -> MotionHandle:
+        """Start its motion process, watching the daemon's ``heartbeat``; the supervisor keeps (re)connecting
+        (see :meth:`wait_robot`). Without ``servo_laws`` and ``tactile_slot`` it only moves and holds."""
+        cfg = self.config
+        self.motion = await MotionHandle.open(
+            cfg,
+            servo_laws=servo_laws,
+            tactile_slot=tactile_slot,
+            link_timeout=cfg.motion.link_timeout,
+            watchdog_hz=cfg.motion.rtde_watchdog_hz,
+            wait=False,
+            heartbeat=heartbeat,
+            records=records,
+        )
+        return self.motion
+
+    async def close_motion(self) -> None:
+        """A jerk-limited stop, then the end of its motion process."""
+        if self.motion is None:
+            return
+        try:
+            await self.stop_robot()
+        except CelldError as exc:
+            log.error("stop before close failed", robot=self.config.robot.host, error=str(exc))
+        await self.motion.close()
+        self.motion = None
+
+    async def wait_robot(self, timeout: float) -> bool:
+        """Wait until the motion loop runs and has read the robot; False on timeout."""
+        return await self.require_motion().wait_ready(timeout)
+
+    async def move_to(self, T_base_tcp: np.ndarray, speed_scale: float = 1.0, *, tool: bool = True) -> RobotState:
+        """A jerk-limited straight move of the TCP, checked against the cell first (:class:`MotionPlanner`).
+
+        Raises
+        ------
+        PathRefused
+            The move would hit the cell or cannot be reached; the robot did not move.
+        """
+        motion = self.require_motion()
+
+        async def move() -> RobotState:
+            q = await self.current_q()
+            await asyncio.to_thread(self.planner.check_move, q, T_base_tcp, tool)
+            return await motion.move_to(T_base_tcp, speed_scale=speed_scale)
+
+        return await self._after_stale(move, "move")
+
+    async def move_joints(self, q_goal: np.ndarray, speed_scale: float = 1.0, *, tool: bool = True) -> RobotState:
+        """A jerk-limited joint move, checked against the cell and the workspace box first, and slowed so the
+        TCP keeps the Cartesian limits (:meth:`MotionPlanner.plan_joint_move`).
+
+        Raises
+        ------
+        PathRefused
+            The move would hit the cell, leave the workspace or cross a joint limit; the robot did not move.
+        """
+        motion = self.require_motion()
+
+        async def move() -> RobotState:
+            q = await self.current_q()
+            plan = await asyncio.to_thread(self.planner.plan_joint_move, q, q_goal, speed_scale, tool)
+            if plan.speed_scale < speed_scale:
+                log.info(
+                    "joint move slowed for the TCP's limits",
+                    asked=speed_scale,
+                    scale=round(plan.speed_scale, 4),
+                    tcp_speed=round(plan.tcp_speed, 4),
+                )
+            return await motion.move_joints(q_goal, speed_scale=plan.speed_scale)
+
+        return await self._after_stale(move, "joint move")
+
+    async def _after_stale(self, move: Callable[[], Awaitable[RobotState]], what: str) -> RobotState:
+        """Run ``move``; after a stop on stale robot state, wait for rest and fresh state and run it again
+        (:data:`STALE_RETRIES` times). Any other failure, or a link that does not come back, is raised."""
+        motion = self.require_motion()
+        retries = 0
+        while True:
+            try:
+                return await move()
+            except StaleState as exc:
+                if retries >= STALE_RETRIES:
+                    raise
+                retries += 1
+                log.warning(
+                    "a move stopped on a stale robot state; checking it again from where the arm rests",
+                    move=what,
+                    reason=str(exc),
+                    retry=f"{retries} of {STALE_RETRIES}",
+                )
+                await motion.wait_idle(STOP_TIMEOUT)
+                if not await motion.wait_ready(STATE_WAIT):
+                    raise
+
+    async def current_q(self, timeout: float = STATE_WAIT) -> np.ndarray:
+        """The robot's joints now, waiting up to ``timeout`` s for the first state; DeviceError without one."""
+        motion = self.require_motion()
+        state = motion.state()
+        if state is None and await motion.wait_ready(timeout):
+            state = motion.state()
+        if state is None:
+            raise DeviceError(f"no robot state within {timeout:g} s: the robot link is not up")
+        return np.asarray(state.q, dtype=np.float64)
+
+    def require_motion(self) -> MotionHandle:
+        if self.motion is None:
+            raise DeviceError("the robot is not connected")
+        return self.motion
+
+    async def stop_robot(self) -> None:
+        """Jerk-limited stop; returns once the robot holds still (or the link is gone)."""
+        if self.motion is None:
+            return
+        self.motion.stop()
+        try:
+            await self.motion.wait_idle(STOP_TIMEOUT)
+        except CelldError as exc:
+            log.warning("robot not confirmed at rest after a stop", error=str(exc))
+
+    def link_state(self) -> str:
+        if self.motion is None:
+            return "unknown"
+        return "up" if self.motion.link_running() else "down"

@@ -1,0 +1,182 @@
+"""What the state directory keeps of the cell's calibrations: the current ones, and the candidates jobs left.
+
+:class:`CalibrationStore` holds the current calibration
+(``<state_dir>/calibration.json``) and the candidates finished calibrate jobs
+left (``<state_dir>/calibrations/<job>.json``); :func:`tool_store` the same for
+the tool (``tool.json``, ``tool-calibrations/``). An accept makes a
+candidate current, refusing a failed quality verdict unless forced.
+:func:`current_calibration` and :func:`current_tool` read the current ones as
+a job uses them, refusing what is missing or unusable with the reason.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from celld import fsutil
+from celld.calib.mount import Placement, placement_of
+from celld.config import ToolConfig
+from celld.errors import InputError, JobError
+from celld.journal import utc_now
+from celld.log import get_logger
+from celld.tactile.tool import with_measured_torch
+
+log = get_logger(__name__)
+
+# A calibration's range bias beyond this is not a scanner's (mm): refused as corrupt.
+MAX_RANGE_BIAS_MM = 100.0
+# A measured tip farther than this from the TCP is not a tool's (m): refused as corrupt.
+MAX_TIP_DISTANCE = 1.0
+
+
+class CalibrationStore:
+    """The current calibration, and the candidates finished calibrate jobs left.
+
+    The current one is ``<state_dir>/calibration.json``; a candidate is
+    ``<state_dir>/calibrations/<job>.json``. Both are written atomically.
+    A candidate whose quality verdict (``quality.verdict``) is not ``ok`` is
+    accepted only with ``force``, and is then marked ``forced``; a candidate
+    without a verdict (written before the gate existed) is accepted as before.
+
+    The same store keeps the tool calibration (:func:`tool_store`:
+    ``tool.json`` and ``tool-calibrations/``): one accept, one verdict rule,
+    for whatever a job measured.
+    """
+
+    def __init__(
+        self, state_dir: Path, current: str = "calibration.json", candidates: str = "calibrations", kind: str = "calibrate"
+    ) -> None:
+        self.current_path = state_dir / current
+        self.candidates = state_dir / candidates
+        self.kind = kind
+        self.candidates.mkdir(parents=True, exist_ok=True)
+
+    def current(self) -> dict[str, Any] | None:
+        if not self.current_path.exists():
+            return None
+        try:
+            return json.loads(self.current_path.read_text())
+        except (OSError, ValueError) as exc:
+            log.error("current calibration unreadable; ignoring it", path=str(self.current_path), error=str(exc))
+            return None
+
+    def add_candidate(self, job_id: str, calibration: Mapping[str, Any]) -> Path:
+        return fsutil.write_json(self.candidates / f"{job_id}.json", dict(calibration))
+
+    def accept(self, job_id: str, force: bool = False) -> dict[str, Any]:
+        path = self.candidates / f"{job_id}.json"
+        if not path.exists():
+            raise JobError("$.job", f"job {job_id} left no calibration to accept (not a finished {self.kind} job)")
+        calibration = json.loads(path.read_text())
+        # Its own verdict, and a second robot's (a calibrate job with robot2) when it has one.
+        robot2 = calibration.get("robot2")
+        gates = [("the ", calibration.get("quality")), ("robot 2's ", robot2.get("quality") if isinstance(robot2, dict) else None)]
+        failed = [(who, q) for who, q in gates if isinstance(q, dict) and q.get("verdict") not in (None, "ok")]
+        if failed:
+            if not force:
+                who, quality = failed[0]
+                reasons = "; ".join(str(r) for r in quality.get("reasons", []))
+                raise JobError(
+                    "$.job",
+                    f"{who}calibration of job {job_id} failed its quality gate ({quality['verdict']}: {reasons}); "
+                    "accept it with force to override",
+                )
+            calibration["forced"] = True
+        calibration["accepted"] = utc_now()
+        fsutil.write_json(self.current_path, calibration)
+        return calibration
+
+
+def tool_store(state_dir: Path) -> CalibrationStore:
+    """The current tool calibration (``<state_dir>/tool.json``) and the candidates tool-calibrate jobs left."""
+    return CalibrationStore(state_dir, "tool.json", "tool-calibrations", "tool-calibrate")
+
+
+def current_calibration(state_dir: Path, mount: str = "base") -> tuple[Placement, float, str]:
+    """The accepted calibration: the scanner's placement (``T_base_cam``, or its pose on its link of the
+    arm), the scanner's range bias on metal (m) and the job that made it.
+
+    Refused without one, when either value is unusable, or when it was made
+    for a scanner mounted elsewhere than the config's ``mount``. A calibration
+    without a range bias (structured light, or written before it existed)
+    has none: 0.
+    """
+    cal = CalibrationStore(state_dir).current()
+    if cal is None:
+        raise JobError("$", "the cell has no current calibration: run a calibrate job and accept it first")
+    try:
+        placement = placement_of(cal)
+    except InputError as exc:
+        raise JobError("$", f"the current calibration is unusable: {exc}") from exc
+    if placement.mount.name != mount:
+        raise JobError(
+            "$",
+            f"the current calibration is of a scanner on {placement.mount.name}, and scanner.mount is {mount!r}: "
+            "calibrate the scanner where it is mounted now",
+        )
+    bias_mm = cal.get("range_bias_mm", 0.0)
+    if isinstance(bias_mm, bool) or not isinstance(bias_mm, (int, float)) or not abs(bias_mm) <= MAX_RANGE_BIAS_MM:
+        raise JobError(
+            "$", f"the current calibration is unusable: range_bias_mm must be a number within +-{MAX_RANGE_BIAS_MM:g} mm, got {bias_mm!r}"
+        )
+    return placement, float(bias_mm) * 1e-3, str(cal.get("job", ""))
+
+
+class CurrentTool(NamedTuple):
+    """The tool a weld runs with (:func:`current_tool`)."""
+
+    tool: ToolConfig
+    job: str  # the tool-calibrate job that measured it, "" for none
+    sensor_yaw: float = 0.0  # rad, Algorithm2Params.sensor_yaw
+    torch_measured: bool = False
+
+
+def current_tool(state_dir: Path, tool: ToolConfig) -> CurrentTool:
+    """``tool`` with the current tool calibration's tip and, when it measured it, its torch.
+
+    A measured torch sets the tool's x axis (from the torch to the tip, across
+    the configured finger axis) and ``torch_offset``
+    (:func:`celld.tactile.tool.with_measured_torch`). Refused without a current
+    tool calibration unless ``tool.measured`` is ``"nominal"``, and when the
+    stored tip or torch is unusable.
+    """
+    current = tool_store(state_dir).current()
+    if current is None:
+        if tool.measured == "nominal":
+            return CurrentTool(tool, "")
+        raise JobError(
+            "$",
+            "the tool's tip is not measured: run a tool-calibrate job and accept it first, or set "
+            'tool.measured = "nominal" in the config to weld with tool.tip_tcp_mm as typed',
+        )
+    job = str(current.get("job", ""))
+    tip = _stored_point(current, "tip_tcp_mm")
+    tool = replace(tool, tip_tcp=(float(tip[0]), float(tip[1]), float(tip[2])))
+    if current.get("torch_measured") is not True:
+        return CurrentTool(tool, job)  # a calibration of the tip alone: the torch as configured
+    try:
+        measured = with_measured_torch(tool, _stored_point(current, "torch_tcp_mm"))
+    except InputError as exc:
+        raise JobError("$", f"the current tool calibration {job} is unusable: {exc}") from exc
+    return CurrentTool(measured.tool, job, measured.sensor_yaw, True)
+
+
+def _stored_point(current: Mapping[str, Any], key: str) -> np.ndarray:
+    value = current.get(key)
+    try:
+        p = np.asarray(value, dtype=np.float64) * 1e-3
+    except (TypeError, ValueError) as exc:
+        raise JobError("$", f"the current tool calibration is unusable: {key} {value!r}") from exc
+    if p.shape != (3,) or not np.all(np.isfinite(p)) or np.linalg.norm(p) > MAX_TIP_DISTANCE:
+        raise JobError(
+            "$",
+            f"the current tool calibration is unusable: {key} must be 3 finite numbers within "
+            f"{MAX_TIP_DISTANCE * 1e3:g} mm of the TCP, got {value!r}",
+        )
+    return p
