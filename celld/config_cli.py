@@ -20,11 +20,6 @@ from collections.abc import Mapping
 from dataclasses import fields, is_dataclass
 from typing import Any
 
-import numpy as np
-
-from celld import config
-from celld.preflight import preflight
-
 # What a password is printed as.
 REDACTED = "***"
 # Keys whose values are secrets.
@@ -48,6 +43,8 @@ def plain(value: Any) -> Any:
         return {str(k): plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [plain(v) for v in value]
+    import numpy as np
+
     if isinstance(value, np.ndarray | np.generic):
         return value.tolist()
     return value
@@ -63,7 +60,9 @@ def redact(value: Any) -> Any:
 
 
 def _check(args: argparse.Namespace) -> int:
+    from celld import config
     from celld.bus.session import config_warnings
+    from celld.preflight import preflight
 
     cfg = config.load(args.file)
     for warning in config_warnings(cfg.bus):

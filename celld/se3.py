@@ -12,9 +12,12 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from celld.errors import InputError
+
+# scipy's Rotation is imported where it is used: loading a config (celld status,
+# celld config check) checks transforms and reads UR poses, and importing
+# scipy.spatial would more than double its time and memory.
 
 # Tolerance on R^T R - I and det(R) - 1 for a matrix to count as a rotation.
 _ROTATION_TOL = 1e-6
@@ -83,6 +86,8 @@ def rotate(T: ArrayLike, v: ArrayLike) -> Array:
 
 def from_ur_pose(pose: ArrayLike) -> Array:
     """Return ``T_base_tcp`` from a UR pose ``[x, y, z, rx, ry, rz]`` (m, rad)."""
+    from scipy.spatial.transform import Rotation
+
     pose = np.asarray(pose, dtype=np.float64)
     if pose.shape != (6,):
         raise InputError(f"UR pose: expected 6 values [x, y, z, rx, ry, rz], got shape {pose.shape}")
@@ -91,17 +96,23 @@ def from_ur_pose(pose: ArrayLike) -> Array:
 
 def to_ur_pose(T: ArrayLike) -> Array:
     """Return the UR pose ``[x, y, z, rx, ry, rz]`` (m, rad) of ``T_base_tcp``."""
+    from scipy.spatial.transform import Rotation
+
     T = np.asarray(T, dtype=np.float64)
     return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
 
 
 def from_xyz_rpy(xyz: ArrayLike, rpy: ArrayLike) -> Array:
     """Return a transform from a translation and extrinsic roll-pitch-yaw (x, y, z), rad."""
+    from scipy.spatial.transform import Rotation
+
     return transform_from(Rotation.from_euler("xyz", rpy).as_matrix(), xyz)
 
 
 def from_xyz_quat_wxyz(xyz: ArrayLike, q_wxyz: ArrayLike) -> Array:
     """Return a transform from a translation and a quaternion in (w, x, y, z) order."""
+    from scipy.spatial.transform import Rotation
+
     q = np.asarray(q_wxyz, dtype=np.float64)
     if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
         raise InputError(f"quaternion: expected 4 finite values (w, x, y, z), got {q.tolist()}")
@@ -114,6 +125,8 @@ def error(T_est: ArrayLike, T_true: ArrayLike) -> tuple[float, float]:
     The rotation error is the angle of ``R_true^T R_est``; the translation error
     is the norm of the difference of the translations.
     """
+    from scipy.spatial.transform import Rotation
+
     T_est = np.asarray(T_est, dtype=np.float64)
     T_true = np.asarray(T_true, dtype=np.float64)
     dt = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
@@ -123,6 +136,8 @@ def error(T_est: ArrayLike, T_true: ArrayLike) -> tuple[float, float]:
 
 def delta(T_est: ArrayLike, T_true: ArrayLike) -> tuple[Array, Array]:
     """Return the signed translation (m, (3,)) and rotation-vector (rad, (3,)) error."""
+    from scipy.spatial.transform import Rotation
+
     T_est = np.asarray(T_est, dtype=np.float64)
     T_true = np.asarray(T_true, dtype=np.float64)
     dt = T_est[:3, 3] - T_true[:3, 3]

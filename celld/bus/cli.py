@@ -16,13 +16,14 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
-from celld import config
-from celld.bus import asyncapi, schema
-from celld.bus.client import CellClient, discover_cells
-from celld.bus.session import open_client
+from celld.cliparse import add_command
 from celld.errors import BusError, ConfigError, JobError
+
+if TYPE_CHECKING:
+    from celld import config
+    from celld.bus.client import CellClient
 
 # Where an installed cell keeps its config.
 DEFAULT_CONFIG = "/etc/celld/cell.toml"
@@ -50,11 +51,51 @@ def _floats(n: int, name: str) -> dict[str, Any]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
+    # The choices of submit, jobs and robot come from the schema (numpy, the config): defined when used.
     common = _connection_options()
 
-    p = sub.add_parser("submit", help="submit a job to a cell")
+    add_command(sub, "submit", _submit_arguments, help="submit a job to a cell")
+
+    s = sub.add_parser("status", parents=[common], help="state of a cell, of one job, or of every cell")
+    which = s.add_mutually_exclusive_group()
+    which.add_argument("--all", action="store_true", help="every cell found on the bus (liveliness)")
+    which.add_argument("--job", help="one job's record")
+    which.add_argument("--calibration", action="store_true", help="the current calibration")
+    s.set_defaults(func=_status)
+
+    add_command(sub, "jobs", _jobs_arguments, parents=[common], help="jobs in a cell's journal, newest first")
+
+    x = sub.add_parser("cancel", parents=[common], help="cancel a queued or running job (the robot stops first)")
+    x.add_argument("job")
+    x.add_argument("--reason", default="", help="why (kept in the job's record)")
+    x.set_defaults(func=_cancel)
+
+    r = sub.add_parser("result", parents=[common], help="a finished job's result, over the bus")
+    r.add_argument("job")
+    r.add_argument("--out", help="write the result document to this file instead of printing it")
+    r.set_defaults(func=_result)
+
+    a = sub.add_parser("accept", parents=[common], help="make a calibrate (tool-calibrate) job's result the current (tool) calibration")
+    a.add_argument("job")
+    a.add_argument("--force", action="store_true", help="accept even though the calibration failed its quality gate")
+    a.set_defaults(func=_accept)
+
+    add_command(
+        sub, "robot", _robot_arguments, parents=[common], help="clear a robot fault through its dashboard (refused while a job runs)"
+    )
+
+    b = sub.add_parser("bus", help="bus tools")
+    bsub = b.add_subparsers(dest="bus_command", metavar="ACTION", required=True)
+    e = bsub.add_parser("schema", help="export the JSON Schema of every bus message and the AsyncAPI document")
+    e.add_argument("--out", required=True, help="directory to write <name>.schema.json files and asyncapi.json into")
+    e.set_defaults(func=_schema)
+
+
+def _submit_arguments(p: argparse.ArgumentParser) -> None:
+    from celld.bus import schema
+
     kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
-    job_common = argparse.ArgumentParser(add_help=False, parents=[common])
+    job_common = argparse.ArgumentParser(add_help=False, parents=[_connection_options()])
     job_common.add_argument("--ref", default="", help="your reference for the job (echoed in status)")
     job_common.add_argument(
         "--request-id", help="your id of this submit: submitting again with the same id returns the same job (idempotent)"
@@ -104,35 +145,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     f.add_argument("path")
     p.set_defaults(func=_submit)
 
-    s = sub.add_parser("status", parents=[common], help="state of a cell, of one job, or of every cell")
-    which = s.add_mutually_exclusive_group()
-    which.add_argument("--all", action="store_true", help="every cell found on the bus (liveliness)")
-    which.add_argument("--job", help="one job's record")
-    which.add_argument("--calibration", action="store_true", help="the current calibration")
-    s.set_defaults(func=_status)
 
-    j = sub.add_parser("jobs", parents=[common], help="jobs in a cell's journal, newest first")
+def _jobs_arguments(j: argparse.ArgumentParser) -> None:
+    from celld.bus import schema
+
     j.add_argument("--limit", type=int, default=20)
     j.add_argument("--state", choices=schema.JOB_STATES)
     j.add_argument("--kind", choices=schema.JOB_KINDS)
     j.set_defaults(func=_jobs)
 
-    x = sub.add_parser("cancel", parents=[common], help="cancel a queued or running job (the robot stops first)")
-    x.add_argument("job")
-    x.add_argument("--reason", default="", help="why (kept in the job's record)")
-    x.set_defaults(func=_cancel)
 
-    r = sub.add_parser("result", parents=[common], help="a finished job's result, over the bus")
-    r.add_argument("job")
-    r.add_argument("--out", help="write the result document to this file instead of printing it")
-    r.set_defaults(func=_result)
+def _robot_arguments(rb: argparse.ArgumentParser) -> None:
+    from celld.bus import schema
 
-    a = sub.add_parser("accept", parents=[common], help="make a calibrate (tool-calibrate) job's result the current (tool) calibration")
-    a.add_argument("job")
-    a.add_argument("--force", action="store_true", help="accept even though the calibration failed its quality gate")
-    a.set_defaults(func=_accept)
-
-    rb = sub.add_parser("robot", parents=[common], help="clear a robot fault through its dashboard (refused while a job runs)")
     rb.add_argument(
         "action",
         choices=schema.ROBOT_ACTIONS,
@@ -140,17 +165,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     rb.set_defaults(func=_robot)
 
-    b = sub.add_parser("bus", help="bus tools")
-    bsub = b.add_subparsers(dest="bus_command", metavar="ACTION", required=True)
-    e = bsub.add_parser("schema", help="export the JSON Schema of every bus message and the AsyncAPI document")
-    e.add_argument("--out", required=True, help="directory to write <name>.schema.json files and asyncapi.json into")
-    e.set_defaults(func=_schema)
-
 
 # -- helpers ------------------------------------------------------------------------
 
 
 def _bus(args: argparse.Namespace) -> tuple[config.Config, config.BusConfig, str | None, str | None]:
+    from celld import config
+
     cfg = config.load(args.config)
     user = args.user or os.environ.get("CELLD_BUS_USER") or None
     password = os.environ.get("CELLD_BUS_PASSWORD") or None
@@ -163,6 +184,8 @@ def _bus(args: argparse.Namespace) -> tuple[config.Config, config.BusConfig, str
 
 
 def _client(args: argparse.Namespace) -> CellClient:
+    from celld.bus.client import CellClient
+
     cfg, bus, user, password = _bus(args)
     return CellClient(bus, args.cell or cfg.cell.name, user=user, password=password, timeout=args.timeout)
 
@@ -172,6 +195,8 @@ def _print_json(value: Any) -> None:
 
 
 def _job_message(args: argparse.Namespace) -> dict[str, Any]:
+    from celld.bus import schema
+
     kind = args.kind
     if kind == "file":
         text = sys.stdin.read() if args.path == "-" else Path(args.path).read_text(encoding="utf-8")
@@ -349,6 +374,9 @@ def _print_status(s: dict[str, Any]) -> None:
 
 
 def _status_all(args: argparse.Namespace) -> int:
+    from celld.bus.client import CellClient, discover_cells
+    from celld.bus.session import open_client
+
     _, bus, user, password = _bus(args)
     session = open_client(bus, user, password)
     try:
@@ -396,6 +424,8 @@ def _cancel(args: argparse.Namespace) -> int:
 
 
 def _result(args: argparse.Namespace) -> int:
+    from celld.bus import schema
+
     with _client(args) as cell:
         reply = cell.result(args.job)
     if args.out:
@@ -454,6 +484,8 @@ def _print_robot(robot: dict[str, Any]) -> None:
 
 
 def _schema(args: argparse.Namespace) -> int:
+    from celld.bus import asyncapi
+
     for path in asyncapi.export_schemas(args.out):
         print(path)
     return 0

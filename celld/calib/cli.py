@@ -30,11 +30,12 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from celld.errors import CelldError, InputError
+
+if TYPE_CHECKING:
+    import numpy as np
 
 # Exit code of a refused input or a failed solve (celld.cli's convention).
 _EXIT_ERROR = 2
@@ -143,6 +144,8 @@ def _solve_dict(args: argparse.Namespace) -> dict[str, Any]:
 
 def _read_any_cloud(path: Path, units: str) -> np.ndarray:
     """A cloud file in metres: PLY / PCD (organized if written so by celld), or .npy (n, 3) / (H, W, 3)."""
+    import numpy as np
+
     from celld.calib.dataset import read_cloud
     from celld.calib.detect import to_metres
 

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from celld import config as config_mod
-
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the cell daemon (robot link, jobs over zenoh, recordings)")
@@ -14,6 +12,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from celld import config as config_mod
     from celld.daemon.app import serve
     from celld.daemon.devices import real_devices
 

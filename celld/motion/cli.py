@@ -16,11 +16,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from celld.config import Config, load
-from celld.motion.handle import MotionHandle
-from celld.se3 import to_ur_pose
+if TYPE_CHECKING:
+    from celld.config import Config
+    from celld.motion.handle import MotionHandle
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -46,10 +46,14 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _config(args: argparse.Namespace) -> Config:
+    from celld.config import Config, load
+
     return load(args.config) if args.config else Config()
 
 
 def _report(motion: MotionHandle) -> dict[str, Any]:
+    from celld.se3 import to_ur_pose
+
     state = motion.state()
     out: dict[str, Any] = {"health": motion.health()._asdict()}
     if state is not None:
@@ -71,6 +75,8 @@ def _print(args: argparse.Namespace, report: dict[str, Any]) -> None:
 
 
 def _status(args: argparse.Namespace) -> int:
+    from celld.motion.handle import MotionHandle
+
     async def run() -> dict[str, Any]:
         async with await MotionHandle.open(_config(args), host=args.host) as motion:
             await asyncio.sleep(args.seconds)
@@ -81,6 +87,8 @@ def _status(args: argparse.Namespace) -> int:
 
 
 def _move(args: argparse.Namespace) -> int:
+    from celld.motion.handle import MotionHandle
+
     async def run() -> dict[str, Any]:
         async with await MotionHandle.open(_config(args), host=args.host) as motion:
             await motion.move_to(args.pose, speed_scale=args.speed_scale)

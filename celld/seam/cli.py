@@ -25,12 +25,12 @@ import json
 import math
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from celld.cloudfile import check_cloud_file
 from celld.errors import InputError, ScanError, SeamError, WorkpieceError
+
+if TYPE_CHECKING:
+    import numpy as np
 
 # Cloud units accepted at this boundary, to metres.
 _UNITS = {"m": 1.0, "mm": 1e-3}
@@ -79,6 +79,8 @@ def _find(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"ok": True, "seam": path.to_dict()}))
     else:
+        import numpy as np
+
         q = path.quality
         print(
             f"seam: {len(path.points_base)} points over {path.length * 1e3:.1f} mm ({q.source}), "
@@ -93,7 +95,6 @@ def _find(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> Any:
-    # Imported here so `celld --help` stays fast.
     from celld.config.seam import SeamParams
     from celld.seam.pipeline import find_seam
     from celld.seam.workpiece import EXAMPLES, example, load_workpiece
@@ -148,6 +149,8 @@ def _hand_eye(args: argparse.Namespace) -> np.ndarray:
 
 
 def _matrix_file(path: str, what: str) -> np.ndarray:
+    import numpy as np
+
     from celld import se3
 
     p = Path(path)
@@ -166,6 +169,10 @@ def _matrix_file(path: str, what: str) -> np.ndarray:
 
 def read_cloud(path: str | Path, units: str = "m") -> np.ndarray:
     """Read a saved scan as an (H, W, 3) or (n, 3) float array in metres."""
+    import numpy as np
+
+    from celld.cloudfile import check_cloud_file
+
     p = Path(path)
     if not p.is_file():
         raise ScanError(f"{p}: cloud file not found")

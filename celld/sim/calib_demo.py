@@ -41,9 +41,8 @@ from celld.sim.world import World, add_world_arguments, options_from_args, world
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim-cell.toml"
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    """Add ``calibrate`` to the ``celld sim`` subcommands ``sub``."""
-    p = sub.add_parser("calibrate", help="calibrate the simulated scanner from the robot's flange, offline (no robot, no daemon)")
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The arguments of ``celld sim calibrate`` (:mod:`celld.sim.cli` adds the subcommand)."""
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="a cell config whose scanner is simulated")
     p.add_argument("--poses", type=int, default=None, help="calibration poses (default: the config's n_poses)")
     p.add_argument("--seed", type=int, default=0)

@@ -27,34 +27,62 @@ import argparse
 import json
 from typing import Any
 
-from celld.sim import calib_demo
-from celld.sim.robot.faults import FAULTS
-from celld.sim.robot.options import add_arguments, check_host, from_args
-from celld.sim.world import add_world_arguments, options_from_args
+from celld.cliparse import add_command
 
 
 def add_parser(sub: Any) -> None:
-    """Add ``sim`` and its subcommands to the top-level subparsers ``sub``."""
+    """Add ``sim`` and its subcommands to the top-level subparsers ``sub``.
+
+    Each subcommand's arguments come from the simulator's modules and are
+    defined when it is used (:func:`celld.cliparse.add_command`).
+    """
     sim = sub.add_parser("sim", help="run simulated devices and play faults on them")
     sim_sub = sim.add_subparsers(dest="sim_command", metavar="DEVICE")
+    add_command(sim_sub, "robot", _robot_arguments, help="run the simulated UR10e controller (RTDE, dashboard, script ports)")
+    add_command(sim_sub, "cell", _cell_arguments, help="run the simulated cell of a cell config (robot at its home pose)")
+    add_command(sim_sub, "run", _run_arguments, help="run the cell daemon on the simulated cell's scanner and SRM camera")
+    add_command(
+        sim_sub,
+        "calibrate",
+        _calibrate_arguments,
+        help="calibrate the simulated scanner from the robot's flange, offline (no robot, no daemon)",
+    )
+    add_command(sim_sub, "fault", _fault_arguments, help="play a fault on a running simulated robot")
+    sim.set_defaults(func=lambda args: sim.print_help() or 2)
 
-    robot = sim_sub.add_parser("robot", help="run the simulated UR10e controller (RTDE, dashboard, script ports)")
+
+def _robot_arguments(robot: argparse.ArgumentParser) -> None:
+    from celld.sim.robot.options import add_arguments
+
     add_arguments(robot)
     robot.set_defaults(func=_run_robot)
 
-    cell = sim_sub.add_parser("cell", help="run the simulated cell of a cell config (robot at its home pose)")
+
+def _cell_arguments(cell: argparse.ArgumentParser) -> None:
+    from celld.sim.world import add_world_arguments
+
     cell.add_argument("--config", required=True, help="the cell config (e.g. configs/sim-cell.toml)")
     add_world_arguments(cell)
     cell.set_defaults(func=_run_cell)
 
-    run = sim_sub.add_parser("run", help="run the cell daemon on the simulated cell's scanner and SRM camera")
+
+def _run_arguments(run: argparse.ArgumentParser) -> None:
+    from celld.sim.world import add_world_arguments
+
     run.add_argument("--config", required=True, help="the cell config (e.g. configs/sim-cell.toml)")
     add_world_arguments(run)
     run.set_defaults(func=_run_daemon)
 
-    calib_demo.add_parser(sim_sub)
 
-    fault = sim_sub.add_parser("fault", help="play a fault on a running simulated robot")
+def _calibrate_arguments(p: argparse.ArgumentParser) -> None:
+    from celld.sim import calib_demo
+
+    calib_demo.add_arguments(p)
+
+
+def _fault_arguments(fault: argparse.ArgumentParser) -> None:
+    from celld.sim.robot.faults import FAULTS
+
     fault.add_argument("--host", required=True, help="address the simulator listens on, 127.x.y.z")
     names = [*sorted(f.replace("_", "-") for f in FAULTS), "clear", "status"]
     fault.add_argument("fault", choices=names, help="the fault, or clear / status")
@@ -62,10 +90,9 @@ def add_parser(sub: Any) -> None:
     fault.add_argument("--down-ms", type=float, help="how long dropped ports stay closed, milliseconds")
     fault.set_defaults(func=_run_fault)
 
-    sim.set_defaults(func=lambda args: sim.print_help() or 2)
-
 
 def _run_robot(args: argparse.Namespace) -> int:
+    from celld.sim.robot.options import from_args
     from celld.sim.robot.server import serve
 
     return serve(from_args(args))
@@ -74,9 +101,9 @@ def _run_robot(args: argparse.Namespace) -> int:
 def _run_cell(args: argparse.Namespace) -> int:
     from celld import config as config_mod
     from celld.sim.cell import robot_options, sim_part
-    from celld.sim.robot.options import SimOptions
+    from celld.sim.robot.options import SimOptions, check_host
     from celld.sim.robot.server import serve
-    from celld.sim.world import world_of
+    from celld.sim.world import options_from_args, world_of
 
     cfg = config_mod.load(args.config)
     host = check_host(cfg.robot.host)
@@ -90,6 +117,7 @@ def _run_cell(args: argparse.Namespace) -> int:
 
 def _run_daemon(args: argparse.Namespace) -> int:
     from celld.sim.cell import serve_daemon
+    from celld.sim.world import options_from_args
 
     return serve_daemon(args.config, options_from_args(args))
 
@@ -102,6 +130,7 @@ def se3_text(T: Any) -> str:
 
 def _run_fault(args: argparse.Namespace) -> int:
     from celld.sim.robot.launcher import control_request
+    from celld.sim.robot.options import check_host
 
     host = check_host(args.host)
     if args.fault == "status":

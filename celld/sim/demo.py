@@ -33,20 +33,25 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+from celld.cliparse import add_command
 
-from celld import config as config_mod
-from celld import se3
+if TYPE_CHECKING:
+    import numpy as np
+
+# celld --help imports this module to build its parser: the functions import what they run.
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim-cell.toml"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
+    add_command(sub, "demo", _arguments, help="run the simulated cell and its daemon: calibrate, tool-calibrate, then weld, over the bus")
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
     from celld.sim.world import add_world_arguments
 
-    p = sub.add_parser("demo", help="run the simulated cell and its daemon: calibrate, tool-calibrate, then weld, over the bus")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="a cell config whose devices are simulated")
     p.add_argument("--poses", type=int, default=None, help="calibration poses (default: the config's n_poses)")
     p.add_argument("--json", action="store_true", help="print the figures as one JSON object last")
@@ -57,6 +62,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from celld import config as config_mod
     from celld.errors import CelldError
     from celld.sim.world import options_from_args, world_of
 
@@ -121,6 +127,9 @@ def run_jobs(
     (and the figures say so); otherwise it ends the run. Raises CelldError
     when the cell does not come up.
     """
+    import numpy as np
+
+    from celld import se3
     from celld.calib.mount import placement_of
     from celld.errors import JobError
     from celld.sim.cell import run_cell, sim_part
@@ -258,6 +267,10 @@ def run_jobs(
 
 def robot2_figures(entry: dict[str, Any], T_base1_base2_true: np.ndarray, verification_pose: tuple[float, ...]) -> dict[str, Any]:
     """A robot-robot calibration (the calibration's ``robot2`` entry) against the truth, where the robots meet."""
+    import numpy as np
+
+    from celld import se3
+
     T_est = np.array(entry["T_base1_base2"])
     p = np.asarray(verification_pose[:3], dtype=np.float64)[None]
     _, dr = se3.error(T_est, T_base1_base2_true)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from celld.sim import calib_demo
+from celld.sim import calib_demo, cli
 
 pytestmark = pytest.mark.slow
 
@@ -18,9 +18,9 @@ def test_the_offline_calibration_solves_in_the_ideal_world_and_saves_a_session_t
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     parser = argparse.ArgumentParser()
-    calib_demo.add_parser(parser.add_subparsers())
+    cli.add_parser(parser.add_subparsers())
     out = tmp_path / "session"
-    args = parser.parse_args(["calibrate", "--poses", "6", "--json", "--out", str(out), "--preset", "ideal", "--world-seed", "1"])
+    args = parser.parse_args(["sim", "calibrate", "--poses", "6", "--json", "--out", str(out), "--preset", "ideal", "--world-seed", "1"])
     assert args.func(args) == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     # Six poses of the cell's box, the scanner's noise only: a tenth of a millimetre or so.
