@@ -34,7 +34,10 @@ Against what:
   robot for a job); start the weld on the cell yourself for figure 3.
 
 ``--quick`` finishes in well under a minute; ``--json`` prints one JSON
-object of the figures as the last line of stdout.
+object of the figures as the last line of stdout. Exit code 1 when a job
+failed (a submitted health job, the calibration, or the weld: the dummy
+cell's ends failed before the load phase is over, the simulated cell's does
+not succeed), each named on stderr and in the JSON's ``failed``; 0 otherwise.
 """
 
 from __future__ import annotations
@@ -53,6 +56,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _common import Failures, pyplot
 
 from celld import config
 from celld.bus.client import CellClient
@@ -231,11 +235,6 @@ def result_rtt(client: CellClient, job: str, n: int) -> tuple[np.ndarray, int]:
 def write_report(
     figures: dict[str, Any], submit_ms: np.ndarray, status_ms: np.ndarray, load: dict[str, Any], result_ms: np.ndarray | None = None
 ) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     OUT.mkdir(parents=True, exist_ok=True)
     lines = ["# bus_load", "", "| figure | p50 ms | p99 ms | p99.9 ms | max ms | n |", "|---|---|---|---|---|---|"]
     for name in ("submit_rtt_ms", "status_rtt_ms", "result_rtt_ms"):
@@ -254,7 +253,9 @@ def write_report(
             f"Target: >= {MIN_RATE_HZ:.0f} Hz, none lost or refused -> {'met' if figures.get('load_target_met') else 'MISSED'}.",
         ]
     (OUT / "results.md").write_text("\n".join(lines) + "\n")
-
+    plt = pyplot("bus_load")
+    if plt is None:
+        return
     fig, axes = plt.subplots(1, 2 if load else 1, figsize=(12 if load else 6, 4), squeeze=False)
     ax = axes[0][0]
     curves = (
@@ -306,6 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     n_submits = args.submits if args.submits is not None else (0 if args.config else (50 if args.quick else 300))
     n_status = 200 if args.quick else 1000
     figures: dict[str, Any] = {"server": "daemon" if args.config else "dummy", "quick": args.quick}
+    failures = Failures("bus_load")
 
     with ExitStack() as stack:
         cell_proc = None
@@ -327,8 +329,8 @@ def main(argv: list[str] | None = None) -> int:
         client.status()  # warm-up: links, declarations, first-call costs
         submit_ms = np.empty(0)
         result_ms = None
+        last: list[str] = []
         if n_submits:
-            last: list[str] = []
             submit_ms = sequential_rtt(client, n_submits, lambda: last.append(client.submit({"kind": "health", "ref": "bus-load"})["job"]))
             figures["submit_rtt_ms"] = _percentiles(submit_ms)
             result_ms, size = result_rtt(client, last[-1], n_status)
@@ -352,8 +354,14 @@ def main(argv: list[str] | None = None) -> int:
             figures["server_cpu_percent"] = round(100 * (cpu1 - cpu0) / load["duration_s"], 1)
         figures["status_load"] = {k: v for k, v in load.items() if not k.startswith("_")}
         figures["load_target_met"] = bool(load["achieved_hz"] >= MIN_RATE_HZ and load["lost"] == 0 and load["refused"] == 0)
+        if after is not None and after["state"] in ("failed", "cancelled", "interrupted"):
+            failures.add(f"weld job {weld_id}", f"{after['state']} during the load phase: {after['reason']}")
         if weld_id:
             client.cancel(weld_id, "end of the load test")
+        for job in last:
+            record = client.status(job)
+            if record["state"] != "succeeded":
+                failures.add(f"health job {job}", f"{record['state']}: {record['reason']}")
 
     write_report(figures, submit_ms, status_ms, load, result_ms)
     summary = figures.get("submit_rtt_ms", {})
@@ -362,9 +370,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"result round trip: {figures.get('result_rtt_ms')}")
     print(f"status load: {figures['status_load']} weld running: {figures['weld_running']}")
     print(f"load target met: {figures['load_target_met']}; results in {OUT}")
+    figures["failed"] = failures.jobs
     if args.json:
         print(json.dumps(figures))
-    return 0
+    return failures.exit_code()
 
 
 SIM_HOST = "127.0.0.6"
@@ -379,6 +388,7 @@ def main_sim_cell(args: argparse.Namespace) -> int:
     n_submits = args.submits if args.submits is not None else (20 if args.quick else 100)
     n_status = 200 if args.quick else 1000
     figures: dict[str, Any] = {"server": "daemon on the simulated cell", "quick": args.quick}
+    failures = Failures("bus_load")
     result_ms: np.ndarray | None = None
     with tempfile.TemporaryDirectory(prefix="bus-load-cell-") as tmp:
         work = Path(tmp)
@@ -392,7 +402,12 @@ def main_sim_cell(args: argparse.Namespace) -> int:
             client = cell.client
             _, cal = client.submit_and_wait({"kind": "calibrate", "seed": 1}, timeout=900)
             if cal["state"] != "succeeded":
-                raise RuntimeError(f"calibration {cal['state']}: {cal['reason']}")
+                # Nothing to weld without a calibration: no figures.
+                failures.add(f"calibrate job {cal['id']}", f"{cal['state']}: {cal['reason']}")
+                figures["failed"] = failures.jobs
+                if args.json:
+                    print(json.dumps(figures))
+                return failures.exit_code()
             client.accept(cal["id"])
             client.status()
             submit_ms = (
@@ -421,7 +436,9 @@ def main_sim_cell(args: argparse.Namespace) -> int:
                 time.sleep(1.0)
             weld = client.status(weld_id)
             figures["weld"] = {"state": weld["state"], "reason": weld["reason"], "v_const_mm_s": v}
-            if weld["state"] == "succeeded":
+            if weld["state"] != "succeeded":
+                failures.add(f"weld job {weld_id}", f"{weld['state']}: {weld['reason']}")
+            else:
                 result_ms, size = result_rtt(client, weld_id, 50 if args.quick else 200)
                 figures["result_rtt_ms"] = {**_percentiles(result_ms), "reply_bytes": size, "job": "the weld"}
                 f = client.result(weld_id)["result"]["figures"]
@@ -436,9 +453,10 @@ def main_sim_cell(args: argparse.Namespace) -> int:
     print(f"status load: {figures['status_load']} weld: {figures['weld']}")
     print(f"motion loop while welding: {figures.get('motion_loop')}")
     print(f"load target met: {figures['load_target_met']}; loop target met: {figures.get('motion_loop_target_met')}; results in {OUT}")
+    figures["failed"] = failures.jobs
     if args.json:
         print(json.dumps(figures))
-    return 0
+    return failures.exit_code()
 
 
 if __name__ == "__main__":

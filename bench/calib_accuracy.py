@@ -59,7 +59,13 @@ origin in the base frame (about 0.55 m from the flange poses); rotation
 errors are the angle of R_true^T R_est.
 
 ``--quick`` runs a thin subset (< 1 min); ``--json`` prints one JSON object
-of the figures as the last line.
+of the figures as the last line. Exit code 1 when a job failed, each named on
+stderr and in the JSON's ``failed``: a seed of benchmark 3 or a world of
+benchmark 4 whose calibration (or verification capture) failed, or
+benchmark 2's OpenCV baselines where OpenCV has no calibrateHandEye (the
+5.x wheels; the project pins opencv-contrib-python-headless < 5). A method
+that fails on a realization of benchmarks 1 and 2 is a figure (its "failed"
+count), not a failed job. 0 otherwise.
 """
 
 from __future__ import annotations
@@ -80,6 +86,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import cv2
 import numpy as np
+from _common import Failures, pyplot
 from scipy.spatial.transform import Rotation
 
 from celld.calib.algorithm1 import run_algorithm1
@@ -291,6 +298,8 @@ def realization_2(args: tuple[int, float, int, float]) -> dict[str, Any]:
 def _opencv(T_fb: np.ndarray, T_cm: np.ndarray, suffix: str) -> dict[str, tuple[float, float]]:
     """OpenCV's eye-to-hand solvers fed flange poses and marker poses."""
     out: dict[str, tuple[float, float]] = {}
+    if missing_opencv():  # bench2 names it as a failed job
+        return {name + suffix: (math.nan, math.nan) for name in (*OPENCV_HAND_EYE, *OPENCV_ROBOT_WORLD)}
     for name, method in OPENCV_HAND_EYE.items():
         try:
             # Eye-to-hand: pass base->gripper (T_flan_base); the result is T_base_cam.
@@ -313,6 +322,11 @@ def _opencv(T_fb: np.ndarray, T_cm: np.ndarray, suffix: str) -> dict[str, tuple[
         except cv2.error:
             out[name + suffix] = (math.nan, math.nan)
     return out
+
+
+def missing_opencv() -> list[str]:
+    """The OpenCV hand-eye solvers this OpenCV lacks (5.x has neither in Python)."""
+    return [f for f in ("calibrateHandEye", "calibrateRobotWorldHandEye") if not hasattr(cv2, f)]
 
 
 # -- runs -------------------------------------------------------------------------
@@ -381,7 +395,13 @@ def bench1(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
-def bench2(args: argparse.Namespace) -> dict[str, Any]:
+def bench2(args: argparse.Namespace, failures: Failures) -> dict[str, Any]:
+    if missing := missing_opencv():
+        failures.add(
+            "bench2 OpenCV baselines",
+            f"OpenCV {cv2.__version__} has no {' or '.join(missing)} in Python: install opencv-contrib-python-headless<5 "
+            "(pyproject.toml pins it)",
+        )
     reps = 3 if args.quick else args.reps
     jobs = [(args.seed, 0.0002, r, args.e_required_mm * 1e-3) for r in range(reps)]
     t0 = time.perf_counter()
@@ -518,7 +538,7 @@ def realization_3(job: tuple[int, str, int, float]) -> dict[str, Any]:
     return out
 
 
-def bench3(args: argparse.Namespace) -> dict[str, Any]:
+def bench3(args: argparse.Namespace, failures: Failures) -> dict[str, Any]:
     if args.quick:
         plan = {"phoxi-m": (1, 8, 0.4), "azure-kinect": (2, 8, 1.0), "azure-kinect-metal-wrist": (2, 8, 1.0)}
     else:
@@ -527,6 +547,11 @@ def bench3(args: argparse.Namespace) -> dict[str, Any]:
     t0 = time.perf_counter()
     for setup, (n_seeds, n_poses, scale) in plan.items():
         rows = _map(realization_3, [(seed, setup, n_poses, scale) for seed in range(n_seeds)], args.workers)
+        for x in rows:
+            for key in ("verification_error", "error"):
+                if key in x:
+                    what = "the verification capture" if key == "verification_error" else "the calibration"
+                    failures.add(f"bench3 {setup} seed {x['seed']}", f"{what} failed: {x[key]}")
         t_target, r_target = E2E_SETUPS[setup][4], E2E_SETUPS[setup][5]
         t = np.array([r["robust"][0] for r in rows])
         r = np.array([r["robust"][1] for r in rows])
@@ -615,12 +640,15 @@ def realization_4(job: tuple[str, int, int]) -> dict[str, Any]:
     return out
 
 
-def bench4(args: argparse.Namespace) -> dict[str, Any]:
+def bench4(args: argparse.Namespace, failures: Failures) -> dict[str, Any]:
     n_seeds, n_poses = (2, 10) if args.quick else (args.seeds4, 20)
     result: dict[str, Any] = {"setups": list(args.setups4)}
     t0 = time.perf_counter()
     for name in args.setups4:
         rows = _map(realization_4, [(name, seed, n_poses) for seed in range(1, n_seeds + 1)], args.workers)
+        for r in rows:
+            if "error" in r:
+                failures.add(f"bench4 {name} seed {r['seed']}", f"the calibration failed: {r['error']}")
         means = np.array([r.get("target_mean_mm", math.nan) for r in rows])
         result[name] = {
             "seeds": n_seeds,
@@ -689,11 +717,9 @@ def _write_bench3(result: dict[str, Any], args: argparse.Namespace) -> None:
             f"{f(res['range_bias_sigma_pairs_mm_mean'])} | {f(res['range_bias_sigma_steps_mm_mean'])} |"
         )
     (OUT / f"bench3_table{tag}.md").write_text("\n".join(lines) + "\n")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot("calib_accuracy")
+    if plt is None:
+        return
     fig, axes = plt.subplots(1, len(setups), figsize=(6 * len(setups), 4.2), squeeze=False)
     for ax, setup in zip(axes[0], setups):
         res = result[setup]
@@ -733,11 +759,9 @@ def _write_bench1(result: dict[str, Any], args: argparse.Namespace) -> None:
         vals += [f"{e['robust_rejected_mean']:.3f}", f"{e['ratio_t']:.4f}", f"{e['ratio_r']:.4f}"]
         lines.append(",".join(vals))
     (OUT / f"bench1_table{tag}.csv").write_text("\n".join(lines) + "\n")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot("calib_accuracy")
+    if plt is None:
+        return
     x = np.array(result["sigmas_mm"])
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for ax, key, unit in ((axes[0], "t", "mm"), (axes[1], "r", "deg")):
@@ -783,11 +807,9 @@ def _write_bench2(result: dict[str, Any], rows: list[dict[str, Any]], methods: l
             f"{s['r_mean_deg']:.4f} | {s['r_std_deg']:.4f} | {s['failed']} |"
         )
     (OUT / f"bench2_table{tag}.md").write_text("\n".join(lines) + "\n")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot("calib_accuracy")
+    if plt is None:
+        return
     fig, ax = plt.subplots(figsize=(10, 4.5))
     data = [[r[m][0] for r in rows if np.isfinite(r[m][0])] for m in methods]
     ax.boxplot(data, showfliers=True)
@@ -831,6 +853,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--setups4: unknown set-up {unknown[0]!r}; known: {', '.join(WORLD_SETUPS)}")
     which = {s.strip() for s in args.bench.split(",")}
     figures: dict[str, Any] = {"quick": args.quick}
+    failures = Failures("calib_accuracy")
     if "speed" in which:
         figures["speed"] = speed(args)
         print(f"speed: {json.dumps(figures['speed'])}")
@@ -851,12 +874,12 @@ def main(argv: list[str] | None = None) -> int:
             for e in r1["table"]
         ]
     if "2" in which:
-        r2 = bench2(args)
+        r2 = bench2(args, failures)
         figures["bench2"] = r2
         for m, s in r2["stats"].items():
             print(f"bench2 {m:16s} t {s['t_mean_mm']:8.3f} +- {s['t_std_mm']:7.3f} mm  r {s['r_mean_deg']:7.4f} deg  failed {s['failed']}")
     if "3" in which:
-        figures["bench3"] = bench3(args)
+        figures["bench3"] = bench3(args, failures)
         for setup in E2E_SETUPS:
             res = figures["bench3"][setup]
             st = res["stats"]["robust"]
@@ -872,7 +895,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
             print(line)
     if "4" in which:
-        figures["bench4"] = bench4(args)
+        figures["bench4"] = bench4(args, failures)
         for preset_name in args.setups4:
             res = figures["bench4"][preset_name]
             ok = [r for r in res["rows"] if "error" not in r]
@@ -884,12 +907,13 @@ def main(argv: list[str] | None = None) -> int:
                 + "over the table "
                 + (f"{min(r['table_mean_mm'] for r in ok):.3f}-{max(r['table_mean_mm'] for r in ok):.3f} mm" if ok else "-")
             )
+    figures["failed"] = failures.jobs
     OUT.mkdir(parents=True, exist_ok=True)
     name = "figures_" + "_".join(sorted(which)) + ("_quick" if args.quick else "")
     (OUT / f"{name}.json").write_text(json.dumps(figures, indent=1, default=float))
     if args.json:
         print(json.dumps(figures, default=float))
-    return 0
+    return failures.exit_code()
 
 
 if __name__ == "__main__":

@@ -17,7 +17,10 @@ Target (collision-model issue): a 20-pose calibration plan checked in under
 1 s on this 2-core machine.
 
 ``--quick`` runs 3 plans and 3 weld lines (< 1 min); ``--json`` prints one
-JSON object of the figures as the last line. A full run (20 plans, 10 weld
+JSON object of the figures as the last line. Exit code 1 when a job failed:
+a plan that refused a pose, a weld line that was refused or whose start is
+out of reach (the cell is drawn so that every one is accepted), each named
+on stderr and in the JSON's ``failed``; 0 otherwise. A full run (20 plans, 10 weld
 lines) writes results.csv, summary.md and plan_times.png to
 bench/out/collision_check/.
 """
@@ -36,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _common import Failures, pyplot
 
 from celld import se3
 from celld.calib.poses import calibration_poses
@@ -126,11 +130,6 @@ def summarise(rows: list[Row], build_s: float) -> dict[str, Any]:
 
 
 def write_outputs(rows: list[Row], figures: dict[str, Any]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     OUT.mkdir(parents=True, exist_ok=True)
     with open(OUT / "results.csv", "w", newline="") as f:
         w = csv.writer(f)
@@ -140,6 +139,9 @@ def write_outputs(rows: list[Row], figures: dict[str, Any]) -> None:
     lines = ["# collision_check", "", "| figure | value |", "|---|---|"]
     lines += [f"| {k} | {v} |" for k, v in figures.items()]
     (OUT / "summary.md").write_text("\n".join(lines) + "\n")
+    plt = pyplot("collision_check")
+    if plt is None:
+        return
     plans = [r for r in rows if r.kind == "plan"]
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.bar([r.seed for r in plans], [r.seconds for r in plans], color="tab:blue")
@@ -164,6 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     checker = Checker(kin.model("ur10e"), cell)
     build_s = time.perf_counter() - t0
     rows: list[Row] = []
+    failures = Failures("collision_check")
     for seed in range(n_plans):
         row = run_plan(checker, seed)
         rows.append(row)
@@ -171,18 +174,23 @@ def main(argv: list[str] | None = None) -> int:
             f"plan seed {seed:2d}: {row.seconds:6.3f} s, {row.samples:5d} samples, {row.accepted}/{N_POSES + 1} accepted {row.refused}",
             flush=True,
         )
+        if row.refused:
+            failures.add(f"plan seed {seed}", f"{N_POSES + 1 - row.accepted} pose(s) refused: {row.refused}")
     for seed in range(n_welds):
         row = run_weld(cell, seed)
         rows.append(row)
         print(f"weld line {seed:2d}: {row.seconds:6.3f} s, {row.samples:5d} samples, {'ok' if row.accepted else row.refused}", flush=True)
+        if not row.accepted:
+            failures.add(f"weld line {seed}", row.refused)
     figures = summarise(rows, build_s)
+    figures["failed"] = failures.jobs
     if not args.quick:
         write_outputs(rows, figures)
     for k, v in figures.items():
         print(f"{k}: {v}")
     if args.json:
         print(json.dumps(figures))
-    return 0
+    return failures.exit_code()
 
 
 if __name__ == "__main__":

@@ -38,7 +38,11 @@ Targets:
 calibration); ``--targets`` a subset. ``--quick``: one trial per target
 after a 6-pose calibration (about 4 minutes: this benchmark cannot be quicker
 than a calibration and a weld). ``--json`` prints the figures as one JSON
-object on the last line.
+object on the last line. Exit code 1 when a target is missed or a job failed
+(the calibration; a weld whose arc never came on or that did not end; the
+robot link not back, or the tool not moved off the part, after a trial: the
+run stops there), each failure named on stderr and in the JSON's ``failed``;
+0 otherwise.
 """
 
 from __future__ import annotations
@@ -57,6 +61,8 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from _common import Failures, JobFailed  # noqa: E402
 
 from celld.sim.cell import run_cell, start_daemon, stop_daemon  # noqa: E402
 from celld.sim.score import after_fault, orphaned_after  # noqa: E402
@@ -112,7 +118,7 @@ def _weld_until_the_arc(client: Any, robot: Any, ref: str) -> str:
     deadline = time.monotonic() + 60
     while not int(robot.status()["digital_out"]) & (1 << ARC):
         if time.monotonic() > deadline:
-            raise SystemExit("the arc never came on")
+            raise JobFailed(f"weld job {job} ({ref})", "the arc never came on")
         time.sleep(0.02)
     time.sleep(0.5)
     return str(job)
@@ -125,7 +131,7 @@ def _wait_end(client: Any, job: str, timeout: float = 120.0) -> dict[str, Any]:
         if record["state"] not in ("queued", "running"):
             return dict(record)
         time.sleep(0.2)
-    raise SystemExit(f"job {job} did not end within {timeout:g} s")
+    raise JobFailed(f"job {job}", f"it did not end within {timeout:g} s")
 
 
 def bounds(cfg: Any) -> dict[str, tuple[float, float]]:
@@ -174,6 +180,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--trials: expected at least 1")
     trials, n_poses = (1, 6) if args.quick else (args.trials, 8)
     rows: dict[str, list[dict[str, Any]]] = {t: [] for t in args.targets}
+    failures = Failures("daemon_kill")
     with tempfile.TemporaryDirectory(prefix="celld-daemon-kill-") as tmp:
         workdir = Path(tmp)
         cfg_path = _config(workdir)
@@ -182,13 +189,15 @@ def main(argv: list[str] | None = None) -> int:
             robot, cfg = cell.robot, cell.config
             client, proc = cell.client, cell.daemon
             run_dir = Path(cfg.cell.state_dir) / "run"
-            _, cal = client.submit_and_wait({"kind": "calibrate", "seed": 5, "n_poses": n_poses}, timeout=900)
-            if cal["state"] != "succeeded":
-                raise SystemExit(f"the calibration failed: {cal['reason']}")
-            client.accept(cal["id"])
-            print(f"kill -9 mid-weld (arc on, tracking at 10 mm/s); {trials} trial(s) per target")
-            print(f"{'target':<8} {'trial':>5} {'arc off ms':>10} {'at rest ms':>10} {'travel mm':>9} {'seen ms':>8} {'reaped ms':>9}  why")
             try:
+                _, cal = client.submit_and_wait({"kind": "calibrate", "seed": 5, "n_poses": n_poses}, timeout=900)
+                if cal["state"] != "succeeded":
+                    raise JobFailed(f"calibrate job {cal['id']}", f"{cal['state']}: {cal['reason']}")
+                client.accept(cal["id"])
+                print(f"kill -9 mid-weld (arc on, tracking at 10 mm/s); {trials} trial(s) per target")
+                print(
+                    f"{'target':<8} {'trial':>5} {'arc off ms':>10} {'at rest ms':>10} {'travel mm':>9} {'seen ms':>8} {'reaped ms':>9}  why"
+                )
                 for target in args.targets:
                     for i in range(trials):
                         job = _weld_until_the_arc(client, robot, f"kill {target} {i}")
@@ -226,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
                             deadline = time.monotonic() + 60
                             while client.status().get("robot_link") != "up":
                                 if time.monotonic() > deadline:
-                                    raise SystemExit("the robot link did not come back")
+                                    raise JobFailed(f"{target} trial {i + 1}", "the robot link did not come back")
                                 time.sleep(0.5)
                         rows[target].append(row)
                         seen = f"{row['seen_s'] * 1e3:8.1f}" if "seen_s" in row else f"{'-':>8}"
@@ -240,7 +249,9 @@ def main(argv: list[str] | None = None) -> int:
                         target_pose = {"space": "cartesian", "pose": list(cfg.weld.scan_pose)}
                         _, moved = client.submit_and_wait({"kind": "move", "target": target_pose}, timeout=120)
                         if moved["state"] != "succeeded":
-                            raise SystemExit(f"the daemon could not move off the part: {moved['reason']}")
+                            raise JobFailed(f"move job {moved['id']} after {target} trial {i + 1}", f"{moved['state']}: {moved['reason']}")
+            except JobFailed as exc:
+                failures.add(exc.job, exc.reason)
             finally:
                 client.close()
                 stop_daemon(proc)
@@ -261,8 +272,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     ok = all(fig["met"] for fig in figures.values())
     if args.json:
-        print(json.dumps({"rows": rows, "figures": figures}))
-    return 0 if ok else 1
+        print(json.dumps({"rows": rows, "figures": figures, "failed": failures.jobs}))
+    return max(failures.exit_code(), 0 if ok else 1)
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _common import pyplot
 
 from celld import config as config_mod
 from celld import se3
@@ -161,11 +162,9 @@ def write_outputs(figures: dict[str, Any]) -> None:
     lines = ["# dataset_size", "", "| figure | value |", "|---|---|"]
     lines += [f"| {k} | {v} |" for k, v in figures.items()]
     (OUT / "summary.md").write_text("\n".join(lines) + "\n")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot("dataset_size")
+    if plt is None:
+        return
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
     ax[0].bar(["float32 PLY", "compact"], [figures["float_mb"], figures["compact_mb"]], color=["0.6", "C0"])
     ax[0].axhline(TARGET_MB, color="k", ls="--", lw=0.8, label=f"target {TARGET_MB:.0f} MB")

@@ -20,7 +20,10 @@ Target (issue 2, item 4): median detection time <= 100 ms on the full-res
 PhoXi M scene, on this 2-core machine.
 
 ``--quick`` runs 4 PhoXi M scenes and 2 of each other scanner (< 1 min);
-``--json`` prints one JSON object of the figures as the last line. A full run
+``--json`` prints one JSON object of the figures as the last line. Exit
+code 1 when a detection found a wrong centre (the one outcome the detector
+must never have; a refusal is a figure), each named on stderr and in the
+JSON's ``failed``; 0 otherwise. A full run
 writes results.csv, summary.md and PNG plots to bench/out/detect_speed/.
 """
 
@@ -38,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _common import Failures, pyplot
 
 from celld import se3
 from celld.calib.detect import detect_flange
@@ -202,11 +206,9 @@ def write_outputs(rows: list[Row], figures: dict[str, Any]) -> None:
     lines = ["# detect_speed", "", "| figure | value |", "|---|---|"]
     lines += [f"| {k} | {v} |" for k, v in figures.items()]
     (OUT / "summary.md").write_text("\n".join(lines) + "\n")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot("detect_speed")
+    if plt is None:
+        return
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
     m = [r for r in rows if r.scanner == "phoxi-m"]
     ax[0].hist([x for r in m for x in r.time_ms], bins=20, alpha=0.7, label="full scene")
@@ -234,6 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     n_m, n_other, reps = (4, 2, 2) if args.quick else (args.n, max(args.n // 2, 2), args.reps)
     rows: list[Row] = []
+    failures = Failures("detect_speed")
     plan = [("phoxi-m", "ur10e", i, True) for i in range(n_m)]
     plan += [("phoxi-s", "ur10e", i, False) for i in range(n_other)]
     plan += [("azure-kinect", "ur10e-wrist", i, False) for i in range(n_other)]
@@ -242,14 +245,17 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         t = f"{stats(row.time_ms)['median']:6.1f} ms" if row.time_ms else "        "
         print(f"{scanner:13s} {flange_name:12s} pose {i:2d} {row.outcome:8s} err {row.err_mm:8.4f} mm {t} {row.reason}", flush=True)
+        if row.outcome == "wrong":
+            failures.add(f"{scanner} pose {i}", f"wrong detection: {row.reason}")
     figures = summarise(rows)
+    figures["failed"] = failures.jobs
     if not args.quick:
         write_outputs(rows, figures)
     for k, v in figures.items():
         print(f"{k}: {v}")
     if args.json:
         print(json.dumps(figures))
-    return 0
+    return failures.exit_code()
 
 
 if __name__ == "__main__":

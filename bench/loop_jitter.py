@@ -33,7 +33,9 @@ virtual machine the host can withhold a vCPU for milliseconds).
 ``--quick`` runs each case for 3 s (< 1 min in all); the full run takes 60 s
 per case and writes ``results.md``, ``results.json`` and PNG plots to
 ``bench/out/loop_jitter/``. ``--json`` prints one JSON object of the figures
-as the last line.
+as the last line. Exit code 1 when a loaded case ran without its load (the
+tactile process delivered no frame, or no calibration solve ran), named on
+stderr and in the JSON's ``failed``; 0 otherwise (a missed target included).
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _common import Failures, pyplot
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -297,12 +300,10 @@ def write_table(results: dict[str, dict[str, Any]], bare: dict[str, dict[str, An
 
 
 def write_outputs(results: dict[str, dict[str, Any]], series: dict[str, np.ndarray], bare: dict[str, dict[str, Any]]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     write_table(results, bare)
+    plt = pyplot("loop_jitter")
+    if plt is None:
+        return
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     # Best effort first, so the real-time series are drawn on top.
     for name, recs in reversed(list(series.items())):
@@ -322,7 +323,7 @@ def write_outputs(results: dict[str, dict[str, Any]], series: dict[str, np.ndarr
     fig.savefig(OUT / "loop_jitter.png", dpi=120)
 
 
-async def main_async(args: argparse.Namespace) -> dict[str, Any]:
+async def main_async(args: argparse.Namespace, failures: Failures) -> dict[str, Any]:
     from celld.sim.robot import launch
 
     seconds = 3.0 if args.quick else args.seconds
@@ -355,6 +356,11 @@ async def main_async(args: argparse.Namespace) -> dict[str, Any]:
                     f"work p99={r['work_p99_ms']:.3f} ms",
                     flush=True,
                 )
+                if name.endswith("-loaded"):
+                    if not r["tactile_frames"]:
+                        failures.add(name, "the tactile process delivered no frame: the case ran without its camera load")
+                    if not r["calibration_solves"]:
+                        failures.add(name, "no calibration solve ran: the case ran without its CPU load")
     if not args.quick:
         write_outputs(results, series, bare)
     rt_ok = all(
@@ -366,17 +372,20 @@ async def main_async(args: argparse.Namespace) -> dict[str, Any]:
     return {"seconds_per_case": seconds, "targets_met_rt": rt_ok, "cases": results, "platform": bare}
 
 
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="3 s per case, no files written")
     parser.add_argument("--json", action="store_true", help="print one JSON object of the figures last")
     parser.add_argument("--seconds", type=float, default=60.0, help="seconds per case of a full run")
     args = parser.parse_args()
     configure("warning")
-    out = asyncio.run(main_async(args))
+    failures = Failures("loop_jitter")
+    out = asyncio.run(main_async(args, failures))
+    out["failed"] = failures.jobs
     if args.json:
         print(json.dumps(out))
+    return failures.exit_code()
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -42,6 +42,12 @@ expected off by 0.5-3 mm in the realistic preset.
 (a cell's start, a calibration and a weld take about two minutes even so).
 ``--json`` prints one JSON object of the figures last. A full run writes
 results.json and results.md to bench/out/realistic_cell/<preset>/.
+
+Exit code 1 when a seed failed: the cell did not come up, a job (calibrate,
+tool-calibrate, weld) did not succeed, or the weld laid no bead (the arc never
+on along the seam); each named on stderr and in the JSON's ``failed``. A seed
+that welds but misses a target is a figure (``success``, ``targets``). 0
+otherwise.
 """
 
 from __future__ import annotations
@@ -59,6 +65,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from _common import Failures  # noqa: E402
 
 from celld.errors import CelldError  # noqa: E402
 from celld.sim.demo import run_jobs  # noqa: E402
@@ -145,6 +153,20 @@ def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool,
     torch = w["torch_error"]
     out["success"] = bool(w["figures"]["tracked_mm"] >= TRACKED_MIN and torch["points"] > 0 and torch["max_mm"] <= TORCH_MAX)
     return out
+
+
+def failure(r: dict[str, Any]) -> tuple[str, str] | None:
+    """``(job, reason)`` of a seed's run that failed, or None when it welded (well or not)."""
+    if "failed" in r:
+        f = r["failed"]
+        job = f"seed {r['seed']} " + (f"job {f['job']}" if "job" in f else "cell")
+        return job, f"{f.get('state', 'failed')}: {f.get('reason')}"
+    w = r.get("weld")
+    if w is None:
+        return f"seed {r['seed']} weld", "no weld figures"
+    if not w["torch_error"]["points"]:
+        return f"seed {r['seed']} weld", f"no bead laid: the arc was never on along the seam (tracked {w['tracked_mm']} mm)"
+    return None
 
 
 def summarise(preset: str, sources: list[str], runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -237,12 +259,15 @@ def main(argv: list[str] | None = None) -> int:
     label = args.preset + "".join(f" +{s}" for s in options.on) + "".join(f" -{s}" for s in options.off)
     say(f"realistic_cell: preset {label}, seeds {seeds}; tool calibration: {'not run' if args.no_tool_calibrate else 'run and accepted'}")
     runs = []
+    failures = Failures("realistic_cell")
     quiet = lambda text: None  # noqa: E731  (the jobs' own progress lines)
     for seed in seeds:
         say(f"seed {seed} ...")
         r = run_seed(seed, options, args.quick, args.force_accept, quiet, args.retries, not args.no_tool_calibrate)
         runs.append(r)
         say("\n".join(table([r])[2:]) + f"   ({r.get('seconds', 0):.0f} s)")
+        if (failed := failure(r)) is not None:
+            failures.add(*failed)
         tc = r.get("tool_calibration")
         if isinstance(tc, dict):
             say(
@@ -274,10 +299,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(
             json.dumps(
-                {"summary": summary, "runs": runs}, default=lambda o: None if isinstance(o, float) and not math.isfinite(o) else str(o)
+                {"summary": summary, "runs": runs, "failed": failures.jobs},
+                default=lambda o: None if isinstance(o, float) and not math.isfinite(o) else str(o),
             )
         )
-    return 0
+    return failures.exit_code()
 
 
 if __name__ == "__main__":

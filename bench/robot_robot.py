@@ -29,7 +29,8 @@ targeting), every seed; both verdicts ok.
 ``--seeds`` (default 1-5; about 3 minutes each at 12 poses per robot, full
 resolution); ``--quick``: seed 1, 6 poses per robot at half resolution
 (about 2 minutes). ``--json`` prints the figures as one JSON object on the
-last line.
+last line. Exit code 1 when a target is missed or a seed's calibrate job did
+not succeed (named on stderr and in the JSON's ``failed``); 0 otherwise.
 """
 
 from __future__ import annotations
@@ -47,6 +48,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from _common import Failures  # noqa: E402
 
 from celld import se3  # noqa: E402
 from celld.sim.cell import run_cell  # noqa: E402
@@ -135,12 +138,14 @@ def main(argv: list[str] | None = None) -> int:
     head = f"{'seed':>4} {'meet mm':>8} {'1-sigma':>8} {'rot deg':>8} {'drawing mm/deg':>15} {'hand-over mm (mean/max)':>24} {'true T':>12} {'drawn T':>12} {'verdicts':>9} {'s':>5}"
     print(head)
     rows = []
+    failures = Failures("robot_robot")
     with tempfile.TemporaryDirectory(prefix="celld-robot-robot-") as tmp:
         for seed in seeds:
             row = run_seed(Path(tmp), seed, n_poses, resolution)
             rows.append(row)
             if row["state"] != "succeeded":
                 print(f"{seed:>4} the job {row['state']}: {row['reason']}")
+                failures.add(f"seed {seed} calibrate job", f"{row['state']}: {row['reason']}")
                 continue
             h = row["handover"]
             print(
@@ -161,8 +166,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{'met' if met else 'NOT met'}"
         )
     if args.json:
-        print(json.dumps({"seeds": rows, "target_handover_mm": TARGET_HANDOVER_MM, "met": met}))
-    return 0 if met else 1
+        print(json.dumps({"seeds": rows, "target_handover_mm": TARGET_HANDOVER_MM, "met": met, "failed": failures.jobs}))
+    return max(failures.exit_code(), 0 if met else 1)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,9 @@ writes a table and plots to bench/out/rtde_stream/. ``--realtime`` runs the
 simulator, and the receiving client, at SCHED_FIFO where allowed (the motion
 process runs so on the cell); without it both are ordinary processes, and on a
 loaded machine the receiver's own wake-ups dominate the figures. ``--json`` prints one JSON object of
-the figures as the last line.
+the figures as the last line. Exit code 1 when the ``control`` scenario's
+speedL client failed (it exits non-zero: the scenario ran without its load),
+named on stderr and in the JSON's ``failed``; 0 otherwise.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _common import Failures, pyplot
 
 from celld.sim.robot import launch
 from celld.sim.robot import rtde_protocol as P
@@ -138,7 +141,7 @@ def _set_fifo(priority: int) -> bool:
         return False
 
 
-def run_scenario(name: str, seconds: float, realtime: bool) -> dict[str, Any]:
+def run_scenario(name: str, seconds: float, realtime: bool, failures: Failures) -> dict[str, Any]:
     with launch(HOST, realtime=realtime) as sim:
         load = None
         if name == "control":
@@ -154,8 +157,8 @@ def run_scenario(name: str, seconds: float, realtime: bool) -> dict[str, Any]:
                 os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         cpu = (_cpu_seconds(sim.process.pid) - cpu0) / (time.monotonic() - wall0)
         status1 = sim.status()
-        if load is not None:
-            load.wait(30)
+        if load is not None and load.wait(30) != 0:
+            failures.add(f"{name} scenario", f"the speedL client (ur-rtde) exited with {load.returncode}: see its output above")
     periods_ms = np.diff(arrivals[50:]) * 1e-6  # skip the first 0.1 s
     lost = int(np.sum(np.round(np.diff(stamps[50:]) / 0.002) - 1))
     return {
@@ -176,11 +179,6 @@ def run_scenario(name: str, seconds: float, realtime: bool) -> dict[str, Any]:
 
 
 def write_report(results: list[dict[str, Any]], realtime: bool) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     lines = [
         f"# RTDE stream of the simulated UR10e ({'SCHED_FIFO' if realtime else 'SCHED_OTHER'})",
@@ -196,6 +194,9 @@ def write_report(results: list[dict[str, Any]], realtime: bool) -> None:
         )
     lines.append(f"\nTarget: p99 <= {TARGET_P99_MS} ms.")
     (OUT_DIR / "results.md").write_text("\n".join(lines) + "\n")
+    plt = pyplot("rtde_stream")
+    if plt is None:
+        return
     fig, axes = plt.subplots(len(results), 2, figsize=(12, 3.5 * len(results)), squeeze=False)
     for row, r in zip(axes, results):
         p = r["_periods_ms"]
@@ -221,7 +222,8 @@ def main(argv: list[str] | None = None) -> int:
         load_client(args.load_client[0], float(args.load_client[1]))
         return 0
     seconds = 10.0 if args.quick else 60.0
-    results = [run_scenario(name, seconds, args.realtime) for name in args.scenarios.split(",")]
+    failures = Failures("rtde_stream")
+    results = [run_scenario(name, seconds, args.realtime, failures) for name in args.scenarios.split(",")]
     for r in results:
         print(
             f"{r['scenario']:8s} period p50 {r['period_p50_ms']:.3f} ms  p99 {r['period_p99_ms']:.3f} ms  "
@@ -238,8 +240,9 @@ def main(argv: list[str] | None = None) -> int:
                 if not key.startswith("_") and key != "scenario":
                     figures[f"{r['scenario']}_{key}"] = value
         figures["meets_target"] = all(r["period_p99_ms"] <= TARGET_P99_MS for r in results)
+        figures["failed"] = failures.jobs
         print(json.dumps(figures))
-    return 0
+    return failures.exit_code()
 
 
 if __name__ == "__main__":

@@ -35,7 +35,11 @@ where celld cannot act (one period, 0.1 s at the default 10 Hz).
 
 ``--quick``: 1 trial per fault at 0.1 m/s (about 1 min); default 3 trials.
 ``--speed`` sets the TCP speed (m/s, up to 0.25). ``--json`` prints the
-figures as one JSON object on the last line.
+figures as one JSON object on the last line. Exit code 1 when a trial failed:
+it never reached its fault (the weld law did not reach its speed, the loop
+did not stop at the wall, the stand-in daemon did not arm), or after it the
+arc was still on or the orphaned motion process still ran; each named on
+stderr and in the JSON's ``failed``, the other trials run on. 0 otherwise.
 """
 
 from __future__ import annotations
@@ -55,6 +59,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _common import Failures
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -62,6 +67,7 @@ if str(ROOT) not in sys.path:
 
 from celld import se3  # noqa: E402
 from celld.config import load, parse  # noqa: E402
+from celld.errors import CelldError  # noqa: E402
 from celld.motion.handle import MotionHandle  # noqa: E402
 from celld.motion.types import ControlStatus, ServoInput, ServoPlan, ServoTelemetry  # noqa: E402
 from celld.sim.robot import launch  # noqa: E402
@@ -382,11 +388,28 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--speed: expected 0 < speed <= 0.25 m/s")
     hosts = iter(HOSTS)
     report: dict[str, Any] = {"speed_m_s": args.speed, "trials": trials, "faults": {}}
+    failures = Failures("safety")
     print(f"TCP at {args.speed * 1e3:.0f} mm/s with the arc on when the fault comes; {trials} trial(s) per fault")
     print(f"{'fault':<16} {'rest s (med/max)':>18} {'distance mm (med/max)':>22} {'arc off s (med/max)':>20}  notes")
     for fault in args.faults:
-        rows = [trial(fault, next(hosts), args.speed) for _ in range(trials)]
-        fig: dict[str, Any] = {}
+        rows = []
+        for k in range(trials):
+            job = f"{fault} trial {k + 1}"
+            try:
+                r = trial(fault, next(hosts), args.speed)
+            except (RuntimeError, CelldError) as exc:  # the trial never reached its fault (a lost link, a late simulator)
+                failures.add(job, f"{type(exc).__name__}: {exc}")
+                continue
+            if r["arc_on_at_end"]:
+                failures.add(job, f"the arc was still on {SETTLE_S} s after the fault")
+            if fault == "kill_daemon" and not r["motion_process_exited"]:
+                failures.add(job, "the motion process still ran 5 s after its daemon's death")
+            rows.append(r)
+        fig: dict[str, Any] = {"trials_done": len(rows)}
+        if not rows:
+            report["faults"][fault] = fig
+            print(f"{fault:<16} {'-':>18}  no trial reached its fault")
+            continue
         for key in ("rest_s", "distance_mm", "arc_off_s"):
             vals = [r[key] for r in rows]
             fig[key] = {"median": statistics.median(vals), "max": max(vals)}
@@ -416,12 +439,13 @@ def main(argv: list[str] | None = None) -> int:
         f"weld path 150 mm {plan['weld_path_150mm_ms']:.1f} ms"
     )
     kd = report["faults"].get("kill_daemon")
-    if kd:
+    if kd and kd["trials_done"]:
         ok = kd["arc_off_s"]["max"] <= TARGET_ARC_OFF_S and kd["rest_s"]["max"] <= TARGET_REST_S
         print(f"kill -9 of the daemon: arc off within {TARGET_ARC_OFF_S} s, at rest within {TARGET_REST_S} s: {'met' if ok else 'MISSED'}")
+    report["failed"] = failures.jobs
     if args.json:
         print(json.dumps(report))
-    return 0
+    return failures.exit_code()
 
 
 if __name__ == "__main__":

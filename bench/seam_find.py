@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _common import pyplot
 
 from celld import (
     polyline,
@@ -261,11 +262,9 @@ def write_outputs(rows: list[Row], summary: dict[str, Any], out: Path) -> None:
             f"| **{variant}** | all | {fig['ok']} | {fig['refused']} | {fig['wrong']} | {fig['seam_rms_mm']:.3f} (target {fig['target_rms_mm']:.2f}) | {fig['seam_max_mm']:.3f} | {fig['time_median_s']:.2f} / {fig['time_max_s']:.2f} |"
         )
     (out / "summary.md").write_text("\n".join(lines) + "\n")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot("seam_find")
+    if plt is None:
+        return
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for variant in summary:
         for wp in WORKPIECES:

@@ -39,7 +39,9 @@ never exceeded; detection median <= 3 ms per 640 x 480 frame; deformation
 error <= 0.02 mm; frame-to-command latency <= 10 ms.
 
 ``--quick`` runs shorter seams (50, 45 and 81 mm); ``--json`` prints one
-JSON object last. Full runs write ``bench/out/seam_tracking/<mode>/``
+JSON object last. Exit code 1 when a seam's run did not end DONE (the servo
+stopped early, on a stale sample, a lost contact or link), each named on
+stderr and in the JSON's ``failed``; 0 otherwise (a missed target included). Full runs write ``bench/out/seam_tracking/<mode>/``
 (results.json, results.md and a plot per seam).
 """
 
@@ -57,6 +59,7 @@ from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
+from _common import Failures, pyplot
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -672,6 +675,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.tactile_stale_ms:
         motion = dataclasses.replace(motion, tactile_stale=args.tactile_stale_ms * 1e-3)
     results = []
+    failures = Failures("seam_tracking")
     for kind in args.seams.split(","):
         t0 = time.perf_counter()
         if args.mode == "kinematic":
@@ -680,6 +684,11 @@ def main(argv: list[str] | None = None) -> int:
             r = run_closed_loop(kind, cfg, motion, args.quick, args.seed, camera_sched=args.camera_sched)
         r.figures["wall_s"] = round(time.perf_counter() - t0, 1)
         results.append(r)
+        if r.figures["status"] != "DONE":
+            failures.add(
+                f"seam {kind}",
+                f"ended {r.figures['status']} after {r.figures['welded_mm']} of {r.figures['seam_length_mm']} mm: {r.figures['reason']}",
+            )
         if not args.json:
             print(json.dumps(r.figures))
     figures = {
@@ -690,21 +699,32 @@ def main(argv: list[str] | None = None) -> int:
         "camera_sched": args.camera_sched if args.mode == "closed-loop" else None,
         "seams": [r.figures for r in results],
         "targets": TARGETS,
+        "failed": failures.jobs,
     }
     if not args.quick:
         write_outputs(results, figures, OUT / figures["mode"])
     print(json.dumps(figures))
-    return 0
+    return failures.exit_code()
 
 
 def write_outputs(results: list[RunResult], figures: dict[str, Any], out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(figures, indent=2))
+    lines = [
+        "| seam | lateral RMS mm | max mm | plan only RMS/max mm | delta_n RMS mm | omega peak | guard | limit ratio | detect ms | deform RMS/max mm | latency ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        f = r.figures
+        lines.append(
+            f"| {f['seam']} | {f['lateral_rms_mm']} | {f['lateral_max_mm']} | {f['plan_only_rms_mm']}/{f['plan_only_max_mm']} | "
+            f"{f['delta_n_rms_mm']} | {f['omega_peak_rad_s']} | {f['guard_cycles']} | {f['limit_ratio_max']} | "
+            f"{f['detect_median_ms']} | {f['deformation_rms_mm']}/{f['deformation_max_mm']} | {f['latency_median_ms']} |"
+        )
+    (out / "results.md").write_text("\n".join(lines) + "\n")
+    plt = pyplot("seam_tracking")
+    if plt is None:
+        return
     for r in results:
         S, f = r.series, r.figures
         fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
@@ -722,18 +742,6 @@ def write_outputs(results: list[RunResult], figures: dict[str, Any], out: Path) 
         fig.suptitle(f"{f['seam']}: RMS {f['lateral_rms_mm']} mm, max {f['lateral_max_mm']} mm")
         fig.savefig(out / f"{f['seam']}.png", dpi=100)
         plt.close(fig)
-    lines = [
-        "| seam | lateral RMS mm | max mm | plan only RMS/max mm | delta_n RMS mm | omega peak | guard | limit ratio | detect ms | deform RMS/max mm | latency ms |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in results:
-        f = r.figures
-        lines.append(
-            f"| {f['seam']} | {f['lateral_rms_mm']} | {f['lateral_max_mm']} | {f['plan_only_rms_mm']}/{f['plan_only_max_mm']} | "
-            f"{f['delta_n_rms_mm']} | {f['omega_peak_rad_s']} | {f['guard_cycles']} | {f['limit_ratio_max']} | "
-            f"{f['detect_median_ms']} | {f['deformation_rms_mm']}/{f['deformation_max_mm']} | {f['latency_median_ms']} |"
-        )
-    (out / "results.md").write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
