@@ -49,8 +49,8 @@ def test_help_imports_no_heavy_module_nor_the_simulator() -> None:
     assert code == 0 and "demo" in out and "status" in out, out
     assert _loaded(modules, HEAVY) == []
     assert _simulator(modules) == []
-    # Listing the commands needs argparse, not numpy, the bus or the logger.
-    assert _loaded(modules, ("numpy", "zenoh", "structlog")) == []
+    # Listing the commands needs argparse, not numpy, the bus, the logger or an event loop.
+    assert _loaded(modules, ("numpy", "zenoh", "structlog", "asyncio")) == []
 
 
 def test_status_imports_what_one_bus_query_needs(tmp_path: Path, loopback_host: str) -> None:

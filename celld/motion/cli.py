@@ -14,7 +14,6 @@ robot and end the motion process before they return.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 from typing import TYPE_CHECKING, Any
 
@@ -75,6 +74,8 @@ def _print(args: argparse.Namespace, report: dict[str, Any]) -> None:
 
 
 def _status(args: argparse.Namespace) -> int:
+    import asyncio
+
     from celld.motion.handle import MotionHandle
 
     async def run() -> dict[str, Any]:
@@ -87,6 +88,8 @@ def _status(args: argparse.Namespace) -> int:
 
 
 def _move(args: argparse.Namespace) -> int:
+    import asyncio
+
     from celld.motion.handle import MotionHandle
 
     async def run() -> dict[str, Any]:
