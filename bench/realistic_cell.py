@@ -159,7 +159,7 @@ def failure(r: dict[str, Any]) -> tuple[str, str] | None:
     """``(job, reason)`` of a seed's run that failed, or None when it welded (well or not)."""
     if "failed" in r:
         f = r["failed"]
-        job = f"seed {r['seed']} " + (f"job {f['job']}" if "job" in f else "cell")
+        job = f"seed {r['seed']} " + (f"{f.get('kind') or ''} job {f['job']}".lstrip() if "job" in f else "cell")
         return job, f"{f.get('state', 'failed')}: {f.get('reason')}"
     w = r.get("weld")
     if w is None:

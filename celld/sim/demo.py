@@ -341,7 +341,7 @@ def _job(client: Any, message: dict[str, Any], say: Any) -> dict[str, Any]:
 
 def _failed(record: dict[str, Any], say: Any) -> dict[str, Any]:
     say(f"job {record['id']} {record['state']}: {record.get('reason') or record}")
-    return {"job": record["id"], "state": record["state"], "reason": record.get("reason")}
+    return {"job": record["id"], "kind": record.get("kind"), "state": record["state"], "reason": record.get("reason")}
 
 
 def _verification_joints(dataset: str) -> np.ndarray:
