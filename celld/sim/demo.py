@@ -163,7 +163,13 @@ def run_jobs(
             if not force_accept:
                 return {
                     **figures,
-                    "failed": {"job": cal["id"], "state": "not accepted", "reason": str(exc), "verdict": quality.get("verdict")},
+                    "failed": {
+                        "job": cal["id"],
+                        "kind": "calibrate",
+                        "state": "not accepted",
+                        "reason": str(exc),
+                        "verdict": quality.get("verdict"),
+                    },
                 }
             accepted, forced = cell.client.accept(cal["id"], force=True), True
         # The scanner's pose where it is fixed (on the arm: on its link, scored where the arm holds it at
@@ -206,7 +212,16 @@ def run_jobs(
             except JobError as exc:
                 say(f"tool calibration {tc['id']} refused at accept: {exc}")
                 if not force_accept:
-                    return {**figures, "failed": {"job": tc["id"], "state": "not accepted", "reason": str(exc), "verdict": tq["verdict"]}}
+                    return {
+                        **figures,
+                        "failed": {
+                            "job": tc["id"],
+                            "kind": "tool-calibrate",
+                            "state": "not accepted",
+                            "reason": str(exc),
+                            "verdict": tq["verdict"],
+                        },
+                    }
                 cell.client.accept(tc["id"], force=True)
                 tool_forced = True
             tip_true = np.asarray(world.tool.config.tip_tcp)
