@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -57,3 +59,17 @@ def test_frame_from_z_is_right_handed() -> None:
     assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
     np.testing.assert_allclose(T[:3, 2], [0, 0, -1])
     np.testing.assert_allclose(T[:3, 0], [1, 0, 0])
+
+
+def test_scipy_is_imported_by_the_rotation_functions_and_at_start_by_an_event_loop_user() -> None:
+    # celld.se3 imports scipy's Rotation where it is used, so a config loads
+    # without it; MotionHandle, whose state() runs in an event loop, imports it
+    # when it is imported, not on the first state().
+    probe = (
+        "import sys\n"
+        "import celld.se3, celld.config\n"
+        "assert 'scipy' not in sys.modules, 'se3 or config imported scipy'\n"
+        "import celld.motion.handle\n"
+        "assert 'scipy.spatial.transform' in sys.modules, 'the motion handle did not import scipy'\n"
+    )
+    subprocess.run([sys.executable, "-c", probe], check=True, timeout=120)

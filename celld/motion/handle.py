@@ -33,6 +33,11 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
+
+# For from_ur_pose in state() and move_to(): celld.se3 imports scipy's Rotation
+# where it is used (a config loads without scipy), and a first import there
+# (0.3 s and more on a loaded machine) would stall the caller's event loop.
+import scipy.spatial.transform  # noqa: F401
 from numpy.typing import ArrayLike
 
 from celld.config import Config
