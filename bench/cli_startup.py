@@ -7,7 +7,7 @@ repository root (what ``.venv/bin/celld`` runs), one at a time:
 - ``status``: ``celld status --config FILE``: the config loaded, the bus
   opened, one status query answered by a running cell.
 
-Against what: a dummy cell (:mod:`celld.daemon.dummy`: the real bus server
+Against what: a dummy cell (``tests/standin.py``: the real bus server
 and journal, jobs that only wait) started in a child process on 127.0.0.10;
 with ``--config FILE`` a running cell instead.
 
@@ -123,7 +123,7 @@ class DummyCell:
             f'[cell]\nname = "cli-startup"\nstate_dir = "{workdir / "state"}"\n\n[bus]\nmode = "peer"\nlisten = ["tcp/{HOST}:{port}"]\n'
         )
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "celld.daemon.dummy", "--config", str(self.config_path), "--state-dir", str(workdir / "state")]
+            [sys.executable, "-m", "tests.standin", "--config", str(self.config_path), "--state-dir", str(workdir / "state")]
             + ["--log-level", "warning"],
             cwd=ROOT,
             stdout=subprocess.PIPE,
