@@ -38,11 +38,11 @@ Targets:
 calibration); ``--targets`` a subset. ``--quick``: one trial per target
 after a 6-pose calibration (about 4 minutes: this benchmark cannot be quicker
 than a calibration and a weld). ``--json`` prints the figures as one JSON
-object on the last line. Exit code 1 when a target is missed or a job failed
-(the calibration; a weld whose arc never came on or that did not end; the
-robot link not back, or the tool not moved off the part, after a trial: the
-run stops there), each failure named on stderr and in the JSON's ``failed``;
-0 otherwise.
+object on the last line. Exit code 1 when a job failed (the calibration; a
+weld whose arc never came on or that did not end; the robot link not back,
+or the tool not moved off the part, after a trial: the run stops there),
+each failure named on stderr and in the JSON's ``failed``; a missed target
+is a figure, not a failure: 0 otherwise.
 """
 
 from __future__ import annotations
@@ -270,10 +270,9 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"   target: arc off within {b['arc_off']:.3f} s, at rest within {b['rest']:.3f} s of the kill: {'met' if fig['met'] else 'MISSED'}"
         )
-    ok = all(fig["met"] for fig in figures.values())
     if args.json:
         print(json.dumps({"rows": rows, "figures": figures, "failed": failures.jobs}))
-    return max(failures.exit_code(), 0 if ok else 1)
+    return failures.exit_code()
 
 
 if __name__ == "__main__":

@@ -29,8 +29,9 @@ targeting), every seed; both verdicts ok.
 ``--seeds`` (default 1-5; about 3 minutes each at 12 poses per robot, full
 resolution); ``--quick``: seed 1, 6 poses per robot at half resolution
 (about 2 minutes). ``--json`` prints the figures as one JSON object on the
-last line. Exit code 1 when a target is missed or a seed's calibrate job did
-not succeed (named on stderr and in the JSON's ``failed``); 0 otherwise.
+last line. Exit code 1 when a seed's calibrate job did not succeed (named
+on stderr and in the JSON's ``failed``); a missed target is a figure
+(``met``), not a failure: 0 otherwise.
 """
 
 from __future__ import annotations
@@ -167,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     if args.json:
         print(json.dumps({"seeds": rows, "target_handover_mm": TARGET_HANDOVER_MM, "met": met, "failed": failures.jobs}))
-    return max(failures.exit_code(), 0 if met else 1)
+    return failures.exit_code()
 
 
 if __name__ == "__main__":
