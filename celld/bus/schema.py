@@ -329,6 +329,7 @@ _STALL = {
             "description": "The CPU that callback had (less than its time: it waited for the GIL).",
         },
         "workers_cpu_ms": {"type": "number", "description": "The CPU the daemon's other threads had in the gap."},
+        "where": {"type": "string", "description": "Where the long callback was when the watcher looked (file:line function), or empty."},
     },
     "additionalProperties": False,
 }

@@ -17,12 +17,18 @@ logged and counted as one of two kinds:
 Each callback's time is read where asyncio runs it (``Handle._run``, one
 ``perf_counter`` and one ``thread_time`` on each side: about a microsecond),
 which is how the slow-callback report of asyncio's debug mode works too,
-without the rest of debug mode's cost.
+without the rest of debug mode's cost. A callback still running after the
+threshold is sampled once by a watcher thread: where the loop's thread is in
+it (the innermost frame and celld's frames around it) is the stall's
+``where``, which a task's name alone would not tell.
 """
 
 from __future__ import annotations
 
 import asyncio
+import os
+import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -32,6 +38,8 @@ from celld.log import get_logger
 
 log = get_logger(__name__)
 
+# The watch the callbacks report to (the last one installed; a daemon has one).
+_ACTIVE: LoopWatch | None = None
 # The ticker's period, s.
 TICK = 0.01
 # A wake-up this much later than asked is a stall: logged and counted, s.
@@ -48,6 +56,7 @@ class Stall:
     callback_s: float  # its wall time
     callback_cpu_s: float  # the CPU it had
     workers_cpu_s: float  # the CPU the daemon's other threads had in the gap
+    where: str = ""  # where the loop's thread was in it when the watcher looked, innermost first
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -57,6 +66,7 @@ class Stall:
             "callback_ms": round(self.callback_s * 1e3, 1),
             "callback_cpu_ms": round(self.callback_cpu_s * 1e3, 1),
             "workers_cpu_ms": round(self.workers_cpu_s * 1e3, 1),
+            "where": self.where,
         }
 
 
@@ -70,14 +80,60 @@ def describe(callback: Callable[..., Any]) -> str:
     return getattr(callback, "__qualname__", repr(callback))
 
 
-def classify(threshold: float, callback_s: float, callback_cpu_s: float, workers_cpu_s: float) -> str:
-    """A stall's kind from its longest callback (wall and CPU time) and the CPU the worker threads had, s."""
+_PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+_HERE = os.path.abspath(__file__)
+# Frames of celld named in a sample's ``where``.
+_FRAMES = 4
+
+
+def where(frame: Any) -> str:
+    """The innermost frame of a stack and celld's frames around it, innermost first: ``file:line function``."""
+    parts: list[str] = []
+    innermost = True
+    while frame is not None and len(parts) < _FRAMES:
+        path = frame.f_code.co_filename
+        if path == _HERE:  # the watch's own wrapper
+            frame = frame.f_back
+            continue
+        ours = path.startswith(_PACKAGE)
+        if innermost or ours:
+            name = os.path.relpath(path, os.path.dirname(_PACKAGE)) if ours else os.path.basename(path)
+            parts.append(f"{name}:{frame.f_lineno} {frame.f_code.co_name}")
+        innermost = False
+        frame = frame.f_back
+    return " < ".join(parts)
+
+
+def classify(threshold: float, callback_s: float, callback_cpu_s: float, workers_cpu_s: float, sampled: bool) -> str:
+    """A stall's kind from its longest callback (wall and CPU time, s; ``sampled``: the watcher saw it running)
+    and the CPU the worker threads had in the gap, s.
+
+    A long callback that computed is busy. One that did not compute waited: for the GIL while the workers
+    had the CPU (unscheduled), in a blocking call on the loop that let the watcher in to look (busy: a
+    sleep, a file, a lock), or for a GIL holder the OS did not run (unscheduled: the watcher could not look).
+    """
     if callback_s <= threshold:
         return "unscheduled"
     if callback_cpu_s >= 0.5 * callback_s:
-        return "busy"  # it computed on the loop
-    waited = callback_s - callback_cpu_s
-    return "unscheduled" if workers_cpu_s >= 0.5 * waited else "busy"  # the GIL was the workers', or it blocked
+        return "busy"
+    if workers_cpu_s >= 0.5 * (callback_s - callback_cpu_s):
+        return "unscheduled"
+    return "busy" if sampled else "unscheduled"
+
+
+def _sample() -> None:
+    """Look every tick at the callback the active watch sees running; past its threshold, note once where its
+    thread is."""
+    while True:
+        watch = _ACTIVE
+        time.sleep(TICK if watch is None else watch.tick)
+        if watch is None:
+            continue
+        running = watch._running
+        if running is None or running[0] == watch._sampled[0] or time.perf_counter() - running[0] < watch.threshold:
+            continue
+        frame = sys._current_frames().get(running[1])
+        watch._sampled = (running[0], where(frame))
 
 
 class LoopWatch:
@@ -88,30 +144,41 @@ class LoopWatch:
         self.tick = tick
         self.counts = {"busy": 0, "unscheduled": 0}
         self.worst: dict[str, Stall | None] = {"busy": None, "unscheduled": None}
-        self._longest: tuple[float, float, Callable[..., Any] | None] = (0.0, 0.0, None)
-        self._installed = False
+        self._longest: tuple[float, float, Callable[..., Any] | None, str] = (0.0, 0.0, None, "")
+        # The callback running now: when it started (perf_counter) and on which thread; where a sample found it.
+        self._running: tuple[float, int] | None = None
+        self._sampled: tuple[float, str] = (0.0, "")
 
     # -- the callbacks' time -------------------------------------------------------
 
     def install(self) -> None:
-        """Time every callback the loops of this process run (idempotent)."""
-        if self._installed:
-            return
+        """Time every callback the loops of this process run, for this watch (the wrapper goes in once per process)."""
+        global _ACTIVE
+        _ACTIVE = self
         handle = asyncio.events.Handle
+        if getattr(handle._run, "_celld_watched", False):
+            return
         run = handle._run
-        watch = self
 
         def timed_run(h: asyncio.events.Handle) -> None:
+            watch = _ACTIVE
+            if watch is None:
+                run(h)
+                return
             t0, c0 = time.perf_counter(), time.thread_time()
+            watch._running = (t0, threading.get_ident())
             try:
                 run(h)
             finally:
+                watch._running = None
                 dt = time.perf_counter() - t0
                 if dt > watch._longest[0]:
-                    watch._longest = (dt, time.thread_time() - c0, getattr(h, "_callback", None))
+                    at, seen = watch._sampled
+                    watch._longest = (dt, time.thread_time() - c0, getattr(h, "_callback", None), seen if at == t0 else "")
 
+        timed_run._celld_watched = True  # type: ignore[attr-defined]
         handle._run = timed_run  # type: ignore[method-assign,assignment]
-        self._installed = True
+        threading.Thread(target=_sample, name="celld-loop-watch", daemon=True).start()
 
     # -- the ticker ------------------------------------------------------------------
 
@@ -127,14 +194,14 @@ class LoopWatch:
             loop_now, process_now = time.thread_time(), time.process_time()
             if late > self.threshold:
                 self._stall(late, (process_now - process_cpu) - (loop_now - loop_cpu))
-            self._longest = (0.0, 0.0, None)
+            self._longest = (0.0, 0.0, None, "")
             loop_cpu, process_cpu = loop_now, process_now
             expected = now + self.tick
 
     def _stall(self, late: float, workers_cpu: float) -> None:
-        dt, cpu, callback = self._longest
-        kind = classify(self.threshold, dt, cpu, workers_cpu)
-        stall = Stall(late, kind, describe(callback) if callback is not None else "", dt, cpu, workers_cpu)
+        dt, cpu, callback, seen = self._longest
+        kind = classify(self.threshold, dt, cpu, workers_cpu, bool(seen))
+        stall = Stall(late, kind, describe(callback) if callback is not None else "", dt, cpu, workers_cpu, seen)
         self.counts[kind] += 1
         worst = self.worst[kind]
         if worst is None or late > worst.late:

@@ -1,9 +1,12 @@
-"""The loop watch tells a callback that held the loop from a loop that was ready but not run."""
+"""The loop watch tells a callback that held the loop from a loop that was ready but not run.
+
+How worker threads that hold the GIL show depends on the machine's load; the rule that sorts them is tested
+with its inputs given (classify).
+"""
 
 from __future__ import annotations
 
 import asyncio
-import threading
 import time
 
 from celld.daemon.loopwatch import LoopWatch, classify
@@ -11,14 +14,6 @@ from celld.daemon.loopwatch import LoopWatch, classify
 
 async def _hold_the_loop(seconds: float) -> None:
     time.sleep(seconds)  # a callback that blocks the loop itself
-
-
-def _spin(seconds: float) -> None:
-    """Pure Python in a worker thread: it holds the GIL for the switch interval at a time."""
-    end = time.perf_counter() + seconds
-    n = 0
-    while time.perf_counter() < end:
-        n += 1
 
 
 async def _watched(body) -> LoopWatch:  # type: ignore[no-untyped-def]
@@ -43,35 +38,21 @@ def test_a_callback_that_blocks_the_loop_is_a_busy_stall_and_is_named() -> None:
     worst = report["worst_busy"]
     assert worst["late_ms"] >= 100 and "holder" in worst["callback"] and "_hold_the_loop" in worst["callback"], worst
     assert worst["callback_ms"] >= 140 and worst["callback_cpu_ms"] < 50, worst  # it slept: no CPU
+    # The watcher saw where it was: in this test's function (its sleep has no Python frame).
+    assert worst["where"].startswith("test_loopwatch.py:") and "_hold_the_loop" in worst["where"], worst
 
 
 def test_a_short_sleep_on_the_loop_is_no_stall() -> None:
     async def body() -> None:
-        await asyncio.get_running_loop().create_task(_hold_the_loop(0.02))
+        await asyncio.get_running_loop().create_task(_hold_the_loop(0.005))
 
     report = asyncio.run(_watched(body)).report()
     assert report["busy"] == 0 and report["worst_busy"] is None, report
 
 
-def test_worker_threads_hogging_the_gil_are_not_blamed_on_a_callback() -> None:
-    async def body() -> None:
-        workers = [threading.Thread(target=_spin, args=(0.6,)) for _ in range(3)]
-        for w in workers:
-            w.start()
-        await asyncio.sleep(0.6)
-        for w in workers:
-            w.join()
-
-    report = asyncio.run(_watched(body)).report()
-    # Whether the GIL's switch interval (5 ms) lets the loop in on time depends on the machine; what any
-    # stall here must not be is a callback of the loop.
-    assert report["busy"] == 0, report
-    if report["unscheduled"]:
-        assert report["worst_unscheduled"]["workers_cpu_ms"] > 0, report
-
-
-def test_a_long_callback_is_busy_when_it_computed_or_blocked_and_unscheduled_when_it_waited_for_the_workers() -> None:
-    assert classify(0.05, 0.04, 0.04, 0.0) == "unscheduled"  # nothing ran long
-    assert classify(0.05, 0.2, 0.19, 0.0) == "busy"  # computed on the loop
-    assert classify(0.05, 0.2, 0.001, 0.0) == "busy"  # slept or blocked on a file: the loop was held
-    assert classify(0.05, 0.2, 0.001, 0.18) == "unscheduled"  # the workers had the GIL meanwhile
+def test_a_long_callback_is_busy_when_it_computed_or_blocked_and_unscheduled_when_it_waited_for_the_gil() -> None:
+    assert classify(0.05, 0.04, 0.04, 0.0, True) == "unscheduled"  # nothing ran long
+    assert classify(0.05, 0.2, 0.19, 0.0, False) == "busy"  # computed on the loop
+    assert classify(0.05, 0.2, 0.001, 0.0, True) == "busy"  # slept or blocked on a file: the loop was held
+    assert classify(0.05, 0.2, 0.001, 0.18, True) == "unscheduled"  # the workers had the GIL meanwhile
+    assert classify(0.05, 0.2, 0.001, 0.0, False) == "unscheduled"  # waited for a GIL holder the OS did not run
