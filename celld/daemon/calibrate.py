@@ -169,7 +169,7 @@ async def calibrate_arm(
     seen = ctx.recording
     seen_as = "" if robot == 1 else f"robot{robot}-"
     if job.dry_run:
-        record_plan(rec, planner.bare, [tuple(to_v.q_end), *plan.q])
+        await asyncio.to_thread(record_plan, rec, planner.bare, [tuple(to_v.q_end), *plan.q])
         return ArmCalibration(
             {
                 "dry_run": True,
@@ -190,16 +190,16 @@ async def calibrate_arm(
     session = CalibrationSession(flange, params, dparams, planned=len(poses), mount=mount, writer=writer)
     if rec is not None:
         # The cell, and the flange model carried by the TCP (the flange: tcp_offset is zero here) at each pose.
-        record_cell(rec, planner.bare)
+        await asyncio.to_thread(record_cell, rec, planner.bare)
         mesh = await asyncio.to_thread(flange.mesh)
-        rec.log_mesh(layout.FLANGE, np.asarray(mesh.vertices), np.asarray(mesh.triangles), static=True)
+        await asyncio.to_thread(rec.log_mesh, layout.FLANGE, np.asarray(mesh.vertices), np.asarray(mesh.triangles), static=True)
 
     # Verification pose first: its cloud scores every estimate (Eq. 13).
     progress("verify", 0.0, "verification pose")
     T_v_robot, q_v = await _settled_flange_pose(arm, T_v, cal.settle)
     cloud_v = await capture()
     if seen is not None:
-        seen.log_cloud_cam(seen_as + "verification", cloud_v.points)
+        await asyncio.to_thread(seen.log_cloud_cam, seen_as + "verification", cloud_v.points)
     await asyncio.to_thread(session.verify, T_v_robot, cloud_v.points, q_v)
 
     q_of: dict[str, np.ndarray] = {}  # each capture's joints, by pair id
@@ -212,13 +212,13 @@ async def calibrate_arm(
         det = step.pair.detection
         if det is not None:
             if seen is not None:
-                seen.log_cloud_cam(seen_as + "pair", cloud.points)
+                await asyncio.to_thread(seen.log_cloud_cam, seen_as + "pair", cloud.points)
                 seen.log_circle_cam(seen_as + "flange", det.center, det.normal, det.radius)
             if rec is not None:
                 rec.log_tcp(T_bf)
                 here = arm.require_motion().state()
                 if here is not None:
-                    record_arm(rec, planner.bare, here.q)
+                    await asyncio.to_thread(record_arm, rec, planner.bare, here.q)
                 if step.algorithm1 is not None:
                     rec.log_e_icp(step.algorithm1.k, step.algorithm1.cost_optimal)
         progress("pair", (i + 1) / len(poses), message, **data)
@@ -233,8 +233,16 @@ async def calibrate_arm(
     report = in_frame(result.as_dict(), mount)
     if rec is not None:
         T_base_link = [mount.T_base_link(q_of[pid]) for pid in found.ids]
-        _record_solution(
-            rec, result.T_base_cam, result.bias, found, report["quality"], flange.circle_on_metal, T_base_link, mount.T_base_link(q_v)
+        await asyncio.to_thread(
+            _record_solution,
+            rec,
+            result.T_base_cam,
+            result.bias,
+            found,
+            report["quality"],
+            flange.circle_on_metal,
+            T_base_link,
+            mount.T_base_link(q_v),
         )
     a1 = session.algorithm1()
     cost_mm = a1.cost * 1e3 if a1 is not None and math.isfinite(a1.cost) else None

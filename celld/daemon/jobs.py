@@ -544,7 +544,8 @@ class JobManager:
         recording = None
         if self.recording_factory is not None:
             try:
-                recording = self.recording_factory(job_id, job.kind)
+                # Off the event loop: opening a recording pays rerun's set-up (tens of ms).
+                recording = await asyncio.to_thread(self.recording_factory, job_id, job.kind)
             except StorageError as exc:
                 fault = self.storage.failed(exc)
                 self._end(job_id, job, "failed", f"{fault}; the job did not start")
@@ -561,7 +562,7 @@ class JobManager:
                 result.setdefault("recording", str(recording.path))
             if job.kind == "health":
                 result.setdefault("storage", self.storage.to_message())
-            result_path, reason = self._save_result(job_id, job, result)
+            result_path, reason = await self._save_result(job_id, job, result)
             state = "failed" if reason else "succeeded"
         except asyncio.CancelledError:
             state, reason = "cancelled", self._cancel_reasons.pop(job_id, "cancelled by request")
@@ -598,15 +599,16 @@ class JobManager:
                     log.error("job recording not closed cleanly", job=job_id, error=str(exc))
         self._end(job_id, job, state, reason, result_path)
 
-    def _save_result(self, job_id: str, job: Job, result: dict[str, Any]) -> tuple[str | None, str]:
+    async def _save_result(self, job_id: str, job: Job, result: dict[str, Any]) -> tuple[str | None, str]:
         """Write the result (and a calibration candidate); returns (path, "") or (None, the storage reason).
 
-        A result the disk could not take is kept and owed: written, and the
-        journal pointed at it, once there is room.
+        The file is encoded and written in a worker thread (a weld's paths and a calibration's report
+        take tens of milliseconds to encode and sync). A result the disk could not take is kept and
+        owed: written, and the journal pointed at it, once there is room.
         """
         path = self.results_dir / f"{job_id}.json"
         try:
-            written = str(fsutil.write_json(path, result))
+            written = str(await asyncio.to_thread(fsutil.write_json, path, result))
         except OSError as exc:
             fault = self.storage.failed(exc, "result", str(path))
 

@@ -85,7 +85,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
     poses = np.array(plan.poses)
     report_plan(ctx, plan, "tool calibration")
     if job.dry_run:
-        record_plan(ctx.recording, planner.with_tool, list(plan.q))
+        await asyncio.to_thread(record_plan, ctx.recording, planner.with_tool, list(plan.q))
         return {
             "dry_run": True,
             "plan": {
@@ -97,7 +97,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         }
     rec = ctx.recording
     if rec is not None:
-        record_cell(rec, planner.with_tool)
+        await asyncio.to_thread(record_cell, rec, planner.with_tool)
         if not placement.mount.on_arm:
             rec.log_camera_pose(placement.T_ref_cam, static=True)
     session = ToolCalibrationSession(config.tool, placement, range_bias)
@@ -113,7 +113,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
             rec.log_camera_pose(step.T_base_cam)
         if rec is not None and (step.tip is not None or step.torch is not None):
             rec.log_tcp(step.T_base_tcp)
-            record_arm(rec, planner.with_tool, state.q)
+            await asyncio.to_thread(record_arm, rec, planner.with_tool, state.q)
         ctx.progress("pose", (i + 1) / len(poses), step.message, **step.progress())
 
     dataset = ctx.result_dir() / "toolcal.json"

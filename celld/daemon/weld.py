@@ -263,9 +263,9 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     # table) moved back along its rays, as the calibration was solved.
     points = correct_range_bias(cloud.points, range_bias) if range_bias else np.asarray(cloud.points)
     if rec is not None:
-        record_cell(rec, devices.robot.planner.with_tool)
+        await asyncio.to_thread(record_cell, rec, devices.robot.planner.with_tool)
         rec.log_camera_pose(T_base_cam)
-        rec.log_cloud_cam("scan", points)
+        await asyncio.to_thread(rec.log_cloud_cam, "scan", points)
 
     # 2. seam, and the weld's plan
     ctx.progress("seam", None, f"finding the seam of {workpiece.name} with calibration {cal_job or '(unnamed)'}")
@@ -274,7 +274,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     if rec is not None:
         rec.log_path_base("planned", plan.geometry.seam_base)
         # The part model where the scan placed it.
-        rec.log_mesh(layout.WORKPIECE, workpiece.vertices, workpiece.triangles, seam.T_base_obj)
+        await asyncio.to_thread(rec.log_mesh, layout.WORKPIECE, workpiece.vertices, workpiece.triangles, seam.T_base_obj)
     ctx.progress("seam", None, f"seam found: {seam.length * 1e3:.1f} mm", length_mm=seam.length * 1e3, **_quality(seam))
 
     # 3. the whole path, checked against the cell before the tool moves to it:
@@ -284,7 +284,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     check = await asyncio.to_thread(devices.robot.planner.check_path, await devices.robot.current_q(), plan.path)
     if job.dry_run:
         stations = np.linspace(0, len(check.q) - 1, min(len(check.q), DRY_RUN_ROBOTS)).round().astype(int)
-        record_plan(rec, devices.robot.planner.with_tool, [tuple(check.q[i]) for i in stations])
+        await asyncio.to_thread(record_plan, rec, devices.robot.planner.with_tool, [tuple(check.q[i]) for i in stations])
         return {
             "dry_run": True,
             "workpiece": workpiece.name,
@@ -339,7 +339,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
             last_frame = 0
             while not waiting.done():
                 await asyncio.wait({waiting}, timeout=PREVIEW_PERIOD)
-                last_frame = _log_preview(devices, rec, last_frame)
+                last_frame = await asyncio.to_thread(_log_preview, devices, rec, last_frame)
                 now = asyncio.get_running_loop().time()
                 last = motion.last_record()
                 if last is not None and not waiting.done() and now - last_progress >= PROGRESS_PERIOD:
@@ -401,7 +401,8 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
 
 
 def _log_preview(devices: CellDevices, rec: Any, last_stamp: int) -> int:
-    """Log the SRM camera's latest shared frame (with the tag's outline) if it is new; its stamp."""
+    """Log the SRM camera's latest shared frame (with the tag's outline) if it is new; its stamp (in a worker thread:
+    an image and the arm's capsules take milliseconds to encode)."""
     srm = devices.tactile.process
     if rec is None or srm is None:
         return last_stamp
