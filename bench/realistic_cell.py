@@ -137,6 +137,8 @@ def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool,
         "seed": seed,
         "seconds": round(time.monotonic() - t0, 1),
         "tool_calibration": figures.get("tool", "not run (--no-tool-calibrate)" if not tool_calibrate else "failed"),
+        # How late the daemon's event loop ran over the three jobs (celld.daemon.loopwatch).
+        "loop": figures.get("loop"),
     }
     if "calibration" in figures:
         c = figures["calibration"]
