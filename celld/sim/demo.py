@@ -152,7 +152,7 @@ def run_jobs(
             calibrate["robot2"] = True  # a second robot in view: both, and T_base1_base2 (Eq. 5-6)
         cal = _job(cell.client, calibrate, say)
         if cal["state"] != "succeeded":
-            return {**figures, "failed": _failed(cal, say)}
+            return {**figures, "failed": _failed(cal, say), "loop": _loop(cell.client)}
         cal_result = json.loads(Path(cal["result"]).read_text())
         quality = cal_result["calibration"].get("quality") or {}
         forced = False
@@ -170,6 +170,7 @@ def run_jobs(
                         "reason": str(exc),
                         "verdict": quality.get("verdict"),
                     },
+                    "loop": _loop(cell.client),
                 }
             accepted, forced = cell.client.accept(cal["id"], force=True), True
         # The scanner's pose where it is fixed (on the arm: on its link, scored where the arm holds it at
@@ -203,7 +204,7 @@ def run_jobs(
         if tool_calibrate:
             tc = _job(cell.client, {"kind": "tool-calibrate", "seed": calibrate_seed or 0}, say)
             if tc["state"] != "succeeded":
-                return {**figures, "failed": _failed(tc, say)}
+                return {**figures, "failed": _failed(tc, say), "loop": _loop(cell.client)}
             tool = json.loads(Path(tc["result"]).read_text())["tool"]
             tq = tool["quality"]
             tool_forced = False
@@ -221,6 +222,7 @@ def run_jobs(
                             "reason": str(exc),
                             "verdict": tq["verdict"],
                         },
+                        "loop": _loop(cell.client),
                     }
                 cell.client.accept(tc["id"], force=True)
                 tool_forced = True
@@ -253,7 +255,7 @@ def run_jobs(
         with TruthRecorder(cfg.robot.host) as recorder:
             weld = _job(cell.client, {"kind": "weld"}, say)
         if weld["state"] != "succeeded":
-            return {**figures, "failed": _failed(weld, say)}
+            return {**figures, "failed": _failed(weld, say), "loop": _loop(cell.client)}
         res = json.loads(Path(weld["result"]).read_text())  # the record names the result file
         paths = json.loads(Path(res["paths"]).read_text())
         planned, planned_wall = np.array(paths["planned"]), np.array(paths["planned_wall"])
@@ -275,8 +277,7 @@ def run_jobs(
             "recording": res.get("recording"),
             "paths": res.get("paths"),
         }
-        # How late the daemon's event loop ran over the jobs (celld.daemon.loopwatch).
-        figures["loop"] = cell.client.status().get("loop")
+        figures["loop"] = _loop(cell.client)
     return figures
 
 
@@ -352,6 +353,11 @@ def _job(client: Any, message: dict[str, Any], say: Any) -> dict[str, Any]:
     finally:
         bar.close()
     return record
+
+
+def _loop(client: Any) -> Any:
+    """How late the daemon's event loop ran over the jobs so far (celld.daemon.loopwatch)."""
+    return client.status().get("loop")
 
 
 def _failed(record: dict[str, Any], say: Any) -> dict[str, Any]:
