@@ -330,6 +330,10 @@ _STALL = {
         },
         "workers_cpu_ms": {"type": "number", "description": "The CPU the daemon's other threads had in the gap."},
         "where": {"type": "string", "description": "Where the long callback was when the watcher looked (file:line function), or empty."},
+        "others": {
+            "type": "string",
+            "description": "Where the daemon's other threads were while the loop waited (thread: file:line function; ...).",
+        },
     },
     "additionalProperties": False,
 }

@@ -5,14 +5,14 @@ asked it wakes is the loop's stall. Every stall over :data:`THRESHOLD` is
 logged and counted as one of two kinds:
 
 - **busy**: a callback on the loop held it that long, computing (it had the
-  CPU for most of its time) or blocked (it did not, and neither did the
-  daemon's worker threads: a sleep, a file or a lock on the loop). The stall
-  names it: its task and coroutine, or its function;
+  CPU for most of its time) or blocked in a system call of its own (a sleep,
+  a file, a socket: the watcher reads which from ``/proc``). The stall names
+  it: its task and coroutine, or its function, and where it was;
 - **unscheduled**: the loop was ready and did not run: no callback ran long,
-  or the long one spent its time waiting for the GIL while the daemon's
-  worker threads had the CPU; or the OS ran other processes (the cell's
-  real-time motion and camera processes come first by design, SCHED_FIFO
-  over the daemon's SCHED_OTHER).
+  or the long one waited on another thread (the GIL, held by the daemon's
+  worker threads, whose wait is a futex) or for the CPU, which the OS gave
+  to other processes (the cell's real-time motion and camera processes come
+  first by design, SCHED_FIFO over the daemon's SCHED_OTHER).
 
 Each callback's time is read where asyncio runs it (``Handle._run``, one
 ``perf_counter`` and one ``thread_time`` on each side: about a microsecond),
@@ -20,7 +20,9 @@ which is how the slow-callback report of asyncio's debug mode works too,
 without the rest of debug mode's cost. A callback still running after the
 threshold is sampled once by a watcher thread: where the loop's thread is in
 it (the innermost frame and celld's frames around it) is the stall's
-``where``, which a task's name alone would not tell.
+``where``, which a task's name alone would not tell. When the ticker itself
+is late past the threshold, the watcher notes where the daemon's other
+threads are (``others``): what had the GIL or the CPU while the loop waited.
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ class Stall:
     callback_cpu_s: float  # the CPU it had
     workers_cpu_s: float  # the CPU the daemon's other threads had in the gap
     where: str = ""  # where the loop's thread was in it when the watcher looked, innermost first
+    others: str = ""  # where the daemon's other threads were while the loop waited (an unscheduled stall)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -67,6 +70,7 @@ class Stall:
             "callback_cpu_ms": round(self.callback_cpu_s * 1e3, 1),
             "workers_cpu_ms": round(self.workers_cpu_s * 1e3, 1),
             "where": self.where,
+            "others": self.others,
         }
 
 
@@ -104,36 +108,69 @@ def where(frame: Any) -> str:
     return " < ".join(parts)
 
 
-def classify(threshold: float, callback_s: float, callback_cpu_s: float, workers_cpu_s: float, sampled: bool) -> str:
-    """A stall's kind from its longest callback (wall and CPU time, s; ``sampled``: the watcher saw it running)
-    and the CPU the worker threads had in the gap, s.
+def classify(threshold: float, callback_s: float, callback_cpu_s: float, blocked: bool) -> str:
+    """A stall's kind from its longest callback: its wall and CPU time (s), and whether the watcher saw its
+    thread blocked in a system call other than a futex (a sleep, a file, a socket).
 
-    A long callback that computed is busy. One that did not compute waited: for the GIL while the workers
-    had the CPU (unscheduled), in a blocking call on the loop that let the watcher in to look (busy: a
-    sleep, a file, a lock), or for a GIL holder the OS did not run (unscheduled: the watcher could not look).
+    A long callback that computed, or that blocked the loop in such a call, is busy. One that neither
+    computed nor was seen so waited on another thread (the GIL, whose futex wait looks like a lock's) or
+    for the CPU: unscheduled.
     """
     if callback_s <= threshold:
         return "unscheduled"
-    if callback_cpu_s >= 0.5 * callback_s:
-        return "busy"
-    if workers_cpu_s >= 0.5 * (callback_s - callback_cpu_s):
-        return "unscheduled"
-    return "busy" if sampled else "unscheduled"
+    return "busy" if callback_cpu_s >= 0.5 * callback_s or blocked else "unscheduled"
+
+
+# The futex system call by machine: a thread that waits for the GIL (or a lock) waits in it.
+_FUTEX = {"x86_64": "202", "aarch64": "98"}.get(os.uname().machine, "")
+
+
+def syscall(native_id: int) -> str:
+    """The system call a thread of this process is in (its number), ``running``, or "" when unreadable."""
+    try:
+        with open(f"/proc/self/task/{native_id}/syscall") as f:
+            return f.read().split(maxsplit=1)[0]
+    except (OSError, IndexError):
+        return ""
+
+
+def blocked_in(call: str) -> bool:
+    """Whether a thread in system call ``call`` (:func:`syscall`) is blocked in it for itself: not running, not
+    waiting on another thread (a futex: the GIL or a lock), and known."""
+    return call not in ("", "running", _FUTEX)
 
 
 def _sample() -> None:
-    """Look every tick at the callback the active watch sees running; past its threshold, note once where its
-    thread is."""
+    """Look every tick at the active watch: past its threshold, note once where a long callback's thread is, and
+    where the other threads are while the ticker is late."""
+    me = threading.get_ident()
     while True:
         watch = _ACTIVE
         time.sleep(TICK if watch is None else watch.tick)
         if watch is None:
             continue
         running = watch._running
-        if running is None or running[0] == watch._sampled[0] or time.perf_counter() - running[0] < watch.threshold:
-            continue
-        frame = sys._current_frames().get(running[1])
-        watch._sampled = (running[0], where(frame))
+        if running is not None and running[0] != watch._sampled[0] and time.perf_counter() - running[0] >= watch.threshold:
+            call = syscall(running[2])
+            watch._sampled = (running[0], where(sys._current_frames().get(running[1])), call)
+        due, loop_thread = watch._due
+        if due and due != watch._others[0] and time.monotonic() - due >= watch.threshold:
+            names = {t.ident: t.name for t in threading.enumerate()}
+            seen = [
+                f"{names.get(ident, ident)}: {where(frame)}"
+                for ident, frame in sys._current_frames().items()
+                if ident not in (me, loop_thread) and _busy(frame)
+            ]
+            watch._others = (due, "; ".join(seen))
+
+
+# Where an idle thread of the daemon waits (a worker pool's queue, a sleep, a lock): not what held the loop up.
+_IDLE = frozenset({"wait", "_worker", "sleep", "select", "poll", "get", "acquire", "_wait_for_tstate_lock", "run_forever"})
+
+
+def _busy(frame: Any) -> bool:
+    """Whether a thread's innermost frame is doing work (not waiting for work)."""
+    return frame is not None and frame.f_code.co_name not in _IDLE
 
 
 class LoopWatch:
@@ -144,10 +181,14 @@ class LoopWatch:
         self.tick = tick
         self.counts = {"busy": 0, "unscheduled": 0}
         self.worst: dict[str, Stall | None] = {"busy": None, "unscheduled": None}
-        self._longest: tuple[float, float, Callable[..., Any] | None, str] = (0.0, 0.0, None, "")
-        # The callback running now: when it started (perf_counter) and on which thread; where a sample found it.
-        self._running: tuple[float, int] | None = None
-        self._sampled: tuple[float, str] = (0.0, "")
+        self._longest: tuple[float, float, Callable[..., Any] | None, str, str] = (0.0, 0.0, None, "", "")
+        # The callback running now: when it started (perf_counter) and on which thread (ident, native id);
+        # where a sample found it, and in which system call.
+        self._running: tuple[float, int, int] | None = None
+        self._sampled: tuple[float, str, str] = (0.0, "", "")
+        # When the ticker is due to wake (loop time) and the loop's thread; where the others were when it was late.
+        self._due: tuple[float, int] = (0.0, 0)
+        self._others: tuple[float, str] = (0.0, "")
 
     # -- the callbacks' time -------------------------------------------------------
 
@@ -166,15 +207,15 @@ class LoopWatch:
                 run(h)
                 return
             t0, c0 = time.perf_counter(), time.thread_time()
-            watch._running = (t0, threading.get_ident())
+            watch._running = (t0, threading.get_ident(), threading.get_native_id())
             try:
                 run(h)
             finally:
                 watch._running = None
                 dt = time.perf_counter() - t0
                 if dt > watch._longest[0]:
-                    at, seen = watch._sampled
-                    watch._longest = (dt, time.thread_time() - c0, getattr(h, "_callback", None), seen if at == t0 else "")
+                    _, seen, call = watch._sampled if watch._sampled[0] == t0 else (t0, "", "")
+                    watch._longest = (dt, time.thread_time() - c0, getattr(h, "_callback", None), seen, call)
 
         timed_run._celld_watched = True  # type: ignore[attr-defined]
         handle._run = timed_run  # type: ignore[method-assign,assignment]
@@ -187,21 +228,24 @@ class LoopWatch:
         loop = asyncio.get_running_loop()
         loop_cpu, process_cpu = time.thread_time(), time.process_time()
         expected = loop.time() + self.tick
+        me = threading.get_ident()
         while True:
+            self._due = (expected, me)
             await asyncio.sleep(max(0.0, expected - loop.time()))
             now = loop.time()
             late = now - expected
             loop_now, process_now = time.thread_time(), time.process_time()
             if late > self.threshold:
-                self._stall(late, (process_now - process_cpu) - (loop_now - loop_cpu))
-            self._longest = (0.0, 0.0, None, "")
+                at, others = self._others
+                self._stall(late, (process_now - process_cpu) - (loop_now - loop_cpu), others if at == expected else "")
+            self._longest = (0.0, 0.0, None, "", "")
             loop_cpu, process_cpu = loop_now, process_now
             expected = now + self.tick
 
-    def _stall(self, late: float, workers_cpu: float) -> None:
-        dt, cpu, callback, seen = self._longest
-        kind = classify(self.threshold, dt, cpu, workers_cpu, bool(seen))
-        stall = Stall(late, kind, describe(callback) if callback is not None else "", dt, cpu, workers_cpu, seen)
+    def _stall(self, late: float, workers_cpu: float, others: str) -> None:
+        dt, cpu, callback, seen, call = self._longest
+        kind = classify(self.threshold, dt, cpu, blocked_in(call))
+        stall = Stall(late, kind, describe(callback) if callback is not None else "", dt, cpu, workers_cpu, seen, others)
         self.counts[kind] += 1
         worst = self.worst[kind]
         if worst is None or late > worst.late:
