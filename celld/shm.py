@@ -11,6 +11,9 @@ Data between processes goes through shared memory, not pipes or the bus:
   it lost to overwriting.
 - :class:`Mailbox` is a single-producer single-consumer queue of byte
   messages (commands), ``slots`` deep, each at most ``slot_size`` bytes.
+- :class:`SharedArray` is one array of a fixed shape and dtype that a worker
+  process fills and its owner reads (a scanner's cloud), handed over without
+  pickling; the pipe beside it says when.
 
 Layout rules: every counter is an aligned uint64 on its own 64-byte line, so
 a store is one machine write (atomic on x86-64 and aarch64) and writers and
@@ -359,6 +362,32 @@ class Mailbox:
         self._lengths = []
         self._buf.release()
         self._head = self._tail = None  # type: ignore[assignment]
+        self._seg.close()
+
+    def unlink(self) -> None:
+        self._seg.unlink()
+
+
+class SharedArray:
+    """One array of a fixed shape and dtype in a named segment (no counters: a pipe says when it is filled)."""
+
+    def __init__(self, name: str, shape: tuple[int, ...], dtype: Any, create: bool) -> None:
+        self.shape = tuple(int(n) for n in shape)
+        self.dtype = np.dtype(dtype)
+        self._seg = _Segment(name, 0, int(np.prod(self.shape)) * self.dtype.itemsize, create)
+        self.name = name
+        self.array = self._seg.data(self.dtype, int(np.prod(self.shape))).reshape(self.shape)
+
+    @classmethod
+    def create(cls, name: str, shape: tuple[int, ...], dtype: Any) -> SharedArray:
+        return cls(name, shape, dtype, True)
+
+    @classmethod
+    def attach(cls, name: str, shape: tuple[int, ...], dtype: Any) -> SharedArray:
+        return cls(name, shape, dtype, False)
+
+    def close(self) -> None:
+        self.array = np.empty((0,), self.dtype)
         self._seg.close()
 
     def unlink(self) -> None:

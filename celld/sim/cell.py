@@ -15,7 +15,9 @@ controller's sections. How it reaches each device:
   and the simulated SRM camera (the tool as built, the finger's mechanics,
   the true wall of the part), and hands them to the daemon through the same
   :class:`~celld.daemon.devices.DeviceFactories` a real cell uses: ``celld
-  sim run`` is the daemon on them;
+  sim run`` is the daemon on them. The scanner ray casts in a process of its
+  own (:class:`~celld.scanner.process.ScannerProcess`), as the ray casting
+  holds the GIL the daemon's event loop needs;
 - :func:`run_cell` starts a whole simulated cell (robot and daemon, both
   given the same world: it is deterministic from the ``[sim]`` table and the
   :class:`~celld.sim.world.WorldOptions`) for the demo, the tests and
@@ -31,6 +33,7 @@ import sys
 import time
 from collections.abc import Iterator
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
@@ -42,6 +45,7 @@ from celld.config import Config
 from celld.daemon.devices import DeviceFactories, real_devices
 from celld.errors import BusError, CelldError, ConfigError, WorkpieceError
 from celld.scanner.base import Scanner
+from celld.scanner.process import ScannerProcess
 from celld.sim.robot import SimRobotHandle, launch
 from celld.sim.robot.truth import TruthReader
 from celld.sim.scanner import SceneObject, SimulatedScanner, robot_scene_source, scanner_model
@@ -79,60 +83,69 @@ def srm_source(world: World, robot_host: str, part: SimWorkpiece | None) -> SimS
 
 
 class _CellScanner:
-    """Opens the simulated scanner of a world: the robot scene at the true flange pose with the tool as built, plus the part."""
+    """Opens the simulated scanner of a world in a process of its own (:class:`~celld.scanner.process.ScannerProcess`:
+    the ray casting holds the GIL, which the daemon's event loop needs): the robot scene at the true flange pose
+    with the tool as built, plus the part."""
 
     def __init__(self, world: World, part: SimWorkpiece | None) -> None:
         self.world = world
-        self.objects: list[SceneObject] = [] if part is None else workpiece_scene(part.workpiece, part.T_base_obj)
+        self.part = part
 
     def __call__(self, config: Config) -> Scanner:
-        truth = TruthReader(config.robot.host)  # the simulated robot on the controller's address
-        objects = self.objects
-        sc = self.world.scanner
-        model = scanner_model(sc.model)
-        if sc.metal_bias is not None:
-            model = replace(model, metal_bias=sc.metal_bias)
-        # One table: the part's scene brings the steel welding table (the robot
-        # scene's would lie in the same plane, a matte twin a time-of-flight
-        # camera reads 8 mm apart from it).
-        arm = self.world.arm
-        robot2 = self.world.robot2
-        # The second robot (its simulator on the controller's address for it), if the cell has one.
-        truth2 = TruthReader(config.robot2.robot.host) if robot2 is not None and config.robot2 is not None else None
-        closers = [truth.close] if truth2 is None else [truth.close, truth2.close]
+        host2 = config.robot2.robot.host if config.robot2 is not None else None
+        return ScannerProcess(partial(open_world_scanner, self.world, self.part, config.robot.host, host2), name="sim-scanner")
 
-        def extra() -> list[SceneObject]:
-            if robot2 is None or truth2 is None:
-                return objects
-            # Its flange and wrist where its true base and joints put them.
-            T_base1_flange2 = robot2.T_base1_base2 @ truth2.latest().T_base_flange
-            return [*objects, *robot_scene(T_base1_flange2, robot2.flange, table=False)]
 
-        def close() -> None:
-            for c in closers:
-                c()
+def open_world_scanner(world: World, part: SimWorkpiece | None, host: str, host2: str | None = None) -> Scanner:
+    """The simulated scanner of ``world``: it sees the robot on ``host`` (and a second one on ``host2``) where their
+    simulators truly put them, and ``part`` as placed."""
+    objects: list[SceneObject] = [] if part is None else workpiece_scene(part.workpiece, part.T_base_obj)
+    truth = TruthReader(host)  # the simulated robot on the controller's address
+    sc = world.scanner
+    model = scanner_model(sc.model)
+    if sc.metal_bias is not None:
+        model = replace(model, metal_bias=sc.metal_bias)
+    # One table: the part's scene brings the steel welding table (the robot
+    # scene's would lie in the same plane, a matte twin a time-of-flight
+    # camera reads 8 mm apart from it).
+    arm = world.arm
+    robot2 = world.robot2
+    # The second robot (its simulator on the controller's address for it), if the cell has one.
+    truth2 = TruthReader(host2) if robot2 is not None and host2 is not None else None
+    closers = [truth.close] if truth2 is None else [truth.close, truth2.close]
 
-        def T_base_cam() -> np.ndarray:
-            # A scanner on the arm is where the arm's true joints put its link now.
-            return sc.T_base_cam_at(truth.latest().q, arm.dh)
+    def extra() -> list[SceneObject]:
+        if robot2 is None or truth2 is None:
+            return objects
+        # Its flange and wrist where its true base and joints put them.
+        T_base1_flange2 = robot2.T_base1_base2 @ truth2.latest().T_base_flange
+        return [*objects, *robot_scene(T_base1_flange2, robot2.flange, table=False)]
 
-        return SimulatedScanner(
-            model,
-            T_base_cam if sc.link else sc.T_base_cam,
-            robot_scene_source(
-                lambda: truth.latest().T_base_flange,
-                self.world.flange,
-                table=not objects,
-                extra=extra,
-                tool=self.world.tool.config,  # the tool as built, never the controller's [tool]
-                p_flange_torch=self.world.tool.p_flange_torch,
-            ),
-            seed=sc.noise_seed,
-            resolution_scale=sc.resolution_scale,
-            on_close=close,
-            measure=None if sc.ideal else sc.measure,
-            capture_delay=sc.capture_delay,
-        )
+    def close() -> None:
+        for c in closers:
+            c()
+
+    def T_base_cam() -> np.ndarray:
+        # A scanner on the arm is where the arm's true joints put its link now.
+        return sc.T_base_cam_at(truth.latest().q, arm.dh)
+
+    return SimulatedScanner(
+        model,
+        T_base_cam if sc.link else sc.T_base_cam,
+        robot_scene_source(
+            lambda: truth.latest().T_base_flange,
+            world.flange,
+            table=not objects,
+            extra=extra,
+            tool=world.tool.config,  # the tool as built, never the controller's [tool]
+            p_flange_torch=world.tool.p_flange_torch,
+        ),
+        seed=sc.noise_seed,
+        resolution_scale=sc.resolution_scale,
+        on_close=close,
+        measure=None if sc.ideal else sc.measure,
+        capture_delay=sc.capture_delay,
+    )
 
 
 def sim_devices(config: Config, world: World, part: SimWorkpiece | None) -> DeviceFactories:
