@@ -496,13 +496,11 @@ class CellDevices:
         self._recordings.append(recording)
 
     def _on_state_batch(self, batch: np.ndarray) -> None:
+        """Hand robot 1's state to each open recording's feed thread (the event loop does not wait for rerun)."""
         live = []
         for rec in self._recordings:
             if rec.closed:
                 continue
-            try:
-                rec.log_state_batch(batch)
-            except CelldError as exc:
-                log.warning("state batch not recorded", error=str(exc))
+            rec.feed_state_batch(batch)
             live.append(rec)
         self._recordings = live

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import queue
 import re
 import socket
 import subprocess
@@ -57,7 +58,7 @@ from scipy.spatial.transform import Rotation
 
 from celld import se3
 from celld.config import RecordingConfig
-from celld.errors import InputError, RecordingError, RecordingWriteError
+from celld.errors import CelldError, InputError, RecordingError, RecordingWriteError
 from celld.log import get_logger
 from celld.recording import layout
 from celld.recording.state import DEFAULT_SERIES, Series, state_columns
@@ -84,6 +85,9 @@ _RESIDUAL_SCALE = 20.0
 _MERGE_TIMEOUT = 300.0
 # How often encoded bytes move from rerun's memory stream into the file, s.
 _DRAIN_PERIOD = 0.2
+# State batches waiting for the recording's feed thread (:meth:`JobRecording.feed_state_batch`); beyond
+# this (about 30 s of 500 Hz state in 0.1 s batches) a batch is dropped and counted.
+_FEED_DEPTH = 300
 
 
 def recording_path(state_dir: str | Path, job_id: str) -> Path:
@@ -287,6 +291,9 @@ class JobRecording:
         self._lock = threading.Lock()
         self._named: set[str] = set()
         self._ignored_reported: set[str] = set()
+        self._feed: queue.Queue[np.ndarray | None] = queue.Queue(_FEED_DEPTH)
+        self._feeding: threading.Thread | None = None
+        self.dropped_batches = 0  # state batches the feed had no room for
         self._log = log.bind(job=job_id, kind=kind)
         self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=job_id, default_enabled=config.enabled, send_properties=True)
         if not config.enabled:
@@ -717,6 +724,30 @@ class JobRecording:
             self._rec.send_columns(col.entity, indexes=[times], columns=rr.Scalars.columns(scalars=values))
         return n
 
+    def feed_state_batch(self, batch: np.ndarray) -> None:
+        """Hand a batch of motion-state records to the recording's feed thread, which sends it
+        (:meth:`log_state_batch`); returns at once, so the daemon's event loop never waits for rerun.
+        A batch the feed has no room for is dropped and counted (:attr:`dropped_batches`)."""
+        if not self._active():
+            return
+        if self._feeding is None:
+            self._feeding = threading.Thread(target=self._feed_forever, name=f"rrd-feed-{self.job_id}", daemon=True)
+            self._feeding.start()
+        try:
+            self._feed.put_nowait(batch)
+        except queue.Full:
+            self.dropped_batches += 1
+
+    def _feed_forever(self) -> None:
+        while True:
+            batch = self._feed.get()
+            if batch is None:
+                return
+            try:
+                self.log_state_batch(batch)
+            except CelldError as exc:
+                self._log.warning("state batch not recorded", error=str(exc))
+
     def log_e_icp(self, iteration: int, e_icp: float, stamp_ns: int | None = None) -> None:
         """Log the ICP error metric of Eq. 13 (metres) for one Algorithm 1 iteration.
 
@@ -768,7 +799,13 @@ class JobRecording:
         """
         if self._closed:
             return
+        if self._feeding is not None:  # the state handed over so far goes in first
+            self._feed.put(None)
+            self._feeding.join()
+            self._feeding = None
         self._closed = True
+        if self.dropped_batches:
+            self._log.warning("recording_state_batches_dropped", batches=self.dropped_batches)
         if not self.enabled:
             return
         try:

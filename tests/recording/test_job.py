@@ -95,8 +95,10 @@ def _full_recording(path: Path, rng: np.random.Generator, config: RecordingConfi
     rec.log_camera_image(image, corners, stamp_ns=t0 + 5_000_000)
     rec.log_camera_image(image, None, stamp_ns=t0 + 6_000_000)  # the tag lost in the next frame
     batch = _state_batch(t0)
-    # Two ring reads, as the recorder would make them.
-    sent = rec.log_state_batch(batch[:200]) + rec.log_state_batch(batch[200:])
+    # Two ring reads, as the recorder would make them: one sent here, one handed to the feed thread (the
+    # daemon's way), which close() waits for.
+    sent = rec.log_state_batch(batch[:200]) + len(batch[200:])
+    rec.feed_state_batch(batch[200:])
     tactile = _tactile_batch(t0, rng)
     rec.log_state_batch(tactile)
     e_icp = [0.004, 0.0021, 0.0009, float("inf"), 0.0004]
