@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -213,14 +214,14 @@ async def calibrate_arm(
         if det is not None:
             if seen is not None:
                 await asyncio.to_thread(seen.log_cloud_cam, seen_as + "pair", cloud.points)
-                seen.log_circle_cam(seen_as + "flange", det.center, det.normal, det.radius)
+                seen.later(seen.log_circle_cam, seen_as + "flange", det.center, det.normal, det.radius, time.monotonic_ns())
             if rec is not None:
-                rec.log_tcp(T_bf)
+                rec.later(rec.log_tcp, T_bf, time.monotonic_ns())
                 here = arm.require_motion().state()
                 if here is not None:
                     await asyncio.to_thread(record_arm, rec, planner.bare, here.q)
                 if step.algorithm1 is not None:
-                    rec.log_e_icp(step.algorithm1.k, step.algorithm1.cost_optimal)
+                    rec.later(rec.log_e_icp, step.algorithm1.k, step.algorithm1.cost_optimal, time.monotonic_ns())
         progress("pair", (i + 1) / len(poses), message, **data)
         if step.stop:
             break

@@ -115,7 +115,7 @@ class JobContext:
         """Publish a progress event of this (running) job."""
         self.publish(self.job_id, self.job.kind, "running", stage, fraction=fraction, message=message, data=data)
         if self.recording is not None and message:
-            self.recording.log_event(f"{stage}: {message}")
+            self.recording.event_later(f"{stage}: {message}")
 
     def result_dir(self) -> Path:
         """A directory for this job's files (datasets, paths), created on demand."""

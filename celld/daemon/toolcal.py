@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -99,7 +100,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
     if rec is not None:
         await asyncio.to_thread(record_cell, rec, planner.with_tool)
         if not placement.mount.on_arm:
-            rec.log_camera_pose(placement.T_ref_cam, static=True)
+            rec.later(rec.log_camera_pose, placement.T_ref_cam, None, True)
     session = ToolCalibrationSession(config.tool, placement, range_bias)
     for i, T in enumerate(poses):
         await devices.robot.move_to(T, tool=True)
@@ -110,9 +111,9 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         cloud = await devices.scanner.capture()
         step = await asyncio.to_thread(session.capture, state.T_base_tcp, state.q, cloud.points)
         if rec is not None and placement.mount.on_arm:
-            rec.log_camera_pose(step.T_base_cam)
+            rec.later(rec.log_camera_pose, step.T_base_cam, time.monotonic_ns())
         if rec is not None and (step.tip is not None or step.torch is not None):
-            rec.log_tcp(step.T_base_tcp)
+            rec.later(rec.log_tcp, step.T_base_tcp, time.monotonic_ns())
             await asyncio.to_thread(record_arm, rec, planner.with_tool, state.q)
         ctx.progress("pose", (i + 1) / len(poses), step.message, **step.progress())
 
@@ -122,7 +123,8 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
     ctx.progress("solve", None, f"solving the tip from {n_tip} and the torch from {n_torch} of {len(poses)} poses")
     done = await asyncio.to_thread(session.finish, ctx.job_id, cal_job)
     if rec is not None:
-        rec.log_residuals(*done.residuals)
+        ids, P_robot, P_found, outlier = done.residuals
+        await asyncio.to_thread(rec.log_residuals, ids, P_robot, P_found, outlier)
     measured = done.tool
     log.info(
         "tool calibration solved",

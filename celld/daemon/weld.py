@@ -39,6 +39,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import math
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -264,7 +265,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     points = correct_range_bias(cloud.points, range_bias) if range_bias else np.asarray(cloud.points)
     if rec is not None:
         await asyncio.to_thread(record_cell, rec, devices.robot.planner.with_tool)
-        rec.log_camera_pose(T_base_cam)
+        rec.later(rec.log_camera_pose, T_base_cam, time.monotonic_ns())
         await asyncio.to_thread(rec.log_cloud_cam, "scan", points)
 
     # 2. seam, and the weld's plan
@@ -272,7 +273,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     plan = await asyncio.to_thread(plan_weld, points, T_base_cam, part, wc, seam_params, tool.T_tcp_tool, T_scan)
     seam = plan.seam
     if rec is not None:
-        rec.log_path_base("planned", plan.geometry.seam_base)
+        rec.later(rec.log_path_base, "planned", plan.geometry.seam_base, time.monotonic_ns())
         # The part model where the scan placed it.
         await asyncio.to_thread(rec.log_mesh, layout.WORKPIECE, workpiece.vertices, workpiece.triangles, seam.T_base_obj)
     ctx.progress("seam", None, f"seam found: {seam.length * 1e3:.1f} mm", length_mm=seam.length * 1e3, **_quality(seam))
@@ -280,7 +281,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     # 3. the whole path, checked against the cell before the tool moves to it:
     # above the start, down, along the seam, up and back to the scan pose.
     if rec is not None:
-        rec.log_path_base("plan", plan.path[:, :3, 3])
+        rec.later(rec.log_path_base, "plan", plan.path[:, :3, 3], time.monotonic_ns())
     check = await asyncio.to_thread(devices.robot.planner.check_path, await devices.robot.current_q(), plan.path)
     if job.dry_run:
         stations = np.linspace(0, len(check.q) - 1, min(len(check.q), DRY_RUN_ROBOTS)).round().astype(int)
@@ -377,7 +378,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     if rec is not None:
         for name in ("refined", "torch"):
             if len(paths[name]) > 1:
-                rec.log_path_base(name, np.asarray(paths[name]))
+                rec.later(rec.log_path_base, name, np.asarray(paths[name]), time.monotonic_ns())
     result: dict[str, Any] = {
         "figures": figures,
         "paths": str(path_file),

@@ -46,6 +46,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -291,7 +293,7 @@ class JobRecording:
         self._lock = threading.Lock()
         self._named: set[str] = set()
         self._ignored_reported: set[str] = set()
-        self._feed: queue.Queue[np.ndarray | None] = queue.Queue(_FEED_DEPTH)
+        self._feed: queue.Queue[Callable[[], Any] | None] = queue.Queue(_FEED_DEPTH)
         self._feeding: threading.Thread | None = None
         self.dropped_batches = 0  # state batches the feed had no room for
         self._log = log.bind(job=job_id, kind=kind)
@@ -728,25 +730,36 @@ class JobRecording:
         """Hand a batch of motion-state records to the recording's feed thread, which sends it
         (:meth:`log_state_batch`); returns at once, so the daemon's event loop never waits for rerun.
         A batch the feed has no room for is dropped and counted (:attr:`dropped_batches`)."""
+        if not self.later(self.log_state_batch, batch):
+            self.dropped_batches += 1
+
+    def event_later(self, text: str, level: str = "INFO") -> None:
+        """:meth:`log_event` at this moment, sent by the feed thread (a job's progress, from the event loop)."""
+        self.later(self.log_event, text, level, time.monotonic_ns())
+
+    def later(self, method: Callable[..., Any], *args: Any) -> bool:
+        """Queue ``method(*args)`` (a log method of this recording) for the feed thread, in order; False when the
+        feed is full or the recording closed (nothing queued)."""
         if not self._active():
-            return
+            return False
         if self._feeding is None:
             self._feeding = threading.Thread(target=self._feed_forever, name=f"rrd-feed-{self.job_id}", daemon=True)
             self._feeding.start()
         try:
-            self._feed.put_nowait(batch)
+            self._feed.put_nowait(partial(method, *args))
         except queue.Full:
-            self.dropped_batches += 1
+            return False
+        return True
 
     def _feed_forever(self) -> None:
         while True:
-            batch = self._feed.get()
-            if batch is None:
+            call = self._feed.get()
+            if call is None:
                 return
             try:
-                self.log_state_batch(batch)
+                call()
             except CelldError as exc:
-                self._log.warning("state batch not recorded", error=str(exc))
+                self._log.warning("recording feed: not recorded", error=str(exc))
 
     def log_e_icp(self, iteration: int, e_icp: float, stamp_ns: int | None = None) -> None:
         """Log the ICP error metric of Eq. 13 (metres) for one Algorithm 1 iteration.
