@@ -179,7 +179,7 @@ def make_verifier(P_v: np.ndarray, sigma: float, strict: bool = False) -> IcpVer
     """e_icp of the sweeps: the verification cloud against the UR10e model placed at the verification pose."""
     P, N = _model("icp")
     params = icp_params(sigma)
-    return IcpVerifier(P_v, P, T_BASE_FLAN_V, params.strict() if strict else params, normals_flan=N)
+    return IcpVerifier(P_v, P, T_BASE_FLAN_V, params.strict() if strict else params, normals_flange=N)
 
 
 def verification_cloud(rng: np.random.Generator, sigma: float) -> np.ndarray:
@@ -302,7 +302,7 @@ def _opencv(T_fb: np.ndarray, T_cm: np.ndarray, suffix: str) -> dict[str, tuple[
         return {name + suffix: (math.nan, math.nan) for name in (*OPENCV_HAND_EYE, *OPENCV_ROBOT_WORLD)}
     for name, method in OPENCV_HAND_EYE.items():
         try:
-            # Eye-to-hand: pass base->gripper (T_flan_base); the result is T_base_cam.
+            # Eye-to-hand: pass base->gripper (T_flange_base); the result is T_base_cam.
             R, t = cv2.calibrateHandEye(
                 list(T_fb[:, :3, :3]), list(T_fb[:, :3, 3]), list(T_cm[:, :3, :3]), list(T_cm[:, :3, 3]), method=method
             )
@@ -435,7 +435,7 @@ def speed(args: argparse.Namespace) -> dict[str, Any]:
     P_cam = apply(invert(T_BASE_CAM_TRUE), P_base) + rng.normal(0.0, sigma, P_base.shape)
     P_v = verification_cloud(rng, sigma)
     P, N = _model("icp")
-    verifier = IcpVerifier(P_v, P, T_BASE_FLAN_V, IcpParams(), normals_flan=N)  # the library defaults
+    verifier = IcpVerifier(P_v, P, T_BASE_FLAN_V, IcpParams(), normals_flange=N)  # the library defaults
     wall, cpu = [], []
     n = 10 if args.quick else 60
     for k in range(n):

@@ -13,20 +13,20 @@ offline (``celld calib solve DIR``). A session directory holds::
 
 ``poses.json``::
 
-    {"format": "celld.calib.session", "version": 2, "units": "m",
+    {"format": "celld.calib.session", "version": 4, "units": "m",
      "flange": "ur10e", "scanner": "phoxi-m", "created": "...Z",
      "verification": {"id": "verification", "cloud": "verification.cloud.json",
-                      "T_base_flan": [[...4 x 4, metres...]]},
-     "pairs": [{"id": "p000", "cloud": "p000.cloud.json", "T_base_flan": [[...]]}, ...]}
+                      "T_base_flange": [[...4 x 4, metres...]]},
+     "pairs": [{"id": "p000", "cloud": "p000.cloud.json", "T_base_flange": [[...]]}, ...]}
 
 A scanner on the arm (eye-on-arm, :mod:`celld.calib.mount`) moves with the
-joints: its session (version 3) adds the mount and the robot's DH table to
-the header and each capture's joints, so that the flange is placed in the
-scanner's link frame as the daemon placed it::
+joints: its session adds the mount and the robot's DH table to the header
+and each capture's joints, so that the flange is placed in the scanner's
+link frame as the daemon placed it::
 
-    {..., "version": 3, "mount": "link1",
+    {..., "version": 4, "mount": "link1",
      "dh": {"d": [...], "a": [...], "alpha": [...]},
-     "pairs": [{"id": "p000", ..., "T_base_flan": [[...]], "q": [6 joints, rad]}, ...]}
+     "pairs": [{"id": "p000", ..., "T_base_flange": [[...]], "q": [6 joints, rad]}, ...]}
 
 Every file is written atomically (:mod:`celld.fsutil`: temporary file,
 fsync, rename, fsync of the directory); a cloud's sidecar JSON after its
@@ -116,12 +116,16 @@ log = get_logger(__name__)
 # Name and version of the session format written here; the versions read.
 # Version 2 adds the compact clouds (a version-1 reader would not open them);
 # version 3 the scanner's mount on the arm and the joints of each capture (a
-# version-2 reader would solve it in the wrong frame). A session of a scanner
-# fixed in the base frame is written as version 2.
+# version-2 reader would solve it in the wrong frame); version 4 names each
+# flange pose T_base_flange (earlier versions: T_base_flan), one spelling of
+# the frame with the code's. Every session is written as version 4.
 FORMAT = "celld.calib.session"
-VERSION = 2
-VERSION_ON_ARM = 3
-_VERSIONS_READ = (1, 2, 3)
+VERSION = 4
+VERSION_ON_ARM = 3  # the first version that can hold a scanner on the arm
+_VERSIONS_READ = (1, 2, 3, 4)
+# The flange pose's key by version: its spelling before version 4.
+_POSE_KEY = "T_base_flange"
+_POSE_KEY_BEFORE_4 = "T_base_flan"
 POSES_FILE = "poses.json"
 REFERENCE_FILE = "calib_data.json"
 # Name and version of a compact cloud's sidecar, and the end of its file name.
@@ -158,7 +162,7 @@ class PairRecord:
     id : str
     p_base : (3,) array
         The flange centre (TCP) in the base frame, metres.
-    T_base_flan : (4, 4) array | None
+    T_base_flange : (4, 4) array | None
         The flange pose, when the session has it.
     cloud_path : Path | None
         The cloud file, if any.
@@ -170,7 +174,7 @@ class PairRecord:
 
     id: str
     p_base: Array
-    T_base_flan: Array | None
+    T_base_flange: Array | None
     cloud_path: Path | None
     p_cam: Array | None = None
     q: Array | None = None
@@ -200,10 +204,10 @@ class Session:
         return self.flange_pose(record)[:3, 3].copy()
 
     def flange_pose(self, record: PairRecord) -> Array:
-        """The flange pose of ``record`` in the frame the scanner is fixed in (``T_base_flan`` or ``T_link_flan``)."""
-        if record.T_base_flan is None:
+        """The flange pose of ``record`` in the frame the scanner is fixed in (``T_base_flange`` or ``T_link_flange``)."""
+        if record.T_base_flange is None:
             raise InputError(f"pair {record.id!r}: the session has no flange pose for it")
-        return self.mount.to_link(record.T_base_flan, record.q)
+        return self.mount.to_link(record.T_base_flange, record.q)
 
     def cloud(self, record: PairRecord) -> Array:
         """The cloud of ``record`` in the camera frame, metres, (n, 3)."""
@@ -547,7 +551,7 @@ class SessionWriter:
         }
         self.mount = mount
         if mount.on_arm:
-            self._doc |= {"version": VERSION_ON_ARM, "mount": mount.name, "dh": mount.dh_entry()}
+            self._doc |= {"mount": mount.name, "dh": mount.dh_entry()}
         existing = self.root / POSES_FILE
         if existing.exists():
             if not resume:
@@ -556,7 +560,11 @@ class SessionWriter:
             _check_header(self._doc, existing)
             if mount_from(self._doc, str(existing)) != mount:
                 raise InputError(f"{existing}: the session's scanner mount is not this writer's ({mount.name})")
-            self._doc["version"] = VERSION_ON_ARM if mount.on_arm else VERSION
+            # An older session goes on in this version: its poses take this version's key.
+            for entry in [*self._doc["pairs"], self._doc.get("verification") or {}]:
+                if _POSE_KEY_BEFORE_4 in entry:
+                    entry[_POSE_KEY] = entry.pop(_POSE_KEY_BEFORE_4)
+            self._doc["version"] = VERSION
         self._flange: FlangeModel | None
         try:
             self._flange = preset(flange)
@@ -570,13 +578,13 @@ class SessionWriter:
         return [p["id"] for p in self._doc["pairs"]]
 
     def set_verification(
-        self, T_base_flan: ArrayLike, P_cam: ArrayLike, *, detection: FlangeDetection | None = None, q: ArrayLike | None = None
+        self, T_base_flange: ArrayLike, P_cam: ArrayLike, *, detection: FlangeDetection | None = None, q: ArrayLike | None = None
     ) -> None:
         """Save the verification cloud and its flange pose (``detection``: the caller's, if it has one; ``q``: the joints)."""
-        T = check_transform(T_base_flan, "T_base_flan")
+        T = check_transform(T_base_flange, "T_base_flange")
         joints = self._joints(q, "verification")
         name = self._write_cloud("verification", self.mount.to_link(T, joints), P_cam, detection, verification=True)
-        self._doc["verification"] = {"id": "verification", "cloud": name, "T_base_flan": _matrix(T)} | self._q_entry(joints)
+        self._doc["verification"] = {"id": "verification", "cloud": name, _POSE_KEY: _matrix(T)} | self._q_entry(joints)
         write_json(self.root / POSES_FILE, self._doc)
 
     def _joints(self, q: ArrayLike | None, what: str) -> Array | None:
@@ -593,7 +601,7 @@ class SessionWriter:
 
     def add_pair(
         self,
-        T_base_flan: ArrayLike,
+        T_base_flange: ArrayLike,
         P_cam: ArrayLike,
         pair_id: str | None = None,
         *,
@@ -606,7 +614,7 @@ class SessionWriter:
         the error it failed with), to spare the writer its own; ``q`` the
         robot's joints (required when the scanner is on the arm).
         """
-        T = check_transform(T_base_flan, "T_base_flan")
+        T = check_transform(T_base_flange, "T_base_flange")
         pid = pair_id if pair_id is not None else f"p{len(self._doc['pairs']):03d}"
         if not _ID.match(pid) or pid == "verification":
             raise InputError(f"pair id: expected 1-64 letters, digits, '_', '.' or '-' (not 'verification'), got {pid!r}")
@@ -614,7 +622,7 @@ class SessionWriter:
             raise InputError(f"pair id {pid!r}: already in the session")
         joints = self._joints(q, f"pair {pid}")
         name = self._write_cloud(pid, self.mount.to_link(T, joints), P_cam, detection, verification=False)
-        self._doc["pairs"].append({"id": pid, "cloud": name, "T_base_flan": _matrix(T)} | self._q_entry(joints))
+        self._doc["pairs"].append({"id": pid, "cloud": name, _POSE_KEY: _matrix(T)} | self._q_entry(joints))
         write_json(self.root / POSES_FILE, self._doc)
         return pid
 
@@ -693,7 +701,7 @@ class SessionWriter:
 
 def save_session(
     root: str | Path,
-    T_base_flan: Sequence[ArrayLike],
+    T_base_flange: Sequence[ArrayLike],
     clouds: Sequence[ArrayLike],
     *,
     flange: str,
@@ -702,19 +710,19 @@ def save_session(
     verification: tuple[ArrayLike, ArrayLike] | None = None,
     compact: bool = True,
 ) -> Session:
-    """Save a whole session (poses, clouds, optional ``(T_base_flan_v, P_v_cam)``) and read it back.
+    """Save a whole session (poses, clouds, optional ``(T_base_flange_v, P_v_cam)``) and read it back.
 
     ``compact``: organized clouds in the compact form where a window is found
     (:class:`SessionWriter`), else float32 PLY.
     """
-    if len(T_base_flan) != len(clouds):
-        raise InputError(f"T_base_flan and clouds: expected the same number, got {len(T_base_flan)} and {len(clouds)}")
+    if len(T_base_flange) != len(clouds):
+        raise InputError(f"T_base_flange and clouds: expected the same number, got {len(T_base_flange)} and {len(clouds)}")
     if ids is not None and len(ids) != len(clouds):
         raise InputError(f"ids: expected {len(clouds)} pair ids, got {len(ids)}")
     writer = SessionWriter(root, flange=flange, scanner=scanner, compact=compact)
     if verification is not None:
         writer.set_verification(*verification)
-    for i, (T, P) in enumerate(zip(T_base_flan, clouds)):
+    for i, (T, P) in enumerate(zip(T_base_flange, clouds)):
         writer.add_pair(T, P, None if ids is None else ids[i])
     return load_session(root)
 
@@ -759,20 +767,21 @@ def check_reach(p_base: Any, where: str) -> Array:
     return p
 
 
-def _record(entry: Any, root: Path, where: str, on_arm: bool = False) -> PairRecord:
+def _record(entry: Any, root: Path, where: str, on_arm: bool = False, key: str = _POSE_KEY) -> PairRecord:
+    """One capture of a session; its flange pose under ``key`` (:data:`_POSE_KEY`, or its spelling before version 4)."""
     if not isinstance(entry, dict):
         raise InputError(f"{where}: expected an object, got {type(entry).__name__}")
     pid = entry.get("id")
     if not isinstance(pid, str) or not _ID.match(pid):
         raise InputError(f"{where}.id: expected a pair id string, got {pid!r}")
-    raw_T = entry.get("T_base_flan")
+    raw_T = entry.get(key)
     if raw_T is None:
-        raise InputError(f"{where}.T_base_flan: missing (the flange pose, a 4x4 transform in metres)")
+        raise InputError(f"{where}.{key}: missing (the flange pose, a 4x4 transform in metres)")
     try:
-        T = check_transform(raw_T, f"{where}.T_base_flan")
+        T = check_transform(raw_T, f"{where}.{key}")
     except (ValueError, TypeError) as exc:
-        raise InputError(f"{where}.T_base_flan: expected a 4x4 rigid transform: {exc}") from exc
-    check_reach(T[:3, 3], f"{where}.T_base_flan")
+        raise InputError(f"{where}.{key}: expected a 4x4 rigid transform: {exc}") from exc
+    check_reach(T[:3, 3], f"{where}.{key}")
     cloud = entry.get("cloud")
     if cloud is not None and (not isinstance(cloud, str) or Path(cloud).name != cloud):
         raise InputError(f"{where}.cloud: expected a file name in the session directory, got {cloud!r}")
@@ -781,7 +790,7 @@ def _record(entry: Any, root: Path, where: str, on_arm: bool = False) -> PairRec
         q = _vector(entry.get("q"), 6, f"{where}.q")
         if q is None:
             raise InputError(f"{where}.q: missing (the robot's joints, rad: the scanner is on the arm)")
-    return PairRecord(id=pid, p_base=T[:3, 3].copy(), T_base_flan=T, cloud_path=None if cloud is None else root / cloud, q=q)
+    return PairRecord(id=pid, p_base=T[:3, 3].copy(), T_base_flange=T, cloud_path=None if cloud is None else root / cloud, q=q)
 
 
 def _load_celld(root: Path) -> Session:
@@ -790,13 +799,14 @@ def _load_celld(root: Path) -> Session:
     _check_header(doc, path)
     mount = mount_from(doc, str(path))
     if mount.on_arm and doc["version"] < VERSION_ON_ARM:
-        raise InputError(f"{path}: a session of a scanner on {mount.name} is version {VERSION_ON_ARM}, got {doc['version']}")
-    pairs = tuple(_record(e, root, f"{path.name}: pairs[{i}]", mount.on_arm) for i, e in enumerate(doc["pairs"]))
+        raise InputError(f"{path}: a session of a scanner on {mount.name} is version {VERSION_ON_ARM} or later, got {doc['version']}")
+    key = _POSE_KEY if doc["version"] >= 4 else _POSE_KEY_BEFORE_4
+    pairs = tuple(_record(e, root, f"{path.name}: pairs[{i}]", mount.on_arm, key) for i, e in enumerate(doc["pairs"]))
     ids = [p.id for p in pairs]
     if len(set(ids)) != len(ids):
         raise InputError(f"{path}: pair ids must be unique")
     ver = doc.get("verification")
-    verification = None if ver is None else _record(ver, root, f"{path.name}: verification", mount.on_arm)
+    verification = None if ver is None else _record(ver, root, f"{path.name}: verification", mount.on_arm, key)
     return Session(root, "celld", pairs, verification, doc.get("flange"), doc.get("scanner"), doc["units"], mount)
 
 
@@ -847,7 +857,7 @@ def _load_reference(root: Path) -> Session:
             PairRecord(
                 id=str(int(key)),
                 p_base=p_base,
-                T_base_flan=T,
+                T_base_flange=T,
                 cloud_path=cloud,
                 p_cam=None if p_cam_mm is None else p_cam_mm * 1e-3,  # mm at this boundary
             )

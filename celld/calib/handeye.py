@@ -62,7 +62,7 @@ class HandEyeFit:
     Attributes
     ----------
     T_link_cam : (4, 4) array
-        Pose of the camera on its link: ``T_flan_cam`` (eye-in-hand) or
+        Pose of the camera on its link: ``T_flange_cam`` (eye-in-hand) or
         ``T_arm_cam`` (eye-on-arm).
     p_base : (3,) array | None
         The fixed feature's position in the base frame (None for Eq. 8).
@@ -298,7 +298,7 @@ def _tangent_jacobian(J_n: Array, nb: Array) -> Array:
 
 def solve_eye_on_arm(
     T_base_arm: ArrayLike,
-    T_base_flan: ArrayLike,
+    T_base_flange: ArrayLike,
     p_cam: ArrayLike,
     n_cam: ArrayLike | None = None,
     *,
@@ -310,7 +310,7 @@ def solve_eye_on_arm(
     ----------
     T_base_arm : (n, 4, 4) array
         Pose of the arm link carrying the camera at each capture.
-    T_base_flan : (n, 4, 4) array
+    T_base_flange : (n, 4, 4) array
         Pose of the flange at each capture (its origin is the flange centre).
     p_cam : (n, 3) array
         The flange centre seen in the camera, metres.
@@ -324,16 +324,16 @@ def solve_eye_on_arm(
         arm frame must not be collinear; coplanar ones are fine).
     """
     Ta = _check_poses(T_base_arm, "T_base_arm")
-    Tf = _check_poses(T_base_flan, "T_base_flan")
+    Tf = _check_poses(T_base_flange, "T_base_flange")
     if len(Ta) != len(Tf):
-        raise InputError(f"T_base_arm and T_base_flan: expected the same number of poses, got {len(Ta)} and {len(Tf)}")
+        raise InputError(f"T_base_arm and T_base_flange: expected the same number of poses, got {len(Ta)} and {len(Tf)}")
     n = len(Ta)
     P = _check_vectors(p_cam, n, "p_cam")
     N = _check_optional(n_cam, n, "n_cam", unit=True)
-    T_arm_flan = np.einsum("nij,njk->nik", np.array([invert(T) for T in Ta]), Tf)
-    P_arm = T_arm_flan[:, :3, 3]
+    T_arm_flange = np.einsum("nij,njk->nik", np.array([invert(T) for T in Ta]), Tf)
+    P_arm = T_arm_flange[:, :3, 3]
     fit0 = solve_rigid(P_arm, P, names=("P_arm", "p_cam"))  # Eq. 9-12 in the arm frame
-    Z_arm = T_arm_flan[:, :3, 2]
+    Z_arm = T_arm_flange[:, :3, 2]
 
     def factory(T_ref: Array) -> Callable[[Array], Array]:
         R_ref, t_ref = T_ref[:3, :3], T_ref[:3, 3]

@@ -2,7 +2,7 @@
 
 Owns the self-verification of an estimate, computed from measurements only:
 the verification cloud ``P_v`` (camera frame) is registered by ICP onto the
-flange model placed by the verification robot pose ``T_base_flan_v`` and the
+flange model placed by the verification robot pose ``T_base_flange_v`` and the
 estimate ``T_base_cam'``. The ICP result is the transform that takes the
 measured camera frame {Cam} onto the estimated one {Cam'}, i.e.
 ``e_icp = T_cam'_cam``; an exact estimate gives the identity. When ICP does not
@@ -10,7 +10,7 @@ converge onto the model (too few correspondences) e_icp is infinite, as in
 Eq. 13. No ground truth enters here.
 
 Implementation: the model is kept in the flange frame and the registration
-starts from ``T_flan_cam' = T_base_flan_v^-1 T_base_cam'``; ICP is invariant to
+starts from ``T_flange_cam' = T_base_flange_v^-1 T_base_cam'``; ICP is invariant to
 the rigid frame the target is expressed in, so this equals registering onto
 the model moved to {Cam'} and avoids moving the model for every candidate.
 ICP (point-to-plane, Open3D) runs at one correspondence distance, or coarse
@@ -208,12 +208,12 @@ class IcpVerifier:
     P_v_cam : (n, 3) array
         The verification cloud in the camera frame, metres, cropped to the
         flange (and what the model also holds).
-    P_model_flan : (m, 3) array
+    P_model_flange : (m, 3) array
         The flange model (``Flan P_true``) in the flange frame, metres.
-    T_base_flan_v : (4, 4) array
+    T_base_flange_v : (4, 4) array
         The robot's flange pose at the verification capture.
     params : IcpParams
-    normals_flan : (m, 3) array, optional
+    normals_flange : (m, 3) array, optional
         Model normals; estimated from the model points when absent.
     on_metal : (n,) bool array, optional
         The verification points on bare metal, which a time-of-flight camera
@@ -223,22 +223,22 @@ class IcpVerifier:
     def __init__(
         self,
         P_v_cam: ArrayLike,
-        P_model_flan: ArrayLike,
-        T_base_flan_v: ArrayLike,
+        P_model_flange: ArrayLike,
+        T_base_flange_v: ArrayLike,
         params: IcpParams = IcpParams(),
-        normals_flan: ArrayLike | None = None,
+        normals_flange: ArrayLike | None = None,
         on_metal: ArrayLike | None = None,
     ) -> None:
         P_v = check_points(P_v_cam, "P_v_cam", min_points=10)
-        P_model = check_points(P_model_flan, "P_model_flan", min_points=10)
-        self.T_base_flan_v = check_transform(T_base_flan_v, "T_base_flan_v")
+        P_model = check_points(P_model_flange, "P_model_flange", min_points=10)
+        self.T_base_flange_v = check_transform(T_base_flange_v, "T_base_flange_v")
         self.params = params
-        self._T_flan_base = invert(self.T_base_flan_v)
+        self._T_flange_base = invert(self.T_base_flange_v)
         metal = np.zeros(len(P_v), dtype=bool) if on_metal is None else np.asarray(on_metal, dtype=bool)
         if metal.shape != (len(P_v),):
             raise InputError(f"on_metal: expected a mask of {len(P_v)} verification points, got shape {metal.shape}")
         # Kept to build a verifier with the range bias corrected (with_range_bias).
-        self._inputs = (P_v, P_model, normals_flan, metal)
+        self._inputs = (P_v, P_model, normals_flange, metal)
         self.range_bias = 0.0
 
         src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P_v))
@@ -252,10 +252,10 @@ class IcpVerifier:
 
         tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P_model))
         if params.point_to_plane:
-            if normals_flan is not None:
-                normals = check_points(normals_flan, "normals_flan")
+            if normals_flange is not None:
+                normals = check_points(normals_flange, "normals_flange")
                 if normals.shape != P_model.shape:
-                    raise InputError(f"normals_flan: expected shape {P_model.shape}, got {normals.shape}")
+                    raise InputError(f"normals_flange: expected shape {P_model.shape}, got {normals.shape}")
                 tgt.normals = o3d.utility.Vector3dVector(normals)
             else:
                 spacing = float(np.median(np.asarray(tgt.compute_nearest_neighbor_distance())))
@@ -282,7 +282,7 @@ class IcpVerifier:
             out = copy.copy(self)
             out.range_bias = float(bias)
             return out
-        out = IcpVerifier(correct_range_bias(P_v, bias, metal), P_model, self.T_base_flan_v, self.params, normals, metal)
+        out = IcpVerifier(correct_range_bias(P_v, bias, metal), P_model, self.T_base_flange_v, self.params, normals, metal)
         out._inputs = self._inputs
         out.range_bias = float(bias)
         return out
@@ -304,7 +304,7 @@ class IcpVerifier:
         if T_base_camhat.shape != (4, 4) or not np.all(np.isfinite(T_base_camhat)):
             return IcpMetric.failed("the estimate is not a finite (4, 4) transform")
         # Start: the model placed by the robot pose and the estimate, Eq. 13.
-        T = self._T_flan_base @ T_base_camhat  # T_flan_cam'
+        T = self._T_flange_base @ T_base_camhat  # T_flange_cam'
         reg = None
         for d in self.params.max_distances:
             reg = o3d.pipelines.registration.registration_icp(self._source, self._target, d, T, self._estimation, self._criteria)
@@ -317,8 +317,8 @@ class IcpVerifier:
                 f"fitness {fit:.2f} below {self.params.min_fitness:.2f} at {self.params.max_distances[-1] * 1e3:.3g} mm",
                 fitness=fit,
             )
-        # T maps {Cam} into {Flan}: T_cam'_cam = T_cam'_flan T_flan_cam.
-        T_camhat_cam = invert(self._T_flan_base @ T_base_camhat) @ T
+        # T maps {Cam} into {Flan}: T_cam'_cam = T_cam'_flange T_flange_cam.
+        T_camhat_cam = invert(self._T_flange_base @ T_base_camhat) @ T
         return IcpMetric(T_camhat_cam=T_camhat_cam, ok=True, fitness=float(reg.fitness), rmse=float(reg.inlier_rmse))
 
 
@@ -331,9 +331,9 @@ def model_cloud_with_normals(flange: FlangeModel, spacing: float) -> tuple[Array
 
     Returns
     -------
-    P_flan : (m, 3) array
+    P_flange : (m, 3) array
         Model points in the flange frame, metres.
-    N_flan : (m, 3) array
+    N_flange : (m, 3) array
         Unit outward normals.
     """
     P = np.asarray(flange.model_cloud(spacing), dtype=np.float64)

@@ -9,9 +9,9 @@ frame after that joint in the robot's DH table) moves with the joints before
 it, and sees the flange moved by the joints after it. Eq. 8 with the mark the
 flange centre::
 
-    T_base_flan p = T_base_arm(q) T_arm_cam p_cam
+    T_base_flange p = T_base_arm(q) T_arm_cam p_cam
 
-so with ``p_arm = T_base_arm(q)^-1 T_base_flan p`` (the flange centre in the
+so with ``p_arm = T_base_arm(q)^-1 T_base_flange p`` (the flange centre in the
 link's frame at the joints ``q`` of the capture) ``T_arm_cam`` is the rigid
 fit of Eq. 9-12 in the link's frame: the same pairs, Algorithm 1, e_icp
 (with the verification pose in the link's frame) and quality gate as on the

@@ -1,7 +1,7 @@
 """Calibration poses: where the robot shows its flange to the scanner.
 
 Pure: a verification pose, a workspace box around it and a tilt bound in,
-flange poses ``T_base_flan`` out. Positions fill the box on a jittered grid
+flange poses ``T_base_flange`` out. Positions fill the box on a jittered grid
 (never collinear, which Eq. 9-12 cannot solve, and spread in all three
 directions, which fixes every rotation of the solution well); orientations
 tilt the flange face, which looks up at a scanner above the table, by up to
@@ -25,7 +25,7 @@ MAX_SPIN = 0.5
 
 
 def calibration_poses(
-    T_base_flan_v: ArrayLike,
+    T_base_flange_v: ArrayLike,
     box: ArrayLike,
     n: int,
     max_tilt: float,
@@ -36,7 +36,7 @@ def calibration_poses(
 
     Parameters
     ----------
-    T_base_flan_v : (4, 4)
+    T_base_flange_v : (4, 4)
         The verification pose; its orientation is the reference the tilts apply to.
     box : (3,)
         Edge lengths of the workspace box along the base axes, metres.
@@ -45,7 +45,7 @@ def calibration_poses(
     max_tilt : float
         Largest tilt of the flange axis, rad (about 0.3 in the paper's set-up).
     """
-    T_v = se3.check_transform(T_base_flan_v, "T_base_flan_v")
+    T_v = se3.check_transform(T_base_flange_v, "T_base_flange_v")
     box = np.asarray(box, dtype=np.float64)
     if box.shape != (3,) or not np.all(box > 0):
         raise InputError(f"box: expected 3 positive edge lengths in metres, got {box.tolist()}")

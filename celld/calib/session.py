@@ -318,7 +318,7 @@ def calibrate_session(
     if calibration.n_pairs < _FIRST_POOL:
         calibration.finish()  # refuses, naming the first reasons
     v = session.verification
-    if flange is not None and v is not None and v.cloud_path is not None and v.T_base_flan is not None:
+    if flange is not None and v is not None and v.cloud_path is not None and v.T_base_flange is not None:
         calibration.verify(session.flange_pose(v), session.cloud(v))
     result = calibration.finish()
     log.info(

@@ -382,7 +382,7 @@ def range_bias_data(params: SolveParams, flange: FlangeModel | None, detections:
 
 def verifier_from_cloud(
     P_v_cam: ArrayLike,
-    T_base_flan_v: ArrayLike,
+    T_base_flange_v: ArrayLike,
     flange: FlangeModel,
     params: SolveParams = SolveParams(),
     detect_params: DetectParams | None = None,
@@ -423,7 +423,7 @@ def verifier_from_cloud(
     on_metal = radial[keep] <= flange.outer_diameter / 2 + _METAL_MARGIN
     if flange.wrist_finish == "metal":
         on_metal[:] = True
-    return IcpVerifier(P_v, P_model, T_base_flan_v, params.icp, normals_flan=N_model, on_metal=on_metal)
+    return IcpVerifier(P_v, P_model, T_base_flange_v, params.icp, normals_flange=N_model, on_metal=on_metal)
 
 
 @dataclass(frozen=True)
@@ -508,11 +508,11 @@ def _estimate(
         notes.append(f"compensation (Eq. 21) was asked for but not applied: {why}; the estimate is stored")
     # The verification flange's axis in the camera frame, by the estimate: e_icp's
     # turn about it is fixed only by the flange's holes (quality module).
-    T_base_flan_v = getattr(verifier, "T_base_flan_v", None)
+    T_base_flange_v = getattr(verifier, "T_base_flange_v", None)
     axis_cam = centre_cam = None
-    if T_base_flan_v is not None:
-        T_cam_flan_v = se3.invert(T) @ np.asarray(T_base_flan_v)
-        axis_cam, centre_cam = T_cam_flan_v[:3, 2], T_cam_flan_v[:3, 3]
+    if T_base_flange_v is not None:
+        T_cam_flange_v = se3.invert(T) @ np.asarray(T_base_flange_v)
+        axis_cam, centre_cam = T_cam_flange_v[:3, 2], T_cam_flange_v[:3, 3]
     quality = assess_calibration(
         ids_t,
         P_b,

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from celld.calib.dataset import (
     CLOUD_SUFFIX,
+    VERSION,
     SessionWriter,
     load_session,
     read_cloud,
@@ -47,7 +48,7 @@ def test_save_and_load_round_trip(tmp_path: Path, rng: np.random.Generator) -> N
     assert session.kind == "celld" and session.ids == ("p000", "p001", "p002")
     assert session.flange == "ur10e" and session.scanner == "phoxi-m" and session.units == "m"
     for rec, T, P in zip(session.pairs, poses, clouds):
-        np.testing.assert_allclose(rec.T_base_flan, T, atol=1e-15)
+        np.testing.assert_allclose(rec.T_base_flange, T, atol=1e-15)
         np.testing.assert_allclose(rec.p_base, T[:3, 3], atol=1e-15)
         # float32 on disk: 0.1 um at half a metre.
         np.testing.assert_allclose(session.cloud(rec), P, atol=1e-7)
@@ -99,9 +100,9 @@ def test_malformed_sessions_are_refused_with_the_place(tmp_path: Path, rng: np.r
         load_session(tmp_path)
     save_session(tmp_path / "s", [flange_pose(0)], [cloud(rng)], flange="ur10e", scanner="phoxi-m")
     doc = json.loads((tmp_path / "s" / "poses.json").read_text())
-    doc["pairs"][0]["T_base_flan"][0][0] = 2.0
+    doc["pairs"][0]["T_base_flange"][0][0] = 2.0
     (tmp_path / "s" / "poses.json").write_text(json.dumps(doc))
-    with pytest.raises(InputError, match=r"pairs\[0\].T_base_flan"):
+    with pytest.raises(InputError, match=r"pairs\[0\].T_base_flange"):
         load_session(tmp_path / "s")
     doc["version"] = 7
     (tmp_path / "s" / "poses.json").write_text(json.dumps(doc))
@@ -116,10 +117,10 @@ def test_poses_in_millimetres_labelled_metres_are_refused_at_load(tmp_path: Path
     save_session(tmp_path / "s", [flange_pose(0), flange_pose(1)], [cloud(rng), cloud(rng)], flange="ur10e", scanner="phoxi-m")
     doc = json.loads((tmp_path / "s" / "poses.json").read_text())
     for pair in doc["pairs"]:
-        for row in pair["T_base_flan"][:3]:
+        for row in pair["T_base_flange"][:3]:
             row[3] *= 1000.0
     (tmp_path / "s" / "poses.json").write_text(json.dumps(doc))
-    with pytest.raises(InputError, match=r"pairs\[0\].T_base_flan: the flange lies .* m from the robot base.*millimetres"):
+    with pytest.raises(InputError, match=r"pairs\[0\].T_base_flange: the flange lies .* m from the robot base.*millimetres"):
         load_session(tmp_path / "s")
 
 
@@ -159,7 +160,7 @@ def test_reference_format_is_read_with_its_units_and_quaternion_order(tmp_path: 
     assert session.ids == ("0", "1", "2", "3", "4")
     for i, rec in enumerate(session.pairs):
         np.testing.assert_allclose(rec.p_cam, P_cam[i], atol=1e-12)  # mm -> m
-        np.testing.assert_allclose(rec.T_base_flan, flange_pose(i), atol=1e-12)  # (w, x, y, z) read right
+        np.testing.assert_allclose(rec.T_base_flange, flange_pose(i), atol=1e-12)  # (w, x, y, z) read right
     assert [r.cloud_path.name for r in session.pairs] == ["01_tool.ply", "02_tool.ply", "04_tool.ply", "06_tool.ply", "07_tool.ply"]
     # Each cloud lies around its own entry's centre, in metres once read.
     for i, rec in enumerate(session.pairs):
@@ -337,16 +338,20 @@ def test_float_sessions_still_load_and_resume(tmp_path: Path, captures) -> None:
     session = save_session(tmp_path / "s", [T0], [P0], flange="ur10e", scanner="phoxi-m", compact=False)
     assert session.pairs[0].cloud_path.name == "p000.ply"
     np.testing.assert_array_equal(session.cloud(session.pairs[0]), P0)
-    # A version-1 session (float PLY only) is read, and resumed as version 2.
+    # A version-1 session (float PLY only, its poses under T_base_flan) is read, and resumed as this version.
     doc = json.loads((tmp_path / "s" / "poses.json").read_text())
     doc["version"] = 1
+    doc["pairs"][0]["T_base_flan"] = doc["pairs"][0].pop("T_base_flange")
     (tmp_path / "s" / "poses.json").write_text(json.dumps(doc))
     assert load_session(tmp_path / "s").ids == ("p000",)
+    np.testing.assert_allclose(load_session(tmp_path / "s").pairs[0].T_base_flange, T0)
     SessionWriter(tmp_path / "s", flange="ur10e", scanner="phoxi-m", resume=True).add_pair(T1, P1)
-    assert json.loads((tmp_path / "s" / "poses.json").read_text())["version"] == 2
+    resumed = json.loads((tmp_path / "s" / "poses.json").read_text())
+    assert resumed["version"] == VERSION and all("T_base_flange" in p and "T_base_flan" not in p for p in resumed["pairs"])
     session = load_session(tmp_path / "s")
     assert [r.cloud_path.name for r in session.pairs] == ["p000.ply", "p001.cloud.json"]
     assert session.cloud(session.pairs[1]).shape == P1.shape
+    np.testing.assert_allclose(session.pairs[0].T_base_flange, T0)
 
 
 @pytest.mark.slow

@@ -85,7 +85,7 @@ def verification_cloud(ur10e_model: tuple[np.ndarray, np.ndarray]) -> np.ndarray
 
 def test_e_icp_of_the_true_transform_is_near_identity(ur10e_model, verification_cloud) -> None:
     P, N = ur10e_model
-    verifier = IcpVerifier(verification_cloud, P, T_BASE_FLAN_V, IcpParams(max_points=3000), normals_flan=N)
+    verifier = IcpVerifier(verification_cloud, P, T_BASE_FLAN_V, IcpParams(max_points=3000), normals_flange=N)
     e = verifier(T_BASE_CAM)
     assert e.ok and e.fitness > 0.9
     # The registration of one small flange: about 0.1 mm at the camera origin
@@ -97,7 +97,7 @@ def test_e_icp_of_the_true_transform_is_near_identity(ur10e_model, verification_
 
 def test_e_icp_measures_the_error_of_an_estimate_and_eq21_removes_it(ur10e_model, verification_cloud) -> None:
     P, N = ur10e_model
-    verifier = IcpVerifier(verification_cloud, P, T_BASE_FLAN_V, IcpParams(max_points=3000).strict(), normals_flan=N)
+    verifier = IcpVerifier(verification_cloud, P, T_BASE_FLAN_V, IcpParams(max_points=3000).strict(), normals_flange=N)
     # The estimate's camera frame {Cam'} is off by 1 mm and 0.21 deg.
     T_cam_camhat = transform_from(Rotation.from_rotvec(np.radians([0.15, -0.15, 0.0])).as_matrix(), [0.0006, -0.0008, 0.0])
     estimate = T_BASE_CAM @ T_cam_camhat
@@ -113,7 +113,7 @@ def test_e_icp_measures_the_error_of_an_estimate_and_eq21_removes_it(ur10e_model
 
 def test_icp_fails_when_the_estimate_misplaces_the_model(ur10e_model, verification_cloud) -> None:
     P, N = ur10e_model
-    verifier = IcpVerifier(verification_cloud, P, T_BASE_FLAN_V, normals_flan=N)
+    verifier = IcpVerifier(verification_cloud, P, T_BASE_FLAN_V, normals_flange=N)
     e = verifier(T_BASE_CAM @ transform_from(np.eye(3), [0.05, 0.0, 0.0]))
     assert not e.ok
     assert translation_cost(e) == math.inf
@@ -125,9 +125,9 @@ def test_verifier_refuses_bad_clouds(ur10e_model) -> None:
     P, N = ur10e_model
     with pytest.raises(InputError, match="P_v_cam"):
         IcpVerifier(np.zeros((5, 3)), P, T_BASE_FLAN_V)
-    with pytest.raises(InputError, match="normals_flan"):
-        IcpVerifier(P[:100], P, T_BASE_FLAN_V, normals_flan=N[:10])
-    with pytest.raises(InputError, match="T_base_flan_v"):
+    with pytest.raises(InputError, match="normals_flange"):
+        IcpVerifier(P[:100], P, T_BASE_FLAN_V, normals_flange=N[:10])
+    with pytest.raises(InputError, match="T_base_flange_v"):
         IcpVerifier(P[:100], P, np.eye(3))
     with pytest.raises(InputError, match="max_distances"):
         IcpParams(max_distances=())

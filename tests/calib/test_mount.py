@@ -61,22 +61,22 @@ def test_the_scanner_frame_follows_the_joints_before_it_and_not_those_after() ->
 def test_a_session_of_a_scanner_on_the_arm_solves_its_pose_on_the_link(tmp_path: Path, rng: np.random.Generator) -> None:
     """Eq. 8: flange centres seen by a scanner that moved with the base joint; the base-frame fit cannot
     explain them, the link-frame fit does to the noise."""
-    T_flan, q = poses(rng, 10)
+    T_flange, q = poses(rng, 10)
     writer = SessionWriter(tmp_path / "s", flange="ur10e", scanner="phoxi-m", mount=MOUNT, compact=False)
-    for T, qq in zip(T_flan, q):
+    for T, qq in zip(T_flange, q):
         # The flange centre as the scanner on link 1 sees it at these joints (0.05 mm noise).
         p_cam = apply(invert(MOUNT.T_base_cam(T_LINK_CAM, qq)), T[:3, 3][None])[0] + rng.normal(0.0, 0.05e-3, 3)
         writer.add_pair(T, p_cam[None] + rng.normal(0.0, 1e-4, (50, 3)), q=qq)
     with pytest.raises(InputError, match="needs the robot's joints"):
-        writer.add_pair(T_flan[0], np.zeros((5, 3)))
+        writer.add_pair(T_flange[0], np.zeros((5, 3)))
     doc = json.loads((tmp_path / "s" / "poses.json").read_text())
-    assert doc["version"] == 3 and doc["mount"] == "link1" and len(doc["pairs"][0]["q"]) == 6
+    assert doc["version"] == 4 and doc["mount"] == "link1" and len(doc["pairs"][0]["q"]) == 6
 
     session = load_session(tmp_path / "s")
     assert session.mount == MOUNT
     centres = [np.mean(session.cloud(r), axis=0) for r in session.pairs]
     # Solve with the recorded centres (the clouds are blobs around them).
-    rec = [r.__class__(r.id, r.p_base, r.T_base_flan, None, c, r.q) for r, c in zip(session.pairs, centres)]
+    rec = [r.__class__(r.id, r.p_base, r.T_base_flange, None, c, r.q) for r, c in zip(session.pairs, centres)]
     result = calibrate_session(session.__class__(session.root, "celld", tuple(rec), None, None, None, "m", MOUNT), None, SolveParams())
     dt, dr = error(result.T_base_cam, T_LINK_CAM)
     assert dt < 0.3e-3 and np.degrees(dr) < 0.05, (dt, np.degrees(dr))

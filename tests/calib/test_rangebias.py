@@ -78,12 +78,12 @@ def test_the_correction_moves_each_point_back_along_its_own_ray() -> None:
 
 def flange_cloud(T_cam_flange: np.ndarray, rng: np.random.Generator, sigma: float = 1.5e-3, flange=WRIST) -> np.ndarray:
     """The flange's surfaces that face the camera, seen by a time-of-flight camera: metal read BIAS long, noise along the rays."""
-    P_flan, N_flan = model_cloud_with_normals(flange, 0.0012)
-    P_flan = P_flan[N_flan[:, 2] > 0.9]  # face, bore and hole bottoms, shoulder
-    metal = np.linalg.norm(P_flan[:, :2], axis=1) < flange.outer_diameter / 2 - 1e-6
+    P_flange, N_flange = model_cloud_with_normals(flange, 0.0012)
+    P_flange = P_flange[N_flange[:, 2] > 0.9]  # face, bore and hole bottoms, shoulder
+    metal = np.linalg.norm(P_flange[:, :2], axis=1) < flange.outer_diameter / 2 - 1e-6
     if flange.wrist_finish == "metal":
         metal[:] = True
-    P = apply(T_cam_flange, P_flan)
+    P = apply(T_cam_flange, P_flange)
     U = P / np.linalg.norm(P, axis=1, keepdims=True)
     return P + (BIAS * metal + rng.normal(0.0, sigma, len(P)))[:, None] * U
 

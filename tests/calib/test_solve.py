@@ -78,7 +78,7 @@ def verifier() -> IcpVerifier:
     pts = surface[rng.choice(len(surface), 4000, replace=False)]
     P_v = apply(invert(T_BASE_CAM) @ T_BASE_FLAN_V, pts) + rng.normal(0.0, 5e-5, (4000, 3))
     P, N = model_cloud_with_normals(preset("ur10e"), 0.001)
-    return IcpVerifier(P_v, P, T_BASE_FLAN_V, IcpParams(max_points=3000), normals_flan=N)
+    return IcpVerifier(P_v, P, T_BASE_FLAN_V, IcpParams(max_points=3000), normals_flange=N)
 
 
 def test_compensation_removes_a_bias_the_pairs_share(rng: np.random.Generator, verifier: IcpVerifier) -> None:
@@ -141,13 +141,13 @@ def tof_pairs(
 
 def biased_verifier(rng: np.random.Generator) -> IcpVerifier:
     """e_icp against the UR10e flange whose metal (inside its 63 mm) reads BIAS long."""
-    P_flan, N_flan = model_cloud_with_normals(preset("ur10e"), 0.0008)
-    P_flan = P_flan[N_flan[:, 2] > -0.5]
-    metal = np.linalg.norm(P_flan[:, :2], axis=1) < 0.0315
-    P_v = apply(invert(T_BASE_CAM) @ T_BASE_FLAN_V, P_flan)
+    P_flange, N_flange = model_cloud_with_normals(preset("ur10e"), 0.0008)
+    P_flange = P_flange[N_flange[:, 2] > -0.5]
+    metal = np.linalg.norm(P_flange[:, :2], axis=1) < 0.0315
+    P_v = apply(invert(T_BASE_CAM) @ T_BASE_FLAN_V, P_flange)
     P_v += (BIAS * metal)[:, None] * P_v / np.linalg.norm(P_v, axis=1, keepdims=True) + rng.normal(0.0, 5e-5, P_v.shape)
     P, N = model_cloud_with_normals(preset("ur10e"), 0.001)
-    return IcpVerifier(P_v, P, T_BASE_FLAN_V, IcpParams(max_points=3000, max_distances=(0.012, 0.003)), normals_flan=N, on_metal=metal)
+    return IcpVerifier(P_v, P, T_BASE_FLAN_V, IcpParams(max_points=3000, max_distances=(0.012, 0.003)), normals_flange=N, on_metal=metal)
 
 
 def test_the_range_bias_is_estimated_reported_and_corrects_the_verification_cloud(rng: np.random.Generator) -> None:
