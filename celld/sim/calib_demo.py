@@ -164,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _printer(quiet: bool):
+def _printer(quiet: bool) -> Callable[[str], None]:
     def say(text: str) -> None:
         if not quiet:
             print(text, flush=True)
