@@ -39,7 +39,7 @@ import math
 import time
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -65,6 +65,9 @@ from celld.errors import CalibrationError, JobError
 from celld.log import get_logger
 from celld.recording import layout
 from celld.scanner.base import OrganizedCloud
+
+if TYPE_CHECKING:
+    from celld.recording.job import JobRecording
 
 log = get_logger(__name__)
 
@@ -285,7 +288,7 @@ async def calibrate_arm(
 
 
 def _record_solution(
-    rec: Any,
+    rec: JobRecording,
     T_ref_cam: np.ndarray,
     bias: float,
     found: Detections,

@@ -31,7 +31,7 @@ import uuid
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -51,6 +51,9 @@ from celld.supervision import Backoff, ChildRecords, Heartbeat
 from celld.tactile.camera import FrameSourceFactory, opencv_camera
 from celld.tactile.process import CAMERA_REALTIME, TactileProcess
 from celld.tactile.sample import TactileSample
+
+if TYPE_CHECKING:
+    from celld.recording.job import JobRecording
 
 log = get_logger(__name__)
 
@@ -491,7 +494,7 @@ class CellDevices:
 
     # -- recordings -----------------------------------------------------------------
 
-    def attach_recording(self, recording: Any) -> None:
+    def attach_recording(self, recording: JobRecording) -> None:
         """Feed robot 1's motion state batches to ``recording`` until it closes."""
         self._recordings.append(recording)
 

@@ -55,7 +55,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from celld import __version__, fsutil
 from celld.bus import schema
@@ -75,6 +75,9 @@ from celld.daemon.store import CalibrationStore, tool_store
 from celld.errors import CelldError, JobError, JournalError, StorageError
 from celld.journal import JobRecord, Journal, utc_now
 from celld.log import get_logger
+
+if TYPE_CHECKING:
+    from celld.recording.job import JobRecording
 
 log = get_logger(__name__)
 
@@ -108,7 +111,7 @@ class JobContext:
     job: Job
     state_dir: Path
     publish: ProgressSink
-    recording: Any = None  # celld.recording.JobRecording, or None
+    recording: JobRecording | None = None
     started_ns: int = field(default_factory=time.monotonic_ns)
 
     def progress(self, stage: str, fraction: float | None = None, message: str = "", **data: Any) -> None:
@@ -225,7 +228,7 @@ class JobManager:
         self._t0 = time.monotonic()
         self._endings: dict[str, _Ending] = {}
         self._cancel_reasons: dict[str, str] = {}
-        self._recording: Any = None  # the running job's recording, for status
+        self._recording: JobRecording | None = None  # the running job's recording, for status
         self.finished: dict[str, asyncio.Event] = {}
 
     # -- life cycle ---------------------------------------------------------------

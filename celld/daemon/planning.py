@@ -33,7 +33,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,6 +45,9 @@ from celld.log import get_logger
 from celld.robot import kinematics as kin
 from celld.robot.cellmodel import Box, CellObject, Rod
 from celld.robot.collision import Checker, PathCheck, Refusal
+
+if TYPE_CHECKING:
+    from celld.recording.job import JobRecording
 
 log = get_logger(__name__)
 
@@ -274,7 +277,7 @@ def report_plan(ctx: Any, plan: CalibrationPlan, what: str) -> None:
     )
 
 
-def record_plan(rec: Any, checker: Checker, joints: Sequence[Sequence[float]], name: str = "pose") -> None:
+def record_plan(rec: JobRecording | None, checker: Checker, joints: Sequence[Sequence[float]], name: str = "pose") -> None:
     """Draw a plan in a job recording: the cell's box objects and the arm with its tool at each joint vector.
 
     ``rec`` is a :class:`~celld.recording.job.JobRecording` (or None: nothing
@@ -288,7 +291,7 @@ def record_plan(rec: Any, checker: Checker, joints: Sequence[Sequence[float]], n
         rec.log_capsules(f"{name}_{i + 1:02d}", ends, radii)
 
 
-def record_cell(rec: Any, checker: Checker) -> None:
+def record_cell(rec: JobRecording | None, checker: Checker) -> None:
     """Draw the cell model's box objects, and another robot's waiting arm, in a job recording (``rec`` None: nothing to do)."""
     if rec is None:
         return
@@ -300,7 +303,7 @@ def record_cell(rec: Any, checker: Checker) -> None:
             rec.log_capsules(obj.name, half[None], [obj.shape.radius])
 
 
-def record_arm(rec: Any, checker: Checker, q: Sequence[float] | np.ndarray, stamp_ns: int | None = None) -> None:
+def record_arm(rec: JobRecording | None, checker: Checker, q: Sequence[float] | np.ndarray, stamp_ns: int | None = None) -> None:
     """Draw the arm (and the checker's tool) at joints ``q`` as ``/world/robot/arm`` at a time: the arm as it moved."""
     if rec is None:
         return

@@ -42,7 +42,7 @@ import math
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -63,6 +63,9 @@ from celld.seam.figures import contact_across
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
 from celld.tactile.tool import ToolGeometry
 from celld.weld.plan import WeldPlan, plan_weld, prepare_part, probe_across, probe_targets, probed_height, summarise
+
+if TYPE_CHECKING:
+    from celld.recording.job import JobRecording
 
 log = get_logger(__name__)
 
@@ -401,7 +404,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     return result
 
 
-def _log_preview(devices: CellDevices, rec: Any, last_stamp: int) -> int:
+def _log_preview(devices: CellDevices, rec: JobRecording | None, last_stamp: int) -> int:
     """Log the SRM camera's latest shared frame (with the tag's outline) if it is new; its stamp (in a worker thread:
     an image and the arm's capsules take milliseconds to encode)."""
     srm = devices.tactile.process
