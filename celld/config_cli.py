@@ -32,13 +32,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     check = psub.add_parser("check", help="validate a config file and print it resolved")
     check.add_argument("file")
     check.add_argument("--json", action="store_true", help="print the resolved config as JSON (passwords shown as ***)")
+    check.add_argument("--client", action="store_true", help="a client's config (the CLI's, an MES's): it needs no [robot]")
     check.set_defaults(func=_check)
 
 
 def plain(value: Any) -> Any:
     """A config value as JSON types: sections as objects, the raw ``[sim]`` table as it was read."""
     if is_dataclass(value) and not isinstance(value, type):
-        return {f.name: plain(getattr(value, f.name)) for f in fields(value)}
+        # What the config derived (not a key of the file) is not printed as one.
+        return {f.name: plain(getattr(value, f.name)) for f in fields(value) if not f.metadata.get("derived")}
     if isinstance(value, Mapping):
         return {str(k): plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -67,7 +69,7 @@ def _check(args: argparse.Namespace) -> int:
     cfg = config.load(args.file)
     for warning in config_warnings(cfg.bus):
         print(f"warning: {warning}", file=sys.stderr)
-    found = preflight(cfg)
+    found = preflight(cfg, daemon=not args.client)
     if found:
         for f in found:
             print(f"{cfg.source}: {f.key}: {f.reason}", file=sys.stderr)

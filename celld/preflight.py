@@ -3,8 +3,11 @@
 :func:`celld.config.load` checks a config on its own (types, ranges, the
 rules between sections) and is pure. :func:`preflight` checks what only the
 installed code and the machine can say: the flange preset and the tag
-dictionary exist, and the state directory can be written. ``celld config
-check`` prints its findings; the daemon refuses to start with any.
+dictionary exist, the state directory can be written, the TLS files of
+``[bus.tls]`` can be read; and that a daemon's config names its robot (a
+config without ``[robot]`` would drive 127.0.0.1; a client's needs none).
+``celld config check`` prints its findings; the daemon refuses to start
+with any.
 """
 
 from __future__ import annotations
@@ -38,9 +41,19 @@ def _writable_dir(path: Path) -> str:
     return ""
 
 
-def preflight(config: Config) -> list[Finding]:
-    """Every problem found (empty when the cell may start)."""
+def preflight(config: Config, daemon: bool = True) -> list[Finding]:
+    """Every problem found (empty when the cell may start); ``daemon`` False checks a client's config (the CLI's,
+    an MES's), which names no robot."""
     out: list[Finding] = []
+    if daemon and "robot" not in config.tables:
+        out.append(Finding("robot", "the config has no [robot] table: a daemon needs its robot's host (a client's config needs none)"))
+    tls = config.bus.tls
+    for key, path in ({} if tls is None else tls.paths()).items():
+        try:
+            with open(path, "rb"):
+                pass
+        except OSError as exc:
+            out.append(Finding(f"bus.tls.{key}", f"cannot read {path}: {exc.strerror or exc}"))
     from celld.calib.flange import preset
 
     try:

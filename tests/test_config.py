@@ -179,12 +179,41 @@ def test_includes_merge_and_cycles_are_refused(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as info:
         config.load(tmp_path / "loop.toml")
     assert info.value.key == "include"
+    # The config file itself a symlink loop: refused, naming it.
+    with pytest.raises(ConfigError, match="symlink loop") as info:
+        config.load(tmp_path / "l1.toml")
+    assert info.value.source == str(tmp_path / "l1.toml")
+
+
+@pytest.mark.parametrize("device", ["/dev/zero", "/dev/urandom"])
+def test_an_include_of_a_device_is_refused_before_a_byte_is_read(tmp_path: Path, device: str) -> None:
+    (tmp_path / "top.toml").write_text(f'include = ["{device}"]\n')
+    with pytest.raises(ConfigError, match="not a regular file") as info:
+        config.load(tmp_path / "top.toml")
+    assert info.value.source == device
+
+
+def test_a_config_file_too_large_or_empty_is_refused(tmp_path: Path) -> None:
+    big = tmp_path / "big.toml"
+    big.write_text("# " + "x" * (config.cell.MAX_FILE_BYTES + 10) + "\n")
+    with pytest.raises(ConfigError, match=r"bytes: a config file is at most"):
+        config.load(big)
+    (tmp_path / "top.toml").write_text('include = ["big.toml"]\n[robot]\nhost = "127.0.0.9"\n')
+    with pytest.raises(ConfigError, match=r"bytes: a config file is at most") as info:
+        config.load(tmp_path / "top.toml")
+    assert info.value.source == str(big)
+    (tmp_path / "empty.toml").write_text("")
+    with pytest.raises(ConfigError, match="the config is empty"):
+        config.load(tmp_path / "empty.toml")
+    (tmp_path / "comments.toml").write_text("# nothing but a comment\n")
+    with pytest.raises(ConfigError, match="the config is empty"):
+        config.load(tmp_path / "comments.toml")
 
 
 def test_preflight_names_unknown_presets_and_unwritable_state(tmp_path: Path) -> None:
     from celld.preflight import preflight
 
-    good = config.parse({"cell": {"state_dir": str(tmp_path / "state")}})
+    good = config.parse({"cell": {"state_dir": str(tmp_path / "state")}, "robot": {"host": "127.0.0.9"}})
     assert preflight(good) == []
     ro = tmp_path / "ro"
     ro.mkdir()
@@ -202,9 +231,41 @@ def test_preflight_names_unknown_presets_and_unwritable_state(tmp_path: Path) ->
     if os.getuid() != 0:  # root writes anywhere
         assert "not writable" in found["cell.state_dir"]
     (tmp_path / "afile").write_text("")
-    on_file = config.parse({"cell": {"state_dir": str(tmp_path / "afile" / "state")}})
+    on_file = config.parse({"cell": {"state_dir": str(tmp_path / "afile" / "state")}, "robot": {}})
     assert [f.key for f in preflight(on_file)] == ["cell.state_dir"]
     assert "is not a directory" in preflight(on_file)[0].reason
+
+
+def test_a_daemon_needs_its_robot_and_its_tls_files_and_a_client_needs_no_robot(tmp_path: Path) -> None:
+    from celld.preflight import preflight
+
+    client = config.parse({"cell": {"name": "cell-7", "state_dir": str(tmp_path / "state")}, "bus": {"connect": ["tcp/127.0.0.9:7447"]}})
+    assert preflight(client, daemon=False) == []
+    found = preflight(client)
+    assert [f.key for f in found] == ["robot"] and "no [robot] table" in found[0].reason
+    tls = {
+        "root_ca_certificate": str(tmp_path / "ca.pem"),
+        "listen_certificate": str(tmp_path / "cell.pem"),
+        "listen_private_key": str(tmp_path / "cell.key"),
+    }
+    (tmp_path / "ca.pem").write_text("-----BEGIN CERTIFICATE-----\n")
+    with_tls = config.parse(
+        {"cell": {"state_dir": str(tmp_path / "state")}, "robot": {}, "bus": {"listen": ["tls/127.0.0.9:7447"], "tls": tls}}
+    )
+    found = {f.key: f.reason for f in preflight(with_tls)}
+    assert sorted(found) == ["bus.tls.listen_certificate", "bus.tls.listen_private_key"]
+    assert "cannot read" in found["bus.tls.listen_certificate"] and str(tmp_path / "cell.pem") in found["bus.tls.listen_certificate"]
+
+
+def test_a_tool_of_kilometres_is_refused() -> None:
+    with pytest.raises(ConfigError, match=r"tip_tcp_mm.*within 1000 mm of the TCP") as info:
+        config.parse({"tool": {"tip_tcp_mm": [2e6, 0.0, 0.0]}})
+    assert info.value.key == "tool.tip_tcp_mm"
+    with pytest.raises(ConfigError, match="within 1 m of the tool frame") as info:
+        config.parse({"tool": {"T_tool_cam": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2000.0], [0, 0, 0, 1]]}})
+    assert info.value.key == "tool.T_tool_cam"
+    with pytest.raises(ConfigError, match="tcp_offset"):
+        config.parse({"robot": {"tcp_offset": [0.0, 0.0, 2000.0, 0.0, 0.0, 0.0]}})
 
 
 def test_a_jobs_servo_overrides_are_held_to_the_configs_rules() -> None:

@@ -11,6 +11,7 @@ another section (``calibration.range_bias`` on the scanner).
 from __future__ import annotations
 
 import copy
+import stat
 import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
@@ -65,6 +66,8 @@ class Config:
     sim: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
     # A second robot in view of the scanner ([robot2]), None for a one-robot cell.
     robot2: Robot2Config | None = None
+    # The tables the file gave (a daemon's config must give [robot]: celld.preflight); not a key of the file.
+    tables: frozenset[str] = field(default=frozenset(), compare=False, metadata={"derived": True})
 
     def T_base_cam_nominal(self) -> np.ndarray:
         return np.array(self.scanner.T_base_cam, dtype=np.float64)
@@ -97,16 +100,48 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _read_toml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
-    source = str(path)
-    if path in seen:
-        raise ConfigError(source, "include", "include cycle: " + " -> ".join(str(p) for p in (*seen, path)))
+# A config file (or an include) larger than this is no config: refused before it is read, bytes.
+MAX_FILE_BYTES = 1 << 20
+
+
+def _resolve(path: Path, source: str, key: str) -> Path:
+    """``path`` with every link followed; a missing file or a symlink loop refused (an include named by its path)."""
+    what = f"{path}: " if key else ""
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        return path.resolve(strict=True)
+    except FileNotFoundError as exc:
+        raise ConfigError(source, key, f"{what}file not found") from exc
+    except (RuntimeError, OSError) as exc:  # Python 3.11 says RuntimeError for a symlink loop
+        raise ConfigError(source, key, f"{what}cannot follow its links (a symlink loop?): {exc}") from exc
+
+
+def _read_text(path: Path, source: str) -> str:
+    """A config file's text: only a regular file of at most :data:`MAX_FILE_BYTES` (a device such as /dev/zero or a
+    FIFO would never end)."""
+    try:
+        st = path.stat()
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError(source, "", "not a regular file (a device, a FIFO or a directory is no config)")
+        if st.st_size > MAX_FILE_BYTES:
+            raise ConfigError(source, "", f"{st.st_size} bytes: a config file is at most {MAX_FILE_BYTES} bytes")
+        with path.open("rb") as f:
+            raw = f.read(MAX_FILE_BYTES + 1)
+        if len(raw) > MAX_FILE_BYTES:
+            raise ConfigError(source, "", f"it grew beyond {MAX_FILE_BYTES} bytes while it was read")
+        return raw.decode("utf-8")
     except FileNotFoundError as exc:
         raise ConfigError(source, "", "file not found") from exc
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(source, "", f"cannot read: {exc}") from exc
+
+
+def _read_toml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    source = str(path)
+    if path in seen:
+        raise ConfigError(source, "include", "include cycle: " + " -> ".join(str(p) for p in (*seen, path)))
+    text = _read_text(path, source)
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(source, "", f"not valid TOML: {exc}") from exc
     includes = data.pop("include", [])
@@ -114,10 +149,7 @@ def _read_toml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
         raise ConfigError(source, "include", f"expected a list of file paths, got {includes!r}")
     merged: dict[str, Any] = {}
     for inc in includes:
-        try:
-            target = (path.parent / inc).resolve()
-        except (RuntimeError, OSError) as exc:  # a symlink loop
-            raise ConfigError(source, "include", f"cannot resolve {inc!r}: {exc}") from exc
+        target = _resolve(path.parent / inc, source, "include")
         merged = _merge(merged, _read_toml(target, (*seen, path)))
     return _merge(merged, data)
 
@@ -125,7 +157,7 @@ def _read_toml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
 def parse(data: dict[str, Any], source: str = "<dict>") -> Config:
     """Validate a TOML-shaped dict into a :class:`Config`."""
     top = TableReader(data, source)
-    values: dict[str, Any] = {"source": source}
+    values: dict[str, Any] = {"source": source, "tables": frozenset(k for k, v in data.items() if isinstance(v, dict))}
     for name, reader in _SECTIONS.items():
         sub = top.table(name)
         values[name] = reader(sub)
@@ -183,5 +215,8 @@ def load(path: str | Path) -> Config:
     ConfigError
         The file, the dotted key and the reason of the first problem found.
     """
-    path = Path(path).resolve()
-    return parse(_read_toml(path), str(path))
+    path = _resolve(Path(path), str(path), "")
+    data = _read_toml(path)
+    if not data:
+        raise ConfigError(str(path), "", "the config is empty: a cell's config names at least its [cell] and [robot]")
+    return parse(data, str(path))

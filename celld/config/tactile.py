@@ -50,6 +50,9 @@ _MOVED_FROM_TACTILE = {
     },
 }
 
+# A welding tool's tip, and its camera, lie within this of the TCP (m): a kilometre is a unit slip.
+MAX_TOOL_REACH = 1.0
+
 
 @dataclass(frozen=True)
 class TactileConfig:
@@ -163,12 +166,23 @@ class ToolConfig:
         if abs(float(np.dot(tool_x, tool_z))) > 1e-6:
             raise r.error("tool_z_tcp", f"expected a direction perpendicular to tool_x_tcp {tool_x}, got {tool_z}")
         lo, hi = SERVO_BOUNDS["torch_offset"].lo * 1e3, SERVO_BOUNDS["torch_offset"].hi * 1e3
+        tip = r.vector("tip_tcp_mm", 3, [x * 1e3 for x in cls.tip_tcp], scale=1e-3)
+        if np.linalg.norm(tip) > MAX_TOOL_REACH:
+            raise r.error(
+                "tip_tcp_mm", f"expected the tip within {MAX_TOOL_REACH * 1e3:g} mm of the TCP (millimetres), got {[v * 1e3 for v in tip]}"
+            )
+        T_tool_cam = r.matrix4("T_tool_cam", [list(row) for row in cls.T_tool_cam])
+        if np.linalg.norm(np.asarray(T_tool_cam)[:3, 3]) > MAX_TOOL_REACH:
+            raise r.error(
+                "T_tool_cam",
+                f"expected the camera within {MAX_TOOL_REACH:g} m of the tool frame (metres), got {np.asarray(T_tool_cam)[:3, 3].tolist()}",
+            )
         return cls(
             tool_x_tcp=tool_x,
             tool_z_tcp=tool_z,
-            tip_tcp=r.vector("tip_tcp_mm", 3, [x * 1e3 for x in cls.tip_tcp], scale=1e-3),  # type: ignore[arg-type]
+            tip_tcp=tip,  # type: ignore[arg-type]
             tip_radius=r.float("tip_radius_mm", cls.tip_radius * 1e3, lo=0.0, hi=20.0, scale=1e-3),
-            T_tool_cam=r.matrix4("T_tool_cam", [list(row) for row in cls.T_tool_cam]),
+            T_tool_cam=T_tool_cam,
             wall_side=r.str("wall_side", cls.wall_side, choices=("left", "right")),
             torch_offset=r.float("torch_offset_mm", cls.torch_offset * 1e3, lo=lo, hi=hi, scale=1e-3, open_lo=True),
             wire_diameter=r.float("wire_diameter_mm", cls.wire_diameter * 1e3, lo=0.2, hi=5.0, scale=1e-3),

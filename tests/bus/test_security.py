@@ -191,7 +191,7 @@ def test_an_open_bus_off_loopback_is_warned_about() -> None:
 
 def _config(tmp_path: Path, bus: str) -> Path:
     path = tmp_path / "cell.toml"
-    path.write_text(f'[cell]\nname = "cell-a"\nstate_dir = "{tmp_path / "state"}"\n\n[bus]\n{bus}')
+    path.write_text(f'[cell]\nname = "cell-a"\nstate_dir = "{tmp_path / "state"}"\n\n[robot]\nhost = "127.0.0.9"\n\n[bus]\n{bus}')
     return path
 
 
