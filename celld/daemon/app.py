@@ -84,8 +84,10 @@ class Daemon:
         self.loop_watch.install()
         self._tasks.append(asyncio.get_running_loop().create_task(self.loop_watch.run(), name="celld-loop-watch"))
         self.state_dir.mkdir(parents=True, exist_ok=True)
-        fsutil.remove_stale_temporaries(self.state_dir)
+        # The journal's lock first: a second daemon on this state directory is refused before it touches
+        # anything in it (the temporaries below may be a running daemon's writes in flight).
         self._journal = Journal(self.state_dir / "journal.db")
+        fsutil.remove_stale_temporaries(self.state_dir)
         for record in self._journal.recovered:
             log.warning("job interrupted by the previous stop", job=record.id, kind=record.kind)
         self.notifier.status("opening devices")
