@@ -90,6 +90,14 @@ _DRAIN_PERIOD = 0.2
 # State batches waiting for the recording's feed thread (:meth:`JobRecording.feed_state_batch`); beyond
 # this (about 30 s of 500 Hz state in 0.1 s batches) a batch is dropped and counted.
 _FEED_DEPTH = 300
+# The feed thread sends the motion state it was handed at most this often, s: every send_columns call
+# costs the GIL a fixed time in rerun's Python conversion, so many small batches cost the daemon more
+# than a few large ones.
+_STATE_FLUSH_PERIOD = 0.5
+
+
+def _idle() -> None:
+    """What the feed thread runs when nothing was queued for a while."""
 
 
 def recording_path(state_dir: str | Path, job_id: str) -> Path:
@@ -293,7 +301,7 @@ class JobRecording:
         self._lock = threading.Lock()
         self._named: set[str] = set()
         self._ignored_reported: set[str] = set()
-        self._feed: queue.Queue[Callable[[], Any] | None] = queue.Queue(_FEED_DEPTH)
+        self._feed: queue.Queue[Callable[[], Any] | np.ndarray | None] = queue.Queue(_FEED_DEPTH)
         self._feeding: threading.Thread | None = None
         self.dropped_batches = 0  # state batches the feed had no room for
         self._log = log.bind(job=job_id, kind=kind)
@@ -727,10 +735,11 @@ class JobRecording:
         return n
 
     def feed_state_batch(self, batch: np.ndarray) -> None:
-        """Hand a batch of motion-state records to the recording's feed thread, which sends it
-        (:meth:`log_state_batch`); returns at once, so the daemon's event loop never waits for rerun.
-        A batch the feed has no room for is dropped and counted (:attr:`dropped_batches`)."""
-        if not self.later(self.log_state_batch, batch):
+        """Hand a batch of motion-state records to the recording's feed thread, which sends what it was handed
+        every :data:`_STATE_FLUSH_PERIOD` s as one batch (:meth:`log_state_batch`); returns at once, so the
+        daemon's event loop never waits for rerun. A batch the feed has no room for is dropped and counted
+        (:attr:`dropped_batches`)."""
+        if not self._put(batch):
             self.dropped_batches += 1
 
     def event_later(self, text: str, level: str = "INFO") -> None:
@@ -740,26 +749,50 @@ class JobRecording:
     def later(self, method: Callable[..., Any], *args: Any) -> bool:
         """Queue ``method(*args)`` (a log method of this recording) for the feed thread, in order; False when the
         feed is full or the recording closed (nothing queued)."""
+        return self._put(partial(method, *args))
+
+    def _put(self, item: Callable[[], Any] | np.ndarray) -> bool:
         if not self._active():
             return False
         if self._feeding is None:
             self._feeding = threading.Thread(target=self._feed_forever, name=f"rrd-feed-{self.job_id}", daemon=True)
             self._feeding.start()
         try:
-            self._feed.put_nowait(partial(method, *args))
+            self._feed.put_nowait(item)
         except queue.Full:
             return False
         return True
 
     def _feed_forever(self) -> None:
+        """Run the queued calls in order; gather the state batches and send them together now and then."""
+        state: list[np.ndarray] = []
+        last = time.monotonic()
         while True:
-            call = self._feed.get()
-            if call is None:
-                return
             try:
-                call()
-            except CelldError as exc:
-                self._log.warning("recording feed: not recorded", error=str(exc))
+                item = self._feed.get(timeout=_STATE_FLUSH_PERIOD)
+            except queue.Empty:
+                item = _idle
+            if item is None:
+                self._send_state(state)
+                return
+            if isinstance(item, np.ndarray):
+                state.append(item)
+            else:
+                self._run(item)
+            if state and time.monotonic() - last >= _STATE_FLUSH_PERIOD:
+                self._send_state(state)
+                state = []
+                last = time.monotonic()
+
+    def _send_state(self, batches: list[np.ndarray]) -> None:
+        if batches:
+            self._run(partial(self.log_state_batch, np.concatenate(batches)))
+
+    def _run(self, call: Callable[[], Any]) -> None:
+        try:
+            call()
+        except CelldError as exc:
+            self._log.warning("recording feed: not recorded", error=str(exc))
 
     def log_e_icp(self, iteration: int, e_icp: float, stamp_ns: int | None = None) -> None:
         """Log the ICP error metric of Eq. 13 (metres) for one Algorithm 1 iteration.
