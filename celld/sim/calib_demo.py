@@ -85,7 +85,12 @@ def calibrate_in_world(
     unit = scanner_model(sc.model) if sc.metal_bias is None else replace(scanner_model(sc.model), metal_bias=sc.metal_bias)
     home = np.asarray(cfg.robot.home_q, dtype=np.float64)
     scanner = SimScanner(
-        unit, true_camera(world, home), seed=seed, resolution_scale=sc.resolution_scale, measure=None if sc.ideal else sc.measure
+        unit,
+        true_camera(world, home),
+        seed=seed,
+        resolution_scale=sc.resolution_scale,
+        roi_px=sc.roi_px,
+        measure=None if sc.ideal else sc.measure,
     )
     mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model)
 

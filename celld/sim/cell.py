@@ -142,6 +142,7 @@ def open_world_scanner(world: World, part: SimWorkpiece | None, host: str, host2
         ),
         seed=sc.noise_seed,
         resolution_scale=sc.resolution_scale,
+        roi_px=sc.roi_px,
         on_close=close,
         measure=None if sc.ideal else sc.measure,
         capture_delay=sc.capture_delay,

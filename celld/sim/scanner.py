@@ -433,6 +433,9 @@ class SimulatedScanner:
         The exposure happens this long (s, uniform in the range, seeded) after
         the capture is asked for: the scene is what is in view then, not when
         the caller last read the robot's state.
+    roi_px : tuple of 4 int or None
+        Region of interest ``(row0, row1, col0, col1)`` of the (scaled) image,
+        as :class:`SimScanner`'s: only it is cast. None for the whole image.
     """
 
     def __init__(
@@ -446,6 +449,7 @@ class SimulatedScanner:
         on_close: Callable[[], None] | None = None,
         measure: Callable[[np.ndarray], np.ndarray] | None = None,
         capture_delay: tuple[float, float] = (0.0, 0.0),
+        roi_px: tuple[int, int, int, int] | None = None,
     ) -> None:
         if not callable(scene):
             raise InputError(f"simulated scanner: expected a callable scene source, got {type(scene).__name__}")
@@ -456,7 +460,7 @@ class SimulatedScanner:
         self._scene = scene
         self._pose = T_base_cam if callable(T_base_cam) else None
         T0 = np.eye(4) if callable(T_base_cam) else np.asarray(T_base_cam, dtype=np.float64)  # a moving one is placed at each capture
-        self._sim = SimScanner(model, T0, seed=seed, resolution_scale=resolution_scale, clock=clock, measure=measure)
+        self._sim = SimScanner(model, T0, seed=seed, resolution_scale=resolution_scale, clock=clock, roi_px=roi_px, measure=measure)
         self._delay = (float(lo), float(hi))
         self._delay_rng = np.random.default_rng([seed, 0xDE1A])
         self._seed = seed

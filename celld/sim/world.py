@@ -29,7 +29,7 @@ its drawing, the world the simulated cell had before it owned one) and
     robot = "ur10e"           # the arm's model (its nominal DH table)
     flange = "ur10e"          # the flange preset on the wrist, as drawn
     [sim.scanner]             # model, mount (base | link1-3), T_base_cam or T_link_cam (as mounted by drawing),
-                              # resolution_scale, seed (noise)
+                              # resolution_scale, roi_px (a window of the image: only it is cast), seed (noise)
     [sim.tool]                # the welding tool as drawn, flange frame: the keys of [tool]
     [sim.part]                # workpiece ("" for none), pose (UR pose; default the nominal place), bow_mm
     [sim.errors]              # <source> = true|false, and magnitudes (ERROR_KEYS) over the preset's
@@ -292,6 +292,9 @@ class NominalCell:
     scanner_mount: str = "base"
     T_link_cam: tuple[tuple[float, ...], ...] | None = None
     resolution_scale: float = 1.0  # image scale of the simulated scanner (0.01 to 1)
+    # The scanner's region of interest (row0, row1, col0, col1) in pixels of its (scaled) image: only it
+    # is cast, the rest of each cloud has no return, as on a scanner with an ROI set; None: the whole image.
+    scanner_roi_px: tuple[int, int, int, int] | None = None
     scanner_seed: int = 0  # seed of the scanner's noise (mixed with the world's)
     # The welding tool as drawn, in the flange frame (the keys of [tool]).
     tool: ToolConfig = field(default_factory=ToolConfig)
@@ -333,14 +336,17 @@ class NominalCell:
         elif sc.has("T_link_cam"):
             raise sc.error("T_link_cam", "only a scanner on the arm (mount = link1-3) has a pose on a link")
 
+        scanner = sc.str("model", cls.scanner, choices=SCANNER_MODELS)
+        resolution_scale = sc.float("resolution_scale", 1.0, lo=0.01, hi=1.0)
         out = cls(
             robot=r.str("robot", cls.robot, choices=ROBOT_MODELS),
             flange=r.str("flange", cls.flange),
-            scanner=sc.str("model", cls.scanner, choices=SCANNER_MODELS),
+            scanner=scanner,
             T_base_cam=sc.matrix4("T_base_cam", [list(row) for row in DEFAULT_T_BASE_CAM]),
             scanner_mount=mount,
             T_link_cam=T_link_cam,
-            resolution_scale=sc.float("resolution_scale", 1.0, lo=0.01, hi=1.0),
+            resolution_scale=resolution_scale,
+            scanner_roi_px=_read_roi(sc, scanner, resolution_scale) if sc.has("roi_px") else None,
             scanner_seed=sc.int("seed", 0, lo=0),
             tool=ToolConfig.read(tool_r),
             workpiece=part.str("workpiece", "", choices=("", *EXAMPLES)),
@@ -364,6 +370,24 @@ class NominalCell:
         if out.part_bow != 0.0 and out.workpiece not in ("v-groove", "curved-groove"):
             raise part.error("bow_mm", f"only a groove can bow, not {out.workpiece or 'no part'!r}")
         return out
+
+
+def _read_roi(sc: TableReader, model: str, resolution_scale: float) -> tuple[int, int, int, int]:
+    """``[sim.scanner] roi_px``: (row0, row1, col0, col1), whole pixels of the scanner's image at its resolution_scale."""
+    from celld.sim.scanner import scanner_model
+
+    m = scanner_model(model).scaled(resolution_scale)
+    value = sc.vector("roi_px", 4)
+    if not all(v == int(v) for v in value):
+        raise sc.error("roi_px", f"expected whole pixels [row0, row1, col0, col1], got {list(value)}")
+    r0, r1, c0, c1 = (int(v) for v in value)
+    if not (0 <= r0 < r1 <= m.height_px and 0 <= c0 < c1 <= m.width_px):
+        raise sc.error(
+            "roi_px",
+            f"expected 0 <= row0 < row1 <= {m.height_px} and 0 <= col0 < col1 <= {m.width_px} "
+            f"(the {model}'s image at resolution_scale {resolution_scale:g}), got {[r0, r1, c0, c1]}",
+        )
+    return r0, r1, c0, c1
 
 
 @dataclass(frozen=True)
@@ -481,6 +505,7 @@ class ScannerTruth:
     resolution_scale: float
     noise_seed: int
     link: int = 0  # 0: fixed in the base frame; k: on the frame after joint k
+    roi_px: tuple[int, int, int, int] | None = None  # the window of the (scaled) image that is cast; None: all of it
 
     @property
     def T_base_cam(self) -> Array:
@@ -707,7 +732,7 @@ def _draw_scanner(nominal: NominalCell, b: ErrorBudget, seed: int) -> ScannerTru
         bias = max(0.0, model.metal_bias + float(_tnormal(_rng(seed, "metal_bias"), b.metal_bias, 1)[0]))
     delay = b.capture_delay if b.on("capture_delay") else (0.0, 0.0)
     noise_seed = nominal.scanner_seed + 1_000_003 * seed
-    return ScannerTruth(nominal.scanner, T, scale, dfield, bias, delay, nominal.resolution_scale, noise_seed, link)
+    return ScannerTruth(nominal.scanner, T, scale, dfield, bias, delay, nominal.resolution_scale, noise_seed, link, nominal.scanner_roi_px)
 
 
 # ISO 9409-1 fits of the 50-4-M6 face as a ratio of the nominal: d2 h8 on 63 mm is -46..0 um, d3 H7 on 31.5 mm 0..+25 um.

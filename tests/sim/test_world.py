@@ -219,10 +219,24 @@ def test_the_sim_table_is_read_and_checked_by_the_simulator() -> None:
         ({**TABLE, "scanner": {"mount": "link1"}}, "sim.scanner.T_link_cam"),
         ({**TABLE, "scanner": {"T_link_cam": np.eye(4).tolist()}}, "sim.scanner.T_link_cam"),
         ({**TABLE, "scanner": {"mount": "elbow"}}, "sim.scanner.mount"),
+        ({**TABLE, "scanner": {"roi_px": [0, 100, 0]}}, "sim.scanner.roi_px"),
+        ({**TABLE, "scanner": {"roi_px": [0, 100.5, 0, 100]}}, "sim.scanner.roi_px"),
+        ({**TABLE, "scanner": {"roi_px": [100, 100, 0, 100]}}, "sim.scanner.roi_px"),
+        # Pixels of the image at its resolution_scale: the PhoXi M's 1544 rows are 772 at half.
+        ({**TABLE, "scanner": {"resolution_scale": 0.5, "roi_px": [0, 800, 0, 100]}}, "sim.scanner.roi_px"),
     ):
         with pytest.raises(ConfigError) as exc:
             world_of(parse({"sim": table}))
         assert exc.value.key == key, (exc.value.key, key)
+
+
+def test_the_scanners_region_of_interest_is_read_in_pixels_of_its_scaled_image() -> None:
+    w = world_of(parse({"sim": {**TABLE, "scanner": {"resolution_scale": 0.5, "roi_px": [100, 772, 0, 1032]}}}))
+    assert w.scanner.roi_px == (100, 772, 0, 1032) and w.scanner.resolution_scale == 0.5
+    assert world_of(parse({"sim": TABLE})).scanner.roi_px is None
+    # A capture setting, not an error: the world drawn is the same.
+    same = world_of(parse({"sim": {**TABLE, "scanner": {"resolution_scale": 0.5}}}))
+    assert _components(w) == _components(same)
 
 
 def test_a_scanner_on_the_arm_is_where_the_true_joints_put_its_link() -> None:
