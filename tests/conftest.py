@@ -1,18 +1,45 @@
-"""Shared fixtures: seeded generators and per-test loopback addresses."""
+"""Shared fixtures: seeded generators and per-test loopback addresses; the cell tests' xdist group."""
 
 from __future__ import annotations
 
 import itertools
 import os
+import zlib
 
 import numpy as np
 import pytest
 
 # Each test that needs the network takes its own 127.0.X.N, so fixed ports
-# (RTDE 30004, dashboard 29999) never collide. Each run takes the block
-# X = 1 + pid % 200 (250 addresses), so parallel runs stay apart and clear of
-# 127.0.0.1 and the demo's 127.0.0.2.
-_hosts = itertools.count((1 + os.getpid() % 200) * 250)
+# (RTDE 30004, dashboard 29999) never collide. Each process that runs tests
+# takes one block X in 1..200 (250 addresses), clear of 127.0.0.1 and the
+# demo's 127.0.0.2: an xdist worker the block after its run's base plus its
+# worker number (gw0, gw1, ...), so a run's workers never share one; a run
+# without workers the base itself. The base comes from the run's id (the
+# same in every worker of a run) or the process id, so parallel runs stay
+# apart too.
+_BLOCKS = 200
+_PER_BLOCK = 250
+
+
+def _block() -> int:
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID", "")
+    base = zlib.crc32(run.encode()) if run else os.getpid()
+    index = int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else 0
+    return 1 + (base + index) % _BLOCKS
+
+
+_BLOCK = _block()
+_hosts = itertools.count()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Every test that starts a simulated cell goes to one xdist worker (``--dist loadgroup``): a cell is a
+    robot simulator, a daemon and its motion and camera processes, and two of them would fight over two cores."""
+    for item in items:
+        if item.get_closest_marker("cell") is not None:
+            item.add_marker(pytest.mark.xdist_group("cell"))
 
 
 @pytest.fixture
@@ -21,8 +48,8 @@ def rng() -> np.random.Generator:
 
 
 def _next_host() -> str:
-    n = next(_hosts)
-    return f"127.0.{n // 250}.{n % 250 + 2}"
+    """A loopback address of this process's block not handed out before (they wrap after 250)."""
+    return f"127.0.{_BLOCK}.{next(_hosts) % _PER_BLOCK + 2}"
 
 
 @pytest.fixture
@@ -33,6 +60,12 @@ def loopback_host() -> str:
 @pytest.fixture
 def loopback_host2() -> str:
     """A second address of this test's own, for a second simulated robot."""
+    return _next_host()
+
+
+@pytest.fixture(scope="module")
+def module_loopback_host() -> str:
+    """An address of this module's own, for a fixture its tests share (a simulated cell)."""
     return _next_host()
 
 

@@ -32,6 +32,7 @@ def test_a_forged_ply_header_is_refused_before_any_allocation(tmp_path: Path) ->
         read_cloud(path, "m")
 
 
+@pytest.mark.process
 def test_reading_the_forged_ply_stays_small_in_a_capped_process(tmp_path: Path) -> None:
     # The defect: Open3D allocated the 5e8 declared points (24 GB). Under a
     # 3 GB address-space cap the reader must refuse, not die.

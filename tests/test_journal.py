@@ -140,6 +140,7 @@ _WRITER = textwrap.dedent(
 
 
 @pytest.mark.parametrize("mode", ["mid-write", "after-write"])
+@pytest.mark.process
 def test_kill_9_during_a_job_leaves_it_interrupted_and_no_half_file(tmp_path: Path, mode: str) -> None:
     path, result = tmp_path / "jobs.sqlite3", tmp_path / "result.bin"
     child = subprocess.Popen([sys.executable, "-c", _WRITER, str(path), str(result), mode], stdout=subprocess.PIPE, text=True)
@@ -177,7 +178,7 @@ _CHURN = textwrap.dedent(
 )
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_kill_9_at_random_moments_never_damages_journal_or_results(tmp_path: Path) -> None:
     rng = np.random.default_rng(7)
     path, results = tmp_path / "jobs.sqlite3", tmp_path / "results"

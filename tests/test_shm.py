@@ -59,6 +59,7 @@ def _writer(name: str, n: int) -> None:
     slot.close()
 
 
+@pytest.mark.process
 def test_slot_readers_never_see_a_mixed_sample_across_processes() -> None:
     name = _name("xproc")
     slot = SeqlockSlot.create(name, DT)

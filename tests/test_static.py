@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.process  # ruff and mypy run as child processes
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -25,7 +27,6 @@ def test_the_code_is_formatted() -> None:
     assert out.returncode == 0, "run `ruff format celld tests bench examples`:\n" + out.stdout + out.stderr
 
 
-@pytest.mark.slow
 def test_mypy_finds_nothing() -> None:
     out = _run("mypy", "celld")
     assert out.returncode == 0, out.stdout + out.stderr

@@ -55,6 +55,7 @@ def _with_fields(stat: bytes, **fields: bytes) -> bytes:
     return head + b" " + b" ".join(tail) + b"\n"
 
 
+@pytest.mark.process
 def test_the_parents_proc_entry_says_when_it_is_killed_exiting_or_a_zombie() -> None:
     # A command name with spaces and parentheses, as a process may set it.
     alive = Path("/proc/self/stat").read_bytes().replace(b"(python", b"(py (thon) x", 1)
@@ -101,6 +102,7 @@ def _middle(parent_ready, result, heartbeat: str) -> None:  # type: ignore[no-un
     os._exit(0)  # dies at once, as kill -9 would leave it
 
 
+@pytest.mark.process
 def test_a_child_sees_its_parent_die_within_milliseconds() -> None:
     ctx = mp.get_context("spawn")
     ready, result = ctx.Event(), ctx.Queue()
@@ -113,6 +115,7 @@ def test_a_child_sees_its_parent_die_within_milliseconds() -> None:
     assert t_seen - t_dead < 0.1
 
 
+@pytest.mark.process
 def test_leftover_children_are_stopped_and_their_shared_memory_removed(tmp_path: Path) -> None:
     records = ChildRecords(tmp_path / "run")
     # A child that ignores nothing: SIGTERM ends it.

@@ -52,12 +52,14 @@ def test_unit_has_what_the_cell_needs() -> None:
         assert re.search(rf"^{re.escape(line)}$", text, re.M), line
 
 
+@pytest.mark.process
 def test_systemd_analyze_verify_prints_nothing(tmp_path: Path) -> None:
     result = _analyze("verify", "--man=no", str(_installable_copy(tmp_path)))
     assert result.returncode == 0, result.stderr
     assert result.stderr == "", result.stderr
 
 
+@pytest.mark.process
 def test_verify_does_report_a_misspelt_key(tmp_path: Path) -> None:
     """The check above can fail: a typo is on stderr while the exit code stays 0."""
     broken = UNIT.read_text().replace("WatchdogSec=2s", "WatchdogSecs=2s")
@@ -65,6 +67,7 @@ def test_verify_does_report_a_misspelt_key(tmp_path: Path) -> None:
     assert "Unknown key 'WatchdogSecs'" in result.stderr
 
 
+@pytest.mark.process
 def test_security_exposure_is_below_threshold(tmp_path: Path) -> None:
     unit = _installable_copy(tmp_path)
     result = _analyze("security", "--offline=true", f"--threshold={EXPOSURE_THRESHOLD}", str(unit))

@@ -169,6 +169,7 @@ def test_the_example_mes_client_imports_only_zenoh_the_standard_library_and_json
     assert names - set(sys.stdlib_module_names) <= {"zenoh", "jsonschema"}, names
 
 
+@pytest.mark.process
 def test_the_example_mes_client_runs_a_job_end_to_end(cell, tmp_path: Path) -> None:
     bundle = tmp_path / "bundle"
     export_schemas(bundle)

@@ -136,7 +136,6 @@ def _is_valid_submit(payload: bytes) -> bool:
     return True
 
 
-@pytest.mark.slow
 def test_fuzzed_submits_are_all_answered_and_the_journal_stays_intact(serve_cell) -> None:
     cell = serve_cell(job_duration=0.0)
     cell.cell.max_queue = 1000

@@ -110,7 +110,6 @@ def sim_session(sim_sessions: dict[str, Path]) -> Path:
     return sim_sessions["compact"]
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("redetect", [False, True])
 def test_a_compact_session_solves_exactly_as_the_float_one(sim_sessions: dict[str, Path], redetect: bool, capsys) -> None:
     assert (sim_sessions["compact"] / "p000.cloud.json").is_file() and (sim_sessions["float"] / "p000.ply").is_file()
@@ -127,7 +126,6 @@ def test_a_compact_session_solves_exactly_as_the_float_one(sim_sessions: dict[st
     assert compact["e_icp"]["translation_mm"] == pytest.approx(full["e_icp"]["translation_mm"], rel=1e-9, abs=1e-12)
 
 
-@pytest.mark.slow
 def test_solve_a_saved_simulated_session_end_to_end(sim_session: Path, capsys) -> None:
     code, out = run(capsys, "calib", "solve", str(sim_session), "--json")
     assert code == 0
@@ -154,7 +152,6 @@ def test_solve_a_saved_simulated_session_end_to_end(sim_session: Path, capsys) -
     assert len(out["rejected"]) == 4 + sum("detection" in r["reason"] for r in out["rejected_detail"])
 
 
-@pytest.mark.slow
 def test_detect_one_cloud_in_millimetres(sim_session: Path, tmp_path: Path, capsys) -> None:
     from celld.calib.dataset import load_session
 

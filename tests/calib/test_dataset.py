@@ -257,7 +257,6 @@ def captures() -> tuple[list[tuple[np.ndarray, np.ndarray]], object]:
     return [(T, scanner.capture(robot_scene(T, flange)).points) for T in poses], scanner.model
 
 
-@pytest.mark.slow
 def test_the_writer_keeps_exact_what_the_detector_reads(tmp_path: Path, captures) -> None:
     clouds, _ = captures
     T_v, P_v = clouds[0]
@@ -288,7 +287,6 @@ def test_the_writer_keeps_exact_what_the_detector_reads(tmp_path: Path, captures
     assert size < 0.1 * 2 * P.size * 4
 
 
-@pytest.mark.slow
 def test_behind_a_scanner_roi_the_finer_coarse_grid_is_kept_exact(tmp_path: Path) -> None:
     from celld.sim.scanner import SimScanner
     from celld.sim.scene import robot_scene
@@ -309,7 +307,6 @@ def test_behind_a_scanner_roi_the_finer_coarse_grid_is_kept_exact(tmp_path: Path
     np.testing.assert_array_equal(detect_flange(Q, preset("ur10e"), PARAMS_BY_SCANNER["phoxi-m"]).center, det.center)
 
 
-@pytest.mark.slow
 def test_a_missing_flange_is_kept_around_where_the_session_expects_it(tmp_path: Path, captures) -> None:
     clouds, model = captures
     w = SessionWriter(tmp_path / "early", flange="ur10e", scanner="phoxi-m")
@@ -331,7 +328,6 @@ def test_a_missing_flange_is_kept_around_where_the_session_expects_it(tmp_path: 
     assert (r1 - r0) * (c1 - c0) < 0.2 * model.width_px * model.height_px
 
 
-@pytest.mark.slow
 def test_float_sessions_still_load_and_resume(tmp_path: Path, captures) -> None:
     clouds, _ = captures
     (T0, P0), (T1, P1) = clouds[:2]
@@ -354,7 +350,6 @@ def test_float_sessions_still_load_and_resume(tmp_path: Path, captures) -> None:
     np.testing.assert_allclose(session.pairs[0].T_base_flange, T0)
 
 
-@pytest.mark.slow
 def test_a_full_resolution_phoxi_m_pair_fits_the_budget(tmp_path: Path) -> None:
     """60 MB for a 20-pose session: 3 MB a pair, against 38 MB as float PLY."""
     from celld.sim.scanner import SimScanner

@@ -26,8 +26,6 @@ from celld.sim import workpiece as simscene
 from celld.sim.scanner import SCANNER_MODELS, SimScanner
 from celld.sim.scene import robot_scene
 
-pytestmark = pytest.mark.slow
-
 # The simulator's truth (Eq. 19); the estimators never see it.
 T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
 TRUE_BIAS = SCANNER_MODELS["azure-kinect"].metal_bias

@@ -21,7 +21,7 @@ from celld.bus.client import CellClient
 from celld.journal import Journal
 from celld.recording.readback import read_component, read_entities
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.cell
 
 ROOT = Path(__file__).resolve().parents[2]
 # A start pose near the verification pose, flange up towards the scanner (elbow up).

@@ -35,7 +35,7 @@ from celld.errors import BusError, JobError
 from celld.journal import Journal
 from tests.daemon.test_daemon_e2e import daemon  # noqa: F401  (the fixture: sim UR10e + `celld run`)
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.cell
 
 # Hostile payloads sent to the daemon.
 N_EXAMPLES = 200

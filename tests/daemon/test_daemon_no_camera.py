@@ -8,7 +8,7 @@ import pytest
 
 from celld.sim.cell import run_cell
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.cell
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -25,7 +25,7 @@ from celld.sim.cell import run_cell
 from celld.sim.scanner import SCANNER_MODELS
 from tests.daemon.scans import planned_from_the_scan_pose, rms_mm
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.cell
 
 ROOT = Path(__file__).resolve().parents[2]
 

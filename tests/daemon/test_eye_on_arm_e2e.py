@@ -33,7 +33,7 @@ from celld.sim.cell import run_cell
 from celld.sim.score import targeting, true_camera
 from tests.daemon.scans import planned_from_the_scan_pose, rms_mm
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.cell
 
 ROOT = Path(__file__).resolve().parents[2]
 WORLD_SEED = 2

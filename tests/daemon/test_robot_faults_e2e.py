@@ -20,7 +20,7 @@ import pytest
 from celld.errors import JobError
 from tests.daemon.test_daemon_e2e import _write_config
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.cell
 
 WATCHDOG_USEC = 2_000_000
 

@@ -26,7 +26,7 @@ from celld.errors import JobError
 from celld.sim.cell import run_cell, sim_part
 from celld.sim.score import TruthRecorder, lateral, open_loop_torch, true_flange, true_torch_path
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.cell
 
 ROOT = Path(__file__).resolve().parents[2]
 # This test's world: its tool's tip is about 1.1 mm and its torch 1.3 mm off the drawing, and the arm's

@@ -29,7 +29,7 @@ from celld.recording.readback import read_component, read_entities
 from celld.sim.cell import run_cell
 from tests.daemon.orphans import after_kill, motion_exits, seen_after, tcp_speed, wait_moving
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.cell
 
 ROOT = Path(__file__).resolve().parents[2]
 # Robot 2's base against the truth, at robot 2's verification position (where the robots meet), m and

@@ -32,7 +32,7 @@ from celld.sim.cell import run_cell, sim_part, start_daemon, stop_daemon
 from celld.sim.score import TruthRecorder, lateral, open_loop_torch, targeting, true_torch_path
 from tests.daemon.orphans import after_kill, motion_exits
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.cell
 
 ROOT = Path(__file__).resolve().parents[2]
 ARC = 0  # the arc's digital output in configs/sim-cell.toml

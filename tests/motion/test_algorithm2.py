@@ -312,7 +312,6 @@ class Loop:
         return float(torch[1] - T_PLANE[1, 3])
 
 
-@pytest.mark.slow
 def test_tracks_a_straight_seam_and_stops_cleanly_at_its_end() -> None:
     loop = Loop(length=0.06)
     loop.run(20.0)
@@ -326,7 +325,6 @@ def test_tracks_a_straight_seam_and_stops_cleanly_at_its_end() -> None:
     loop.assert_jerk_limited()
 
 
-@pytest.mark.slow
 def test_contact_lost_mid_seam_ends_in_a_controlled_stop() -> None:
     # A 15 mm gap in the wall: longer than the 5 mm search distance.
     loop = Loop(length=0.08, gap=(0.03, 0.045))
@@ -342,7 +340,6 @@ def test_contact_lost_mid_seam_ends_in_a_controlled_stop() -> None:
     loop.assert_jerk_limited()
 
 
-@pytest.mark.slow
 def test_a_short_gap_is_bridged_by_the_search() -> None:
     loop = Loop(length=0.08, gap=(0.03, 0.033))
     loop.run(25.0)
@@ -357,7 +354,6 @@ def _fault_after(t_fault: float, make):
     return tamper
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize(
     ("name", "make", "why"),
     [

@@ -385,6 +385,7 @@ def test_a_busy_serve_port_leaves_the_file_recording(tmp_path: Path, loopback_ho
     assert layout.CALIB_E_ICP in read_entities(tmp_path / "a.rrd")
 
 
+@pytest.mark.process
 def test_a_viewer_connected_to_the_served_stream_receives_the_job(tmp_path: Path, loopback_host: str) -> None:
     """The rerun CLI connects to the served gRPC stream and saves what it receives."""
     port = _free_port(loopback_host)
@@ -418,6 +419,7 @@ def test_a_viewer_that_is_not_listening_is_skipped_and_close_stays_quick(tmp_pat
     np.testing.assert_allclose(e[:, 0], [0.001])
 
 
+@pytest.mark.process
 def test_a_job_is_pushed_to_a_listening_viewer(tmp_path: Path, loopback_host: str) -> None:
     """connect_url: the rerun CLI listens as a viewer would and saves what arrives."""
     port = _free_port(loopback_host)
@@ -524,6 +526,7 @@ def test_bad_meshes_and_residuals_are_refused_with_the_reason(tmp_path: Path) ->
     rec.close()
 
 
+@pytest.mark.process
 def test_a_recording_drained_many_times_is_one_readable_stream(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Each drain of rerun's memory stream is a whole RRD stream; close merges them into one file
     that rerun's own verifier accepts (several streams in one file are refused), and the part file goes."""

@@ -72,7 +72,7 @@ def test_an_unreachable_robot_is_a_lost_link_unless_rtde_is_up() -> None:
     assert robot_condition("unknown", None).state == "link_lost"
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_the_dashboard_reads_the_simulated_controller_and_passes_on_its_refusals(loopback_host: str) -> None:
     from celld.sim.robot import launch
 

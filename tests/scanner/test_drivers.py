@@ -187,7 +187,7 @@ def test_photoneo_errors_are_translated(producer: Path) -> None:
 # -- Azure Kinect -------------------------------------------------------------
 
 
-@pytest.mark.slow
+@pytest.mark.process
 @pytest.mark.skipif(HAVE_K4A, reason="the Azure Kinect SDK is installed here")
 def test_azure_kinect_without_its_sdk_is_a_clean_driver_unavailable_not_an_abort() -> None:
     """In a child process: an Open3D sensor object made without libk4a aborts the process when it

@@ -40,7 +40,6 @@ def _error(path, wp: Workpiece, T_true: np.ndarray) -> np.ndarray:
     return polyline.distance(path.points_base, truth)
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", ["v-groove", "curved-groove", "fillet-t"])
 def test_known_truth_scene_gives_the_seam_in_the_base_frame(name: str) -> None:
     wp = example(name)
@@ -71,7 +70,6 @@ def test_known_truth_scene_gives_the_seam_in_the_base_frame(name: str) -> None:
     assert q.source in ("groove", "model")
 
 
-@pytest.mark.slow
 def test_fillet_lying_flat_is_refused_not_guessed() -> None:
     # Under a camera straight above, the web faces are seen at grazing angles
     # by a few dozen points: the seam's sideways position is not fixed.
@@ -97,7 +95,6 @@ def _bowed_v_groove(bow: float) -> Workpiece:
     return Workpiece("bowed", V, F, path + [0.0, 0.0, p["root_face"]], ref.approach, L, ref.wall_band)
 
 
-@pytest.mark.slow
 def test_groove_finds_the_actual_seam_where_the_part_differs_from_its_model() -> None:
     model = example("v-groove")
     built = _bowed_v_groove(0.0008)  # bowed 0.8 mm at mid-length
@@ -130,7 +127,6 @@ def test_empty_scan_is_refused() -> None:
         find_seam(np.full((40, 50, 3), np.nan, np.float32), example("v-groove"), T_BASE_CAM)
 
 
-@pytest.mark.slow
 def test_partial_scan_is_refused(vgroove_scan) -> None:
     wp, T_true, cloud = vgroove_scan
     # Blank the image rows that hold the second half of the seam.
@@ -146,7 +142,6 @@ def test_partial_scan_is_refused(vgroove_scan) -> None:
         find_seam(cut, wp, T_BASE_CAM, SeamParams(), T_base_obj_nominal=simscene.nominal_pose(wp))
 
 
-@pytest.mark.slow
 def test_scan_of_a_different_part_is_refused() -> None:
     fillet = example("fillet-t")
     cloud = _scan(fillet, _pose(fillet, seed=3, angle_deg=10.0))
@@ -154,7 +149,6 @@ def test_scan_of_a_different_part_is_refused() -> None:
         find_seam(cloud, example("v-groove"), T_BASE_CAM, SeamParams(), T_base_obj_nominal=simscene.nominal_pose(example("v-groove")))
 
 
-@pytest.mark.slow
 def test_flat_plate_without_a_groove_is_refused() -> None:
     from celld.sim.scene import SceneObject
 
@@ -178,7 +172,6 @@ def test_malformed_cloud_is_refused() -> None:
         find_seam(np.zeros((10, 4)), example("v-groove"), T_BASE_CAM)
 
 
-@pytest.mark.slow
 def test_same_seed_same_path(vgroove_scan) -> None:
     wp, _, cloud = vgroove_scan
     prepared = prepare(wp, SeamParams())
@@ -188,7 +181,6 @@ def test_same_seed_same_path(vgroove_scan) -> None:
     assert a.quality.attempts == b.quality.attempts
 
 
-@pytest.mark.slow
 def test_cli_prints_one_json_object(vgroove_scan, tmp_path, capsys) -> None:
     wp, _, cloud = vgroove_scan
     np.save(tmp_path / "scan.npy", cloud)
@@ -242,7 +234,6 @@ def test_cli_prints_one_json_object(vgroove_scan, tmp_path, capsys) -> None:
     assert code == 0 and json.loads(capsys.readouterr().out)["ok"] is True
 
 
-@pytest.mark.slow
 def test_cli_applies_the_range_bias_of_a_calibration_file(vgroove_scan, tmp_path, capsys) -> None:
     wp, _, cloud = vgroove_scan
     np.save(tmp_path / "scan.npy", cloud)
@@ -325,7 +316,6 @@ def _wall_error(part, W_base: np.ndarray, surface) -> np.ndarray:  # type: ignor
     return np.array(out)
 
 
-@pytest.mark.slow
 def test_the_scan_measures_both_walls_beside_the_seam_where_a_distorted_part_moves_them() -> None:
     from celld.seam.weldpath import wall_offset
     from celld.sim.world import PartShape

@@ -11,8 +11,6 @@ import pytest
 
 from celld.sim import calib_demo, cli
 
-pytestmark = pytest.mark.slow
-
 
 def test_the_offline_calibration_solves_in_the_ideal_world_and_saves_a_session_that_solves_again(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]

@@ -26,7 +26,7 @@ def test_robot_subcommand_takes_the_workspace_and_limits() -> None:
     assert opts == expected
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_fault_subcommand_plays_and_clears_faults(sim_robot: SimRobotHandle, capsys: pytest.CaptureFixture[str]) -> None:
     args = _parse(["sim", "fault", "--host", sim_robot.host, "protective-stop"])
     assert args.func(args) == 0

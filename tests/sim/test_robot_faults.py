@@ -16,7 +16,7 @@ from celld.sim.robot import SimRobotHandle
 from celld.sim.robot import rtde_protocol as P
 from celld.sim.robot.options import RTDE_PORT
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.process
 
 
 def _wait_for(predicate, timeout: float = 2.0) -> bool:

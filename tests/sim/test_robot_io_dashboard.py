@@ -12,7 +12,7 @@ import rtde_receive
 
 from celld.sim.robot import SimRobotHandle, launch
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.process
 
 # The welding arc is switched by standard digital output 0 in the simulated cell.
 ARC_OUTPUT = 0

@@ -14,7 +14,7 @@ from celld import se3
 from celld.robot import kinematics as kin
 from celld.sim.robot import SimRobotHandle, launch
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.process
 
 
 @pytest.fixture

@@ -88,7 +88,7 @@ def test_latest_waits_out_a_write_in_progress_instead_of_answering_an_old_state(
         pub.close()
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_simulator_publishes_the_pose_it_streams(sim_robot: SimRobotHandle) -> None:
     r = rtde_receive.RTDEReceiveInterface(sim_robot.host)
     c = rtde_control.RTDEControlInterface(sim_robot.host)
@@ -112,7 +112,7 @@ def test_simulator_publishes_the_pose_it_streams(sim_robot: SimRobotHandle) -> N
         r.disconnect()
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_the_simulator_reports_its_model_and_publishes_the_physical_arm(loopback_host: str) -> None:
     from celld.sim.robot import launch
     from celld.sim.world import PRESETS, NominalCell, draw_world

@@ -208,7 +208,7 @@ def test_opencv_camera_that_is_absent_is_refused_then_reads_as_lost() -> None:
     assert cam.read() is None
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_tactile_process_refuses_to_start_without_its_camera() -> None:
     cfg = TactileConfig(kind="opencv", device="/dev/celld-no-such-camera")
     proc = TactileProcess(cfg, ToolConfig(), f"t-{uuid.uuid4().hex[:8]}")
@@ -247,7 +247,7 @@ def test_preview_writer_shares_frames_at_most_every_period_with_the_tag_outline(
         slot.unlink()
 
 
-@pytest.mark.slow
+@pytest.mark.process
 def test_a_killed_tactile_process_restarts_on_the_same_slots(sim_robot) -> None:
     import os
     import signal

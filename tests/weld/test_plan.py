@@ -18,8 +18,6 @@ from celld.sim.scanner import SimScanner
 from celld.tactile.tool import ToolGeometry
 from celld.weld.plan import LEAD_IN, WeldPlan, plan_weld, prepare_part, probe_targets, probed_height
 
-pytestmark = pytest.mark.slow
-
 T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
 WELD = WeldConfig()
 TOOL = ToolConfig()
