@@ -1,8 +1,9 @@
 """The daemon end to end: simulated UR10e (real ur-rtde), ray-cast scanner, real zenoh.
 
 ``celld run`` runs as its own process, as systemd would start it; the test
-talks to it only over the bus, like an MES. Slow: it moves the arm through a
-calibration.
+talks to it only over the bus, like an MES. The calibration test, the kill -9
+test (and the fuzz test of ``test_daemon_fuzz.py``) start a cell of their
+own; the tests that leave their cell idle and its robot link up share one.
 """
 
 from __future__ import annotations
@@ -20,65 +21,61 @@ from celld import se3
 from celld.bus.client import CellClient
 from celld.journal import Journal
 from celld.recording.readback import read_component, read_entities
+from celld.sim.cell import run_cell
+from tests.daemon.cells import write_cell_config
 
 pytestmark = pytest.mark.cell
 
-ROOT = Path(__file__).resolve().parents[2]
 # A start pose near the verification pose, flange up towards the scanner (elbow up).
 Q0 = (2.847, -1.401, 2.311, -2.481, 1.571, -1.276)
 T_BASE_CAM_TRUE = [[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]]
 
 
-def _write_config(path: Path, host: str, state_dir: Path) -> Path:
-    path.write_text(
-        f"""
-include = ["{ROOT / "configs" / "robots" / "ur10e.toml"}", "{ROOT / "configs" / "cell-models" / "sim-cell.toml"}"]
-[cell]
-name = "e2e"
-state_dir = "{state_dir}"
-[robot]
-host = "{host}"
-home_q = {list(Q0)}
-[motion]
-# The simulator shares two cores with the test machine's other work.
-state_stale_cycles = 50
-link_timeout_ms = 500
-rtde_watchdog_hz = 5
-[scanner]
-kind = "sim"
-model = "phoxi-m"
-T_base_cam = {T_BASE_CAM_TRUE}
-[calibration]
-flange = "ur10e"
-n_poses = 6
-e_required_mm = 0.0
-[tactile]
-# These tests need no finger camera; the weld test's cell has one.
-kind = "none"
-[bus]
-listen = ["tcp/{host}:7447"]
-[sim]
-# The simulator's world: the ideal cell (its truth is its drawing), the scanner where T_BASE_CAM_TRUE says.
-preset = "ideal"
-[sim.scanner]
-resolution_scale = 0.5
-T_base_cam = {T_BASE_CAM_TRUE}
-"""
-    )
-    return path
+# The cell of these tests: a UR10e and the simulated cell's model, with no finger camera.
+INCLUDE = ("robots/ur10e.toml", "cell-models/sim-cell.toml")
+TABLES = {
+    "robot": {"home_q": list(Q0)},
+    # The simulator shares two cores with the test machine's other work.
+    "motion": {"state_stale_cycles": 50, "link_timeout_ms": 500, "rtde_watchdog_hz": 5},
+    "scanner": {"kind": "sim", "model": "phoxi-m", "T_base_cam": T_BASE_CAM_TRUE},
+    "calibration": {"flange": "ur10e", "n_poses": 6, "e_required_mm": 0.0},
+    # These tests need no finger camera; the weld test's cell has one.
+    "tactile": {"kind": "none"},
+    # The simulator's world: the ideal cell (its truth is its drawing), the scanner where T_BASE_CAM_TRUE says.
+    "sim": {"preset": "ideal", "scanner": {"resolution_scale": 0.5, "T_base_cam": T_BASE_CAM_TRUE}},
+}
+
+
+def e2e_config(cell_config, recording: bool = True) -> Path:
+    """This test's config of the e2e cell (the ``cell_config`` fixture's factory), its jobs recorded or not."""
+    return cell_config(INCLUDE, "e2e", TABLES, recording=recording)
 
 
 @pytest.fixture
-def daemon(tmp_path: Path, loopback_host: str):
-    from celld.sim.cell import run_cell
-
-    cfg_path = _write_config(tmp_path / "cell.toml", loopback_host, tmp_path / "state")
-    with run_cell(cfg_path, tmp_path / "daemon.log", timeout=60) as cell:
+def daemon(tmp_path: Path, cell_config):
+    """A cell of the test's own, its jobs not recorded."""
+    with run_cell(e2e_config(cell_config, recording=False), tmp_path / "daemon.log", timeout=60) as cell:
         yield cell  # a RunningCell: client, daemon process, config, simulated robot, world
 
 
-def test_calibrate_over_the_bus_then_accept(daemon) -> None:
-    client, proc, cfg = daemon.client, daemon.daemon, daemon.config
+@pytest.fixture
+def recorded_daemon(tmp_path: Path, cell_config):
+    """A cell of the test's own, with a recording of every job."""
+    with run_cell(e2e_config(cell_config), tmp_path / "daemon.log", timeout=60) as cell:
+        yield cell
+
+
+@pytest.fixture(scope="module")
+def idle_cell(tmp_path_factory: pytest.TempPathFactory, module_loopback_host: str):
+    """One cell for the tests that leave it idle with its robot link up, its jobs recorded (the dry run reads its recording)."""
+    where = tmp_path_factory.mktemp("idle-cell")
+    cfg_path = write_cell_config(where / "cell.toml", INCLUDE, "e2e", module_loopback_host, TABLES)
+    with run_cell(cfg_path, where / "daemon.log", timeout=60) as cell:
+        yield cell
+
+
+def test_calibrate_over_the_bus_then_accept(recorded_daemon) -> None:
+    client, proc, cfg = recorded_daemon.client, recorded_daemon.daemon, recorded_daemon.config
     events: list[dict] = []
     reply, record = client.submit_and_wait({"kind": "calibrate", "seed": 3}, on_event=events.append, timeout=400)
     assert record["state"] == "succeeded", record["reason"]
@@ -139,8 +136,69 @@ def test_calibrate_over_the_bus_then_accept(daemon) -> None:
     journal.close()
 
 
-def test_move_and_health_and_a_refused_job(daemon) -> None:
-    client, robot = daemon.client, daemon.robot
+def _submit_and_wait_for(client: CellClient, message: dict, stage: str, timeout: float = 120) -> str:
+    """Submit a job and wait for its first progress event in ``stage``; returns the job id."""
+    with client.watch_progress() as events:
+        job = client.submit(message)["job"]
+        events.wait_stage(job, stage, timeout)
+    return job
+
+
+def _wait_end(client: CellClient, job: str, timeout: float) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        record = client.status(job)
+        if record["state"] not in ("queued", "running"):
+            return record
+        time.sleep(0.5)
+    raise AssertionError(f"job {job} did not end within {timeout} s")
+
+
+def test_kill_9_of_the_daemon_mid_calibration_stops_the_arm_and_the_next_daemon_runs_jobs(daemon, tmp_path: Path) -> None:
+    from celld.sim.cell import start_daemon, stop_daemon
+    from tests.daemon.orphans import after_kill, wait_moving
+
+    client, proc, cfg, robot = daemon.client, daemon.daemon, daemon.config, daemon.robot
+    job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 4}, "pair")
+    wait_moving(robot, min_speed=0.03)  # on its way to the next calibration pose
+    t_kill = time.monotonic_ns()
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(10)
+    seen = after_kill(robot, t_kill, arc_output=0)
+    # The orphaned motion process saw its daemon go, stopped the arm jerk-limited and ended.
+    assert seen.moving_at_kill > 0.02, seen
+    assert seen.at_rest_s < 0.5, seen
+
+    state_dir = Path(cfg.cell.state_dir)
+    journal = Journal(state_dir / "journal.db")  # what the next start does
+    try:
+        assert journal.get(job).state == "interrupted"
+        assert journal.check() == []
+    finally:
+        journal.close()
+    # Nothing half-written: complete files only (temporaries are swept at start).
+    for poses in state_dir.rglob("poses.json"):
+        json.loads(poses.read_text())
+    assert not (state_dir / "results" / f"{job}.json").exists()
+
+    # The next daemon cleans up what the killed one recorded and runs the next job.
+    with open(tmp_path / "daemon2.log", "ab") as log:
+        second = start_daemon(Path(cfg.source), log, timeout=60)
+        try:
+            move = {"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 0.45, 0.0, 0.0, 0.0]}}
+            _, record = second.client.submit_and_wait(move, timeout=90)
+            assert record["state"] == "succeeded", record["reason"]
+            assert {p.name for p in (state_dir / "run").glob("*.json")} == {"motion.json"}  # this daemon's own child
+        finally:
+            second.client.close()
+            stop_daemon(second.process)
+
+
+# The tests below share the module's idle cell (they come last: no other cell runs beside it).
+
+
+def test_move_and_health_and_a_refused_job(idle_cell) -> None:
+    client, robot = idle_cell.client, idle_cell.robot
     _, record = client.submit_and_wait({"kind": "health", "check": "all"}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
     health = json.loads(Path(record["result"]).read_text())
@@ -188,8 +246,8 @@ def test_move_and_health_and_a_refused_job(daemon) -> None:
     assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6
 
 
-def test_a_calibration_dry_run_plans_and_checks_without_moving(daemon) -> None:
-    client, robot = daemon.client, daemon.robot
+def test_a_calibration_dry_run_plans_and_checks_without_moving(idle_cell) -> None:
+    client, robot = idle_cell.client, idle_cell.robot
     q_before = robot.truth()[2]
     _, record = client.submit_and_wait({"kind": "calibrate", "n_poses": 6, "seed": 2, "dry_run": True}, timeout=120)
     assert record["state"] == "succeeded", record["reason"]
@@ -207,26 +265,8 @@ def test_a_calibration_dry_run_plans_and_checks_without_moving(daemon) -> None:
     assert "/world/robot/pose_01" in entities and "/world/robot/pose_07" in entities, entities
 
 
-def _submit_and_wait_for(client: CellClient, message: dict, stage: str, timeout: float = 120) -> str:
-    """Submit a job and wait for its first progress event in ``stage``; returns the job id."""
-    with client.watch_progress() as events:
-        job = client.submit(message)["job"]
-        events.wait_stage(job, stage, timeout)
-    return job
-
-
-def _wait_end(client: CellClient, job: str, timeout: float) -> dict:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        record = client.status(job)
-        if record["state"] not in ("queued", "running"):
-            return record
-        time.sleep(0.5)
-    raise AssertionError(f"job {job} did not end within {timeout} s")
-
-
-def test_cancel_during_a_job_stops_the_robot_and_ends_cancelled(daemon) -> None:
-    client, sim = daemon.client, daemon.robot
+def test_cancel_during_a_job_stops_the_robot_and_ends_cancelled(idle_cell) -> None:
+    client, sim = idle_cell.client, idle_cell.robot
     job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 1}, "pair")
     reply = client.cancel(job, "operator")
     assert reply["state"] == "cancelled"
@@ -240,8 +280,8 @@ def test_cancel_during_a_job_stops_the_robot_and_ends_cancelled(daemon) -> None:
     assert record["state"] == "succeeded", record["reason"]
 
 
-def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(daemon) -> None:
-    client, proc, sim = daemon.client, daemon.daemon, daemon.robot
+def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(idle_cell) -> None:
+    client, proc, sim = idle_cell.client, idle_cell.daemon, idle_cell.robot
     job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 2}, "pair")
     sim.inject("drop_all", down_ms=3000)
     record = _wait_end(client, job, 120)
@@ -254,43 +294,3 @@ def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(dae
     move = {"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 0.45, 0.0, 0.0, 0.0]}}
     _, record = client.submit_and_wait(move, timeout=90)
     assert record["state"] == "succeeded", record["reason"]
-
-
-def test_kill_9_of_the_daemon_mid_calibration_stops_the_arm_and_the_next_daemon_runs_jobs(daemon, tmp_path: Path) -> None:
-    from celld.sim.cell import start_daemon, stop_daemon
-    from tests.daemon.orphans import after_kill, wait_moving
-
-    client, proc, cfg, robot = daemon.client, daemon.daemon, daemon.config, daemon.robot
-    job = _submit_and_wait_for(client, {"kind": "calibrate", "seed": 4}, "pair")
-    wait_moving(robot, min_speed=0.03)  # on its way to the next calibration pose
-    t_kill = time.monotonic_ns()
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(10)
-    seen = after_kill(robot, t_kill, arc_output=0)
-    # The orphaned motion process saw its daemon go, stopped the arm jerk-limited and ended.
-    assert seen.moving_at_kill > 0.02, seen
-    assert seen.at_rest_s < 0.5, seen
-
-    state_dir = Path(cfg.cell.state_dir)
-    journal = Journal(state_dir / "journal.db")  # what the next start does
-    try:
-        assert journal.get(job).state == "interrupted"
-        assert journal.check() == []
-    finally:
-        journal.close()
-    # Nothing half-written: complete files only (temporaries are swept at start).
-    for poses in state_dir.rglob("poses.json"):
-        json.loads(poses.read_text())
-    assert not (state_dir / "results" / f"{job}.json").exists()
-
-    # The next daemon cleans up what the killed one recorded and runs the next job.
-    with open(tmp_path / "daemon2.log", "ab") as log:
-        second = start_daemon(Path(cfg.source), log, timeout=60)
-        try:
-            move = {"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 0.45, 0.0, 0.0, 0.0]}}
-            _, record = second.client.submit_and_wait(move, timeout=90)
-            assert record["state"] == "succeeded", record["reason"]
-            assert {p.name for p in (state_dir / "run").glob("*.json")} == {"motion.json"}  # this daemon's own child
-        finally:
-            second.client.close()
-            stop_daemon(second.process)

@@ -10,27 +10,13 @@ from celld.sim.cell import run_cell
 
 pytestmark = pytest.mark.cell
 
-ROOT = Path(__file__).resolve().parents[2]
 
-
-def test_without_its_camera_the_daemon_runs_reports_it_and_refuses_welds(tmp_path: Path, loopback_host: str) -> None:
-    cfg = tmp_path / "cell.toml"
-    cfg.write_text(
-        f"""
-include = ["{ROOT / "configs" / "sim-cell.toml"}"]
-[cell]
-name = "no-camera"
-state_dir = "{tmp_path / "state"}"
-[robot]
-host = "{loopback_host}"
-[sim.scanner]
-resolution_scale = 0.25
-[tactile]
-kind = "opencv"
-device = "/dev/celld-no-such-camera"
-[bus]
-listen = ["tcp/{loopback_host}:7447"]
-"""
+def test_without_its_camera_the_daemon_runs_reports_it_and_refuses_welds(tmp_path: Path, cell_config) -> None:
+    cfg = cell_config(
+        "sim-cell.toml",
+        "no-camera",
+        {"sim": {"scanner": {"resolution_scale": 0.25}}, "tactile": {"kind": "opencv", "device": "/dev/celld-no-such-camera"}},
+        recording=False,  # nothing here reads a recording
     )
     with run_cell(cfg, tmp_path / "daemon.log", timeout=90) as cell:
         client = cell.client

@@ -27,48 +27,31 @@ from tests.daemon.scans import planned_from_the_scan_pose, rms_mm
 
 pytestmark = pytest.mark.cell
 
-ROOT = Path(__file__).resolve().parents[2]
 
-
-def _config(tmp_path: Path, host: str) -> Path:
-    path = tmp_path / "cell.toml"
-    path.write_text(
-        f"""
-include = ["{ROOT / "configs" / "sim-cell.toml"}"]
-[cell]
-name = "tof-e2e"
-state_dir = "{tmp_path / "state"}"
-[robot]
-host = "{host}"
-[scanner]
-model = "azure-kinect"
-[calibration]
-flange = "ur10e-wrist"
-n_poses = 12
-e_required_mm = 0.0
-# 0.68 m below the camera: the Azure Kinect sees from 0.5 m.
-verification_pose = [0.6, 0.0, 0.32, 0.0, 0.0, 0.0]
-[tactile]
-fps = 15
-[seam]
-# The Azure Kinect's wide view holds the robot's base column: look for the part
-# only around the fixture.
-roi_min = [0.3, -0.35, -0.05]
-roi_max = [0.9, 0.35, 0.3]
-[sim]
-preset = "ideal"
-flange = "ur10e-wrist"
-[sim.scanner]
-model = "azure-kinect"
-[bus]
-listen = ["tcp/{host}:7447"]
-"""
+def _config(cell_config) -> Path:
+    return cell_config(
+        "sim-cell.toml",
+        "tof-e2e",
+        {
+            "scanner": {"model": "azure-kinect"},
+            "calibration": {
+                "flange": "ur10e-wrist",
+                "n_poses": 12,
+                "e_required_mm": 0.0,
+                # 0.68 m below the camera: the Azure Kinect sees from 0.5 m.
+                "verification_pose": [0.6, 0.0, 0.32, 0.0, 0.0, 0.0],
+            },
+            "tactile": {"fps": 15},
+            # The Azure Kinect's wide view holds the robot's base column: look for the part only around the fixture.
+            "seam": {"roi_min": [0.3, -0.35, -0.05], "roi_max": [0.9, 0.35, 0.3]},
+            "sim": {"preset": "ideal", "flange": "ur10e-wrist", "scanner": {"model": "azure-kinect"}},
+        },
+        recording=False,  # nothing here reads a recording
     )
-    return path
 
 
-def test_calibrate_estimates_the_range_bias_and_the_weld_scan_is_placed_with_it(tmp_path: Path, loopback_host: str) -> None:
-    with run_cell(_config(tmp_path, loopback_host), tmp_path / "daemon.log", timeout=120) as cell:
+def test_calibrate_estimates_the_range_bias_and_the_weld_scan_is_placed_with_it(tmp_path: Path, cell_config) -> None:
+    with run_cell(_config(cell_config), tmp_path / "daemon.log", timeout=120) as cell:
         client, cfg, world = cell.client, cell.config, cell.world
         # The simulator's truth, to score only.
         true_bias = SCANNER_MODELS["azure-kinect"].metal_bias if world.scanner.metal_bias is None else world.scanner.metal_bias

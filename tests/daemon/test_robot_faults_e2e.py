@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from celld.errors import JobError
-from tests.daemon.test_daemon_e2e import _write_config
+from tests.daemon.test_daemon_e2e import e2e_config
 
 pytestmark = pytest.mark.cell
 
@@ -68,14 +68,14 @@ def _wait(predicate, timeout: float, what: str):
 
 
 def test_a_protective_stop_is_explained_refused_early_cleared_and_the_watchdog_kept(
-    tmp_path: Path, loopback_host: str, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, cell_config, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from celld.sim.cell import run_cell
 
     receiver = NotifyReceiver(tmp_path / "notify.sock")
     monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "notify.sock"))
     monkeypatch.setenv("WATCHDOG_USEC", str(WATCHDOG_USEC))
-    cfg_path = _write_config(tmp_path / "cell.toml", loopback_host, tmp_path / "state")
+    cfg_path = e2e_config(cell_config, recording=False)
     try:
         with run_cell(cfg_path, tmp_path / "daemon.log", timeout=60) as cell:
             client, robot = cell.client, cell.robot

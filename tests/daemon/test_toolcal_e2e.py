@@ -1,19 +1,23 @@
-"""Calibrate, tool-calibrate, then weld, over the bus, in the realistic world: the measured tip and torch against
-the tool as built, and the weld plan alone against the torch tracked by touch.
+"""Tool-calibrate, then weld, over the bus, in the realistic world: the measured tip and torch against the tool as
+built, and the weld plan alone against the torch tracked by touch.
 
 The cell is ``configs/sim-cell.toml`` on this test's own loopback address in
 the realistic world, whose tool is built off its drawing (the tip about a
 millimetre from ``tool.tip_tcp_mm``): the ray-cast PhoXi M sees the tool as
 built (its torch bent and trimmed off the drawing too), the daemon only its
 config; the arm, the scanner, the finger and the part have their errors too.
-Slow (a 10-pose calibration, a tool calibration of the job's default 12 poses and
-a weld, about four minutes).
+The scanner casts its full resolution in a window around the tool and the
+part only (``[sim.scanner] roi_px``). The calibration the tool calibration
+needs is a real one of this world, solved offline before the cell starts
+(10 poses, :func:`tests.daemon.cells.solve_offline`) and installed as the
+accepted one once the daemon has refused a tool calibration without it; the
+calibrate job is tested end to end in ``test_daemon_e2e.py``. About two
+minutes (a tool calibration of the job's default 12 poses and a weld).
 """
 
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,10 +29,10 @@ from celld.calib.toolcal import solve_tool_tip
 from celld.errors import JobError
 from celld.sim.cell import run_cell, sim_part
 from celld.sim.score import TruthRecorder, lateral, open_loop_torch, true_flange, true_torch_path
+from tests.daemon.cells import install_calibration
 
 pytestmark = pytest.mark.cell
 
-ROOT = Path(__file__).resolve().parents[2]
 # This test's world: its tool's tip is about 1.1 mm and its torch 1.3 mm off the drawing, and the arm's
 # error over the table (the calibration never saw it) leaves the plan alone 0.6-0.8 mm RMS off the seam
 # and the tip half a millimetre low in the groove (bench/realistic_cell.py, seed 3).
@@ -45,26 +49,26 @@ TORCH_ACROSS_TOLERANCE = 0.1e-3
 # torch is). Over 8 poses the arm's own error at each orientation once left the wire end fixed to 0.13 mm
 # (1 sigma), and the job rightly refused it: this test takes the job's default pose count.
 TORCH_SIGMAS = 4.0
+# The PhoXi M's full-resolution pixels this test's assertions need (row0, row1, col0, col1): the tip and the
+# wire's end at every tool calibration pose (rows 792-934, columns 914-1068 in this world) and the part for
+# the weld's scan (rows 660-955, columns 870-1228), with 60-80 pixels (15 mm or more) around them.
+ROI_PX = [600, 1020, 810, 1290]
+# The calibration the tool calibration starts from: every pose of 10 (Algorithm 1 down to 0.01 mm keeps
+# them all: the realistic arm's error needs the pairs), the scanner's whole view at half resolution.
+CAL_POSES = 10
+CAL_SCALE = 0.5
 
 
-def _config(tmp_path: Path, host: str) -> Path:
-    path = tmp_path / "cell.toml"
-    path.write_text(
-        f"""
-include = ["{ROOT / "configs" / "sim-cell.toml"}"]
-[cell]
-name = "toolcal-e2e"
-state_dir = "{tmp_path / "state"}"
-[robot]
-host = "{host}"
-[bus]
-listen = ["tcp/{host}:7447"]
-[sim]
-preset = "realistic"
-seed = {WORLD_SEED}
-"""
+def _config(cell_config) -> Path:
+    return cell_config(
+        "sim-cell.toml",
+        "toolcal-e2e",
+        {
+            "calibration": {"n_poses": CAL_POSES, "e_required_mm": 0.01},
+            "sim": {"preset": "realistic", "seed": WORLD_SEED, "scanner": {"roi_px": ROI_PX}},
+        },
+        recording=False,  # nothing here reads a recording
     )
-    return path
 
 
 def _as_this_arm_knows_it(world, cfg, detections: list[dict], p_flange: np.ndarray) -> np.ndarray:
@@ -82,8 +86,9 @@ def _as_this_arm_knows_it(world, cfg, detections: list[dict], p_flange: np.ndarr
     return solve_tool_tip(np.array(T_rep), np.array(P_true)).p_tcp_tip
 
 
-def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host: str) -> None:
-    cfg_path = _config(tmp_path, loopback_host)
+def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, offline_calibration) -> None:
+    cfg_path = _config(cell_config)
+    calibration = offline_calibration(cfg_path, CAL_POSES, WORLD_SEED, whole_view_scale=CAL_SCALE)
     with run_cell(cfg_path, tmp_path / "daemon.log", timeout=120) as cell:
         client, cfg, world = cell.client, cell.config, cell.world
         tip_true = np.asarray(world.tool.config.tip_tcp)
@@ -96,15 +101,9 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host:
         _, refused = client.submit_and_wait({"kind": "tool-calibrate"}, timeout=60)
         assert refused["state"] == "failed" and "no current calibration" in refused["reason"]
 
-        # Every pose of a 10-pose calibration (no early stop): the realistic arm's error needs the pairs.
-        _, cal = client.submit_and_wait({"kind": "calibrate", "seed": WORLD_SEED, "n_poses": 10, "e_required_mm": 0.01}, timeout=900)
-        assert cal["state"] == "succeeded", cal["reason"]
-        client.accept(cal["id"], force=True)
-        # The calibration's end may have held the daemon long enough for its motion process to restart: wait for the link.
-        deadline = time.monotonic() + 60
-        while client.status().get("robot_link") != "up":
-            assert time.monotonic() < deadline, client.status()
-            time.sleep(0.5)
+        # This world's calibration, made current as an accept (with force, if its gate failed) makes it.
+        install_calibration(cfg.cell.state_dir, calibration)
+        assert client.status()["calibration"] == calibration["job"]
 
         # (A weld on this unmeasured tool is refused, naming tool.measured: tests/daemon/test_weld_inputs.py.)
         events: list[dict] = []
@@ -151,7 +150,7 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, loopback_host:
         assert accepted["kind"] == "tool-calibrate" and accepted["tool"]["tip_tcp_mm"] == tool["tip_tcp_mm"]
         current = client.request("calibration")
         schema.check_message("calibration-reply", current)
-        assert current["tool"]["job"] == tc["id"] and current["calibration"]["job"] == cal["id"]
+        assert current["tool"]["job"] == tc["id"] and current["calibration"]["job"] == calibration["job"]
         # A calibrate job is not a tool calibration, nor the reverse: each accept goes to its own store.
         with pytest.raises(JobError):
             client.accept(refused["id"])

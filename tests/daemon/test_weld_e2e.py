@@ -1,14 +1,18 @@
-"""Calibrate, then weld, over the bus: the daemon, the simulated cell, real zenoh and real ur-rtde.
+"""Weld on a calibrated cell, over the bus: the daemon, the simulated cell, real zenoh and real ur-rtde.
 
 The cell is ``configs/sim-cell.toml`` on this test's own loopback address, in
 the ideal world of :mod:`celld.sim.world` (the truth is the cell as drawn):
 the simulated UR10e in real time, the ray-cast PhoXi M, a V-groove placed off
 its place, the simulated SRM camera read by the real ArUco detector. The
 test talks to ``celld run`` only over the bus and scores the results against
-the world's truth, which the daemon never reads. The realistic worlds, with
+the world's truth, which the daemon never reads. The calibration the weld
+needs is a real one of this world, solved offline before the cell starts (8
+poses, :func:`tests.daemon.cells.solve_offline`) and installed as the
+accepted one once the daemon has refused a weld without it; the calibrate job
+is tested end to end in ``test_daemon_e2e.py``. The realistic worlds, with
 their robot, scanner, tool, finger and part errors, run in
-bench/realistic_cell.py. Slow (about 3 minutes): a calibration, a weld, a
-cancelled one, a kill -9 of the daemon mid-weld, and dry runs.
+bench/realistic_cell.py. About two minutes: a weld, a cancelled one, a kill
+-9 of the daemon mid-weld, and dry runs.
 """
 
 from __future__ import annotations
@@ -30,40 +34,32 @@ from celld.recording import layout
 from celld.recording.readback import read_entities, read_scalars
 from celld.sim.cell import run_cell, sim_part, start_daemon, stop_daemon
 from celld.sim.score import TruthRecorder, lateral, open_loop_torch, targeting, true_torch_path
+from tests.daemon.cells import install_calibration
 from tests.daemon.orphans import after_kill, motion_exits
 
 pytestmark = pytest.mark.cell
 
-ROOT = Path(__file__).resolve().parents[2]
 ARC = 0  # the arc's digital output in configs/sim-cell.toml
 # The world of this test: the ideal cell (its truth is its drawing). The
 # realistic worlds, where the tactile correction must do the work, run in
 # bench/realistic_cell.py, which reports their figures.
 WORLD_SEED = 3
+# The calibration the weld starts from: 8 generated poses (seed 5), every one kept.
+CAL_POSES = 8
+CAL_SEED = 5
 
 
-def _config(tmp_path: Path, host: str) -> Path:
-    path = tmp_path / "cell.toml"
-    path.write_text(
-        f"""
-include = ["{ROOT / "configs" / "sim-cell.toml"}"]
-[cell]
-name = "weld-e2e"
-state_dir = "{tmp_path / "state"}"
-[robot]
-host = "{host}"
-[bus]
-listen = ["tcp/{host}:7447"]
-[sim]
-preset = "ideal"
-seed = {WORLD_SEED}
-[sim.scanner]
-# Half the PhoXi M's resolution: a quarter of the rays per capture (the realistic e2e and the
-# benchmarks scan at full resolution).
-resolution_scale = 0.5
-"""
+def _config(cell_config) -> Path:
+    return cell_config(
+        "sim-cell.toml",
+        "weld-e2e",
+        {
+            "calibration": {"n_poses": CAL_POSES},
+            # Half the PhoXi M's resolution: a quarter of the rays per capture (the tool calibration's e2e and
+            # the benchmarks scan at full resolution).
+            "sim": {"preset": "ideal", "seed": WORLD_SEED, "scanner": {"resolution_scale": 0.5}},
+        },
     )
-    return path
 
 
 class ArcWatch:
@@ -87,8 +83,9 @@ class ArcWatch:
         return self.seen_on
 
 
-def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_path: Path, loopback_host: str) -> None:
-    cfg_path = _config(tmp_path, loopback_host)
+def test_a_calibrated_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_path: Path, cell_config, offline_calibration) -> None:
+    cfg_path = _config(cell_config)
+    calibration = offline_calibration(cfg_path, CAL_POSES, CAL_SEED)
     with run_cell(cfg_path, tmp_path / "daemon.log", timeout=120) as cell:
         client, cfg, robot, world = cell.client, cell.config, cell.robot, cell.world
         assert world.preset == "ideal"
@@ -98,13 +95,12 @@ def test_calibrate_then_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_pa
         _, record = client.submit_and_wait({"kind": "weld"}, timeout=60)
         assert record["state"] == "failed" and "no current calibration" in record["reason"]
 
-        _, cal = client.submit_and_wait({"kind": "calibrate", "seed": 5, "n_poses": 8}, timeout=900)
-        assert cal["state"] == "succeeded", (cal["reason"], robot.status())
-        accepted = client.accept(cal["id"])
-        # The real daemon's replies match their exported schemas.
-        schema.check_message("accept-reply", accepted)
-        schema.check_message("calibration-reply", {"ok": True, "calibration": client.calibration()})
-        T_est = np.array(accepted["calibration"]["T_base_cam"])
+        # This world's calibration, made current as an accept makes it; the daemon serves it as it stores it.
+        install_calibration(cfg.cell.state_dir, calibration)
+        current = client.calibration()
+        schema.check_message("calibration-reply", {"ok": True, "calibration": current})
+        assert current == calibration and client.status()["calibration"] == calibration["job"]
+        T_est = np.array(current["T_base_cam"])
         # T_base_cam absorbs what it can of the arm's kinematic error, so it is off the true one by
         # more than the scanner's noise; what counts is where the arm lands when sent to what the
         # scanner saw: the realistic cell's target, 0.25 mm on average in the calibrated volume (met here a fortiori).

@@ -1,0 +1,150 @@
+"""The simulated cells of the end-to-end tests: their config files, and calibrations solved offline in their worlds.
+
+:func:`write_cell_config` writes a test's cell config: the cell file it
+includes, this test's own name, state directory, loopback address(es) and
+bus endpoint, whether its jobs are recorded, and the tables the test sets
+(deep-merged, the test's values winning). The ``cell_config`` fixture of
+``tests/daemon/conftest.py`` is it on the test's ``tmp_path`` and address.
+
+:func:`solve_offline` calibrates a cell's scanner in its simulated world
+without robot or daemon (:func:`celld.sim.calib_demo.calibrate_in_world`: the
+flange seen by the world's scanner where the world's arm truly puts it,
+detected and solved as the calibrate job does; the truth is never read), and
+:func:`stored_calibration` gives it the form the daemon keeps an accepted
+calibration in (``<state_dir>/calibration.json``, as
+``celld/daemon/calibrate.py`` writes it). Tests whose subject is what comes
+after a calibration (a tool calibration, a weld) start from one of these; the
+calibrate job itself is tested end to end in ``test_daemon_e2e.py`` and the
+other e2e tests of a calibration.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from celld import config as config_mod
+from celld.calib.mount import ScannerMount, in_frame, mount_entry
+from celld.calib.solve import SolveParams
+from celld.journal import new_job_id, utc_now
+from celld.sim.calib_demo import OfflineCalibration, calibrate_in_world
+from celld.sim.world import World
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIGS = ROOT / "configs"
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(int(value))
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ValueError(f"a cell config holds finite numbers only, got {value!r}")
+        return repr(float(value))
+    if isinstance(value, (str, Path)):
+        return json.dumps(str(value))  # a JSON string of printable text is a TOML basic string
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"no TOML form for {type(value).__name__} {value!r}")
+
+
+def toml_text(doc: Mapping[str, Any]) -> str:
+    """``doc`` as TOML: its top-level keys, then one ``[table]`` per mapping (nested as ``[a.b]``)."""
+    lines: list[str] = []
+
+    def table(name: str, body: Mapping[str, Any]) -> None:
+        values = {k: v for k, v in body.items() if not isinstance(v, Mapping)}
+        tables = {k: v for k, v in body.items() if isinstance(v, Mapping)}
+        if name and (values or not tables):
+            lines.append(f"[{name}]")
+        lines.extend(f"{k} = {_toml_value(v)}" for k, v in values.items())
+        for k, v in tables.items():
+            table(f"{name}.{k}" if name else k, v)
+
+    table("", doc)
+    return "\n".join(lines) + "\n"
+
+
+def merged(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over`` on top, tables merged key by key."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = merged(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else v
+    return out
+
+
+def write_cell_config(
+    path: Path,
+    include: str | Sequence[str],
+    name: str,
+    host: str,
+    tables: Mapping[str, Any] | None = None,
+    *,
+    host2: str | None = None,
+    recording: bool = True,
+) -> Path:
+    """Write a test's cell config at ``path`` and return it.
+
+    ``include`` names the config file(s) under ``configs/`` it builds on.
+    The cell is called ``name``, keeps its state beside ``path``
+    (``state/``), runs its robot on ``host`` (a second robot on ``host2``)
+    and its bus on ``tcp/<host>:7447``; with ``recording`` false its jobs
+    write no rerun recording (for tests that never read one). ``tables``
+    comes on top: ``{"sim": {"preset": "ideal", "scanner": {"resolution_scale": 0.5}}}``.
+    """
+    files = [include] if isinstance(include, str) else list(include)
+    doc: dict[str, Any] = {
+        "include": [str(CONFIGS / f) for f in files],
+        "cell": {"name": name, "state_dir": str(path.parent / "state")},
+        "robot": {"host": host},
+        "bus": {"listen": [f"tcp/{host}:7447"]},
+    }
+    if host2 is not None:
+        doc["robot2"] = {"host": host2}
+    if not recording:
+        doc["recording"] = {"enabled": False}
+    path.write_text(toml_text(merged(doc, tables or {})))
+    return path
+
+
+def solve_offline(cfg: config_mod.Config, world: World, n_poses: int, seed: int) -> OfflineCalibration:
+    """The calibration of ``cfg``'s scanner in ``world`` from ``n_poses`` generated poses (every one: no early stop)."""
+    return calibrate_in_world(cfg, world, n_poses, seed)
+
+
+def stored_calibration(cfg: config_mod.Config, done: OfflineCalibration, job: str | None = None) -> dict[str, Any]:
+    """``done`` as the daemon stores an accepted calibration (``calibration.json``), made by job ``job``
+    (a fresh job id by default; no journal holds it)."""
+    result = done.result
+    mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model)
+    params = SolveParams.from_config(cfg.calibration)
+    report = in_frame(result.as_dict(), mount)
+    a1 = result.algorithm1
+    return {
+        "job": job or new_job_id(),
+        **mount_entry(mount, result.T_base_cam_stored),
+        "stored": result.stored,
+        "cost_mm": a1.cost * 1e3 if a1 is not None and math.isfinite(a1.cost) else None,
+        "pairs": len(result.pair_ids),
+        "method": result.method,
+        "quality": report["quality"],
+        "range_bias": params.range_bias,
+        "range_bias_mm": result.bias * 1e3,
+        "range_bias_std_mm": None if result.range_bias is None else report["range_bias"]["std_mm"],
+        "accepted": utc_now(),
+        # As an accept with force marks a calibration whose quality gate failed.
+        **({} if result.quality.verdict == "ok" else {"forced": True}),
+    }
+
+
+def install_calibration(state_dir: str | Path, calibration: Mapping[str, Any]) -> Path:
+    """Make ``calibration`` the cell's current one, as an accept does (the daemon reads it at each job)."""
+    path = Path(state_dir) / "calibration.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(dict(calibration)))
+    return path
