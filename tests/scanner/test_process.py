@@ -14,7 +14,7 @@ from celld.se3 import transform_from
 from celld.sim.scanner import SimulatedScanner
 from celld.sim.scene import robot_scene
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.process
 
 T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
 
