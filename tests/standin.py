@@ -30,7 +30,8 @@ from typing import Any
 
 from celld import config
 from celld.bus.keys import CellKeys
-from celld.bus.schema import JOB_KINDS, Job
+from celld.bus.messages import JOB_KINDS
+from celld.bus.requests import Job
 from celld.bus.security import OPEN, Caller
 from celld.bus.server import BusServer
 from celld.bus.session import callers, open_server

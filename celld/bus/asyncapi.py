@@ -4,8 +4,12 @@
 JSON Schemas (:func:`export_schemas`); each message's payload is a ``$ref`` to
 ``<name>.schema.json`` in the same directory, so the document and the schemas
 the cell enforces are one bundle. It is made from
-:data:`celld.bus.keys.KEY_TABLE` and :data:`celld.bus.schema.SCHEMAS`;
-nothing in it is written by hand twice.
+:data:`celld.bus.keys.KEY_TABLE` and the schemas it is given
+(:func:`celld.bus.messages.message_schemas`; the cell's bundle, with each job
+kind's result, is :data:`celld.daemon.results.BUNDLE`); nothing in it is
+written by hand twice. The schemas that are no message's payload (each job
+kind's result alone, ``result-<kind>``) are listed under
+``components.schemas``.
 
 How zenoh maps onto AsyncAPI 2.6 (which has no request/reply of its own):
 
@@ -25,12 +29,13 @@ open bus and ``{prefix}/{cell}/u/{user}`` on a bus with users.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from celld import __version__, fsutil
 from celld.bus.keys import KEY_TABLE, KeySpec
-from celld.bus.schema import DIALECT, SCHEMAS
+from celld.bus.messages import DIALECT
 
 # The AsyncAPI version the document follows.
 ASYNCAPI_VERSION = "2.6.0"
@@ -62,15 +67,19 @@ def _message_ref(name: str) -> dict[str, str]:
     return {"$ref": f"#/components/messages/{name}"}
 
 
-def _messages(specs: tuple[KeySpec, ...]) -> dict[str, Any]:
+def _message_names(specs: tuple[KeySpec, ...]) -> list[str]:
     names: list[str] = []
     for spec in specs:
         for name in ((spec.request,) if spec.request else ()) + spec.replies:
             if name not in names:
                 names.append(name)
+    return names
+
+
+def _messages(specs: tuple[KeySpec, ...], schemas: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    for name in names:
-        schema = SCHEMAS[name]
+    for name in _message_names(specs):
+        schema = schemas[name]
         out[name] = {
             "name": name,
             "title": schema.get("title", name),
@@ -106,8 +115,9 @@ def _channel(spec: KeySpec) -> dict[str, Any]:
     return channel
 
 
-def asyncapi_document() -> dict[str, Any]:
-    """The AsyncAPI 2.6 document of the bus (a JSON-able dict)."""
+def asyncapi_document(schemas: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """The AsyncAPI 2.6 document of the bus whose messages are ``schemas`` (a JSON-able dict)."""
+    messages = _message_names(KEY_TABLE)
     return {
         "asyncapi": ASYNCAPI_VERSION,
         "id": "urn:celld:bus",
@@ -136,20 +146,25 @@ def asyncapi_document() -> dict[str, Any]:
             }
         },
         "channels": {channel_name(spec): _channel(spec) for spec in KEY_TABLE},
-        "components": {"messages": _messages(KEY_TABLE), "parameters": _PARAMETERS},
+        "components": {
+            "messages": _messages(KEY_TABLE, schemas),
+            "schemas": {name: {"$ref": SCHEMA_FILE.format(name=name)} for name in schemas if name not in messages},
+            "parameters": _PARAMETERS,
+        },
     }
 
 
-def export_schemas(directory: str | Path) -> list[Path]:
-    """Write the bundle into ``directory`` (created); returns the paths.
+def export_schemas(directory: str | Path, schemas: Mapping[str, Mapping[str, Any]]) -> list[Path]:
+    """Write the bundle of ``schemas`` into ``directory`` (created); returns the paths.
 
-    Every schema of :data:`celld.bus.schema.SCHEMAS` as ``<name>.schema.json``,
-    and ``asyncapi.json``: the document of :func:`asyncapi_document`, listing
-    the key expressions (channels), the operations on them and their messages,
-    whose payloads are ``$ref``s to the schema files beside it.
+    Every schema as ``<name>.schema.json``, and ``asyncapi.json``: the document
+    of :func:`asyncapi_document`, listing the key expressions (channels), the
+    operations on them and their messages, whose payloads are ``$ref``s to the
+    schema files beside it. The cell's bundle is
+    :data:`celld.daemon.results.BUNDLE` (``celld bus schema``).
     """
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
-    paths = [fsutil.write_json(out / SCHEMA_FILE.format(name=name), schema) for name, schema in SCHEMAS.items()]
-    paths.append(fsutil.write_json(out / "asyncapi.json", asyncapi_document()))
+    paths = [fsutil.write_json(out / SCHEMA_FILE.format(name=name), schema) for name, schema in schemas.items()]
+    paths.append(fsutil.write_json(out / "asyncapi.json", asyncapi_document(schemas)))
     return paths

@@ -1,6 +1,6 @@
 """A small JSON Schema checker for the subset of draft 2020-12 that celld's bus uses.
 
-The bus messages are described by JSON Schema dicts (:mod:`celld.bus.schema`);
+The bus messages are described by JSON Schema dicts (:mod:`celld.bus.messages`);
 they are exported for clients in other languages and drive this checker, so
 what a client reads and what the cell enforces cannot drift apart. The checker
 understands only the keywords below and refuses a schema that uses any other
@@ -16,7 +16,8 @@ understands only the keywords below and refuses a schema that uses any other
   or absent for a free-form object);
 - ``oneOf`` whose branches are objects told apart by one property with a
   ``const`` (a discriminator such as ``kind``), so the error can name the
-  branch's own field instead of "matches none of the alternatives";
+  branch's own field instead of "matches none of the alternatives"; one
+  branch may be ``{"type": "null"}`` (the value may also be null);
 - ``not`` whose schema is ``{"required": [a, b, ...]}`` (fields that must not
   all be given together): the error names the last of them and says "give
   either a or b, not both";
@@ -259,9 +260,14 @@ def _check_object(schema: Mapping[str, Any], value: dict[str, Any], path: str) -
             validate(sub, value[key], field_path(path, key))
 
 
+def _is_null_branch(branch: Mapping[str, Any]) -> bool:
+    """A ``oneOf`` branch that is null and nothing else: ``{"type": "null"}`` (annotations aside)."""
+    return branch.get("type") == "null" and not set(branch) - _ANNOTATIONS - {"type"}
+
+
 def discriminator(schema: Mapping[str, Any]) -> tuple[str, dict[Any, Mapping[str, Any]]]:
-    """The discriminating property of a ``oneOf`` and its branches by value."""
-    branches = schema["oneOf"]
+    """The discriminating property of a ``oneOf`` and its object branches by value (a null branch aside)."""
+    branches = [b for b in schema["oneOf"] if not _is_null_branch(b)]
     common: set[str] | None = None
     for branch in branches:
         consts = {k for k, v in branch.get("properties", {}).items() if "const" in v and k in branch.get("required", ())}
@@ -278,9 +284,12 @@ def discriminator(schema: Mapping[str, Any]) -> tuple[str, dict[Any, Mapping[str
 
 
 def _check_one_of(schema: Mapping[str, Any], value: Any, path: str) -> None:
+    null = any(_is_null_branch(b) for b in schema["oneOf"])
+    if value is None and null:
+        return
     name, by_value = discriminator(schema)
     if not isinstance(value, dict):
-        raise JobError(path, f"expected an object, got {describe(value)}")
+        raise JobError(path, f"expected {'an object or null' if null else 'an object'}, got {describe(value)}")
     choices = ", ".join(literal(v) for v in by_value)
     if name not in value:
         raise JobError(field_path(path, name), f"required field is missing (expected one of {choices})")
@@ -332,6 +341,10 @@ def check_schema(schema: Any, where: str = "#") -> None:
     if "oneOf" in schema:
         for i, branch in enumerate(schema["oneOf"]):
             check_schema(branch, f"{where}/oneOf/{i}")
+            if not _is_null_branch(branch) and branch.get("type") != "object":
+                raise ValueError(f'{where}/oneOf/{i}: a branch must be an object (type "object") or {{"type": "null"}}')
+        if sum(_is_null_branch(b) for b in schema["oneOf"]) > 1:
+            raise ValueError(f"{where}: oneOf may have one null branch, got more")
         try:
             discriminator(schema)
         except ValueError as exc:

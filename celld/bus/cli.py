@@ -1,4 +1,4 @@
-"""Bus subcommands: ``celld submit``, ``status``, ``jobs``, ``result``, ``cancel``, ``accept``, ``robot``, ``bus schema``.
+"""Bus subcommands: ``celld submit``, ``status``, ``jobs``, ``result``, ``cancel``, ``accept``, ``robot``.
 
 Every subcommand that talks to a cell reads the bus settings from ``--config``
 (default ``/etc/celld/cell.toml``) and addresses the cell named there, or
@@ -84,15 +84,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         sub, "robot", _robot_arguments, parents=[common], help="clear a robot fault through its dashboard (refused while a job runs)"
     )
 
-    b = sub.add_parser("bus", help="bus tools")
-    bsub = b.add_subparsers(dest="bus_command", metavar="ACTION", required=True)
-    e = bsub.add_parser("schema", help="export the JSON Schema of every bus message and the AsyncAPI document")
-    e.add_argument("--out", required=True, help="directory to write <name>.schema.json files and asyncapi.json into")
-    e.set_defaults(func=_schema)
-
 
 def _submit_arguments(p: argparse.ArgumentParser) -> None:
-    from celld.bus import schema
+    from celld.bus import messages
 
     kinds = p.add_subparsers(dest="kind", metavar="KIND", required=True)
     job_common = argparse.ArgumentParser(add_help=False, parents=[_connection_options()])
@@ -139,7 +133,7 @@ def _submit_arguments(p: argparse.ArgumentParser) -> None:
     m.add_argument("--speed-scale", type=float, help="fraction of the configured speed limits (0, 1]")
 
     h = kinds.add_parser("health", parents=[job_common], help="health check of the devices")
-    h.add_argument("--check", choices=schema.HEALTH_CHECKS, default="all")
+    h.add_argument("--check", choices=messages.HEALTH_CHECKS, default="all")
 
     f = kinds.add_parser("file", parents=[job_common], help="submit a JSON job message from a file ('-': stdin)")
     f.add_argument("path")
@@ -147,20 +141,20 @@ def _submit_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _jobs_arguments(j: argparse.ArgumentParser) -> None:
-    from celld.bus import schema
+    from celld.bus import messages
 
     j.add_argument("--limit", type=int, default=20)
-    j.add_argument("--state", choices=schema.JOB_STATES)
-    j.add_argument("--kind", choices=schema.JOB_KINDS)
+    j.add_argument("--state", choices=messages.JOB_STATES)
+    j.add_argument("--kind", choices=messages.JOB_KINDS)
     j.set_defaults(func=_jobs)
 
 
 def _robot_arguments(rb: argparse.ArgumentParser) -> None:
-    from celld.bus import schema
+    from celld.bus import messages
 
     rb.add_argument(
         "action",
-        choices=schema.ROBOT_ACTIONS,
+        choices=messages.ROBOT_ACTIONS,
         help="unlock a protective stop, power the arm on, release its brakes, close the safety pop-up",
     )
     rb.set_defaults(func=_robot)
@@ -195,14 +189,15 @@ def _print_json(value: Any) -> None:
 
 
 def _job_message(args: argparse.Namespace) -> dict[str, Any]:
-    from celld.bus import schema
+    from celld.bus import wire
+    from celld.bus.checker import describe
 
     kind = args.kind
     if kind == "file":
         text = sys.stdin.read() if args.path == "-" else Path(args.path).read_text(encoding="utf-8")
-        message = schema.load_json(text.encode("utf-8"))
+        message = wire.load_json(text.encode("utf-8"))
         if not isinstance(message, dict):
-            raise JobError("$", f"{args.path}: expected a JSON object (a job message), got {schema.describe(message)}")
+            raise JobError("$", f"{args.path}: expected a JSON object (a job message), got {describe(message)}")
         if args.ref:
             message["ref"] = args.ref
         if args.request_id:
@@ -215,7 +210,7 @@ def _job_message(args: argparse.Namespace) -> dict[str, Any]:
         _put(m, "k_max", args.k_max)
         _put(m, "seed", args.seed)
         if args.poses_file:
-            m["poses"] = schema.load_json(Path(args.poses_file).read_bytes())
+            m["poses"] = wire.load_json(Path(args.poses_file).read_bytes())
         if args.verification_pose:
             m["verification_pose"] = args.verification_pose
         if args.compensate:
@@ -424,7 +419,7 @@ def _cancel(args: argparse.Namespace) -> int:
 
 
 def _result(args: argparse.Namespace) -> int:
-    from celld.bus import schema
+    from celld.bus import messages
 
     with _client(args) as cell:
         reply = cell.result(args.job)
@@ -433,7 +428,7 @@ def _result(args: argparse.Namespace) -> int:
             raise JobError(
                 "$.job",
                 f"job {args.job} ({reply['state']}) has no result to write"
-                + (f": it is over {schema.MAX_RESULT_BYTES} bytes, on the cell PC at {reply.get('path')}" if reply["too_large"] else ""),
+                + (f": it is over {messages.MAX_RESULT_BYTES} bytes, on the cell PC at {reply.get('path')}" if reply["too_large"] else ""),
             )
         Path(args.out).write_text(json.dumps(reply["result"], indent=2) + "\n", encoding="utf-8")
         print(args.out)
@@ -442,7 +437,7 @@ def _result(args: argparse.Namespace) -> int:
     else:
         print(f"{reply['job']} {reply['kind']} {reply['state']}" + (f": {reply['reason']}" if reply["reason"] else ""))
         if reply["too_large"]:
-            print(f"result over {schema.MAX_RESULT_BYTES} bytes: on the cell PC at {reply.get('path')}")
+            print(f"result over {messages.MAX_RESULT_BYTES} bytes: on the cell PC at {reply.get('path')}")
         elif reply["result"] is not None:
             print(json.dumps(reply["result"], indent=2))
         for f in reply["files"]:
@@ -481,11 +476,3 @@ def _print_robot(robot: dict[str, Any]) -> None:
         print(f"robot {robot.get('state')}: {robot.get('reason')}")
         if robot.get("remedy"):
             print(f"  to clear it: {robot['remedy']}")
-
-
-def _schema(args: argparse.Namespace) -> int:
-    from celld.bus import asyncapi
-
-    for path in asyncapi.export_schemas(args.out):
-        print(path)
-    return 0

@@ -30,9 +30,12 @@ from typing import Any
 
 import zenoh
 
-from celld.bus import schema
+from celld.bus.checker import describe
 from celld.bus.keys import CellKeys, alive_all, cell_of_alive_key
+from celld.bus.messages import TERMINAL_STATES
+from celld.bus.requests import parse_submit
 from celld.bus.session import open_client
+from celld.bus.wire import encode
 from celld.config import BusConfig
 from celld.errors import BusError, JobError
 
@@ -55,7 +58,7 @@ def _decode_reply(data: bytes, where: str) -> dict[str, Any]:
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise BusError(f"{where}: the reply is not JSON: {exc}") from exc
     if not isinstance(value, dict) or not isinstance(value.get("ok"), bool):
-        raise BusError(f"{where}: expected a reply object with 'ok', got {schema.describe(value)}")
+        raise BusError(f"{where}: expected a reply object with 'ok', got {describe(value)}")
     return value
 
 
@@ -154,17 +157,17 @@ class CellClient:
         BusError
             See :meth:`request_raw`.
         """
-        reply = self.request_raw(name, schema.encode(message) if message else None, key)
+        reply = self.request_raw(name, encode(message) if message else None, key)
         if reply["ok"]:
             return reply
         error = reply.get("error")
         if not isinstance(error, dict):
-            raise BusError(f"{key or self.key(name)}: refused without an error object: {schema.describe(error)}")
+            raise BusError(f"{key or self.key(name)}: refused without an error object: {describe(error)}")
         raise JobError(str(error.get("field", "")), str(error.get("reason", "refused")))
 
     def submit(self, message: Mapping[str, Any]) -> dict[str, Any]:
         """Submit a job message (``{"kind": ..., ...}``), validated here first; returns submit-reply."""
-        schema.parse_submit(schema.encode(message))
+        parse_submit(encode(message))
         return self.request("submit", message)
 
     def status(self, job: str | None = None) -> dict[str, Any]:
@@ -319,9 +322,9 @@ class ProgressWatch:
                 continue
             if event is not None and on_event is not None:
                 on_event(event)
-            if event is None or event.get("state") in schema.TERMINAL_STATES:
+            if event is None or event.get("state") in TERMINAL_STATES:
                 record = self.client.status(job)
-                if record.get("state") in schema.TERMINAL_STATES:
+                if record.get("state") in TERMINAL_STATES:
                     return record
 
     def wait_stage(self, job: str, stage: str, timeout: float) -> dict[str, Any]:
@@ -337,9 +340,9 @@ class ProgressWatch:
             event = self.next(min(_STATUS_POLL, max(0.0, deadline - time.monotonic())))
             if event is not None and event.get("job") == job and event.get("stage") == stage:
                 return event
-            if event is None or event.get("state") in schema.TERMINAL_STATES:
+            if event is None or event.get("state") in TERMINAL_STATES:
                 record = self.client.status(job)
-                if record.get("state") in schema.TERMINAL_STATES:
+                if record.get("state") in TERMINAL_STATES:
                     raise BusError(f"job {job} {record['state']} before its {stage} stage: {record.get('reason', '')}")
         raise BusError(f"job {job}: no {stage} event within {timeout:g} s")
 

@@ -70,7 +70,7 @@ class KeySpec:
 
     ``key`` uses ``<prefix>``, ``<cell>``, ``<user>``, ``<job>``; ``<req>`` stands
     for ``<prefix>/<cell>`` (open bus) or ``<prefix>/<cell>/u/<user>`` (bus with
-    users). ``request`` and ``replies`` name schemas of :mod:`celld.bus.schema`.
+    users). ``request`` and ``replies`` name schemas of :mod:`celld.bus.messages`.
     """
 
     name: str

@@ -28,10 +28,10 @@ Handler interface (:class:`CellHandlers`; the daemon's job manager implements it
     async def on_result(self, req: ResultRequest, caller: Caller) -> dict  # -> result-reply body
 
 - A handler receives a request already validated and built into a frozen value
-  (:mod:`celld.bus.schema`); it never sees raw bytes.
+  (:mod:`celld.bus.requests`); it never sees raw bytes.
 - It returns the reply body without ``ok``; the server sends
   ``{"ok": true, **body}``. The bodies' schemas are ``SCHEMAS["<name>-reply"]``
-  (:func:`celld.bus.schema.check_message` checks one in tests). Values may be
+  (:func:`celld.bus.messages.check_message` checks one in tests). Values may be
   numpy scalars or arrays; they are sent as JSON numbers and lists.
 - To refuse, it raises :class:`~celld.errors.JobError` ``(field, reason)``
   (e.g. ``JobError("$.job", "no such job")``; a full queue is
@@ -69,10 +69,9 @@ from typing import Any, Protocol
 
 import zenoh
 
-from celld.bus import schema
 from celld.bus.keys import QUERYABLES, CellKeys
-from celld.bus.schema import (
-    TERMINAL_STATES,
+from celld.bus.messages import TERMINAL_STATES
+from celld.bus.requests import (
     AcceptRequest,
     CalibrationRequest,
     CancelRequest,
@@ -81,8 +80,11 @@ from celld.bus.schema import (
     ResultRequest,
     RobotRequest,
     StatusRequest,
+    parse,
+    parse_result,
 )
 from celld.bus.security import OPEN, Caller
+from celld.bus.wire import MAX_PAYLOAD_BYTES, encode, error_reply
 from celld.errors import BusError, CelldError, JobError
 from celld.log import get_logger
 
@@ -294,7 +296,7 @@ class BusServer:
                     # ACL let it through) or names no one job: not this user's request.
                     self._count("requests")
                     what = "name one job: <req>/result/<job>" if name == "result" else f"query your own key {declared}"
-                    self._reply_now(reply_key, query, schema.error_reply("$", f"refused: {what}, not {key!r}"))
+                    self._reply_now(reply_key, query, error_reply("$", f"refused: {what}, not {key!r}"))
                     return
                 self._enqueue(name, caller, reply_key, job, query)
             except Exception as exc:  # nothing a client sends may kill zenoh's thread  # noqa: BLE001
@@ -310,8 +312,8 @@ class BusServer:
     def _enqueue(self, name: str, caller: Caller, key: str, job: str, query: zenoh.Query) -> None:
         self._count("requests")
         payload = query.payload
-        if payload is not None and len(payload) > schema.MAX_PAYLOAD_BYTES:
-            self._reply_now(key, query, schema.error_reply("$", f"expected at most {schema.MAX_PAYLOAD_BYTES} bytes, got {len(payload)}"))
+        if payload is not None and len(payload) > MAX_PAYLOAD_BYTES:
+            self._reply_now(key, query, error_reply("$", f"expected at most {MAX_PAYLOAD_BYTES} bytes, got {len(payload)}"))
             return
         raw = payload.to_bytes() if payload is not None else b""
         with self._lock:
@@ -321,7 +323,7 @@ class BusServer:
         if busy:
             self._count("busy")
             reason = "the cell is shutting down" if self._closing else f"busy: {self.max_pending} requests in flight, try again"
-            self._reply_now(key, query, schema.error_reply("", reason))
+            self._reply_now(key, query, error_reply("", reason))
             return
         loop = self._loop
         request = _Request(name, caller, key, job, query, raw)
@@ -331,12 +333,12 @@ class BusServer:
             loop.call_soon_threadsafe(self._spawn, request)
         except RuntimeError:  # the loop is closed
             self._release()
-            self._reply_now(key, query, schema.error_reply("", "the cell is shutting down"))
+            self._reply_now(key, query, error_reply("", "the cell is shutting down"))
 
     def _spawn(self, request: _Request) -> None:
         if self._closing:  # close() began after this request was handed over
             self._release()
-            self._reply_now(request.key, request.query, schema.error_reply("", "the cell is shutting down"))
+            self._reply_now(request.key, request.query, error_reply("", "the cell is shutting down"))
             return
         task = asyncio.get_running_loop().create_task(self._answer(request))
         self._tasks.add(task)
@@ -363,7 +365,7 @@ class BusServer:
 
         def too_slow() -> None:
             self._count("timeouts")
-            reply_once(schema.error_reply("", f"no answer within {self.reply_timeout:g} s; the request may still take effect (ask status)"))
+            reply_once(error_reply("", f"no answer within {self.reply_timeout:g} s; the request may still take effect (ask status)"))
 
         # A timer instead of wait_for(shield(...)): one task per request, and a
         # slow handler is reported, not torn in half.
@@ -372,7 +374,7 @@ class BusServer:
             reply = await self._handle(request)
         except asyncio.CancelledError:
             timer.cancel()
-            reply_once(schema.error_reply("", "the cell is shutting down"))
+            reply_once(error_reply("", "the cell is shutting down"))
             raise
         timer.cancel()
         if not reply_once(reply) and reply.get("ok") is not True:
@@ -381,31 +383,31 @@ class BusServer:
     async def _handle(self, request: _Request) -> Mapping[str, Any]:
         name = request.name
         try:
-            value = schema.parse_result(request.job, request.raw) if name == "result" else schema.parse(name, request.raw)
+            value = parse_result(request.job, request.raw) if name == "result" else parse(name, request.raw)
             body = await self._handlers[name](value, request.caller)
             if not isinstance(body, Mapping):
                 raise TypeError(f"handler on_{name} returned {type(body).__name__}, expected a mapping")
             return {"ok": True, **body}
         except JobError as exc:
-            return schema.error_reply(exc.field, exc.reason)
+            return error_reply(exc.field, exc.reason)
         except CelldError as exc:
-            return schema.error_reply("", str(exc))
+            return error_reply("", str(exc))
         except asyncio.CancelledError:
             raise
         except Exception:  # a handler's own bug gets an internal-error reply, the bus stays up
             self._count("internal_errors")
             log.exception("bus handler failed", request=name)
-            return schema.error_reply("", f"internal error while handling {name}")
+            return error_reply("", f"internal error while handling {name}")
 
     def _reply_now(self, key: str, query: zenoh.Query, reply: Mapping[str, Any]) -> None:
         if reply.get("ok") is not True:
             self._count("refused")
         try:
-            payload = schema.encode(reply)
+            payload = encode(reply)
         except (TypeError, ValueError) as exc:
             self._count("internal_errors")
             log.error("bus reply not encodable", error=str(exc))
-            payload = schema.encode(schema.error_reply("", "internal error: the reply was not valid JSON"))
+            payload = encode(error_reply("", "internal error: the reply was not valid JSON"))
         try:
             # The queryable's own key (a query may have come in on a wildcard),
             # or the one result it names.
@@ -465,7 +467,7 @@ class BusServer:
         if publisher is None:
             return False
         try:
-            publisher.put(schema.encode(state))
+            publisher.put(encode(state))
         except (TypeError, ValueError, zenoh.ZError) as exc:
             if stream not in self._warned:  # once per stream: samples come at the state rate
                 self._warned.add(stream)
@@ -478,7 +480,7 @@ class BusServer:
         if self._closing:
             return False
         try:
-            self.session.put(key, schema.encode(message), encoding=_JSON, congestion_control=zenoh.CongestionControl.DROP)
+            self.session.put(key, encode(message), encoding=_JSON, congestion_control=zenoh.CongestionControl.DROP)
         except (TypeError, ValueError, zenoh.ZError) as exc:
             log.warning("event not published", key=key, error=str(exc))
             return False

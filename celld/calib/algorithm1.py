@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike
 from celld.calib.metrics import IcpMetric, translation_cost
 from celld.calib.rigid import Array, RigidFit, check_pairs, solve_rigid
 from celld.errors import CalibrationError, InputError
+from celld.schemadoc import array, boolean, integer, number, obj, string, texts
 
 # Size of the pool (line 2 of Algorithm 1).
 POOL_SIZE = 4
@@ -102,6 +103,22 @@ class Algorithm1Step:
             "cost_mm": self.cost_optimal * 1e3 if math.isfinite(self.cost_optimal) else None,
             "reached": self.reached,
         }
+
+
+# The JSON shape of Algorithm1Step.as_dict.
+STEP_SCHEMA = obj(
+    "The state after one step of Algorithm 1 (k = 0: the initial pool).",
+    {
+        "k": integer(lo=0),
+        "pair": string("The pair this step tried (null for the initial pool).", null=True),
+        "candidate_costs_mm": array(number(null=True), "The cost of each candidate pool, null where it had no estimate."),
+        "accepted_slot": integer("The slot the pair took (null: none, or the initial pool).", lo=0, null=True),
+        "pool": texts("The pool after the step."),
+        "cost_mm": number("Its cost, null when infinite.", null=True),
+        "reached": boolean("The cost is at or below e_required."),
+    },
+    ("k", "pair", "candidate_costs_mm", "accepted_slot", "pool", "cost_mm", "reached"),
+)
 
 
 @dataclass(frozen=True)

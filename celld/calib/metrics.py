@@ -37,6 +37,7 @@ from celld.calib.flange import FlangeModel
 from celld.calib.rangebias import correct_range_bias
 from celld.calib.rigid import Array
 from celld.errors import CalibrationError, InputError
+from celld.schemadoc import const, number, obj, one_of, string, vector
 from celld.se3 import check_points, check_transform, invert
 
 # Cost metric names accepted by :func:`cost_function` (config: calibration.cost).
@@ -141,7 +142,7 @@ class IcpMetric:
         return Rotation.from_matrix(self.T_camhat_cam[:3, :3]).as_euler("xyz")
 
     def as_dict(self) -> dict[str, object]:
-        """JSON-ready (mm and deg at this boundary; None when infinite)."""
+        """JSON-ready (mm and deg at this boundary; :data:`E_ICP_SCHEMA`)."""
         if not self.ok:
             return {"ok": False, "reason": self.reason, "fitness": self.fitness}
         return {
@@ -151,6 +152,28 @@ class IcpMetric:
             "fitness": self.fitness,
             "rmse_mm": self.rmse * 1e3,
         }
+
+
+# The JSON shape of IcpMetric.as_dict.
+E_ICP_SCHEMA = one_of(
+    "e_icp (Eq. 13) of an estimate against the verification cloud: T_cam'_cam as a translation and roll, pitch, yaw; or why ICP failed.",
+    obj(
+        "ICP converged.",
+        {
+            "ok": const(True),
+            "translation_mm": vector("(dx, dy, dz).", 3),
+            "rpy_deg": vector("(d_roll, d_pitch, d_yaw), extrinsic x-y-z.", 3),
+            "fitness": number("Fraction of verification points with a model point within the correspondence distance.", 0.0, 1.0),
+            "rmse_mm": number("RMS distance of those correspondences."),
+        },
+        ("ok", "translation_mm", "rpy_deg", "fitness", "rmse_mm"),
+    ),
+    obj(
+        "ICP failed: the metric is infinite.",
+        {"ok": const(False), "reason": string(), "fitness": number(lo=0.0, hi=1.0)},
+        ("ok", "reason", "fitness"),
+    ),
+)
 
 
 def translation_cost(e: IcpMetric) -> float:

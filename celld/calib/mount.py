@@ -35,6 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 from celld.config import SCANNER_MOUNTS
 from celld.errors import InputError
 from celld.robot import kinematics as kin
+from celld.schemadoc import enum, matrix4, obj, vector
 from celld.se3 import check_transform, invert
 
 Array = NDArray[np.float64]
@@ -127,6 +128,33 @@ def in_frame(report: Any, mount: ScannerMount) -> Any:
     return report
 
 
+def in_any_frame(schema: Mapping[str, Any]) -> dict[str, Any]:
+    """The JSON Schema of what :func:`in_frame` makes of a report of shape ``schema``.
+
+    Every ``T_base_cam...`` property (at any depth) is also allowed under each
+    arm mount's frame (``T_link1_cam...``), and none of these is required:
+    which one a report holds depends on its mount.
+    """
+    out: dict[str, Any] = dict(schema)
+    old = _key("base")
+    if "properties" in schema:
+        props: dict[str, Any] = {}
+        renamed: set[str] = set()
+        for k, sub in schema["properties"].items():
+            props[k] = in_any_frame(sub)
+            if k.startswith(old):
+                renamed.add(k)
+                for frame in (ScannerMount(m).frame for m in SCANNER_MOUNTS[1:]):
+                    props[_key(frame) + k[len(old) :]] = props[k]
+        out["properties"] = props
+        out["required"] = [r for r in schema.get("required", []) if r not in renamed]
+    if "items" in schema:
+        out["items"] = in_any_frame(schema["items"])
+    if "oneOf" in schema:
+        out["oneOf"] = [in_any_frame(b) for b in schema["oneOf"]]
+    return out
+
+
 def mount_entry(mount: ScannerMount, T_ref_cam: ArrayLike) -> dict[str, Any]:
     """A calibration's entries for the scanner's pose in its frame: ``T_base_cam``, or the mount, the robot's
     DH table and ``T_linkN_cam`` for a scanner on the arm (read back by :func:`placement_of`)."""
@@ -134,6 +162,23 @@ def mount_entry(mount: ScannerMount, T_ref_cam: ArrayLike) -> dict[str, Any]:
     if not mount.on_arm:
         return {_key("base"): T}
     return {"mount": mount.name, "dh": mount.dh_entry(), _key(mount.frame): T}
+
+
+# The JSON shape of mount_entry's entries (properties to merge into a document's): none is required,
+# which are there depends on the mount.
+MOUNT_ENTRY_PROPERTIES: dict[str, dict[str, Any]] = {
+    _key("base"): matrix4("The scanner's pose in the robot base frame (a scanner on the base)."),
+    "mount": enum(SCANNER_MOUNTS, "Where the scanner is fixed (absent: the base)."),
+    "dh": obj(
+        "The robot's DH table the link frame is computed with (m, rad).",
+        {k: vector(k, 6) for k in kin.DH._fields},
+        kin.DH._fields,
+    ),
+    **{
+        _key(ScannerMount(m).frame): matrix4(f"The scanner's pose in the frame of {m} (a scanner on the arm, Eq. 8).")
+        for m in SCANNER_MOUNTS[1:]
+    },
+}
 
 
 @dataclass(frozen=True)

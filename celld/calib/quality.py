@@ -68,7 +68,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from celld.calib.metrics import IcpMetric
+from celld.calib.metrics import E_ICP_SCHEMA, IcpMetric
 from celld.calib.rangebias import RangeBiasFit
 from celld.calib.rigid import (
     Array,
@@ -79,6 +79,7 @@ from celld.calib.rigid import (
 )
 from celld.calib.robust import CHI2_3_MEDIAN, RejectedPair
 from celld.errors import InputError
+from celld.schemadoc import array, boolean, enum, integer, nullable, number, obj, string, texts, vector
 
 # The verdicts; only "ok" passes the gate.
 VERDICTS = ("ok", "too_few_pairs", "poor_data", "insufficient_rotation", "insufficient_range_bias")
@@ -309,7 +310,7 @@ class CalibrationQuality:
         return tuple(p.id for p in self.pairs if p.outlier)
 
     def as_dict(self) -> dict[str, Any]:
-        """JSON-ready (mm and deg at this boundary; None where not finite)."""
+        """JSON-ready (mm and deg at this boundary; None where not finite; :data:`QUALITY_SCHEMA`)."""
         return {
             "verdict": self.verdict,
             "passed": self.passed,
@@ -332,6 +333,80 @@ class CalibrationQuality:
             "range_bias_std_mm": _finite(self.range_bias_std * 1e3),
             "range_bias_source": self.range_bias_source,
         }
+
+
+# The JSON shape of CalibrationQuality.as_dict.
+QUALITY_SCHEMA = obj(
+    "The quality gate's view of a calibration (celld.calib.quality): a verdict and why, per-pair residuals and "
+    "outliers, the uncertainty at the workspace centre, e_icp of the estimate; null where not finite.",
+    {
+        "verdict": enum(VERDICTS, "Only ok passes; accept refuses the others unless forced."),
+        "passed": boolean(),
+        "reasons": texts("Why the verdict is not ok."),
+        "warnings": texts("What does not fail the gate but should be known."),
+        "pairs": array(
+            obj(
+                "One pair.",
+                {
+                    "id": string(),
+                    "residual_mm": number("Null when the pair has no flange centre.", null=True),
+                    "used": boolean(),
+                    "outlier": boolean(),
+                    "reason": string("Why it is an outlier, not used, or without a centre."),
+                },
+                ("id", "residual_mm", "used", "outlier", "reason"),
+            ),
+            "Every pair: residual against the estimate, used, outlier, and why.",
+        ),
+        "outliers": texts("Ids of the outliers."),
+        "n_used": integer(lo=0),
+        "rms_mm": number("RMS residual of the pairs used.", null=True),
+        "sigma_mm": number("Noise per axis the uncertainty uses.", null=True),
+        "sigma_source": enum(("residuals", "floor")),
+        "workspace_centre": vector("Centroid of the positions used, base frame, m.", 3),
+        "translation_std_mm": vector("1-sigma at the workspace centre, base x, y, z.", 3, null_items=True),
+        "rotation_std_deg": vector("1-sigma about base x, y, z.", 3, null_items=True),
+        "rotation_axes": array(
+            obj(
+                "One axis.",
+                {"axis": string(), "direction": vector("Unit direction, base frame.", 3), "std_deg": number(null=True)},
+                ("axis", "direction", "std_deg"),
+            ),
+            "Principal axes of the rotation covariance, the worst fixed first.",
+        ),
+        "e_icp": nullable(E_ICP_SCHEMA, "e_icp (Eq. 13) of the estimate; null without a verification cloud."),
+        "e_icp_tilt_deg": number("e_icp's rotation across the verification flange's axis.", null=True),
+        "e_icp_turn_deg": number("e_icp's rotation about the verification flange's axis (fixed only by its holes).", null=True),
+        "range_bias_mm": number("The scanner's range bias on bare metal estimated with T_base_cam; null when not estimated.", null=True),
+        "range_bias_std_mm": number("Its 1-sigma.", null=True),
+        "range_bias_source": string(
+            "What fixed it: steps (the metal face over the painted shoulder), pairs (the spread of the rays), or both; "
+            "empty when not estimated."
+        ),
+    },
+    (
+        "verdict",
+        "passed",
+        "reasons",
+        "warnings",
+        "pairs",
+        "outliers",
+        "n_used",
+        "rms_mm",
+        "sigma_mm",
+        "sigma_source",
+        "workspace_centre",
+        "translation_std_mm",
+        "rotation_std_deg",
+        "rotation_axes",
+        "e_icp",
+        "e_icp_tilt_deg",
+        "e_icp_turn_deg",
+        "range_bias_mm",
+        "range_bias_std_mm",
+        "range_bias_source",
+    ),
+)
 
 
 def _finite(x: float) -> float | None:

@@ -65,6 +65,7 @@ from celld.calib.flange import FlangeModel
 from celld.calib.rigid import Array, Uncertainty, check_pairs, solve_rigid
 from celld.calib.robust import RobustFit, RobustParams, solve_robust
 from celld.errors import CalibrationError, InputError
+from celld.schemadoc import array, boolean, const, integer, number, obj, string
 from celld.se3 import transform_from
 
 # Modes of the calibration's range_bias setting.
@@ -365,7 +366,7 @@ class RangeBiasFit:
         return "+".join(parts)
 
     def as_dict(self) -> dict[str, object]:
-        """JSON-ready (mm at this boundary; None where not finite)."""
+        """JSON-ready (mm at this boundary; None where not finite; :data:`RANGE_BIAS_SCHEMA`)."""
 
         def mm(x: float) -> float | None:
             return x * 1e3 if math.isfinite(x) else None
@@ -384,6 +385,42 @@ class RangeBiasFit:
             "pair_sigma_mm": mm(self.pair_sigma),
             "rejected_steps": [{"id": r.id, "bias_mm": r.bias * 1e3, "reason": r.reason} for r in self.rejected_steps],
         }
+
+
+# The JSON shape of RangeBiasFit.as_dict.
+RANGE_BIAS_SCHEMA = obj(
+    "The range bias on metal estimated with the transform (mode estimate); null where not finite.",
+    {
+        "mode": const("estimate"),
+        "bias_mm": number("The range bias on metal (positive: metal reads long)."),
+        "std_mm": number("Its 1-sigma.", null=True),
+        "source": string("What fixed it: steps, pairs, or steps+pairs."),
+        "sigma_from_pairs_mm": number("The 1-sigma the centre pairs alone would give.", null=True),
+        "sigma_from_steps_mm": number("The 1-sigma the finish steps alone give.", null=True),
+        "centres_on_metal": boolean(),
+        "n_pairs": integer(lo=0),
+        "n_steps": integer(lo=0),
+        "step_sigma_mm": number(null=True),
+        "pair_sigma_mm": number(null=True),
+        "rejected_steps": array(
+            obj("A finish step left out.", {"id": string(), "bias_mm": number(), "reason": string()}, ("id", "bias_mm", "reason"))
+        ),
+    },
+    (
+        "mode",
+        "bias_mm",
+        "std_mm",
+        "source",
+        "sigma_from_pairs_mm",
+        "sigma_from_steps_mm",
+        "centres_on_metal",
+        "n_pairs",
+        "n_steps",
+        "step_sigma_mm",
+        "pair_sigma_mm",
+        "rejected_steps",
+    ),
+)
 
 
 def _unit_rays(P: Array) -> Array:

@@ -38,6 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from celld.errors import CalibrationError, InputError
+from celld.schemadoc import integer, number, obj, vector
 from celld.se3 import transform_from
 
 Array = NDArray[np.float64]
@@ -89,7 +90,7 @@ class Uncertainty:
         return float(np.sqrt(max(np.trace(self.covariance[3:, 3:]), 0.0)))
 
     def as_dict(self) -> dict[str, object]:
-        """JSON-ready summary (mm and deg at this boundary)."""
+        """JSON-ready summary (mm and deg at this boundary; :data:`UNCERTAINTY_SCHEMA` once its NaNs are nulls)."""
         return {
             "sigma_mm": self.sigma * 1e3,
             "dof": self.dof,
@@ -98,6 +99,21 @@ class Uncertainty:
             "translation_error_mm": self.translation_error * 1e3,
             "rotation_error_deg": float(np.degrees(self.rotation_error)),
         }
+
+
+# The JSON shape of Uncertainty.as_dict in a report (null where not finite).
+UNCERTAINTY_SCHEMA = obj(
+    "First-order uncertainty of the transform (celld.calib.rigid's convention); null where not finite.",
+    {
+        "sigma_mm": number("Noise per axis of one residual component.", null=True),
+        "dof": integer("Degrees of freedom of the residuals."),
+        "translation_std_mm": vector("1-sigma of the translation along x, y, z.", 3, null_items=True),
+        "rotation_std_deg": vector("1-sigma of the rotation about x, y, z.", 3, null_items=True),
+        "translation_error_mm": number("RMS expected translation error.", null=True),
+        "rotation_error_deg": number("RMS expected rotation error.", null=True),
+    },
+    ("sigma_mm", "dof", "translation_std_mm", "rotation_std_deg", "translation_error_mm", "rotation_error_deg"),
+)
 
 
 @dataclass(frozen=True)

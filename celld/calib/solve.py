@@ -43,22 +43,32 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from celld import se3
-from celld.calib.algorithm1 import Algorithm1Result, run_algorithm1
+from celld.calib.algorithm1 import STEP_SCHEMA, Algorithm1Result, run_algorithm1
 from celld.calib.dataset import MAX_CAMERA_DISTANCE
 from celld.calib.detect import detect_flange
 from celld.calib.detect_params import DetectParams
 from celld.calib.flange import FlangeModel
-from celld.calib.metrics import IcpMetric, IcpParams, IcpVerifier, compensate, cost_function, model_cloud_with_normals
+from celld.calib.metrics import E_ICP_SCHEMA, IcpMetric, IcpParams, IcpVerifier, compensate, cost_function, model_cloud_with_normals
 from celld.calib.pairs import Detections
-from celld.calib.quality import CalibrationQuality, QualityParams, assess_calibration
+from celld.calib.quality import QUALITY_SCHEMA, CalibrationQuality, QualityParams, assess_calibration
 from celld.calib.rangebias import MODES as RANGE_BIAS_MODES
-from celld.calib.rangebias import RangeBiasData, RangeBiasFit, correct_range_bias, solve_range_bias, solve_robust_range_bias
-from celld.calib.rigid import Array, Uncertainty, check_pairs, pair_residuals, solve_rigid
+from celld.calib.rangebias import (
+    RANGE_BIAS_SCHEMA,
+    RangeBiasData,
+    RangeBiasFit,
+    correct_range_bias,
+    solve_range_bias,
+    solve_robust_range_bias,
+)
+from celld.calib.rigid import UNCERTAINTY_SCHEMA, Array, Uncertainty, check_pairs, pair_residuals, solve_rigid
 from celld.calib.robust import RejectedPair, RobustParams, solve_robust
 from celld.config import CalibrationConfig
 from celld.errors import CalibrationError, DetectionError, InputError
+from celld.schemadoc import array, boolean, const, enum, integer, matrix4, nullable, number, obj, one_of, string, texts
 
 METHODS = ("robust", "svd", "algorithm1")
+# Which transform a calibration stores: the estimate, or the estimate compensated by Eq. 21.
+STORED = ("estimate", "compensated")
 # Margin around the flange model when the verification cloud is cropped, m.
 _VERIFICATION_MARGIN = 0.005
 # Verification points this far outside the tool flange's radius still count as
@@ -215,7 +225,8 @@ class CalibrationResult:
         ``T_base_cam`` is the transform to store (:attr:`T_base_cam_stored`),
         ``stored`` says which one it is and ``T_base_cam_estimate`` is the
         estimate before Eq. 21; ``range_bias`` holds the range bias on metal
-        (``bias_mm``, ``std_mm``; 0 with mode ``none``).
+        (``bias_mm``, ``std_mm``; 0 with mode ``none``). Its shape:
+        :data:`REPORT_SCHEMA`.
         """
         out: dict[str, Any] = {
             "T_base_cam": self.T_base_cam_stored.tolist(),
@@ -248,6 +259,71 @@ class CalibrationResult:
                 "steps": [s.as_dict() for s in a.steps],
             }
         return out
+
+
+# The JSON shape of CalibrationResult.as_dict (its T_base_cam names in the base frame; a scanner on
+# the arm's report names them in its link's frame: celld.calib.mount.in_frame, in_any_frame).
+REPORT_SCHEMA = obj(
+    "A calibration's solve: the transform stored and the estimate, the pairs used and left out with their residuals, "
+    "the uncertainty, e_icp (Eq. 13), Eq. 21's compensated transform, the quality gate's verdict, the range bias on "
+    "metal and Algorithm 1's history. Transforms in metres, residuals in mm.",
+    {
+        "T_base_cam": matrix4("The transform to store (stored says which)."),
+        "stored": enum(STORED, "T_base_cam is the estimate or Eq. 21's compensated estimate."),
+        "T_base_cam_estimate": matrix4("The estimate before Eq. 21."),
+        "method": enum(METHODS, "The estimator that gave the estimate."),
+        "pairs": texts("The pairs the estimate uses, in pair order."),
+        "residuals_mm": array(number(), "Residual of each pair used, aligned with pairs."),
+        "rejected": texts("Pairs left out."),
+        "rejected_detail": array(
+            obj(
+                "A pair left out, and why.",
+                {"id": string(), "reason": string(), "residual_mm": number(null=True)},
+                ("id", "reason", "residual_mm"),
+            )
+        ),
+        "rms_mm": number("RMS residual of the pairs used."),
+        "uncertainty": UNCERTAINTY_SCHEMA,
+        "n_pairs": integer("Pairs in the session.", lo=0),
+        "e_icp": nullable(E_ICP_SCHEMA, "e_icp of the estimate; null without a verification cloud."),
+        "T_base_cam_compensated": nullable(matrix4(), "Eq. 21's transform, when asked for and e_icp is finite; else null."),
+        "quality": QUALITY_SCHEMA,
+        "range_bias": one_of(
+            "The range bias on metal: estimated with the transform, or not (mode none).",
+            RANGE_BIAS_SCHEMA,
+            obj("Not estimated.", {"mode": const("none"), "bias_mm": const(0.0)}, ("mode", "bias_mm")),
+        ),
+        "algorithm1": obj(
+            "Algorithm 1 over the pairs in order (when there is a verification cloud).",
+            {
+                "pool": texts("The final pool."),
+                "cost_mm": number("Its cost, null when infinite.", null=True),
+                "reached": boolean("The cost reached e_required."),
+                "pairs_used": integer(lo=0),
+                "T_base_cam": nullable(matrix4(), "The pool's transform, null when degenerate."),
+                "steps": array(STEP_SCHEMA, "Every step, k = 0 first."),
+            },
+            ("pool", "cost_mm", "reached", "pairs_used", "T_base_cam", "steps"),
+        ),
+    },
+    (
+        "T_base_cam",
+        "stored",
+        "T_base_cam_estimate",
+        "method",
+        "pairs",
+        "residuals_mm",
+        "rejected",
+        "rejected_detail",
+        "rms_mm",
+        "uncertainty",
+        "n_pairs",
+        "e_icp",
+        "T_base_cam_compensated",
+        "quality",
+        "range_bias",
+    ),
+)
 
 
 def _finite_or_none(value: Any) -> Any:

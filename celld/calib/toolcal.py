@@ -65,6 +65,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from celld.calib.robust import CHI2_3_MEDIAN, RejectedPair, RobustParams, outliers
 from celld.errors import CalibrationError, InputError
+from celld.schemadoc import array, boolean, enum, integer, number, obj, string, texts, vector
 
 Array = NDArray[np.float64]
 
@@ -179,7 +180,7 @@ class ToolTipFit:
         return float(np.sqrt(np.mean(r**2))) if len(r) else math.nan
 
     def as_dict(self) -> dict[str, Any]:
-        """The report in message units (mm, deg): verdict, reasons, each pose's residual and why it is out."""
+        """The report in message units (mm, deg): verdict, reasons, each pose's residual and why it is out (:data:`FIT_SCHEMA`)."""
         out_reason = {r.index: r.reason for r in self.rejected}
         used = set(self.inliers)
         return {
@@ -208,6 +209,54 @@ class ToolTipFit:
             "offset_base_mm": (self.offset_base * 1e3).tolist(),
             "offset_std_mm": [_finite_or_none(v * 1e3) for v in self.offset_std],
         }
+
+
+# The JSON shape of ToolTipFit.as_dict.
+FIT_SCHEMA = obj(
+    "The verdict on a point of the tool measured in the TCP frame (celld.calib.toolcal): why, each pose's residual and "
+    "whether it is an outlier, the noise, the orientation spread and the point's 1-sigma; null where not finite.",
+    {
+        "verdict": enum(VERDICTS, "Only ok passes; accept refuses the others unless forced."),
+        "passed": boolean(),
+        "reasons": texts("Why the verdict is not ok."),
+        "warnings": texts("What does not fail the verdict but should be known."),
+        "poses": array(
+            obj(
+                "One pose.",
+                {"id": string(), "residual_mm": number(null=True), "used": boolean(), "outlier": boolean(), "reason": string()},
+                ("id", "residual_mm", "used", "outlier", "reason"),
+            ),
+            "Every pose with a measurement: residual against the fit, used, outlier, and why.",
+        ),
+        "outliers": texts("Ids of the outliers."),
+        "n_used": integer(lo=0),
+        "rms_mm": number("RMS residual of the poses used.", null=True),
+        "sigma_mm": number("Noise per axis the uncertainty uses."),
+        "sigma_source": enum(("residuals", "floor")),
+        "spread_deg": number("Orientation spread of the poses used along the worst-fixed direction of the point."),
+        "spread_axis_tcp": vector("That direction, TCP frame.", 3),
+        "tip_std_mm": vector("1-sigma of the point along TCP x, y, z.", 3, null_items=True),
+        "offset_base_mm": vector("Where the scanner and the arm disagree at the tool's place (solved with the point), base frame.", 3),
+        "offset_std_mm": vector("Its 1-sigma.", 3, null_items=True),
+    },
+    (
+        "verdict",
+        "passed",
+        "reasons",
+        "warnings",
+        "poses",
+        "outliers",
+        "n_used",
+        "rms_mm",
+        "sigma_mm",
+        "sigma_source",
+        "spread_deg",
+        "spread_axis_tcp",
+        "tip_std_mm",
+        "offset_base_mm",
+        "offset_std_mm",
+    ),
+)
 
 
 def _finite_or_none(v: float) -> float | None:

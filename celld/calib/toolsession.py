@@ -29,10 +29,11 @@ from numpy.typing import ArrayLike
 from celld import se3
 from celld.calib.mount import Placement, mount_entry
 from celld.calib.rangebias import correct_range_bias
-from celld.calib.toolcal import MIN_SOLVE_POSES, ToolCalParams, ToolTipFit, solve_tool_tip
+from celld.calib.toolcal import FIT_SCHEMA, MIN_SOLVE_POSES, ToolCalParams, ToolTipFit, solve_tool_tip
 from celld.calib.tooltip import TipDetection, TipDetectParams, WireDetectParams, detect_tip, detect_wire_end
 from celld.config import ToolConfig
 from celld.errors import CalibrationError
+from celld.schemadoc import array, boolean, integer, obj, string, vector, with_properties
 
 
 @dataclass(frozen=True)
@@ -111,12 +112,70 @@ class _Points:
         return quality
 
 
+# Captures that showed no point of the tool, and why.
+_MISSED = array(obj("A capture without the point.", {"id": string(), "reason": string()}, ("id", "reason")), "Captures without the point.")
+# The JSON shape of a point's report (_Points.quality): its fit's, and the captures that showed no point.
+POINT_QUALITY_SCHEMA = with_properties(FIT_SCHEMA, {"missed": _MISSED}, ("missed",))
+# The torch's (_torch_quality): the same, or without a fit (too few captures showed it) its verdict, why and misses.
+_TORCH_QUALITY = {
+    **POINT_QUALITY_SCHEMA,
+    "description": "The torch's own report in the same keys (tip_std_mm its 1-sigma); without a fit, its verdict and why.",
+    "required": ["verdict", "passed", "reasons", "warnings", "missed"],
+}
+# The JSON shape of the tool's report (ToolCalibrationSession.finish): the tip's, whose verdict is the job's, with the torch's.
+QUALITY_SCHEMA = with_properties(
+    POINT_QUALITY_SCHEMA,
+    {"torch": _TORCH_QUALITY},
+    ("torch",),
+    desc="The verdict on a tool calibration: the tip's report, whose verdict is the job's (the first of the tip's and the "
+    "torch's that is not ok: then the reasons are the torch's, prefixed 'torch:'), and the torch's.",
+)
+_POINT_TCP = vector("A point in the TCP frame, mm.", 3)
+_STD_TCP = vector("Its 1-sigma along TCP x, y, z, mm.", 3, null_items=True)
+# The JSON shape of a tool calibration (ToolCalibration.tool, a tool-calibrate job's candidate).
+TOOL_SCHEMA = obj(
+    "A tool calibration: the SRM tip (and the torch) measured in the TCP frame; it overrides tool.tip_tcp_mm "
+    "(and, with torch_measured, the torch offset and the tool's x axis) once current.",
+    {
+        "job": string("The tool-calibrate job that measured it."),
+        "tip_tcp_mm": {**_POINT_TCP, "description": "The tip's centre in the TCP frame, mm."},
+        "tip_std_mm": _STD_TCP,
+        "nominal_tip_tcp_mm": {**_POINT_TCP, "description": "The config's tool.tip_tcp_mm when it was measured."},
+        "delta_mm": {**_POINT_TCP, "description": "Measured minus configured tip, TCP frame, mm."},
+        "calibration_job": string("The hand-eye calibration the points were placed with."),
+        "poses": integer("Poses with a tip measurement.", lo=0),
+        "quality": QUALITY_SCHEMA,
+        "torch_measured": boolean("The torch was measured: a weld takes torch_offset and the tool's x axis from the tip and it."),
+        "torch_tcp_mm": {
+            **_POINT_TCP,
+            "description": "The torch point (the wire's end), TCP frame, mm: measured when torch_measured, else torch_offset "
+            "along -x of the tool frame.",
+        },
+        "torch_std_mm": _STD_TCP,
+        "nominal_torch_tcp_mm": {**_POINT_TCP, "description": "Where the config put the torch when it was measured."},
+        "torch_delta_mm": {**_POINT_TCP, "description": "Measured minus configured torch, TCP frame, mm."},
+    },
+    (
+        "job",
+        "tip_tcp_mm",
+        "tip_std_mm",
+        "nominal_tip_tcp_mm",
+        "delta_mm",
+        "calibration_job",
+        "poses",
+        "quality",
+        "torch_measured",
+        "torch_tcp_mm",
+    ),
+)
+
+
 @dataclass(frozen=True)
 class ToolCalibration:
     """A tool calibration's outcome: ``tool`` (the tip and torch in the TCP frame, mm, with the quality report),
     the fits (the torch's None when too few captures showed it) and the residuals to draw."""
 
-    tool: dict[str, Any]
+    tool: dict[str, Any]  # TOOL_SCHEMA
     tip_fit: ToolTipFit
     torch_fit: ToolTipFit | None
     residuals: tuple[list[str], np.ndarray, np.ndarray, list[bool]]

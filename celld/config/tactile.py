@@ -10,7 +10,7 @@
 
 Every bound of a servo value a job may override is stated once, in
 :data:`SERVO_BOUNDS` (SI): the config reader, the job schema
-(:mod:`celld.bus.schema`) and the plan check in the motion process all use
+(:mod:`celld.bus.messages`) and the plan check in the motion process all use
 it. :func:`check_servo` holds the rules that tie the sections together
 (``contact_threshold < delta_d < overload``); the config, a weld job's
 overrides and the plan are all checked by it.

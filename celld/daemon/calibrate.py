@@ -44,27 +44,30 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from celld import se3
-from celld.bus.schema import CalibrateJob
+from celld.bus.requests import CalibrateJob
 from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
-from celld.calib.mount import ScannerMount, in_frame, mount_entry
+from celld.calib.mount import MOUNT_ENTRY_PROPERTIES, ScannerMount, in_any_frame, in_frame, mount_entry
 from celld.calib.pairs import Detections
 from celld.calib.poses import calibration_poses
+from celld.calib.quality import QUALITY_SCHEMA
+from celld.calib.rangebias import MODES as RANGE_BIAS_MODES
 from celld.calib.rangebias import correct_range_bias
 from celld.calib.session import CalibrationSession
-from celld.calib.solve import CalibrationResult, SolveParams
+from celld.calib.solve import METHODS, REPORT_SCHEMA, STORED, CalibrationResult, SolveParams
 from celld.config import Config
 from celld.daemon.arm import Arm
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
-from celld.daemon.planning import record_arm, record_cell, record_plan, report_plan
+from celld.daemon.planning import REFUSED_SCHEMA, record_arm, record_cell, record_plan, report_plan
 from celld.daemon.retention import prune_sessions
 from celld.daemon.store import CalibrationStore
 from celld.errors import CalibrationError, JobError
 from celld.log import get_logger
 from celld.recording import layout
 from celld.scanner.base import OrganizedCloud
+from celld.schemadoc import array, boolean, const, enum, integer, number, obj, one_of, string, vector
 
 if TYPE_CHECKING:
     from celld.recording.job import JobRecording
@@ -109,6 +112,62 @@ async def _settled_flange_pose(arm: Arm, T_target: np.ndarray, settle: float) ->
     return state.T_base_tcp, np.asarray(state.q, dtype=np.float64)
 
 
+_POSE = vector("A UR pose [x, y, z, rx, ry, rz], m and rad, base frame.", 6)
+# The JSON shape of a dry run's plan (calibrate_arm).
+PLAN_SCHEMA = obj(
+    "The calibration's plan, checked against the cell: the verification pose, then the poses, with the joints at "
+    "each (the verification pose's first), and the candidates left out.",
+    {
+        "verification_pose": _POSE,
+        "poses": array(_POSE, "The calibration poses, in order."),
+        "joints": array(vector("Joint positions, rad.", 6), "The joints at the verification pose, then at each pose."),
+        "refused": REFUSED_SCHEMA,
+    },
+    ("verification_pose", "poses", "joints", "refused"),
+)
+# The JSON shape of a dry run's result.
+DRY_RUN_SCHEMA = obj("A dry run: the plan, nothing moved.", {"dry_run": const(True), "plan": PLAN_SCHEMA}, ("dry_run", "plan"))
+# The JSON shape of a calibration a job made (its candidate; the store adds when it was accepted).
+CALIBRATION_SCHEMA = obj(
+    "A calibration of the scanner: T_base_cam, the pose of the camera in the robot base frame; for a scanner on "
+    "the arm (mount link1-3, Eq. 8) T_linkN_cam, its pose in that link's frame, with the robot's DH table.",
+    {
+        "job": string("The calibrate job that made it."),
+        **MOUNT_ENTRY_PROPERTIES,
+        "stored": enum(STORED, "The transform is the estimate, or the estimate compensated by Eq. 21."),
+        "cost_mm": number("Final cost of Algorithm 1, null without one.", null=True),
+        "pairs": integer("Pairs the transform rests on.", lo=0),
+        "dataset": string("Path of the saved dataset."),
+        "method": enum(METHODS, "The estimator that gave the transform."),
+        "quality": QUALITY_SCHEMA,
+        "range_bias": enum(RANGE_BIAS_MODES, "Whether the scanner's range bias on metal was estimated (calibration.range_bias)."),
+        "range_bias_mm": number(
+            "The scanner's range bias on bare metal, mm (0 when not estimated): every scan placed with this calibration "
+            "has its points moved back along their rays by it."
+        ),
+        "range_bias_std_mm": number("Its 1-sigma; null when not estimated.", null=True),
+    },
+    ("job", "stored", "cost_mm", "pairs", "dataset", "method", "quality", "range_bias", "range_bias_mm", "range_bias_std_mm"),
+)
+# The JSON shape of a calibration's result (calibrate_arm's output).
+OUTPUT_SCHEMA = obj(
+    "A calibration: the calibration it made (a candidate until accepted), the solve's report (in the scanner mount's "
+    "frame), whether it stopped early, the poses captured and planned, the dataset.",
+    {
+        "dry_run": const(False),
+        "calibration": CALIBRATION_SCHEMA,
+        "report": in_any_frame(REPORT_SCHEMA),
+        "early_stop": boolean("Algorithm 1 reached e_required and the quality gate passed before the last pose."),
+        "poses_captured": integer(lo=0),
+        "poses_planned": integer(lo=0),
+        "dataset": string("Path of the saved dataset (clouds and poses)."),
+    },
+    ("dry_run", "calibration", "report", "early_stop", "poses_captured", "poses_planned", "dataset"),
+)
+# The JSON shape of a calibrate job's result of robot 1 (a job with robot2 adds to it: celld.daemon.two_robots).
+RESULT_SCHEMA = one_of("A calibrate job's result: the calibration, or a dry run's plan.", DRY_RUN_SCHEMA, OUTPUT_SCHEMA)
+
+
 def solve_params(config: Config, job: CalibrateJob) -> SolveParams:
     """How the job's session is solved: the cell's ``[calibration]``, the job's overrides winning."""
     overrides: dict[str, Any] = {}
@@ -135,7 +194,8 @@ async def calibrate_arm(
 
     Robot 1 (the cell's) records into the job's recording; another robot
     (``robot`` 2) saves its dataset under ``dataset_name`` and tags its
-    progress events with its number.
+    progress events with its number. The output's shape:
+    :data:`OUTPUT_SCHEMA`, or :data:`DRY_RUN_SCHEMA` for a dry run.
     """
     tag = {} if robot == 1 else {"robot": robot}
     who = "" if robot == 1 else f"robot {robot}: "
@@ -181,7 +241,7 @@ async def calibrate_arm(
                     "verification_pose": se3.to_ur_pose(T_v).tolist(),
                     "poses": [se3.to_ur_pose(T).tolist() for T in plan.poses],
                     "joints": [list(to_v.q_end), *[list(q) for q in plan.q]],
-                    "refused": [{"pose": list(r.target), "reason": r.reason, "message": r.message} for r in plan.refused],
+                    "refused": plan.refused_entries(),
                 },
             },
             None,
@@ -277,6 +337,7 @@ async def calibrate_arm(
         range_bias_mm=round(result.bias * 1e3, 3),
     )
     output = {
+        "dry_run": False,
         "calibration": calibration,
         "report": report,
         "early_stop": early,

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from celld import se3
+from celld import schemadoc, se3
 from celld.config import Config
 from celld.daemon.arm import Arm, robot2_config
 from celld.daemon.planning import arm_obstacles
@@ -66,6 +66,17 @@ HEARTBEAT_PERIOD = 0.02
 TACTILE_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 32.0, 60.0))
 # The dashboard server is read this often, s.
 DASHBOARD_PERIOD = 0.5
+# The JSON shape of CellDevices.interlock_report.
+INTERLOCK_SCHEMA = schemadoc.obj(
+    "What celld can say about the arc interlock (the robot's standard outputs low when the program stops).",
+    {
+        "verified": schemadoc.boolean("Always false: the setting cannot be read over RTDE or the dashboard."),
+        "missing_seen": schemadoc.boolean("A motion process found the arc output left on by the one before it: the setting is missing."),
+        "detail": schemadoc.string("What it found, empty when nothing."),
+        "note": schemadoc.string(),
+    },
+    ("verified", "missing_seen", "detail", "note"),
+)
 
 
 @dataclass(frozen=True)
@@ -439,7 +450,7 @@ class CellDevices:
         return {"action": action, "reply": reply, "robot": self.robot_report()}
 
     def interlock_report(self) -> dict[str, Any]:
-        """What celld can say about the arc interlock (standard outputs low when the program stops).
+        """What celld can say about the arc interlock (standard outputs low when the program stops; :data:`INTERLOCK_SCHEMA`).
 
         The I/O setting itself cannot be read over RTDE or the dashboard. What
         can be seen: each motion process, when it starts, checks whether the

@@ -58,8 +58,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from celld import __version__, fsutil
-from celld.bus import schema
-from celld.bus.schema import (
+from celld.bus.messages import MAX_RESULT_BYTES, STORAGE
+from celld.bus.requests import (
     AcceptRequest,
     CalibrationRequest,
     CancelRequest,
@@ -68,6 +68,7 @@ from celld.bus.schema import (
     ResultRequest,
     RobotRequest,
     StatusRequest,
+    job_to_message,
 )
 from celld.bus.security import OPEN, Caller
 from celld.daemon.storage import StorageGuard
@@ -75,6 +76,7 @@ from celld.daemon.store import CalibrationStore, tool_store
 from celld.errors import CelldError, JobError, JournalError, StorageError
 from celld.journal import JobRecord, Journal, utc_now
 from celld.log import get_logger
+from celld.schemadoc import string, with_properties
 
 if TYPE_CHECKING:
     from celld.recording.job import JobRecording
@@ -131,6 +133,15 @@ Runner = Callable[[JobContext], Awaitable[Mapping[str, Any]]]
 
 # Job kinds whose result an accept makes current, and the key of their result that holds it.
 ACCEPTED_KINDS = {"calibrate": "calibration", "tool-calibrate": "tool"}
+
+
+def with_manager_fields(kind: str, result: Mapping[str, Any]) -> dict[str, Any]:
+    """The JSON shape of a ``kind`` job's result as the manager writes it: its runner's (``result``) with what
+    :meth:`JobManager._run` adds: the job's recording, and a health job's the state directory's storage."""
+    out = with_properties(result, {"recording": string("Path of the job's rerun recording on the cell PC.")})
+    if kind == "health":
+        out = with_properties(out, {"storage": STORAGE}, ("storage",))
+    return out
 
 
 @dataclass(frozen=True)
@@ -299,7 +310,7 @@ class JobManager:
             raise JobError("$", "refused: the daemon is shutting down")
         if job.kind not in self.runners:
             raise JobError("$.kind", f"this cell cannot run {job.kind!r} jobs (it runs {', '.join(sorted(self.runners))})")
-        params = schema.job_to_message(job)
+        params = job_to_message(job)
         params.pop("request_id", None)  # kept in its own column; the body is the rest
         request_id = job.request_id or None
         if request_id is not None:
@@ -461,7 +472,7 @@ class JobManager:
             try:
                 size = path.stat().st_size
                 reply["bytes"] = size
-                if size > schema.MAX_RESULT_BYTES:
+                if size > MAX_RESULT_BYTES:
                     reply["too_large"] = True
                 else:
                     reply["result"] = json.loads(path.read_bytes())

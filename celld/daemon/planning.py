@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from celld import se3
+from celld import schemadoc, se3
 from celld.config import Config, MotionLimits
 from celld.errors import PathRefused
 from celld.log import get_logger
@@ -136,6 +136,25 @@ class CalibrationPlan:
     poses: tuple[Array, ...]  # (4, 4) flange poses, base frame
     q: tuple[tuple[float, ...], ...]  # the joints at each pose
     refused: tuple[Refusal, ...]  # candidates that were checked and left out, with why
+
+    def refused_entries(self) -> list[dict[str, Any]]:
+        """What was refused on the way, as a dry run's plan lists it (:data:`REFUSED_SCHEMA`)."""
+        return [{"pose": list(r.target), "reason": r.reason, "message": r.message} for r in self.refused]
+
+
+# The JSON shape of CalibrationPlan.refused_entries.
+REFUSED_SCHEMA = schemadoc.array(
+    schemadoc.obj(
+        "A candidate pose that was checked and left out.",
+        {
+            "pose": schemadoc.vector("The candidate TCP pose [x, y, z, rx, ry, rz], m and rad, base frame.", 6),
+            "reason": schemadoc.string("Why, in a word."),
+            "message": schemadoc.string("Why, in full: what it would hit, or why it is out of reach."),
+        },
+        ("pose", "reason", "message"),
+    ),
+    "Candidate poses checked and left out (each replaced by another), with why.",
+)
 
 
 class MotionPlanner:

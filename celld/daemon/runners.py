@@ -17,6 +17,10 @@ worker threads so the event loop keeps answering the bus.
 
 Every job that moves robot 1 is checked against robot 2 where it stands on a
 cell with two robots (:meth:`~celld.daemon.devices.CellDevices.beside_robot2`).
+
+Each runner's result has its JSON Schema beside the runner (here
+:data:`MOVE_RESULT_SCHEMA` and :data:`HEALTH_RESULT_SCHEMA`);
+:mod:`celld.daemon.results` gathers them by job kind for the bus.
 """
 
 from __future__ import annotations
@@ -28,13 +32,16 @@ from typing import Any
 import numpy as np
 
 from celld import se3
-from celld.bus.schema import CalibrateJob, HealthJob, MoveJob
+from celld.bus.requests import CalibrateJob, HealthJob, MoveJob
 from celld.config import Config
 from celld.daemon.calibrate import run_calibrate
-from celld.daemon.devices import CellDevices
+from celld.daemon.devices import INTERLOCK_SCHEMA, CellDevices
 from celld.daemon.jobs import JobContext, Runner
 from celld.daemon.two_robots import run_calibrate_two
 from celld.errors import CelldError, JobError
+from celld.motion.handle import HEALTH_SCHEMA
+from celld.robot.dashboard import CONDITION_SCHEMA
+from celld.schemadoc import boolean, const, integer, number, obj, one_of, string, texts, vector, with_properties
 
 
 def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
@@ -79,6 +86,32 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
 
 # -- move ----------------------------------------------------------------------------
 
+_UR_POSE = vector("The TCP pose [x, y, z, rx, ry, rz] the robot reports, m and rad, base frame.", 6)
+# The JSON shape of a move job's result (run_move).
+MOVE_RESULT_SCHEMA = one_of(
+    "Where the move ended.",
+    obj(
+        "A joint move: the joints the robot reports, their error from the target, and the TCP there.",
+        {
+            "space": const("joint"),
+            "q": vector("Joint positions, rad.", 6),
+            "joint_error_deg": vector("|q - target| of each joint.", 6),
+            "tcp_pose": _UR_POSE,
+        },
+        ("space", "q", "joint_error_deg", "tcp_pose"),
+    ),
+    obj(
+        "A Cartesian move: the TCP pose the robot reports and its error from the target.",
+        {
+            "space": const("cartesian"),
+            "tcp_pose": _UR_POSE,
+            "error_mm": number("Distance from the target position.", lo=0.0),
+            "error_deg": number("Rotation from the target orientation.", lo=0.0),
+        },
+        ("space", "tcp_pose", "error_mm", "error_deg"),
+    ),
+)
+
 
 async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
     job = ctx.job
@@ -90,6 +123,7 @@ async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
         state = await devices.robot.move_joints(target, speed_scale=job.speed_scale)
         err = np.degrees(np.abs(np.asarray(state.q) - target))
         return {
+            "space": "joint",
             "q": np.asarray(state.q).tolist(),
             "joint_error_deg": err.tolist(),
             "tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(),
@@ -98,10 +132,51 @@ async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
     ctx.progress("move", 0.0, f"moving to {np.round(target, 4).tolist()}")
     state = await devices.robot.move_to(T, speed_scale=job.speed_scale)
     dt, dr = se3.error(state.T_base_tcp, T)
-    return {"tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(), "error_mm": dt * 1e3, "error_deg": math.degrees(dr)}
+    return {
+        "space": "cartesian",
+        "tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(),
+        "error_mm": dt * 1e3,
+        "error_deg": math.degrees(dr),
+    }
 
 
 # -- health ----------------------------------------------------------------------------
+
+# The JSON shape of a health job's result (run_health): what was checked, and every problem found.
+HEALTH_RESULT_SCHEMA = obj(
+    "A health check: the robot link and the loop's timing with the robot's condition (and the second robot's link), the "
+    "arc interlock, the scanner (one capture), the tactile sensor: each checked one, and every problem found "
+    "(check all reports them here and succeeds; a single check fails the job on one). Null where a figure is not finite.",
+    {
+        "robot": with_properties(HEALTH_SCHEMA, {"condition": CONDITION_SCHEMA}, ("condition",)),
+        "robot2": {**HEALTH_SCHEMA, "description": "The second robot's link and loop, on a cell with one."},
+        "arc_interlock": INTERLOCK_SCHEMA,
+        "scanner": obj(
+            "One capture.",
+            {
+                "ok": boolean("It returned points."),
+                "valid_points": integer(lo=0),
+                "shape": vector("Rows and columns of the organized cloud.", 2),
+                "error": string("Why the capture failed."),
+            },
+            ("ok",),
+        ),
+        "tactile": obj(
+            "The tactile process and the SRM: running, seeing its tag, tared.",
+            {
+                "ok": boolean(),
+                "running": boolean(),
+                "valid": boolean("The latest sample saw the tag."),
+                "tared": boolean(),
+                "tare_offset_mm": number("The finger's offset from its reference rest at the tare.", null=True),
+                "error": string("Why the sensor is not there or its process ended, empty when none."),
+            },
+            ("ok", "error"),
+        ),
+        "problems": texts("Every problem found, empty when none."),
+    },
+    ("problems",),
+)
 
 
 async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:

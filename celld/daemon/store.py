@@ -25,6 +25,7 @@ from celld.config import ToolConfig
 from celld.errors import InputError, JobError
 from celld.journal import utc_now
 from celld.log import get_logger
+from celld.schemadoc import boolean, string, with_properties
 from celld.tactile.tool import with_measured_torch
 
 log = get_logger(__name__)
@@ -91,6 +92,19 @@ class CalibrationStore:
         calibration["accepted"] = utc_now()
         fsutil.write_json(self.current_path, calibration)
         return calibration
+
+
+def accepted_schema(candidate: Mapping[str, Any]) -> dict[str, Any]:
+    """The JSON shape of a current calibration (or tool calibration): its candidate's, ``candidate``, with what
+    :meth:`CalibrationStore.accept` adds: when it was accepted, and whether with force."""
+    return with_properties(
+        candidate,
+        {
+            "accepted": string("When it became current, UTC ISO 8601."),
+            "forced": boolean("Accepted with force despite a failed quality verdict."),
+        },
+        ("accepted",),
+    )
 
 
 def tool_store(state_dir: Path) -> CalibrationStore:

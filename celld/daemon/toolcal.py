@@ -45,16 +45,17 @@ from typing import Any
 import numpy as np
 
 from celld import fsutil, se3
-from celld.bus.schema import ToolCalibrateJob
+from celld.bus.requests import ToolCalibrateJob
 from celld.calib.toolcal import tool_calibration_poses
-from celld.calib.toolsession import ToolCalibrationSession
+from celld.calib.toolsession import TOOL_SCHEMA, ToolCalibrationSession
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
-from celld.daemon.planning import record_arm, record_cell, record_plan, report_plan
+from celld.daemon.planning import REFUSED_SCHEMA, record_arm, record_cell, record_plan, report_plan
 from celld.daemon.store import current_calibration
 from celld.errors import CalibrationError, JobError
 from celld.log import get_logger
+from celld.schemadoc import array, const, integer, obj, one_of, string, vector
 
 log = get_logger(__name__)
 
@@ -62,8 +63,45 @@ log = get_logger(__name__)
 N_POSES = 12
 MAX_TILT = math.radians(20.0)
 
+# The JSON shape of a tool-calibrate job's result (run_tool_calibrate).
+RESULT_SCHEMA = one_of(
+    "A tool-calibrate job's result: the tool measured, or a dry run's plan.",
+    obj(
+        "A dry run: the plan, nothing moved.",
+        {
+            "dry_run": const(True),
+            "plan": obj(
+                "The poses that present the tip to the scanner, checked against the cell with the tool on, the joints at each, "
+                "and the candidates left out.",
+                {
+                    "tip_position": vector("Where the tip is presented, base frame, m.", 3),
+                    "poses": array(vector("A TCP pose [x, y, z, rx, ry, rz], m and rad, base frame.", 6)),
+                    "joints": array(vector("Joint positions, rad.", 6)),
+                    "refused": REFUSED_SCHEMA,
+                },
+                ("tip_position", "poses", "joints", "refused"),
+            ),
+        },
+        ("dry_run", "plan"),
+    ),
+    obj(
+        "The tool measured: the tool calibration (a candidate until accepted), the poses planned, those that showed the tip "
+        "and the torch, the dataset.",
+        {
+            "dry_run": const(False),
+            "tool": TOOL_SCHEMA,
+            "poses_planned": integer(lo=0),
+            "poses_detected": integer("Captures that showed the tip.", lo=0),
+            "torch_detected": integer("Captures that showed the welding wire's end.", lo=0),
+            "dataset": string("Path of the saved captures (toolcal.json), to solve again offline."),
+        },
+        ("dry_run", "tool", "poses_planned", "poses_detected", "torch_detected", "dataset"),
+    ),
+)
+
 
 async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -> Mapping[str, Any]:
+    """The tool-calibrate job (module docstring); its result's shape: :data:`RESULT_SCHEMA`."""
     job = ctx.job
     if not isinstance(job, ToolCalibrateJob):
         raise JobError("$.kind", "not a tool-calibrate job")
@@ -93,7 +131,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
                 "tip_position": p_tip.tolist(),
                 "poses": [se3.to_ur_pose(T).tolist() for T in plan.poses],
                 "joints": [list(q) for q in plan.q],
-                "refused": [{"pose": list(r.target), "reason": r.reason, "message": r.message} for r in plan.refused],
+                "refused": plan.refused_entries(),
             },
         }
     rec = ctx.recording
@@ -136,6 +174,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         torch_delta_mm=np.round(measured["torch_delta_mm"], 3).tolist() if done.torch_fit is not None else None,
     )
     return {
+        "dry_run": False,
         "tool": measured,
         "poses_planned": len(poses),
         "poses_detected": n_tip,

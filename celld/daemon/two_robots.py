@@ -32,8 +32,11 @@ with the other at its ``home_q``.
 
 The calibration it leaves is robot 1's (``T_base_cam``, made current by an
 accept as any calibrate job's) with a ``robot2`` entry: ``T_base2_cam``,
-``T_base1_base2`` and robot 2's quality report; accept refuses it when
-either verdict failed, unless forced. A fault at any step stops both arms
+``T_base1_base2`` and robot 2's quality report (:data:`ROBOT2_ENTRY_SCHEMA`);
+accept refuses it when either verdict failed, unless forced. The job's result
+is robot 1's with robot 2's calibration beside it (``robot2``:
+:data:`ROBOT2_OUTPUT_SCHEMA`), or on a dry run robot 2's plan
+(``robot2_plan``). A fault at any step stops both arms
 (jerk-limited: the job manager's stop reaches every robot of the cell).
 """
 
@@ -47,15 +50,18 @@ from typing import Any
 import numpy as np
 
 from celld import se3
-from celld.bus.schema import CalibrateJob
+from celld.bus.requests import CalibrateJob
 from celld.calib.comanip import point_std, robots_through_camera
+from celld.calib.quality import QUALITY_SCHEMA
+from celld.calib.solve import STORED
 from celld.config import Config
 from celld.daemon.arm import Arm
-from celld.daemon.calibrate import ArmCalibration, calibrate_arm, prune_calibrations
+from celld.daemon.calibrate import OUTPUT_SCHEMA, ArmCalibration, calibrate_arm, prune_calibrations
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
 from celld.errors import JobError
 from celld.log import get_logger
+from celld.schemadoc import enum, integer, matrix4, number, obj, string, vector
 
 log = get_logger(__name__)
 
@@ -98,7 +104,7 @@ async def run_calibrate_two(ctx: JobContext, config: Config, devices: CellDevice
     await prune_calibrations(ctx, config)
     out = dict(one.output)
     out["calibration"] = {**out["calibration"], "robot2": entry}
-    out["robot2"] = {key: two.output[key] for key in ("report", "early_stop", "poses_captured", "poses_planned", "dataset")}
+    out["robot2"] = {key: two.output[key] for key in _ROBOT2_KEYS}
     log.info(
         "robots calibrated",
         job=ctx.job_id,
@@ -109,10 +115,54 @@ async def run_calibrate_two(ctx: JobContext, config: Config, devices: CellDevice
     return out
 
 
+# The JSON shape of robot2_entry: the calibration's robot2 entry.
+ROBOT2_ENTRY_SCHEMA = obj(
+    "The cell's second robot calibrated through the same scanner (a calibrate job with robot2): Eq. 6b for each "
+    "robot with the camera fixed, and Eq. 6c, T_base1_base2 = T_base1_cam T_base2_cam^-1.",
+    {
+        "T_base2_cam": matrix4("The scanner in robot 2's base frame."),
+        "T_base1_base2": matrix4("Robot 2's base in robot 1's."),
+        "quality": QUALITY_SCHEMA,
+        "translation_std_mm": vector(
+            "1-sigma of robot 2's verification position placed in base 1 by T_base1_base2 (where the robots meet), along "
+            "robot 1's base axes, mm: the scanner's noise through both calibrations, not the arms' absolute error.",
+            3,
+        ),
+        "rotation_std_deg": vector("Its rotation 1-sigma about robot 1's base axes, deg.", 3),
+        "from_drawing_mm": number("How far the calibrated base 2 lies from robot2.base_pose, mm."),
+        "from_drawing_deg": number("The angle between them, deg."),
+        "cost_mm": number("Final cost of robot 2's Algorithm 1, mm.", null=True),
+        "pairs": integer("Robot 2's pairs in the final pool.", lo=0),
+        "dataset": string("Path of robot 2's saved dataset."),
+        "stored": enum(STORED, "T_base2_cam is the estimate or Eq. 21's."),
+    },
+    (
+        "T_base2_cam",
+        "T_base1_base2",
+        "quality",
+        "translation_std_mm",
+        "rotation_std_deg",
+        "from_drawing_mm",
+        "from_drawing_deg",
+        "cost_mm",
+        "pairs",
+        "dataset",
+        "stored",
+    ),
+)
+# The keys of robot 2's own calibration the job's result keeps (robot2), and their JSON shape.
+_ROBOT2_KEYS = ("report", "early_stop", "poses_captured", "poses_planned", "dataset")
+ROBOT2_OUTPUT_SCHEMA = obj(
+    "Robot 2's calibration as the job made it: its solve's report, early stop, poses and dataset.",
+    {key: OUTPUT_SCHEMA["properties"][key] for key in _ROBOT2_KEYS},
+    _ROBOT2_KEYS,
+)
+
+
 def robot2_entry(
     one: ArmCalibration, two: ArmCalibration, base_pose: tuple[float, ...], verification_pose: tuple[float, ...]
 ) -> dict[str, Any]:
-    """The calibration's ``robot2`` entry from both robots' solves (Eq. 6c with the camera fixed)."""
+    """The calibration's ``robot2`` entry from both robots' solves (Eq. 6c with the camera fixed; :data:`ROBOT2_ENTRY_SCHEMA`)."""
     if one.result is None or two.result is None:
         raise JobError("$.dry_run", "a dry run has no calibration to compose")
     r1, r2 = one.result, two.result

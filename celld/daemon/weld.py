@@ -27,7 +27,8 @@ Steps, each published as a progress event:
 Results: the planned wall line, the refined path (the seam as the finger
 found it, which the torch followed) and the torch path, in the base frame,
 with the tracking figures; the paths are also written to
-``jobs/<job>/paths.json`` and logged to the job's recording.
+``jobs/<job>/paths.json`` and logged to the job's recording. The result's
+shape: :data:`RESULT_SCHEMA`.
 
 What the weld is (the seam from the scan, the path, the probe's reading, the
 figures) is decided by :mod:`celld.weld.plan`; this runner moves the arm,
@@ -47,7 +48,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from celld import fsutil, polyline, se3
-from celld.bus.schema import WeldJob
+from celld.bus.requests import WeldJob
 from celld.calib.rangebias import correct_range_bias
 from celld.config import Config, ServoConfig, ToolConfig, with_overrides
 from celld.daemon.devices import CellDevices
@@ -59,10 +60,21 @@ from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
 from celld.motion.types import ServoPlan
 from celld.recording import layout
+from celld.schemadoc import array, boolean, const, number, obj, one_of, string, vector
 from celld.seam.figures import contact_across
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
 from celld.tactile.tool import ToolGeometry
-from celld.weld.plan import WeldPlan, plan_weld, prepare_part, probe_across, probe_targets, probed_height, summarise
+from celld.weld.plan import (
+    FIGURES_SCHEMA,
+    PROBED_SCHEMA,
+    WeldPlan,
+    plan_weld,
+    prepare_part,
+    probe_across,
+    probe_targets,
+    probed_height,
+    summarise,
+)
 
 if TYPE_CHECKING:
     from celld.recording.job import JobRecording
@@ -78,6 +90,78 @@ DRY_RUN_ROBOTS = 12
 PROGRESS_PERIOD = 0.5
 # Seconds between SRM camera frames logged to the recording while tracking.
 PREVIEW_PERIOD = 0.2
+
+_PATH = array(vector("A point, base frame, m.", 3))
+# The JSON shape of the height probe's reading (_probe_height): what it found, or why the joint was not probed.
+HEIGHT_PROBE_SCHEMA = one_of(
+    "The tip's height in the joint, probed by touch at the start; or why it was not.",
+    PROBED_SCHEMA,
+    obj("Not probed.", {"probed": const(False), "why": string()}, ("probed", "why")),
+)
+# The JSON shape of a weld job's result (run_weld).
+RESULT_SCHEMA = one_of(
+    "A weld job's result: the weld's paths and figures, or a dry run's plan.",
+    obj(
+        "A dry run: scanned, planned and checked against the cell from the scan pose; nothing moved.",
+        {
+            "dry_run": const(True),
+            "workpiece": string(),
+            "calibration_job": string("The calibration the scan was placed with."),
+            "tool_calibration_job": string("The tool calibration the tool was taken from (empty: the config's)."),
+            "planned_path": {**_PATH, "description": "The seam as the scan placed it, base frame, m."},
+            "tcp_path": array(
+                vector("A TCP pose [x, y, z, rx, ry, rz], m and rad, base frame.", 6), "Every TCP pose the weld would pass through."
+            ),
+            "min_clearance_mm": number("The path's least clearance from the cell."),
+            "seam_length_mm": number(lo=0.0),
+        },
+        (
+            "dry_run",
+            "workpiece",
+            "calibration_job",
+            "tool_calibration_job",
+            "planned_path",
+            "tcp_path",
+            "min_clearance_mm",
+            "seam_length_mm",
+        ),
+    ),
+    obj(
+        "A weld: its figures, the refined path (the seam as the finger found it, which the torch followed), the torch "
+        "path and the planned seam (base frame, m; also in the file paths), the torch it placed and the height probe.",
+        {
+            "dry_run": const(False),
+            "figures": FIGURES_SCHEMA,
+            "paths": string("Path of the job's paths.json (planned, planned wall, refined, torch) on the cell PC."),
+            "refined_path": _PATH,
+            "torch_path": _PATH,
+            "planned_path": _PATH,
+            "workpiece": string(),
+            "calibration_job": string("The calibration the scan was placed with."),
+            "tool_calibration_job": string("The tool calibration the tool was taken from (empty: the config's)."),
+            "torch": obj(
+                "The torch the weld placed: measured (its offset and the tool's x turned by -sensor_yaw) or as configured.",
+                {"measured": boolean(), "torch_offset_mm": number(), "yaw_from_config_deg": number()},
+                ("measured", "torch_offset_mm", "yaw_from_config_deg"),
+            ),
+            "height_probe": HEIGHT_PROBE_SCHEMA,
+            "retract_error": string("Why the retract after the weld failed (absent when it did not)."),
+        },
+        (
+            "dry_run",
+            "figures",
+            "paths",
+            "refined_path",
+            "torch_path",
+            "planned_path",
+            "workpiece",
+            "calibration_job",
+            "tool_calibration_job",
+            "torch",
+            "height_probe",
+        ),
+    ),
+)
 
 
 def resolve_workpiece(name: str, config: Config) -> Workpiece:
@@ -196,6 +280,7 @@ async def _run_servo(motion: Any, plan: ServoPlan, timeout: float) -> np.ndarray
 
 
 async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache: dict[str, Any]) -> Mapping[str, Any]:
+    """The weld job (module docstring); its result's shape: :data:`RESULT_SCHEMA`."""
     job = ctx.job
     if not isinstance(job, WeldJob):
         raise JobError("$.kind", "not a weld job")
@@ -383,6 +468,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
             if len(paths[name]) > 1:
                 rec.later(rec.log_path_base, name, np.asarray(paths[name]), time.monotonic_ns())
     result: dict[str, Any] = {
+        "dry_run": False,
         "figures": figures,
         "paths": str(path_file),
         "refined_path": paths["refined"],

@@ -59,6 +59,7 @@ from celld.motion.process import MotionSpec, servo_laws_from
 from celld.motion.supervisor import LinkState, MotionSupervisor, ProcessExit
 from celld.motion.types import ControlStatus, RobotState, ServoPlan
 from celld.realtime import RealtimeOptions
+from celld.schemadoc import boolean, enum, integer, number, obj, string
 from celld.se3 import from_ur_pose
 from celld.supervision import Backoff, ChildRecords
 
@@ -96,6 +97,32 @@ class Health(NamedTuple):
     overruns: int  # cycles that ended after the next deadline (current process)
     tactile_torn: int  # torn tactile reads (current process)
     heartbeat_age_ms: float  # since the last record arrived
+
+
+# The JSON shape of Health._asdict() in a health job's result (null where a figure is not finite: nothing measured yet).
+HEALTH_SCHEMA = obj(
+    "The robot link and the motion loop's timing.",
+    {
+        "link": enum([s.value for s in LinkState], "The link as the daemon sees it."),
+        "pid": integer("The motion process.", null=True),
+        "realtime": boolean("SCHED_FIFO granted to the loop."),
+        "cpu": integer("The CPU it is pinned to, -1 if none.", lo=-1),
+        "restarts": integer(lo=0),
+        "last_exit": string("Why the last motion process ended, empty if none has."),
+        "cycles": integer("Records seen from the current and past processes.", lo=0),
+        "lost_records": integer("Records overwritten before the daemon read them.", lo=0),
+        "period_error_p50_ms": number("|period - nominal| over the last window, median.", null=True),
+        "period_error_p99_ms": number(null=True),
+        "period_error_p999_ms": number(null=True),
+        "period_error_max_ms": number(null=True),
+        "late_max_ms": number("Largest wake-up lateness in the window.", null=True),
+        "late_over_1ms": integer("Cycles woken more than 1 ms late, in the window.", lo=0),
+        "overruns": integer("Cycles that ended after the next deadline (current process).", lo=0),
+        "tactile_torn": integer("Torn tactile reads (current process).", lo=0),
+        "heartbeat_age_ms": number("Since the last record arrived.", null=True),
+    },
+    Health._fields,
+)
 
 
 def error_for(status: ControlStatus, reason: str) -> CelldError:

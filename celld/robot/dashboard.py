@@ -29,6 +29,7 @@ from typing import Any, NamedTuple
 
 from celld.errors import InputError, RobotError
 from celld.log import get_logger
+from celld.schemadoc import boolean, enum, obj, string
 
 log = get_logger(__name__)
 
@@ -40,6 +41,8 @@ ACTIONS: dict[str, str] = {
     "brake-release": "brakeRelease",
     "close-popup": "closeSafetyPopup",
 }
+# What robot_condition may say of the robot (RobotCondition.state): ready, or why not.
+CONDITIONS = ("ready", "protective_stop", "emergency_stop", "safety_fault", "power_off", "brakes", "booting", "link_lost", "unknown")
 # Robot modes (dashboard ``robotmode``) in which the arm can move.
 _MOVING_MODE = "RUNNING"
 
@@ -59,12 +62,26 @@ class RobotCondition(NamedTuple):
     """Whether the robot can move and, if not, why and what clears it."""
 
     ready: bool
-    state: str  # ready, protective_stop, emergency_stop, safety_fault, power_off, brakes, booting, link_lost, unknown
+    state: str  # one of CONDITIONS
     reason: str
     remedy: str
 
     def as_dict(self) -> dict[str, Any]:
+        """JSON-ready (:data:`CONDITION_SCHEMA`)."""
         return self._asdict()
+
+
+# The JSON shape of RobotCondition.as_dict.
+CONDITION_SCHEMA = obj(
+    "Whether the robot can move and, if not, why and what clears it.",
+    {
+        "ready": boolean(),
+        "state": enum(CONDITIONS),
+        "reason": string("Why the robot cannot move; empty when ready."),
+        "remedy": string("What clears it, e.g. `celld robot unlock`."),
+    },
+    ("ready", "state", "reason", "remedy"),
+)
 
 
 def reply_value(reply: str, prefix: str) -> str:

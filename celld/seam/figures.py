@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from celld import polyline, se3
 from celld.errors import CelldError
+from celld.schemadoc import integer, number, obj
 from celld.seam.weldpath import WeldGeometry, in_plane
 from celld.tactile.tool import ToolGeometry
 
@@ -33,7 +34,43 @@ class TrackSummary(NamedTuple):
 
     refined: Array  # (n, 3) the refined path, as Algorithm 2 recorded it
     torch: Array  # (m, 3) the torch while the arc was on (or while tracking, on a dry run)
-    figures: dict[str, Any]
+    figures: dict[str, Any]  # TRACK_FIGURES_SCHEMA
+
+
+# The JSON shape of TrackSummary.figures (null: nothing to measure it on).
+TRACK_FIGURES_SCHEMA = obj(
+    "The figures of one track.",
+    {
+        "duration_s": number("How long the servo ran.", lo=0.0),
+        "tracked_mm": number("Length of the refined path.", lo=0.0),
+        "arc_on_s": number("How long the arc was on.", lo=0.0),
+        "delta_n_error_rms_mm": number("RMS of |delta_n| - delta_d while tracking.", null=True),
+        "correction_rms_mm": number("RMS in-plane distance of the refined path from the planned seam (the tactile correction).", null=True),
+        "correction_max_mm": number("Its largest.", null=True),
+        "omega_peak": number("Largest angular speed commanded, rad/s.", lo=0.0),
+        "loop_late_p99_ms": number("The motion loop's wake-up lateness while the servo ran, 99th percentile."),
+        "loop_late_max_ms": number("Its largest."),
+        "loop_cycles_late_2ms": integer("Cycles woken more than 2 ms late.", lo=0),
+        "loop_cycles": integer("Cycles the servo ran.", lo=0),
+        "frame_to_command_median_ms": number("From a camera frame to the command that first used it, median.", null=True),
+        "frame_to_command_p99_ms": number("Its 99th percentile.", null=True),
+    },
+    (
+        "duration_s",
+        "tracked_mm",
+        "arc_on_s",
+        "delta_n_error_rms_mm",
+        "correction_rms_mm",
+        "correction_max_mm",
+        "omega_peak",
+        "loop_late_p99_ms",
+        "loop_late_max_ms",
+        "loop_cycles_late_2ms",
+        "loop_cycles",
+        "frame_to_command_median_ms",
+        "frame_to_command_p99_ms",
+    ),
+)
 
 
 def lateral_offsets(geometry: WeldGeometry, P_base: Array, line_base: Array) -> Array:

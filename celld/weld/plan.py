@@ -30,7 +30,8 @@ from celld import polyline, se3
 from celld.config import ToolConfig, WeldConfig
 from celld.config.seam import SeamParams
 from celld.errors import WorkpieceError
-from celld.seam.figures import track_summary
+from celld.schemadoc import const, number, obj, vector, with_properties
+from celld.seam.figures import TRACK_FIGURES_SCHEMA, track_summary
 from celld.seam.pipeline import PreparedWorkpiece, SeamPath, find_seam, prepare
 from celld.seam.weldpath import (
     WeldGeometry,
@@ -185,6 +186,21 @@ def probe_across(plan: WeldPlan) -> tuple[np.ndarray, np.ndarray]:
     return geometry.T_base_plane[:3, 3], N / np.linalg.norm(N)
 
 
+# The JSON shape of what probed_height found (a joint that was probed).
+PROBED_SCHEMA = obj(
+    "The tip's height in the joint, probed by touch at the start: the joint's width where the finger met its two walls, "
+    "the height that width gives, and the plan's correction to it.",
+    {
+        "probed": const(True),
+        "joint_width_mm": number("The joint's width at the tip, from the two touches."),
+        "scan_width_mm": number("Its width there as the scan measured it, at the planned height."),
+        "height_mm": number("The tip's height above the seam that the width gives."),
+        "height_correction_mm": number("How far the plan moved up (positive) or down to the height it should have."),
+    },
+    ("probed", "joint_width_mm", "scan_width_mm", "height_mm", "height_correction_mm"),
+)
+
+
 def probed_height(
     plan: WeldPlan, touches: dict[str, float], tool: ToolGeometry, T_tcp_tool: np.ndarray, max_correction: float
 ) -> tuple[dict[str, Any], WeldPlan]:
@@ -220,8 +236,21 @@ def probed_height(
     return found, replace(plan, geometry=moved, T_start=T_start)
 
 
+# The JSON shape of summarise's figures.
+FIGURES_SCHEMA = with_properties(
+    TRACK_FIGURES_SCHEMA,
+    {
+        "wall_offset_mm": number("The part model's finger wall offset from the seam at the tip's height."),
+        "wall_offset_used_mm": vector("The finger wall's distance from the seam as the weld used it (the scan's), least and most.", 2),
+        "seam_length_mm": number("The seam's length.", lo=0.0),
+    },
+    ("wall_offset_mm", "wall_offset_used_mm", "seam_length_mm"),
+    desc="The figures of a finished weld: the track's (celld.seam.figures), the finger wall's offsets and the seam's length.",
+)
+
+
 def summarise(records: np.ndarray, plan: WeldPlan, tool: ToolGeometry, delta_d: float) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The figures of a finished track and its paths (planned, planned wall, refined, torch; base frame, m)."""
+    """The figures of a finished track (:data:`FIGURES_SCHEMA`) and its paths (planned, planned wall, refined, torch; base frame, m)."""
     geometry = plan.geometry
     track = track_summary(records, geometry, tool, delta_d)
     paths = {

@@ -10,7 +10,7 @@ import json
 
 from hypothesis import strategies as st
 
-from celld.bus import schema
+from celld.bus import messages
 
 finite = st.floats(allow_nan=False, allow_infinity=False)
 json_values = st.recursive(
@@ -42,10 +42,10 @@ valid_jobs = st.one_of(
         st.lists(st.floats(-6.28, 6.28), min_size=6, max_size=6),
         st.floats(0.01, 1.0),
     ),
-    st.builds(lambda c: {"kind": "health", "check": c}, st.sampled_from(schema.HEALTH_CHECKS)),
+    st.builds(lambda c: {"kind": "health", "check": c}, st.sampled_from(messages.HEALTH_CHECKS)),
     st.builds(
         lambda n, t, p, s, d: {"kind": "tool-calibrate", "n_poses": n, "max_tilt_deg": t, "tip_position": p, "seed": s, "dry_run": d},
-        st.integers(3, schema.MAX_TOOL_POSES),
+        st.integers(3, messages.MAX_TOOL_POSES),
         st.floats(2.0, 45.0),
         st.lists(st.floats(-2.5, 2.5), min_size=3, max_size=3),
         st.integers(0, 2**32 - 1),

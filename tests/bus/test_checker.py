@@ -45,6 +45,24 @@ def test_discriminated_one_of_reports_the_branch_field() -> None:
     assert error(SHAPE, {"r": 1}).field == "$.shape"
 
 
+def test_a_one_of_with_a_null_branch_takes_null_and_its_objects_only() -> None:
+    nullable = {"oneOf": [{"type": "null"}, *SHAPE["oneOf"]]}
+    check_schema(nullable)
+    validate(nullable, None)
+    validate(nullable, {"shape": "circle", "r": 1.5})
+    assert error(nullable, {"shape": "circle", "r": 0}).field == "$.r"
+    assert error(nullable, [1]).reason == "expected an object or null, got an array of 1"
+    assert error(SHAPE, None).reason == "expected an object, got null"
+    jsonschema = pytest.importorskip("jsonschema", reason="the reference validator is only a test aid")
+    for value in (None, {"shape": "circle", "r": 1.5}, {"shape": "circle", "r": 0}, [1], "box", {"shape": "star"}):
+        try:
+            validate(nullable, value)
+            ours = True
+        except JobError:
+            ours = False
+        assert ours == jsonschema.Draft202012Validator(nullable).is_valid(value), value
+
+
 def test_booleans_are_not_numbers_and_numbers_are_not_booleans() -> None:
     assert error({"type": "number"}, True).reason == "expected a number, got true"
     assert error({"type": "boolean"}, 1).reason == "expected true or false, got 1"
@@ -68,6 +86,8 @@ def test_long_values_are_quoted_short_and_ascii() -> None:
         {"type": "object", "required": ["a"], "properties": {}},
         {"type": "decimal"},
         {"oneOf": [{"type": "object", "properties": {"a": {"type": "string"}}}]},
+        {"oneOf": [{"type": "null"}, {"type": "null"}, *SHAPE["oneOf"]]},
+        {"oneOf": [{"type": "string"}, *SHAPE["oneOf"]]},
         {"anyOf": [{"type": "string"}]},
         {"type": "array", "items": {"type": "number", "multipleOf": 2}},
     ],

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import structlog
 
-from celld.bus import schema
+from celld.bus import messages, requests, wire
 from celld.cli import main
 from celld.config import BusUser
 
@@ -119,7 +119,7 @@ def test_viewer_credentials_cannot_submit(served, tmp_path: Path, capsys: pytest
 def test_schema_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bus", "schema", "--out", str(tmp_path / "schemas")]) == 0
     written = [Path(p).name for p in capsys.readouterr().out.split()]
-    assert len(written) == len(schema.SCHEMAS) + 1 and written[-1] == "asyncapi.json"
+    assert len(written) == len(messages.SCHEMAS) + 1 and written[-1] == "asyncapi.json"
     assert all(name.endswith(".schema.json") for name in written[:-1])
     submit = json.loads((tmp_path / "schemas" / "submit.schema.json").read_text())
     assert [b["properties"]["kind"]["const"] for b in submit["oneOf"]] == ["calibrate", "weld", "move", "health", "tool-calibrate"]
@@ -161,6 +161,6 @@ def test_submit_tool_calibrate_builds_its_message() -> None:
         "dry_run": True,
         "ref": "tool-7",
     }
-    assert schema.parse_submit(schema.encode(message)) == schema.ToolCalibrateJob(
+    assert requests.parse_submit(wire.encode(message)) == requests.ToolCalibrateJob(
         n_poses=9, max_tilt=pytest.approx(0.2617993877991494), tip_position=(0.6, 0.0, 0.45), seed=4, dry_run=True, ref="tool-7"
     )

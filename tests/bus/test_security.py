@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from celld.bus import schema
+from celld.bus import messages, wire
 from celld.bus.client import CellClient
 from celld.bus.security import bus_warnings
 from celld.cli import main
@@ -132,10 +132,10 @@ def test_a_viewer_sees_status_but_not_parameters_references_or_results(cell) -> 
         job = olga.submit({"kind": "health", "ref": "order-4711"})["job"]
         assert olga.watch_progress().wait(job, timeout=10.0)["state"] == "succeeded"
         status = vic.status()
-        schema.check_message("status-reply", status)
+        messages.check_message("status-reply", status)
         assert status["cell"] == cell.keys.cell
         for record in (vic.status(job), vic.list()[0]):
-            schema.check_message("job-reply", {"ok": True, "record": record})
+            messages.check_message("job-reply", {"ok": True, "record": record})
             assert record["redacted"] is True and record["state"] == "succeeded"
             assert not {"params", "ref", "owner", "request_id", "result"} & set(record)
         with pytest.raises(JobError, match="may not read the results"):
@@ -158,7 +158,7 @@ def test_a_user_cannot_reach_another_users_keys_or_use_wildcards(cell) -> None:
         # vic authenticated fine, but zenoh's ACL drops every query outside u/vic/.
         for key in (cell.keys.query("cancel", "olga"), f"{cell.keys.base}/u/*/cancel", cell.keys.query("cancel"), f"{cell.keys.base}/**"):
             with pytest.raises(BusError, match="no reply"):
-                vic.request_raw("cancel", schema.encode({"job": job}), key=key)
+                vic.request_raw("cancel", wire.encode({"job": job}), key=key)
         for key in (cell.keys.query("submit", "vic"), cell.keys.query("accept", "vic")):  # not in a viewer's role
             with pytest.raises(BusError, match="no reply"):
                 vic.request_raw("submit", b'{"kind": "health"}', key=key)

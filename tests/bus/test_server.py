@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 from hypothesis import HealthCheck, given, settings
 
-from celld.bus import schema
+from celld.bus import messages, requests
 from celld.bus.client import CellClient
 from celld.errors import BusError, JobError
 from tests.bus.strategies import HOSTILE_PAYLOADS, hostile_jobs
@@ -39,7 +39,7 @@ def client(cell):
 
 def test_submit_returns_a_job_id_and_the_job_runs_to_success(cell, client) -> None:
     reply = client.submit(CALIBRATE)
-    schema.check_message("submit-reply", reply)
+    messages.check_message("submit-reply", reply)
     assert reply["state"] == "running" and reply["position"] == 0
     record = client.watch_progress().wait(reply["job"], timeout=5.0)
     assert record["state"] == "succeeded"
@@ -54,7 +54,7 @@ def test_second_job_queues_and_reply_says_so(serve_cell) -> None:
         second = client.submit({"kind": "health", "check": "robot"})
         assert (first["state"], second["state"], second["position"]) == ("running", "queued", 1)
         status = client.status()
-        schema.check_message("status-reply", status)
+        messages.check_message("status-reply", status)
         assert status["running"] == first["job"] and status["queued"] == [second["job"]]
         assert client.cancel(second["job"])["state"] == "cancelled"
         assert client.cancel(first["job"])["state"] == "cancelled"
@@ -79,7 +79,7 @@ def test_progress_events_are_numbered_and_end_terminal(cell, client) -> None:
         reply = client.submit({"kind": "health"})
         watch.wait(reply["job"], events.append, timeout=5.0)
     for e in events:
-        schema.check_message("progress", e)
+        messages.check_message("progress", e)
     assert [e["seq"] for e in events] == list(range(len(events)))
     # queued, start, one per step, end.
     assert [e["stage"] for e in events] == ["queued", "start"] + ["wait"] * cell.cell.steps + ["end"]
@@ -91,12 +91,12 @@ def test_status_list_accept_calibration_replies_match_their_schemas(cell, client
     reply = client.submit(CALIBRATE)
     client.watch_progress().wait(reply["job"], timeout=5.0)
     record = client.status(reply["job"])
-    schema.check_message("job-reply", {"ok": True, "record": record})
-    schema.check_message("list-reply", {"ok": True, "jobs": client.list()})
+    messages.check_message("job-reply", {"ok": True, "record": record})
+    messages.check_message("list-reply", {"ok": True, "jobs": client.list()})
     accepted = client.accept(reply["job"])
-    schema.check_message("accept-reply", accepted)
+    messages.check_message("accept-reply", accepted)
     current = client.calibration()
-    schema.check_message("calibration-reply", {"ok": True, "calibration": current})
+    messages.check_message("calibration-reply", {"ok": True, "calibration": current})
     assert current["job"] == reply["job"]
 
 
@@ -109,7 +109,7 @@ def test_unknown_job_is_refused_with_the_field(client) -> None:
 def test_hostile_payloads_each_get_an_error_reply_and_the_server_stays_up(cell, client) -> None:
     for payload in HOSTILE_PAYLOADS:
         reply = client.request_raw("submit", payload)
-        schema.check_message("error-reply", reply)
+        messages.check_message("error-reply", reply)
         assert reply["error"]["reason"], payload[:40]
     assert client.status()["state"] == "idle"
     assert cell.journal.jobs() == [] and cell.journal.check() == []
@@ -130,7 +130,7 @@ def test_requests_of_every_queryable_with_garbage_get_errors(client) -> None:
 
 def _is_valid_submit(payload: bytes) -> bool:
     try:
-        schema.parse_submit(payload)
+        requests.parse_submit(payload)
     except JobError:
         return False
     return True
@@ -146,7 +146,7 @@ def test_fuzzed_submits_are_all_answered_and_the_journal_stays_intact(serve_cell
         @given(hostile_jobs())
         def one(payload: bytes) -> None:
             reply = client.request_raw("submit", payload)
-            schema.check_message("submit-reply" if reply["ok"] else "error-reply", reply)
+            messages.check_message("submit-reply" if reply["ok"] else "error-reply", reply)
             assert reply["ok"] == _is_valid_submit(payload)
             answered["ok" if reply["ok"] else "refused"] += 1
 
@@ -248,7 +248,7 @@ def test_state_publications_are_decimated(cell) -> None:
     assert sum(sent) == 5 and [i for i, ok in enumerate(sent) if ok] == [0, 10, 20, 30, 40]
     assert [r["t_ns"] for r in robot] == [stamps[i] for i in (0, 10, 20, 30, 40)]
     for r in robot + tactile:
-        schema.check_message("state-robot" if "link" in r else "state-tactile", r)
+        messages.check_message("state-robot" if "link" in r else "state-tactile", r)
 
 
 def test_no_cell_no_reply_is_a_bus_error(cell) -> None:

@@ -271,10 +271,3 @@ def test_axes_are_named_in_the_base_frame() -> None:
     assert axis_name([0.0, -1.0, 0.0]) == "Y"
     assert axis_name([0.6, 0.0, 0.8]) == "(+0.60, +0.00, +0.80)"
     assert axis_name([-0.6, 0.0, -0.8]) == "(+0.60, -0.00, +0.80)"
-
-
-def test_the_bus_knows_the_same_verdicts() -> None:
-    from celld.bus.schema import CALIBRATION_VERDICTS
-    from celld.calib.quality import VERDICTS
-
-    assert CALIBRATION_VERDICTS == VERDICTS

@@ -9,12 +9,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from celld import se3
+from celld.bus.checker import validate
 from celld.calib.flange import preset
 from celld.calib.metrics import IcpMetric, IcpParams, IcpVerifier, model_cloud_with_normals
 from celld.calib.quality import assess_calibration
 from celld.calib.rangebias import RangeBiasData
 from celld.calib.robust import solve_robust
-from celld.calib.solve import SolveParams, solve_pairs
+from celld.calib.solve import REPORT_SCHEMA, SolveParams, solve_pairs
 from celld.errors import CalibrationError, InputError
 from celld.se3 import apply, error, invert, transform_from
 
@@ -169,6 +170,9 @@ def test_the_range_bias_is_estimated_reported_and_corrects_the_verification_clou
     assert q["verdict"] == "ok" and q["range_bias_mm"] == pytest.approx(result.bias * 1e3) and q["range_bias_std_mm"] > 0.0
     assert plain.as_dict()["range_bias"] == {"mode": "none", "bias_mm": 0.0}
     assert plain.as_dict()["quality"]["range_bias_mm"] is None
+    # Both reports have the shape the calibrate job's result promises (its schema beside the report).
+    validate(REPORT_SCHEMA, out)
+    validate(REPORT_SCHEMA, plain.as_dict())
 
 
 def test_centres_on_metal_are_corrected_before_every_method(rng: np.random.Generator) -> None:

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from celld.calib.toolcal import ToolCalParams, orientation_spread, solve_tool_tip, tool_calibration_poses
+from celld.bus.checker import validate
+from celld.calib.toolcal import FIT_SCHEMA, ToolCalParams, orientation_spread, solve_tool_tip, tool_calibration_poses
 from celld.errors import InputError
 
 TIP_TRUE = np.array([0.0009, -0.0012, 0.2011])  # m, TCP frame: the tool as built
@@ -60,6 +61,7 @@ def test_outliers_are_named_with_their_residual_and_threshold() -> None:
     assert np.linalg.norm(fit.p_tcp_tip - TIP_TRUE) < 0.1e-3
     assert fit.verdict == "ok" and any("outliers" in w for w in fit.warnings)
     report = fit.as_dict()
+    validate(FIT_SCHEMA, report)
     assert report["outliers"] == ["p4", "p9"]
     assert [p["outlier"] for p in report["poses"]].count(True) == 2
 

@@ -7,7 +7,7 @@ broken or hostile MES would: random bytes, text that is not UTF-8, oversized
 payloads, deep nesting, NaN and infinities, duplicate keys, wrong types,
 out-of-range numbers, arrays of the wrong length, unknown kinds and fields,
 missing fields. Every payload is first refused locally by
-:func:`celld.bus.schema.parse_submit` (so none is a job the arm would run), and
+:func:`celld.bus.requests.parse_submit` (so none is a job the arm would run), and
 the daemon must give the same field and reason. Afterwards the daemon still
 answers, runs a valid job, and its journal holds that job only.
 """
@@ -29,7 +29,7 @@ import pytest
 from hypothesis import HealthCheck, given, reject, settings
 from hypothesis import strategies as st
 
-from celld.bus import schema
+from celld.bus import messages, requests, wire
 from celld.bus.client import CellClient
 from celld.errors import BusError, JobError
 from celld.journal import Journal
@@ -104,11 +104,11 @@ class Field(NamedTuple):
     open_lo: bool = False
 
 
-# Every field of every job kind, as celld.bus.schema describes it; a path with a
+# Every field of every job kind, as celld.bus.messages describes it; a path with a
 # dot is inside the move target.
 FIELDS: dict[str, dict[str, Field]] = {
     "calibrate": {
-        "n_poses": Field("integer", 4, schema.MAX_POSES),
+        "n_poses": Field("integer", 4, messages.MAX_POSES),
         "e_required_mm": Field("number", 0.0, 100.0),
         "k_max": Field("integer", 1, 10_000),
         "poses": Field("poses"),
@@ -212,13 +212,13 @@ not_utf8 = st.one_of(
 
 huge = st.one_of(
     st.integers(129, 400_000).map(lambda n: _text({"kind": "health", "ref": "x" * n}).encode()),
-    st.tuples(_valid_bytes, st.integers(schema.MAX_PAYLOAD_BYTES + 1, 2 * schema.MAX_PAYLOAD_BYTES)).map(
+    st.tuples(_valid_bytes, st.integers(wire.MAX_PAYLOAD_BYTES + 1, 2 * wire.MAX_PAYLOAD_BYTES)).map(
         lambda t: b" " * (t[1] - len(t[0])) + t[0]  # valid JSON, but too large
     ),
-    st.integers(schema.MAX_POSES + 1, 3000).map(
+    st.integers(messages.MAX_POSES + 1, 3000).map(
         lambda n: _text({"kind": "calibrate", "poses": [[0.5, 0.0, 0.5, 0.0, 3.1, 0.0]] * n}).encode()
     ),
-    st.tuples(st.sampled_from(["seed", "n_poses", "k_max"]), st.integers(schema.MAX_INT_DIGITS + 1, 6000)).map(
+    st.tuples(st.sampled_from(["seed", "n_poses", "k_max"]), st.integers(wire.MAX_INT_DIGITS + 1, 6000)).map(
         lambda t: _fill({"kind": "calibrate", t[0]: _HOLE}, "7" * t[1])
     ),
     st.integers(1_000, 300_000).map(lambda n: _text({"kind": "health" * n}).encode()),
@@ -230,7 +230,7 @@ def _nest(depth: int, shape: str) -> str:
     return "[" * depth + "]" * depth if shape == "array" else '{"a":' * depth + "0" + "}" * depth
 
 
-_depth = st.integers(schema.MAX_DEPTH + 1, 50_000)
+_depth = st.integers(wire.MAX_DEPTH + 1, 50_000)
 _shape = st.sampled_from(["array", "object"])
 deep = st.one_of(
     st.tuples(_depth, _shape).map(lambda t: _nest(*t).encode()),
@@ -363,7 +363,7 @@ wrong_length = st.one_of(
 )
 
 unknown_kind = st.one_of(
-    st.text(max_size=20).filter(lambda s: s not in schema.JOB_KINDS).map(lambda s: _text({"kind": s}).encode()),
+    st.text(max_size=20).filter(lambda s: s not in messages.JOB_KINDS).map(lambda s: _text({"kind": s}).encode()),
     st.sampled_from(["HEALTH", "Health", "health ", " move", "calibrate\u0000", "weld\n", "heal th", "moves"]).map(
         lambda s: _text({"kind": s, "check": "robot"}).encode()
     ),
@@ -494,7 +494,7 @@ def _local_refusal(payload: bytes) -> JobError | None:
     internal error, which is a bug this test should report with its payload.
     """
     try:
-        schema.parse_submit(payload)
+        requests.parse_submit(payload)
     except JobError as exc:
         return exc
     return None
@@ -508,7 +508,7 @@ def _same_reason(daemon_reason: str, local_reason: str) -> bool:
     more"), depending on how deep the caller's stack already is: the daemon
     parses inside an asyncio task, this test at the top of a thread.
     """
-    nesting = f"expected at most {schema.MAX_DEPTH} levels of nesting, got "
+    nesting = f"expected at most {wire.MAX_DEPTH} levels of nesting, got "
     if daemon_reason.startswith(nesting) and local_reason.startswith(nesting):
         return True
     return daemon_reason == local_reason
@@ -539,7 +539,7 @@ def test_hostile_submits_are_all_refused_and_the_daemon_stays_up_with_an_intact_
                 raise AssertionError(f"{category}: no refusal within {REPLY_TIMEOUT} s for {payload[:200]!r}: {exc}\n{log_tail()}") from exc
             sent[category] += 1
             assert reply["ok"] is False, f"{category}: the daemon took {payload[:200]!r}: {reply}"
-            schema.check_message("error-reply", reply)
+            messages.check_message("error-reply", reply)
             error = reply["error"]
             assert error["field"].startswith("$") and error["reason"].strip(), reply
             # The daemon refuses it for the reason celld's own parser gives, not as busy or an internal error.

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.bus import schema
+from celld.bus import messages
 from celld.sim.cell import run_cell
 from celld.sim.scanner import SCANNER_MODELS
 from tests.daemon.scans import planned_from_the_scan_pose, rms_mm
@@ -82,9 +82,9 @@ def test_calibrate_estimates_the_range_bias_and_the_weld_scan_is_placed_with_it(
 
         # Accepted as it is (the gate passed), and it is what the cell now holds.
         accepted = client.accept(record["id"])
-        schema.check_message("accept-reply", accepted)
+        messages.check_message("accept-reply", accepted)
         current = client.calibration()
-        schema.check_message("calibration-reply", {"ok": True, "calibration": current})
+        messages.check_message("calibration-reply", {"ok": True, "calibration": current})
         assert current["range_bias_mm"] == calibration["range_bias_mm"]
 
         # The weld's scan of the steel part, placed with the calibration and its bias.

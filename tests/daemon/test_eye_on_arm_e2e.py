@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.bus import schema
+from celld.bus import messages
 from celld.calib.dataset import load_session
 from celld.calib.mount import ScannerMount
 from celld.sim.cell import run_cell
@@ -112,9 +112,9 @@ def test_a_scanner_on_the_arm_is_calibrated_on_its_link_and_places_a_scan_at_oth
         np.testing.assert_allclose(np.array(offline["T_link1_cam"]), T_link_cam, atol=1e-9)
 
         accepted = client.accept(record["id"])
-        schema.check_message("accept-reply", accepted)
+        messages.check_message("accept-reply", accepted)
         current = client.calibration()
-        schema.check_message("calibration-reply", {"ok": True, "calibration": current})
+        messages.check_message("calibration-reply", {"ok": True, "calibration": current})
         assert current["T_link1_cam"] == calibration["T_link1_cam"]
 
         # A scan at the scan pose (the base joint and the boom elsewhere than at the calibration poses),

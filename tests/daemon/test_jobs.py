@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from celld.bus.schema import AcceptRequest, CalibrateJob, CancelRequest, HealthJob, ListRequest, MoveJob, StatusRequest
+from celld.bus.requests import AcceptRequest, CalibrateJob, CancelRequest, HealthJob, ListRequest, MoveJob, StatusRequest
 from celld.daemon.jobs import JobContext, JobManager
 from celld.errors import JobError, MotionError
 from celld.journal import Journal
@@ -179,7 +179,7 @@ def _calibrating_harness(tmp_path: Path, verdict_ok: bool, auto_accept: bool = F
 
 @run
 async def test_accept_refuses_a_failed_quality_verdict_unless_forced(tmp_path: Path) -> None:
-    from celld.bus import schema
+    from celld.bus import messages
 
     h = _calibrating_harness(tmp_path, verdict_ok=False)
     h.manager.start()
@@ -190,14 +190,14 @@ async def test_accept_refuses_a_failed_quality_verdict_unless_forced(tmp_path: P
     assert (await h.manager.on_calibration(None))["calibration"] is None
     reply = await h.manager.on_accept(AcceptRequest(job=job, force=True))
     assert reply["calibration"]["forced"] is True and reply["calibration"]["quality"]["verdict"] == "insufficient_rotation"
-    schema.check_message("accept-reply", {"ok": True, **reply})
+    messages.check_message("accept-reply", {"ok": True, **reply})
     assert (await h.manager.on_calibration(None))["calibration"]["job"] == job
     await h.manager.close()
 
 
 @run
 async def test_accept_takes_a_passed_verdict_and_auto_accept_skips_a_failed_one(tmp_path: Path) -> None:
-    from celld.bus import schema
+    from celld.bus import messages
 
     h = _calibrating_harness(tmp_path / "ok", verdict_ok=True)
     h.manager.start()
@@ -205,7 +205,7 @@ async def test_accept_takes_a_passed_verdict_and_auto_accept_skips_a_failed_one(
     await h.manager.wait(job, timeout=5)
     reply = await h.manager.on_accept(AcceptRequest(job=job))
     assert "forced" not in reply["calibration"] and reply["calibration"]["quality"]["verdict"] == "ok"
-    schema.check_message("accept-reply", {"ok": True, **reply})
+    messages.check_message("accept-reply", {"ok": True, **reply})
     await h.manager.close()
 
     h = _calibrating_harness(tmp_path / "auto", verdict_ok=False, auto_accept=True)

@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 
 from celld import fsutil
-from celld.bus.schema import CalibrateJob, HealthJob, MoveJob, StatusRequest, WeldJob
+from celld.bus.requests import CalibrateJob, HealthJob, MoveJob, StatusRequest, WeldJob
 from celld.calib.dataset import SessionWriter
 from celld.config import RecordingConfig
 from celld.daemon.jobs import JobContext, JobManager

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.bus import schema
+from celld.bus import messages
 from celld.calib.toolcal import solve_tool_tip
 from celld.errors import JobError
 from celld.sim.cell import run_cell, sim_part
@@ -111,7 +111,7 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         assert tc["state"] == "succeeded", tc["reason"]
         assert [e for e in events if e["stage"] == "pose" and e.get("data", {}).get("detected")]
         for e in events:
-            schema.check_message("progress", e)
+            messages.check_message("progress", e)
         result = json.loads(Path(tc["result"]).read_text())
         tool = result["tool"]
         assert tool["quality"]["verdict"] == "ok", tool["quality"]
@@ -146,10 +146,10 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         assert np.linalg.norm(torch - torch_true) < np.linalg.norm(torch_config - torch_true)
 
         accepted = client.accept(tc["id"])
-        schema.check_message("accept-reply", accepted)
+        messages.check_message("accept-reply", accepted)
         assert accepted["kind"] == "tool-calibrate" and accepted["tool"]["tip_tcp_mm"] == tool["tip_tcp_mm"]
         current = client.request("calibration")
-        schema.check_message("calibration-reply", current)
+        messages.check_message("calibration-reply", current)
         assert current["tool"]["job"] == tc["id"] and current["calibration"]["job"] == calibration["job"]
         # A calibrate job is not a tool calibration, nor the reverse: each accept goes to its own store.
         with pytest.raises(JobError):

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.bus import schema
+from celld.bus import messages
 from celld.calib.dataset import load_session
 from celld.recording.readback import read_component, read_entities
 from celld.sim.cell import run_cell
@@ -121,9 +121,9 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, cell_conf
         np.testing.assert_allclose(q2, cfg.robot2.robot.home_q, atol=2e-3)
 
         accepted = client.accept(record["id"])
-        schema.check_message("accept-reply", accepted)
+        messages.check_message("accept-reply", accepted)
         current = client.calibration()
-        schema.check_message("calibration-reply", {"ok": True, "calibration": current})
+        messages.check_message("calibration-reply", {"ok": True, "calibration": current})
         assert current["robot2"]["T_base1_base2"] == entry["T_base1_base2"]
         # The health job reads robot 2's link beside robot 1's.
         _, checked = client.submit_and_wait({"kind": "health", "check": "robot"}, timeout=60)

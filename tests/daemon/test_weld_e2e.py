@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.bus import schema
+from celld.bus import messages
 from celld.journal import Journal
 from celld.recording import layout
 from celld.recording.readback import read_entities, read_scalars
@@ -98,7 +98,7 @@ def test_a_calibrated_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_path
         # This world's calibration, made current as an accept makes it; the daemon serves it as it stores it.
         install_calibration(cfg.cell.state_dir, calibration)
         current = client.calibration()
-        schema.check_message("calibration-reply", {"ok": True, "calibration": current})
+        messages.check_message("calibration-reply", {"ok": True, "calibration": current})
         assert current == calibration and client.status()["calibration"] == calibration["job"]
         T_est = np.array(current["T_base_cam"])
         # T_base_cam absorbs what it can of the arm's kinematic error, so it is off the true one by
