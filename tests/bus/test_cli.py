@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import structlog
 
-from celld.bus import messages, requests, wire
+from celld.bus import requests, wire
 from celld.cli import main
 from celld.config import BusUser
 
@@ -114,15 +114,6 @@ def test_viewer_credentials_cannot_submit(served, tmp_path: Path, capsys: pytest
     assert main(["submit", "health", *common]) == 2
     assert "no reply" in capsys.readouterr().err
     assert cell.journal.jobs() == []
-
-
-def test_schema_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["bus", "schema", "--out", str(tmp_path / "schemas")]) == 0
-    written = [Path(p).name for p in capsys.readouterr().out.split()]
-    assert len(written) == len(messages.SCHEMAS) + 1 and written[-1] == "asyncapi.json"
-    assert all(name.endswith(".schema.json") for name in written[:-1])
-    submit = json.loads((tmp_path / "schemas" / "submit.schema.json").read_text())
-    assert [b["properties"]["kind"]["const"] for b in submit["oneOf"]] == ["calibrate", "weld", "move", "health", "tool-calibrate"]
 
 
 def test_submit_tool_calibrate_builds_its_message() -> None:

@@ -359,6 +359,8 @@ def test_celld_bus_schema_exports_the_bundle(tmp_path: Path, capsys: pytest.Capt
     assert written == {f"{name}.schema.json" for name in BUNDLE} | {"asyncapi.json"}
     for name, schema in BUNDLE.items():
         assert json.loads((tmp_path / f"{name}.schema.json").read_text()) == schema
+    submit = json.loads((tmp_path / "submit.schema.json").read_text())
+    assert [b["properties"]["kind"]["const"] for b in submit["oneOf"]] == ["calibrate", "weld", "move", "health", "tool-calibrate"]
     doc = json.loads((tmp_path / "asyncapi.json").read_text())
     assert doc["components"]["schemas"] == {f"result-{k}": {"$ref": f"result-{k}.schema.json"} for k in messages.JOB_KINDS}
 
