@@ -4,6 +4,7 @@
 talks to it only over the bus, like an MES. The calibration test, the kill -9
 test (and the fuzz test of ``test_daemon_fuzz.py``) start a cell of their
 own; the tests that leave their cell idle and its robot link up share one.
+Every result and reply it fetches is checked against the exported schemas.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from celld.journal import Journal
 from celld.recording.readback import read_component, read_entities
 from celld.sim.cell import run_cell
 from tests.daemon.cells import write_cell_config
+from tests.daemon.exported import check_exported, checked_result
 
 pytestmark = pytest.mark.cell
 
@@ -83,7 +85,8 @@ def test_calibrate_over_the_bus_then_accept(recorded_daemon) -> None:
     assert len(pairs) == 6, "one progress event per pair"
     assert any("cost_mm" in e.get("data", {}) for e in pairs), "Algorithm 1's cost is reported per pair"
 
-    result = json.loads(Path(record["result"]).read_text())
+    result = checked_result(client, record)
+    assert result == json.loads(Path(record["result"]).read_text())
     T = np.array(result["calibration"]["T_base_cam"])
     _, dr = se3.error(T, np.array(T_BASE_CAM_TRUE))
     # Six half-resolution PhoXi M captures: a fifth of a millimetre where the flange was seen (the
@@ -107,6 +110,8 @@ def test_calibrate_over_the_bus_then_accept(recorded_daemon) -> None:
     # Not current until the operator accepts it.
     assert client.calibration() is None
     accepted = client.accept(reply["job"])
+    check_exported("accept-reply", accepted)
+    check_exported("calibration-reply", {"ok": True, "calibration": client.calibration(), "tool": None})
     assert accepted["calibration"]["job"] == reply["job"]
     assert client.calibration()["T_base_cam"] == result["calibration"]["T_base_cam"]
 
@@ -188,6 +193,8 @@ def test_kill_9_of_the_daemon_mid_calibration_stops_the_arm_and_the_next_daemon_
             move = {"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 0.45, 0.0, 0.0, 0.0]}}
             _, record = second.client.submit_and_wait(move, timeout=90)
             assert record["state"] == "succeeded", record["reason"]
+            assert second.client.result(job)["state"] == "interrupted" and checked_result(second.client, job) is None
+            checked_result(second.client, record)
             assert {p.name for p in (state_dir / "run").glob("*.json")} == {"motion.json"}  # this daemon's own child
         finally:
             second.client.close()
@@ -201,7 +208,7 @@ def test_move_and_health_and_a_refused_job(idle_cell) -> None:
     client, robot = idle_cell.client, idle_cell.robot
     _, record = client.submit_and_wait({"kind": "health", "check": "all"}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
-    health = json.loads(Path(record["result"]).read_text())
+    health = checked_result(client, record)
     assert health["robot"]["condition"]["ready"] and health["problems"] == []
     # The interlock setting cannot be read; health says so, and that no arc was found left on.
     assert health["arc_interlock"]["verified"] is False and health["arc_interlock"]["missing_seen"] is False
@@ -209,11 +216,12 @@ def test_move_and_health_and_a_refused_job(idle_cell) -> None:
     target = [0.62, 0.02, 0.46, 0.0, 0.0, 0.0]
     _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": target}}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
-    moved = json.loads(Path(record["result"]).read_text())
-    assert moved["error_mm"] < 0.1
+    moved = checked_result(client, record)
+    assert moved["space"] == "cartesian" and moved["error_mm"] < 0.1
     # Outside the workspace box: refused with the reason, the daemon stays up.
     _, record = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": [1.05, 0.0, 0.5, 0, 0, 0]}}, timeout=60)
     assert record["state"] == "failed" and "workspace" in record["reason"]
+    assert checked_result(client, record) is None
     assert client.status()["state"] in ("idle", "fault")
     # Into the table, into the scanner, out of reach (each inside the workspace box): refused
     # before any motion, naming the part, the object or the reason.
@@ -234,7 +242,7 @@ def test_move_and_health_and_a_refused_job(idle_cell) -> None:
     q_goal = [2.9, -1.35, 2.2, -2.4, 1.5, -1.1]
     _, record = client.submit_and_wait({"kind": "move", "target": {"space": "joint", "q": q_goal}}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
-    moved = json.loads(Path(record["result"]).read_text())
+    moved = checked_result(client, record)
     q_true = robot.truth()[2]
     assert np.degrees(np.abs(q_true - np.array(q_goal))).max() < 0.01, np.degrees(q_true - np.array(q_goal))
     assert max(moved["joint_error_deg"]) < 0.01
@@ -251,7 +259,7 @@ def test_a_calibration_dry_run_plans_and_checks_without_moving(idle_cell) -> Non
     q_before = robot.truth()[2]
     _, record = client.submit_and_wait({"kind": "calibrate", "n_poses": 6, "seed": 2, "dry_run": True}, timeout=120)
     assert record["state"] == "succeeded", record["reason"]
-    result = json.loads(Path(record["result"]).read_text())
+    result = checked_result(client, record)
     plan = result["plan"]
     assert result["dry_run"] and len(plan["poses"]) == 6 and len(plan["joints"]) == 7  # the verification pose first
     assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, "a dry run moved the arm"
@@ -271,6 +279,7 @@ def test_cancel_during_a_job_stops_the_robot_and_ends_cancelled(idle_cell) -> No
     reply = client.cancel(job, "operator")
     assert reply["state"] == "cancelled"
     assert client.status(job)["state"] == "cancelled"
+    assert checked_result(client, job) is None
     # The arm is at rest a moment after the cancel: its true joints stand still.
     time.sleep(0.5)
     q0 = sim.truth()[2]
@@ -278,6 +287,8 @@ def test_cancel_during_a_job_stops_the_robot_and_ends_cancelled(idle_cell) -> No
     assert np.max(np.abs(sim.truth()[2] - q0)) < 1e-4
     _, record = client.submit_and_wait({"kind": "health", "check": "robot"}, timeout=60)
     assert record["state"] == "succeeded", record["reason"]
+    checked = checked_result(client, record)
+    assert {"robot", "arc_interlock", "problems", "storage"} <= set(checked) and "scanner" not in checked
 
 
 def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(idle_cell) -> None:
@@ -286,6 +297,7 @@ def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(idl
     sim.inject("drop_all", down_ms=3000)
     record = _wait_end(client, job, 120)
     assert record["state"] == "failed" and record["reason"], record
+    assert checked_result(client, record) is None
     assert proc.poll() is None, "the daemon keeps running"
     deadline = time.monotonic() + 90
     while client.status().get("robot_link") != "up":
@@ -294,3 +306,4 @@ def test_a_link_drop_fails_the_job_with_its_reason_and_the_next_job_succeeds(idl
     move = {"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0.0, 0.45, 0.0, 0.0, 0.0]}}
     _, record = client.submit_and_wait(move, timeout=90)
     assert record["state"] == "succeeded", record["reason"]
+    checked_result(client, record)

@@ -12,7 +12,6 @@ only over the bus and scores against the simulator's truth. Slow.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -20,9 +19,9 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.bus import messages
 from celld.sim.cell import run_cell
 from celld.sim.scanner import SCANNER_MODELS
+from tests.daemon.exported import check_exported, checked_result
 from tests.daemon.scans import planned_from_the_scan_pose, rms_mm
 
 pytestmark = pytest.mark.cell
@@ -66,7 +65,7 @@ def test_calibrate_estimates_the_range_bias_and_the_weld_scan_is_placed_with_it(
         steps = [e["data"]["range_bias_mm"] for e in events if e.get("stage") == "pair" and "range_bias_mm" in e.get("data", {})]
         assert len(steps) >= 10 and abs(float(np.median(steps)) - true_bias * 1e3) < 0.5, steps
 
-        result = json.loads(Path(record["result"]).read_text())
+        result = checked_result(client, record)
         calibration = result["calibration"]
         dt, dr = se3.error(np.array(calibration["T_base_cam"]), world.scanner.T_base_cam)
         # The time-of-flight target: 1.5 mm at the camera's origin.
@@ -82,9 +81,9 @@ def test_calibrate_estimates_the_range_bias_and_the_weld_scan_is_placed_with_it(
 
         # Accepted as it is (the gate passed), and it is what the cell now holds.
         accepted = client.accept(record["id"])
-        messages.check_message("accept-reply", accepted)
+        check_exported("accept-reply", accepted)
         current = client.calibration()
-        messages.check_message("calibration-reply", {"ok": True, "calibration": current})
+        check_exported("calibration-reply", {"ok": True, "calibration": current})
         assert current["range_bias_mm"] == calibration["range_bias_mm"]
 
         # The weld's scan of the steel part, placed with the calibration and its bias.

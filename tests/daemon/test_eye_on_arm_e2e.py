@@ -26,11 +26,11 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.bus import messages
 from celld.calib.dataset import load_session
 from celld.calib.mount import ScannerMount
 from celld.sim.cell import run_cell
 from celld.sim.score import targeting, true_camera
+from tests.daemon.exported import check_exported, checked_result
 from tests.daemon.scans import planned_from_the_scan_pose, rms_mm
 
 pytestmark = pytest.mark.cell
@@ -67,7 +67,7 @@ def test_a_scanner_on_the_arm_is_calibrated_on_its_link_and_places_a_scan_at_oth
 
         _, record = client.submit_and_wait({"kind": "calibrate", "seed": 1}, timeout=900)
         assert record["state"] == "succeeded", record["reason"]
-        result = json.loads(Path(record["result"]).read_text())
+        result = checked_result(client, record)
         calibration = result["calibration"]
         # Stored in the link's frame, with the DH table it was solved with; no T_base_cam (it moves).
         assert calibration["mount"] == "link1" and "T_base_cam" not in calibration
@@ -112,9 +112,9 @@ def test_a_scanner_on_the_arm_is_calibrated_on_its_link_and_places_a_scan_at_oth
         np.testing.assert_allclose(np.array(offline["T_link1_cam"]), T_link_cam, atol=1e-9)
 
         accepted = client.accept(record["id"])
-        messages.check_message("accept-reply", accepted)
+        check_exported("accept-reply", accepted)
         current = client.calibration()
-        messages.check_message("calibration-reply", {"ok": True, "calibration": current})
+        check_exported("calibration-reply", {"ok": True, "calibration": current})
         assert current["T_link1_cam"] == calibration["T_link1_cam"]
 
         # A scan at the scan pose (the base joint and the boom elsewhere than at the calibration poses),

@@ -24,12 +24,12 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.bus import messages
 from celld.calib.toolcal import solve_tool_tip
 from celld.errors import JobError
 from celld.sim.cell import run_cell, sim_part
 from celld.sim.score import TruthRecorder, lateral, open_loop_torch, true_flange, true_torch_path
 from tests.daemon.cells import install_calibration
+from tests.daemon.exported import check_exported, checked_result
 
 pytestmark = pytest.mark.cell
 
@@ -100,6 +100,7 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         # Without a calibration a tool calibration is refused, with the reason.
         _, refused = client.submit_and_wait({"kind": "tool-calibrate"}, timeout=60)
         assert refused["state"] == "failed" and "no current calibration" in refused["reason"]
+        assert checked_result(client, refused) is None
 
         # This world's calibration, made current as an accept (with force, if its gate failed) makes it.
         install_calibration(cfg.cell.state_dir, calibration)
@@ -111,8 +112,8 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         assert tc["state"] == "succeeded", tc["reason"]
         assert [e for e in events if e["stage"] == "pose" and e.get("data", {}).get("detected")]
         for e in events:
-            messages.check_message("progress", e)
-        result = json.loads(Path(tc["result"]).read_text())
+            check_exported("progress", e)
+        result = checked_result(client, tc)
         tool = result["tool"]
         assert tool["quality"]["verdict"] == "ok", tool["quality"]
         tip = np.asarray(tool["tip_tcp_mm"]) * 1e-3
@@ -146,10 +147,10 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         assert np.linalg.norm(torch - torch_true) < np.linalg.norm(torch_config - torch_true)
 
         accepted = client.accept(tc["id"])
-        messages.check_message("accept-reply", accepted)
+        check_exported("accept-reply", accepted)
         assert accepted["kind"] == "tool-calibrate" and accepted["tool"]["tip_tcp_mm"] == tool["tip_tcp_mm"]
         current = client.request("calibration")
-        messages.check_message("calibration-reply", current)
+        check_exported("calibration-reply", current)
         assert current["tool"]["job"] == tc["id"] and current["calibration"]["job"] == calibration["job"]
         # A calibrate job is not a tool calibration, nor the reverse: each accept goes to its own store.
         with pytest.raises(JobError):
@@ -161,7 +162,7 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         with TruthRecorder(cfg.robot.host) as truth:
             _, weld = client.submit_and_wait({"kind": "weld"}, timeout=600)
         assert weld["state"] == "succeeded", weld["reason"]
-        res = json.loads(Path(weld["result"]).read_text())
+        res = checked_result(client, weld)
         assert res["torch"]["measured"] and res["tool_calibration_job"] == tc["id"], res["torch"]
         paths = json.loads(Path(res["paths"]).read_text())
         part = sim_part(world)

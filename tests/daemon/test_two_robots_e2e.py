@@ -13,7 +13,6 @@ half resolution, and a kill -9 of the daemon while robot 2 moves; about two minu
 
 from __future__ import annotations
 
-import json
 import math
 import signal
 import time
@@ -23,10 +22,10 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.bus import messages
 from celld.calib.dataset import load_session
 from celld.recording.readback import read_component, read_entities
 from celld.sim.cell import run_cell
+from tests.daemon.exported import check_exported, checked_result
 from tests.daemon.orphans import after_kill, motion_exits, seen_after, tcp_speed, wait_moving
 
 pytestmark = pytest.mark.cell
@@ -71,15 +70,16 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, cell_conf
         q1_before, q2_before = np.asarray(cell.robot.truth()[2]), np.asarray(cell.robot2.truth()[2])
         _, dry = client.submit_and_wait({"kind": "calibrate", "seed": 1, "robot2": True, "dry_run": True}, timeout=120)
         assert dry["state"] == "succeeded", dry["reason"]
-        plans = json.loads(Path(dry["result"]).read_text())
+        plans = checked_result(client, dry)
         assert len(plans["plan"]["poses"]) == 6 and len(plans["robot2_plan"]["poses"]) == 6
         assert np.allclose(cell.robot.truth()[2], q1_before, atol=1e-4) and np.allclose(cell.robot2.truth()[2], q2_before, atol=1e-4)
         _, given = client.submit_and_wait({"kind": "calibrate", "robot2": True, "poses": [[0.6, 0.0, 0.45, 0.0, 0.0, 0.0]] * 4}, timeout=60)
         assert given["state"] == "failed" and "$.poses" in given["reason"], given
+        assert checked_result(client, given) is None
 
         _, record = client.submit_and_wait({"kind": "calibrate", "seed": 1, "robot2": True}, timeout=900)
         assert record["state"] == "succeeded", record["reason"]
-        result = json.loads(Path(record["result"]).read_text())
+        result = checked_result(client, record)
         calibration = result["calibration"]
         entry = calibration["robot2"]
         assert calibration["quality"]["verdict"] == "ok" and entry["quality"]["verdict"] == "ok", (calibration["quality"], entry["quality"])
@@ -121,13 +121,13 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, cell_conf
         np.testing.assert_allclose(q2, cfg.robot2.robot.home_q, atol=2e-3)
 
         accepted = client.accept(record["id"])
-        messages.check_message("accept-reply", accepted)
+        check_exported("accept-reply", accepted)
         current = client.calibration()
-        messages.check_message("calibration-reply", {"ok": True, "calibration": current})
+        check_exported("calibration-reply", {"ok": True, "calibration": current})
         assert current["robot2"]["T_base1_base2"] == entry["T_base1_base2"]
         # The health job reads robot 2's link beside robot 1's.
         _, checked = client.submit_and_wait({"kind": "health", "check": "robot"}, timeout=60)
-        health = json.loads(Path(checked["result"]).read_text())
+        health = checked_result(client, checked)
         assert health["robot2"]["link"] == "running" and health["problems"] == [], health
         # A move of robot 1 alone is checked against robot 2 where it stands: into robot 2's upper arm
         # (a path clear without robot 2 in the model), refused before any motion, naming robot 2's part.
@@ -135,6 +135,7 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, cell_conf
         into_robot2 = {"kind": "move", "target": {"space": "cartesian", "pose": [1.0, 0.15, 0.45, math.pi, 0.0, 0.0]}}
         _, refused = client.submit_and_wait(into_robot2, timeout=60)
         assert refused["state"] == "failed" and "'robot2-upper_arm'" in refused["reason"], refused
+        assert checked_result(client, refused) is None
         assert np.max(np.abs(cell.robot.truth()[2] - q_before)) < 1e-6
 
         # A kill -9 of the daemon while robot 2 moves to its first pose of another job: robot 2's own

@@ -28,13 +28,13 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.bus import messages
 from celld.journal import Journal
 from celld.recording import layout
 from celld.recording.readback import read_entities, read_scalars
 from celld.sim.cell import run_cell, sim_part, start_daemon, stop_daemon
 from celld.sim.score import TruthRecorder, lateral, open_loop_torch, targeting, true_torch_path
 from tests.daemon.cells import install_calibration
+from tests.daemon.exported import check_exported, checked_result
 from tests.daemon.orphans import after_kill, motion_exits
 
 pytestmark = pytest.mark.cell
@@ -94,11 +94,12 @@ def test_a_calibrated_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_path
         # A weld before any calibration is refused with the reason.
         _, record = client.submit_and_wait({"kind": "weld"}, timeout=60)
         assert record["state"] == "failed" and "no current calibration" in record["reason"]
+        assert checked_result(client, record) is None
 
         # This world's calibration, made current as an accept makes it; the daemon serves it as it stores it.
         install_calibration(cfg.cell.state_dir, calibration)
         current = client.calibration()
-        messages.check_message("calibration-reply", {"ok": True, "calibration": current})
+        check_exported("calibration-reply", {"ok": True, "calibration": current})
         assert current == calibration and client.status()["calibration"] == calibration["job"]
         T_est = np.array(current["T_base_cam"])
         # T_base_cam absorbs what it can of the arm's kinematic error, so it is off the true one by
@@ -118,7 +119,7 @@ def test_a_calibrated_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_path
         stages = [e["stage"] for e in events]
         for stage in ("scan", "seam", "approach", "tare", "track", "retract"):
             assert stage in stages, stages
-        result = json.loads(Path(weld["result"]).read_text())
+        result = checked_result(client, weld)
         paths = json.loads(Path(result["paths"]).read_text())
         assert len(paths["refined"]) > 100 and len(paths["torch"]) > 100
         # The torch as it truly went, tracked by touch with Algorithm 2, meets the tactile targets
@@ -135,7 +136,7 @@ def test_a_calibrated_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_path
         q_before = robot.truth()[2]
         _, dry = client.submit_and_wait({"kind": "weld", "dry_run": True}, timeout=300)
         assert dry["state"] == "succeeded", dry["reason"]
-        planned = json.loads(Path(dry["result"]).read_text())
+        planned = checked_result(client, dry)
         assert planned["dry_run"] and len(planned["tcp_path"]) > 10 and planned["min_clearance_mm"] > 5.0, planned
         assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, "a dry run moved the arm"
         assert "/world/robot/pose_01" in read_entities(Path(planned["recording"]))
@@ -169,6 +170,7 @@ def test_a_calibrated_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_path
         time.sleep(3.0)
         assert client.cancel(job, "operator")["state"] == "cancelled"
         assert client.status(job)["state"] == "cancelled"
+        assert checked_result(client, job) is None
         time.sleep(0.5)
         q0 = robot.truth()[2]
         time.sleep(0.3)
@@ -207,8 +209,10 @@ def test_a_calibrated_weld_meets_the_targets_and_a_cancelled_weld_stops(tmp_path
                 target = {"space": "cartesian", "pose": list(cfg.weld.scan_pose)}
                 _, moved = second.client.submit_and_wait({"kind": "move", "target": target}, timeout=120)
                 assert moved["state"] == "succeeded", (moved["reason"], robot.status())
+                checked_result(second.client, moved)
                 _, dry = second.client.submit_and_wait({"kind": "weld", "dry_run": True, "ref": "after the kill"}, timeout=300)
                 assert dry["state"] == "succeeded", (dry["reason"], robot.status())
+                checked_result(second.client, dry)
             finally:
                 second.client.close()
                 stop_daemon(second.process)
