@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from celld import se3
+from celld.bus.checker import validate
 from celld.config import ToolConfig, WeldConfig
 from celld.config.seam import SeamParams
 from celld.errors import WorkpieceError
@@ -16,7 +17,7 @@ from celld.seam.workpiece import example
 from celld.sim import workpiece as simscene
 from celld.sim.scanner import SimScanner
 from celld.tactile.tool import ToolGeometry
-from celld.weld.plan import LEAD_IN, WeldPlan, plan_weld, prepare_part, probe_targets, probed_height
+from celld.weld.plan import LEAD_IN, PROBED_SCHEMA, WeldPlan, plan_weld, prepare_part, probe_targets, probed_height
 
 T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
 WELD = WeldConfig()
@@ -61,6 +62,7 @@ def test_a_probe_that_finds_the_planned_width_leaves_the_plan_and_a_wider_joint_
 
     found, same = probed_height(plan, touches(planned), tool, tool.T_tcp_tool, WELD.max_height_correction)
     assert found["probed"] and abs(found["height_correction_mm"]) < 1e-6
+    validate(PROBED_SCHEMA, found)  # the shape the weld's result promises
     np.testing.assert_allclose(same.T_start, plan.T_start, atol=1e-9)
     opening = finger[1] + far[1]
     found, lifted = probed_height(plan, touches(planned + opening * 0.001), tool, tool.T_tcp_tool, WELD.max_height_correction)
