@@ -35,11 +35,12 @@ pytestmark = pytest.mark.cell
 # it (each robot's calibration is good to about 0.1 mm); the drawing alone is off by 3-5 mm and 0.4 deg.
 AT_VERIFICATION = 0.3e-3
 ROTATION = math.radians(0.1)
-# A kill -9 of the daemon while robot 2 moves: its own orphaned motion process sees it within a few of
-# its 10 ms checks (the same watch as robot 1's, bench/daemon_kill.py), within the robot's watchdog
-# period (0.2 s here), and stops the arm jerk-limited: caught speeding up in a joint move, that takes a
-# quarter of a second (the weld e2e's bound for robot 1's stop is the same 0.5 s).
-SEEN = 0.05
+# A kill -9 of the daemon while robot 2 moves: its own orphaned motion process sees it within the
+# robot's RTDE watchdog period (5 Hz: 0.2 s), the bound that matters; typically within a few of its
+# 10 ms checks, but how soon on a loaded machine is bench/daemon_kill.py's figure, not this test's.
+# It stops the arm jerk-limited: caught speeding up in a joint move, that takes a quarter of a second
+# (the weld e2e's bound for robot 1's stop is the same 0.5 s).
+SEEN = 0.2
 AT_REST = 0.5
 
 
