@@ -103,7 +103,7 @@ def test_protective_stop_shows_and_unlock_clears_it(loopback_host: str) -> None:
             assert _wait_for(r.isProtectiveStopped)
             assert r.getSafetyMode() == 3
             assert str(d.safetystatus()) == "Safetystatus: PROTECTIVE_STOP"
-            assert not c.isProgramRunning()
+            assert _wait_for(lambda: not c.isProgramRunning())  # its own RTDE session sees it a cycle or more later
             assert max(abs(v) for v in r.getActualQd()) == 0.0
             # The controller refuses to unlock too early, then clears it.
             with pytest.raises(RuntimeError, match="Cannot unlock"):
