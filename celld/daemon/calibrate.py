@@ -39,12 +39,14 @@ import math
 import time
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from celld import se3
 from celld.bus.requests import CalibrateJob
+from celld.calib.algorithm1 import Algorithm1Result
 from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
@@ -73,6 +75,33 @@ if TYPE_CHECKING:
     from celld.recording.job import JobRecording
 
 log = get_logger(__name__)
+
+
+def calibration_entry(
+    job: str,
+    mount: ScannerMount,
+    result: CalibrationResult,
+    report: Mapping[str, Any],
+    params: SolveParams,
+    dataset: Path,
+    a1: Algorithm1Result | None,
+) -> dict[str, Any]:
+    """The calibration a calibrate job ``job`` offers for accept (CALIBRATION_SCHEMA): ``result`` solved from the
+    session saved in ``dataset``, ``report`` its report in the mount's frame, ``a1`` Algorithm 1 as it ran."""
+    return {
+        "job": job,
+        **mount_entry(mount, result.T_base_cam_stored),
+        "stored": result.stored,
+        "cost_mm": a1.cost * 1e3 if a1 is not None and math.isfinite(a1.cost) else None,
+        "pairs": len(result.pair_ids),
+        "dataset": str(dataset),
+        "method": result.method,
+        "quality": report["quality"],
+        # The scanner's range bias on metal, to apply with T_base_cam (0 with mode none).
+        "range_bias": params.range_bias,
+        "range_bias_mm": result.bias * 1e3,
+        "range_bias_std_mm": None if result.range_bias is None else report["range_bias"]["std_mm"],
+    }
 
 
 async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -> Mapping[str, Any]:
@@ -309,22 +338,9 @@ async def calibrate_arm(
             mount.T_base_link(q_v),
         )
     a1 = session.algorithm1()
-    cost_mm = a1.cost * 1e3 if a1 is not None and math.isfinite(a1.cost) else None
     early = session.stopped_early and session.reached
-    calibration = {
-        "job": ctx.job_id,
-        **mount_entry(mount, result.T_base_cam_stored),
-        "stored": result.stored,
-        "cost_mm": cost_mm,
-        "pairs": len(result.pair_ids),
-        "dataset": str(dataset),
-        "method": result.method,
-        "quality": report["quality"],
-        # The scanner's range bias on metal, to apply with T_base_cam (0 with mode none).
-        "range_bias": params.range_bias,
-        "range_bias_mm": result.bias * 1e3,
-        "range_bias_std_mm": None if result.range_bias is None else report["range_bias"]["std_mm"],
-    }
+    calibration = calibration_entry(ctx.job_id, mount, result, report, params, dataset, a1)
+    cost_mm = calibration["cost_mm"]
     log.info(
         "calibration solved",
         job=ctx.job_id,

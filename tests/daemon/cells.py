@@ -27,8 +27,10 @@ from pathlib import Path
 from typing import Any
 
 from celld import config as config_mod
-from celld.calib.mount import ScannerMount, in_frame, mount_entry
+from celld.calib.dataset import SessionWriter
+from celld.calib.mount import ScannerMount, in_frame
 from celld.calib.solve import SolveParams
+from celld.daemon.calibrate import calibration_entry
 from celld.journal import new_job_id, utc_now
 from celld.sim.calib_demo import OfflineCalibration, calibrate_in_world
 from celld.sim.world import World
@@ -112,34 +114,26 @@ def write_cell_config(
     return path
 
 
-def solve_offline(cfg: config_mod.Config, world: World, n_poses: int, seed: int) -> OfflineCalibration:
-    """The calibration of ``cfg``'s scanner in ``world`` from ``n_poses`` generated poses (every one: no early stop)."""
-    return calibrate_in_world(cfg, world, n_poses, seed)
+def solve_offline(cfg: config_mod.Config, world: World, n_poses: int, seed: int, dataset: Path) -> OfflineCalibration:
+    """The calibration of ``cfg``'s scanner in ``world`` from ``n_poses`` generated poses (every one: no early
+    stop), its session saved in ``dataset`` as a calibrate job saves its own."""
+    mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model)
+    writer = SessionWriter(dataset, flange=cfg.calibration.flange, scanner=cfg.scanner.model, mount=mount)
+    return calibrate_in_world(cfg, world, n_poses, seed, writer)
 
 
-def stored_calibration(cfg: config_mod.Config, done: OfflineCalibration, job: str | None = None) -> dict[str, Any]:
-    """``done`` as the daemon stores an accepted calibration (``calibration.json``), made by job ``job``
-    (a fresh job id by default; no journal holds it)."""
+def stored_calibration(cfg: config_mod.Config, done: OfflineCalibration, dataset: Path, job: str | None = None) -> dict[str, Any]:
+    """``done`` (its session saved in ``dataset``) as the daemon stores an accepted calibration
+    (``calibration.json``): what the calibrate job offers (:func:`celld.daemon.calibrate.calibration_entry`),
+    made by job ``job`` (a fresh job id by default; no journal holds it), and when it was accepted."""
     result = done.result
     mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model)
-    params = SolveParams.from_config(cfg.calibration)
     report = in_frame(result.as_dict(), mount)
-    a1 = result.algorithm1
-    return {
-        "job": job or new_job_id(),
-        **mount_entry(mount, result.T_base_cam_stored),
-        "stored": result.stored,
-        "cost_mm": a1.cost * 1e3 if a1 is not None and math.isfinite(a1.cost) else None,
-        "pairs": len(result.pair_ids),
-        "method": result.method,
-        "quality": report["quality"],
-        "range_bias": params.range_bias,
-        "range_bias_mm": result.bias * 1e3,
-        "range_bias_std_mm": None if result.range_bias is None else report["range_bias"]["std_mm"],
-        "accepted": utc_now(),
-        # As an accept with force marks a calibration whose quality gate failed.
-        **({} if result.quality.verdict == "ok" else {"forced": True}),
-    }
+    entry = calibration_entry(
+        job or new_job_id(), mount, result, report, SolveParams.from_config(cfg.calibration), dataset, result.algorithm1
+    )
+    # As an accept (with force, if its quality gate failed) makes it current.
+    return {**entry, "accepted": utc_now(), **({} if result.quality.verdict == "ok" else {"forced": True})}
 
 
 def install_calibration(state_dir: str | Path, calibration: Mapping[str, Any]) -> Path:

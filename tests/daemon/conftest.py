@@ -37,7 +37,7 @@ def cell_config(tmp_path: Path, loopback_host: str, request: pytest.FixtureReque
 
 
 @pytest.fixture(scope="session")
-def offline_calibration() -> Callable[..., dict[str, Any]]:
+def offline_calibration(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., dict[str, Any]]:
     """Factory: a real calibration of a cell config's scanner in its world, solved once per world in this run.
 
     ``offline_calibration(config_path, n_poses, seed, whole_view_scale=None)``
@@ -70,7 +70,8 @@ def offline_calibration() -> Callable[..., dict[str, Any]]:
             world = world_of(cfg)
             if whole_view_scale is not None:
                 world = replace(world, scanner=replace(world.scanner, roi_px=None, resolution_scale=whole_view_scale))
-            cache[key] = stored_calibration(cfg, solve_offline(cfg, world, n_poses, seed))
+            dataset = tmp_path_factory.mktemp("calibration") / "dataset"
+            cache[key] = stored_calibration(cfg, solve_offline(cfg, world, n_poses, seed, dataset), dataset)
         return copy.deepcopy(cache[key])
 
     return solve
