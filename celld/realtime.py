@@ -100,26 +100,3 @@ def make_realtime(opts: RealtimeOptions) -> RealtimeReport:
         else:
             refused.append(f"mlockall: {os.strerror(ctypes.get_errno())} (needs LimitMEMLOCK)")
     return RealtimeReport(fifo, cpu, locked, "; ".join(refused))
-
-
-def thread_ids() -> set[int]:
-    """The ids of this process's threads now (Linux: ``/proc/self/task``)."""
-    return {int(t) for t in os.listdir("/proc/self/task")}
-
-
-def make_threads_fifo(tids: set[int], priority: int) -> str:
-    """Put the threads ``tids`` of this process in SCHED_FIFO at ``priority``; what the OS refused ("" if nothing).
-
-    For threads a library starts and does not raise itself: ur-rtde's receive threads take SCHED_FIFO only on
-    a PREEMPT_RT kernel, and at best effort a loaded machine leaves the loop's robot state unread for 100 ms
-    and more. A thread that ended in the meantime is skipped.
-    """
-    refused: list[str] = []
-    for tid in sorted(tids):
-        try:
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
-        except ProcessLookupError:
-            continue
-        except OSError as exc:
-            refused.append(f"thread {tid} SCHED_FIFO {priority}: {exc.strerror or exc}")
-    return "; ".join(refused)

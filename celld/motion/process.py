@@ -38,11 +38,8 @@ from celld.motion.channels import STATUS_DTYPE, ChannelNames, Channels, Phase, e
 from celld.motion.core import CoreParams, MotionCore
 from celld.motion.loop import LoopExit, LoopParams, MotionLoop
 from celld.motion.types import ControlStatus, ServoFactory
-from celld.realtime import RealtimeOptions, RealtimeReport, make_realtime, make_threads_fifo, thread_ids
+from celld.realtime import RealtimeOptions, RealtimeReport, make_realtime
 from celld.supervision import ParentWatch
-
-# ur-rtde's receive threads run this many SCHED_FIFO levels below the loop (above the camera process's 40).
-RECEIVE_PRIORITY_BELOW_LOOP = 5
 
 # Exit code of the process for each way the loop ends; anything else is a crash.
 EXIT_CODES = {
@@ -114,7 +111,6 @@ def run(spec: MotionSpec) -> LoopExit:
     end: LoopExit | None = None
     try:
         _report(ch, Phase.CONNECTING)
-        before = thread_ids()
         try:
             link = RtdeLink.connect(spec.host, spec.frequency_hz)
         except LinkLost as exc:
@@ -135,13 +131,6 @@ def run(spec: MotionSpec) -> LoopExit:
             )
         else:
             log.info("motion loop real time", fifo_priority=spec.realtime.priority, cpu=rt.cpu)
-        if rt.fifo:
-            # ur-rtde's receive threads, started by the connect, fill the state the loop reads each cycle:
-            # real time too, just below the loop, on any CPU.
-            receive_priority = max(1, spec.realtime.priority - RECEIVE_PRIORITY_BELOW_LOOP)
-            refused = make_threads_fifo(thread_ids() - before, receive_priority)
-            if refused:
-                log.warning("robot link's receive threads run best effort", refused=refused)
         _report(ch, Phase.RUNNING, rt)
         gc.collect()
         gc.freeze()
