@@ -94,6 +94,20 @@ def from_ur_pose(pose: ArrayLike) -> Array:
     return transform_from(Rotation.from_rotvec(pose[3:]).as_matrix(), pose[:3])
 
 
+def from_ur_poses(poses: ArrayLike) -> Array:
+    """Return the ``T_base_tcp`` (n, 4, 4) of n UR poses (n, 6) ``[x, y, z, rx, ry, rz]`` (m, rad), in one go."""
+    from scipy.spatial.transform import Rotation
+
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 2 or poses.shape[1] != 6:
+        raise InputError(f"UR poses: expected (n, 6) values [x, y, z, rx, ry, rz], got shape {poses.shape}")
+    T = np.tile(np.eye(4), (len(poses), 1, 1))
+    if len(poses):
+        T[:, :3, :3] = Rotation.from_rotvec(poses[:, 3:]).as_matrix()
+        T[:, :3, 3] = poses[:, :3]
+    return T
+
+
 def to_ur_pose(T: ArrayLike) -> Array:
     """Return the UR pose ``[x, y, z, rx, ry, rz]`` (m, rad) of ``T_base_tcp``."""
     from scipy.spatial.transform import Rotation

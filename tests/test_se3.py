@@ -20,6 +20,14 @@ def test_ur_pose_round_trip_and_known_value() -> None:
     np.testing.assert_allclose(se3.to_ur_pose(T), [0.1, 0.2, 0.3, 0.0, 0.0, math.pi / 2], atol=1e-12)
 
 
+def test_ur_poses_in_one_go_are_each_pose_s_transform(rng: np.random.Generator) -> None:
+    poses = np.column_stack([rng.normal(size=(5, 3)), rng.uniform(-2.0, 2.0, size=(5, 3))])
+    np.testing.assert_allclose(se3.from_ur_poses(poses), [se3.from_ur_pose(p) for p in poses], atol=1e-12)
+    assert se3.from_ur_poses(np.zeros((0, 6))).shape == (0, 4, 4)
+    with pytest.raises(InputError, match=r"\(n, 6\)"):
+        se3.from_ur_poses(np.zeros((3, 7)))
+
+
 def test_invert_composes_to_identity(rng: np.random.Generator) -> None:
     T = se3.from_xyz_rpy(rng.normal(size=3), rng.uniform(-3, 3, size=3))
     np.testing.assert_allclose(T @ se3.invert(T), np.eye(4), atol=1e-12)

@@ -461,7 +461,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     records = collector.records()
     if records is None or len(records) == 0:
         raise CelldError("the servo ran but no motion record of it was read")
-    figures, paths = summarise(records, plan, tool, servo.delta_d)
+    figures, paths = await asyncio.to_thread(summarise, records, plan, tool, servo.delta_d)
     path_file = await asyncio.to_thread(fsutil.write_json, ctx.result_dir() / "paths.json", paths)
     if rec is not None:
         for name in ("refined", "torch"):

@@ -120,7 +120,7 @@ def track_summary(records: np.ndarray, geometry: WeldGeometry, tool: ToolGeometr
     delta_d : float
         The deformation the servo held, m.
     """
-    T_tcp = np.array([se3.from_ur_pose(p) for p in records["tcp_pose"]])
+    T_tcp = se3.from_ur_poses(records["tcp_pose"])
     T_tool = T_tcp @ tool.T_tcp_tool
     torch = np.einsum("nij,j->ni", T_tool[:, :3, :3], tool.torch_tool()) + T_tool[:, :3, 3]
     refined = records["refined_base"]
@@ -185,6 +185,6 @@ def contact_across(records: np.ndarray, tool: ToolGeometry, origin: Array, acros
     settled = touch[np.abs(np.abs(touch["delta_n"]) - delta_d) < _SETTLED * delta_d][-_CONTACT_RECORDS:]
     if len(settled) == 0:
         raise CelldError("the touch ended without settling on a wall")
-    T_tool = np.array([se3.from_ur_pose(p) for p in settled["tcp_pose"]]) @ tool.T_tcp_tool
+    T_tool = se3.from_ur_poses(settled["tcp_pose"]) @ tool.T_tcp_tool
     y = (T_tool[:, :3, 3] - np.asarray(origin, dtype=np.float64)) @ np.asarray(across, dtype=np.float64)
     return float(np.mean(y - side * settled["delta_n"]))
