@@ -37,7 +37,9 @@ from celld.config import Config
 from celld.daemon.calibrate import run_calibrate
 from celld.daemon.devices import INTERLOCK_SCHEMA, CellDevices
 from celld.daemon.jobs import JobContext, Runner
+from celld.daemon.toolcal import run_tool_calibrate
 from celld.daemon.two_robots import run_calibrate_two
+from celld.daemon.weld import run_weld
 from celld.errors import CelldError, JobError
 from celld.motion.handle import HEALTH_SCHEMA
 from celld.robot.dashboard import CONDITION_SCHEMA
@@ -61,13 +63,9 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
     weld_cache: dict[str, Any] = {}  # prepared part models, by name
 
     async def weld(ctx: JobContext) -> Mapping[str, Any]:
-        from celld.daemon.weld import run_weld
-
         return await run_weld(ctx, config, devices, weld_cache)
 
     async def tool_calibrate(ctx: JobContext) -> Mapping[str, Any]:
-        from celld.daemon.toolcal import run_tool_calibrate
-
         return await run_tool_calibrate(ctx, config, devices)
 
     def beside_robot2(run: Runner) -> Runner:
