@@ -29,26 +29,14 @@ def number(
     desc: str = "", lo: float | None = None, hi: float | None = None, *, open_lo: bool = False, null: bool = False
 ) -> dict[str, Any]:
     """A number in ``[lo, hi]`` (``(lo, hi]`` with ``open_lo``); ``null`` also allows null (a value that was not finite)."""
-    s: dict[str, Any] = {"type": ["number", "null"] if null else "number"}
-    if desc:
-        s["description"] = desc
-    if lo is not None:
-        s["exclusiveMinimum" if open_lo else "minimum"] = lo
-    if hi is not None:
-        s["maximum"] = hi
-    return s
+    s = _described({"type": ["number", "null"] if null else "number"}, desc)
+    return _bounded(s, "exclusiveMinimum" if open_lo else "minimum", lo, "maximum", hi)
 
 
 def integer(desc: str = "", lo: int | None = None, hi: int | None = None, *, null: bool = False) -> dict[str, Any]:
     """An integer in ``[lo, hi]``; ``null`` also allows null."""
-    s: dict[str, Any] = {"type": ["integer", "null"] if null else "integer"}
-    if desc:
-        s["description"] = desc
-    if lo is not None:
-        s["minimum"] = lo
-    if hi is not None:
-        s["maximum"] = hi
-    return s
+    s = _described({"type": ["integer", "null"] if null else "integer"}, desc)
+    return _bounded(s, "minimum", lo, "maximum", hi)
 
 
 def string(desc: str = "", *, null: bool = False) -> dict[str, Any]:
@@ -77,14 +65,8 @@ def enum(values: Iterable[Any], desc: str = "") -> dict[str, Any]:
 
 def array(items: Mapping[str, Any], desc: str = "", min_items: int | None = None, max_items: int | None = None) -> dict[str, Any]:
     """A list of ``items``."""
-    s: dict[str, Any] = {"type": "array", "items": dict(items)}
-    if desc:
-        s["description"] = desc
-    if min_items is not None:
-        s["minItems"] = min_items
-    if max_items is not None:
-        s["maxItems"] = max_items
-    return s
+    s = _described({"type": "array", "items": dict(items)}, desc)
+    return _bounded(s, "minItems", min_items, "maxItems", max_items)
 
 
 def vector(desc: str, n: int, lo: float | None = None, hi: float | None = None, *, null_items: bool = False) -> dict[str, Any]:
@@ -165,4 +147,13 @@ def with_properties(
 def _described(s: dict[str, Any], desc: str) -> dict[str, Any]:
     if desc:
         s["description"] = desc
+    return s
+
+
+def _bounded(s: dict[str, Any], lo_key: str, lo: float | None, hi_key: str, hi: float | None) -> dict[str, Any]:
+    """``s`` with its lower and upper bound keywords, each only when given."""
+    if lo is not None:
+        s[lo_key] = lo
+    if hi is not None:
+        s[hi_key] = hi
     return s
