@@ -30,8 +30,9 @@ class RealtimeOptions:
     priority : int
         SCHED_FIFO priority, 1..99; 0: stay best effort.
     cpu : int or None
-        CPU to pin the calling thread to; -1: the last CPU the process may
-        use; None: any CPU.
+        CPU to pin the calling thread to; negative: counted from the last
+        CPU the process may use (-1 the last, -2 the one before; the first
+        when there are fewer); None: any CPU.
     lock_memory : bool
         mlockall, so the process never waits on a page fault.
     nice : int
@@ -77,7 +78,7 @@ def make_realtime(opts: RealtimeOptions) -> RealtimeReport:
     libc.prctl(_PR_SET_TIMERSLACK, ctypes.c_ulong(opts.timer_slack_ns), 0, 0, 0)
     if opts.cpu is not None:
         allowed = sorted(os.sched_getaffinity(0))
-        want = allowed[-1] if opts.cpu < 0 else opts.cpu
+        want = allowed[max(opts.cpu, -len(allowed))] if opts.cpu < 0 else opts.cpu
         try:
             os.sched_setaffinity(0, {want})
             cpu = want

@@ -25,6 +25,7 @@ from celld.errors import CelldError, ConfigError, DeviceError, StaleState
 from celld.log import get_logger
 from celld.motion.handle import MotionHandle
 from celld.motion.types import RobotState
+from celld.realtime import RealtimeOptions
 from celld.robot.cellmodel import CellObject
 from celld.supervision import ChildRecords
 
@@ -72,8 +73,11 @@ class Arm:
     ``[robot2]``, one more (:attr:`~celld.daemon.devices.CellDevices.robot2`).
     """
 
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Config, cpu: int = -1) -> None:
         self.config = config
+        # The CPU its motion loop is pinned to (RealtimeOptions.cpu): robot 1's the last one, robot 2's
+        # the one before, so that two 500 Hz loops never queue behind each other on one core.
+        self.cpu = cpu
         self.motion: MotionHandle | None = None
         self.planner = MotionPlanner(config)
 
@@ -99,6 +103,7 @@ class Arm:
             cfg,
             servo_laws=servo_laws,
             tactile_slot=tactile_slot,
+            realtime=RealtimeOptions(cpu=self.cpu),
             link_timeout=cfg.motion.link_timeout,
             watchdog_hz=cfg.motion.rtde_watchdog_hz,
             wait=False,

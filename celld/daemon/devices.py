@@ -318,7 +318,7 @@ class CellDevices:
         self.config = config
         self.robot = Arm(config)
         # The second robot, when the cell has one ([robot2]): calibrate jobs with robot2 set drive it.
-        self.robot2: Arm | None = Arm(robot2_config(config)) if config.robot2 is not None else None
+        self.robot2: Arm | None = Arm(robot2_config(config), cpu=-2) if config.robot2 is not None else None
         self.tactile = Tactile(config, factories.camera)
         self.scanner = CellScanner(config, factories.scanner)
         self.life = Lifecycle(config)
