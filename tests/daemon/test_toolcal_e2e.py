@@ -12,7 +12,10 @@ needs is a real one of this world, solved offline before the cell starts
 (10 poses, :func:`tests.daemon.cells.solve_offline`) and installed as the
 accepted one once the daemon has refused a tool calibration without it; the
 calibrate job is tested end to end in ``test_daemon_e2e.py``. About two
-minutes (a tool calibration of the job's default 12 poses and a weld).
+minutes (a tool calibration of the job's default 12 poses and a weld). The
+weld is this suite's whole one: its stages, paths, recording and timeline are
+checked here (:func:`tests.daemon.welds.check_weld`); ``test_weld_e2e.py``
+refuses, dry-runs, cancels and kills welds in the ideal world.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from celld.sim.cell import run_cell, sim_part
 from celld.sim.score import TruthRecorder, lateral, open_loop_torch, true_flange, true_torch_path
 from tests.daemon.cells import install_calibration
 from tests.daemon.exported import check_exported, checked_result
+from tests.daemon.welds import ArcWatch, check_weld
 
 pytestmark = pytest.mark.cell
 
@@ -67,7 +71,6 @@ def _config(cell_config) -> Path:
             "calibration": {"n_poses": CAL_POSES, "e_required_mm": 0.01},
             "sim": {"preset": "realistic", "seed": WORLD_SEED, "scanner": {"roi_px": ROI_PX}},
         },
-        recording=False,  # nothing here reads a recording
     )
 
 
@@ -159,16 +162,20 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         # The weld: the plan from the scan and the calibration alone misses the seam by more than the
         # tactile targets (the part as placed and distorted, the arm's error over the table); the
         # torch tracked by touch, placed by the measured tool, meets them (issue targets: 0.2 mm RMS, 0.5 mm max).
+        # (The weld's stages, paths, recording and timeline are checked as every weld's: tests/daemon/welds.py.)
+        arc = ArcWatch(cell.robot, cfg.robot.arc_output)
+        weld_events: list[dict] = []
         with TruthRecorder(cfg.robot.host) as truth:
-            _, weld = client.submit_and_wait({"kind": "weld"}, timeout=600)
-        assert weld["state"] == "succeeded", weld["reason"]
+            _, weld = client.submit_and_wait({"kind": "weld"}, on_event=weld_events.append, timeout=600)
+        arc_seen = arc.close()
+        assert weld["state"] == "succeeded", (weld["reason"], cell.robot.status())
         res = checked_result(client, weld)
         assert res["torch"]["measured"] and res["tool_calibration_job"] == tc["id"], res["torch"]
-        paths = json.loads(Path(res["paths"]).read_text())
+        paths = check_weld(res, weld_events, arc_seen)
+        assert int(cell.robot.status()["digital_out"]) & (1 << cfg.robot.arc_output) == 0, "the arc is off after the weld"
         part = sim_part(world)
         plan_alone = lateral(part, open_loop_torch(world, np.array(paths["planned"]), np.array(paths["planned_wall"]), cfg.robot.home_q))
         torch_path = lateral(part, true_torch_path(world, truth.records(), cfg.robot.arc_output))
         print(f"weld: plan alone {plan_alone}, torch tracked by touch {torch_path}")
         assert plan_alone["rms_mm"] > 0.2 or plan_alone["max_mm"] > 0.5, plan_alone
         assert torch_path["points"] > 100 and torch_path["rms_mm"] <= 0.2 and torch_path["max_mm"] <= 0.5, (torch_path, plan_alone)
-        assert res["figures"]["tracked_mm"] > 120.0, res["figures"]
