@@ -38,9 +38,9 @@ import asyncio
 import math
 import time
 from collections.abc import Awaitable, Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -56,13 +56,13 @@ from celld.calib.poses import calibration_poses
 from celld.calib.quality import QUALITY_SCHEMA
 from celld.calib.rangebias import MODES as RANGE_BIAS_MODES
 from celld.calib.rangebias import correct_range_bias
-from celld.calib.session import CalibrationSession
+from celld.calib.session import CalibrationSession, CaptureStep
 from celld.calib.solve import METHODS, REPORT_SCHEMA, STORED, CalibrationResult, SolveParams
 from celld.config import Config
 from celld.daemon.arm import Arm
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
-from celld.daemon.planning import REFUSED_SCHEMA, record_arm, record_cell, record_plan, report_plan
+from celld.daemon.planning import REFUSED_SCHEMA, CalibrationPlan, record_arm, record_cell, record_plan, report_plan
 from celld.daemon.retention import prune_sessions
 from celld.daemon.store import CalibrationStore
 from celld.errors import CalibrationError, JobError
@@ -123,10 +123,33 @@ async def prune_calibrations(ctx: JobContext, config: Config) -> None:
 
 @dataclass(frozen=True)
 class ArmCalibration:
-    """One robot's calibration as a job made it: the job's output, and the solve (None for a dry run)."""
+    """One robot's calibration as a job made it, or its dry run's plan (``result`` None).
 
-    output: dict[str, Any]
-    result: CalibrationResult | None
+    :attr:`output` is the job's result for this robot: :data:`OUTPUT_SCHEMA`,
+    or :data:`DRY_RUN_SCHEMA` for a dry run.
+    """
+
+    plan: dict[str, Any]  # the checked plan, as DRY_RUN_SCHEMA's "plan"
+    result: CalibrationResult | None = None  # the solve
+    calibration: dict[str, Any] = field(default_factory=dict)  # the candidate an accept stores (calibration_entry)
+    report: dict[str, Any] = field(default_factory=dict)  # the solve's report in the scanner mount's frame
+    early_stop: bool = False  # Algorithm 1 and the quality gate were satisfied before the last planned pose
+    poses_captured: int = 0
+    dataset: Path | None = None
+
+    @property
+    def output(self) -> dict[str, Any]:
+        if self.result is None:
+            return {"dry_run": True, "plan": self.plan}
+        return {
+            "dry_run": False,
+            "calibration": self.calibration,
+            "report": self.report,
+            "early_stop": self.early_stop,
+            "poses_captured": self.poses_captured,
+            "poses_planned": len(self.plan["poses"]),
+            "dataset": str(self.dataset),
+        }
 
 
 async def _settled_flange_pose(arm: Arm, T_target: np.ndarray, settle: float) -> tuple[np.ndarray, np.ndarray]:
@@ -209,37 +232,27 @@ def solve_params(config: Config, job: CalibrateJob) -> SolveParams:
     return SolveParams.from_config(config.calibration, **overrides)
 
 
-async def calibrate_arm(
-    ctx: JobContext,
-    config: Config,
-    arm: Arm,
-    capture: Callable[[], Awaitable[OrganizedCloud]],
-    job: CalibrateJob,
-    *,
-    dataset_name: str = "dataset",
-    robot: int = 1,
-) -> ArmCalibration:
-    """Calibrate the scanner to the flange of ``arm``, whose view of the cell is ``config``.
+class _Plan(NamedTuple):
+    """A calibration's plan, checked against the cell: the verification pose, then the poses."""
 
-    Robot 1 (the cell's) records into the job's recording; another robot
-    (``robot`` 2) saves its dataset under ``dataset_name`` and tags its
-    progress events with its number. The output's shape:
-    :data:`OUTPUT_SCHEMA`, or :data:`DRY_RUN_SCHEMA` for a dry run.
-    """
-    tag = {} if robot == 1 else {"robot": robot}
-    who = "" if robot == 1 else f"robot {robot}: "
+    T_v: np.ndarray  # the verification pose, base frame
+    q_v: tuple[float, ...]  # the joints there
+    plan: CalibrationPlan
 
-    def progress(stage: str, fraction: float | None, message: str = "", **data: Any) -> None:
-        ctx.progress(stage, fraction, who + message, **tag, **data)
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "verification_pose": se3.to_ur_pose(self.T_v).tolist(),
+            "poses": [se3.to_ur_pose(T).tolist() for T in self.plan.poses],
+            "joints": [list(self.q_v), *[list(q) for q in self.plan.q]],
+            "refused": self.plan.refused_entries(),
+        }
 
+
+async def _plan(arm: Arm, config: Config, job: CalibrateJob) -> _Plan:
+    """The verification pose, then the poses, checked against the cell before the robot moves; generated
+    poses that fail are replaced, given ones refuse the job."""
     cal = config.calibration
-    if any(abs(v) > 1e-12 for v in config.robot.tcp_offset):
-        raise JobError("$", "calibration reads the flange pose: set robot.tcp_offset to zero for a calibrate job")
-    flange = preset(cal.flange)
-    params = solve_params(config, job)
     T_v = se3.from_ur_pose(job.verification_pose if job.verification_pose is not None else cal.verification_pose)
-    # The plan, checked against the cell before the robot moves: the verification
-    # pose, then the poses; generated ones that fail are replaced, given ones refuse the job.
     planner = arm.planner
     to_v = await asyncio.to_thread(planner.check_move, await arm.current_q(), T_v, False)
     seed = job.seed or 0
@@ -254,27 +267,47 @@ async def calibrate_arm(
 
         candidates = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=seed)
         plan = await asyncio.to_thread(planner.plan_calibration, to_v.q_end, candidates, n, more)
-    poses = np.array(plan.poses)
-    report_plan(ctx, plan, who + "calibration")
+    return _Plan(T_v, tuple(to_v.q_end), plan)
+
+
+async def calibrate_arm(
+    ctx: JobContext,
+    config: Config,
+    arm: Arm,
+    capture: Callable[[], Awaitable[OrganizedCloud]],
+    job: CalibrateJob,
+    *,
+    dataset_name: str = "dataset",
+    robot: int = 1,
+) -> ArmCalibration:
+    """Calibrate the scanner to the flange of ``arm``, whose view of the cell is ``config``.
+
+    Robot 1 (the cell's) records into the job's recording; another robot
+    (``robot`` 2) saves its dataset under ``dataset_name`` and tags its
+    progress events with its number.
+    """
+    tag = {} if robot == 1 else {"robot": robot}
+    who = "" if robot == 1 else f"robot {robot}: "
+
+    def progress(stage: str, fraction: float | None, message: str = "", **data: Any) -> None:
+        ctx.progress(stage, fraction, who + message, **tag, **data)
+
+    cal = config.calibration
+    if any(abs(v) > 1e-12 for v in config.robot.tcp_offset):
+        raise JobError("$", "calibration reads the flange pose: set robot.tcp_offset to zero for a calibrate job")
+    flange = preset(cal.flange)
+    params = solve_params(config, job)
+    planned = await _plan(arm, config, job)
+    T_v, poses, planner = planned.T_v, np.array(planned.plan.poses), arm.planner
+    report_plan(ctx, planned.plan, who + "calibration")
     # Robot 1's calibration draws the cell, its arm and its solution in the job's recording (base 1's
     # frame); another robot's adds what the scanner saw of it, named for it, in the camera's frame.
     rec = ctx.recording if robot == 1 else None
     seen = ctx.recording
     seen_as = "" if robot == 1 else f"robot{robot}-"
     if job.dry_run:
-        await asyncio.to_thread(record_plan, rec, planner.bare, [tuple(to_v.q_end), *plan.q])
-        return ArmCalibration(
-            {
-                "dry_run": True,
-                "plan": {
-                    "verification_pose": se3.to_ur_pose(T_v).tolist(),
-                    "poses": [se3.to_ur_pose(T).tolist() for T in plan.poses],
-                    "joints": [list(to_v.q_end), *[list(q) for q in plan.q]],
-                    "refused": plan.refused_entries(),
-                },
-            },
-            None,
-        )
+        await asyncio.to_thread(record_plan, rec, planner.bare, [planned.q_v, *planned.plan.q])
+        return ArmCalibration(planned.as_dict())
     dataset = ctx.result_dir() / dataset_name
     # A scanner on the arm: every pair's robot side is the flange in the scanner's link frame (Eq. 8).
     mount = ScannerMount.of(config.scanner.mount, config.robot.model)
@@ -308,12 +341,7 @@ async def calibrate_arm(
                 await asyncio.to_thread(seen.log_cloud_cam, seen_as + "pair", cloud.points)
                 seen.later(seen.log_circle_cam, seen_as + "flange", det.center, det.normal, det.radius, time.monotonic_ns())
             if rec is not None:
-                rec.later(rec.log_tcp, T_bf, time.monotonic_ns())
-                here = arm.require_motion().state()
-                if here is not None:
-                    await asyncio.to_thread(record_arm, rec, planner.bare, here.q)
-                if step.algorithm1 is not None:
-                    rec.later(rec.log_e_icp, step.algorithm1.k, step.algorithm1.cost_optimal, time.monotonic_ns())
+                await _record_pair(rec, arm, T_bf, step)
         progress("pair", (i + 1) / len(poses), message, **data)
         if step.stop:
             break
@@ -337,31 +365,30 @@ async def calibrate_arm(
             T_base_link,
             mount.T_base_link(q_v),
         )
-    a1 = session.algorithm1()
     early = session.stopped_early and session.reached
-    calibration = calibration_entry(ctx.job_id, mount, result, report, params, dataset, a1)
-    cost_mm = calibration["cost_mm"]
+    calibration = calibration_entry(ctx.job_id, mount, result, report, params, dataset, session.algorithm1())
     log.info(
         "calibration solved",
         job=ctx.job_id,
         robot=robot,
         pairs=len(result.pair_ids),
-        cost_mm=cost_mm,
+        cost_mm=calibration["cost_mm"],
         early_stop=early,
         verdict=result.quality.verdict,
         stored=result.stored,
         range_bias_mm=round(result.bias * 1e3, 3),
     )
-    output = {
-        "dry_run": False,
-        "calibration": calibration,
-        "report": report,
-        "early_stop": early,
-        "poses_captured": session.n_captures,
-        "poses_planned": len(poses),
-        "dataset": str(dataset),
-    }
-    return ArmCalibration(output, result)
+    return ArmCalibration(planned.as_dict(), result, calibration, report, early, session.n_captures, dataset)
+
+
+async def _record_pair(rec: JobRecording, arm: Arm, T_base_flange: np.ndarray, step: CaptureStep) -> None:
+    """A detected pair in robot 1's recording: the flange pose, the arm where it stands and Algorithm 1's cost."""
+    rec.later(rec.log_tcp, T_base_flange, time.monotonic_ns())
+    here = arm.require_motion().state()
+    if here is not None:
+        await asyncio.to_thread(record_arm, rec, arm.planner.bare, here.q)
+    if step.algorithm1 is not None:
+        rec.later(rec.log_e_icp, step.algorithm1.k, step.algorithm1.cost_optimal, time.monotonic_ns())
 
 
 def _record_solution(

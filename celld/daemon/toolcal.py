@@ -40,6 +40,8 @@ import asyncio
 import math
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -100,6 +102,29 @@ RESULT_SCHEMA = one_of(
 )
 
 
+@dataclass(frozen=True)
+class ToolCalibrationOutcome:
+    """A tool-calibrate job's result (:data:`RESULT_SCHEMA`): the tool it measured, or its dry run's plan (``tool`` None)."""
+
+    plan: dict[str, Any]  # the checked plan, as the dry run's "plan"
+    tool: dict[str, Any] | None = None  # the candidate an accept stores (celld.calib.toolsession.TOOL_SCHEMA)
+    poses_detected: int = 0  # poses whose tip was found
+    torch_detected: int = 0  # poses whose torch was found
+    dataset: Path | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        if self.tool is None:
+            return {"dry_run": True, "plan": self.plan}
+        return {
+            "dry_run": False,
+            "tool": self.tool,
+            "poses_planned": len(self.plan["poses"]),
+            "poses_detected": self.poses_detected,
+            "torch_detected": self.torch_detected,
+            "dataset": str(self.dataset),
+        }
+
+
 async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -> Mapping[str, Any]:
     """The tool-calibrate job (module docstring); its result's shape: :data:`RESULT_SCHEMA`."""
     job = ctx.job
@@ -123,17 +148,15 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
     plan = await asyncio.to_thread(planner.plan_calibration, await devices.robot.current_q(), candidates, n, more, True)
     poses = np.array(plan.poses)
     report_plan(ctx, plan, "tool calibration")
+    planned = {
+        "tip_position": p_tip.tolist(),
+        "poses": [se3.to_ur_pose(T).tolist() for T in plan.poses],
+        "joints": [list(q) for q in plan.q],
+        "refused": plan.refused_entries(),
+    }
     if job.dry_run:
         await asyncio.to_thread(record_plan, ctx.recording, planner.with_tool, list(plan.q))
-        return {
-            "dry_run": True,
-            "plan": {
-                "tip_position": p_tip.tolist(),
-                "poses": [se3.to_ur_pose(T).tolist() for T in plan.poses],
-                "joints": [list(q) for q in plan.q],
-                "refused": plan.refused_entries(),
-            },
-        }
+        return ToolCalibrationOutcome(planned).as_dict()
     rec = ctx.recording
     if rec is not None:
         await asyncio.to_thread(record_cell, rec, planner.with_tool)
@@ -173,11 +196,4 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         delta_mm=np.round(measured["delta_mm"], 3).tolist(),
         torch_delta_mm=np.round(measured["torch_delta_mm"], 3).tolist() if done.torch_fit is not None else None,
     )
-    return {
-        "dry_run": False,
-        "tool": measured,
-        "poses_planned": len(poses),
-        "poses_detected": n_tip,
-        "torch_detected": n_torch,
-        "dataset": str(dataset),
-    }
+    return ToolCalibrationOutcome(planned, measured, n_tip, n_torch, dataset).as_dict()

@@ -42,6 +42,7 @@ import hashlib
 import math
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -49,6 +50,7 @@ import numpy as np
 
 from celld import fsutil, polyline, se3
 from celld.bus.requests import WeldJob
+from celld.calib.mount import Placement
 from celld.calib.rangebias import correct_range_bias
 from celld.config import Config, ServoConfig, ToolConfig, with_overrides
 from celld.daemon.devices import CellDevices
@@ -67,6 +69,7 @@ from celld.tactile.tool import ToolGeometry
 from celld.weld.plan import (
     FIGURES_SCHEMA,
     PROBED_SCHEMA,
+    PreparedPart,
     WeldPlan,
     plan_weld,
     prepare_part,
@@ -279,21 +282,85 @@ async def _run_servo(motion: Any, plan: ServoPlan, timeout: float) -> np.ndarray
     return records
 
 
-async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache: dict[str, Any]) -> Mapping[str, Any]:
-    """The weld job (module docstring); its result's shape: :data:`RESULT_SCHEMA`."""
-    job = ctx.job
-    if not isinstance(job, WeldJob):
-        raise JobError("$.kind", "not a weld job")
-    srm = devices.tactile.process
-    if srm is None:
-        raise JobError("$", "the cell has no tactile sensor (tactile.kind); it cannot track a seam")
-    if not srm.running():
-        raise JobError(
-            "$", f"the tactile sensor is not running ({devices.tactile.error or 'its process ended'}); the daemon keeps restarting it"
-        )
-    motion = devices.robot.require_motion()
-    wc = config.weld
-    seam_params = config.seam
+@dataclass(frozen=True)
+class WeldSetup:
+    """What a weld job welds with, checked before anything moves (:func:`weld_setup`)."""
+
+    servo: ServoConfig  # Algorithm 2's parameters with the job's overrides
+    tool_config: ToolConfig  # the tool with the current tool calibration's tip and torch
+    tool: ToolGeometry
+    tool_job: str  # the tool calibration it came from ("": the config's)
+    sensor_yaw: float  # rad: the measured torch turns the tool's x axis by it
+    torch_measured: bool
+    placement: Placement  # the current calibration's scanner
+    range_bias: float  # m, the scanner's on metal
+    calibration_job: str
+    workpiece: Workpiece
+    part: PreparedPart
+
+
+@dataclass(frozen=True)
+class WeldDryRun:
+    """A dry run's result: the weld scanned, planned and checked against the cell; nothing moved."""
+
+    setup: WeldSetup
+    plan: WeldPlan
+    min_clearance: float  # m, the path's least clearance from the cell
+
+    def as_dict(self) -> dict[str, Any]:
+        """The result as :data:`RESULT_SCHEMA` has it."""
+        return {
+            "dry_run": True,
+            "workpiece": self.setup.workpiece.name,
+            "calibration_job": self.setup.calibration_job,
+            "tool_calibration_job": self.setup.tool_job,
+            "planned_path": self.plan.geometry.seam_base.tolist(),
+            "tcp_path": [se3.to_ur_pose(T).tolist() for T in self.plan.path],
+            "min_clearance_mm": round(self.min_clearance * 1e3, 2),
+            "seam_length_mm": round(self.plan.seam.length * 1e3, 2),
+        }
+
+
+@dataclass(frozen=True)
+class WeldOutcome:
+    """A weld's result: its figures and paths (:func:`celld.weld.plan.summarise`), the torch it placed, the probe."""
+
+    setup: WeldSetup
+    figures: dict[str, Any]
+    paths: dict[str, Any]  # planned, planned wall, refined, torch: lists of base-frame points, m
+    paths_file: Path
+    height_probe: dict[str, Any]
+    retract_error: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        """The result as :data:`RESULT_SCHEMA` has it."""
+        setup = self.setup
+        out: dict[str, Any] = {
+            "dry_run": False,
+            "figures": self.figures,
+            "paths": str(self.paths_file),
+            "refined_path": self.paths["refined"],
+            "torch_path": self.paths["torch"],
+            "planned_path": self.paths["planned"],
+            "workpiece": setup.workpiece.name,
+            "calibration_job": setup.calibration_job,
+            "tool_calibration_job": setup.tool_job,
+            # The torch the weld placed: measured (its offset and the tool's x turned by -sensor_yaw) or as configured.
+            "torch": {
+                "measured": setup.torch_measured,
+                "torch_offset_mm": round(setup.tool_config.torch_offset * 1e3, 4),
+                "yaw_from_config_deg": round(-math.degrees(setup.sensor_yaw), 4),
+            },
+            "height_probe": self.height_probe,
+        }
+        if self.retract_error:
+            out["retract_error"] = self.retract_error
+        return out
+
+
+async def weld_setup(ctx: JobContext, config: Config, job: WeldJob, cache: dict[str, Any]) -> WeldSetup:
+    """The job's overrides checked against the config, the current calibration and tool, the part prepared
+    (once per model: ``cache`` keeps them by content, so a user's model edited on disk is prepared again)."""
     try:
         servo, tool_cfg = with_overrides(
             config.servo,
@@ -317,20 +384,31 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
             f"the torch is measured (tool calibration {tool_job}: {tool_cfg.torch_offset * 1e3:.2f} mm behind the tip); "
             "leave torch_offset_mm out, or measure the tool again",
         )
-    tool = ToolGeometry.from_config(tool_cfg)
     workpiece = resolve_workpiece(job.workpiece, config)
-    # Prepared models by content (a user's model edited on disk is prepared again).
     key = hashlib.sha1(workpiece.vertices.tobytes() + workpiece.triangles.tobytes() + workpiece.seam.tobytes()).hexdigest()
     if key not in cache:
         ctx.progress("prepare", None, f"preparing the model of {workpiece.name}")
-        cache[key] = await asyncio.to_thread(prepare_part, workpiece, seam_params, wc.tip_height)
-    part = cache[key]
-    rec = ctx.recording
-    speed = wc.speed_scale
-    T_scan = se3.from_ur_pose(wc.scan_pose)
+        cache[key] = await asyncio.to_thread(prepare_part, workpiece, config.seam, config.weld.tip_height)
+    return WeldSetup(
+        servo=servo,
+        tool_config=tool_cfg,
+        tool=ToolGeometry.from_config(tool_cfg),
+        tool_job=tool_job,
+        sensor_yaw=sensor_yaw,
+        torch_measured=torch_measured,
+        placement=placement,
+        range_bias=range_bias,
+        calibration_job=cal_job,
+        workpiece=workpiece,
+        part=cache[key],
+    )
 
-    # 1. scan
-    if job.dry_run:
+
+async def _scan_and_plan(ctx: JobContext, config: Config, devices: CellDevices, setup: WeldSetup, dry_run: bool) -> WeldPlan:
+    """Steps 1 and 2: the scan from the scan pose (a dry run's arm must be there already), the seam and the plan."""
+    motion = devices.robot.require_motion()
+    T_scan = se3.from_ur_pose(config.weld.scan_pose)
+    if dry_run:
         # A dry run moves nothing: it scans from the scan pose, so the arm must be there already.
         here = motion.state()
         dt, dr = se3.error(here.T_base_tcp, T_scan) if here is not None else (math.inf, math.inf)
@@ -343,47 +421,121 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         ctx.progress("scan", 0.0, "scanning (dry run: the arm stays where it is)")
     else:
         ctx.progress("scan", 0.0, "arm to the scan pose, scanning")
-        await devices.robot.move_to(T_scan, speed_scale=speed)
+        await devices.robot.move_to(T_scan, speed_scale=config.weld.speed_scale)
     here = motion.state()
     cloud = await devices.scanner.capture()
     # The scanner where it is now (a scanner on the arm moves with its link, Eq. 8).
-    T_base_cam = placement.T_base_cam(None if here is None else here.q)
+    T_base_cam = setup.placement.T_base_cam(None if here is None else here.q)
     # The calibration's range bias on metal: the scan (a metal part on a steel
     # table) moved back along its rays, as the calibration was solved.
-    points = correct_range_bias(cloud.points, range_bias) if range_bias else np.asarray(cloud.points)
+    points = correct_range_bias(cloud.points, setup.range_bias) if setup.range_bias else np.asarray(cloud.points)
+    rec = ctx.recording
     if rec is not None:
         await asyncio.to_thread(record_cell, rec, devices.robot.planner.with_tool)
         rec.later(rec.log_camera_pose, T_base_cam, time.monotonic_ns())
         await asyncio.to_thread(rec.log_cloud_cam, "scan", points)
 
-    # 2. seam, and the weld's plan
-    ctx.progress("seam", None, f"finding the seam of {workpiece.name} with calibration {cal_job or '(unnamed)'}")
-    plan = await asyncio.to_thread(plan_weld, points, T_base_cam, part, wc, seam_params, tool.T_tcp_tool, T_scan)
+    workpiece = setup.workpiece
+    ctx.progress("seam", None, f"finding the seam of {workpiece.name} with calibration {setup.calibration_job or '(unnamed)'}")
+    plan = await asyncio.to_thread(plan_weld, points, T_base_cam, setup.part, config.weld, config.seam, setup.tool.T_tcp_tool, T_scan)
     seam = plan.seam
     if rec is not None:
         rec.later(rec.log_path_base, "planned", plan.geometry.seam_base, time.monotonic_ns())
         # The part model where the scan placed it.
         await asyncio.to_thread(rec.log_mesh, layout.WORKPIECE, workpiece.vertices, workpiece.triangles, seam.T_base_obj)
     ctx.progress("seam", None, f"seam found: {seam.length * 1e3:.1f} mm", length_mm=seam.length * 1e3, **_quality(seam))
+    return plan
 
+
+async def _track(ctx: JobContext, config: Config, devices: CellDevices, setup: WeldSetup, plan: WeldPlan, process: bool) -> np.ndarray:
+    """Step 4: Algorithm 2 touches the wall and tracks it, the arc on while it tracks when ``process``;
+    progress and the finger's camera while it runs. Returns the motion records of the track; raises its
+    failure, or the motion loop's own trouble during it (a failed arc write: the weld is not good)."""
+    motion = devices.robot.require_motion()
+    geometry = plan.geometry
+    servo_plan = algorithm2_plan(
+        geometry.wall_base,
+        setup.servo,
+        setup.tool_config,
+        config.motion,
+        T_base_plane=geometry.T_base_plane,
+        process=process,
+        seam_offset=geometry.offsets,
+        sensor_yaw=setup.sensor_yaw,
+    )
+    events_before = motion.loop_event_count
+    with _Collector(motion) as collector:
+        cid = await motion.start_servo(servo_plan)
+        collector.command_id = cid
+        ctx.progress(
+            "track",
+            0.0,
+            "touching the seam, then tracking" + (" with the arc on" if servo_plan.params.get("process") else " (dry run, arc off)"),
+        )
+        waiting = asyncio.ensure_future(motion.wait(cid, timeout=config.weld.timeout))
+        s_wall = polyline.arc_length(geometry.wall_base)
+        try:
+            last_progress = 0.0
+            last_frame = 0
+            while not waiting.done():
+                await asyncio.wait({waiting}, timeout=PREVIEW_PERIOD)
+                last_frame = await asyncio.to_thread(_log_preview, devices, ctx.recording, last_frame)
+                now = asyncio.get_running_loop().time()
+                last = motion.last_record()
+                if last is not None and not waiting.done() and now - last_progress >= PROGRESS_PERIOD:
+                    last_progress = now
+                    p = setup.tool.T_base_tool(se3.from_ur_pose(last["tcp_pose"]))[:3, 3]
+                    i = int(np.argmin(np.linalg.norm(geometry.wall_base - p, axis=1)))
+                    ctx.progress(
+                        "track",
+                        float(min(1.0, s_wall[i] / s_wall[-1])),
+                        f"{s_wall[i] * 1e3:.0f} of {s_wall[-1] * 1e3:.0f} mm",
+                        arc=bool(last["process_on"]),
+                    )
+            waiting.result()
+        finally:
+            if not waiting.done():
+                waiting.cancel()
+    new_events = min(motion.loop_event_count - events_before, len(motion.loop_events))
+    trouble = list(motion.loop_events)[-new_events:] if new_events > 0 else []
+    if trouble:
+        raise CelldError(f"the motion loop reported during the weld: {'; '.join(trouble)}")
+    records = await asyncio.to_thread(collector.records)  # 7000 records: tens of ms of copying
+    if records is None or len(records) == 0:
+        raise CelldError("the servo ran but no motion record of it was read")
+    return records
+
+
+async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache: dict[str, Any]) -> Mapping[str, Any]:
+    """The weld job (module docstring); its result's shape: :data:`RESULT_SCHEMA`."""
+    job = ctx.job
+    if not isinstance(job, WeldJob):
+        raise JobError("$.kind", "not a weld job")
+    srm = devices.tactile.process
+    if srm is None:
+        raise JobError("$", "the cell has no tactile sensor (tactile.kind); it cannot track a seam")
+    if not srm.running():
+        raise JobError(
+            "$", f"the tactile sensor is not running ({devices.tactile.error or 'its process ended'}); the daemon keeps restarting it"
+        )
+    motion = devices.robot.require_motion()
+    wc = config.weld
+    setup = await weld_setup(ctx, config, job, cache)
+    speed = wc.speed_scale
+    T_scan = se3.from_ur_pose(wc.scan_pose)
+
+    # 1, 2. scan, seam and the weld's plan
+    plan = await _scan_and_plan(ctx, config, devices, setup, job.dry_run)
     # 3. the whole path, checked against the cell before the tool moves to it:
     # above the start, down, along the seam, up and back to the scan pose.
+    rec = ctx.recording
     if rec is not None:
         rec.later(rec.log_path_base, "plan", plan.path[:, :3, 3], time.monotonic_ns())
     check = await asyncio.to_thread(devices.robot.planner.check_path, await devices.robot.current_q(), plan.path)
     if job.dry_run:
         stations = np.linspace(0, len(check.q) - 1, min(len(check.q), DRY_RUN_ROBOTS)).round().astype(int)
         await asyncio.to_thread(record_plan, rec, devices.robot.planner.with_tool, [tuple(check.q[i]) for i in stations])
-        return {
-            "dry_run": True,
-            "workpiece": workpiece.name,
-            "calibration_job": cal_job,
-            "tool_calibration_job": tool_job,
-            "planned_path": plan.geometry.seam_base.tolist(),
-            "tcp_path": [se3.to_ur_pose(T).tolist() for T in plan.path],
-            "min_clearance_mm": round(check.min_clearance * 1e3, 2),
-            "seam_length_mm": round(seam.length * 1e3, 2),
-        }
+        return WeldDryRun(setup, plan, check.min_clearance).as_dict()
     ctx.progress("approach", None, "tool to the seam's start")
     await devices.robot.move_to(plan.T_above, speed_scale=speed)
     await devices.robot.move_to(plan.T_start, speed_scale=min(speed, 0.2))
@@ -394,100 +546,32 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     # meets a sloping wall, and so where the torch goes. The plan moves to the height it should have.
     up = plan.up
     try:
-        height_probe, plan = await _probe_height(ctx, devices, config, plan, servo, tool_cfg, sensor_yaw, min(speed, 0.2))
+        height_probe, plan = await _probe_height(
+            ctx, devices, config, plan, setup.servo, setup.tool_config, setup.sensor_yaw, min(speed, 0.2)
+        )
     except CelldError:
         await _retract(ctx, devices, up, wc.retract_height, T_scan, speed)
         raise
-    geometry = plan.geometry
 
     # 4. touch and track
-    servo_plan = algorithm2_plan(
-        geometry.wall_base,
-        servo,
-        tool_cfg,
-        config.motion,
-        T_base_plane=geometry.T_base_plane,
-        process=bool(job.arc) and config.robot.arc_output >= 0,
-        seam_offset=geometry.offsets,
-        sensor_yaw=sensor_yaw,
-    )
-    events_before = motion.loop_event_count
     failure: CelldError | None = None
-    with _Collector(motion) as collector:
-        cid = await motion.start_servo(servo_plan)
-        collector.command_id = cid
-        ctx.progress(
-            "track",
-            0.0,
-            "touching the seam, then tracking" + (" with the arc on" if servo_plan.params.get("process") else " (dry run, arc off)"),
-        )
-        waiting = asyncio.ensure_future(motion.wait(cid, timeout=wc.timeout))
-        s_wall = polyline.arc_length(geometry.wall_base)
-        try:
-            last_progress = 0.0
-            last_frame = 0
-            while not waiting.done():
-                await asyncio.wait({waiting}, timeout=PREVIEW_PERIOD)
-                last_frame = await asyncio.to_thread(_log_preview, devices, rec, last_frame)
-                now = asyncio.get_running_loop().time()
-                last = motion.last_record()
-                if last is not None and not waiting.done() and now - last_progress >= PROGRESS_PERIOD:
-                    last_progress = now
-                    p = tool.T_base_tool(se3.from_ur_pose(last["tcp_pose"]))[:3, 3]
-                    i = int(np.argmin(np.linalg.norm(geometry.wall_base - p, axis=1)))
-                    ctx.progress(
-                        "track",
-                        float(min(1.0, s_wall[i] / s_wall[-1])),
-                        f"{s_wall[i] * 1e3:.0f} of {s_wall[-1] * 1e3:.0f} mm",
-                        arc=bool(last["process_on"]),
-                    )
-            waiting.result()
-        except CelldError as exc:
-            failure = exc
-        finally:
-            if not waiting.done():
-                waiting.cancel()
-    # The loop's own trouble during the track (a failed arc write): the weld is not good.
-    new_events = min(motion.loop_event_count - events_before, len(motion.loop_events))
-    trouble = list(motion.loop_events)[-new_events:] if new_events > 0 else []
-    if trouble and failure is None:
-        failure = CelldError(f"the motion loop reported during the weld: {'; '.join(trouble)}")
-
+    records = None
+    try:
+        records = await _track(ctx, config, devices, setup, plan, process=bool(job.arc) and config.robot.arc_output >= 0)
+    except CelldError as exc:
+        failure = exc
     # 5. retract (also after a failed track, while the robot can still be moved)
     retract_error = await _retract(ctx, devices, up, wc.retract_height, T_scan, speed) if failure is None or motion.link_running() else ""
-    if failure is not None:
-        raise failure
+    if failure is not None or records is None:
+        raise failure or CelldError("the servo ran but no motion record of it was read")
 
-    records = await asyncio.to_thread(collector.records)  # 7000 records: tens of ms of copying
-    if records is None or len(records) == 0:
-        raise CelldError("the servo ran but no motion record of it was read")
-    figures, paths = await asyncio.to_thread(summarise, records, plan, tool, servo.delta_d)
+    figures, paths = await asyncio.to_thread(summarise, records, plan, setup.tool, setup.servo.delta_d)
     path_file = await asyncio.to_thread(fsutil.write_json, ctx.result_dir() / "paths.json", paths)
     if rec is not None:
         for name in ("refined", "torch"):
             if len(paths[name]) > 1:
                 rec.later(rec.log_path_base, name, np.asarray(paths[name]), time.monotonic_ns())
-    result: dict[str, Any] = {
-        "dry_run": False,
-        "figures": figures,
-        "paths": str(path_file),
-        "refined_path": paths["refined"],
-        "torch_path": paths["torch"],
-        "planned_path": paths["planned"],
-        "workpiece": workpiece.name,
-        "calibration_job": cal_job,
-        "tool_calibration_job": tool_job,
-        # The torch the weld placed: measured (its offset and the tool's x turned by -sensor_yaw) or as configured.
-        "torch": {
-            "measured": torch_measured,
-            "torch_offset_mm": round(tool_cfg.torch_offset * 1e3, 4),
-            "yaw_from_config_deg": round(-math.degrees(sensor_yaw), 4),
-        },
-        "height_probe": height_probe,
-    }
-    if retract_error:
-        result["retract_error"] = retract_error
-    return result
+    return WeldOutcome(setup, figures, paths, Path(path_file), height_probe, retract_error).as_dict()
 
 
 def _log_preview(devices: CellDevices, rec: JobRecording | None, last_stamp: int) -> int:
