@@ -135,9 +135,12 @@ def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool,
         except CelldError as exc:
             log = (work / "daemon.log").read_text(errors="replace")[-2000:] if (work / "daemon.log").exists() else ""
             return {"seed": seed, "success": False, "failed": {"reason": str(exc), "log_tail": log}, "seconds": time.monotonic() - t0}
+        stops = stops_in((work / "daemon.log").read_text(errors="replace"))
     out: dict[str, Any] = {
         "seed": seed,
         "seconds": round(time.monotonic() - t0, 1),
+        # Motion stopped for a hung daemon (none hung here: each is spurious) or a stale robot state.
+        **stops,
         "tool_calibration": figures.get("tool", "not run (--no-tool-calibrate)" if not tool_calibrate else "failed"),
         # How late the daemon's event loop ran over the three jobs (celld.daemon.loopwatch).
         "loop": figures.get("loop"),
@@ -157,6 +160,16 @@ def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool,
     torch = w["torch_error"]
     out["success"] = bool(w["figures"]["tracked_mm"] >= TRACKED_MIN and torch["points"] > 0 and torch["max_mm"] <= TORCH_MAX)
     return out
+
+
+def stops_in(log: str) -> dict[str, int]:
+    """How often the daemon's log says motion stopped because the daemon seemed hung (its motion process's
+    exit: the heartbeat too old) or the robot state went stale; the run hangs no daemon, so every hang stop
+    is spurious."""
+    return {
+        "spurious_hang_stops": sum(1 for line in log.splitlines() if "motion loop ended" in line and "(it hangs)" in line),
+        "stale_stops": sum(1 for line in log.splitlines() if "stale state" in line and ("job failed" in line or "motion loop ended" in line)),
+    }
 
 
 def failure(r: dict[str, Any]) -> tuple[str, str] | None:

@@ -60,7 +60,7 @@ _SCHEMA_VERSION = 2
 # How long a statement waits for a lock held by a reader, ms.
 _BUSY_TIMEOUT_MS = 5000
 # Reasons written when a journal is opened after its process died.
-_REASON_RUNNING = "interrupted: the daemon stopped while the job was running"
+INTERRUPTED_RUNNING = "interrupted: the daemon stopped while the job was running"
 _REASON_QUEUED = "interrupted: the daemon stopped before the job started"
 
 _CREATE = f"""
@@ -251,7 +251,7 @@ class Journal:
         now = self._clock()
         with self._transaction() as db:
             ids = [r[0] for r in db.execute("SELECT id FROM jobs WHERE state IN ('running', 'queued') ORDER BY seq")]
-            db.execute("UPDATE jobs SET state = 'interrupted', reason = ?, ended = ? WHERE state = 'running'", (_REASON_RUNNING, now))
+            db.execute("UPDATE jobs SET state = 'interrupted', reason = ?, ended = ? WHERE state = 'running'", (INTERRUPTED_RUNNING, now))
             db.execute("UPDATE jobs SET state = 'interrupted', reason = ?, ended = ? WHERE state = 'queued'", (_REASON_QUEUED, now))
         return tuple(r for r in (self.get(i) for i in ids) if r is not None)
 
@@ -327,6 +327,17 @@ class Journal:
         if state not in TERMINAL:
             raise JournalError(f"expected a terminal state ({', '.join(sorted(TERMINAL))}), got {state!r}")
         return self._move(job_id, state, reason, result)
+
+    def explain_interruption(self, job_id: str, why: str) -> JobRecord:
+        """Say why a job the previous process left running was interrupted (what its children saw end it:
+        the daemon hung, or died), after the generic reason :attr:`recovered` jobs get."""
+        with self._transaction() as db:
+            done = db.execute(
+                "UPDATE jobs SET reason = ? WHERE id = ? AND state = 'interrupted'", (f"{INTERRUPTED_RUNNING}: {why}", job_id)
+            ).rowcount
+            if done != 1:
+                raise JournalError(f"no interrupted job {job_id!r} in the journal")
+        return self._get_required(job_id)
 
     def set_result(self, job_id: str, result: str) -> JobRecord:
         """Record the path of a job's result written after the job ended (a write retried once space returned)."""

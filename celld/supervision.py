@@ -22,7 +22,9 @@ import ctypes.util
 import json
 import os
 import signal
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -112,6 +114,61 @@ class Heartbeat:
         self._slot.unlink()
 
 
+class BeatThread:
+    """Beats a :class:`Heartbeat` every ``period`` s from a thread of its own, while ``alive()`` holds.
+
+    A thread rather than the event loop: the loop may wait its turn on a
+    loaded PC for a few hundred milliseconds, which is no hang, while a
+    stopped or frozen daemon stops every thread at once. ``alive`` says
+    whether the event loop still runs (its loop watch ticked within a
+    bound), so a stuck loop stops the beat too, only later. The thread asks
+    for SCHED_FIFO ``priority`` (below the camera's and the motion loop's)
+    and runs at normal priority where that is refused.
+    """
+
+    def __init__(self, heartbeat: Heartbeat, alive: Callable[[], bool], period: float, priority: int = 30) -> None:
+        self.heartbeat = heartbeat
+        self.alive = alive
+        self.period = period
+        self.priority = priority
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="celld-heartbeat", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _run(self) -> None:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.priority))  # this thread only
+        while not self._stop.wait(self.period):
+            if self.alive():
+                self.heartbeat.beat()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(1.0)
+
+
+def write_exit_note(path: str | os.PathLike[str], role: str, reason: str, at_ns: int) -> None:
+    """A child's note of why it took its daemon for gone (and so stopped what it drove), for the next daemon."""
+    with contextlib.suppress(OSError):
+        fsutil.write_json(Path(path), {"role": role, "pid": os.getpid(), "reason": reason, "monotonic_ns": at_ns, "time": time.time()})
+
+
+def exit_notes(run_dir: str | os.PathLike[str]) -> list[dict[str, Any]]:
+    """The notes the previous daemon's children left (:func:`write_exit_note`), oldest first; each is removed."""
+    notes: list[dict[str, Any]] = []
+    for path in sorted(Path(run_dir).glob("*.ended.json")):
+        try:
+            doc = json.loads(path.read_text())
+            notes.append({"role": str(doc["role"]), "reason": str(doc["reason"]), "time": float(doc["time"])})
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("unreadable exit note of a previous child", path=str(path), error=str(exc))
+        path.unlink(missing_ok=True)
+    return sorted(notes, key=lambda n: n["time"])
+
+
 class ParentWatch:
     """A child process's view of the daemon that started it: is it still there?
 
@@ -152,8 +209,9 @@ class ParentWatch:
     def _on_signal(self, signum: int, frame: Any) -> None:
         self._signalled = "the daemon ended" if signum == signal.SIGUSR1 else f"{signal.Signals(signum).name} received"
 
-    def check(self, now_ns: int | None = None) -> str:
-        """Why the daemon counts as gone, or "" while it is there."""
+    def check(self, now_ns: int | None = None, timeout_ns: int | None = None) -> str:
+        """Why the daemon counts as gone, or "" while it is there; ``timeout_ns`` bounds the heartbeat's
+        age instead of the watch's own (a loop that moves the robot asks for a shorter one)."""
         if self._signalled:
             return self._signalled
         if self._stat is not None:
@@ -167,7 +225,7 @@ class ParentWatch:
             return f"the daemon (pid {self.parent_pid}) is gone"
         if self._slot is not None and self._slot.read_into(self._rec):
             age = (time.monotonic_ns() if now_ns is None else now_ns) - int(self._rec["t_ns"][0])
-            if age > self.timeout_ns:
+            if age > (self.timeout_ns if timeout_ns is None else timeout_ns):
                 return f"the daemon's heartbeat is {age / 1e6:.0f} ms old (it hangs)"
         return ""
 

@@ -139,6 +139,9 @@ def test_values_are_frozen() -> None:
         ({"calibration": {"keep_sessions": -1}}, "calibration.keep_sessions", "0 <= value"),
         ({"calibration": {"keep_days": -0.5}}, "calibration.keep_days", "0.0 <= value"),
         ({"calibration": {"keep_days": "a week"}}, "calibration.keep_days", "expected a number"),
+        # A hung daemon stops a weld within 0.3 s; at rest its children wait at most 5 s for it.
+        ({"motion": {"parent_timeout_ms": 10_000}}, "motion.parent_timeout_ms", "<= 5000"),
+        ({"motion": {"hang_stop_ms": 2000}}, "motion.hang_stop_ms", "<= 270"),
     ],
 )
 def test_bad_values_are_refused_with_key_and_reason(data: dict, key: str, reason: str) -> None:

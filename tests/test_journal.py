@@ -15,7 +15,7 @@ import pytest
 
 from celld import fsutil
 from celld.errors import JournalError
-from celld.journal import Journal, new_job_id
+from celld.journal import INTERRUPTED_RUNNING, Journal, new_job_id
 
 
 @pytest.fixture
@@ -83,6 +83,11 @@ def test_reopening_marks_running_and_queued_jobs_interrupted(tmp_path: Path) -> 
         assert j.check() == []
     with Journal(path) as j:
         assert j.recovered == ()
+        # What the previous daemon's children saw end it is added to the reason; only an interrupted job's.
+        why = "motion process: the daemon's heartbeat is 262 ms old (it hangs)"
+        assert j.explain_interruption(running.id, why).reason == f"{INTERRUPTED_RUNNING}: {why}"
+        with pytest.raises(JournalError, match="no interrupted job"):
+            j.explain_interruption(done.id, why)
 
 
 def test_one_process_at_a_time(tmp_path: Path) -> None:

@@ -15,7 +15,17 @@ from pathlib import Path
 import pytest
 
 from celld.shm import SeqlockSlot
-from celld.supervision import HEARTBEAT_DTYPE, Backoff, ChildRecords, Heartbeat, ParentWatch, exiting
+from celld.supervision import (
+    HEARTBEAT_DTYPE,
+    Backoff,
+    BeatThread,
+    ChildRecords,
+    Heartbeat,
+    ParentWatch,
+    exit_notes,
+    exiting,
+    write_exit_note,
+)
 
 
 def test_backoff_grows_to_its_last_delay_and_a_stable_run_resets_it() -> None:
@@ -34,9 +44,48 @@ def test_a_stale_heartbeat_means_the_daemon_hangs() -> None:
         assert "heartbeat is" in watch.check(now + 300_000_000) and "hangs" in watch.check(now + 300_000_000)
         hb.beat()
         assert watch.check() == ""
+        # A caller that moves the robot asks for a shorter bound than the watch's own.
+        now = time.monotonic_ns()
+        assert watch.check(now + 100_000_000) == "" and "hangs" in watch.check(now + 100_000_000, timeout_ns=50_000_000)
         watch.close()
     finally:
         hb.close()
+
+
+def test_the_beat_thread_beats_while_the_loop_runs_and_stands_still_with_it() -> None:
+    hb = Heartbeat(f"t-hb-{uuid.uuid4().hex[:8]}")
+    runs = [True]
+    beater = BeatThread(hb, lambda: runs[0], period=0.01)
+    try:
+        watch = ParentWatch(os.getppid(), hb.name, timeout_ns=200_000_000, signals=False)
+
+        def beats_within(seconds: float) -> bool:  # the beat is fresh (under 60 ms old) at some look within the time
+            deadline = time.monotonic() + seconds
+            while watch.check(timeout_ns=60_000_000) != "":
+                if time.monotonic() > deadline:
+                    return False
+                time.sleep(0.005)
+            return True
+
+        beater.start()
+        assert beats_within(2.0)
+        runs[0] = False  # the event loop stands still
+        time.sleep(0.2)
+        assert "hangs" in watch.check(timeout_ns=60_000_000)
+        runs[0] = True
+        assert beats_within(2.0)
+        watch.close()
+    finally:
+        beater.stop()
+        hb.close()
+
+
+def test_a_childs_exit_note_is_read_once_by_the_next_daemon(tmp_path: Path) -> None:
+    write_exit_note(tmp_path / "motion.ended.json", "motion", "the daemon's heartbeat is 262 ms old (it hangs)", 5)
+    (tmp_path / "motion2.ended.json").write_text("{not json")
+    notes = exit_notes(tmp_path)
+    assert [(n["role"], n["reason"]) for n in notes] == [("motion", "the daemon's heartbeat is 262 ms old (it hangs)")]
+    assert list(tmp_path.glob("*.ended.json")) == [] and exit_notes(tmp_path) == []
 
 
 def test_another_parent_or_a_signal_means_the_daemon_is_gone() -> None:

@@ -172,6 +172,11 @@ class Robot2Config:
         return cls(robot=robot, base_pose=base_pose, flange=flange, verification_pose=verification_pose)
 
 
+# motion.hang_stop's ceiling, s: the arc off within 0.3 s of a frozen daemon (its 20 ms beat, the loop's
+# 10 ms look and two cycles inside it).
+HANG_STOP_MAX = 0.27
+
+
 @dataclass(frozen=True)
 class MotionLimits:
     """The limits every command obeys in every cycle (SI): Cartesian for the TCP, per joint for joint moves."""
@@ -200,6 +205,11 @@ class MotionLimits:
     # at once. Above the event loop's worst hold-ups (a scan holding the GIL on a
     # loaded PC: about 1 s measured) and above systemd's WatchdogSec.
     parent_timeout: float = 3.0
+    # While the arm moves or the arc is on, the motion process stops them both once the heartbeat is this
+    # old, s: a hung daemon can cancel nothing. The heartbeat beats every 20 ms from a thread that stands
+    # still only when the whole process does (a frozen or stopped daemon) or its event loop has not run
+    # for a second; the loop looks every 10 ms: the arc is off within 0.3 s of a freeze.
+    hang_stop: float = 0.25
 
     @classmethod
     def read(cls, r: TableReader) -> MotionLimits:
@@ -217,7 +227,8 @@ class MotionLimits:
             state_stale_cycles=r.int("state_stale_cycles", cls.state_stale_cycles, lo=1, hi=50),
             link_timeout=r.float("link_timeout_ms", cls.link_timeout * 1e3, lo=4.0, hi=5000.0, scale=1e-3),
             rtde_watchdog_hz=r.float("rtde_watchdog_hz", cls.rtde_watchdog_hz, lo=1.0, hi=500.0),
-            parent_timeout=r.float("parent_timeout_ms", cls.parent_timeout * 1e3, lo=50.0, hi=10_000.0, scale=1e-3),
+            parent_timeout=r.float("parent_timeout_ms", cls.parent_timeout * 1e3, lo=HANG_STOP_MAX * 1e3, hi=5000.0, scale=1e-3),
+            hang_stop=r.float("hang_stop_ms", cls.hang_stop * 1e3, lo=60.0, hi=HANG_STOP_MAX * 1e3, scale=1e-3),
         )
 
 

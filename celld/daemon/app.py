@@ -35,7 +35,7 @@ from celld.daemon.devices import CellDevices, DeviceFactories
 from celld.daemon.jobs import JobManager, Runner
 from celld.daemon.loopwatch import LoopWatch
 from celld.daemon.runners import build_runners
-from celld.journal import Journal
+from celld.journal import INTERRUPTED_RUNNING, Journal
 from celld.log import get_logger
 from celld.recording.job import JobRecording
 
@@ -79,6 +79,18 @@ class Daemon:
 
     # -- life cycle ---------------------------------------------------------------
 
+    def _explain_interruptions(self, journal: Journal) -> None:
+        """The job the previous daemon left running ended when its motion process took it for gone: say why
+        (it hung: the heartbeat stood still; it was killed), as that process noted it, not as an operator's stop."""
+        notes = self.devices.life.exit_notes
+        running = [r for r in journal.recovered if r.reason == INTERRUPTED_RUNNING]
+        if not notes or not running:
+            return
+        why = "; ".join(f"{n['role']} process: {n['reason']}" for n in notes)
+        for record in running:
+            journal.explain_interruption(record.id, why)
+            log.warning("job interrupted: the previous daemon's children say why", job=record.id, why=why)
+
     async def start(self) -> None:
         cfg = self.config
         self.loop_watch.install()
@@ -92,6 +104,7 @@ class Daemon:
             log.warning("job interrupted by the previous stop", job=record.id, kind=record.kind)
         self.notifier.status("opening devices")
         await self.devices.open()
+        self._explain_interruptions(self._journal)
         keys = CellKeys.of(cfg.bus.prefix, cfg.cell.name)
         self._session = open_server(cfg.bus, keys)
         self.manager = JobManager(

@@ -73,8 +73,9 @@ class Arm:
     ``[robot2]``, one more (:attr:`~celld.daemon.devices.CellDevices.robot2`).
     """
 
-    def __init__(self, config: Config, cpu: int = -1) -> None:
+    def __init__(self, config: Config, cpu: int = -1, role: str = "motion") -> None:
         self.config = config
+        self.role = role  # its motion process's name in the daemon's child records
         # The CPU its motion loop is pinned to (RealtimeOptions.cpu): robot 1's the last one, robot 2's
         # the one before, so that two 500 Hz loops never queue behind each other on one core.
         self.cpu = cpu
@@ -109,6 +110,7 @@ class Arm:
             wait=False,
             heartbeat=heartbeat,
             records=records,
+            role=self.role,
         )
         return self.motion
 

@@ -47,7 +47,7 @@ from celld.robot.cellmodel import CellObject
 from celld.robot.dashboard import ACTIONS, Dashboard, RobotCondition, robot_condition
 from celld.scanner.base import OrganizedCloud, Scanner
 from celld.scanner.factory import open_scanner
-from celld.supervision import Backoff, ChildRecords, Heartbeat
+from celld.supervision import Backoff, BeatThread, ChildRecords, Heartbeat, exit_notes
 from celld.tactile.camera import FrameSourceFactory, opencv_camera
 from celld.tactile.process import CAMERA_REALTIME, TactileProcess
 from celld.tactile.sample import TactileSample
@@ -59,8 +59,12 @@ log = get_logger(__name__)
 
 # Servo laws the motion process may be asked to run, by name.
 SERVO_LAWS = {ALGORITHM2: "celld.motion.algorithm2:make_algorithm2"}
-# How often the daemon's heartbeat beats, s (its children wait motion.parent_timeout for it).
+# How often the daemon's heartbeat beats, s (its children wait motion.parent_timeout for it at rest,
+# motion.hang_stop while the arm moves or the arc is on). It beats from a thread of its own
+# (celld.supervision.BeatThread) while the event loop has run within LOOP_HANG s: a frozen daemon is
+# seen within hang_stop, a stuck event loop within LOOP_HANG more.
 HEARTBEAT_PERIOD = 0.02
+LOOP_HANG = 1.0
 # Least time between two restarts of a dying tactile process, s: it doubles
 # after each failed restart, up to a minute.
 TACTILE_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 32.0, 60.0))
@@ -251,7 +255,11 @@ class Lifecycle:
     def __init__(self, config: Config) -> None:
         self.records = ChildRecords(Path(config.cell.state_dir) / "run")
         self.leftovers: list[str] = []  # what was cleaned up after a previous daemon
+        # Why the previous daemon's children took it for gone (hung, killed), oldest first (exit_notes).
+        self.exit_notes: list[dict[str, Any]] = []
         self.heartbeat: Heartbeat | None = None
+        self._beater: BeatThread | None = None
+        self._loop_seen = time.monotonic()
         self.dashboard = Dashboard(config.robot.host)
         self._beating: asyncio.Task[None] | None = None
         self._reading: asyncio.Task[None] | None = None
@@ -262,8 +270,14 @@ class Lifecycle:
         # robot (they stop on their own within the heartbeat timeout) and
         # shared memory: clean up before starting our own.
         self.leftovers = await asyncio.to_thread(self.records.reap)
+        self.exit_notes = await asyncio.to_thread(exit_notes, self.records.dir)
+        for note in self.exit_notes:
+            log.warning("a child of the previous daemon took it for gone", role=note["role"], reason=note["reason"])
         self.heartbeat = Heartbeat(f"celld-{uuid.uuid4().hex[:8]}-heartbeat")
-        self._beating = asyncio.get_running_loop().create_task(self._beat(self.heartbeat), name="celld-heartbeat")
+        self._loop_seen = time.monotonic()
+        self._beating = asyncio.get_running_loop().create_task(self._see_the_loop(), name="celld-heartbeat")
+        self._beater = BeatThread(self.heartbeat, self._loop_runs, HEARTBEAT_PERIOD)
+        self._beater.start()
         return self.heartbeat
 
     def read_dashboard(self, on_reading: Callable[[], None]) -> None:
@@ -276,6 +290,9 @@ class Lifecycle:
             await asyncio.gather(self._reading, return_exceptions=True)
             self._reading = None
             await self.dashboard.close()
+        if self._beater is not None:
+            await asyncio.to_thread(self._beater.stop)
+            self._beater = None
         if self._beating is not None:
             self._beating.cancel()
             await asyncio.gather(self._beating, return_exceptions=True)
@@ -284,13 +301,15 @@ class Lifecycle:
             self.heartbeat.close()
             self.heartbeat = None
 
-    @staticmethod
-    async def _beat(heartbeat: Heartbeat) -> None:
-        """The daemon's heartbeat for its children, from the event loop (how late the loop runs is the
-        daemon's loop watch's to log: :mod:`celld.daemon.loopwatch`)."""
+    async def _see_the_loop(self) -> None:
+        """Stamp that the event loop runs, for the beat thread (how late the loop runs is the daemon's loop
+        watch's to log: :mod:`celld.daemon.loopwatch`)."""
         while True:
-            heartbeat.beat()
+            self._loop_seen = time.monotonic()
             await asyncio.sleep(HEARTBEAT_PERIOD)
+
+    def _loop_runs(self) -> bool:
+        return time.monotonic() - self._loop_seen < LOOP_HANG
 
     async def _read(self, on_reading: Callable[[], None]) -> None:
         while True:
@@ -318,7 +337,7 @@ class CellDevices:
         self.config = config
         self.robot = Arm(config)
         # The second robot, when the cell has one ([robot2]): calibrate jobs with robot2 set drive it.
-        self.robot2: Arm | None = Arm(robot2_config(config), cpu=-2) if config.robot2 is not None else None
+        self.robot2: Arm | None = Arm(robot2_config(config), cpu=-2, role="motion2") if config.robot2 is not None else None
         self.tactile = Tactile(config, factories.camera)
         self.scanner = CellScanner(config, factories.scanner)
         self.life = Lifecycle(config)

@@ -124,6 +124,7 @@ class CycleInput(NamedTuple):
     command_id: int = 0  # its mailbox sequence number
     command_error: str = ""  # why the command with command_id could not be decoded
     stop: bool = False  # the supervisor asked for a stop this cycle
+    stop_reason: str = ""  # why, when not on request (the daemon hung or is gone)
 
 
 class CycleOutput(NamedTuple):
@@ -273,7 +274,7 @@ class MotionCore:
             return self._output(Action.KICK, _ZERO6, faults, False)
 
         if inp.stop:
-            self._begin_stop(ControlStatus.STOPPED, "stopped on request")
+            self._begin_stop(ControlStatus.STOPPED, inp.stop_reason or "stopped on request")
         if inp.command is not None or inp.command_error:
             self._accept(inp, faults)
         if isinstance(self.controller, JointMove):

@@ -25,6 +25,7 @@ Each error carries the reason the loop gave.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 import os
 import time
@@ -181,6 +182,7 @@ def spec_from_config(
             joint_speed_accel=2.0 * joint_limits.accel,
             link_timeout_ns=int(link_timeout * 1e9),
             process_output=robot.arc_output,
+            hang_timeout_ns=int(motion.hang_stop * 1e9) if heartbeat else 0,
         ),
         frequency_hz=robot.frequency_hz,
         watchdog_hz=watchdog_hz,
@@ -254,20 +256,24 @@ class MotionHandle:
         wait: bool = True,
         heartbeat: str = "",
         records: ChildRecords | None = None,
+        role: str = "motion",
     ) -> MotionHandle:
         """Create the channels, start the motion process and (by default) wait for its loop.
 
         ``tactile_slot`` names the tactile process's seqlock slot; without it
         the handle creates one (tests write samples into it). ``heartbeat``
         names the daemon's heartbeat slot the process watches, ``records``
-        where the daemon records its children. Raises LinkLost when the loop
-        does not run within the connect timeout.
+        where the daemon records its children, ``role`` its name there (where
+        it also leaves its exit note). Raises LinkLost when the loop does not
+        run within the connect timeout.
         """
         capacity = int(math.ceil(RING_SECONDS * config.robot.frequency_hz))
         names = ChannelNames.unique(capacity, tactile_slot)
         channels = Channels.create(names, create_tactile=tactile_slot is None)
         try:
             spec = spec_from_config(config, names, host, servo_laws, realtime, move, link_timeout, watchdog_hz, heartbeat=heartbeat)
+            note = str(records.dir / f"{role}.ended.json") if records is not None else ""
+            spec = dataclasses.replace(spec, role=role, exit_note=note)
             timeout = connect_timeout if connect_timeout is not None else config.robot.connect_timeout
             sup = MotionSupervisor(spec, channels, timeout, hang_timeout, backoff, records)
             handle = cls(sup, channels, spec.core.limits, (spec.core.workspace_min, spec.core.workspace_max))

@@ -67,6 +67,10 @@ class LoopParams(NamedTuple):
     link_timeout_ns: int = 100_000_000  # no fresh robot state this long: the link is lost
     program_grace_ns: int = 100_000_000  # the robot's program not running this long: exit
     process_output: int = -1  # standard digital output of the process (welding arc), 0..7; -1: none
+    # While the arm moves or the process is on, the daemon counts as hung once its heartbeat is this old
+    # (0: the parent watch's own timeout, as at rest): a hung daemon can cancel nothing, so the arm and
+    # the arc must not go on without it.
+    hang_timeout_ns: int = 0
 
 
 class LoopExit(NamedTuple):
@@ -108,6 +112,7 @@ class MotionLoop:
         self.parent = parent
         self.orphaned = ""  # why the loop took its daemon for gone, "" while it is there
         self.orphaned_ns = 0  # when it did (the cycle's wake-up, monotonic ns), 0 while it is there
+        self._busy = False  # the last cycle moved the arm or had the process on (LoopParams.hang_timeout_ns)
         self.core = core
         self.ch = channels
         self.params = params
@@ -293,7 +298,8 @@ class MotionLoop:
         stop = False
         shutdown = False
         if self.parent is not None and not self.orphaned and self.cycles % _PARENT_CHECK_CYCLES == 0:
-            self.orphaned = self.parent.check(t_wake)
+            busy = self._busy and p.hang_timeout_ns > 0
+            self.orphaned = self.parent.check(t_wake, p.hang_timeout_ns if busy else None)
             if self.orphaned:
                 self.orphaned_ns = t_wake
         if ch.control.read_into(self._ctl):
@@ -339,6 +345,7 @@ class MotionLoop:
                 command_id,
                 command_error,
                 stop,
+                f"stopped: {self.orphaned}" if self.orphaned else "",
             )
         )
         if out.action == Action.SPEED:
@@ -355,6 +362,7 @@ class MotionLoop:
 
         if out.event:
             self._event(out.event_id, out.event_status, out.event)
+        self._busy = out.mode != Mode.IDLE or out.process_on
         self.cycles += 1
         r = self._rec
         r["cycle"] = self.cycles

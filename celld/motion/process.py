@@ -39,7 +39,7 @@ from celld.motion.core import CoreParams, MotionCore
 from celld.motion.loop import LoopExit, LoopParams, MotionLoop
 from celld.motion.types import ControlStatus, ServoFactory
 from celld.realtime import RealtimeOptions, RealtimeReport, make_realtime
-from celld.supervision import ParentWatch
+from celld.supervision import ParentWatch, write_exit_note
 
 # Exit code of the process for each way the loop ends; anything else is a crash.
 EXIT_CODES = {
@@ -70,6 +70,11 @@ class MotionSpec:
     parent_pid: int = 0
     heartbeat: str = ""
     parent_timeout_ns: int = 3_000_000_000
+    # The daemon's name for this process in its child records (robot 1's "motion", robot 2's "motion2"), and
+    # the file where the process says why it took its daemon for gone ("" for none): the next daemon reads
+    # it, so the journal says why a job ended when its daemon hung or died (celld.supervision.exit_notes).
+    role: str = "motion"
+    exit_note: str = ""
 
 
 def load_factories(servo_laws: tuple[tuple[str, str], ...]) -> dict[str, ServoFactory]:
@@ -145,6 +150,8 @@ def run(spec: MotionSpec) -> LoopExit:
             gc.enable()
         # Say why at once: closing the link below can take a while.
         _report(ch, Phase.EXITED, rt, end.status, end.reason)
+        if loop.orphaned and spec.exit_note:
+            write_exit_note(spec.exit_note, spec.role, loop.orphaned, loop.orphaned_ns)
         log.info(
             "motion loop ended",
             status=end.status.name,

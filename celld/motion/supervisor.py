@@ -204,7 +204,7 @@ class MotionSupervisor:
         process.start()
         if self.records is not None and process.pid is not None:
             n = self.spec.channels
-            self.records.add("motion", process.pid, [n.state, n.events, n.commands, n.setpoint, n.control, n.status])
+            self.records.add(self.spec.role, process.pid, [n.state, n.events, n.commands, n.setpoint, n.control, n.status])
         log.info("motion process started", pid=process.pid, host=self.spec.host)
         return _Proc(process, time.monotonic())
 
@@ -280,7 +280,7 @@ class MotionSupervisor:
                 await asyncio.sleep(_WATCH_PERIOD)
             proc.process.join()
             if self.records is not None:
-                self.records.remove("motion")
+                self.records.remove(self.spec.role)
             end = self._exit_of(proc)
             self.last_exit = end
             self._running.clear()

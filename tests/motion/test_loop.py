@@ -389,7 +389,7 @@ class _Watch:
     def __init__(self, loop_cycles, gone_at: int) -> None:  # type: ignore[no-untyped-def]
         self.cycles, self.gone_at = loop_cycles, gone_at
 
-    def check(self, now_ns: int | None = None) -> str:
+    def check(self, now_ns: int | None = None, timeout_ns: int | None = None) -> str:
         return "the daemon (pid 1234) is gone" if self.cycles() >= self.gone_at else ""
 
 
@@ -416,6 +416,61 @@ def test_without_its_daemon_the_loop_stops_the_servo_drops_the_output_and_ends(c
     assert np.all(recs["twist"][-1] == 0.0) and recs["mode"][-1] == int(Mode.IDLE)
     speeds = np.linalg.norm(recs["twist"][recs["cycle"] >= off][:, :3], axis=1)
     assert speeds[0] > 0.0 and np.all(np.diff(speeds) <= 1e-12)
+
+
+class _Heartbeat:
+    """A ParentWatch stand-in on the test's clock: the daemon's heartbeat stands still from ``frozen_ns``."""
+
+    def __init__(self, frozen_ns: int, timeout_ns: int) -> None:
+        self.frozen_ns, self.timeout_ns = frozen_ns, timeout_ns
+
+    def check(self, now_ns: int | None = None, timeout_ns: int | None = None) -> str:
+        age = (now_ns or 0) - self.frozen_ns
+        return f"the daemon's heartbeat is {age / 1e6:.0f} ms old (it hangs)" if age > (timeout_ns or self.timeout_ns) else ""
+
+
+HANG_NS = 250_000_000  # motion.hang_stop
+PARENT_NS = 3_000_000_000  # motion.parent_timeout
+
+
+def _hang_loop(channels: Channels, port: FakePort, clock: Clock) -> MotionLoop:
+    core = MotionCore(CORE, {"probe": make_probe})
+    params = LoopParams(PERIOD_NS, speed_accel=8.0, process_output=ARC, hang_timeout_ns=HANG_NS)
+    return MotionLoop(port, core, channels, params, clock=clock)
+
+
+def test_a_daemon_that_hangs_while_the_arc_is_on_stops_the_arc_and_the_arm_within_the_hang_bound(channels: Channels) -> None:
+    port, clock = FakePort(), Clock()
+    loop = _hang_loop(channels, port, clock)
+    channels.commands.post(cmd.encode(_probe(cycles=10_000, process_from=20)))
+    _touching(loop, channels, clock, 60, port)
+    assert port.outputs[-1] == (ARC, True)
+    frozen = clock.t
+    loop.parent = _Heartbeat(frozen, PARENT_NS)  # type: ignore[assignment]
+    end = None
+    for _ in range(2000):
+        clock.t += PERIOD_NS
+        channels.tactile.write(to_record(TactileSample(clock.t, loop.cycles + 1, np.zeros(3), ContactState.CONTACT, 1.0, True, 0)))
+        end = loop.cycle(clock.t, clock.t)
+        if end is not None:
+            break
+    assert end is not None and "hangs" in end.reason, end
+    assert port.outputs[-1] == (ARC, False)
+    seen_after = (loop.orphaned_ns - frozen) * 1e-9
+    # Seen within the hang bound and one look (every 5 cycles), not the parent timeout of an idle loop.
+    assert HANG_NS * 1e-9 < seen_after <= HANG_NS * 1e-9 + 5 * PERIOD_NS * 1e-9, seen_after
+    # The command ends saying why: not an operator's stop.
+    reasons = [r for _, _, r in _events(channels)]
+    assert any(r.startswith("stopped: the daemon's heartbeat is") for r in reasons), reasons
+
+
+def test_an_idle_loop_waits_the_parent_timeout_before_it_takes_a_still_heartbeat_for_a_hang(channels: Channels) -> None:
+    port, clock = FakePort(), Clock()
+    loop = _hang_loop(channels, port, clock)
+    loop.parent = _Heartbeat(clock.t, PARENT_NS)  # type: ignore[assignment]
+    assert _cycles(loop, clock, int(2 * HANG_NS / PERIOD_NS)) is None and loop.orphaned == ""
+    end = _cycles(loop, clock, int(PARENT_NS / PERIOD_NS))
+    assert end is not None and "hangs" in end.reason and loop.orphaned_ns - 1_000_000_000 > PARENT_NS, end
 
 
 def test_an_output_left_on_by_the_previous_process_is_reported_as_a_missing_interlock(channels: Channels) -> None:
