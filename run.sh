@@ -71,29 +71,15 @@ case "$cmd" in
         exec .venv/bin/celld demo "$@" ;;
     test)
         ensure_libusb; ensure_venv
-        # With arguments, one pytest run of them. Without, three sets: the simulated cells one at a time
-        # in this process, with the pure tests beside them on one worker at idle priority (they only take
-        # what the cell leaves: its loops run SCHED_FIFO, its daemon at normal priority); then the tests
-        # that start robots or other child processes, on two workers. A cell's 2 ms loops miss their
-        # cycles when another robot runs beside it on two cores.
+        # With arguments, one pytest run of them. Without, two passes: everything but the simulated
+        # cells on two workers, then the cells one at a time in one process: a cell's 2 ms loops miss
+        # their cycles when anything else runs beside it on two cores.
         if [ $# -gt 0 ]; then
             exec .venv/bin/python -m pytest -m "not hardware" "$@"
         fi
-        idle=""
-        if command -v chrt >/dev/null 2>&1 && chrt -i 0 true 2>/dev/null; then idle="chrt -i 0";
-        else idle="nice -n 19"; fi
-        pure_log=$(mktemp "${TMPDIR:-/tmp}/celld-pure-tests.XXXXXX")
-        CELLD_TEST_BLOCK=100 $idle .venv/bin/python -m pytest -m "not hardware and not cell and not process" -n 1 \
-            >"$pure_log" 2>&1 &
-        pure=$!
         status=0
-        CELLD_TEST_BLOCK=0 .venv/bin/python -m pytest -m "cell and not hardware" -n 0 || status=$?
-        pure_status=0
-        wait "$pure" || pure_status=$?
-        echo "--- the pure tests, run beside the cells ---"
-        cat "$pure_log"; rm -f "$pure_log"
-        [ "$pure_status" = 0 ] || status=$pure_status
-        .venv/bin/python -m pytest -m "process and not cell and not hardware" || status=$?
+        .venv/bin/python -m pytest -m "not hardware and not cell" || status=$?
+        .venv/bin/python -m pytest -m "cell and not hardware" -n 0 || status=$?
         exit "$status" ;;
     setup)
         ensure_libusb; ensure_venv ;;

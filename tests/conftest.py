@@ -16,8 +16,7 @@ import pytest
 # worker number (gw0, gw1, ...), so a run's workers never share one; a run
 # without workers the base itself. The base comes from the run's id (the
 # same in every worker of a run) or the process id, so parallel runs stay
-# apart too; CELLD_TEST_BLOCK sets it (run.sh gives the runs it starts side
-# by side blocks apart).
+# apart too.
 _BLOCKS = 200
 _PER_BLOCK = 250
 
@@ -25,8 +24,7 @@ _PER_BLOCK = 250
 def _block() -> int:
     worker = os.environ.get("PYTEST_XDIST_WORKER", "")
     run = os.environ.get("PYTEST_XDIST_TESTRUNUID", "")
-    given = os.environ.get("CELLD_TEST_BLOCK", "")
-    base = int(given) if given.isdigit() else zlib.crc32(run.encode()) if run else os.getpid()
+    base = zlib.crc32(run.encode()) if run else os.getpid()
     index = int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else 0
     return 1 + (base + index) % _BLOCKS
 

@@ -443,3 +443,55 @@ def test_kill_9_of_the_motion_process_with_the_arc_on(loopback_host: str, interl
         # process switched it off (its first write), or past the window.
         assert seen["arc_on_at_end"] or seen["arc_off_s"] > 0.4, seen
         assert missing, seen  # the next process found the output on and said why
+
+
+def test_a_daemon_that_freezes_mid_move_has_the_arm_stopped_within_the_hang_bound_and_says_so(sim: Any, tmp_path: Any) -> None:
+    """The daemon's heartbeat stands still while the arm moves: the motion process stops it once the beat is
+    ``motion.hang_stop`` old (not after ``parent_timeout``), ends naming the hang, and leaves its note."""
+    from celld.supervision import BeatThread, ChildRecords, Heartbeat, exit_notes
+
+    cfg = _config()
+    hb = Heartbeat(f"t-hb-{os.getpid()}-{time.monotonic_ns() % 100000}")
+    runs = [True]
+    beater = BeatThread(hb, lambda: runs[0], period=0.02)
+    beater.start()
+    records = ChildRecords(tmp_path / "run")
+
+    async def scenario(motion: MotionHandle) -> None:
+        start = motion.state()
+        assert start is not None
+        far = _offset(start.T_base_tcp, [0.3, 0.2, -0.1])
+        move = asyncio.ensure_future(motion.move_to(far))
+        await asyncio.sleep(0.6)
+        runs[0] = False  # the daemon freezes: no beat from now on
+        t_hang = time.monotonic()
+        with pytest.raises((LinkLost, MotionError), match="hangs"):
+            await move
+        seen = time.monotonic() - t_hang
+        # The arm at rest soon after: the stop began within the bound (0.25 s, looked at every 10 ms).
+        q_prev, still_since = sim.truth()[2], None
+        while time.monotonic() - t_hang < 2.0:
+            await asyncio.sleep(0.01)
+            q = sim.truth()[2]
+            if np.max(np.abs(q - q_prev)) < 1e-9:
+                still_since = still_since or time.monotonic()
+                if time.monotonic() - still_since > 0.1:
+                    break
+            else:
+                still_since = None
+            q_prev = q
+        # At rest within the hang bound, the beat and look periods (20 + 10 ms) and a jerk-limited stop from
+        # full speed (v/a + a/j: 0.35 s here), far inside the idle parent_timeout (3 s).
+        m = cfg.motion
+        bound = m.hang_stop + 0.03 + m.max_linear_speed / m.max_linear_accel + m.max_linear_accel / m.max_linear_jerk
+        assert still_since is not None and still_since - t_hang < bound, (still_since - t_hang, seen, bound)
+        assert seen < bound
+        runs[0] = True
+
+    try:
+        _run(sim, scenario, cfg, heartbeat=hb.name, records=records)
+    finally:
+        beater.stop()
+        hb.close()
+    notes = exit_notes(records.dir)
+    assert notes and notes[0]["role"] == "motion" and "(it hangs)" in notes[0]["reason"], notes
