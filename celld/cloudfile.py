@@ -6,7 +6,9 @@ points takes tens of gigabytes. :func:`check_cloud_file` reads only the
 header and refuses a file whose declared points cannot fit in its body, or
 that declares more than :data:`MAX_POINTS`, with an InputError naming the
 file and the figures. :func:`ply_header` is the PLY header parser the
-replay scanner builds its organized-cloud reader on.
+replay scanner builds its organized-cloud reader on. :func:`load_npy` does
+the same for a ``.npy`` array: numpy allocates the shape its header
+declares before it reads the data.
 """
 
 from __future__ import annotations
@@ -176,3 +178,37 @@ def check_cloud_file(path: str | Path) -> int:
     if suffix == ".pcd":
         return pcd_points(path)
     raise InputError(f"{path}: expected a .ply or .pcd cloud, got {suffix or 'no suffix'}")
+
+
+def load_npy(path: str | Path, max_items: int = 3 * MAX_POINTS) -> np.ndarray:
+    """A ``.npy`` array of numbers, its header checked before anything is allocated.
+
+    Refused with an InputError naming the file: not a ``.npy`` file, an
+    object or non-numeric dtype, a shape whose data the file cannot hold, or
+    more than ``max_items`` values.
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            if version == (1, 0):
+                shape, _fortran, dtype = np.lib.format.read_array_header_1_0(f)
+            elif version in ((2, 0), (3, 0)):
+                shape, _fortran, dtype = np.lib.format.read_array_header_2_0(f)
+            else:
+                raise InputError(f"{p}: .npy format version {version} is not supported")
+            offset = f.tell()
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{p}: not a readable .npy array: {exc}") from exc
+    if dtype.hasobject or dtype.kind not in "biuf":
+        raise InputError(f"{p}: expected an array of numbers, the header declares dtype {dtype}")
+    items = int(np.prod(shape, dtype=np.float64)) if shape else 1
+    if items > max_items:
+        raise InputError(f"{p}: the header declares {items} values (shape {shape}); at most {max_items} are read")
+    body = p.stat().st_size - offset
+    if items * dtype.itemsize > body:
+        raise InputError(f"{p}: the header declares shape {shape} of {dtype} ({items * dtype.itemsize} bytes), the file holds {body}")
+    try:
+        return np.array(np.load(p, mmap_mode="r", allow_pickle=False))
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{p}: not a readable .npy array: {exc}") from exc

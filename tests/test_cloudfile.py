@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 from celld.calib.dataset import read_cloud, write_cloud
-from celld.cloudfile import MAX_POINTS, check_cloud_file
+from celld.cloudfile import MAX_POINTS, check_cloud_file, load_npy
 from celld.errors import InputError
 
 FORGED_PLY = (
@@ -83,3 +84,45 @@ def test_good_clouds_pass_and_read(tmp_path: Path, rng: np.random.Generator) -> 
     write_cloud(tmp_path / "c.ply", P)
     assert check_cloud_file(tmp_path / "c.ply") == 500
     np.testing.assert_allclose(read_cloud(tmp_path / "c.ply", "m"), P, atol=1e-6)
+
+
+def _npy_with_header(path: Path, header: str) -> Path:
+    """A .npy file whose header says ``header`` over a few bytes of data."""
+    text = header.encode("latin1")
+    text += b" " * (118 - len(text)) + b"\n"
+    path.write_bytes(b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text)) + text + b"\0" * 64)
+    return path
+
+
+def test_a_npy_header_bomb_is_refused_before_any_allocation(tmp_path: Path) -> None:
+    bomb = _npy_with_header(tmp_path / "bomb.npy", "{'descr': '<f8', 'fortran_order': False, 'shape': (100000000000, 3), }")
+    with pytest.raises(InputError, match="declares 300000000000 values"):
+        load_npy(bomb)
+    # Under the cap but more than the file holds.
+    short = _npy_with_header(tmp_path / "short.npy", "{'descr': '<f8', 'fortran_order': False, 'shape': (1000, 3), }")
+    with pytest.raises(InputError, match="the file holds 64"):
+        load_npy(short)
+    objects = _npy_with_header(tmp_path / "objects.npy", "{'descr': '|O', 'fortran_order': False, 'shape': (2,), }")
+    with pytest.raises(InputError, match="array of numbers"):
+        load_npy(objects)
+    (tmp_path / "text.npy").write_text("not an array")
+    with pytest.raises(InputError, match="not a readable .npy array"):
+        load_npy(tmp_path / "text.npy")
+
+
+@pytest.mark.process
+def test_calib_detect_refuses_a_npy_header_bomb_with_a_clear_error(tmp_path: Path) -> None:
+    bomb = _npy_with_header(tmp_path / "bomb.npy", "{'descr': '<f8', 'fortran_order': False, 'shape': (100000000000, 3), }")
+    got = subprocess.run(
+        [sys.executable, "-m", "celld.cli", "calib", "detect", "--flange", "ur10e", "--units", "m", str(bomb)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert got.returncode == 2 and "declares 300000000000 values" in got.stderr and "Traceback" not in got.stderr, got.stderr
+
+
+def test_a_good_npy_reads_back(tmp_path: Path, rng: np.random.Generator) -> None:
+    P = rng.normal(size=(40, 30, 3))
+    np.save(tmp_path / "cloud.npy", P)
+    np.testing.assert_array_equal(load_npy(tmp_path / "cloud.npy"), P)

@@ -144,19 +144,16 @@ def _solve_dict(args: argparse.Namespace) -> dict[str, Any]:
 
 def _read_any_cloud(path: Path, units: str) -> np.ndarray:
     """A cloud file in metres: PLY / PCD (organized if written so by celld), or .npy (n, 3) / (H, W, 3)."""
-    import numpy as np
 
     from celld.calib.dataset import read_cloud
     from celld.calib.detect import to_metres
+    from celld.cloudfile import load_npy
 
     if path.suffix.lower() != ".npy":
         return read_cloud(path, units)
     if not path.is_file():
         raise InputError(f"{path}: cloud file not found")
-    try:
-        return to_metres(np.load(path, allow_pickle=False), units)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: not a readable .npy array: {exc}") from exc
+    return to_metres(load_npy(path), units)
 
 
 def _detect(args: argparse.Namespace) -> int:

@@ -149,14 +149,13 @@ def _hand_eye(args: argparse.Namespace) -> np.ndarray:
 
 
 def _matrix_file(path: str, what: str) -> np.ndarray:
-    import numpy as np
-
     from celld import se3
+    from celld.cloudfile import load_npy
 
     p = Path(path)
     try:
         if p.suffix.lower() == ".npy":
-            value: Any = np.load(p)
+            value: Any = load_npy(p, max_items=16)
         else:
             value = json.loads(p.read_text(encoding="utf-8"))
             if isinstance(value, dict):
@@ -171,7 +170,7 @@ def read_cloud(path: str | Path, units: str = "m") -> np.ndarray:
     """Read a saved scan as an (H, W, 3) or (n, 3) float array in metres."""
     import numpy as np
 
-    from celld.cloudfile import check_cloud_file
+    from celld.cloudfile import check_cloud_file, load_npy
 
     p = Path(path)
     if not p.is_file():
@@ -179,8 +178,7 @@ def read_cloud(path: str | Path, units: str = "m") -> np.ndarray:
     suffix = p.suffix.lower()
     try:
         if suffix == ".npy":
-            # Mapped first: a header that declares more than the file holds fails here, unallocated.
-            P = np.array(np.load(p, mmap_mode="r", allow_pickle=False))
+            P = load_npy(p)  # the header checked before anything is allocated
         elif suffix == ".npz":
             with np.load(p) as data:
                 if "points" not in data:
