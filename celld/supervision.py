@@ -150,6 +150,10 @@ class BeatThread:
             self._thread.join(1.0)
 
 
+# A child's exit note is <role> plus this, beside the daemon's records of its children.
+EXIT_NOTE_SUFFIX = ".ended.json"
+
+
 def write_exit_note(path: str | os.PathLike[str], role: str, reason: str, at_ns: int) -> None:
     """A child's note of why it took its daemon for gone (and so stopped what it drove), for the next daemon."""
     with contextlib.suppress(OSError):
@@ -159,7 +163,7 @@ def write_exit_note(path: str | os.PathLike[str], role: str, reason: str, at_ns:
 def exit_notes(run_dir: str | os.PathLike[str]) -> list[dict[str, Any]]:
     """The notes the previous daemon's children left (:func:`write_exit_note`), oldest first; each is removed."""
     notes: list[dict[str, Any]] = []
-    for path in sorted(Path(run_dir).glob("*.ended.json")):
+    for path in sorted(Path(run_dir).glob("*" + EXIT_NOTE_SUFFIX)):
         try:
             doc = json.loads(path.read_text())
             notes.append({"role": str(doc["role"]), "reason": str(doc["reason"]), "time": float(doc["time"])})
@@ -283,6 +287,8 @@ class ChildRecords:
         """Stop the recorded children of a previous daemon and unlink their segments; what was done, one line each."""
         done: list[str] = []
         for path in sorted(self.dir.glob("*.json")):
+            if path.name.endswith(EXIT_NOTE_SUFFIX):
+                continue  # a child's exit note (write_exit_note), read after the reap
             try:
                 doc = json.loads(path.read_text())
                 pid, ticks = int(doc["pid"]), doc.get("start_ticks")

@@ -80,9 +80,10 @@ def test_the_beat_thread_beats_while_the_loop_runs_and_stands_still_with_it() ->
         hb.close()
 
 
-def test_a_childs_exit_note_is_read_once_by_the_next_daemon(tmp_path: Path) -> None:
+def test_a_childs_exit_note_is_read_once_by_the_next_daemon_and_the_reap_leaves_it(tmp_path: Path) -> None:
     write_exit_note(tmp_path / "motion.ended.json", "motion", "the daemon's heartbeat is 262 ms old (it hangs)", 5)
     (tmp_path / "motion2.ended.json").write_text("{not json")
+    assert ChildRecords(tmp_path).reap() == []  # no record of a child: the notes are not records
     notes = exit_notes(tmp_path)
     assert [(n["role"], n["reason"]) for n in notes] == [("motion", "the daemon's heartbeat is 262 ms old (it hangs)")]
     assert list(tmp_path.glob("*.ended.json")) == [] and exit_notes(tmp_path) == []

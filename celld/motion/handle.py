@@ -62,7 +62,7 @@ from celld.motion.types import ControlStatus, RobotState, ServoPlan
 from celld.realtime import RealtimeOptions
 from celld.schemadoc import boolean, enum, integer, number, obj, string
 from celld.se3 import from_ur_pose
-from celld.supervision import Backoff, ChildRecords
+from celld.supervision import EXIT_NOTE_SUFFIX, Backoff, ChildRecords
 
 log = get_logger(__name__)
 
@@ -272,7 +272,7 @@ class MotionHandle:
         channels = Channels.create(names, create_tactile=tactile_slot is None)
         try:
             spec = spec_from_config(config, names, host, servo_laws, realtime, move, link_timeout, watchdog_hz, heartbeat=heartbeat)
-            note = str(records.dir / f"{role}.ended.json") if records is not None else ""
+            note = str(records.dir / (role + EXIT_NOTE_SUFFIX)) if records is not None else ""
             spec = dataclasses.replace(spec, role=role, exit_note=note)
             timeout = connect_timeout if connect_timeout is not None else config.robot.connect_timeout
             sup = MotionSupervisor(spec, channels, timeout, hang_timeout, backoff, records)

@@ -149,7 +149,9 @@ def test_a_calibrated_weld_tracks_the_seam_and_a_cancelled_or_killed_weld_stops(
         with open(tmp_path / "daemon2.log", "ab") as log:
             second = start_daemon(cfg_path, log, timeout=120)
             try:
-                assert second.client.status(killed)["state"] == "interrupted"
+                record = second.client.status(killed)
+                # Interrupted, and why: what the orphaned motion process noted (its daemon killed), no operator's stop.
+                assert record["state"] == "interrupted" and "motion process: the daemon" in record["reason"], record
                 target = {"space": "cartesian", "pose": list(cfg.weld.scan_pose)}
                 _, moved = second.client.submit_and_wait({"kind": "move", "target": target}, timeout=120)
                 assert moved["state"] == "succeeded", (moved["reason"], robot.status())
