@@ -67,6 +67,17 @@ _PF_EXITING = 0x4
 _SIGKILL_BIT = 1 << (signal.SIGKILL - 1)
 
 
+def stopped(stat: bytes) -> str:
+    """Why the process of a ``/proc/<pid>/stat`` line cannot run: stopped by a signal (SIGSTOP, SIGTSTP) or
+    a debugger, or "" (its state, field 3: ``T`` or ``t``). Raises ValueError on a line that is not one."""
+    state = stat[stat.rindex(b")") + 2 :].split()[0]
+    if state == b"T":
+        return "the daemon is stopped (SIGSTOP or SIGTSTP)"
+    if state == b"t":
+        return "the daemon is stopped by a debugger"
+    return ""
+
+
 def exiting(stat: bytes) -> str:
     """Why the process of a ``/proc/<pid>/stat`` line is on its way out, or "" (proc(5)).
 
@@ -220,7 +231,10 @@ class ParentWatch:
             return self._signalled
         if self._stat is not None:
             try:
-                why = exiting(os.pread(self._stat, 1024, 0))
+                line = os.pread(self._stat, 1024, 0)
+                # A caller that moves the robot (it asks for a shorter timeout) takes a stopped daemon for hung
+                # at once: it can cancel nothing, and no heartbeat can say so sooner.
+                why = exiting(line) or (stopped(line) if timeout_ns is not None else "")
             except (OSError, ValueError, IndexError):  # reaped: ESRCH; getppid() below says so
                 why = ""
             if why:

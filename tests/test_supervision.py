@@ -24,6 +24,7 @@ from celld.supervision import (
     ParentWatch,
     exit_notes,
     exiting,
+    stopped,
     write_exit_note,
 )
 
@@ -117,6 +118,8 @@ def test_the_parents_proc_entry_says_when_it_is_killed_exiting_or_a_zombie() -> 
     assert exiting(_with_fields(alive, f3=b"Z")) == "the daemon has exited"
     with pytest.raises(ValueError):
         exiting(b"not a stat line")
+    assert stopped(alive) == "" and "SIGSTOP" in stopped(_with_fields(alive, f3=b"T"))
+    assert "debugger" in stopped(_with_fields(alive, f3=b"t")) and stopped(_with_fields(alive, f3=b"S")) == ""
 
     # A real zombie (exited, not yet reaped) is seen as one, before anything is re-parented.
     child = subprocess.Popen([sys.executable, "-c", "pass"])
@@ -128,6 +131,26 @@ def test_the_parents_proc_entry_says_when_it_is_killed_exiting_or_a_zombie() -> 
             time.sleep(0.01)
         watch.close()
     finally:
+        child.wait(10)
+
+
+@pytest.mark.process
+def test_a_stopped_parent_is_hung_at_once_for_a_caller_that_moves_and_only_after_the_timeout_at_rest() -> None:
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        watch = ParentWatch(child.pid, signals=False)
+        os.kill(child.pid, signal.SIGSTOP)
+        deadline = time.monotonic() + 10
+        while "SIGSTOP" not in watch.check(timeout_ns=250_000_000):
+            assert time.monotonic() < deadline, watch.check(timeout_ns=250_000_000)
+            time.sleep(0.01)
+        # (getppid() is not the child here: a caller at rest would take it for gone on that; the
+        # stopped state alone is read only for a caller that moves.)
+        assert stopped(Path(f"/proc/{child.pid}/stat").read_bytes()) != ""
+        os.kill(child.pid, signal.SIGCONT)
+        watch.close()
+    finally:
+        child.kill()
         child.wait(10)
 
 
