@@ -83,8 +83,13 @@ class Daemon:
         """The job the previous daemon left running ended when its motion process took it for gone: say why
         (it hung: the heartbeat stood still; it was killed), as that process noted it, not as an operator's stop."""
         notes = self.devices.life.exit_notes
+        if not notes:
+            return
+        # The job this daemon found running; or, when something opened the journal first (a tool reading
+        # it), the newest job if that one was marked so.
         running = [r for r in journal.recovered if r.reason == INTERRUPTED_RUNNING]
-        if not notes or not running:
+        running = running or [r for r in journal.jobs(limit=1) if r.state == "interrupted" and r.reason == INTERRUPTED_RUNNING]
+        if not running:
             return
         why = "; ".join(f"{n['role']} process: {n['reason']}" for n in notes)
         for record in running:
