@@ -168,7 +168,9 @@ def stops_in(log: str) -> dict[str, int]:
     is spurious."""
     return {
         "spurious_hang_stops": sum(1 for line in log.splitlines() if "motion loop ended" in line and "(it hangs)" in line),
-        "stale_stops": sum(1 for line in log.splitlines() if "stale state" in line and ("job failed" in line or "motion loop ended" in line)),
+        "stale_stops": sum(
+            1 for line in log.splitlines() if "stale state" in line and ("job failed" in line or "motion loop ended" in line)
+        ),
     }
 
 

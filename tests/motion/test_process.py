@@ -86,6 +86,23 @@ def _offset(T: np.ndarray, dp: list[float]) -> np.ndarray:
     return out
 
 
+async def _at_rest_since(sim: Any, t0: float, step: float, within: float = 2.0) -> float | None:
+    """When (monotonic s) the simulated arm came to rest for good (still for 0.1 s), looking from ``t0``
+    for ``within`` s every ``step`` s; None if it did not."""
+    q_prev, still_since = sim.truth()[2], None
+    while time.monotonic() - t0 < within:
+        await asyncio.sleep(step)
+        q = sim.truth()[2]
+        if np.max(np.abs(q - q_prev)) < 1e-9:
+            still_since = still_since or time.monotonic()
+            if time.monotonic() - still_since > 0.1:
+                return still_since
+        else:
+            still_since = None
+        q_prev = q
+    return None
+
+
 def test_move_to_ends_within_a_tenth_of_a_millimetre(sim: Any) -> None:
     results: list[tuple[float, float]] = []
 
@@ -155,18 +172,7 @@ def test_kill_9_watchdog_stops_the_robot_and_the_next_motion_works(sim: Any) -> 
         with pytest.raises(LinkLost, match="SIGKILL"):
             await move
         # The RTDE watchdog (5 Hz here) stops the program, and the arm comes to rest.
-        q_prev = sim.truth()[2]
-        still_since = None
-        while time.monotonic() - t_kill < 2.0:
-            await asyncio.sleep(0.02)
-            q = sim.truth()[2]
-            if np.max(np.abs(q - q_prev)) < 1e-9:
-                still_since = still_since or time.monotonic()
-                if time.monotonic() - still_since > 0.1:
-                    break
-            else:
-                still_since = None
-            q_prev = q
+        still_since = await _at_rest_since(sim, t_kill, step=0.02)
         assert still_since is not None and still_since - t_kill < 0.5
         assert "watchdog" in sim.status()["last_stop_reason"].lower()
         # The supervisor restarts the process; the next motion works.
@@ -468,18 +474,7 @@ def test_a_daemon_that_freezes_mid_move_has_the_arm_stopped_within_the_hang_boun
         with pytest.raises((LinkLost, MotionError), match="hangs"):
             await move
         seen = time.monotonic() - t_hang
-        # The arm at rest soon after: the stop began within the bound (0.25 s, looked at every 10 ms).
-        q_prev, still_since = sim.truth()[2], None
-        while time.monotonic() - t_hang < 2.0:
-            await asyncio.sleep(0.01)
-            q = sim.truth()[2]
-            if np.max(np.abs(q - q_prev)) < 1e-9:
-                still_since = still_since or time.monotonic()
-                if time.monotonic() - still_since > 0.1:
-                    break
-            else:
-                still_since = None
-            q_prev = q
+        still_since = await _at_rest_since(sim, t_hang, step=0.01)
         # At rest within the hang bound, the beat and look periods (20 + 10 ms) and a jerk-limited stop from
         # full speed (v/a + a/j: 0.35 s here), far inside the idle parent_timeout (3 s).
         m = cfg.motion
