@@ -12,15 +12,14 @@ the others:
    median squared residual is smallest. It needs no threshold and survives
    up to half the pairs being false.
 2. A noise scale from that median (3-D residual norms of isotropic Gaussian
-   noise follow a chi distribution with 3 degrees of freedom), with the
-   finite-sample correction of least median of squares, ``1 + 5 / (n - 3)``
-   (Rousseeuw and Leroy 1987, with the minimal sample's three
-   pairs): with few pairs the median falls among the sample's own near-zero
-   residuals. (Without it, five good pairs of a half-resolution scan, 0.05
-   mm apart, came out at 9 um of noise and two of them were refused.) When
-   the minimal sample's fit still keeps fewer than four pairs, each other
-   pair is tested against the core fitted together with it: a three-pair
-   fit carries its own noise out to the others.
+   noise follow a chi distribution with 3 degrees of freedom). With few
+   pairs the median falls among the sample's own near-zero residuals and
+   the scale comes out small, and a three-pair fit carries its own noise out
+   to the other pairs: when the first threshold keeps fewer than four pairs,
+   each other pair is tested against the kept ones fitted together with it,
+   at a threshold from the scale with its small-sample correction.
+   (Before, five good pairs of a half-resolution scan, 0.05 mm apart, were
+   refused more often than not.)
 3. Iterate until the inlier set stops changing: threshold the residuals of
    every pair at ``k sigma`` (``k`` from the chi-3 quantile of a per-pair
    false-rejection probability), least squares (Eq. 9-12) on the inliers,
@@ -281,7 +280,7 @@ def solve_robust(
         raise InputError("ids: pair ids must be unique")
 
     T0, med2 = least_median_of_squares(P_dst, P_src, params)
-    sigma = math.sqrt(med2 / CHI2_3_MEDIAN) * (1.0 + 5.0 / (n - 3))  # step 2's finite-sample correction
+    sigma = math.sqrt(med2 / CHI2_3_MEDIAN)
     k = params.k
     residuals = pair_residuals(T0, P_dst, P_src)
     inlier: NDArray[np.bool_] | None = None
@@ -292,7 +291,10 @@ def solve_robust(
             threshold = min(threshold, params.max_threshold)
         new_inlier = residuals <= threshold
         if inlier is None and np.count_nonzero(new_inlier) < MIN_PAIRS:
-            new_inlier = _joined(P_dst, P_src, new_inlier, threshold)
+            # The rescue of step 2, its scale with least median of squares' finite-sample correction,
+            # 1 + 5 / (n - 3) (Rousseeuw and Leroy 1987, the minimal sample being three pairs).
+            rescue = max(k * sigma * (1.0 + 5.0 / (n - 3)), params.min_threshold)
+            new_inlier = _joined(P_dst, P_src, new_inlier, rescue)
         if inlier is not None and (np.array_equal(new_inlier, inlier) or rounds >= params.max_rounds):
             break
         inlier = new_inlier

@@ -65,8 +65,8 @@ def test_too_few_consistent_pairs_are_refused(rng: np.random.Generator) -> None:
 
 def test_five_good_pairs_of_a_noisy_scan_are_solved_not_refused() -> None:
     # Half-resolution detections scatter about 0.05 mm: a three-pair fit carries that out to the other two
-    # pairs by more than the 0.1 mm floor. Before the scale's small-sample correction and the joined
-    # first round, 169 of 300 such sets were refused ("only 3 of 5 pairs agree").
+    # pairs by more than the 0.1 mm floor. Before the first round's rescue (each pair tested against the
+    # others fitted with it), 169 of 300 such sets were refused ("only 3 of 5 pairs agree").
     refused = kept = 0
     for seed in range(100):
         P_base, P_cam = pairs(np.random.default_rng(seed), 5, 0.05e-3)

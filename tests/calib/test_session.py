@@ -68,7 +68,7 @@ def test_consistent_pairs_stop_the_session_at_the_gates_minimum() -> None:
 def test_disagreeing_pairs_keep_it_capturing_until_they_are_outvoted() -> None:
     session = CalibrationSession(None, SolveParams(), planned=20, verifier=PerfectVerifier())
     steps = _feed(session, 20, {1: 0.4e-3, 3: -0.3e-3})
-    # At five pairs the one 0.3 mm off still passes as noise in the solve; the quality gate names it.
+    # At five pairs the one 0.3 mm off passes the solve's small-sample rescue; the quality gate names it.
     assert not steps[4].stop and "outliers: p003" in steps[4].held, steps[4].held
     # More poses outvote them: the two are named outliers and the gate passes.
     assert steps[-1].stop and len(steps) <= 8, [s.held for s in steps]
