@@ -475,10 +475,12 @@ def test_a_daemon_that_freezes_mid_move_has_the_arm_stopped_within_the_hang_boun
             await move
         seen = time.monotonic() - t_hang
         still_since = await _at_rest_since(sim, t_hang, step=0.01)
-        # At rest within the hang bound, the beat and look periods (20 + 10 ms) and a jerk-limited stop from
-        # full speed (v/a + a/j: 0.35 s here), far inside the idle parent_timeout (3 s).
+        # At rest within the hang bound, the beat and look periods (20 + 10 ms), a jerk-limited stop from
+        # full speed (v/a + a/j: 0.35 s here) and 0.1 s for the simulator's late ticks on a loaded machine
+        # (module docstring; 0.61-0.65 s measured), far inside the idle parent_timeout (3 s).
         m = cfg.motion
-        bound = m.hang_stop + 0.03 + m.max_linear_speed / m.max_linear_accel + m.max_linear_accel / m.max_linear_jerk
+        stop = m.max_linear_speed / m.max_linear_accel + m.max_linear_accel / m.max_linear_jerk
+        bound = m.hang_stop + 0.03 + stop + 0.1
         assert still_since is not None and still_since - t_hang < bound, (still_since - t_hang, seen, bound)
         assert seen < bound
         runs[0] = True
