@@ -76,7 +76,8 @@ def test_a_scanner_on_the_arm_is_calibrated_on_its_link_and_places_a_scan_at_oth
         assert "T_link1_cam" in report and "T_base_cam" not in report
         quality = report["quality"]
         assert quality["verdict"] == "ok", quality["reasons"]
-        assert len(quality["pairs"]) >= 6 and all(np.isfinite(quality["translation_std_mm"]))
+        # (The job may stop early once Algorithm 1 and the quality gate are satisfied: at the gate's five pairs.)
+        assert len(quality["pairs"]) >= 5 and all(np.isfinite(quality["translation_std_mm"]))
 
         # Against the truth: where the arm lands when sent to what the scanner saw, with the scanner
         # where the arm holds it at the verification pose.
