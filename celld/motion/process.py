@@ -165,6 +165,13 @@ def run(spec: MotionSpec) -> LoopExit:
         if loop is not None and not loop.release_output():
             # After the exit report: on a dead link ur-rtde tries to reconnect first.
             log.error("the process output could not be switched off; the robot's I/O set-up must do it", output=spec.loop.process_output)
+        if loop is not None and loop.orphaned and end is not None:
+            # Without its daemon, with the arm at rest and the output off: nothing here is owed to anyone,
+            # and the next daemon may be starting. ur-rtde's disconnect (1 s) and the interpreter's shutdown
+            # (1 s more) are skipped: the sockets close with the process, the robot's watchdog ends its program.
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(EXIT_CODES.get(end.status, 5))
         if link is not None:
             # A graceful end stops the robot's program; otherwise the watchdog does.
             link.close(stop_script=end is not None and end.status == ControlStatus.OK)

@@ -24,6 +24,7 @@ import os
 import signal
 import time
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -84,6 +85,15 @@ def _offset(T: np.ndarray, dp: list[float]) -> np.ndarray:
     out = T.copy()
     out[:3, 3] += dp
     return out
+
+
+def _gone(pid: int) -> bool:
+    """The process has exited (reaped, or a zombie its parent has not reaped yet)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True
+    return stat[stat.rindex(")") + 2] == "Z"
 
 
 async def _at_rest_since(sim: Any, t0: float, step: float, within: float = 2.0) -> float | None:
@@ -469,11 +479,17 @@ def test_a_daemon_that_freezes_mid_move_has_the_arm_stopped_within_the_hang_boun
         far = _offset(start.T_base_tcp, [0.3, 0.2, -0.1])
         move = asyncio.ensure_future(motion.move_to(far))
         await asyncio.sleep(0.6)
+        pid = motion.supervisor.pid
+        assert pid is not None
         runs[0] = False  # the daemon freezes: no beat from now on
         t_hang = time.monotonic()
         with pytest.raises((LinkLost, MotionError), match="hangs"):
             await move
         seen = time.monotonic() - t_hang
+        # The orphan exits as soon as its stop is done, not after ur-rtde's disconnect (2 s before).
+        while not _gone(pid):
+            assert time.monotonic() - t_hang < seen + 0.2, "the orphaned motion process lingers"
+            await asyncio.sleep(0.005)
         still_since = await _at_rest_since(sim, t_hang, step=0.01)
         # At rest within the hang bound, the beat and look periods (20 + 10 ms), a jerk-limited stop from
         # full speed (v/a + a/j: 0.35 s here) and 0.1 s for the simulator's late ticks on a loaded machine
