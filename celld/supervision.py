@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from celld import fsutil
+from celld.journal import utc_now
 from celld.log import get_logger
 from celld.shm import SeqlockSlot, unlink_segment
 
@@ -67,19 +68,9 @@ _PF_EXITING = 0x4
 _SIGKILL_BIT = 1 << (signal.SIGKILL - 1)
 
 
-def stopped(stat: bytes) -> str:
-    """Why the process of a ``/proc/<pid>/stat`` line cannot run: stopped by a signal (SIGSTOP, SIGTSTP) or
-    a debugger, or "" (its state, field 3: ``T`` or ``t``). Raises ValueError on a line that is not one."""
-    state = stat[stat.rindex(b")") + 2 :].split()[0]
-    if state == b"T":
-        return "the daemon is stopped (SIGSTOP or SIGTSTP)"
-    if state == b"t":
-        return "the daemon is stopped by a debugger"
-    return ""
-
-
-def exiting(stat: bytes) -> str:
-    """Why the process of a ``/proc/<pid>/stat`` line is on its way out, or "" (proc(5)).
+def exiting(stat: bytes, stopped: bool = False) -> str:
+    """Why the process of a ``/proc/<pid>/stat`` line is on its way out, or "" (proc(5)); with ``stopped``,
+    also why it cannot run: stopped by a signal (SIGSTOP, SIGTSTP) or a debugger (state ``T`` or ``t``).
 
     A process killed with SIGKILL has the signal pending in its main thread
     at once, then the kernel's PF_EXITING flag while it frees its memory and
@@ -98,6 +89,10 @@ def exiting(stat: bytes) -> str:
         return "the daemon is exiting"
     if pending & _SIGKILL_BIT:
         return "the daemon is being killed (SIGKILL)"
+    if stopped and state == b"T":
+        return "the daemon is stopped (SIGSTOP or SIGTSTP)"
+    if stopped and state == b"t":
+        return "the daemon is stopped by a debugger"
     return ""
 
 
@@ -165,10 +160,11 @@ class BeatThread:
 EXIT_NOTE_SUFFIX = ".ended.json"
 
 
-def write_exit_note(path: str | os.PathLike[str], role: str, reason: str, at_ns: int) -> None:
-    """A child's note of why it took its daemon for gone (and so stopped what it drove), for the next daemon."""
+def write_exit_note(path: str | os.PathLike[str], role: str, reason: str) -> None:
+    """A child's note of why it took its daemon for gone (and so stopped what it drove), for the next daemon;
+    stamped in the journal's time, so it can be matched with the job that was running."""
     with contextlib.suppress(OSError):
-        fsutil.write_json(Path(path), {"role": role, "pid": os.getpid(), "reason": reason, "monotonic_ns": at_ns, "time": time.time()})
+        fsutil.write_json(Path(path), {"role": role, "pid": os.getpid(), "reason": reason, "at": utc_now()})
 
 
 def exit_notes(run_dir: str | os.PathLike[str]) -> list[dict[str, Any]]:
@@ -177,11 +173,11 @@ def exit_notes(run_dir: str | os.PathLike[str]) -> list[dict[str, Any]]:
     for path in sorted(Path(run_dir).glob("*" + EXIT_NOTE_SUFFIX)):
         try:
             doc = json.loads(path.read_text())
-            notes.append({"role": str(doc["role"]), "reason": str(doc["reason"]), "time": float(doc["time"])})
+            notes.append({"role": str(doc["role"]), "reason": str(doc["reason"]), "at": str(doc["at"])})
         except (OSError, ValueError, KeyError, TypeError) as exc:
             log.warning("unreadable exit note of a previous child", path=str(path), error=str(exc))
         path.unlink(missing_ok=True)
-    return sorted(notes, key=lambda n: n["time"])
+    return sorted(notes, key=lambda n: n["at"])
 
 
 class ParentWatch:
@@ -231,10 +227,9 @@ class ParentWatch:
             return self._signalled
         if self._stat is not None:
             try:
-                line = os.pread(self._stat, 1024, 0)
                 # A caller that moves the robot (it asks for a shorter timeout) takes a stopped daemon for hung
                 # at once: it can cancel nothing, and no heartbeat can say so sooner.
-                why = exiting(line) or (stopped(line) if timeout_ns is not None else "")
+                why = exiting(os.pread(self._stat, 1024, 0), stopped=timeout_ns is not None)
             except (OSError, ValueError, IndexError):  # reaped: ESRCH; getppid() below says so
                 why = ""
             if why:
@@ -329,7 +324,7 @@ class ChildRecords:
             return f"{role} (pid {pid}) had already ended"
         deadline = time.monotonic() + grace
         while time.monotonic() < deadline:
-            if _start_ticks(pid) is None or _is_zombie(pid):
+            if exited(pid):
                 return f"{role} (pid {pid}) stopped on SIGTERM"
             time.sleep(0.02)
         with contextlib.suppress(ProcessLookupError):
@@ -337,7 +332,8 @@ class ChildRecords:
         return f"{role} (pid {pid}) did not stop within {grace:g} s: killed"
 
 
-def _is_zombie(pid: int) -> bool:
+def exited(pid: int) -> bool:
+    """Process ``pid`` has exited: reaped, or a zombie its parent has not reaped yet."""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
     except OSError:

@@ -24,7 +24,6 @@ from celld.supervision import (
     ParentWatch,
     exit_notes,
     exiting,
-    stopped,
     write_exit_note,
 )
 
@@ -82,7 +81,7 @@ def test_the_beat_thread_beats_while_the_loop_runs_and_stands_still_with_it() ->
 
 
 def test_a_childs_exit_note_is_read_once_by_the_next_daemon_and_the_reap_leaves_it(tmp_path: Path) -> None:
-    write_exit_note(tmp_path / "motion.ended.json", "motion", "the daemon's heartbeat is 262 ms old (it hangs)", 5)
+    write_exit_note(tmp_path / "motion.ended.json", "motion", "the daemon's heartbeat is 262 ms old (it hangs)")
     (tmp_path / "motion2.ended.json").write_text("{not json")
     assert ChildRecords(tmp_path).reap() == []  # no record of a child: the notes are not records
     notes = exit_notes(tmp_path)
@@ -118,8 +117,10 @@ def test_the_parents_proc_entry_says_when_it_is_killed_exiting_or_a_zombie() -> 
     assert exiting(_with_fields(alive, f3=b"Z")) == "the daemon has exited"
     with pytest.raises(ValueError):
         exiting(b"not a stat line")
-    assert stopped(alive) == "" and "SIGSTOP" in stopped(_with_fields(alive, f3=b"T"))
-    assert "debugger" in stopped(_with_fields(alive, f3=b"t")) and stopped(_with_fields(alive, f3=b"S")) == ""
+    # A stopped process, for a caller that asks (one that moves the robot); no death for one that does not.
+    assert exiting(alive, stopped=True) == "" and "SIGSTOP" in exiting(_with_fields(alive, f3=b"T"), stopped=True)
+    assert "debugger" in exiting(_with_fields(alive, f3=b"t"), stopped=True) and exiting(_with_fields(alive, f3=b"S"), stopped=True) == ""
+    assert exiting(_with_fields(alive, f3=b"T")) == ""
 
     # A real zombie (exited, not yet reaped) is seen as one, before anything is re-parented.
     child = subprocess.Popen([sys.executable, "-c", "pass"])
@@ -146,7 +147,7 @@ def test_a_stopped_parent_is_hung_at_once_for_a_caller_that_moves_and_only_after
             time.sleep(0.01)
         # (getppid() is not the child here: a caller at rest would take it for gone on that; the
         # stopped state alone is read only for a caller that moves.)
-        assert stopped(Path(f"/proc/{child.pid}/stat").read_bytes()) != ""
+        assert exiting(Path(f"/proc/{child.pid}/stat").read_bytes(), stopped=True) != ""
         os.kill(child.pid, signal.SIGCONT)
         watch.close()
     finally:

@@ -206,9 +206,10 @@ class MotionLimits:
     # loaded PC: about 1 s measured) and above systemd's WatchdogSec.
     parent_timeout: float = 3.0
     # While the arm moves or the arc is on, the motion process stops them both once the heartbeat is this
-    # old, s (a daemon stopped by a signal or a debugger at once: its /proc state): a hung daemon can cancel nothing. The heartbeat beats every 20 ms from a thread that stands
-    # still only when the whole process does (a frozen or stopped daemon) or its event loop has not run
-    # for a second; the loop looks every 10 ms: the arc is off within 0.3 s of a freeze.
+    # old, s (a daemon stopped by a signal or a debugger at once, by its /proc state): a hung daemon can
+    # cancel nothing. The heartbeat beats every 20 ms from a thread that stands still only when the whole
+    # process does or its event loop has not run for a second; the loop looks every 10 ms: the arc is off
+    # within 0.3 s of a freeze.
     hang_stop: float = 0.25
 
     @classmethod

@@ -47,6 +47,8 @@ HEARTBEAT_FRESH = 0.5
 LINK_WAIT = 10.0
 # How often robot state goes to the bus (the server decimates further), s.
 STATE_PERIOD = 0.05
+# How many of the newest interrupted jobs an exit note of the previous daemon's children is matched against.
+_RECENT_INTERRUPTED = 10
 
 
 class Daemon:
@@ -80,21 +82,18 @@ class Daemon:
     # -- life cycle ---------------------------------------------------------------
 
     def _explain_interruptions(self, journal: Journal) -> None:
-        """The job the previous daemon left running ended when its motion process took it for gone: say why
-        (it hung: the heartbeat stood still; it was killed), as that process noted it, not as an operator's stop."""
+        """Say why the job the previous daemon left running ended, as its motion process noted it when it took
+        the daemon for gone (hung, killed), not as an operator's stop: the job interrupted while running that
+        started before the note and was marked interrupted after it (by this daemon's journal, or by a tool
+        that opened the journal first)."""
         notes = self.devices.life.exit_notes
         if not notes:
             return
-        # The job this daemon found running; or, when something opened the journal first (a tool reading
-        # it), the newest job if that one was marked so.
-        running = [r for r in journal.recovered if r.reason == INTERRUPTED_RUNNING]
-        running = running or [r for r in journal.jobs(limit=1) if r.state == "interrupted" and r.reason == INTERRUPTED_RUNNING]
-        if not running:
-            return
         why = "; ".join(f"{n['role']} process: {n['reason']}" for n in notes)
-        for record in running:
-            journal.explain_interruption(record.id, why)
-            log.warning("job interrupted: the previous daemon's children say why", job=record.id, why=why)
+        for record in journal.jobs(limit=_RECENT_INTERRUPTED, state="interrupted"):
+            if record.reason == INTERRUPTED_RUNNING and any((record.started or "") <= n["at"] <= (record.ended or "") for n in notes):
+                journal.explain_interruption(record.id, why)
+                log.warning("job interrupted: the previous daemon's children say why", job=record.id, why=why)
 
     async def start(self) -> None:
         cfg = self.config
@@ -108,7 +107,7 @@ class Daemon:
         for record in self._journal.recovered:
             log.warning("job interrupted by the previous stop", job=record.id, kind=record.kind)
         self.notifier.status("opening devices")
-        await self.devices.open()
+        await self.devices.open(lambda: self.loop_watch.last_tick)
         self._explain_interruptions(self._journal)
         keys = CellKeys.of(cfg.bus.prefix, cfg.cell.name)
         self._session = open_server(cfg.bus, keys)

@@ -73,12 +73,9 @@ class Arm:
     ``[robot2]``, one more (:attr:`~celld.daemon.devices.CellDevices.robot2`).
     """
 
-    def __init__(self, config: Config, cpu: int = -1, role: str = "motion") -> None:
+    def __init__(self, config: Config, robot: int = 1) -> None:
         self.config = config
-        self.role = role  # its motion process's name in the daemon's child records
-        # The CPU its motion loop is pinned to (RealtimeOptions.cpu): robot 1's the last one, robot 2's
-        # the one before, so that two 500 Hz loops never queue behind each other on one core.
-        self.cpu = cpu
+        self.robot = robot  # the cell's robot 1 or 2
         self.motion: MotionHandle | None = None
         self.planner = MotionPlanner(config)
 
@@ -104,13 +101,15 @@ class Arm:
             cfg,
             servo_laws=servo_laws,
             tactile_slot=tactile_slot,
-            realtime=RealtimeOptions(cpu=self.cpu),
+            # Robot 1's loop on the last CPU, robot 2's on the one before: two 500 Hz loops never queue
+            # behind each other on one core.
+            realtime=RealtimeOptions(cpu=-self.robot),
             link_timeout=cfg.motion.link_timeout,
             watchdog_hz=cfg.motion.rtde_watchdog_hz,
             wait=False,
             heartbeat=heartbeat,
             records=records,
-            role=self.role,
+            role="motion" if self.robot == 1 else f"motion{self.robot}",  # its name in the daemon's child records
         )
         return self.motion
 

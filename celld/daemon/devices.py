@@ -259,13 +259,13 @@ class Lifecycle:
         self.exit_notes: list[dict[str, Any]] = []
         self.heartbeat: Heartbeat | None = None
         self._beater: BeatThread | None = None
-        self._loop_seen = time.monotonic()
         self.dashboard = Dashboard(config.robot.host)
-        self._beating: asyncio.Task[None] | None = None
         self._reading: asyncio.Task[None] | None = None
 
-    async def open(self) -> Heartbeat:
-        """Clean up after a killed daemon and start beating; the heartbeat the children watch."""
+    async def open(self, loop_ticked: Callable[[], float]) -> Heartbeat:
+        """Clean up after a killed daemon and start beating; the heartbeat the children watch. It beats while
+        ``loop_ticked()`` (when the event loop last ran, monotonic s: the loop watch's ticker) is within
+        :data:`LOOP_HANG`."""
         # A daemon that was killed may have left children that still drive the
         # robot (they stop on their own within the heartbeat timeout) and
         # shared memory: clean up before starting our own.
@@ -274,9 +274,7 @@ class Lifecycle:
         for note in self.exit_notes:
             log.warning("a child of the previous daemon took it for gone", role=note["role"], reason=note["reason"])
         self.heartbeat = Heartbeat(f"celld-{uuid.uuid4().hex[:8]}-heartbeat")
-        self._loop_seen = time.monotonic()
-        self._beating = asyncio.get_running_loop().create_task(self._see_the_loop(), name="celld-heartbeat")
-        self._beater = BeatThread(self.heartbeat, self._loop_runs, HEARTBEAT_PERIOD)
+        self._beater = BeatThread(self.heartbeat, lambda: time.monotonic() - loop_ticked() < LOOP_HANG, HEARTBEAT_PERIOD)
         self._beater.start()
         return self.heartbeat
 
@@ -293,23 +291,9 @@ class Lifecycle:
         if self._beater is not None:
             await asyncio.to_thread(self._beater.stop)
             self._beater = None
-        if self._beating is not None:
-            self._beating.cancel()
-            await asyncio.gather(self._beating, return_exceptions=True)
-            self._beating = None
         if self.heartbeat is not None:
             self.heartbeat.close()
             self.heartbeat = None
-
-    async def _see_the_loop(self) -> None:
-        """Stamp that the event loop runs, for the beat thread (how late the loop runs is the daemon's loop
-        watch's to log: :mod:`celld.daemon.loopwatch`)."""
-        while True:
-            self._loop_seen = time.monotonic()
-            await asyncio.sleep(HEARTBEAT_PERIOD)
-
-    def _loop_runs(self) -> bool:
-        return time.monotonic() - self._loop_seen < LOOP_HANG
 
     async def _read(self, on_reading: Callable[[], None]) -> None:
         while True:
@@ -337,7 +321,7 @@ class CellDevices:
         self.config = config
         self.robot = Arm(config)
         # The second robot, when the cell has one ([robot2]): calibrate jobs with robot2 set drive it.
-        self.robot2: Arm | None = Arm(robot2_config(config), cpu=-2, role="motion2") if config.robot2 is not None else None
+        self.robot2: Arm | None = Arm(robot2_config(config), robot=2) if config.robot2 is not None else None
         self.tactile = Tactile(config, factories.camera)
         self.scanner = CellScanner(config, factories.scanner)
         self.life = Lifecycle(config)
@@ -381,10 +365,11 @@ class CellDevices:
 
     # -- life cycle ----------------------------------------------------------------
 
-    async def open(self) -> None:
-        """The heartbeat, the tactile process, each robot's motion process, the dashboard reading, the scanner."""
+    async def open(self, loop_ticked: Callable[[], float]) -> None:
+        """The heartbeat (beating while ``loop_ticked()``, when the event loop last ran, is recent), the tactile
+        process, each robot's motion process, the dashboard reading, the scanner."""
         cfg = self.config
-        heartbeat = await self.life.open()
+        heartbeat = await self.life.open(loop_ticked)
         await self.tactile.open(heartbeat.name, self.life.records)
         motion = await self.robot.open_motion(heartbeat.name, self.life.records, SERVO_LAWS, self.tactile.slot_name)
         motion.add_listener(self._on_state_batch)

@@ -189,6 +189,8 @@ class LoopWatch:
         # When the ticker is due to wake (loop time) and the loop's thread; where the others were when it was late.
         self._due: tuple[float, int] = (0.0, 0)
         self._others: tuple[float, str] = (0.0, "")
+        # When the ticker last ran (monotonic s, the loop's clock): the daemon's heartbeat beats while it is recent.
+        self.last_tick = time.monotonic()
 
     # -- the callbacks' time -------------------------------------------------------
 
@@ -233,6 +235,7 @@ class LoopWatch:
             self._due = (expected, me)
             await asyncio.sleep(max(0.0, expected - loop.time()))
             now = loop.time()
+            self.last_tick = now
             late = now - expected
             loop_now, process_now = time.thread_time(), time.process_time()
             if late > self.threshold:

@@ -553,17 +553,14 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         await _retract(ctx, devices, up, wc.retract_height, T_scan, speed)
         raise
 
-    # 4. touch and track
-    failure: CelldError | None = None
-    records = None
+    # 4. touch and track; 5. retract (also after a failed track, while the robot can still be moved)
     try:
         records = await _track(ctx, config, devices, setup, plan, process=bool(job.arc) and config.robot.arc_output >= 0)
-    except CelldError as exc:
-        failure = exc
-    # 5. retract (also after a failed track, while the robot can still be moved)
-    retract_error = await _retract(ctx, devices, up, wc.retract_height, T_scan, speed) if failure is None or motion.link_running() else ""
-    if failure is not None or records is None:
-        raise failure or CelldError("the servo ran but no motion record of it was read")
+    except CelldError:
+        if motion.link_running():
+            await _retract(ctx, devices, up, wc.retract_height, T_scan, speed)
+        raise
+    retract_error = await _retract(ctx, devices, up, wc.retract_height, T_scan, speed)
 
     figures, paths = await asyncio.to_thread(summarise, records, plan, setup.tool, setup.servo.delta_d)
     path_file = await asyncio.to_thread(fsutil.write_json, ctx.result_dir() / "paths.json", paths)

@@ -151,7 +151,7 @@ def run(spec: MotionSpec) -> LoopExit:
         # Say why at once: closing the link below can take a while.
         _report(ch, Phase.EXITED, rt, end.status, end.reason)
         if loop.orphaned and spec.exit_note:
-            write_exit_note(spec.exit_note, spec.role, loop.orphaned, loop.orphaned_ns)
+            write_exit_note(spec.exit_note, spec.role, loop.orphaned)
         log.info(
             "motion loop ended",
             status=end.status.name,

@@ -24,7 +24,6 @@ import os
 import signal
 import time
 from collections.abc import Awaitable, Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -87,13 +86,15 @@ def _offset(T: np.ndarray, dp: list[float]) -> np.ndarray:
     return out
 
 
-def _gone(pid: int) -> bool:
-    """The process has exited (reaped, or a zombie its parent has not reaped yet)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return True
-    return stat[stat.rindex(")") + 2] == "Z"
+async def _far_move_under_way(motion: MotionHandle) -> tuple[asyncio.Future[Any], int]:
+    """A move 0.37 m away, 0.6 s under way (at full speed): the move and the motion process's pid."""
+    start = motion.state()
+    assert start is not None
+    move = asyncio.ensure_future(motion.move_to(_offset(start.T_base_tcp, [0.3, 0.2, -0.1])))
+    await asyncio.sleep(0.6)
+    pid = motion.supervisor.pid
+    assert pid is not None
+    return move, pid
 
 
 async def _at_rest_since(sim: Any, t0: float, step: float, within: float = 2.0) -> float | None:
@@ -170,13 +171,7 @@ def test_velocity_streaming_holds_the_limits_in_every_cycle(sim: Any, rng: np.ra
 
 def test_kill_9_watchdog_stops_the_robot_and_the_next_motion_works(sim: Any) -> None:
     async def scenario(motion: MotionHandle) -> None:
-        start = motion.state()
-        assert start is not None
-        far = _offset(start.T_base_tcp, [0.3, 0.2, -0.1])
-        move = asyncio.ensure_future(motion.move_to(far))
-        await asyncio.sleep(0.6)
-        pid = motion.supervisor.pid
-        assert pid is not None
+        move, pid = await _far_move_under_way(motion)
         os.kill(pid, signal.SIGKILL)
         t_kill = time.monotonic()
         with pytest.raises(LinkLost, match="SIGKILL"):
@@ -464,7 +459,7 @@ def test_kill_9_of_the_motion_process_with_the_arc_on(loopback_host: str, interl
 def test_a_daemon_that_freezes_mid_move_has_the_arm_stopped_within_the_hang_bound_and_says_so(sim: Any, tmp_path: Any) -> None:
     """The daemon's heartbeat stands still while the arm moves: the motion process stops it once the beat is
     ``motion.hang_stop`` old (not after ``parent_timeout``), ends naming the hang, and leaves its note."""
-    from celld.supervision import BeatThread, ChildRecords, Heartbeat, exit_notes
+    from celld.supervision import BeatThread, ChildRecords, Heartbeat, exit_notes, exited
 
     cfg = _config()
     hb = Heartbeat(f"t-hb-{os.getpid()}-{time.monotonic_ns() % 100000}")
@@ -474,20 +469,14 @@ def test_a_daemon_that_freezes_mid_move_has_the_arm_stopped_within_the_hang_boun
     records = ChildRecords(tmp_path / "run")
 
     async def scenario(motion: MotionHandle) -> None:
-        start = motion.state()
-        assert start is not None
-        far = _offset(start.T_base_tcp, [0.3, 0.2, -0.1])
-        move = asyncio.ensure_future(motion.move_to(far))
-        await asyncio.sleep(0.6)
-        pid = motion.supervisor.pid
-        assert pid is not None
+        move, pid = await _far_move_under_way(motion)
         runs[0] = False  # the daemon freezes: no beat from now on
         t_hang = time.monotonic()
         with pytest.raises((LinkLost, MotionError), match="hangs"):
             await move
         seen = time.monotonic() - t_hang
         # The orphan exits as soon as its stop is done, not after ur-rtde's disconnect (2 s before).
-        while not _gone(pid):
+        while not exited(pid):
             assert time.monotonic() - t_hang < seen + 0.2, "the orphaned motion process lingers"
             await asyncio.sleep(0.005)
         still_since = await _at_rest_since(sim, t_hang, step=0.01)
