@@ -161,6 +161,35 @@ class JournalError(CelldError):
     """The job journal refused a change (an illegal transition, an unknown job) or is damaged."""
 
 
+class JournalDamagedError(JournalError):
+    """The job journal's database is damaged (SQLite ``SQLITE_CORRUPT``, a failed integrity check).
+
+    Not a write that can be made again later: the journal stays refused until
+    an operator sets it aside (``celld journal set-aside``).
+    """
+
+
+class DamagedStateError(CelldError):
+    """A file the cell keeps (the current calibration, the tool's, the finger's rest) cannot be trusted:
+    unreadable, truncated, edited (its checksum fails), of an unknown format.
+
+    Parameters
+    ----------
+    what : str
+        Which state, as the operator names it: ``calibration``, ``tool calibration``, ``finger rest``.
+    path : str
+        The file.
+    why : str
+        What is wrong with it.
+    """
+
+    def __init__(self, what: str, path: str, why: str) -> None:
+        self.what = what
+        self.path = path
+        self.why = why
+        super().__init__(f"the stored {what} is damaged: {why} ({path})")
+
+
 class RecordingError(CelldError):
     """A job recording (the rerun ``.rrd`` file) cannot be created or written."""
 

@@ -18,6 +18,14 @@ Each row also keeps who submitted the job (``owner``, the bus user; empty on
 an open bus) and the client's ``request_id``, unique per owner, so a replayed
 submit finds the job it already made (:meth:`Journal.find_request`).
 
+A damaged database (SQLite finds a page it cannot read, or the integrity
+check at start fails) is not a write to retry: every call then raises
+:class:`~celld.errors.JournalDamagedError` with the reason and the way out
+(:data:`WAY_OUT`), and :attr:`Journal.damage` says why. ``keep_damaged``
+opens a journal that is damaged already in that state, holding its lock, so
+a daemon can serve its status and refuse jobs with the reason instead of
+failing to start.
+
 A change that cannot be committed (the disk is full, an I/O error, a
 read-only file system) raises :class:`~celld.errors.JournalWriteError`
 (a :class:`~celld.errors.StorageError` and a JournalError) naming the
@@ -46,7 +54,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from celld.errors import JournalError, JournalWriteError
+from celld.errors import JournalDamagedError, JournalError, JournalWriteError
 
 # States, and which states each may move to.
 STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
@@ -62,6 +70,10 @@ _BUSY_TIMEOUT_MS = 5000
 # Reasons written when a journal is opened after its process died.
 INTERRUPTED_RUNNING = "interrupted: the daemon stopped while the job was running"
 _REASON_QUEUED = "interrupted: the daemon stopped before the job started"
+# What an operator does about a damaged journal.
+WAY_OUT = "stop celld and run `celld journal set-aside` (it keeps the damaged journal beside the new one it starts)"
+# SQLite's names for a damaged database file.
+_DAMAGE = frozenset({"SQLITE_CORRUPT", "SQLITE_NOTADB"})
 
 _CREATE = f"""
 CREATE TABLE IF NOT EXISTS jobs (
@@ -159,29 +171,42 @@ class Journal:
         The database file; its directory is created if needed.
     clock : callable
         Wall-clock source, for tests.
+    keep_damaged : bool
+        Open a damaged journal in its damaged state (:attr:`damage` set, the
+        lock held, every call refused) instead of raising.
 
     Raises
     ------
+    JournalDamagedError
+        The file is damaged (and ``keep_damaged`` is false).
     JournalError
-        The file is not a journal, is damaged, is newer than this code, or
-        another process holds it.
+        The file is not a journal, is newer than this code, or another process holds it.
     """
 
-    def __init__(self, path: str | os.PathLike[str], clock: Callable[[], str] = utc_now) -> None:
+    def __init__(self, path: str | os.PathLike[str], clock: Callable[[], str] = utc_now, *, keep_damaged: bool = False) -> None:
         self.path = Path(path)
         self._clock = clock
         self._lock = threading.Lock()
+        self.damage = ""
+        self.recovered: tuple[JobRecord, ...] = ()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock_fd = self._take_lock()
+        self._db: sqlite3.Connection | None = None
         try:
             self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=_BUSY_TIMEOUT_MS / 1e3)
             self._setup()
-            self.recovered: tuple[JobRecord, ...] = self._recover()
+            self.recovered = self._recover()
+        except JournalDamagedError:
+            if not keep_damaged:
+                self.close()
+                raise
         except sqlite3.DatabaseError as exc:
-            self._release_lock()
+            self.close()
+            if _damaged(exc):
+                raise self.mark_damaged(str(exc)) from exc
             raise JournalError(f"{self.path}: not a usable job journal: {exc}") from exc
         except BaseException:
-            self._release_lock()
+            self.close()
             raise
 
     def _take_lock(self) -> int:
@@ -202,8 +227,49 @@ class Journal:
             os.close(self._lock_fd)  # closing the descriptor drops the flock
             self._lock_fd = -1
 
+    def mark_damaged(self, why: str) -> JournalDamagedError:
+        """Refuse every call from now on, saying ``why``; returns the error the calls raise."""
+        self.damage = self.damage or why
+        return JournalDamagedError(self.damage_report())
+
+    def damage_report(self) -> str:
+        """What an operator reads about the damage, with the way out; "" when the journal is intact."""
+        return f"the job journal {self.path} is damaged: {self.damage}; {WAY_OUT}" if self.damage else ""
+
+    def set_aside(self) -> Path:
+        """Move this journal's files aside and start an empty journal in their place; returns where they went.
+
+        ``journal.db`` (with its ``-wal`` and ``-shm``) becomes
+        ``journal-set-aside-<UTC time>.db``, kept for whoever wants to read
+        or repair it; the lock is held throughout, so no daemon starts on
+        either file meanwhile. For one process alone (the command line).
+        """
+        if self._lock_fd < 0:
+            raise JournalError(f"{self.path}: the journal is closed")
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+        aside = self.path.with_name(f"{self.path.stem}-set-aside-{datetime.now(UTC):%Y%m%dT%H%M%SZ}{self.path.suffix}")
+        for suffix in ("", "-wal", "-shm"):
+            source = Path(f"{self.path}{suffix}")
+            if source.exists():
+                os.replace(source, Path(f"{aside}{suffix}"))
+        self.damage = ""
+        self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=_BUSY_TIMEOUT_MS / 1e3)
+        self._setup()
+        self.recovered = ()
+        return aside
+
+    def _open_db(self) -> sqlite3.Connection:
+        """The database, for a call made under the thread lock; refused when closed or damaged."""
+        if self._lock_fd < 0 or self._db is None:
+            raise JournalError(f"{self.path}: the journal is closed")
+        if self.damage:
+            raise self.mark_damaged(self.damage)
+        return self._db
+
     def _setup(self) -> None:
-        db = self._db
+        db = self._open_db()
         db.execute(f"PRAGMA busy_timeout = {_BUSY_TIMEOUT_MS}")
         mode = db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
         if str(mode).lower() != "wal":
@@ -230,9 +296,7 @@ class Journal:
         has not done so itself, so the next change starts clean.
         """
         with self._lock:
-            if self._lock_fd < 0:
-                raise JournalError(f"{self.path}: the journal is closed")
-            db = self._db
+            db = self._open_db()
             try:
                 db.execute("BEGIN IMMEDIATE")
                 try:
@@ -243,7 +307,11 @@ class Journal:
                         with contextlib.suppress(sqlite3.Error):
                             db.execute("ROLLBACK")
                     raise
-            except sqlite3.OperationalError as exc:
+            except sqlite3.DatabaseError as exc:
+                if _damaged(exc):
+                    raise self.mark_damaged(str(exc)) from exc
+                if not isinstance(exc, sqlite3.OperationalError):
+                    raise
                 name = getattr(exc, "sqlite_errorname", None)
                 raise JournalWriteError("journal", str(self.path), f"{exc}" + (f" ({name})" if name else "")) from exc
 
@@ -260,7 +328,9 @@ class Journal:
         with self._lock:
             if self._lock_fd < 0:
                 return
-            self._db.close()
+            if self._db is not None:
+                self._db.close()
+                self._db = None
             self._release_lock()
 
     def __enter__(self) -> Journal:
@@ -367,9 +437,13 @@ class Journal:
 
     def _rows(self, sql: str, args: tuple[Any, ...] = ()) -> list[JobRecord]:
         with self._lock:
-            if self._lock_fd < 0:
-                raise JournalError(f"{self.path}: the journal is closed")
-            return [JobRecord(*row) for row in self._db.execute(sql, args)]
+            db = self._open_db()
+            try:
+                return [JobRecord(*row) for row in db.execute(sql, args)]
+            except sqlite3.DatabaseError as exc:
+                if _damaged(exc):
+                    raise self.mark_damaged(str(exc)) from exc
+                raise
 
     def get(self, job_id: str) -> JobRecord | None:
         rows = self._rows(f"SELECT {_COLUMNS} FROM jobs WHERE id = ?", (job_id,))
@@ -406,19 +480,37 @@ class Journal:
         """Problems found in the journal; empty when it is intact.
 
         Runs SQLite's ``integrity_check`` and checks what the journal promises:
-        at most one running job, times stamped where the state says so.
+        at most one running job, times stamped where the state says so. A
+        journal already found damaged reports that damage.
         """
         with self._lock:
-            if self._lock_fd < 0:
+            if self._lock_fd < 0 or self._db is None:
                 raise JournalError(f"{self.path}: the journal is closed")
+            if self.damage:
+                return [self.damage]
             db = self._db
-            problems = [r[0] for r in db.execute("PRAGMA integrity_check") if r[0] != "ok"]
-            running = db.execute("SELECT count(*) FROM jobs WHERE state = 'running'").fetchone()[0]
-            if running > 1:
-                problems.append(f"{running} jobs are running; at most one may be")
-            for job_id, state in db.execute("SELECT id, state FROM jobs WHERE state = 'running' AND started IS NULL"):
-                problems.append(f"job {job_id} is {state} but has no start time")
-            terminal = ", ".join(repr(s) for s in sorted(TERMINAL))
-            for (job_id,) in db.execute(f"SELECT id FROM jobs WHERE state IN ({terminal}) AND ended IS NULL"):
-                problems.append(f"job {job_id} ended but has no end time")
+            try:
+                return self._problems(db)
+            except sqlite3.DatabaseError as exc:
+                if not _damaged(exc):
+                    raise
+                return [str(exc)]
+
+    @staticmethod
+    def _problems(db: sqlite3.Connection) -> list[str]:
+        """SQLite's integrity check and the journal's own promises (see :meth:`check`)."""
+        problems = [r[0] for r in db.execute("PRAGMA integrity_check") if r[0] != "ok"]
+        running = db.execute("SELECT count(*) FROM jobs WHERE state = 'running'").fetchone()[0]
+        if running > 1:
+            problems.append(f"{running} jobs are running; at most one may be")
+        for job_id, state in db.execute("SELECT id, state FROM jobs WHERE state = 'running' AND started IS NULL"):
+            problems.append(f"job {job_id} is {state} but has no start time")
+        terminal = ", ".join(repr(s) for s in sorted(TERMINAL))
+        for (job_id,) in db.execute(f"SELECT id FROM jobs WHERE state IN ({terminal}) AND ended IS NULL"):
+            problems.append(f"job {job_id} ended but has no end time")
         return problems
+
+
+def _damaged(exc: sqlite3.DatabaseError) -> bool:
+    """Whether SQLite's error says the file is damaged (not full, locked or read-only)."""
+    return getattr(exc, "sqlite_errorname", "") in _DAMAGE or type(exc) is sqlite3.DatabaseError

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from celld import fsutil
-from celld.errors import JournalError
+from celld.errors import JournalDamagedError, JournalError
 from celld.journal import INTERRUPTED_RUNNING, Journal, new_job_id
 
 
@@ -104,7 +104,9 @@ def test_wal_mode_and_a_damaged_file(tmp_path: Path) -> None:
     assert sqlite3.connect(path).execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     bad = tmp_path / "bad.sqlite3"
     bad.write_bytes(b"this is not a database" * 100)
-    with pytest.raises(JournalError, match="not a usable job journal"):
+    with pytest.raises(
+        JournalDamagedError, match="bad.sqlite3 is damaged: file is not a database; stop celld and run `celld journal set-aside`"
+    ):
         Journal(bad)
 
 
@@ -276,3 +278,61 @@ def test_a_record_without_details_keeps_only_what_a_viewer_may_see(journal: Jour
     assert full["params"] == {"kind": "weld", "ref": "order-1"} and full["owner"] == "olga" and full["request_id"] == "q"
     assert redacted["redacted"] is True and not {"params", "ref", "owner", "request_id", "result"} & set(redacted)
     assert {k: full[k] for k in redacted if k != "redacted"} == {k: v for k, v in redacted.items() if k != "redacted"}
+
+
+# A page of garbage in a journal of 300 jobs: page 3 is an index SQLite reads only in the integrity check,
+# page 20 one of the table's the recovery at open reads (both found so for every draw of job ids).
+DAMAGED_PAGE = {"found by the check": 3, "found at open": 20}
+
+
+def damaged_journal(path: Path, page: int) -> None:
+    """A journal of 300 jobs with one 4 KiB page of garbage."""
+    with Journal(path) as j:
+        for _ in range(300):
+            j.create("health", {"kind": "health", "pad": "x" * 200})
+    with open(path, "r+b") as f:
+        f.seek(page * 4096)
+        f.write(np.random.default_rng(page).bytes(4096))
+
+
+@pytest.mark.parametrize("where", DAMAGED_PAGE)
+def test_a_damaged_page_refuses_every_call_with_the_way_out(tmp_path: Path, where: str) -> None:
+    path = tmp_path / "journal.db"
+    damaged_journal(path, DAMAGED_PAGE[where])
+    if where == "found at open":
+        with pytest.raises(JournalDamagedError, match="database disk image is malformed"):
+            Journal(path)
+    with Journal(path, keep_damaged=True) as j:  # as the daemon opens it: damaged, held, every call refused
+        problems = j.check()
+        assert problems and (j.damage != "") == (where == "found at open")
+        j.mark_damaged(problems[0])
+        for call in (lambda: j.jobs(), lambda: j.create("health", {}), lambda: j.get("x")):
+            with pytest.raises(JournalDamagedError, match=r"journal.db is damaged: .*`celld journal set-aside`"):
+                call()
+        with pytest.raises(JournalError, match="held by another process"):
+            Journal(path)
+
+
+def test_celld_journal_set_aside_keeps_the_damaged_one_and_starts_anew(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from celld.cli import main
+
+    state = tmp_path / "state"
+    config = tmp_path / "cell.toml"
+    config.write_text(f'[cell]\nstate_dir = "{state}"\n[robot]\nhost = "127.0.0.9"\n')
+    damaged_journal(state / "journal.db", DAMAGED_PAGE["found at open"])
+    with Journal(state / "journal.db", keep_damaged=True):  # a daemon runs on it: refused, nothing moved
+        assert main(["journal", "set-aside", "--config", str(config)]) == 2
+        assert "held by another process" in capsys.readouterr().err
+    assert main(["journal", "check", "--config", str(config)]) == 1
+    assert "damaged" in capsys.readouterr().out
+    assert main(["journal", "set-aside", "--config", str(config)]) == 0
+    aside = list(state.glob("journal-set-aside-*.db"))
+    assert len(aside) == 1
+    with pytest.raises(JournalDamagedError):  # the damaged one kept beside, not repaired or emptied
+        Journal(aside[0]).close()
+    with Journal(state / "journal.db") as fresh:
+        assert fresh.check() == [] and fresh.jobs() == []
+    assert main(["journal", "check", "--config", str(config)]) == 0
+    # An intact journal is not set aside unless asked.
+    assert main(["journal", "set-aside", "--config", str(config)]) == 1
+    assert len(list(state.glob("journal-set-aside-*.db"))) == 1

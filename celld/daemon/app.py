@@ -4,15 +4,22 @@ Start-up, in order, each step refusing to go on when it fails:
 
 1. the config is loaded and validated (before any device is opened);
 2. the state directory and the job journal (jobs a previous process left
-   running are marked interrupted);
+   running are marked interrupted); the journal's integrity is checked, and a
+   damaged journal is a storage fault the status names with its way out
+   (``celld journal set-aside``): the daemon serves, and refuses jobs;
 3. the motion process (it owns the robot link; :class:`MotionHandle`
    supervises and restarts it) and the tactile camera process;
-4. the scanner;
+4. the scanner (one that does not open is tried again in the background);
 5. the zenoh session, the bus server and the cell's liveliness token;
-6. ``READY=1`` to systemd once the robot link is up, then ``WATCHDOG=1``
-   while the event loop runs and the motion process is supervised (its
-   supervisor makes progress), link up or not: a protective stop or a lost
-   link is the supervisor's to handle, a hung daemon is systemd's.
+6. ``READY=1`` to systemd as soon as the bus is served, with or without the
+   robot, the scanner or the camera: a cell PC that boots before its robot
+   is not restarted again and again. Until they are there, status (and
+   systemd's STATUS) says what the cell waits for ("robot link down:
+   waiting (...)"), and a job that needs a missing device is refused at
+   once with that reason. ``WATCHDOG=1`` follows while the event loop runs
+   and the motion process is supervised (its supervisor makes progress),
+   link up or not: a protective stop or a lost link is the supervisor's to
+   handle, a hung daemon is systemd's.
 
 SIGTERM or SIGINT: the robot stops first (jerk-limited), queued and running
 jobs end as cancelled, then the bus, the devices and the motion process close.
@@ -43,8 +50,8 @@ log = get_logger(__name__)
 
 # The motion heartbeat counts as fresh below this age, s.
 HEARTBEAT_FRESH = 0.5
-# How long to wait for the robot link before saying so in the log again, s.
-LINK_WAIT = 10.0
+# How often the daemon says again what it waits for (systemd's STATUS, the log when it changes), s.
+WAIT_REPORT_PERIOD = 1.0
 # How often robot state goes to the bus (the server decimates further), s.
 STATE_PERIOD = 0.05
 # How many of the newest interrupted jobs an exit note of the previous daemon's children is matched against.
@@ -87,7 +94,7 @@ class Daemon:
         started before the note and was marked interrupted after it (by this daemon's journal, or by a tool
         that opened the journal first)."""
         notes = self.devices.life.exit_notes
-        if not notes:
+        if not notes or journal.damage:
             return
         why = "; ".join(f"{n['role']} process: {n['reason']}" for n in notes)
         for record in journal.jobs(limit=_RECENT_INTERRUPTED, state="interrupted"):
@@ -102,7 +109,11 @@ class Daemon:
         self.state_dir.mkdir(parents=True, exist_ok=True)
         # The journal's lock first: a second daemon on this state directory is refused before it touches
         # anything in it (the temporaries below may be a running daemon's writes in flight).
-        self._journal = Journal(self.state_dir / "journal.db")
+        self._journal = Journal(self.state_dir / "journal.db", keep_damaged=True)
+        problems = self._journal.check()
+        if problems:
+            self._journal.mark_damaged("; ".join(problems[:3]) + (f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""))
+            log.error("job journal damaged: jobs are refused", why=self._journal.damage_report())
         fsutil.remove_stale_temporaries(self.state_dir)
         for record in self._journal.recovered:
             log.warning("job interrupted by the previous stop", job=record.id, kind=record.kind)
@@ -126,7 +137,9 @@ class Daemon:
             loop_report=self.loop_watch.report,
             min_free_mb=cfg.cell.min_free_mb,
             storage_retry_s=cfg.cell.storage_retry_s,
+            unready=self.devices.unready,
         )
+        self._update_fault()  # said from the first status on
         self.bus = BusServer(self._session.session, keys, self.manager, state_rate_hz=cfg.bus.state_rate_hz, callers=callers(cfg.bus))
         await self.bus.start()
         self.manager.start()
@@ -138,16 +151,11 @@ class Daemon:
                 name="celld-watchdog",
             )
         )
-        # READY only once the robot link is up; until then the bus answers and
-        # the motion supervisor keeps reconnecting with back-off.
-        self.notifier.status("waiting for the robot link")
-        while not await self.devices.wait_robot(LINK_WAIT):
-            log.warning("robot link not up yet; still trying", robot=cfg.robot.host)
-            if self._stop.is_set():
-                return
+        # READY once the bus is served; the devices that are not there yet are waited for, and said.
         self.notifier.ready()
-        self.notifier.status(f"cell {cfg.cell.name}: ready")
-        log.info("celld ready", cell=cfg.cell.name, state_dir=str(self.state_dir))
+        log.info("celld serving", cell=cfg.cell.name, state_dir=str(self.state_dir))
+        self._tasks.append(loop.create_task(self._report_waiting(), name="celld-waiting"))
+        self._tasks.append(loop.create_task(self._supervise_scanner(), name="celld-scanner"))
 
     async def run(self) -> None:
         """Start, serve until SIGTERM/SIGINT (or :meth:`request_stop`), then shut down."""
@@ -204,9 +212,35 @@ class Daemon:
         self.devices.attach_recording(recording)
         return recording
 
-    def _link_up(self) -> bool:
-        age = self.devices.heartbeat_age()
-        return age is not None and age < HEARTBEAT_FRESH
+    def _update_fault(self) -> None:
+        """The cell's fault in status: robot 1's link down (with what it waits for), or none."""
+        if self.manager is not None:
+            age = self.devices.heartbeat_age()
+            up = age is not None and age < HEARTBEAT_FRESH
+            self.manager.set_fault("" if up else self.devices.unready("move") or "the motion loop stalled")
+
+    async def _report_waiting(self) -> None:
+        """Say what the cell waits for: systemd's STATUS every period, the log when it changes."""
+        said: list[str] | None = None
+        name = self.config.cell.name
+        while True:
+            waiting = self.devices.waiting()
+            problem = self.manager.storage.problem() if self.manager is not None else ""
+            self.notifier.status(f"cell {name}: " + ("; ".join([*waiting, problem] if problem else waiting) or "ready"))
+            devices = [w.partition(":")[0] for w in waiting]  # the log says it again when what is waited for changes
+            if devices != said:
+                if waiting:
+                    log.warning("the cell waits", waiting=waiting)
+                else:
+                    log.info("celld ready", cell=name)
+                said = devices
+            await asyncio.sleep(WAIT_REPORT_PERIOD)
+
+    async def _supervise_scanner(self) -> None:
+        """Open the scanner again while it is not open (an open may take seconds: its own task)."""
+        while True:
+            await asyncio.sleep(WAIT_REPORT_PERIOD)
+            await self.devices.scanner.supervise()
 
     def _unsupervised(self) -> None:
         self.notifier.status("the motion process is not supervised: watchdog not kicked")
@@ -223,8 +257,7 @@ class Daemon:
             if tactile is not None:
                 self.bus.publish_tactile_state(tactile)
             await self.devices.tactile.supervise()
-            if self.manager is not None:
-                self.manager.set_fault("" if self._link_up() else "robot link down or motion loop stalled")
+            self._update_fault()
 
 
 def serve(config: Config, factories: DeviceFactories) -> None:

@@ -95,7 +95,7 @@ class Arm:
         self, heartbeat: str, records: ChildRecords, servo_laws: dict[str, str] | None = None, tactile_slot: str | None = None
     ) -> MotionHandle:
         """Start its motion process, watching the daemon's ``heartbeat``; the supervisor keeps (re)connecting
-        (see :meth:`wait_robot`). Without ``servo_laws`` and ``tactile_slot`` it only moves and holds."""
+        (:meth:`link_state` says whether it is up). Without ``servo_laws`` and ``tactile_slot`` it only moves and holds."""
         cfg = self.config
         self.motion = await MotionHandle.open(
             cfg,
@@ -123,10 +123,6 @@ class Arm:
             log.error("stop before close failed", robot=self.config.robot.host, error=str(exc))
         await self.motion.close()
         self.motion = None
-
-    async def wait_robot(self, timeout: float) -> bool:
-        """Wait until the motion loop runs and has read the robot; False on timeout."""
-        return await self.require_motion().wait_ready(timeout)
 
     async def move_to(self, T_base_tcp: np.ndarray, speed_scale: float = 1.0, *, tool: bool = True) -> RobotState:
         """A jerk-limited straight move of the TCP, checked against the cell first (:class:`MotionPlanner`).

@@ -65,7 +65,7 @@ from celld.daemon.jobs import JobContext
 from celld.daemon.planning import REFUSED_SCHEMA, CalibrationPlan, record_arm, record_cell, record_plan, report_plan
 from celld.daemon.retention import prune_sessions
 from celld.daemon.store import CalibrationStore
-from celld.errors import CalibrationError, JobError
+from celld.errors import CalibrationError, DamagedStateError, JobError
 from celld.log import get_logger
 from celld.recording import layout
 from celld.scanner.base import OrganizedCloud
@@ -117,7 +117,11 @@ async def run_calibrate(ctx: JobContext, config: Config, devices: CellDevices) -
 async def prune_calibrations(ctx: JobContext, config: Config) -> None:
     """Old calibration datasets pruned by the config's retention rules, never this job's or the current calibration's."""
     cal = config.calibration
-    current = CalibrationStore(ctx.state_dir).current() or {}
+    try:
+        current = CalibrationStore(ctx.state_dir).current() or {}
+    except DamagedStateError as exc:  # its job is unknown: its dataset may be one to keep
+        log.warning("calibration datasets not pruned", reason=str(exc))
+        return
     await asyncio.to_thread(prune_sessions, ctx.state_dir / "jobs", cal.keep_sessions, cal.keep_days, (ctx.job_id, current.get("job")))
 
 

@@ -1,4 +1,5 @@
-"""``celld run``: the daemon, as systemd starts it; ``celld bus schema``: the bundle of the bus it serves.
+"""``celld run``: the daemon, as systemd starts it; ``celld bus schema``: the bundle of the bus it serves;
+``celld journal check|set-aside``: its job journal, checked, and set aside when damaged.
 
 ``bus schema`` is the daemon's command, not the bus's: the bundle holds each
 job kind's result schema, which lives with the runners above the bus
@@ -20,6 +21,40 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     e = bsub.add_parser("schema", help="export the JSON Schema of every bus message and job result, and the AsyncAPI document")
     e.add_argument("--out", required=True, help="directory to write <name>.schema.json files and asyncapi.json into")
     e.set_defaults(func=_schema)
+
+    j = sub.add_parser("journal", help="the daemon's job journal: check it, set a damaged one aside (with celld stopped)")
+    jsub = j.add_subparsers(dest="journal_command", metavar="ACTION", required=True)
+    c = jsub.add_parser("check", help="check the journal's integrity; exit 1 when it is damaged")
+    a = jsub.add_parser("set-aside", help="move a damaged journal aside (kept as journal-set-aside-<time>.db) and start an empty one")
+    a.add_argument("--force", action="store_true", help="set the journal aside even when it is intact")
+    for p in (c, a):
+        p.add_argument("--config", default="/etc/celld/cell.toml", help="the cell config (default: %(default)s)")
+        p.set_defaults(func=_journal)
+
+
+def _journal(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from celld import config as config_mod
+    from celld.errors import JournalError
+    from celld.journal import Journal
+
+    path = Path(config_mod.load(args.config).cell.state_dir) / "journal.db"
+    if not path.exists():
+        raise JournalError(f"{path}: no journal here (cell.state_dir of {args.config})")
+    with Journal(path, keep_damaged=True) as journal:  # refused while a daemon holds it
+        problems = journal.check()
+        for problem in problems:
+            print(f"{path}: {problem}")
+        if args.journal_command == "check":
+            print(f"{path}: {'damaged' if problems else 'intact'}")
+            return 1 if problems else 0
+        if not problems and not args.force:
+            print(f"{path}: intact; nothing set aside (--force sets an intact journal aside too)")
+            return 1
+        aside = journal.set_aside()
+    print(f"{path}: set aside as {aside}; a new, empty journal is in its place")
+    return 0
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -68,6 +68,10 @@ LOOP_HANG = 1.0
 # Least time between two restarts of a dying tactile process, s: it doubles
 # after each failed restart, up to a minute.
 TACTILE_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 32.0, 60.0))
+# How long to wait between attempts to open a scanner that did not open (off, unplugged), s.
+SCANNER_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 30.0))
+# Job kinds and the devices they need beyond robot 1 (a health job needs none).
+_NEEDS_SCANNER = frozenset({"calibrate", "weld", "tool-calibrate"})
 # The dashboard server is read this often, s.
 DASHBOARD_PERIOD = 0.5
 # The JSON shape of CellDevices.interlock_report.
@@ -227,15 +231,42 @@ class Tactile:
 
 
 class CellScanner:
-    """The cell's scanner, opened by its factory in a worker thread; a capture runs in one too."""
+    """The cell's scanner, opened by its factory in a worker thread; a capture runs in one too.
+
+    A scanner that does not open (off at boot, unplugged, its SDK missing) is
+    not the daemon's end: ``error`` says why, the jobs that need it are
+    refused with that, and :meth:`supervise` tries again with back-off.
+    """
 
     def __init__(self, config: Config, factory: Callable[[Config], Scanner]) -> None:
         self.config = config
         self._factory = factory
         self.device: Scanner | None = None
+        self.error = ""
+        self._failures = 0
+        self._retry_at = -math.inf
 
     async def open(self) -> None:
-        self.device = await asyncio.to_thread(self._factory, self.config)
+        try:
+            self.device = await asyncio.to_thread(self._factory, self.config)
+        except CelldError as exc:
+            self._failures += 1
+            self.error = str(exc)
+            self._retry_at = time.monotonic() + SCANNER_BACKOFF.delay(self._failures)
+            log.error(
+                "the scanner did not open; trying again in the background",
+                error=self.error,
+                next_try_s=SCANNER_BACKOFF.delay(self._failures),
+            )
+            return
+        if self._failures:
+            log.info("scanner open", after_attempts=self._failures + 1)
+        self.error, self._failures = "", 0
+
+    async def supervise(self) -> None:
+        """Open the scanner again if it did not open, when its back-off has passed."""
+        if self.device is None and self.error and time.monotonic() >= self._retry_at:
+            await self.open()
 
     async def close(self) -> None:
         if self.device is not None:
@@ -244,7 +275,7 @@ class CellScanner:
 
     async def capture(self) -> OrganizedCloud:
         if self.device is None:
-            raise DeviceError("the scanner is not open")
+            raise DeviceError(f"the scanner is not open: {self.error or 'not opened yet'}")
         return await asyncio.to_thread(self.device.capture)
 
 
@@ -403,9 +434,37 @@ class CellDevices:
         """Robot 1's link: ``up``, ``down`` or ``unknown``."""
         return self.robot.link_state()
 
-    async def wait_robot(self, timeout: float) -> bool:
-        """Wait until robot 1's motion loop runs and has read the robot; False on timeout."""
-        return await self.robot.wait_robot(timeout)
+    def unready(self, kind: str, dry_run: bool = False) -> str:
+        """Why a job of ``kind`` cannot run now for want of a device, "" when it can: robot 1's link (with the
+        robot's condition and what clears it), the scanner, the finger's camera (a weld that touches)."""
+        if kind == "health":
+            return ""
+        checks = [self._robot_wait]
+        if kind in _NEEDS_SCANNER:
+            checks.append(self._scanner_wait)
+        if kind == "weld" and not dry_run:
+            checks.append(self._camera_wait)
+        return next((why for why in (check() for check in checks) if why), "")
+
+    def waiting(self) -> list[str]:
+        """What the cell waits for (robot link, scanner, finger camera), [] when nothing: the status says it."""
+        return [why for why in (self._robot_wait(), self._scanner_wait(), self._camera_wait()) if why]
+
+    def _robot_wait(self) -> str:
+        if self.robot.link_state() == "up":
+            return ""
+        cond = self.robot_condition()
+        why = cond.reason or "the motion process has not read the robot yet"
+        return f"robot link down: waiting ({why}" + (f"; {cond.remedy})" if cond.remedy else ")")
+
+    def _scanner_wait(self) -> str:
+        return "" if self.scanner.device is not None else f"scanner not open: waiting ({self.scanner.error or 'not opened yet'})"
+
+    def _camera_wait(self) -> str:
+        process = self.tactile.process
+        if process is None or process.alive():
+            return ""
+        return f"finger camera not running: waiting ({self.tactile.error or 'its process ended; restarting it'})"
 
     def _on_dashboard(self) -> None:
         cond = self.robot_condition()

@@ -73,7 +73,7 @@ from celld.bus.requests import (
 from celld.bus.security import OPEN, Caller
 from celld.daemon.storage import StorageGuard
 from celld.daemon.store import CalibrationStore, tool_store
-from celld.errors import CelldError, JobError, JournalError, StorageError
+from celld.errors import CelldError, DamagedStateError, JobError, JournalError, StorageError
 from celld.journal import JobRecord, Journal, utc_now
 from celld.log import get_logger
 from celld.schemadoc import string, with_properties
@@ -185,6 +185,10 @@ class JobManager:
         How often owed writes are retried during a storage fault, s.
     free_bytes : callable, optional
         Replaces the free-space reading (tests).
+    unready : callable(kind, dry_run) -> str, optional
+        Why a job of that kind cannot run now for want of a device ("" when it
+        can: :meth:`celld.daemon.devices.CellDevices.unready`); such a submit is
+        refused at once with it, not queued to fail.
     """
 
     def __init__(
@@ -206,6 +210,7 @@ class JobManager:
         min_free_mb: float = 0.0,
         storage_retry_s: float = STORAGE_RETRY_S,
         free_bytes: Callable[[], int | None] | None = None,
+        unready: Callable[[str, bool], str] | None = None,
     ) -> None:
         if storage_retry_s <= 0:
             raise ValueError(f"storage_retry_s: expected > 0, got {storage_retry_s}")
@@ -222,7 +227,8 @@ class JobManager:
         self.robot_report = robot_report
         self.robot_action = robot_action
         self.loop_report = loop_report
-        self.storage = StorageGuard(self.state_dir, min_free_mb, free_bytes=free_bytes)
+        self.unready = unready
+        self.storage = StorageGuard(self.state_dir, min_free_mb, free_bytes=free_bytes, damage=journal.damage_report)
         self.storage_retry_s = storage_retry_s
         self.calibrations = CalibrationStore(self.state_dir)
         self.tools = tool_store(self.state_dir)
@@ -329,6 +335,9 @@ class JobManager:
             raise JobError("$", f"refused: {problem}")
         if self._waiting() >= self.queue_depth:
             raise JobError("$", f"refused: a job is running and the queue is full ({self.queue_depth})")
+        missing = self.unready(job.kind, bool(getattr(job, "dry_run", False))) if self.unready is not None else ""
+        if missing:
+            raise JobError("$", f"refused: {missing}")
         try:
             record = self.journal.create(job.kind, params, ref=job.ref, owner=caller.user, request_id=request_id)
         except StorageError as exc:
@@ -353,10 +362,13 @@ class JobManager:
             if record is None:
                 raise JobError("$.job", f"no such job {req.job!r}")
             return {"record": record.to_message(caller.may_see(record.owner))}
-        current = self.calibrations.current()
+        try:
+            current, damaged = self.calibrations.current(), [self.tools.damage()]
+        except DamagedStateError as exc:  # said in the message; welds refuse with it too
+            current, damaged = None, [str(exc), self.tools.damage()]
         self._note_recording_trouble()
         storage_problem = self.storage.problem()
-        message = self._fault or storage_problem
+        message = "; ".join(m for m in (self._fault, storage_problem, *damaged) if m)
         if self._fault or storage_problem:
             state = "fault"
             if storage_problem and self._queue:

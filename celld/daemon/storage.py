@@ -10,6 +10,9 @@ job, and what it tells when a write fails. Rules:
 - A failed write (:meth:`StorageGuard.failed`) puts the guard in fault: the
   reason is kept as the last error (it stays visible after recovery, with its
   time), new jobs are refused and the queue is held.
+- A damaged store (the journal's database, :attr:`Journal.damage`) is a
+  fault no retry clears: it is reported first, with its way out, until an
+  operator deals with it and the daemon starts again.
 - A write that must still happen (a job's end in the journal, a result file)
   is *owed* (:meth:`StorageGuard.owe`): :meth:`StorageGuard.retry`, called
   periodically while in fault, makes owed writes in order, then writes a small
@@ -78,6 +81,8 @@ class StorageGuard:
         Replaces the ``statvfs`` reading (tests).
     clock : callable
         Monotonic seconds, for the cache.
+    damage : callable, optional
+        Why a store is damaged ("" when none is): the journal's :attr:`~celld.journal.Journal.damage`.
     """
 
     def __init__(
@@ -87,6 +92,7 @@ class StorageGuard:
         *,
         free_bytes: Callable[[], int | None] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        damage: Callable[[], str] | None = None,
     ) -> None:
         if min_free_mb < 0:
             raise ValueError(f"min_free_mb: expected >= 0, got {min_free_mb}")
@@ -94,6 +100,7 @@ class StorageGuard:
         self.min_free_mb = float(min_free_mb)
         self._read_free = free_bytes or self._statvfs
         self._clock = clock
+        self._damage = damage or (lambda: "")
         self._free: tuple[float, int | None] | None = None
         self.fault: StorageFault | None = None  # active: set on failure, cleared by retry
         self.last_error: StorageFault | None = None  # the most recent, kept after recovery
@@ -121,11 +128,14 @@ class StorageGuard:
 
     @property
     def ok(self) -> bool:
-        """No fault and free space above the floor."""
-        return self.fault is None and not self.below_floor()
+        """No damage, no fault and free space above the floor."""
+        return not self._damage() and self.fault is None and not self.below_floor()
 
     def problem(self) -> str:
         """Why new work is refused now, or ""."""
+        damage = self._damage()
+        if damage:
+            return f"storage: {damage}"
         if self.fault is not None:
             owed = f"; {len(self.owed)} write(s) owed" if self.owed else ""
             return f"{self.fault}{owed} (retried until it succeeds)"
@@ -143,7 +153,7 @@ class StorageGuard:
             "ok": self.ok,
             "free_mb": None if free is None else round(free / MIB, 3),
             "floor_mb": self.min_free_mb,
-            "fault": str(self.fault) if self.fault else "",
+            "fault": f"storage: {self._damage()}" if self._damage() else str(self.fault) if self.fault else "",
             "last_error": self.last_error.to_message() if self.last_error else None,
             "pending_writes": len(self.owed),
         }

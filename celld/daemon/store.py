@@ -4,14 +4,16 @@
 (``<state_dir>/calibration.json``) and the candidates finished calibrate jobs
 left (``<state_dir>/calibrations/<job>.json``); :func:`tool_store` the same for
 the tool (``tool.json``, ``tool-calibrations/``). An accept makes a
-candidate current, refusing a failed quality verdict unless forced.
+candidate current, refusing a failed quality verdict unless forced. Every
+file is sealed (:mod:`celld.sealed`: format, the job that made it, a
+checksum) and checked where it is read: a damaged one is refused with
+"the stored calibration is damaged: <why>", never taken for absent.
 :func:`current_calibration` and :func:`current_tool` read the current ones as
 a job uses them, refusing what is missing or unusable with the reason.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
@@ -19,10 +21,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from celld import fsutil
+from celld import sealed
 from celld.calib.mount import Placement, placement_of
 from celld.config import ToolConfig
-from celld.errors import InputError, JobError
+from celld.errors import DamagedStateError, InputError, JobError
 from celld.journal import utc_now
 from celld.log import get_logger
 from celld.schemadoc import boolean, string, with_properties
@@ -40,7 +42,8 @@ class CalibrationStore:
     """The current calibration, and the candidates finished calibrate jobs left.
 
     The current one is ``<state_dir>/calibration.json``; a candidate is
-    ``<state_dir>/calibrations/<job>.json``. Both are written atomically.
+    ``<state_dir>/calibrations/<job>.json``. Both are written atomically and
+    sealed as ``kind`` (:mod:`celld.sealed`); ``what`` names them in refusals.
     A candidate whose quality verdict (``quality.verdict``) is not ``ok`` is
     accepted only with ``force``, and is then marked ``forced``; a candidate
     without a verdict (written before the gate existed) is accepted as before.
@@ -51,30 +54,50 @@ class CalibrationStore:
     """
 
     def __init__(
-        self, state_dir: Path, current: str = "calibration.json", candidates: str = "calibrations", kind: str = "calibrate"
+        self,
+        state_dir: Path,
+        current: str = "calibration.json",
+        candidates: str = "calibrations",
+        kind: str = "calibrate",
+        sealed_as: str = "calibration",
+        what: str = "calibration",
     ) -> None:
         self.current_path = state_dir / current
         self.candidates = state_dir / candidates
         self.kind = kind
+        self.sealed_as = sealed_as
+        self.what = what
         self.candidates.mkdir(parents=True, exist_ok=True)
 
     def current(self) -> dict[str, Any] | None:
-        if not self.current_path.exists():
-            return None
+        """The current calibration, None when there is none.
+
+        Raises
+        ------
+        DamagedStateError
+            It is there but cannot be trusted (unreadable, cut short, edited, of an unknown format).
+        """
+        return sealed.read_sealed(self.current_path, self.sealed_as, self.what)
+
+    def damage(self) -> str:
+        """Why the current calibration cannot be used, "" when it can (or there is none)."""
         try:
-            return json.loads(self.current_path.read_text())
-        except (OSError, ValueError) as exc:
-            log.error("current calibration unreadable; ignoring it", path=str(self.current_path), error=str(exc))
-            return None
+            self.current()
+        except DamagedStateError as exc:
+            return str(exc)
+        return ""
 
     def add_candidate(self, job_id: str, calibration: Mapping[str, Any]) -> Path:
-        return fsutil.write_json(self.candidates / f"{job_id}.json", dict(calibration))
+        path = self.candidates / f"{job_id}.json"
+        sealed.write_sealed(path, calibration, self.sealed_as, job_id)
+        return path
 
     def accept(self, job_id: str, force: bool = False) -> dict[str, Any]:
         path = self.candidates / f"{job_id}.json"
-        if not path.exists():
+        candidate = sealed.read_sealed(path, self.sealed_as, f"{self.what} of job {job_id}")
+        if candidate is None:
             raise JobError("$.job", f"job {job_id} left no calibration to accept (not a finished {self.kind} job)")
-        calibration = json.loads(path.read_text())
+        calibration = {k: v for k, v in candidate.items() if k not in (sealed.FORMAT_KEY, sealed.CHECKSUM_KEY)}
         # Its own verdict, and a second robot's (a calibrate job with robot2) when it has one.
         robot2 = calibration.get("robot2")
         gates = [("the ", calibration.get("quality")), ("robot 2's ", robot2.get("quality") if isinstance(robot2, dict) else None)]
@@ -90,8 +113,7 @@ class CalibrationStore:
                 )
             calibration["forced"] = True
         calibration["accepted"] = utc_now()
-        fsutil.write_json(self.current_path, calibration)
-        return calibration
+        return sealed.write_sealed(self.current_path, calibration, self.sealed_as, job_id)
 
 
 def accepted_schema(candidate: Mapping[str, Any]) -> dict[str, Any]:
@@ -102,26 +124,28 @@ def accepted_schema(candidate: Mapping[str, Any]) -> dict[str, Any]:
         {
             "accepted": string("When it became current, UTC ISO 8601."),
             "forced": boolean("Accepted with force despite a failed quality verdict."),
+            sealed.FORMAT_KEY: string("The stored file's format and its version, celld.<kind>/<version>."),
+            sealed.CHECKSUM_KEY: string("SHA-256 of the stored file without this key, serialised canonically (celld.sealed)."),
         },
-        ("accepted",),
+        ("accepted", sealed.FORMAT_KEY, sealed.CHECKSUM_KEY),
     )
 
 
 def tool_store(state_dir: Path) -> CalibrationStore:
     """The current tool calibration (``<state_dir>/tool.json``) and the candidates tool-calibrate jobs left."""
-    return CalibrationStore(state_dir, "tool.json", "tool-calibrations", "tool-calibrate")
+    return CalibrationStore(state_dir, "tool.json", "tool-calibrations", "tool-calibrate", "tool-calibration", "tool calibration")
 
 
 def current_calibration(state_dir: Path, mount: str = "base") -> tuple[Placement, float, str]:
     """The accepted calibration: the scanner's placement (``T_base_cam``, or its pose on its link of the
     arm), the scanner's range bias on metal (m) and the job that made it.
 
-    Refused without one, when either value is unusable, or when it was made
+    Refused without one, when it is damaged (:mod:`celld.sealed`), when either value is unusable, or when it was made
     for a scanner mounted elsewhere than the config's ``mount``. A calibration
     without a range bias (structured light, or written before it existed)
     has none: 0.
     """
-    cal = CalibrationStore(state_dir).current()
+    cal = _read_current(CalibrationStore(state_dir))
     if cal is None:
         raise JobError("$", "the cell has no current calibration: run a calibrate job and accept it first")
     try:
@@ -160,7 +184,7 @@ def current_tool(state_dir: Path, tool: ToolConfig) -> CurrentTool:
     tool calibration unless ``tool.measured`` is ``"nominal"``, and when the
     stored tip or torch is unusable.
     """
-    current = tool_store(state_dir).current()
+    current = _read_current(tool_store(state_dir))
     if current is None:
         if tool.measured == "nominal":
             return CurrentTool(tool, "")
@@ -179,6 +203,13 @@ def current_tool(state_dir: Path, tool: ToolConfig) -> CurrentTool:
     except InputError as exc:
         raise JobError("$", f"the current tool calibration {job} is unusable: {exc}") from exc
     return CurrentTool(measured.tool, job, measured.sensor_yaw, True)
+
+
+def _read_current(store: CalibrationStore) -> dict[str, Any] | None:
+    try:
+        return store.current()
+    except DamagedStateError as exc:
+        raise JobError("$", f"{exc}: calibrate again and accept the result") from exc
 
 
 def _stored_point(current: Mapping[str, Any], key: str) -> np.ndarray:

@@ -217,8 +217,11 @@ def _links_up(status: dict[str, Any]) -> bool:
     return status.get("robot_link") == "up" and robot2 in (None, "up")
 
 
-def start_daemon(config_path: str | Path, log: IO[bytes], timeout: float = 90.0, world: WorldOptions = WorldOptions()) -> DaemonProcess:
-    """Start ``celld sim run`` on a cell config (its robot must be up, in the same ``world``) and wait for its bus and robot links.
+def start_daemon(
+    config_path: str | Path, log: IO[bytes], timeout: float = 90.0, world: WorldOptions = WorldOptions(), *, links: bool = True
+) -> DaemonProcess:
+    """Start ``celld sim run`` on a cell config (its robot in the same ``world``) and wait for its bus and, with
+    ``links``, its robot links (the robot must be up then).
 
     Raises
     ------
@@ -249,7 +252,7 @@ def start_daemon(config_path: str | Path, log: IO[bytes], timeout: float = 90.0,
                 client = CellClient(cfg.bus, cfg.cell.name, timeout=20.0)
             except BusError:
                 time.sleep(0.5)
-        while not _links_up(client.status()):
+        while links and not _links_up(client.status()):
             check("the robot link")
             time.sleep(0.5)
     except BaseException:

@@ -11,7 +11,6 @@ restarts it on the same slots after it died, and asks it to tare.
 
 from __future__ import annotations
 
-import json
 import multiprocessing as mp
 import os
 import time
@@ -22,9 +21,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from celld import fsutil
+from celld import sealed
 from celld.config import TactileConfig, ToolConfig
-from celld.errors import DeviceError
+from celld.errors import DamagedStateError, DeviceError
 from celld.log import get_logger
 from celld.realtime import RealtimeOptions, make_realtime
 from celld.shm import SeqlockSlot
@@ -45,6 +44,8 @@ log = get_logger(__name__)
 
 # How long the parent waits for the process to come up, s.
 _START_TIMEOUT = 20.0
+# How the finger's reference rest is sealed (celld.sealed).
+REST_KIND = "finger-rest"
 # The daemon's camera process: SCHED_FIFO below the motion loop (80) and the
 # simulated controller (50), any CPU; best effort at nice -10 where refused.
 CAMERA_REALTIME = RealtimeOptions(priority=40, cpu=None, lock_memory=False, nice=-10)
@@ -125,16 +126,15 @@ def load_reference(path: str | Path) -> np.ndarray | None:
     A file that cannot be read as one is logged and ignored: the next tare
     then becomes the reference (and replaces the file).
     """
-    p = Path(path)
-    if not p.exists():
-        return None
     try:
-        data = json.loads(p.read_text())
+        data = sealed.read_sealed(path, REST_KIND, "finger rest")
+        if data is None:
+            return None
         ref = np.asarray(data["p_cam_rest_m"], dtype=np.float64)
         if ref.shape != (3,) or not np.all(np.isfinite(ref)) or float(np.linalg.norm(ref)) > 1.0:
             raise ValueError(f"p_cam_rest_m: expected 3 finite numbers within 1 m, got {data['p_cam_rest_m']!r}")
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        log.error("the SRM's reference rest is unreadable; the next tare replaces it", path=str(p), error=str(exc))
+    except (DamagedStateError, ValueError, KeyError, TypeError) as exc:
+        log.error("the SRM's reference rest is not usable; the next tare replaces it", path=str(path), error=str(exc))
         return None
     return ref
 
@@ -150,7 +150,7 @@ def save_reference(path: str | Path, rest: Tare) -> None:
         "taken": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     try:
-        fsutil.write_json(p, body)
+        sealed.write_sealed(p, body, REST_KIND)
     except OSError as exc:
         log.error("could not keep the SRM's reference rest", path=str(p), error=str(exc))
 

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from celld import config as config_mod
+from celld import sealed
 from celld.calib.dataset import SessionWriter
 from celld.calib.mount import ScannerMount, in_frame
 from celld.calib.solve import SolveParams
@@ -140,5 +141,5 @@ def install_calibration(state_dir: str | Path, calibration: Mapping[str, Any]) -
     """Make ``calibration`` the cell's current one, as an accept does (the daemon reads it at each job)."""
     path = Path(state_dir) / "calibration.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(dict(calibration)))
+    sealed.write_sealed(path, calibration, "calibration")
     return path

@@ -1,16 +1,23 @@
-"""The daemon's start-up order: a second daemon on a state directory in use changes nothing in it."""
+"""The daemon's start-up: a second daemon on a state directory in use changes nothing in it; a damaged journal is
+a storage fault the status names with its way out, and the daemon serves with its devices away."""
 
 from __future__ import annotations
 
 import asyncio
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from celld import config, fsutil
+from celld.bus.client import CellClient
+from celld.cli import main
 from celld.daemon.app import Daemon
-from celld.errors import JournalError
+from celld.errors import JobError, JournalError
 from celld.journal import Journal
+from celld.robot.dashboard import robot_condition
+from tests.bus.conftest import free_port
+from tests.test_journal import DAMAGED_PAGE, damaged_journal
 
 
 class NoDevices:
@@ -30,3 +37,114 @@ def test_a_second_daemon_on_a_state_directory_in_use_is_refused_before_it_touche
         with pytest.raises(JournalError, match="held by another process"):
             asyncio.run(Daemon(cfg, NoDevices(), {}).start())
         assert in_flight.read_text() == '{"half": '
+
+
+class AwayDevices:
+    """A cell whose devices are all away (robot off, no scanner, no camera): enough for the daemon to serve."""
+
+    WHY = "robot link down: waiting (no link to the robot: a test)"
+
+    def __init__(self) -> None:
+        self.life = SimpleNamespace(exit_notes=[])
+        self.tactile = SimpleNamespace(state_message=lambda: None, supervise=_nothing)
+        self.scanner = SimpleNamespace(supervise=_nothing)
+
+    async def open(self, loop_ticked) -> None:
+        pass
+
+    async def close(self) -> None:
+        pass
+
+    async def stop_robot(self) -> None:
+        pass
+
+    async def robot_action(self, action: str) -> dict:
+        raise AssertionError("no robot command here")
+
+    def link_state(self) -> str:
+        return "down"
+
+    def robot_report(self) -> dict:
+        return {**robot_condition("down", None).as_dict(), "link": "down", "mode": None, "safety": None, "dashboard": "not read yet"}
+
+    def unready(self, kind: str, dry_run: bool = False) -> str:
+        return "" if kind == "health" else self.WHY
+
+    def waiting(self) -> list[str]:
+        return [self.WHY]
+
+    def supervised(self) -> bool:
+        return True
+
+    def heartbeat_age(self) -> None:
+        return None
+
+    def robot_state_message(self) -> None:
+        return None
+
+
+async def _nothing() -> None:
+    pass
+
+
+async def _serve_and_ask(cfg: config.Config, ask) -> object:
+    """Start a daemon on AwayDevices, run ``ask(client)`` on a worker thread, stop the daemon; ``ask``'s answer."""
+
+    async def health(ctx) -> dict:
+        return {"checks": {}}
+
+    daemon = Daemon(cfg, AwayDevices(), {"health": health, "move": health})
+    try:
+        await daemon.start()
+
+        def asking() -> object:
+            with CellClient(cfg.bus, cfg.cell.name, timeout=10.0) as client:
+                return ask(client)
+
+        return await asyncio.to_thread(asking)
+    finally:
+        await daemon.shutdown()
+
+
+@pytest.mark.parametrize("where", DAMAGED_PAGE)
+def test_a_damaged_journal_is_a_storage_fault_that_names_its_way_out_and_nothing_is_lost(
+    tmp_path: Path, loopback_host: str, where: str
+) -> None:
+    state = tmp_path / "state"
+    cfg = config.parse(
+        {
+            "cell": {"name": "damaged", "state_dir": str(state)},
+            "robot": {"host": loopback_host},
+            "bus": {"listen": [f"tcp/{loopback_host}:{free_port(loopback_host)}"]},
+            "recording": {"enabled": False},
+        }
+    )
+    damaged_journal(state / "journal.db", DAMAGED_PAGE[where])
+
+    def refused(client: CellClient) -> dict:
+        status = client.status()
+        with pytest.raises(JobError, match=r"refused: storage: the job journal .*journal.db is damaged: .*celld journal set-aside"):
+            client.submit({"kind": "health"})
+        with pytest.raises(JobError, match=r"journal.db is damaged"):
+            client.list()
+        return status
+
+    status = asyncio.run(_serve_and_ask(cfg, refused))
+    assert status["state"] == "fault" and "journal.db is damaged" in status["message"] and "celld journal set-aside" in status["message"]
+    assert not status["storage"]["ok"] and "is damaged" in status["storage"]["fault"]
+    # The way out: the damaged journal set aside, kept; the daemon starts on a new one and takes jobs.
+    config_path = tmp_path / "cell.toml"
+    config_path.write_text(f'[cell]\nstate_dir = "{state}"\n[robot]\nhost = "{loopback_host}"\n')
+    assert main(["journal", "set-aside", "--config", str(config_path)]) == 0
+    assert len(list(state.glob("journal-set-aside-*.db"))) == 1
+
+    def served(client: CellClient) -> dict:
+        # Nothing needs the robot in a health job; a move waits for it and says so.
+        with pytest.raises(JobError, match=r"refused: robot link down: waiting \(no link to the robot"):
+            client.submit({"kind": "move", "target": {"space": "joint", "q": [0, -1.57, 1.57, -1.57, -1.57, 0]}})
+        _, record = client.submit_and_wait({"kind": "health"}, timeout=20)
+        return {"record": record, "status": client.status()}
+
+    got = asyncio.run(_serve_and_ask(cfg, served))
+    assert got["record"]["state"] == "succeeded", got["record"]
+    assert got["status"]["storage"]["ok"] and got["status"]["message"] == AwayDevices.WHY

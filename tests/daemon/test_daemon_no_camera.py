@@ -1,4 +1,6 @@
-"""A cell whose SRM camera is missing still starts: it calibrates and moves, refuses welds, and says why."""
+"""A cell with a device missing still starts and serves: its SRM camera missing, it calibrates and moves, refuses
+welds and says why; its robot off at boot, it is ready for systemd at once, says what it waits for, refuses what
+needs the robot until the robot is there, then runs it."""
 
 from __future__ import annotations
 
@@ -6,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from celld.errors import JobError
 from celld.sim.cell import run_cell
 
 pytestmark = pytest.mark.cell
@@ -22,8 +25,58 @@ def test_without_its_camera_the_daemon_runs_reports_it_and_refuses_welds(tmp_pat
         client = cell.client
         _, health = client.submit_and_wait({"kind": "health", "check": "tactile"}, timeout=60)
         assert health["state"] == "failed" and "tactile process is not running" in health["reason"], health
-        _, weld = client.submit_and_wait({"kind": "weld"}, timeout=60)
-        assert weld["state"] == "failed" and "tactile sensor is not running" in weld["reason"], weld
+        # Refused at once with the reason, not queued to fail.
+        with pytest.raises(JobError, match="refused: finger camera not running: waiting"):
+            client.submit({"kind": "weld"})
         _, robot = client.submit_and_wait({"kind": "health", "check": "robot"}, timeout=60)
         assert robot["state"] == "succeeded", robot["reason"]
         assert cell.daemon.poll() is None
+
+
+def test_a_cell_that_boots_before_its_robot_is_ready_says_what_it_waits_for_and_refuses_moves_until_then(
+    tmp_path: Path, cell_config, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from celld import config as config_mod
+    from celld.sim.cell import launch, robot_options, start_daemon, stop_daemon, world_of
+    from celld.sim.world import WorldOptions
+    from tests.daemon.test_robot_faults_e2e import NotifyReceiver, _wait
+
+    receiver = NotifyReceiver(tmp_path / "notify.sock")
+    monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "notify.sock"))
+    path = cell_config("sim-cell.toml", "robot-off", {"sim": {"scanner": {"resolution_scale": 0.25}}}, recording=False)
+    cfg = config_mod.load(path)
+    move = {"kind": "move", "target": {"space": "joint", "q": list(cfg.robot.home_q)}}
+    try:
+        with open(tmp_path / "daemon.log", "ab") as log:
+            daemon = start_daemon(path, log, timeout=60, links=False)  # no robot at its address yet
+            try:
+                client = daemon.client
+                # READY with the bus served, not held back by the robot: no restart loop under systemd.
+                _wait(lambda: any(m == "READY=1" for _, m in receiver.messages), 30, "READY=1")
+                status = _wait(lambda: (s := client.status())["robot_link"] != "up" and "waiting" in s["message"] and s, 10, "status")
+                assert status["state"] == "fault" and status["message"].startswith("robot link down: waiting (no link to the robot")
+                assert any(m.startswith("STATUS=cell robot-off: robot link down: waiting") for _, m in receiver.messages)
+                with pytest.raises(JobError, match="refused: robot link down: waiting .*check the robot is on"):
+                    client.submit(move)
+                assert client.list() == []  # refused at once: nothing queued to fail later
+                # A health job needs no device: it runs, and finds the scanner not open (the simulated one is
+                # drawn from the robot's truth, so it waits for the robot too, tried again in the background).
+                _, health = client.submit_and_wait({"kind": "health", "check": "scanner"}, timeout=30)
+                assert health["state"] == "failed" and "the scanner is not open: no simulated robot" in health["reason"]
+
+                w = world_of(cfg, WorldOptions())
+                with launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(w)):
+                    _wait(lambda: client.status()["robot_link"] == "up", 40, "the link once the robot is on")
+                    _wait(lambda: client.status()["state"] == "idle", 10, "the cell idle")
+                    _, moved = client.submit_and_wait(move, timeout=60)
+                    assert moved["state"] == "succeeded", moved["reason"]
+                    assert daemon.process.poll() is None
+                    # systemd's STATUS, said every second, no longer waits for the robot (the scanner and camera
+                    # may still be on their back-off).
+                    said = lambda: [m for _, m in receiver.messages if m.startswith("STATUS=cell robot-off: ")][-1]  # noqa: E731
+                    _wait(lambda: "robot link down" not in said(), 5, "systemd's status without the robot's wait")
+            finally:
+                daemon.client.close()
+                stop_daemon(daemon.process)
+    finally:
+        receiver.close()

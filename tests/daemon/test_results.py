@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 
+from celld import sealed
 from celld.bus import messages
 from celld.bus.checker import validate
 from celld.calib import quality, toolcal
@@ -336,10 +337,11 @@ def test_the_verdicts_are_the_quality_gates_own() -> None:
 
 
 def test_the_current_calibrations_are_the_candidates_accepted() -> None:
-    accepted = {**CALIBRATION, "robot2": ROBOT2_ENTRY, "accepted": "2026-01-01T00:00:00Z", "forced": True}
+    # As the store keeps them: sealed (celld.sealed), and so sent.
+    accepted = sealed.seal({**CALIBRATION, "robot2": ROBOT2_ENTRY, "accepted": "2026-01-01T00:00:00Z", "forced": True}, "calibration")
     messages.check_message("accept-reply", {"ok": True, "job": "j1", "kind": "calibrate", "calibration": accepted}, BUNDLE)
     messages.check_message("calibration-reply", {"ok": True, "calibration": accepted, "tool": None}, BUNDLE)
-    tool = {**TOOL, "accepted": "2026-01-01T00:00:00Z"}
+    tool = sealed.seal({**TOOL, "accepted": "2026-01-01T00:00:00Z"}, "tool-calibration")
     messages.check_message("accept-reply", {"ok": True, "job": "j2", "kind": "tool-calibrate", "tool": tool}, BUNDLE)
     messages.check_message("calibration-reply", {"ok": True, "calibration": None, "tool": tool}, BUNDLE)
     for reply, field in (
@@ -350,7 +352,7 @@ def test_the_current_calibrations_are_the_candidates_accepted() -> None:
         with pytest.raises(JobError) as err:
             messages.check_message("accept-reply", reply, BUNDLE)
         assert err.value.field == field
-    assert set(CALIBRATION_SCHEMA["properties"]) >= set(accepted) - {"accepted", "forced"}
+    assert set(CALIBRATION_SCHEMA["properties"]) >= set(accepted) - {"accepted", "forced", "format", "sha256"}
 
 
 def test_celld_bus_schema_exports_the_bundle(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

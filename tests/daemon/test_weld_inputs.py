@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from celld import fsutil
+from celld import sealed
 from celld.calib.mount import ScannerMount, mount_entry
 from celld.config import parse
 from celld.daemon.store import current_calibration
@@ -49,36 +49,40 @@ def test_parts_resolve_from_the_examples_or_the_workpiece_dir(tmp_path: Path) ->
 def test_a_weld_needs_a_usable_current_calibration(tmp_path: Path) -> None:
     with pytest.raises(JobError, match="no current calibration"):
         current_calibration(tmp_path)
-    fsutil.write_json(tmp_path / "calibration.json", {"job": "j1", "T_base_cam": [[1, 0, 0], [0, 1, 0]]})
+    sealed.write_sealed(tmp_path / "calibration.json", {"job": "j1", "T_base_cam": [[1, 0, 0], [0, 1, 0]]}, "calibration")
     with pytest.raises(JobError, match="unusable"):
         current_calibration(tmp_path)
     T = np.eye(4)
     T[:3, 3] = [0.6, 0.0, 1.0]
     # Without a range bias (structured light, or a calibration from before it): none.
-    fsutil.write_json(tmp_path / "calibration.json", {"job": "j2", "T_base_cam": T.tolist()})
+    sealed.write_sealed(tmp_path / "calibration.json", {"job": "j2", "T_base_cam": T.tolist()}, "calibration")
     placed, bias, job = current_calibration(tmp_path)
     assert job == "j2" and np.allclose(placed.T_base_cam(None), T) and bias == 0.0
     # A time-of-flight calibration's range bias comes in metres.
-    fsutil.write_json(tmp_path / "calibration.json", {"job": "j3", "T_base_cam": T.tolist(), "range_bias_mm": 8.1})
+    sealed.write_sealed(tmp_path / "calibration.json", {"job": "j3", "T_base_cam": T.tolist(), "range_bias_mm": 8.1}, "calibration")
     assert current_calibration(tmp_path)[1] == pytest.approx(0.0081)
-    # A hand-edited or corrupt value is refused, not applied to a scan (json reads NaN too).
-    for bad in ('"8"', "null", "NaN", "1e4", "true"):
-        (tmp_path / "calibration.json").write_text(f'{{"job": "j4", "T_base_cam": {json.dumps(T.tolist())}, "range_bias_mm": {bad}}}')
+    # A value no calibration job writes is refused, not applied to a scan, even in a file that is sealed.
+    for bad in ("8", None, 1e4, True):
+        sealed.write_sealed(tmp_path / "calibration.json", {"job": "j4", "T_base_cam": T.tolist(), "range_bias_mm": bad}, "calibration")
         with pytest.raises(JobError, match="range_bias_mm"):
             current_calibration(tmp_path)
+    # json reads NaN too: a file holding one was not written by celld.
+    (tmp_path / "calibration.json").write_text('{"format": "celld.calibration/1", "sha256": "", "job": "j5", "range_bias_mm": NaN}')
+    with pytest.raises(JobError, match="the stored calibration is damaged: holds a value JSON does not"):
+        current_calibration(tmp_path)
 
 
 def test_a_calibration_is_used_only_with_the_scanner_mount_it_was_made_for(tmp_path: Path) -> None:
     T = np.eye(4)
     T[:3, 3] = [-0.578, 0.82, 0.162]
     on_arm = ScannerMount.of("link1", "ur10e")
-    fsutil.write_json(tmp_path / "calibration.json", {"job": "j1", **mount_entry(on_arm, T)})
+    sealed.write_sealed(tmp_path / "calibration.json", {"job": "j1", **mount_entry(on_arm, T)}, "calibration")
     with pytest.raises(JobError, match="a scanner on link1, and scanner.mount is 'base'"):
         current_calibration(tmp_path)
     placed, _, _ = current_calibration(tmp_path, "link1")
     q = np.array([2.8, -1.4, 2.3, -2.5, 1.6, -1.3])
     np.testing.assert_allclose(placed.T_base_cam(q), on_arm.T_base_link(q) @ T, atol=1e-15)
-    fsutil.write_json(tmp_path / "calibration.json", {"job": "j2", "T_base_cam": T.tolist()})
+    sealed.write_sealed(tmp_path / "calibration.json", {"job": "j2", "T_base_cam": T.tolist()}, "calibration")
     with pytest.raises(JobError, match="a scanner on base, and scanner.mount is 'link1'"):
         current_calibration(tmp_path, "link1")
 
@@ -102,7 +106,7 @@ def test_a_weld_takes_the_measured_tip_and_refuses_an_unmeasured_tool_unless_nom
     tool, job, yaw, torch_measured = current_tool(tmp_path, required)
     assert job == "t1" and tool.tip_tcp == pytest.approx((0.8e-3, -1.1e-3, 0.2009))
     assert tool == ToolConfig(tip_tcp=tool.tip_tcp) and (yaw, torch_measured) == (0.0, False)  # only the tip changes
-    fsutil.write_json(tmp_path / "tool.json", {"job": "t2", "tip_tcp_mm": [0.0, "x", 200.0]})
+    sealed.write_sealed(tmp_path / "tool.json", {"job": "t2", "tip_tcp_mm": [0.0, "x", 200.0]}, "tool-calibration")
     with pytest.raises(JobError, match="unusable"):
         current_tool(tmp_path, nominal)
 
@@ -123,11 +127,11 @@ def test_a_weld_takes_a_measured_torch_for_the_tool_x_axis_and_offset(tmp_path: 
     np.testing.assert_allclose(got.tool.tool_x_tcp, np.array([30.0, -0.9, 0.0]) / np.hypot(30.0, 0.9))
     assert abs(got.sensor_yaw) == pytest.approx(np.arctan2(0.9, 30.0))
     # A stored torch that no tool can have is refused, naming it; one not measured leaves the torch as configured.
-    fsutil.write_json(tmp_path / "tool.json", {**entry, "torch_tcp_mm": [-30.0, 9.0, 200.0]})
+    sealed.write_sealed(tmp_path / "tool.json", {**entry, "torch_tcp_mm": [-30.0, 9.0, 200.0]}, "tool-calibration")
     with pytest.raises(JobError, match="t3 is unusable: measured torch: -16.7 deg"):
         current_tool(tmp_path, required)
-    fsutil.write_json(tmp_path / "tool.json", {**entry, "torch_tcp_mm": [-30.0, None, 200.0]})
+    sealed.write_sealed(tmp_path / "tool.json", {**entry, "torch_tcp_mm": [-30.0, None, 200.0]}, "tool-calibration")
     with pytest.raises(JobError, match="torch_tcp_mm"):
         current_tool(tmp_path, required)
-    fsutil.write_json(tmp_path / "tool.json", {**entry, "torch_measured": False})
+    sealed.write_sealed(tmp_path / "tool.json", {**entry, "torch_measured": False}, "tool-calibration")
     assert current_tool(tmp_path, required) == (required, "t3", 0.0, False)

@@ -8,12 +8,13 @@ import uuid
 import numpy as np
 import pytest
 
+from celld import sealed
 from celld.config import TactileConfig, ToolConfig
 from celld.errors import DeviceError
 from celld.shm import SeqlockSlot
 from celld.sim.srm import SimSrm, SimSrmCamera, SrmSimParams, Wall
 from celld.tactile.camera import COUNTERS_DTYPE, FrameEstimator, OpenCvCamera, run_camera
-from celld.tactile.process import TactileProcess, load_reference, save_reference
+from celld.tactile.process import REST_KIND, TactileProcess, load_reference, save_reference
 from celld.tactile.sample import TACTILE_DTYPE, ContactState, TactileStatus, from_record
 
 # A wall along +x at y = 0 of a horizontal plane; the default tool faces +x
@@ -193,7 +194,11 @@ def test_a_finger_pressed_at_start_is_not_tared_until_it_is_free(tmp_path) -> No
 
 def test_an_unreadable_reference_is_ignored_and_replaced_by_the_next_tare(tmp_path) -> None:
     path = tmp_path / "rest.json"
-    path.write_text('{"p_cam_rest_m": [0.0, "x", 0.02]}')
+    sealed.write_sealed(path, {"p_cam_rest_m": [0.0, "x", 0.02]}, REST_KIND)
+    assert load_reference(path) is None
+    sealed.write_sealed(path, {"p_cam_rest_m": [0.0, 0.001, 0.02]}, REST_KIND)
+    assert load_reference(path) == pytest.approx([0.0, 0.001, 0.02])
+    path.write_text(path.read_text().replace("0.001", "0.002"))  # edited: its checksum refuses it
     assert load_reference(path) is None
     path.write_text("not json")
     assert load_reference(path) is None
