@@ -576,6 +576,10 @@ class RecordingConfig:
         )
 
 
+# weld.retract_after_fault: what the arm may do by itself after a fault stopped a weld.
+RETRACTS_AFTER_FAULT = ("none", "clear", "full")
+
+
 @dataclass(frozen=True)
 class WeldConfig:
     """The weld job: which part, where the arm waits while the scanner looks,
@@ -602,6 +606,10 @@ class WeldConfig:
     approach_height: float = 0.03
     # ... and leaves it this far up when the weld ends (or fails), m.
     retract_height: float = 0.05
+    # What the arm does by itself after a fault stopped a weld: "none" (it stays where it stopped), "clear"
+    # (straight out of the joint by retract_height, slowly) or "full" (that, then back to the scan pose).
+    # Never after a protective stop or with the robot link down.
+    retract_after_fault: str = "clear"
     # Share of the motion limits used by the moves of a weld job.
     speed_scale: float = 0.5
     # The longest a weld may run before it is stopped, s.
@@ -624,6 +632,7 @@ class WeldConfig:
             tip_height=r.float("tip_height_mm", cls.tip_height * 1e3, lo=0.0, hi=50.0, scale=1e-3),
             approach_height=r.float("approach_height_mm", cls.approach_height * 1e3, lo=1.0, hi=500.0, scale=1e-3),
             retract_height=r.float("retract_height_mm", cls.retract_height * 1e3, lo=1.0, hi=500.0, scale=1e-3),
+            retract_after_fault=r.str("retract_after_fault", cls.retract_after_fault, choices=RETRACTS_AFTER_FAULT),
             speed_scale=r.float("speed_scale", cls.speed_scale, lo=0.0, hi=1.0, open_lo=True),
             timeout=r.float("timeout_s", cls.timeout, lo=1.0, hi=36_000.0),
             probe_height=r.bool("probe_height", cls.probe_height),

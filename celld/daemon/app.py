@@ -260,8 +260,9 @@ class Daemon:
             self._update_fault()
 
 
-def serve(config: Config, factories: DeviceFactories) -> None:
-    """Run the daemon of ``config`` on the devices ``factories`` open, until SIGTERM or SIGINT.
+def serve(config: Config, factories: DeviceFactories, take_over: bool = False) -> None:
+    """Run the daemon of ``config`` on the devices ``factories`` open, until SIGTERM or SIGINT; with ``take_over``
+    robot 1 is taken even from another program running on it (:class:`~celld.daemon.devices.CellDevices`).
 
     Raises
     ------
@@ -269,5 +270,5 @@ def serve(config: Config, factories: DeviceFactories) -> None:
         What the config names is missing or unusable here (:mod:`celld.preflight`).
     """
     preflight.require(config)
-    devices = CellDevices(config, factories)
+    devices = CellDevices(config, factories, take_over)
     asyncio.run(Daemon(config, devices, build_runners(config, devices)).run())

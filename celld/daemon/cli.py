@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import argparse
 
+TAKE_OVER_HELP = "take the robot even when another program runs on it (by default celld waits until it stops, and says so in status)"
+
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the cell daemon (robot link, jobs over zenoh, recordings)")
     p.add_argument("--config", default="/etc/celld/cell.toml", help="the cell config (default: %(default)s)")
+    p.add_argument("--take-over", action="store_true", help=TAKE_OVER_HELP)
     p.set_defaults(func=_run)
 
     b = sub.add_parser("bus", help="bus tools")
@@ -63,7 +66,7 @@ def _run(args: argparse.Namespace) -> int:
     from celld.daemon.devices import real_devices
 
     cfg = config_mod.load(args.config)  # refused here, before any device is opened
-    serve(cfg, real_devices())
+    serve(cfg, real_devices(), take_over=args.take_over)
     return 0
 
 

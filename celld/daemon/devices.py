@@ -44,7 +44,7 @@ from celld.log import get_logger
 from celld.motion.algorithm2 import NAME as ALGORITHM2
 from celld.motion.loop import INTERLOCK_MISSING
 from celld.robot.cellmodel import CellObject
-from celld.robot.dashboard import ACTIONS, Dashboard, RobotCondition, robot_condition
+from celld.robot.dashboard import ACTIONS, Dashboard, RobotCondition, foreign_program, robot_condition
 from celld.scanner.base import OrganizedCloud, Scanner
 from celld.scanner.factory import open_scanner
 from celld.supervision import Backoff, BeatThread, ChildRecords, Heartbeat, exit_notes
@@ -70,6 +70,8 @@ LOOP_HANG = 1.0
 TACTILE_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 32.0, 60.0))
 # How long to wait between attempts to open a scanner that did not open (off, unplugged), s.
 SCANNER_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 30.0))
+# What to do about a robot another program keeps.
+HELD_REMEDY = "celld takes the robot once it stops: stop it on the teach pendant, or start celld with --take-over"
 # Job kinds and the devices they need beyond robot 1 (a health job needs none).
 _NEEDS_SCANNER = frozenset({"calibrate", "weld", "tool-calibrate"})
 # The dashboard server is read this often, s.
@@ -345,9 +347,15 @@ class CellDevices:
         unless the simulated cell hands its own). With ``tactile.kind =
         "none"`` the cell runs without a tactile process, and weld jobs are
         refused.
+    take_over : bool
+        Take robot 1 over even when another program runs on it at start
+        (``celld run --take-over``). Without it, a program the robot runs that
+        the previous celld did not leave (no child of it was reaped, none left
+        a note) keeps the robot: :attr:`held` says which, the motion process
+        is not started, and it is started once the program has stopped.
     """
 
-    def __init__(self, config: Config, factories: DeviceFactories | None = None) -> None:
+    def __init__(self, config: Config, factories: DeviceFactories | None = None, take_over: bool = False) -> None:
         factories = factories or real_devices()
         self.config = config
         self.robot = Arm(config)
@@ -358,6 +366,10 @@ class CellDevices:
         self.life = Lifecycle(config)
         self._recordings: list[Any] = []
         self._condition = ""
+        self.take_over = take_over
+        self.held = ""  # the program of another controller robot 1 runs, not taken over ("" when none)
+        self._heartbeat = ""
+        self._opening: asyncio.Task[None] | None = None
 
     # -- the second robot as an obstacle ------------------------------------------------
 
@@ -401,9 +413,21 @@ class CellDevices:
         process, each robot's motion process, the dashboard reading, the scanner."""
         cfg = self.config
         heartbeat = await self.life.open(loop_ticked)
+        self._heartbeat = heartbeat.name
         await self.tactile.open(heartbeat.name, self.life.records)
-        motion = await self.robot.open_motion(heartbeat.name, self.life.records, SERVO_LAWS, self.tactile.slot_name)
-        motion.add_listener(self._on_state_batch)
+        running = foreign_program(await self.life.dashboard.read())
+        ours = bool(self.life.leftovers or self.life.exit_notes)  # the previous celld's own program
+        if running and not (self.take_over or ours):
+            self.held = running
+            log.error("another program runs on the robot: celld does not take it over", program=running, remedy=HELD_REMEDY)
+        else:
+            if running:
+                log.warning("taking the robot over from the program it runs", program=running, take_over=self.take_over)
+                try:
+                    await self.life.dashboard.stop_program()
+                except CelldError as exc:  # the motion process's connect says the rest
+                    log.error("the running program could not be stopped", program=running, error=str(exc))
+            await self._open_robot()
         if self.robot2 is not None:
             await self.robot2.open_motion(heartbeat.name, self.life.records)
         self.life.read_dashboard(self._on_dashboard)
@@ -415,7 +439,13 @@ class CellDevices:
             tactile=cfg.tactile.kind if self.tactile.process is not None else "none",
         )
 
+    async def _open_robot(self) -> None:
+        motion = await self.robot.open_motion(self._heartbeat, self.life.records, SERVO_LAWS, self.tactile.slot_name)
+        motion.add_listener(self._on_state_batch)
+
     async def close(self) -> None:
+        if self._opening is not None:
+            await asyncio.gather(self._opening, return_exceptions=True)
         if self.robot2 is not None:
             await self.robot2.close_motion()
         await self.robot.close_motion()
@@ -451,6 +481,8 @@ class CellDevices:
         return [why for why in (self._robot_wait(), self._scanner_wait(), self._camera_wait()) if why]
 
     def _robot_wait(self) -> str:
+        if self.held:
+            return f"robot held by another program: waiting ({self.held} runs on it; {HELD_REMEDY})"
         if self.robot.link_state() == "up":
             return ""
         cond = self.robot_condition()
@@ -467,6 +499,11 @@ class CellDevices:
         return f"finger camera not running: waiting ({self.tactile.error or 'its process ended; restarting it'})"
 
     def _on_dashboard(self) -> None:
+        if self.held and self.life.dashboard.last is not None and self.life.dashboard.last.reachable:
+            if not foreign_program(self.life.dashboard.last):
+                log.info("the other program on the robot stopped: celld takes the robot", program=self.held)
+                self.held = ""
+                self._opening = asyncio.get_running_loop().create_task(self._open_robot(), name="celld-open-robot")
         cond = self.robot_condition()
         if cond.state != self._condition:
             (log.info if cond.ready else log.warning)("robot condition", state=cond.state, reason=cond.reason)
@@ -475,8 +512,8 @@ class CellDevices:
     def robot_condition(self) -> RobotCondition:
         """Whether robot 1 can move, and if not why and what clears it (:mod:`celld.robot.dashboard`)."""
         motion = self.robot.motion
-        last = motion.supervisor.last_exit if motion is not None else None
-        return robot_condition(self.robot.link_state(), self.life.dashboard.last, last.reason if last is not None else "")
+        cause = motion.supervisor.outage_cause() if motion is not None else ""
+        return robot_condition(self.robot.link_state(), self.life.dashboard.last, cause)
 
     def robot_report(self) -> dict[str, Any]:
         """The robot's condition and the dashboard's last reading, for the status reply."""
@@ -542,7 +579,7 @@ class CellDevices:
         """
         motion = self.robot.motion
         if motion is None:
-            return False
+            return bool(self.held)  # nothing to supervise while another program keeps the robot
         sup = motion.supervisor
         return sup.running() and time.monotonic() - sup.last_tick < max_age
 

@@ -598,7 +598,7 @@ class JobManager:
             await self._stop_robot_safely(job_id)
             log.warning("job failed", job=job_id, error=reason)
         except CelldError as exc:
-            state, reason = "failed", str(exc)
+            state, reason = "failed", "; ".join([str(exc), *getattr(exc, "__notes__", ())])  # notes: what followed it
             await self._stop_robot_safely(job_id)
             log.warning("job failed", job=job_id, error=reason)
         except Exception as exc:  # a bug: the job fails, the daemon stays up

@@ -21,8 +21,12 @@ Steps, each published as a progress event:
    switched on (robot digital output ``robot.arc_output``) by the motion loop
    itself while the law tracks and off the cycle a stop begins, so no bus or
    event-loop delay stands between a fault and the arc going out;
-5. **retract**: straight up by ``retract_height`` (also after a failed track,
-   when the link still stands), then to the scan pose.
+5. **retract**: straight up by ``retract_height``, then to the scan pose.
+   After a fault stopped the weld the arm moves only as
+   ``weld.retract_after_fault`` says: ``none`` (it stays), ``clear`` (straight
+   out of the joint, slowly) or ``full`` (that, then to the scan pose); never
+   after a protective stop or with the link down. What it did is added to the
+   job's reason and logged in its recording.
 
 Results: the planned wall line, the refined path (the seam as the finger
 found it, which the torch followed) and the torch path, in the base frame,
@@ -52,12 +56,12 @@ from celld import fsutil, polyline, se3
 from celld.bus.requests import WeldJob
 from celld.calib.mount import Placement
 from celld.calib.rangebias import correct_range_bias
-from celld.config import Config, ServoConfig, ToolConfig, with_overrides
+from celld.config import Config, ServoConfig, ToolConfig, WeldConfig, with_overrides
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
 from celld.daemon.planning import record_arm, record_cell, record_plan
 from celld.daemon.store import current_calibration, current_tool
-from celld.errors import CelldError, ConfigError, JobError, WorkpieceError
+from celld.errors import CelldError, ConfigError, JobError, SafetyStop, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
 from celld.motion.types import ServoPlan
@@ -217,21 +221,54 @@ class _Collector:
         return np.concatenate(self.batches) if self.batches else None
 
 
-async def _retract(ctx: JobContext, devices: CellDevices, z: np.ndarray, height: float, T_scan: np.ndarray, speed: float) -> str:
-    """Stop, the tool straight up by ``height`` (m, along ``z``) and back to the scan pose; why not, or ""."""
+# Share of the motion limits of the move out of the joint after a fault (retract_after_fault = clear).
+CLEAR_SPEED = 0.1
+
+
+async def _retract(
+    ctx: JobContext, devices: CellDevices, z: np.ndarray, height: float, T_scan: np.ndarray | None, speed: float, up_speed: float = 0.2
+) -> str:
+    """Stop, the tool straight up by ``height`` (m, along ``z``) and back to the scan pose (when ``T_scan`` is
+    given); why not, or ""."""
     try:
         await devices.stop_robot()
         state = devices.robot.require_motion().state()
         if state is not None:
             T_up = state.T_base_tcp.copy()
             T_up[:3, 3] += height * z
-            ctx.progress("retract", None, "tool up and away")
-            await devices.robot.move_to(T_up, speed_scale=min(speed, 0.2))
-            await devices.robot.move_to(T_scan, speed_scale=speed)
+            ctx.progress("retract", None, "tool up and away" if T_scan is not None else "tool straight out of the joint")
+            await devices.robot.move_to(T_up, speed_scale=min(speed, up_speed))
+            if T_scan is not None:
+                await devices.robot.move_to(T_scan, speed_scale=speed)
     except CelldError as exc:
         log.error("retract after the weld failed", job=ctx.job_id, error=str(exc))
         return str(exc)
     return ""
+
+
+async def _after_fault(
+    ctx: JobContext, devices: CellDevices, wc: WeldConfig, fault: CelldError, z: np.ndarray, T_scan: np.ndarray, speed: float
+) -> None:
+    """Move the arm after ``fault`` stopped the weld only as ``weld.retract_after_fault`` says, and never after a
+    protective stop or with the link down; what it did is added to the fault (a note: the job's reason says it)
+    and logged in the recording."""
+    mode = wc.retract_after_fault
+    motion = devices.robot.motion
+    if mode == "none":
+        note = "the arm was left where it stopped (weld.retract_after_fault = none)"
+    elif isinstance(fault, SafetyStop):
+        note = "the arm was left where it stopped: no move after a safety stop"
+    elif motion is None or not motion.link_running():
+        note = "the arm was left where it stopped: the robot link is down"
+    else:
+        full = mode == "full"
+        error = await _retract(ctx, devices, z, wc.retract_height, T_scan if full else None, speed, CLEAR_SPEED)
+        moved = f"the tool {wc.retract_height * 1e3:g} mm straight up" + (", then to the scan pose" if full else "")
+        note = f"after the fault, {moved} (weld.retract_after_fault = {mode})" + (f", which failed: {error}" if error else "")
+    fault.add_note(note)
+    log.warning("weld stopped by a fault", job=ctx.job_id, fault=str(fault), after=note)
+    if ctx.recording is not None:
+        ctx.recording.event_later(f"weld stopped: {fault}; {note}", "WARN")
 
 
 async def _probe_height(
@@ -518,7 +555,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         raise JobError(
             "$", f"the tactile sensor is not running ({devices.tactile.error or 'its process ended'}); the daemon keeps restarting it"
         )
-    motion = devices.robot.require_motion()
+    devices.robot.require_motion()  # refused at once without a motion process
     wc = config.weld
     setup = await weld_setup(ctx, config, job, cache)
     speed = wc.speed_scale
@@ -549,16 +586,15 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         height_probe, plan = await _probe_height(
             ctx, devices, config, plan, setup.servo, setup.tool_config, setup.sensor_yaw, min(speed, 0.2)
         )
-    except CelldError:
-        await _retract(ctx, devices, up, wc.retract_height, T_scan, speed)
+    except CelldError as exc:
+        await _after_fault(ctx, devices, wc, exc, up, T_scan, speed)
         raise
 
     # 4. touch and track; 5. retract (also after a failed track, while the robot can still be moved)
     try:
         records = await _track(ctx, config, devices, setup, plan, process=bool(job.arc) and config.robot.arc_output >= 0)
-    except CelldError:
-        if motion.link_running():
-            await _retract(ctx, devices, up, wc.retract_height, T_scan, speed)
+    except CelldError as exc:
+        await _after_fault(ctx, devices, wc, exc, up, T_scan, speed)
         raise
     retract_error = await _retract(ctx, devices, up, wc.retract_height, T_scan, speed)
 

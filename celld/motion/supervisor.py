@@ -116,6 +116,7 @@ class MotionSupervisor:
         self.state = LinkState.STOPPED
         self.restarts = 0
         self.last_exit: ProcessExit | None = None
+        self._ran_since_exit = False  # a process reached RUNNING after last_exit: that end is history
         self._failures = 0
         self._retry = False
         self._proc: _Proc | None = None
@@ -214,6 +215,11 @@ class MotionSupervisor:
         except ProcessLookupError:
             pass
 
+    def outage_cause(self) -> str:
+        """Why the link is down now, as the motion process that ended last said: "" when a process has run
+        since it ended (the link dropped again and its process has not ended yet, or the link is up)."""
+        return "" if self.last_exit is None or self._ran_since_exit else self.last_exit.reason
+
     def _check(self, proc: _Proc) -> None:
         """Kill a process that is stuck connecting or whose loop stands still."""
         now = time.monotonic()
@@ -225,6 +231,7 @@ class MotionSupervisor:
                 proc.last_progress = now
                 self.state = LinkState.RUNNING
                 self._running.set()
+                self._ran_since_exit = True
             head = self.ch.state.head
             if head != proc.last_head:
                 proc.last_head = head
@@ -283,6 +290,7 @@ class MotionSupervisor:
                 self.records.remove(self.spec.role)
             end = self._exit_of(proc)
             self.last_exit = end
+            self._ran_since_exit = False
             self._running.clear()
             log_fn = log.info if end.status == ControlStatus.OK else log.warning
             log_fn("motion process ended", pid=end.pid, exitcode=end.exitcode, status=end.status.name, reason=end.reason)

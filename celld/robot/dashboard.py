@@ -93,6 +93,15 @@ def reply_value(reply: str, prefix: str) -> str:
     return text.strip()
 
 
+def foreign_program(reading: DashboardReading | None) -> str:
+    """The program the robot runs or holds paused (its dashboard's ``programState``, e.g. ``PLAYING weld.urp``),
+    "" when none does or the dashboard could not be read."""
+    if reading is None or not reading.reachable:
+        return ""
+    state = reading.program.partition(" ")[0].upper()
+    return reading.program if state in ("PLAYING", "PAUSED") else ""
+
+
 def robot_condition(link: str, reading: DashboardReading | None, last_exit: str = "") -> RobotCondition:
     """Why the robot cannot move, from the link state ("up", "down", "unknown"), the dashboard and the last exit.
 
@@ -246,6 +255,19 @@ class Dashboard:
         loop = asyncio.get_running_loop()
         log.info("dashboard command", robot=self.host, action=action)
         return await loop.run_in_executor(self._pool, self._act_blocking, method)
+
+    async def stop_program(self) -> str:
+        """Stop the program the robot runs (the dashboard's ``stop``): celld takes a robot over from another program
+        this way (ur-rtde replaces only its own script). Not an operator's action.
+
+        Raises
+        ------
+        RobotError
+            The dashboard refused it or could not be reached.
+        """
+        loop = asyncio.get_running_loop()
+        log.warning("dashboard command", robot=self.host, action="stop the running program")
+        return await loop.run_in_executor(self._pool, self._act_blocking, "stop")
 
     async def close(self) -> None:
         loop = asyncio.get_running_loop()

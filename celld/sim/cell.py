@@ -177,8 +177,9 @@ def check_robot2(config: Config, world: World) -> None:
         raise ConfigError(config.source, "robot2", f"the config has {have} but no {lack}: the simulated cell needs both for a second robot")
 
 
-def serve_daemon(config_path: str | Path, options: WorldOptions = WorldOptions()) -> int:
-    """``celld sim run``: the daemon of a cell config on the simulated devices of its world (the part built once)."""
+def serve_daemon(config_path: str | Path, options: WorldOptions = WorldOptions(), take_over: bool = False) -> int:
+    """``celld sim run``: the daemon of a cell config on the simulated devices of its world (the part built once);
+    ``take_over`` as ``celld run --take-over``."""
     from celld.daemon.app import serve
     from celld.log import get_logger
 
@@ -186,7 +187,7 @@ def serve_daemon(config_path: str | Path, options: WorldOptions = WorldOptions()
     world = world_of(cfg, options)
     check_robot2(cfg, world)
     get_logger(__name__).info("sim_world", world=world.describe())
-    serve(cfg, sim_devices(cfg, world, sim_part(world)))
+    serve(cfg, sim_devices(cfg, world, sim_part(world)), take_over)
     return 0
 
 
@@ -218,10 +219,16 @@ def _links_up(status: dict[str, Any]) -> bool:
 
 
 def start_daemon(
-    config_path: str | Path, log: IO[bytes], timeout: float = 90.0, world: WorldOptions = WorldOptions(), *, links: bool = True
+    config_path: str | Path,
+    log: IO[bytes],
+    timeout: float = 90.0,
+    world: WorldOptions = WorldOptions(),
+    *,
+    links: bool = True,
+    take_over: bool = False,
 ) -> DaemonProcess:
-    """Start ``celld sim run`` on a cell config (its robot in the same ``world``) and wait for its bus and, with
-    ``links``, its robot links (the robot must be up then).
+    """Start ``celld sim run`` (with ``--take-over`` when ``take_over``) on a cell config (its robot in the same
+    ``world``) and wait for its bus and, with ``links``, its robot links (the robot must be up then).
 
     Raises
     ------
@@ -231,7 +238,17 @@ def start_daemon(
     """
     cfg = config_mod.load(config_path)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "celld.cli", "sim", "run", "--config", str(Path(config_path).resolve()), *world.to_argv()],
+        [
+            sys.executable,
+            "-m",
+            "celld.cli",
+            "sim",
+            "run",
+            "--config",
+            str(Path(config_path).resolve()),
+            *world.to_argv(),
+            *(["--take-over"] if take_over else []),
+        ],
         stdout=log,
         stderr=subprocess.STDOUT,
         stdin=subprocess.DEVNULL,

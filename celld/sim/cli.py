@@ -67,9 +67,11 @@ def _cell_arguments(cell: argparse.ArgumentParser) -> None:
 
 
 def _run_arguments(run: argparse.ArgumentParser) -> None:
+    from celld.daemon.cli import TAKE_OVER_HELP
     from celld.sim.world import add_world_arguments
 
     run.add_argument("--config", required=True, help="the cell config (e.g. configs/sim-cell.toml)")
+    run.add_argument("--take-over", action="store_true", help=TAKE_OVER_HELP)
     add_world_arguments(run)
     run.set_defaults(func=_run_daemon)
 
@@ -119,7 +121,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
     from celld.sim.cell import serve_daemon
     from celld.sim.world import options_from_args
 
-    return serve_daemon(args.config, options_from_args(args))
+    return serve_daemon(args.config, options_from_args(args), take_over=args.take_over)
 
 
 def se3_text(T: Any) -> str:

@@ -80,3 +80,55 @@ def test_a_cell_that_boots_before_its_robot_is_ready_says_what_it_waits_for_and_
                 stop_daemon(daemon.process)
     finally:
         receiver.close()
+
+
+def test_a_daemon_does_not_take_the_robot_from_another_program_unless_told_to(tmp_path: Path, cell_config) -> None:
+    from dashboard_client import DashboardClient
+
+    from celld import config as config_mod
+    from celld.sim.cell import launch, robot_options, start_daemon, stop_daemon, world_of
+    from celld.sim.world import WorldOptions
+    from tests.daemon.test_robot_faults_e2e import _wait
+
+    path = cell_config("sim-cell.toml", "held", {"sim": {"scanner": {"resolution_scale": 0.25}}}, recording=False)
+    cfg = config_mod.load(path)
+    move = {"kind": "move", "target": {"space": "joint", "q": list(cfg.robot.home_q)}}
+    w = world_of(cfg, WorldOptions())
+    with launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(w)), open(tmp_path / "daemon.log", "ab") as log:
+        dashboard = DashboardClient(cfg.robot.host)
+        dashboard.connect()
+        try:
+            # Another controller's program runs on the robot (loaded and played from its dashboard).
+            dashboard.loadURP("fixture.urp")
+            dashboard.play()
+            assert dashboard.programState().startswith("PLAYING fixture.urp")
+            daemon = start_daemon(path, log, timeout=60, links=False)
+            try:
+                client = daemon.client
+                status = _wait(lambda: "held by another program" in (s := client.status())["message"] and s, 20, "status")
+                assert status["robot_link"] != "up" and "PLAYING fixture.urp runs on it" in status["message"]
+                assert "--take-over" in status["message"]
+                with pytest.raises(JobError, match="refused: robot held by another program: waiting"):
+                    client.submit(move)
+                assert dashboard.programState().startswith("PLAYING fixture.urp")  # left alone
+                # Once it stops, the robot is celld's.
+                dashboard.stop()
+                _wait(lambda: client.status()["robot_link"] == "up", 30, "the link once the other program stopped")
+                _, moved = client.submit_and_wait(move, timeout=60)
+                assert moved["state"] == "succeeded", moved["reason"]
+            finally:
+                daemon.client.close()
+                stop_daemon(daemon.process)
+            # Told to, it takes the robot at once.
+            dashboard.loadURP("fixture.urp")
+            dashboard.play()
+            daemon = start_daemon(path, log, timeout=60, take_over=True)  # returns once the link is up
+            try:
+                assert not dashboard.programState().startswith("PLAYING fixture.urp")
+                _, moved = daemon.client.submit_and_wait(move, timeout=60)
+                assert moved["state"] == "succeeded", moved["reason"]
+            finally:
+                daemon.client.close()
+                stop_daemon(daemon.process)
+        finally:
+            dashboard.disconnect()

@@ -28,7 +28,9 @@ class Harness:
             return {"done": ctx.job_id}
 
         async def failing(ctx: JobContext) -> dict[str, Any]:
-            raise MotionError("link dropped: test")
+            fault = MotionError("link dropped: test")
+            fault.add_note("the arm was left where it stopped")  # what the runner did after it
+            raise fault
 
         async def stop() -> None:
             self.stops += 1
@@ -117,7 +119,7 @@ async def test_a_failing_job_records_its_reason_and_stops_the_robot(tmp_path: Pa
     h.manager.start()
     job = (await h.manager.on_submit(HealthJob()))["job"]
     record = await h.manager.wait(job, timeout=5)
-    assert record.state == "failed" and "link dropped" in record.reason
+    assert record.state == "failed" and record.reason == "link dropped: test; the arm was left where it stopped"
     assert h.stops == 1
     assert h.events[-1]["state"] == "failed"
     listed = await h.manager.on_list(ListRequest(limit=10))

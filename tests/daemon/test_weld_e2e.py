@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from celld import se3
+from celld import se3, sealed
 from celld.journal import Journal
 from celld.recording.readback import read_entities
 from celld.sim.cell import run_cell, sim_part, start_daemon, stop_daemon
@@ -75,11 +75,11 @@ def test_a_calibrated_weld_tracks_the_seam_and_a_cancelled_or_killed_weld_stops(
         assert record["state"] == "failed" and "no current calibration" in record["reason"]
         assert checked_result(client, record) is None
 
-        # This world's calibration, made current as an accept makes it; the daemon serves it as it stores it.
+        # This world's calibration, made current as an accept makes it; the daemon serves it as it stores it (sealed).
         install_calibration(cfg.cell.state_dir, calibration)
         current = client.calibration()
         check_exported("calibration-reply", {"ok": True, "calibration": current})
-        assert current == calibration and client.status()["calibration"] == calibration["job"]
+        assert current == sealed.seal(calibration, "calibration") and client.status()["calibration"] == calibration["job"]
         T_est = np.array(current["T_base_cam"])
         # T_base_cam absorbs what it can of the arm's kinematic error, so it is off the true one by
         # more than the scanner's noise; what counts is where the arm lands when sent to what the

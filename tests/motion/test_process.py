@@ -204,11 +204,23 @@ def test_a_link_drop_fails_the_motion_with_its_reason_and_the_link_comes_back(si
         assert str(info.value)  # the reason the loop or the supervisor gave
         # The daemon side keeps running and reconnects once the controller is back.
         assert await motion.wait_ready(30.0)
+        sup = motion.supervisor
+        # The drop's end is history once a process ran again: the status gives no old cause for a new outage.
+        assert sup.last_exit is not None and sup.outage_cause() == ""
         here = motion.state()
         assert here is not None
         goal = _offset(here.T_base_tcp, [-0.05, 0.0, 0.0])
         await motion.move_to(goal)
         assert motion.health().restarts >= 1 and motion.health().link == LinkState.RUNNING.value
+        sim.inject("drop_rtde", down_ms=1000)  # a second drop: its cause is its own as soon as its process ended
+        before = sup.last_exit
+        for _ in range(100):
+            if sup.last_exit is not before:
+                break
+            assert sup.outage_cause() == ""  # its process has not ended yet: no cause rather than the last drop's
+            await asyncio.sleep(0.05)
+        assert sup.last_exit is not before and sup.outage_cause() == sup.last_exit.reason
+        assert await motion.wait_ready(30.0)
 
     _run(sim, scenario)
 
