@@ -400,13 +400,27 @@ class Journal:
 
     def explain_interruption(self, job_id: str, why: str) -> JobRecord:
         """Say why a job the previous process left running was interrupted (what its children saw end it:
-        the daemon hung, or died), after the generic reason :attr:`recovered` jobs get."""
+        the daemon hung, or died), after the generic reason :attr:`recovered` jobs get (and before any note)."""
+        n = len(INTERRUPTED_RUNNING)
         with self._transaction() as db:
             done = db.execute(
-                "UPDATE jobs SET reason = ? WHERE id = ? AND state = 'interrupted'", (f"{INTERRUPTED_RUNNING}: {why}", job_id)
+                "UPDATE jobs SET reason = ? || ': ' || ? || substr(reason, ?) WHERE id = ? AND state = 'interrupted' AND substr(reason, 1, ?) = ?",
+                (INTERRUPTED_RUNNING, why, n + 1, job_id, n, INTERRUPTED_RUNNING),
             ).rowcount
             if done != 1:
-                raise JournalError(f"no interrupted job {job_id!r} in the journal")
+                raise JournalError(f"no job {job_id!r} interrupted while running in the journal")
+        return self._get_required(job_id)
+
+    def note(self, job_id: str, text: str) -> JobRecord:
+        """Add ``text`` to the reason of a job that ended (what was found after its end, e.g. its recording cut short)."""
+        terminal = ", ".join(repr(s) for s in sorted(TERMINAL))
+        with self._transaction() as db:
+            done = db.execute(
+                f"UPDATE jobs SET reason = CASE WHEN reason = '' THEN ? ELSE reason || '; ' || ? END WHERE id = ? AND state IN ({terminal})",
+                (text, text, job_id),
+            ).rowcount
+            if done != 1:
+                raise JournalError(f"no ended job {job_id!r} in the journal")
         return self._get_required(job_id)
 
     def set_result(self, job_id: str, result: str) -> JobRecord:

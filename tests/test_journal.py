@@ -86,8 +86,15 @@ def test_reopening_marks_running_and_queued_jobs_interrupted(tmp_path: Path) -> 
         # What the previous daemon's children saw end it is added to the reason; only an interrupted job's.
         why = "motion process: the daemon's heartbeat is 262 ms old (it hangs)"
         assert j.explain_interruption(running.id, why).reason == f"{INTERRUPTED_RUNNING}: {why}"
-        with pytest.raises(JournalError, match="no interrupted job"):
+        with pytest.raises(JournalError, match="interrupted while running"):
             j.explain_interruption(done.id, why)
+        with pytest.raises(JournalError, match="interrupted while running"):
+            j.explain_interruption(queued.id, why)  # it never ran: nothing of the children's to say
+        # A note (its recording finalised) goes after the reason, and stays after an explanation.
+        assert j.note(queued.id, "its recording was cut short").reason.endswith("before the job started; its recording was cut short")
+        assert j.note(done.id, "x").reason == "x"
+        with pytest.raises(JournalError, match="no ended job"):
+            j.note(j.create("move", {}).id, "x")
 
 
 def test_one_process_at_a_time(tmp_path: Path) -> None:

@@ -4,7 +4,8 @@ Start-up, in order, each step refusing to go on when it fails:
 
 1. the config is loaded and validated (before any device is opened);
 2. the state directory and the job journal (jobs a previous process left
-   running are marked interrupted); the journal's integrity is checked, and a
+   running are marked interrupted, and the recordings it left open are merged
+   into readable files, which their jobs' reasons say); the journal's integrity is checked, and a
    damaged journal is a storage fault the status names with its way out
    (``celld journal set-aside``): the daemon serves, and refuses jobs;
 3. the motion process (it owns the robot link; :class:`MotionHandle`
@@ -42,9 +43,10 @@ from celld.daemon.devices import CellDevices, DeviceFactories
 from celld.daemon.jobs import JobManager, Runner
 from celld.daemon.loopwatch import LoopWatch
 from celld.daemon.runners import build_runners
+from celld.errors import JournalError
 from celld.journal import INTERRUPTED_RUNNING, Journal
 from celld.log import get_logger
-from celld.recording.job import JobRecording
+from celld.recording.job import JobRecording, finalise_parts
 
 log = get_logger(__name__)
 
@@ -102,6 +104,19 @@ class Daemon:
                 journal.explain_interruption(record.id, why)
                 log.warning("job interrupted: the previous daemon's children say why", job=record.id, why=why)
 
+    async def _finalise_recordings(self, journal: Journal) -> None:
+        """Merge the recordings a dead daemon left open into readable ``.rrd`` files, and say so in their jobs."""
+        for done in await asyncio.to_thread(finalise_parts, self.state_dir):
+            if done.error:
+                note = f"its recording was left unfinished and could not be merged ({done.error}): the streams are in {done.path}"
+            else:
+                note = f"its recording was cut short when the daemon stopped: what was written is in {done.path}"
+            try:
+                if journal.get(done.job) is not None:
+                    journal.note(done.job, note)
+            except JournalError as exc:  # a damaged journal is said elsewhere; the file is finalised anyway
+                log.error("a finalised recording not noted in its job", job=done.job, error=str(exc))
+
     async def start(self) -> None:
         cfg = self.config
         self.loop_watch.install()
@@ -115,6 +130,7 @@ class Daemon:
             self._journal.mark_damaged("; ".join(problems[:3]) + (f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""))
             log.error("job journal damaged: jobs are refused", why=self._journal.damage_report())
         fsutil.remove_stale_temporaries(self.state_dir)
+        await self._finalise_recordings(self._journal)
         for record in self._journal.recovered:
             log.warning("job interrupted by the previous stop", job=record.id, kind=record.kind)
         self.notifier.status("opening devices")

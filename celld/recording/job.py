@@ -33,6 +33,11 @@ SDK (``rerun rrd merge``: 1.5 s and about the file's size in memory for 360
 MB), then renames it into place; the part file is removed. A merge that
 fails (the disk full again) keeps the part file and says how to merge it by
 hand.
+
+A process that died mid-job leaves its part file; :func:`finalise_parts`,
+which the daemon runs at start, merges each into its ``.rrd`` the same way
+(rerun's merge reads a stream cut mid-write up to the cut and drops the
+rest), so every recording opens in rerun's viewer and reader.
 """
 
 from __future__ import annotations
@@ -50,7 +55,7 @@ from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, NamedTuple
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -221,21 +226,63 @@ class _FileWriter:
 
     def _merge(self) -> None:
         """Merge the part file's streams into the one ``.rrd`` stream, then rename it into place."""
-        tmp = self.path.with_name(self.path.name + ".merging")
-        cmd = [sys.executable, "-m", "rerun_cli", "rrd", "merge", str(self.part), "-o", str(tmp)]
-        try:
-            done = subprocess.run(cmd, capture_output=True, timeout=_MERGE_TIMEOUT, check=False)
-            if done.returncode == 0:
-                os.replace(tmp, self.path)
-                self.part.unlink()
-                return
-            tail = done.stderr.decode(errors="replace").strip().splitlines()[-1:] or [f"exit code {done.returncode}"]
-            self.merge_error = tail[0]
-        except (OSError, subprocess.TimeoutExpired) as exc:
-            self.merge_error = str(exc)
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        log.error("recording_merge_failed", part=str(self.part), error=self.merge_error)
+        self.merge_error = merge_part(self.part, self.path)
+        if self.merge_error:
+            log.error("recording_merge_failed", part=str(self.part), error=self.merge_error)
+
+
+def merge_part(part: Path, path: Path) -> str:
+    """Merge the RRD streams of ``part`` into one at ``path`` (rerun's ``rrd merge``), then remove ``part``;
+    why not, or ""."""
+    tmp = path.with_name(path.name + ".merging")
+    cmd = [sys.executable, "-m", "rerun_cli", "rrd", "merge", str(part), "-o", str(tmp)]
+    try:
+        done = subprocess.run(cmd, capture_output=True, timeout=_MERGE_TIMEOUT, check=False)
+        if done.returncode == 0 and tmp.exists():  # rerun's CLI may exit 0 having written nothing
+            os.replace(tmp, path)
+            part.unlink()
+            return ""
+        tail = done.stderr.decode(errors="replace").strip().splitlines()[-1:] or [f"exit code {done.returncode}"]
+        error = tail[0]
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        error = str(exc)
+    with contextlib.suppress(OSError):
+        tmp.unlink()
+    return error
+
+
+class Finalised(NamedTuple):
+    """A recording a dead process left as a part file, finalised at start (:func:`finalise_parts`)."""
+
+    job: str
+    path: Path  # the .rrd, or the part file kept when the merge failed
+    error: str  # why the merge failed, "" when it did not
+
+
+def finalise_parts(state_dir: str | Path) -> list[Finalised]:
+    """Merge every ``<job>.rrd.part`` a dead process left under ``state_dir/recordings`` into its ``.rrd``.
+
+    A part beside its ``.rrd`` is the leftover of a merge that finished (the
+    rename made, the removal not): it is removed. A merge that fails keeps
+    the part and says why. Call it when no recording is open.
+    """
+    done: list[Finalised] = []
+    for part in sorted((Path(state_dir) / "recordings").glob("*.rrd.part")):
+        path = part.with_name(part.name.removesuffix(".part"))
+        job = path.stem
+        if path.exists():
+            with contextlib.suppress(OSError):
+                part.unlink()
+            log.info("recording_part_removed", job=job, path=str(path), why="its merge had finished")
+            continue
+        error = merge_part(part, path)
+        if error:
+            log.error("recording_not_finalised", job=job, part=str(part), error=error)
+            done.append(Finalised(job, part, error))
+        else:
+            log.warning("recording_finalised", job=job, path=str(path), why="its process died before it closed it")
+            done.append(Finalised(job, path, ""))
+    return done
 
 
 class JobRecording:

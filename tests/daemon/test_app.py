@@ -148,3 +148,32 @@ def test_a_damaged_journal_is_a_storage_fault_that_names_its_way_out_and_nothing
     got = asyncio.run(_serve_and_ask(cfg, served))
     assert got["record"]["state"] == "succeeded", got["record"]
     assert got["status"]["storage"]["ok"] and got["status"]["message"] == AwayDevices.WHY
+
+
+def test_a_recording_the_previous_daemon_left_open_is_finalised_and_its_job_says_so(tmp_path: Path, loopback_host: str) -> None:
+    import subprocess
+    import sys
+
+    from tests.recording.test_job import _DIES_MID_JOB
+
+    state = tmp_path / "state"
+    cfg = config.parse(
+        {
+            "cell": {"name": "restarted", "state_dir": str(state)},
+            "robot": {"host": loopback_host},
+            "bus": {"listen": [f"tcp/{loopback_host}:{free_port(loopback_host)}"]},
+            "recording": {"enabled": False},
+        }
+    )
+    with Journal(state / "journal.db") as journal:  # the previous daemon, killed while its job ran and recorded
+        job = journal.create("calibrate", {"kind": "calibrate"}, start=True).id
+    subprocess.run([sys.executable, "-c", _DIES_MID_JOB, str(state), job], check=False, timeout=60)
+    assert (state / "recordings" / f"{job}.rrd.part").is_file()
+
+    record = asyncio.run(_serve_and_ask(cfg, lambda client: client.status(job)))
+    assert record["state"] == "interrupted"
+    assert record["reason"] == (
+        f"interrupted: the daemon stopped while the job was running; its recording was cut short when the daemon stopped: "
+        f"what was written is in {state / 'recordings' / f'{job}.rrd'}"
+    )
+    assert (state / "recordings" / f"{job}.rrd").is_file() and not (state / "recordings" / f"{job}.rrd.part").exists()

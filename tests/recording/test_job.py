@@ -548,3 +548,54 @@ def test_a_recording_drained_many_times_is_one_readable_stream(tmp_path: Path, m
     it, e = read_scalars(path, layout.CALIB_E_ICP, timeline=layout.ITERATION)
     np.testing.assert_array_equal(it, np.arange(6))
     np.testing.assert_allclose(e[:, 0], 1e-3 / np.arange(1, 7))
+
+
+_DIES_MID_JOB = """
+import os, sys, time
+import numpy as np
+import celld.recording.job as job_mod
+from celld.recording.job import JobRecording
+
+job_mod._DRAIN_PERIOD = 0.01
+rec = JobRecording.for_job(sys.argv[1], sys.argv[2], "calibration")
+for i in range(6):
+    rec.log_e_icp(i, 1e-3 / (i + 1))
+    rec._rec.flush(timeout_sec=1.0)  # encoded now: each drain below writes it as a stream of its own
+    time.sleep(0.05)
+time.sleep(0.1)
+os._exit(9)  # killed mid-job: the part file is left as it was written
+"""
+
+
+def test_a_recording_a_dead_process_left_open_is_finalised_into_a_readable_file(tmp_path: Path) -> None:
+    from celld.recording.job import finalise_parts
+
+    state = tmp_path / "state"
+    for job in ("20260101-000000-aaaaaa", "20260101-000001-bbbbbb"):
+        subprocess.run([sys.executable, "-c", _DIES_MID_JOB, str(state), job], check=False, timeout=60)
+    recordings = state / "recordings"
+    whole, cut = (recordings / f"{j}.rrd.part" for j in ("20260101-000000-aaaaaa", "20260101-000001-bbbbbb"))
+    assert whole.is_file() and cut.is_file() and not list(recordings.glob("*.rrd"))
+    # The second one cut mid-write (a stream without its end), as a power cut leaves it.
+    data = cut.read_bytes()
+    last = data.rfind(data[:12])  # where the last stream begins: each drain is a whole stream with its header
+    assert last > 0
+    with open(cut, "r+b") as f:
+        f.truncate(last + (len(data) - last) // 2)
+    with pytest.raises(InputError):  # as it was left, rerun's reader does not give the job's data back
+        read_scalars(whole, layout.CALIB_E_ICP, timeline=layout.ITERATION)
+    (recordings / "garbage.rrd.part").write_bytes(np.random.default_rng(0).bytes(5000))
+    (recordings / "merged.rrd").write_bytes(b"x")  # a merge that finished but did not remove its part
+    (recordings / "merged.rrd.part").write_bytes(b"y")
+
+    done = {d.job: d for d in finalise_parts(state)}
+    assert set(done) == {"20260101-000000-aaaaaa", "20260101-000001-bbbbbb", "garbage"}
+    for job in ("20260101-000000-aaaaaa", "20260101-000001-bbbbbb"):
+        path = recordings / f"{job}.rrd"
+        assert done[job] == (job, path, "") and not path.with_name(path.name + ".part").exists()
+        verify = subprocess.run([sys.executable, "-m", "rerun_cli", "rrd", "verify", str(path)], capture_output=True, text=True)
+        assert verify.returncode == 0, verify.stderr[-500:]
+        it, _ = read_scalars(path, layout.CALIB_E_ICP, timeline=layout.ITERATION)
+        assert len(it) >= (6 if job.endswith("a") else 1)  # the cut one keeps what came before the cut
+    assert done["garbage"].error and done["garbage"].path.is_file()  # not an RRD stream: kept, with why
+    assert (recordings / "merged.rrd").read_bytes() == b"x" and not (recordings / "merged.rrd.part").exists()
