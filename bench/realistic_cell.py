@@ -157,6 +157,8 @@ def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool,
     out["weld"]["height_probe"] = w.get("height_probe")
     out["weld"]["wall_offset_used_mm"] = w["figures"].get("wall_offset_used_mm")
     out["weld"]["arc_on_s"] = w["figures"]["arc_on_s"]
+    # The calibration held against the cell before the weld (celld.daemon.verify): a drift caught, noise not.
+    out["verification"] = figures.get("verification")
     torch = w["torch_error"]
     out["success"] = bool(w["figures"]["tracked_mm"] >= TRACKED_MIN and torch["points"] > 0 and torch["max_mm"] <= TORCH_MAX)
     return out

@@ -135,6 +135,8 @@ def _submit_arguments(p: argparse.ArgumentParser) -> None:
     h = kinds.add_parser("health", parents=[job_common], help="health check of the devices")
     h.add_argument("--check", choices=messages.HEALTH_CHECKS, default="all")
 
+    kinds.add_parser("verify", parents=[job_common], help="verify the current calibration against the cell now")
+
     f = kinds.add_parser("file", parents=[job_common], help="submit a JSON job message from a file ('-': stdin)")
     f.add_argument("path")
     p.set_defaults(func=_submit)

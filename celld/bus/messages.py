@@ -14,7 +14,7 @@ into a value by :mod:`celld.bus.requests`):
 queryable                 payload
 ========================  ============================================
 ``submit``                ``{"kind": "calibrate" | "tool-calibrate" |
-                          "weld" | "move" | "health", ...}``
+                          "weld" | "move" | "health" | "tool-calibrate" | "verify", ...}``
 ``status``                ``{}`` or ``{"job": ID}``
 ``cancel``                ``{"job": ID}``
 ``list``                  ``{"limit": N, "state": S, "kind": K}``
@@ -74,7 +74,7 @@ REQUEST_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:-]{0,63}$"
 # Largest result sent inline by the result queryable, bytes of JSON.
 MAX_RESULT_BYTES = 1024 * 1024
 
-JOB_KINDS = ("calibrate", "weld", "move", "health", "tool-calibrate")
+JOB_KINDS = ("calibrate", "weld", "move", "health", "tool-calibrate", "verify")
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled", "interrupted")
 TERMINAL_STATES = ("succeeded", "failed", "cancelled", "interrupted")
 HEALTH_CHECKS = ("all", "robot", "scanner", "tactile")
@@ -243,10 +243,17 @@ _HEALTH = _submit_branch(
     {"check": {"enum": list(HEALTH_CHECKS), "default": "all", "description": "What to check."}},
 )
 
+_VERIFY = _submit_branch(
+    "verify",
+    "Verify the current calibration now: the flange seen at a few poses against where the calibration puts it. "
+    "Failed, with the figure, when it does not hold; welds are then refused until a new calibration is accepted.",
+    {},
+)
+
 _SUBMIT = {
     "type": "object",
     "description": "A job for the cell. The reply is submit-reply or error-reply.",
-    "oneOf": [_CALIBRATE, _WELD, _MOVE, _HEALTH, _TOOL_CALIBRATE],
+    "oneOf": [_CALIBRATE, _WELD, _MOVE, _HEALTH, _TOOL_CALIBRATE, _VERIFY],
 }
 
 _ERROR = obj(

@@ -8,7 +8,7 @@ into a frozen value:
 queryable                 parsed into
 ========================  ===========================
 ``submit``                :data:`Job` (:class:`CalibrateJob`, :class:`WeldJob`, :class:`MoveJob`,
-                          :class:`HealthJob`, :class:`ToolCalibrateJob`)
+                          :class:`HealthJob`, :class:`ToolCalibrateJob`, :class:`VerifyJob`)
 ``status``                :class:`StatusRequest`
 ``cancel``                :class:`CancelRequest`
 ``list``                  :class:`ListRequest`
@@ -111,7 +111,16 @@ class ToolCalibrateJob:
     kind: ClassVar[str] = "tool-calibrate"
 
 
-Job = CalibrateJob | WeldJob | MoveJob | HealthJob | ToolCalibrateJob
+@dataclass(frozen=True)
+class VerifyJob:
+    """Verify the current calibration against the cell now (:mod:`celld.daemon.verify`)."""
+
+    ref: str = ""
+    request_id: str = ""  # the client's id of the submit
+    kind: ClassVar[str] = "verify"
+
+
+Job = CalibrateJob | WeldJob | MoveJob | HealthJob | ToolCalibrateJob | VerifyJob
 
 
 @dataclass(frozen=True)
@@ -233,12 +242,17 @@ def _build_tool_calibrate(m: Mapping[str, Any]) -> ToolCalibrateJob:
     )
 
 
+def _build_verify(m: Mapping[str, Any]) -> VerifyJob:
+    return VerifyJob(ref=m.get("ref", ""), request_id=m.get("request_id", ""))
+
+
 _JOB_BUILDERS: dict[str, Callable[[Mapping[str, Any]], Job]] = {
     "calibrate": _build_calibrate,
     "weld": _build_weld,
     "move": _build_move,
     "health": _build_health,
     "tool-calibrate": _build_tool_calibrate,
+    "verify": _build_verify,
 }
 
 

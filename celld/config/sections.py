@@ -362,6 +362,14 @@ class CalibrationConfig:
     # (time of flight) or "none" (structured light). None until the config is
     # parsed: it then takes the scanner's default (range_bias_default).
     range_bias: str | None = None
+    # Verification of the current calibration (celld.calib.verify): before the first weld after a start or
+    # after the calibration changed, then every verify_interval (s; 0: only then), at verify_poses poses.
+    # The bound is the calibration's own plus the measured repeatability, or verify_bound (m) when > 0.
+    # verify_before_weld = false leaves it to verify jobs (a cell that verifies by a procedure of its own).
+    verify_before_weld: bool = True
+    verify_interval: float = 8 * 3600.0
+    verify_poses: int = 3
+    verify_bound: float = 0.0
 
     @classmethod
     def read(cls, r: TableReader) -> CalibrationConfig:
@@ -386,6 +394,10 @@ class CalibrationConfig:
             keep_sessions=r.int("keep_sessions", cls.keep_sessions, lo=0, hi=100_000),
             keep_days=r.float("keep_days", cls.keep_days, lo=0.0, hi=36_500.0),
             range_bias=r.str("range_bias", choices=RANGE_BIAS_MODES) if r.has("range_bias") else None,
+            verify_before_weld=r.bool("verify_before_weld", True),
+            verify_interval=r.float("verify_interval_h", cls.verify_interval / 3600.0, lo=0.0, hi=24.0 * 366, scale=3600.0),
+            verify_poses=r.int("verify_poses", cls.verify_poses, lo=2, hi=10),
+            verify_bound=r.float("verify_bound_mm", 0.0, lo=0.0, hi=100.0, scale=1e-3),
         )
 
 

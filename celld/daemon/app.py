@@ -100,7 +100,12 @@ class Daemon:
             return
         why = "; ".join(f"{n['role']} process: {n['reason']}" for n in notes)
         for record in journal.jobs(limit=_RECENT_INTERRUPTED, state="interrupted"):
-            if record.reason == INTERRUPTED_RUNNING and any((record.started or "") <= n["at"] <= (record.ended or "") for n in notes):
+            explained = record.reason.startswith(INTERRUPTED_RUNNING + ":")
+            if (
+                record.reason.startswith(INTERRUPTED_RUNNING)
+                and not explained
+                and any((record.started or "") <= n["at"] <= (record.ended or "") for n in notes)
+            ):
                 journal.explain_interruption(record.id, why)
                 log.warning("job interrupted: the previous daemon's children say why", job=record.id, why=why)
 

@@ -18,6 +18,7 @@ weld              :data:`celld.daemon.weld.RESULT_SCHEMA` (the figures and the p
                   :mod:`celld.weld.plan`)
 move, health      :data:`celld.daemon.runners.MOVE_RESULT_SCHEMA`,
                   :data:`~celld.daemon.runners.HEALTH_RESULT_SCHEMA`
+verify            :data:`celld.daemon.verify.RESULT_SCHEMA` (:data:`celld.calib.verify.SCHEMA`)
 ================  ==========================================================================
 
 each with what the job manager adds (:func:`celld.daemon.jobs.with_manager_fields`).
@@ -39,7 +40,7 @@ from typing import Any
 
 from celld.bus.messages import Documents, message_schemas
 from celld.calib.toolsession import TOOL_SCHEMA
-from celld.daemon import calibrate, runners, toolcal, two_robots, weld
+from celld.daemon import calibrate, runners, toolcal, two_robots, verify, weld
 from celld.daemon.jobs import with_manager_fields
 from celld.daemon.store import accepted_schema
 from celld.schemadoc import one_of, with_properties
@@ -63,6 +64,7 @@ RESULTS: Mapping[str, Mapping[str, Any]] = {
         "weld": weld.RESULT_SCHEMA,
         "move": runners.MOVE_RESULT_SCHEMA,
         "health": runners.HEALTH_RESULT_SCHEMA,
+        "verify": verify.RESULT_SCHEMA,
     }.items()
 }
 # The cell's bundle: every bus message, with each job kind's result and the current calibrations typed

@@ -39,8 +39,10 @@ from celld.daemon.devices import INTERLOCK_SCHEMA, CellDevices
 from celld.daemon.jobs import JobContext, Runner
 from celld.daemon.toolcal import run_tool_calibrate
 from celld.daemon.two_robots import run_calibrate_two
+from celld.daemon.verify import ensure_verified, run_verify
 from celld.daemon.weld import run_weld
 from celld.errors import CelldError, JobError
+from celld.journal import utc_now
 from celld.motion.handle import HEALTH_SCHEMA
 from celld.robot.dashboard import CONDITION_SCHEMA
 from celld.schemadoc import boolean, const, integer, number, obj, one_of, string, texts, vector, with_properties
@@ -62,8 +64,15 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
 
     weld_cache: dict[str, Any] = {}  # prepared part models, by name
 
+    started = utc_now()  # a weld verifies the calibration first once after a start (celld.daemon.verify)
+
     async def weld(ctx: JobContext) -> Mapping[str, Any]:
+        if config.calibration.verify_before_weld and not getattr(ctx.job, "dry_run", False):
+            await ensure_verified(ctx, config, devices, started)
         return await run_weld(ctx, config, devices, weld_cache)
+
+    async def verify(ctx: JobContext) -> Mapping[str, Any]:
+        return await run_verify(ctx, config, devices)
 
     async def tool_calibrate(ctx: JobContext) -> Mapping[str, Any]:
         return await run_tool_calibrate(ctx, config, devices)
@@ -78,7 +87,7 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
 
         return checked
 
-    moving = {"calibrate": calibrate, "move": move, "weld": weld, "tool-calibrate": tool_calibrate}
+    moving = {"calibrate": calibrate, "move": move, "weld": weld, "tool-calibrate": tool_calibrate, "verify": verify}
     return {"health": health, **{kind: beside_robot2(run) for kind, run in moving.items()}}
 
 

@@ -277,8 +277,18 @@ def run_jobs(
             "recording": res.get("recording"),
             "paths": res.get("paths"),
         }
+        figures["verification"] = _verification(Path(cfg.cell.state_dir))
         figures["loop"] = _loop(cell.client)
     return figures
+
+
+def _verification(state: Path) -> dict[str, Any] | None:
+    """The weld's verification of the calibration (celld.daemon.verify's record), None when it did not verify."""
+    path = state / "verification.json"
+    if not path.is_file():
+        return None
+    v = json.loads(path.read_text())
+    return {k: v.get(k) for k in ("passed", "error_mm", "bound_mm", "calibration_bound_mm", "repeatability_mm")}
 
 
 def robot2_figures(entry: dict[str, Any], T_base1_base2_true: np.ndarray, verification_pose: tuple[float, ...]) -> dict[str, Any]:
@@ -312,6 +322,7 @@ def summary_lines(figures: dict[str, Any]) -> list[str]:
         f"  targeting (the flange sent to points the scanner saw): mean {tc['mean_mm']:.3f} mm, max {tc['max_mm']:.3f} mm "
         f"in the calibration box; mean {tt['mean_mm']:.3f}, max {tt['max_mm']:.3f} mm over the table",
         *_robot2_lines(figures.get("robot2")),
+        *_verification_lines(figures.get("verification")),
         "weld, lateral distance from the true seam        RMS mm   max mm",
         f"  plan alone (scan + calibration, open loop)   {pa['rms_mm']:7.3f}  {pa['max_mm']:7.3f}",
         f"  torch, tracked by touch (Algorithm 2)        {to['rms_mm']:7.3f}  {to['max_mm']:7.3f}",
@@ -320,6 +331,15 @@ def summary_lines(figures: dict[str, Any]) -> list[str]:
         _probe_line(w.get("height_probe")),
         f"tracked {w['figures']['tracked_mm']:.0f} mm, arc on {w['figures']['arc_on_s']:.1f} s, "
         f"delta_n error {w['figures']['delta_n_error_rms_mm']} mm RMS",
+    ]
+
+
+def _verification_lines(v: dict[str, Any] | None) -> list[str]:
+    if v is None:
+        return []
+    return [
+        f"verified before the weld: the flange {v['error_mm']:.3f} mm from where the calibration puts it, within "
+        f"{v['bound_mm']:.3f} mm (its own {v['calibration_bound_mm']:.3f} + repeatability {v['repeatability_mm']:.3f})"
     ]
 
 

@@ -362,7 +362,14 @@ def test_celld_bus_schema_exports_the_bundle(tmp_path: Path, capsys: pytest.Capt
     for name, schema in BUNDLE.items():
         assert json.loads((tmp_path / f"{name}.schema.json").read_text()) == schema
     submit = json.loads((tmp_path / "submit.schema.json").read_text())
-    assert [b["properties"]["kind"]["const"] for b in submit["oneOf"]] == ["calibrate", "weld", "move", "health", "tool-calibrate"]
+    assert [b["properties"]["kind"]["const"] for b in submit["oneOf"]] == [
+        "calibrate",
+        "weld",
+        "move",
+        "health",
+        "tool-calibrate",
+        "verify",
+    ]
     doc = json.loads((tmp_path / "asyncapi.json").read_text())
     assert doc["components"]["schemas"] == {f"result-{k}": {"$ref": f"result-{k}.schema.json"} for k in messages.JOB_KINDS}
 

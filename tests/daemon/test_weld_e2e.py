@@ -101,6 +101,24 @@ def test_a_calibrated_weld_tracks_the_seam_and_a_cancelled_or_killed_weld_stops(
         assert np.max(np.abs(robot.truth()[2] - q_before)) < 1e-6, "a dry run moved the arm"
         assert "/world/robot/pose_01" in read_entities(Path(planned["recording"]))
 
+        # The scanner knocked 50 mm and turned 2 degrees since, its calibration file intact (moved here with the
+        # calibration, which is the same to the cell): the verification refuses with its figure, and so does every
+        # weld, until a calibration that holds is accepted.
+        knocked = np.array(calibration["T_base_cam"]) @ se3.from_ur_pose([0.05, 0.0, 0.0, 0.0, 0.0, math.radians(2.0)])
+        install_calibration(cfg.cell.state_dir, {**calibration, "T_base_cam": knocked.tolist()})
+        _, verified = client.submit_and_wait({"kind": "verify"}, timeout=180)
+        assert verified["state"] == "failed" and "the current calibration failed its verification" in verified["reason"]
+        figure = float(verified["reason"].split("the flange is ")[1].split(" mm")[0])
+        assert 40.0 < figure < 80.0, verified["reason"]
+        _, refused = client.submit_and_wait({"kind": "weld"}, timeout=60)
+        assert refused["state"] == "failed" and f"failed its verification by job {verified['id']}" in refused["reason"]
+        assert f"the flange is {figure:.2f} mm" in refused["reason"]
+        install_calibration(cfg.cell.state_dir, calibration)
+        _, verified = client.submit_and_wait({"kind": "verify"}, timeout=180)
+        assert verified["state"] == "succeeded", verified["reason"]
+        check = checked_result(client, verified)
+        assert check["passed"] and check["error_mm"] <= check["bound_mm"] and len(check["poses"]) == cfg.calibration.verify_poses
+
         # Cancel during the track: a jerk-limited stop, the arc off, the job cancelled. Until then the torch,
         # tracked by touch with Algorithm 2, met the tactile targets (a whole seam's weld, its recording and
         # timeline: tests/daemon/test_toolcal_e2e.py, in the realistic world).
