@@ -7,7 +7,7 @@ without systemd) every call is a no-op that returns False.
 
 The daemon's part of the protocol:
 
-- ``READY=1`` once the robot link is up (:meth:`Notifier.ready`);
+- ``READY=1`` once the daemon serves its bus, its devices there or not (:meth:`Notifier.ready`);
 - ``WATCHDOG=1`` at about half of ``WatchdogSec``, and **only while the
   motion process's heartbeat is fresh**: :func:`run_watchdog` asks a health
   predicate before every kick, so a stuck RT loop lets systemd restart the
