@@ -10,11 +10,14 @@ calibration with the flange centre the robot reports. The first pose is
 captured twice: the difference of the two centres is the verification's own
 repeatability.
 
-The bound a verification is held to is, by default, the calibration's own:
-the largest residual of the pairs it was solved from (where the flange landed
-against where the fit put it, the arm's kinematic error included), plus the
-repeatability measured now, so that a drift that matters is caught and the
-scanner's noise is not. A configured bound replaces it.
+The bound a verification is held to is, by default, the calibration's own
+plus the repeatability measured now, so that a drift that matters is caught
+and the scanner's noise is not. The calibration's own is what it reports of
+itself: the largest residual of the pairs it was solved from (where the
+flange landed against where the fit put it: one detection's noise and the
+arm's kinematic error at a pose) plus three times its reported 1-sigma of a
+point at the workspace centre (how far the fit itself may be off). A
+configured bound replaces the rule.
 
 Pure: the daemon's verify step (:mod:`celld.daemon.verify`) moves, captures and
 detects; this module only compares.
@@ -114,7 +117,11 @@ SCHEMA = obj(
             "The largest distance of a seen flange centre from the one the robot reports; null when none was seen.", null=True
         ),
         "bound_mm": number("What the error is held to.", lo=0.0),
-        "calibration_bound_mm": number("The calibration's own bound: the largest residual of the pairs it was solved from.", lo=0.0),
+        "calibration_bound_mm": number(
+            "The calibration's own bound: the largest residual of the pairs it was solved from, plus three times its "
+            "reported 1-sigma at the workspace centre.",
+            lo=0.0,
+        ),
         "repeatability_mm": number("The distance between two captures of the flange at the first pose.", lo=0.0),
         "poses": array(
             obj(
@@ -138,8 +145,9 @@ POSES = 3
 
 
 def calibration_bound(calibration: Mapping[str, Any]) -> float:
-    """The stored calibration's own bound (m): the largest residual of the pairs it used (``quality.pairs``),
-    else three times their RMS (``quality.rms_mm``).
+    """The stored calibration's own bound (m): the largest residual of the pairs it used (``quality.pairs``;
+    else three times their RMS, ``quality.rms_mm``), plus three times the norm of its reported 1-sigma at
+    the workspace centre (``quality.translation_std_mm``, when it reports one).
 
     Raises
     ------
@@ -153,12 +161,19 @@ def calibration_bound(calibration: Mapping[str, Any]) -> float:
         for p in quality.get("pairs", ()) or ()
         if isinstance(p, Mapping) and p.get("used") and isinstance(r := p.get("residual_mm"), (int, float)) and math.isfinite(r)
     ]
-    if residuals:
-        return max(residuals) * 1e-3
     rms = quality.get("rms_mm")
-    if isinstance(rms, (int, float)) and not isinstance(rms, bool) and math.isfinite(rms):
-        return 3.0 * float(rms) * 1e-3
-    raise CalibrationError("the current calibration reports no pair residuals to hold a verification to: calibrate again")
+    if residuals:
+        spread = max(residuals)
+    elif isinstance(rms, (int, float)) and not isinstance(rms, bool) and math.isfinite(rms):
+        spread = 3.0 * float(rms)
+    else:
+        raise CalibrationError("the current calibration reports no pair residuals to hold a verification to: calibrate again")
+    std = quality.get("translation_std_mm")
+    try:
+        sigma = float(np.linalg.norm(np.asarray(std, dtype=np.float64))) if std is not None else 0.0
+    except (TypeError, ValueError):
+        sigma = 0.0
+    return (spread + (3.0 * sigma if math.isfinite(sigma) else 0.0)) * 1e-3
 
 
 def verify_placement(

@@ -80,10 +80,14 @@ def test_a_flange_seen_at_fewer_than_two_poses_fails_and_a_configured_bound_repl
         verify_placement(sightings[:1], repeat, 0.3e-3)
 
 
-def test_the_calibrations_own_bound_is_its_largest_used_residual() -> None:
+def test_the_calibrations_own_bound_is_its_largest_used_residual_and_its_reported_uncertainty() -> None:
     pairs = [{"residual_mm": 0.12, "used": True}, {"residual_mm": 0.31, "used": True}, {"residual_mm": 4.0, "used": False}]
     assert calibration_bound({"quality": {"pairs": pairs, "rms_mm": 0.2}}) == pytest.approx(0.31e-3)
     assert calibration_bound({"quality": {"pairs": [], "rms_mm": 0.1}}) == pytest.approx(0.3e-3)
+    # ... plus three times its reported 1-sigma at the workspace centre: how far the fit itself may be off.
+    std = {"translation_std_mm": [0.02, 0.0, 0.0]}
+    assert calibration_bound({"quality": {"pairs": pairs, **std}}) == pytest.approx(0.37e-3)
+    assert calibration_bound({"quality": {"pairs": pairs, "translation_std_mm": [None, 0.0, 0.0]}}) == pytest.approx(0.31e-3)
     with pytest.raises(CalibrationError, match="no pair residuals"):
         calibration_bound({"quality": {}})
 
