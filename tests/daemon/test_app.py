@@ -87,6 +87,18 @@ async def _nothing() -> None:
     pass
 
 
+def _away_config(name: str, state: Path, host: str) -> config.Config:
+    """A cell of AwayDevices on its own loopback address, its jobs not recorded."""
+    return config.parse(
+        {
+            "cell": {"name": name, "state_dir": str(state)},
+            "robot": {"host": host},
+            "bus": {"listen": [f"tcp/{host}:{free_port(host)}"]},
+            "recording": {"enabled": False},
+        }
+    )
+
+
 async def _serve_and_ask(cfg: config.Config, ask) -> object:
     """Start a daemon on AwayDevices, run ``ask(client)`` on a worker thread, stop the daemon; ``ask``'s answer."""
 
@@ -111,14 +123,7 @@ def test_a_damaged_journal_is_a_storage_fault_that_names_its_way_out_and_nothing
     tmp_path: Path, loopback_host: str, where: str
 ) -> None:
     state = tmp_path / "state"
-    cfg = config.parse(
-        {
-            "cell": {"name": "damaged", "state_dir": str(state)},
-            "robot": {"host": loopback_host},
-            "bus": {"listen": [f"tcp/{loopback_host}:{free_port(loopback_host)}"]},
-            "recording": {"enabled": False},
-        }
-    )
+    cfg = _away_config("damaged", state, loopback_host)
     damaged_journal(state / "journal.db", DAMAGED_PAGE[where])
 
     def refused(client: CellClient) -> dict:
@@ -157,14 +162,7 @@ def test_a_recording_the_previous_daemon_left_open_is_finalised_and_its_job_says
     from tests.recording.test_job import _DIES_MID_JOB
 
     state = tmp_path / "state"
-    cfg = config.parse(
-        {
-            "cell": {"name": "restarted", "state_dir": str(state)},
-            "robot": {"host": loopback_host},
-            "bus": {"listen": [f"tcp/{loopback_host}:{free_port(loopback_host)}"]},
-            "recording": {"enabled": False},
-        }
-    )
+    cfg = _away_config("restarted", state, loopback_host)
     with Journal(state / "journal.db") as journal:  # the previous daemon, killed while its job ran and recorded
         job = journal.create("calibrate", {"kind": "calibrate"}, start=True).id
     subprocess.run([sys.executable, "-c", _DIES_MID_JOB, str(state), job], check=False, timeout=60)
