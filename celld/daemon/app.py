@@ -3,11 +3,12 @@
 Start-up, in order, each step refusing to go on when it fails:
 
 1. the config is loaded and validated (before any device is opened);
-2. the state directory and the job journal (jobs a previous process left
-   running are marked interrupted, and the recordings it left open are merged
-   into readable files, which their jobs' reasons say); the journal's integrity is checked, and a
-   damaged journal is a storage fault the status names with its way out
-   (``celld journal set-aside``): the daemon serves, and refuses jobs;
+2. the state directory and the job journal: jobs a previous process left
+   running are marked interrupted, the recordings it left open are merged
+   into readable files (their jobs' reasons say so), and the journal's
+   integrity is checked; a damaged journal is a storage fault the status
+   names with its way out (``celld journal set-aside``): the daemon serves,
+   and refuses jobs;
 3. the motion process (it owns the robot link; :class:`MotionHandle`
    supervises and restarts it) and the tactile camera process;
 4. the scanner (one that does not open is tried again in the background);

@@ -73,7 +73,7 @@ SCANNER_BACKOFF = Backoff(delays=(2.0, 4.0, 8.0, 16.0, 30.0))
 # What to do about a robot another program keeps.
 HELD_REMEDY = "celld takes the robot once it stops: stop it on the teach pendant, or start celld with --take-over"
 # Job kinds and the devices they need beyond robot 1 (a health job needs none).
-_NEEDS_SCANNER = frozenset({"calibrate", "weld", "tool-calibrate"})
+_NEEDS_SCANNER = frozenset({"calibrate", "weld", "tool-calibrate", "verify"})
 # The dashboard server is read this often, s.
 DASHBOARD_PERIOD = 0.5
 # The JSON shape of CellDevices.interlock_report.
