@@ -72,7 +72,7 @@ from celld.bus.requests import (
 )
 from celld.bus.security import OPEN, Caller
 from celld.daemon.storage import StorageGuard
-from celld.daemon.store import CalibrationStore, tool_store
+from celld.daemon.store import CalibrationStore, failed_verification, last_verification, tool_store
 from celld.errors import CelldError, DamagedStateError, JobError, JournalError, StorageError
 from celld.journal import JobRecord, Journal, utc_now
 from celld.log import get_logger
@@ -363,12 +363,14 @@ class JobManager:
                 raise JobError("$.job", f"no such job {req.job!r}")
             return {"record": record.to_message(caller.may_see(record.owner))}
         try:
-            current, damaged = self.calibrations.current(), [self.tools.damage()]
+            current, said = self.calibrations.current(), [self.tools.damage()]
         except DamagedStateError as exc:  # said in the message; welds refuse with it too
-            current, damaged = None, [str(exc), self.tools.damage()]
+            current, said = None, [str(exc), self.tools.damage()]
+        if current is not None:  # a failed verification refuses welds: said here too
+            said.append(failed_verification(last_verification(self.state_dir), current))
         self._note_recording_trouble()
         storage_problem = self.storage.problem()
-        message = "; ".join(m for m in (self._fault, storage_problem, *damaged) if m)
+        message = "; ".join(m for m in (self._fault, storage_problem, *said) if m)
         if self._fault or storage_problem:
             state = "fault"
             if storage_problem and self._queue:

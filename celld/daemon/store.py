@@ -166,6 +166,31 @@ def current_calibration(state_dir: Path, mount: str = "base") -> tuple[Placement
     return placement, float(bias_mm) * 1e-3, str(cal.get("job", ""))
 
 
+# The record of the current calibration's last verification (celld.daemon.verify), and how it is sealed.
+VERIFICATION = "verification.json"
+VERIFICATION_KIND = "verification"
+
+
+def last_verification(state_dir: Path) -> dict[str, Any] | None:
+    """The record of the last verification; None when there is none or it cannot be trusted (it is then made again)."""
+    try:
+        return sealed.read_sealed(state_dir / VERIFICATION, VERIFICATION_KIND, "verification record")
+    except DamagedStateError as exc:
+        log.warning("the verification record is not usable; the next weld verifies again", error=str(exc))
+        return None
+
+
+def failed_verification(record: Mapping[str, Any] | None, calibration: Mapping[str, Any]) -> str:
+    """Why welds are refused when ``record`` is a failed verification of ``calibration`` (the current one,
+    by its checksum), "" otherwise."""
+    if record is None or record.get("passed") or record.get("calibration_sha256") != calibration.get(sealed.CHECKSUM_KEY):
+        return ""
+    return (
+        f"the current calibration (job {calibration.get('job')}) failed its verification by job {record.get('job')} at "
+        f"{record.get('at')}: {record.get('reason')}; calibrate again and accept the result"
+    )
+
+
 class CurrentTool(NamedTuple):
     """The tool a weld runs with (:func:`current_tool`)."""
 

@@ -47,7 +47,7 @@ from celld.calib.verify import SCHEMA, Sighting, Verification, calibration_bound
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
-from celld.daemon.store import CalibrationStore
+from celld.daemon.store import VERIFICATION, VERIFICATION_KIND, CalibrationStore, failed_verification, last_verification
 from celld.errors import CalibrationError, CelldError, DamagedStateError, InputError, JobError
 from celld.journal import utc_now
 from celld.log import get_logger
@@ -55,9 +55,6 @@ from celld.schemadoc import string, with_properties
 
 log = get_logger(__name__)
 
-# The record of the last verification, and how it is sealed.
-RECORD = "verification.json"
-RECORD_KIND = "verification"
 # Seed of the poses drawn around the verification pose: the same poses each time.
 POSE_SEED = 7919
 # The verify job's result: the verification, and the calibration it held.
@@ -78,15 +75,6 @@ def _current(state_dir: Path) -> dict[str, Any]:
     return cal
 
 
-def last_verification(state_dir: Path) -> dict[str, Any] | None:
-    """The record of the last verification; None when there is none or it cannot be trusted (it is then made again)."""
-    try:
-        return sealed.read_sealed(state_dir / RECORD, RECORD_KIND, "verification record")
-    except DamagedStateError as exc:
-        log.warning("the verification record is not usable; the next weld verifies again", error=str(exc))
-        return None
-
-
 def due(record: Mapping[str, Any] | None, calibration: Mapping[str, Any], started: str, interval_s: float, now: datetime) -> str:
     """Why the current calibration must be verified before a weld, "" when its last verification stands.
 
@@ -97,12 +85,9 @@ def due(record: Mapping[str, Any] | None, calibration: Mapping[str, Any], starte
     """
     if record is None or record.get("calibration_sha256") != calibration.get(sealed.CHECKSUM_KEY):
         return "the current calibration has not been verified"
-    if not record.get("passed"):
-        raise JobError(
-            "$",
-            f"the current calibration (job {calibration.get('job')}) failed its verification by job {record.get('job')} at "
-            f"{record.get('at')}: {record.get('reason')}; calibrate again and accept the result",
-        )
+    failed = failed_verification(record, calibration)
+    if failed:
+        raise JobError("$", failed)
     at = str(record.get("at", ""))
     if at < started:
         return "not verified since the daemon started"
@@ -214,7 +199,7 @@ async def verify_calibration(ctx: JobContext, config: Config, devices: CellDevic
         "calibration_job": calibration.get("job"),
         "at": utc_now(),
     }
-    sealed.write_sealed(ctx.state_dir / RECORD, record, RECORD_KIND, ctx.job_id)
+    sealed.write_sealed(ctx.state_dir / VERIFICATION, record, VERIFICATION_KIND, ctx.job_id)
     (log.info if done.passed else log.error)(
         "calibration verified" if done.passed else "calibration failed its verification",
         calibration=calibration.get("job"),

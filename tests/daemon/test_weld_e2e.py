@@ -113,6 +113,7 @@ def test_a_calibrated_weld_tracks_the_seam_and_a_cancelled_or_killed_weld_stops(
         _, refused = client.submit_and_wait({"kind": "weld"}, timeout=60)
         assert refused["state"] == "failed" and f"failed its verification by job {verified['id']}" in refused["reason"]
         assert f"the flange is {figure:.2f} mm" in refused["reason"]
+        assert f"failed its verification by job {verified['id']}" in client.status()["message"]
         install_calibration(cfg.cell.state_dir, calibration)
         _, verified = client.submit_and_wait({"kind": "verify"}, timeout=180)
         assert verified["state"] == "succeeded", verified["reason"]
