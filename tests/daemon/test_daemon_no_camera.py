@@ -1,6 +1,7 @@
 """A cell with a device missing still starts and serves: its SRM camera missing, it calibrates and moves, refuses
 welds and says why; its robot off at boot, it is ready for systemd at once, says what it waits for, refuses what
-needs the robot until the robot is there, then runs it."""
+needs the robot until the robot is there, then runs it; another program on its robot (a pendant's, another
+celld's), it leaves the robot alone unless told to take it over."""
 
 from __future__ import annotations
 
@@ -82,12 +83,13 @@ def test_a_cell_that_boots_before_its_robot_is_ready_says_what_it_waits_for_and_
         receiver.close()
 
 
-def test_a_daemon_does_not_take_the_robot_from_another_program_unless_told_to(tmp_path: Path, cell_config) -> None:
+def test_a_daemon_does_not_take_the_robot_from_another_program_or_celld_unless_told_to(tmp_path: Path, cell_config) -> None:
     from dashboard_client import DashboardClient
 
     from celld import config as config_mod
     from celld.sim.cell import launch, robot_options, start_daemon, stop_daemon, world_of
     from celld.sim.world import WorldOptions
+    from tests.daemon.cells import write_cell_config
     from tests.daemon.test_robot_faults_e2e import _wait
 
     path = cell_config("sim-cell.toml", "held", {"sim": {"scanner": {"resolution_scale": 0.25}}}, recording=False)
@@ -116,6 +118,27 @@ def test_a_daemon_does_not_take_the_robot_from_another_program_unless_told_to(tm
                 _wait(lambda: client.status()["robot_link"] == "up", 30, "the link once the other program stopped")
                 _, moved = client.submit_and_wait(move, timeout=60)
                 assert moved["state"] == "succeeded", moved["reason"]
+                # A second celld (its own state directory and bus) on the same robot finds this one's program
+                # running and leaves it: the first one goes on moving the robot.
+                second = tmp_path / "second"
+                second.mkdir()
+                tables = {"sim": {"scanner": {"resolution_scale": 0.25}}, "bus": {"listen": [f"tcp/{cfg.robot.host}:7448"]}}
+                other = start_daemon(
+                    write_cell_config(second / "cell.toml", "sim-cell.toml", "held2", cfg.robot.host, tables, recording=False),
+                    log,
+                    timeout=60,
+                    links=False,
+                )
+                try:
+                    said = _wait(lambda: "held by another program" in (s := other.client.status())["message"] and s, 20, "status")
+                    assert "PLAYING rtde_control runs on it" in said["message"]
+                    with pytest.raises(JobError, match="refused: robot held by another program"):
+                        other.client.submit(move)
+                    _, moved = client.submit_and_wait(move, timeout=60)
+                    assert moved["state"] == "succeeded", moved["reason"]
+                finally:
+                    other.client.close()
+                    stop_daemon(other.process)
             finally:
                 daemon.client.close()
                 stop_daemon(daemon.process)
