@@ -8,7 +8,7 @@ import time
 import pytest
 
 from celld.errors import InputError, RobotError
-from celld.robot.dashboard import CONDITIONS, Dashboard, DashboardReading, reply_value, robot_condition
+from celld.robot.dashboard import CONDITIONS, Dashboard, DashboardReading, foreign_program, reply_value, robot_condition
 
 
 def _reading(mode: str, safety: str) -> DashboardReading:
@@ -115,3 +115,14 @@ def test_a_robot_that_does_not_answer_reads_as_unreachable(loopback_host: str) -
 
     r = asyncio.run(scenario())
     assert not r.reachable and r.error
+
+
+def test_a_program_playing_or_paused_is_one_that_holds_the_robot() -> None:
+    def reading(program: str, reachable: bool = True) -> DashboardReading:
+        return DashboardReading(reachable, "RUNNING", "NORMAL", program, "", 0.0)
+
+    assert foreign_program(reading("PLAYING fixture.urp")) == "PLAYING fixture.urp"
+    assert foreign_program(reading("PAUSED weld.urp")) == "PAUSED weld.urp"
+    assert foreign_program(reading("STOPPED weld.urp")) == ""
+    assert foreign_program(reading("PLAYING x", reachable=False)) == ""  # unread: nothing is known to hold it
+    assert foreign_program(None) == ""
