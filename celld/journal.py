@@ -193,7 +193,7 @@ class Journal:
         self._lock_fd = self._take_lock()
         self._db: sqlite3.Connection | None = None
         try:
-            self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=_BUSY_TIMEOUT_MS / 1e3)
+            self._db = self._connect()
             self._setup()
             self.recovered = self._recover()
         except JournalDamagedError:
@@ -255,10 +255,23 @@ class Journal:
             if source.exists():
                 os.replace(source, Path(f"{aside}{suffix}"))
         self.damage = ""
-        self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=_BUSY_TIMEOUT_MS / 1e3)
+        self._db = self._connect()
         self._setup()
         self.recovered = ()
         return aside
+
+    def _connect(self) -> sqlite3.Connection:
+        return sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=_BUSY_TIMEOUT_MS / 1e3)
+
+    @contextlib.contextmanager
+    def _damage_seen(self) -> Iterator[None]:
+        """SQLite's word that the file is damaged, inside the block, marks the journal damaged and raises it."""
+        try:
+            yield
+        except sqlite3.DatabaseError as exc:
+            if _damaged(exc):
+                raise self.mark_damaged(str(exc)) from exc
+            raise
 
     def _open_db(self) -> sqlite3.Connection:
         """The database, for a call made under the thread lock; refused when closed or damaged."""
@@ -298,20 +311,17 @@ class Journal:
         with self._lock:
             db = self._open_db()
             try:
-                db.execute("BEGIN IMMEDIATE")
-                try:
-                    yield db
-                    db.execute("COMMIT")
-                except BaseException:
-                    if db.in_transaction:
-                        with contextlib.suppress(sqlite3.Error):
-                            db.execute("ROLLBACK")
-                    raise
-            except sqlite3.DatabaseError as exc:
-                if _damaged(exc):
-                    raise self.mark_damaged(str(exc)) from exc
-                if not isinstance(exc, sqlite3.OperationalError):
-                    raise
+                with self._damage_seen():
+                    db.execute("BEGIN IMMEDIATE")
+                    try:
+                        yield db
+                        db.execute("COMMIT")
+                    except BaseException:
+                        if db.in_transaction:
+                            with contextlib.suppress(sqlite3.Error):
+                                db.execute("ROLLBACK")
+                        raise
+            except sqlite3.OperationalError as exc:
                 name = getattr(exc, "sqlite_errorname", None)
                 raise JournalWriteError("journal", str(self.path), f"{exc}" + (f" ({name})" if name else "")) from exc
 
@@ -450,14 +460,8 @@ class Journal:
     # -- queries --------------------------------------------------------------------
 
     def _rows(self, sql: str, args: tuple[Any, ...] = ()) -> list[JobRecord]:
-        with self._lock:
-            db = self._open_db()
-            try:
-                return [JobRecord(*row) for row in db.execute(sql, args)]
-            except sqlite3.DatabaseError as exc:
-                if _damaged(exc):
-                    raise self.mark_damaged(str(exc)) from exc
-                raise
+        with self._lock, self._damage_seen():
+            return [JobRecord(*row) for row in self._open_db().execute(sql, args)]
 
     def get(self, job_id: str) -> JobRecord | None:
         rows = self._rows(f"SELECT {_COLUMNS} FROM jobs WHERE id = ?", (job_id,))

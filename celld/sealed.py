@@ -17,6 +17,8 @@ fails its checksum raises :class:`~celld.errors.DamagedStateError`, whose
 message is what status and every refusal say ("the stored calibration is
 damaged: <why>"). An absent file is not damage: :func:`read_sealed` returns
 None. A file larger than :data:`MAX_BYTES` is refused before it is read.
+What a read found is kept while the file stays the same (its inode, size
+and times): status, asked many times a second, reads each file once.
 """
 
 from __future__ import annotations
@@ -38,6 +40,10 @@ JOB_KEY = "job"
 VERSION = 1
 # No stored state is anywhere near this; larger is refused unread, bytes.
 MAX_BYTES = 16 * 2**20
+# Files whose last reading is kept (read_sealed); more are forgotten all at once.
+_CACHED_FILES = 64
+# What read_sealed found, by (path, kind, what): the file's identity then, and the document or why it is damaged.
+_read: dict[tuple[str, str, str], tuple[tuple[int, ...], dict[str, Any] | None, str]] = {}
 
 
 def format_of(kind: str, version: int = VERSION) -> str:
@@ -76,17 +82,34 @@ def read_sealed(path: str | os.PathLike[str], kind: str, what: str) -> dict[str,
         ``path`` is there but cannot be trusted; ``what`` names the state in the message.
     """
     p = Path(path)
+    key = (str(p), kind, what)
     try:
         with open(p, "rb") as f:
-            size = os.fstat(f.fileno()).st_size
-            if size > MAX_BYTES:
-                raise DamagedStateError(what, str(p), f"{size} bytes, more than the {MAX_BYTES} any stored state has")
+            st = os.fstat(f.fileno())
+            identity = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+            known = _read.get(key)
+            if known is not None and known[0] == identity:
+                if known[1] is None:
+                    raise DamagedStateError(what, str(p), known[2])
+                return dict(known[1])
+            if st.st_size > MAX_BYTES:
+                raise DamagedStateError(what, str(p), f"{st.st_size} bytes, more than the {MAX_BYTES} any stored state has")
             raw = f.read(MAX_BYTES + 1)
     except FileNotFoundError:
         return None
+    except DamagedStateError:
+        raise
     except OSError as exc:
         raise DamagedStateError(what, str(p), f"cannot be read: {exc.strerror or exc}") from exc
-    return verify(raw, kind, what, str(p))
+    if len(_read) >= _CACHED_FILES:
+        _read.clear()
+    try:
+        document = verify(raw, kind, what, str(p))
+    except DamagedStateError as exc:
+        _read[key] = (identity, None, exc.why)
+        raise
+    _read[key] = (identity, document, "")
+    return dict(document)
 
 
 def verify(raw: bytes, kind: str, what: str, path: str) -> dict[str, Any]:

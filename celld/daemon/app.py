@@ -4,11 +4,11 @@ Start-up, in order, each step refusing to go on when it fails:
 
 1. the config is loaded and validated (before any device is opened);
 2. the state directory and the job journal: jobs a previous process left
-   running are marked interrupted, the recordings it left open are merged
-   into readable files (their jobs' reasons say so), and the journal's
-   integrity is checked; a damaged journal is a storage fault the status
-   names with its way out (``celld journal set-aside``): the daemon serves,
-   and refuses jobs;
+   running are marked interrupted, the recordings it left open are listed
+   (merged into readable files once the daemon serves; their jobs' reasons
+   say so), and the journal's integrity is checked; a damaged journal is a
+   storage fault the status names with its way out (``celld journal
+   set-aside``): the daemon serves, and refuses jobs;
 3. the motion process (it owns the robot link; :class:`MotionHandle`
    supervises and restarts it) and the tactile camera process;
 4. the scanner (one that does not open is tried again in the background);
@@ -47,7 +47,7 @@ from celld.daemon.runners import build_runners
 from celld.errors import JournalError
 from celld.journal import INTERRUPTED_RUNNING, Journal
 from celld.log import get_logger
-from celld.recording.job import JobRecording, finalise_parts
+from celld.recording.job import JobRecording, finalise_parts, leftover_parts
 
 log = get_logger(__name__)
 
@@ -110,9 +110,10 @@ class Daemon:
                 journal.explain_interruption(record.id, why)
                 log.warning("job interrupted: the previous daemon's children say why", job=record.id, why=why)
 
-    async def _finalise_recordings(self, journal: Journal) -> None:
-        """Merge the recordings a dead daemon left open into readable ``.rrd`` files, and say so in their jobs."""
-        for done in await asyncio.to_thread(finalise_parts, self.state_dir):
+    async def _finalise_recordings(self, journal: Journal, parts: list[Path]) -> None:
+        """Merge the recordings a dead daemon left open (``parts``, listed before any job ran) into readable ``.rrd``
+        files, and say so in their jobs; after READY, as a task: a large one takes seconds."""
+        for done in await asyncio.to_thread(finalise_parts, parts):
             if done.error:
                 note = f"its recording was left unfinished and could not be merged ({done.error}): the streams are in {done.path}"
             else:
@@ -136,7 +137,7 @@ class Daemon:
             self._journal.mark_damaged("; ".join(problems[:3]) + (f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""))
             log.error("job journal damaged: jobs are refused", why=self._journal.damage_report())
         fsutil.remove_stale_temporaries(self.state_dir)
-        await self._finalise_recordings(self._journal)
+        leftovers = leftover_parts(self.state_dir)  # before any job opens a recording of its own
         for record in self._journal.recovered:
             log.warning("job interrupted by the previous stop", job=record.id, kind=record.kind)
         self.notifier.status("opening devices")
@@ -178,6 +179,8 @@ class Daemon:
         log.info("celld serving", cell=cfg.cell.name, state_dir=str(self.state_dir))
         self._tasks.append(loop.create_task(self._report_waiting(), name="celld-waiting"))
         self._tasks.append(loop.create_task(self._supervise_scanner(), name="celld-scanner"))
+        if leftovers:
+            self._tasks.append(loop.create_task(self._finalise_recordings(self._journal, leftovers), name="celld-recordings"))
 
     async def run(self) -> None:
         """Start, serve until SIGTERM/SIGINT (or :meth:`request_stop`), then shut down."""
@@ -248,7 +251,7 @@ class Daemon:
         while True:
             waiting = self.devices.waiting()
             problem = self.manager.storage.problem() if self.manager is not None else ""
-            self.notifier.status(f"cell {name}: " + ("; ".join([*waiting, problem] if problem else waiting) or "ready"))
+            self.notifier.status(f"cell {name}: " + ("; ".join(w for w in (*waiting, problem) if w) or "ready"))
             devices = [w.partition(":")[0] for w in waiting]  # the log says it again when what is waited for changes
             if devices != said:
                 if waiting:

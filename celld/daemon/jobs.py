@@ -362,11 +362,15 @@ class JobManager:
             if record is None:
                 raise JobError("$.job", f"no such job {req.job!r}")
             return {"record": record.to_message(caller.may_see(record.owner))}
+        # What refuses welds besides a fault, said here as each refusal says it: the stored calibrations
+        # damaged, the current calibration's verification failed.
+        said = [self.tools.damage()]
         try:
-            current, said = self.calibrations.current(), [self.tools.damage()]
-        except DamagedStateError as exc:  # said in the message; welds refuse with it too
-            current, said = None, [str(exc), self.tools.damage()]
-        if current is not None:  # a failed verification refuses welds: said here too
+            current = self.calibrations.current()
+        except DamagedStateError as exc:
+            current = None
+            said.append(str(exc))
+        if current is not None:
             said.append(failed_verification(last_verification(self.state_dir), current))
         self._note_recording_trouble()
         storage_problem = self.storage.problem()

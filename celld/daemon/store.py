@@ -138,16 +138,28 @@ def tool_store(state_dir: Path) -> CalibrationStore:
 
 def current_calibration(state_dir: Path, mount: str = "base") -> tuple[Placement, float, str]:
     """The accepted calibration: the scanner's placement (``T_base_cam``, or its pose on its link of the
-    arm), the scanner's range bias on metal (m) and the job that made it.
+    arm), the scanner's range bias on metal (m) and the job that made it (:func:`required_calibration`,
+    :func:`placed`)."""
+    cal = required_calibration(state_dir)
+    placement, range_bias = placed(cal, mount)
+    return placement, range_bias, str(cal.get("job", ""))
 
-    Refused without one, when it is damaged (:mod:`celld.sealed`), when either value is unusable, or when it was made
-    for a scanner mounted elsewhere than the config's ``mount``. A calibration
-    without a range bias (structured light, or written before it existed)
-    has none: 0.
-    """
+
+def required_calibration(state_dir: Path) -> dict[str, Any]:
+    """The accepted calibration as stored; refused without one, or when it is damaged (:mod:`celld.sealed`)."""
     cal = _read_current(CalibrationStore(state_dir))
     if cal is None:
         raise JobError("$", "the cell has no current calibration: run a calibrate job and accept it first")
+    return cal
+
+
+def placed(cal: Mapping[str, Any], mount: str) -> tuple[Placement, float]:
+    """A stored calibration's placement of the scanner and its range bias on metal (m).
+
+    Refused when either value is unusable, or when it was made for a scanner
+    mounted elsewhere than the config's ``mount``. A calibration without a
+    range bias (structured light, or written before it existed) has none: 0.
+    """
     try:
         placement = placement_of(cal)
     except InputError as exc:
@@ -163,7 +175,7 @@ def current_calibration(state_dir: Path, mount: str = "base") -> tuple[Placement
         raise JobError(
             "$", f"the current calibration is unusable: range_bias_mm must be a number within +-{MAX_RANGE_BIAS_MM:g} mm, got {bias_mm!r}"
         )
-    return placement, float(bias_mm) * 1e-3, str(cal.get("job", ""))
+    return placement, float(bias_mm) * 1e-3
 
 
 # The record of the current calibration's last verification (celld.daemon.verify), and how it is sealed.
@@ -172,11 +184,11 @@ VERIFICATION_KIND = "verification"
 
 
 def last_verification(state_dir: Path) -> dict[str, Any] | None:
-    """The record of the last verification; None when there is none or it cannot be trusted (it is then made again)."""
+    """The record of the last verification; None when there is none or it cannot be trusted (the next weld then
+    verifies again, and its new record replaces it)."""
     try:
         return sealed.read_sealed(state_dir / VERIFICATION, VERIFICATION_KIND, "verification record")
-    except DamagedStateError as exc:
-        log.warning("the verification record is not usable; the next weld verifies again", error=str(exc))
+    except DamagedStateError:
         return None
 
 

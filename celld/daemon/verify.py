@@ -30,7 +30,6 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Mapping
 from datetime import UTC, datetime
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -40,15 +39,14 @@ from celld.bus.requests import VerifyJob
 from celld.calib.detect import detect_flange
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
-from celld.calib.mount import placement_of
 from celld.calib.poses import calibration_poses
 from celld.calib.rangebias import correct_range_bias
 from celld.calib.verify import SCHEMA, Sighting, Verification, calibration_bound, verify_placement
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
-from celld.daemon.store import VERIFICATION, VERIFICATION_KIND, CalibrationStore, failed_verification, last_verification
-from celld.errors import CalibrationError, CelldError, DamagedStateError, InputError, JobError
+from celld.daemon.store import VERIFICATION, VERIFICATION_KIND, failed_verification, last_verification, placed, required_calibration
+from celld.errors import CalibrationError, CelldError, JobError
 from celld.journal import utc_now
 from celld.log import get_logger
 from celld.schemadoc import string, with_properties
@@ -63,16 +61,6 @@ RESULT_SCHEMA = with_properties(
     {"calibration": string("The calibrate job whose calibration was verified."), "at": string("When, UTC ISO 8601.")},
     ("calibration", "at"),
 )
-
-
-def _current(state_dir: Path) -> dict[str, Any]:
-    try:
-        cal = CalibrationStore(state_dir).current()
-    except DamagedStateError as exc:
-        raise JobError("$", f"{exc}: calibrate again and accept the result") from exc
-    if cal is None:
-        raise JobError("$", "the cell has no current calibration: run a calibrate job and accept it first")
-    return cal
 
 
 def due(record: Mapping[str, Any] | None, calibration: Mapping[str, Any], started: str, interval_s: float, now: datetime) -> str:
@@ -102,41 +90,36 @@ def due(record: Mapping[str, Any] | None, calibration: Mapping[str, Any], starte
 
 async def ensure_verified(ctx: JobContext, config: Config, devices: CellDevices, started: str) -> None:
     """Verify the current calibration first when :func:`due` says so; refused when it fails (or failed before)."""
-    calibration = _current(ctx.state_dir)
+    calibration = required_calibration(ctx.state_dir)
     why = due(last_verification(ctx.state_dir), calibration, started, config.calibration.verify_interval, datetime.now(UTC))
     if not why:
         return
     ctx.progress("verify", 0.0, f"verifying the calibration first: {why}")
-    done = await verify_calibration(ctx, config, devices, calibration)
-    if not done.passed:
-        raise JobError("$", f"the current calibration failed its verification: {done.reason}; calibrate again and accept the result")
+    await verify_calibration(ctx, config, devices, calibration)
 
 
 async def run_verify(ctx: JobContext, config: Config, devices: CellDevices) -> Mapping[str, Any]:
     """The verify job: the current calibration verified now; failed (with the figure) when it does not hold."""
     if not isinstance(ctx.job, VerifyJob):
         raise JobError("$.kind", "not a verify job")
-    calibration = _current(ctx.state_dir)
+    calibration = required_calibration(ctx.state_dir)
     done = await verify_calibration(ctx, config, devices, calibration)
-    if not done.passed:
-        raise JobError("$", f"the current calibration failed its verification: {done.reason}; calibrate again and accept the result")
     return {**done.as_dict(), "calibration": str(calibration.get("job", "")), "at": utc_now()}
 
 
 async def verify_calibration(ctx: JobContext, config: Config, devices: CellDevices, calibration: Mapping[str, Any]) -> Verification:
-    """Show the flange at the verification poses, compare, and keep the record (module docstring)."""
+    """Show the flange at the verification poses, compare, and keep the record (module docstring); the
+    verification when it passed.
+
+    Raises
+    ------
+    JobError
+        It failed (the record kept says so too), or the calibration cannot be verified here.
+    """
     cal = config.calibration
     if any(abs(v) > 1e-12 for v in config.robot.tcp_offset):
         raise JobError("$", "a verification reads the flange pose: set robot.tcp_offset to zero")
-    try:
-        placement = placement_of(calibration)
-    except InputError as exc:
-        raise JobError("$", f"the current calibration is unusable: {exc}") from exc
-    if placement.mount.name != config.scanner.mount:
-        raise JobError(
-            "$", f"the current calibration is of a scanner on {placement.mount.name}, and scanner.mount is {config.scanner.mount!r}"
-        )
-    bias = float(calibration.get("range_bias_mm", 0.0) or 0.0) * 1e-3
+    placement, bias = placed(calibration, config.scanner.mount)
     try:
         own_bound = calibration_bound(calibration)
     except CalibrationError as exc:
@@ -213,4 +196,6 @@ async def verify_calibration(ctx: JobContext, config: Config, devices: CellDevic
             + (done.reason or f"{done.error * 1e3:.2f} mm within {done.bound * 1e3:.2f} mm"),
             "INFO" if done.passed else "WARN",
         )
+    if not done.passed:
+        raise JobError("$", f"the current calibration failed its verification: {done.reason}; calibrate again and accept the result")
     return done

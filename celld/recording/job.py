@@ -34,8 +34,9 @@ MB), then renames it into place; the part file is removed. A merge that
 fails (the disk full again) keeps the part file and says how to merge it by
 hand.
 
-A process that died mid-job leaves its part file; :func:`finalise_parts`,
-which the daemon runs at start, merges each into its ``.rrd`` the same way
+A process that died mid-job leaves its part file; the daemon lists them at
+start (:func:`leftover_parts`) and :func:`finalise_parts` merges each into
+its ``.rrd`` the same way
 (rerun's merge reads a stream cut mid-write up to the cut and drops the
 rest), so every recording opens in rerun's viewer and reader.
 """
@@ -51,7 +52,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import partial
 from pathlib import Path
 from types import TracebackType
@@ -259,15 +260,21 @@ class Finalised(NamedTuple):
     error: str  # why the merge failed, "" when it did not
 
 
-def finalise_parts(state_dir: str | Path) -> list[Finalised]:
-    """Merge every ``<job>.rrd.part`` a dead process left under ``state_dir/recordings`` into its ``.rrd``.
+def leftover_parts(state_dir: str | Path) -> list[Path]:
+    """The ``<job>.rrd.part`` files under ``state_dir/recordings``: before any recording is opened, what a dead
+    process left."""
+    return sorted((Path(state_dir) / "recordings").glob("*.rrd.part"))
+
+
+def finalise_parts(parts: Sequence[Path]) -> list[Finalised]:
+    """Merge each of ``parts`` (:func:`leftover_parts`) into its ``.rrd``.
 
     A part beside its ``.rrd`` is the leftover of a merge that finished (the
     rename made, the removal not): it is removed. A merge that fails keeps
-    the part and says why. Call it when no recording is open.
+    the part and says why.
     """
     done: list[Finalised] = []
-    for part in sorted((Path(state_dir) / "recordings").glob("*.rrd.part")):
+    for part in parts:
         path = part.with_name(part.name.removesuffix(".part"))
         job = path.stem
         if path.exists():

@@ -4,6 +4,7 @@ a storage fault the status names with its way out, and the daemon serves with it
 from __future__ import annotations
 
 import asyncio
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -168,7 +169,13 @@ def test_a_recording_the_previous_daemon_left_open_is_finalised_and_its_job_says
     subprocess.run([sys.executable, "-c", _DIES_MID_JOB, str(state), job], check=False, timeout=60)
     assert (state / "recordings" / f"{job}.rrd.part").is_file()
 
-    record = asyncio.run(_serve_and_ask(cfg, lambda client: client.status(job)))
+    def noted(client: CellClient) -> dict:  # the merge runs once the daemon serves
+        deadline = time.monotonic() + 20
+        while "recording" not in (record := client.status(job))["reason"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+        return record
+
+    record = asyncio.run(_serve_and_ask(cfg, noted))
     assert record["state"] == "interrupted"
     assert record["reason"] == (
         f"interrupted: the daemon stopped while the job was running; its recording was cut short when the daemon stopped: "

@@ -568,7 +568,7 @@ os._exit(9)  # killed mid-job: the part file is left as it was written
 
 
 def test_a_recording_a_dead_process_left_open_is_finalised_into_a_readable_file(tmp_path: Path) -> None:
-    from celld.recording.job import finalise_parts
+    from celld.recording.job import finalise_parts, leftover_parts
 
     state = tmp_path / "state"
     for job in ("20260101-000000-aaaaaa", "20260101-000001-bbbbbb"):
@@ -588,7 +588,7 @@ def test_a_recording_a_dead_process_left_open_is_finalised_into_a_readable_file(
     (recordings / "merged.rrd").write_bytes(b"x")  # a merge that finished but did not remove its part
     (recordings / "merged.rrd.part").write_bytes(b"y")
 
-    done = {d.job: d for d in finalise_parts(state)}
+    done = {d.job: d for d in finalise_parts(leftover_parts(state))}
     assert set(done) == {"20260101-000000-aaaaaa", "20260101-000001-bbbbbb", "garbage"}
     for job in ("20260101-000000-aaaaaa", "20260101-000001-bbbbbb"):
         path = recordings / f"{job}.rrd"
