@@ -69,6 +69,7 @@ sys.path.insert(0, str(ROOT))
 
 from _common import Failures, JobFailed  # noqa: E402
 
+from celld.errors import BusError  # noqa: E402
 from celld.sim.cell import run_cell, start_daemon, stop_daemon  # noqa: E402
 from celld.sim.score import after_fault, orphaned_after  # noqa: E402
 
@@ -129,7 +130,10 @@ TARGETS = ("daemon", "tactile", "motion", "hang")
 def _weld_until_the_arc(client: Any, robot: Any, ref: str) -> str:
     with client.watch_progress() as events:
         job = client.submit({"kind": "weld", "ref": ref})["job"]
-        events.wait_stage(job, "track", timeout=240)
+        try:
+            events.wait_stage(job, "track", timeout=240)
+        except BusError as exc:  # it ended (or hung) before it tracked: a failed job, not a figure
+            raise JobFailed(f"weld job {job} ({ref})", str(exc)) from exc
     deadline = time.monotonic() + 60
     while not int(robot.status()["digital_out"]) & (1 << ARC):
         if time.monotonic() > deadline:
