@@ -13,6 +13,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -101,3 +102,29 @@ def make_realtime(opts: RealtimeOptions) -> RealtimeReport:
         else:
             refused.append(f"mlockall: {os.strerror(ctypes.get_errno())} (needs LimitMEMLOCK)")
     return RealtimeReport(fifo, cpu, locked, "; ".join(refused))
+
+
+def thread_ids() -> set[int]:
+    """The ids of the calling process's threads (Linux: /proc/self/task)."""
+    try:
+        return {int(name) for name in os.listdir("/proc/self/task")}
+    except OSError:
+        return set()
+
+
+def raise_threads(tids: Iterable[int], priority: int) -> str:
+    """Put the threads ``tids`` of this process at SCHED_FIFO ``priority``; what the OS refused, "" for nothing.
+
+    For threads a library starts and does not raise itself (ur-rtde raises its
+    receive threads only on a PREEMPT_RT kernel). Their CPU affinity is left
+    as it is. A thread that has ended meanwhile is skipped.
+    """
+    refused: list[str] = []
+    for tid in sorted(tids):
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+        except ProcessLookupError:
+            continue
+        except OSError as exc:
+            refused.append(f"SCHED_FIFO {priority} for thread {tid}: {exc.strerror or exc}")
+    return "; ".join(refused)

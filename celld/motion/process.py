@@ -10,14 +10,17 @@ imported ur-rtde, can deadlock). The process
    connect timeout) and sets the RTDE watchdog;
 3. imports the servo laws it may be asked to run, so the loop never imports;
 4. raises itself to SCHED_FIFO, pins its loop thread to one CPU and locks its
-   memory where the OS allows it, and says once in the log when it does not;
+   memory where the OS allows it, raises ur-rtde's receive threads to just
+   below the loop (:data:`LINK_BELOW_LOOP`), and says once in the log when
+   any of it is refused;
 5. disables the garbage collector and runs the loop until the link is lost or
    a shutdown completes, then reports why in the status slot, switches the
    process output (the welding arc) off if the loop may have left it on, and
    exits with a code the supervisor reads (:data:`EXIT_CODES`).
 
-Only the thread that runs the loop is made real-time and pinned: ur-rtde's
-receive threads, created while connecting, keep the default policy.
+Only the thread that runs the loop is pinned: ur-rtde's receive threads,
+created while connecting, keep the process's CPUs, so the loop spinning on
+its CPU never stands between them and the state it waits for.
 """
 
 from __future__ import annotations
@@ -38,8 +41,14 @@ from celld.motion.channels import STATUS_DTYPE, ChannelNames, Channels, Phase, e
 from celld.motion.core import CoreParams, MotionCore
 from celld.motion.loop import LoopExit, LoopParams, MotionLoop
 from celld.motion.types import ControlStatus, ServoFactory
-from celld.realtime import RealtimeOptions, RealtimeReport, make_realtime
+from celld.realtime import RealtimeOptions, RealtimeReport, make_realtime, raise_threads
 from celld.supervision import ParentWatch, write_exit_note
+
+# ur-rtde's receive threads run this far below the loop's SCHED_FIFO priority. Every command the loop
+# sends (speedL, speedJ, the watchdog kick) first spins until the control script's state, which those
+# threads receive, says "ready": starved at best effort on a busy machine, they held the loop past the
+# robot's watchdog. They poll (100 us sleeps), about a fifth of a core each, idle or not.
+LINK_BELOW_LOOP = 1
 
 # Exit code of the process for each way the loop ends; anything else is a crash.
 EXIT_CODES = {
@@ -126,6 +135,12 @@ def run(spec: MotionSpec) -> LoopExit:
         core = MotionCore(spec.core, factories)
         loop = MotionLoop(link, core, ch, spec.loop, parent=parent)
         rt = make_realtime(spec.realtime)
+        link_priority = spec.realtime.priority - LINK_BELOW_LOOP if rt.fifo else 0
+        if link_priority > 0:
+            # ur-rtde's receive threads were started above, before the loop's thread was pinned: any CPU.
+            refused = raise_threads(link.threads, link_priority)
+            if refused:
+                rt = rt._replace(refused="; ".join(filter(None, (rt.refused, refused))))
         if rt.refused:
             log.warning(
                 "motion loop runs without full real-time privileges",
@@ -135,7 +150,13 @@ def run(spec: MotionSpec) -> LoopExit:
                 memory_locked=rt.memory_locked,
             )
         else:
-            log.info("motion loop real time", fifo_priority=spec.realtime.priority, cpu=rt.cpu)
+            log.info(
+                "motion loop real time",
+                fifo_priority=spec.realtime.priority,
+                cpu=rt.cpu,
+                link_threads=len(link.threads),
+                link_priority=link_priority,
+            )
         _report(ch, Phase.RUNNING, rt)
         gc.collect()
         gc.freeze()

@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from typing import NamedTuple, Protocol
 
 from celld.errors import LinkLost
+from celld.realtime import thread_ids
 
 # What the receive interface subscribes to: only what the loop reads.
 RECEIVE_VARIABLES = (
@@ -84,11 +85,15 @@ class RtdeLink:
     Construct with :meth:`connect`, in the motion process only.
     """
 
-    def __init__(self, host: str, control: object, receive: object, io: object) -> None:
+    def __init__(self, host: str, control: object, receive: object, io: object, threads: frozenset[int] = frozenset()) -> None:
         self.host = host
         self._c = control
         self._r = receive
         self.io = io  # RTDEIOInterface, for digital outputs and registers outside the loop
+        # The threads ur-rtde started for these interfaces (its receive threads): the loop waits on them
+        # (every command first waits for the script's state they receive), so the motion process raises
+        # them to real time just below itself (celld.realtime.raise_threads).
+        self.threads = threads
 
     @classmethod
     def connect(cls, host: str, frequency_hz: float = 500.0) -> RtdeLink:
@@ -103,6 +108,7 @@ class RtdeLink:
         import rtde_io
         import rtde_receive
 
+        before = thread_ids()
         control = receive = io = None
         step = "control interface"
         try:
@@ -119,7 +125,7 @@ class RtdeLink:
             for iface in (io, receive, control):
                 _disconnect(iface)
             raise LinkLost(f"robot {host}: RTDE interfaces opened but report no connection")
-        return cls(host, control, receive, io)
+        return cls(host, control, receive, io, frozenset(thread_ids() - before))
 
     def set_watchdog(self, min_frequency_hz: float) -> None:
         """Stop the robot's program when no command or kick arrives for ``1 / min_frequency_hz`` s."""

@@ -135,6 +135,41 @@ def test_move_to_ends_within_a_tenth_of_a_millimetre(sim: Any) -> None:
     assert len(sent) > 100
 
 
+def _fifo_priorities(pid: int) -> dict[int, int]:
+    """SCHED_FIFO priority of each thread of process ``pid`` (0 for a best-effort one)."""
+    out = {}
+    for name in os.listdir(f"/proc/{pid}/task"):
+        tid = int(name)
+        try:
+            fifo = os.sched_getscheduler(tid) == os.SCHED_FIFO
+            out[tid] = os.sched_getparam(tid).sched_priority if fifo else 0
+        except ProcessLookupError:
+            continue
+    return out
+
+
+def test_ur_rtde_receive_threads_run_just_below_the_loop(sim: Any) -> None:
+    """Every command ur-rtde sends first waits for the state its receive threads take in: at best
+    effort on a busy machine they held the real-time loop past the robot's watchdog."""
+    seen: dict[str, Any] = {}
+
+    async def scenario(motion: MotionHandle) -> None:
+        await asyncio.sleep(0.3)
+        pid = motion.supervisor.pid
+        assert pid is not None
+        seen["priorities"] = _fifo_priorities(pid)
+        seen["realtime"] = motion.health().realtime
+
+    _run(sim, scenario)
+    if not seen["realtime"]:
+        pytest.skip("the OS refused SCHED_FIFO here: the loop itself runs best effort")
+    levels = sorted(seen["priorities"].values(), reverse=True)
+    loop = levels[0]
+    assert loop == 80
+    # The control interface's receive thread and the receive interface's: two threads, one step below.
+    assert levels.count(loop - 1) >= 2, seen["priorities"]
+
+
 def test_velocity_streaming_holds_the_limits_in_every_cycle(sim: Any, rng: np.random.Generator) -> None:
     config = _config()
     limits = CartesianLimits.from_config(config.motion)
