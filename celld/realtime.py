@@ -112,6 +112,26 @@ def thread_ids() -> set[int]:
         return set()
 
 
+def settle_threads(tids: Iterable[int], nice: int) -> str:
+    """Put the threads ``tids`` of this process back to best effort at ``nice``; what the OS refused, "" for nothing."""
+    refused: list[str] = []
+    for tid in sorted(tids):
+        try:
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+        except ProcessLookupError:
+            continue
+        except OSError as exc:
+            refused.append(f"best effort for thread {tid}: {exc.strerror or exc}")
+            continue
+        try:
+            os.setpriority(os.PRIO_PROCESS, tid, nice)  # Linux: a thread id sets that thread's niceness
+        except ProcessLookupError:
+            continue
+        except OSError as exc:
+            refused.append(f"nice {nice} for thread {tid}: {exc.strerror or exc}")
+    return "; ".join(refused)
+
+
 def raise_threads(tids: Iterable[int], priority: int) -> str:
     """Put the threads ``tids`` of this process at SCHED_FIFO ``priority``; what the OS refused, "" for nothing.
 

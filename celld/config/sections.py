@@ -211,6 +211,11 @@ class MotionLimits:
     # process does or its event loop has not run for a second; the loop looks every 10 ms: the arc is off
     # within 0.3 s of a freeze.
     hang_stop: float = 0.25
+    # ur-rtde's receive threads, after the watchdog handshake (which they run at SCHED_FIFO, below the
+    # loop): best effort at this niceness. They poll (about a fifth of a core each, idle or not) and every
+    # command waits on the state they take in; -10 keeps them ahead of a cell PC's other work. The
+    # simulated cell, whose controller and scanner share two cores with them, runs them at 0.
+    link_nice: int = -10
 
     @classmethod
     def read(cls, r: TableReader) -> MotionLimits:
@@ -230,6 +235,7 @@ class MotionLimits:
             rtde_watchdog_hz=r.float("rtde_watchdog_hz", cls.rtde_watchdog_hz, lo=1.0, hi=500.0),
             parent_timeout=r.float("parent_timeout_ms", cls.parent_timeout * 1e3, lo=HANG_STOP_MAX * 1e3, hi=5000.0, scale=1e-3),
             hang_stop=r.float("hang_stop_ms", cls.hang_stop * 1e3, lo=60.0, hi=HANG_STOP_MAX * 1e3, scale=1e-3),
+            link_nice=r.int("link_nice", cls.link_nice, lo=-20, hi=19),
         )
 
 

@@ -192,6 +192,7 @@ def spec_from_config(
         parent_pid=os.getpid(),
         heartbeat=heartbeat,
         parent_timeout_ns=int(motion.parent_timeout * 1e9),
+        link_nice=motion.link_nice,
     )
 
 

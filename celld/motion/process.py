@@ -11,8 +11,8 @@ imported ur-rtde, can deadlock). The process
 3. imports the servo laws it may be asked to run, so the loop never imports;
 4. raises itself to SCHED_FIFO, pins its loop thread to one CPU and locks its
    memory where the OS allows it, raises ur-rtde's receive threads to just
-   below the loop (:data:`LINK_BELOW_LOOP`), and says once in the log when
-   any of it is refused;
+   below the loop through the watchdog handshake (:data:`LINK_BELOW_LOOP`),
+   and says once in the log when any of it is refused;
 5. disables the garbage collector and runs the loop until the link is lost or
    a shutdown completes, then reports why in the status slot, switches the
    process output (the welding arc) off if the loop may have left it on, and
@@ -41,13 +41,17 @@ from celld.motion.channels import STATUS_DTYPE, ChannelNames, Channels, Phase, e
 from celld.motion.core import CoreParams, MotionCore
 from celld.motion.loop import LoopExit, LoopParams, MotionLoop
 from celld.motion.types import ControlStatus, ServoFactory
-from celld.realtime import RealtimeOptions, RealtimeReport, make_realtime, raise_threads
+from celld.realtime import RealtimeOptions, RealtimeReport, make_realtime, raise_threads, settle_threads
 from celld.supervision import ParentWatch, write_exit_note
 
-# ur-rtde's receive threads run this far below the loop's SCHED_FIFO priority. Every command the loop
-# sends (speedL, speedJ, the watchdog kick) first spins until the control script's state, which those
-# threads receive, says "ready": starved at best effort on a busy machine, they held the loop past the
-# robot's watchdog. They poll (100 us sleeps), about a fifth of a core each, idle or not.
+# ur-rtde's receive threads poll their sockets (100 us sleeps): about a fifth of a core each, idle or not.
+# Every command ur-rtde sends (speedL, speedJ, the watchdog kick) first spins until the control script's
+# state, which those threads receive, says "ready"; it stops saying so after each command ur-rtde waits on
+# (setWatchdog at start; the loop sends no other). Starved at best effort on a busy machine, they held
+# the loop past the robot's watchdog right after setWatchdog. So they run at SCHED_FIFO this far below
+# the loop through that handshake, and then best effort at ``motion.link_nice``: at SCHED_FIFO for good,
+# four of them (two robots) took the two-core simulated cell's best-effort work a core, and a two-robot
+# job ran 2.4 times as long (bench/README.md).
 LINK_BELOW_LOOP = 1
 
 # Exit code of the process for each way the loop ends; anything else is a crash.
@@ -84,6 +88,8 @@ class MotionSpec:
     # it, so the journal says why a job ended when its daemon hung or died (celld.supervision.exit_notes).
     role: str = "motion"
     exit_note: str = ""
+    # Niceness of ur-rtde's receive threads after the watchdog handshake (motion.link_nice).
+    link_nice: int = -10
 
 
 def load_factories(servo_laws: tuple[tuple[str, str], ...]) -> dict[str, ServoFactory]:
@@ -155,7 +161,8 @@ def run(spec: MotionSpec) -> LoopExit:
                 fifo_priority=spec.realtime.priority,
                 cpu=rt.cpu,
                 link_threads=len(link.threads),
-                link_priority=link_priority,
+                link_handshake_priority=link_priority,
+                link_nice=spec.link_nice,
             )
         _report(ch, Phase.RUNNING, rt)
         gc.collect()
@@ -164,6 +171,12 @@ def run(spec: MotionSpec) -> LoopExit:
         try:
             # Last, so the set-up above (mlockall can take a while) cannot outlast the watchdog.
             link.set_watchdog(spec.watchdog_hz)
+            # The first kick waits inside ur-rtde for the script to be ready again: then the handshake is over.
+            link.kick()
+            if link_priority > 0:
+                settled = settle_threads(link.threads, spec.link_nice)
+                if settled:
+                    log.warning("ur-rtde's receive threads not settled to best effort as asked", nice=spec.link_nice, refused=settled)
             end = loop.run()
         except LinkLost as exc:
             end = LoopExit(ControlStatus.LINK_LOST, str(exc))
