@@ -50,7 +50,7 @@ from celld.calib.detect_params import DetectParams
 from celld.calib.flange import FlangeModel
 from celld.calib.metrics import E_ICP_SCHEMA, IcpMetric, IcpParams, IcpVerifier, compensate, cost_function, model_cloud_with_normals
 from celld.calib.pairs import Detections
-from celld.calib.quality import QUALITY_SCHEMA, CalibrationQuality, QualityParams, assess_calibration
+from celld.calib.quality import OUTLIER_FLOOR, QUALITY_SCHEMA, CalibrationQuality, QualityParams, assess_calibration
 from celld.calib.rangebias import MODES as RANGE_BIAS_MODES
 from celld.calib.rangebias import (
     RANGE_BIAS_SCHEMA,
@@ -109,7 +109,7 @@ class SolveParams:
     """
 
     method: str = "robust"
-    robust: RobustParams = field(default_factory=RobustParams)
+    robust: RobustParams = field(default_factory=lambda: RobustParams(min_threshold=OUTLIER_FLOOR))
     icp: IcpParams = field(default_factory=IcpParams)
     model_spacing: float = 0.002
     cost: str = "translation"
@@ -134,6 +134,8 @@ class SolveParams:
             "k_max": cal.k_max,
             "compensate": cal.compensate,
             "range_bias": cal.range_bias or "none",
+            "robust": RobustParams(min_threshold=cal.outlier_floor),
+            "quality": QualityParams(arm_error_prior=cal.arm_error_prior, work_radius=cal.work_radius, outlier_floor=cal.outlier_floor),
         }
         values.update(overrides)
         return cls(**values)

@@ -63,6 +63,46 @@ def test_a_good_session_passes_with_its_uncertainty_at_the_workspace_centre(rng:
     assert d["verdict"] == "ok" and d["n_used"] == 12 and len(d["pairs"]) == 12 and d["e_icp"]["ok"] is True
 
 
+def test_the_box_bound_covers_a_new_point_seen_through_the_calibration(rng: np.random.Generator) -> None:
+    """A point in the box, seen with the scanner's noise and mapped by the estimate, lands within the bound at its
+    confidence (the estimate's own error there and the pose-to-pose error); a 1-sigma would not cover it."""
+    covered, within_sigma, trials = 0, 0, 400
+    for _ in range(trials):
+        P_base, P_cam = box_pairs(rng, 8)
+        q = assess_fit(P_base, P_cam)
+        p = rng.uniform(-0.5, 0.5, 3) * [0.3, 0.3, 0.2] + [0.6, 0.0, 0.45]
+        seen = apply(invert(T_BASE_CAM), p[None])[0] + rng.normal(0.0, SIGMA, 3)
+        fit = solve_rigid(P_base, P_cam)
+        miss = float(np.linalg.norm(apply(fit.T_dst_src, seen[None])[0] - p))
+        covered += miss <= q.bound_box
+        within_sigma += miss <= float(np.linalg.norm(q.translation_std))
+    assert covered / trials >= 0.9, covered / trials
+    assert within_sigma / trials < 0.5, within_sigma / trials
+    # Not far beyond the confidence either: a bound that covers by being huge says nothing.
+    assert covered / trials <= 0.995
+
+
+def test_away_from_the_pairs_the_bound_carries_the_arms_own_error(rng: np.random.Generator) -> None:
+    """Where no pair was measured the arm's own error is not in the residuals: the bound there adds its prior whole,
+    and the estimate's uncertainty at the work radius (the rotation's lever)."""
+    P_base, P_cam = box_pairs(rng, 12)
+    bare = assess_fit(P_base, P_cam, params=QualityParams(arm_error_prior=0.0))
+    with_prior = assess_fit(P_base, P_cam, params=QualityParams(arm_error_prior=1.0e-3))
+    assert bare.bound_away > bare.bound_box  # the lever alone
+    assert with_prior.bound_away == pytest.approx(bare.bound_away + 1.0e-3)
+    assert with_prior.bound_box == bare.bound_box
+    wider = assess_fit(P_base, P_cam, params=QualityParams(arm_error_prior=0.0, work_radius=1.5))
+    assert wider.bound_away > bare.bound_away
+    d = with_prior.as_dict()["bound"]
+    assert d["confidence"] == 0.95 and d["arm_error_prior_mm"] == pytest.approx(1.0)
+    assert d["work_radius_mm"] == pytest.approx(with_prior.bound_away * 1e3)
+    assert d["calibration_box_mm"] == pytest.approx(with_prior.bound_box * 1e3)
+    with pytest.raises(InputError, match="arm_error_prior"):
+        QualityParams(arm_error_prior=-1e-3)
+    with pytest.raises(InputError, match="bound_confidence"):
+        QualityParams(bound_confidence=1.0)
+
+
 def test_a_narrow_plane_warns_and_fails_on_the_rotation_about_its_long_axis(rng: np.random.Generator) -> None:
     # 300 x 30 mm in one plane: the lever arm about base x is the 30 mm width.
     P_base, P_cam = strip_pairs(rng, 8, 0.03, sigma=0.2e-3)

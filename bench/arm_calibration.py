@@ -1,0 +1,277 @@
+"""The arm's own error and the bounds the calibration reports, against each simulated world's truth.
+
+Two parts (figures in bench/README.md; tables in bench/out/arm_calibration/):
+
+1. Worlds. In each seeded realistic world (``configs/sim-cell.toml``, preset
+   ``realistic``: the arm errs in its kinematics apart from anything the
+   controller believes) the cell's calibration as it runs it
+   (``celld.sim.calib_demo.calibrate_in_world``: its flange model, detector,
+   poses and robust solve), then, against the world's truth
+   (``celld.sim.score.targeting_errors``: where the flange truly lands when
+   sent through the estimate to points the scanner saw):
+
+   - the error in the calibration box (the flange as at the verification
+     pose) and at the weld (a 300 x 300 x 150 mm box over the table, flange
+     down), mean and max;
+   - the bounds the calibration reports (``quality.bound``, 95 %): the box
+     bound for the points of the box, the bound within the work radius for
+     those over the table; ``coverage``, the fraction of all test points
+     whose true error the bound covers, and ``bound_over_error_mean``, the
+     mean bound over the mean error.
+
+   Only the hand-eye calibration exists: the arm's kinematic calibration,
+   its warm-arm figures, the touch check and the tool's figures are not
+   built, and their keys are null.
+2. Small counts (no world; the robust estimator and the gate as the cell
+   runs them, ``celld.calib.robust.solve_robust`` and
+   ``celld.calib.quality.assess_calibration``): 90 sessions of 5, 6 and 7
+   pairs in the calibration box, each centre off by what the arm errs from
+   pose to pose (0.1 mm per axis) and the scanner's noise (0.05 mm), one
+   pair of each a false detection 2-20 mm off. Counted: good pairs dropped,
+   false detections the estimator kept and those in an estimate the gate
+   accepts, and estimates the gate accepts that rest on fewer than 5 pairs.
+
+Targets (the issue): weld mean <= 0.15 mm in 8 of 10 seeds and <= 0.25 mm
+in every seed (needs the arm's calibration; reported, not met by the hand-eye
+calibration alone); box <= 0.10 mm; coverage >= 90 %; mean bound at most 3
+times the mean error; no good pair dropped, every false detection rejected,
+no accepted estimate on fewer than 5 pairs. Missed targets are figures; a
+seed whose calibration fails is a failed job and makes the exit code 1.
+
+``--quick``: 2 seeds of 10 poses and 30 small-count sessions.
+``--json`` prints the figures as one JSON object, last line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(ROOT))
+
+from bench._common import Failures  # noqa: E402
+from celld import se3  # noqa: E402
+from celld.errors import CelldError  # noqa: E402
+
+OUT = ROOT / "bench" / "out" / "arm_calibration"
+WELD_MEAN = 0.15e-3  # m, in 8 of 10 seeds
+WELD_MEAN_EVERY = 0.25e-3  # m, in every seed
+BOX_MEAN = 0.10e-3  # m
+COVERAGE = 0.90
+BOUND_OVER_ERROR = 3.0
+MIN_PAIRS_USED = 5
+# Small-count sessions: what the arm errs from pose to pose and the scanner's centre noise, per axis (m),
+# and how far a false detection lies.
+ARM_SPREAD = 0.1e-3
+SCANNER_NOISE = 0.05e-3
+FALSE_OFF = (2e-3, 20e-3)
+
+
+def world_seed(seed: int, n_poses: int) -> dict[str, Any]:
+    """Part 1, one world: calibrate, score against the truth, hold the bounds against the errors."""
+    from celld.config import load
+    from celld.sim.calib_demo import calibrate_in_world
+    from celld.sim.score import box_grid, targeting_errors, true_camera
+    from celld.sim.world import WorldOptions, world_of
+
+    cfg = load(ROOT / "configs" / "sim-cell.toml")
+    world = world_of(cfg, WorldOptions(preset="realistic", seed=seed))
+    out: dict[str, Any] = {"seed": seed, "poses": n_poses}
+    t0 = time.perf_counter()
+    try:
+        done = calibrate_in_world(cfg, world, n_poses, seed)
+    except CelldError as exc:
+        out["error"] = str(exc)
+        return out
+    res, q = done.result, done.result.quality
+    cal = cfg.calibration
+    T_v = se3.from_ur_pose(cal.verification_pose)
+    home = np.asarray(cfg.robot.home_q, dtype=np.float64)
+    T_true = true_camera(world, done.q_verification)
+    R_down = se3.from_xyz_rpy([0.0, 0.0, 0.0], [math.pi, 0.0, math.pi / 2])[:3, :3]
+    e_box = targeting_errors(world, res.T_base_cam, box_grid(T_v[:3, 3], cal.pose_box), T_v[:3, :3], home, T_true)
+    e_weld = targeting_errors(world, res.T_base_cam, box_grid([0.6, 0.0, 0.225], [0.3, 0.3, 0.15]), R_down, home, T_true)
+    e_box, e_weld = e_box[np.isfinite(e_box)], e_weld[np.isfinite(e_weld)]
+    bounds = np.concatenate([np.full(len(e_box), q.bound_box), np.full(len(e_weld), q.bound_away)])
+    errors = np.concatenate([e_box, e_weld])
+    out.update(
+        weld_error_mean_mm=float(e_weld.mean()) * 1e3,
+        weld_error_max_mm=float(e_weld.max()) * 1e3,
+        weld_error_warm_mean_mm=None,  # no thermal growth in the world, no arm calibration: not built
+        box_error_mean_mm=float(e_box.mean()) * 1e3,
+        box_error_max_mm=float(e_box.max()) * 1e3,
+        touch_error_mm=None,  # the touch check is not built
+        tool_ok=None,  # the tool calibration is bench/realistic_cell.py's
+        tool_error_mm=None,
+        bound_box_mm=q.bound_box * 1e3,
+        bound_weld_mm=q.bound_away * 1e3,
+        translation_std_norm_mm=float(np.linalg.norm(q.translation_std)) * 1e3,
+        points=int(len(errors)),
+        covered=int(np.count_nonzero(errors <= bounds)),
+        bound_mean_mm=float(bounds.mean()) * 1e3,
+        error_mean_mm=float(errors.mean()) * 1e3,
+        pairs_used=sum(p.used for p in q.pairs),
+        verdict=q.verdict,
+        duration_s=time.perf_counter() - t0,
+    )
+    return out
+
+
+def small_counts(sessions: int, seed: int) -> dict[str, Any]:
+    """Part 2: the robust estimator and the gate on 5, 6 and 7 pairs with one false detection each."""
+    from celld.calib.quality import assess_calibration
+    from celld.calib.robust import solve_robust
+    from celld.calib.solve import SolveParams
+    from celld.config import load
+
+    params = SolveParams.from_config(load(ROOT / "configs" / "sim-cell.toml").calibration)  # as the cell solves
+    rng = np.random.default_rng(seed)
+    T_base_cam = se3.from_xyz_rpy([0.6, 0.0, 1.2], [math.pi, 0.0, math.pi / 2])
+    dropped = kept_false = accepted_false = thin_accepted = failed = 0
+    rows = []
+    for i in range(sessions):
+        n = (5, 6, 7)[i % 3]
+        P_base = rng.uniform(-0.5, 0.5, (n, 3)) * [0.3, 0.3, 0.2] + [0.6, 0.0, 0.45]
+        P_cam = se3.apply(se3.invert(T_base_cam), P_base + rng.normal(0.0, ARM_SPREAD, (n, 3)))
+        P_cam += rng.normal(0.0, SCANNER_NOISE, (n, 3))
+        bad = int(rng.integers(n))
+        direction = rng.normal(size=3)
+        P_cam[bad] += direction / np.linalg.norm(direction) * rng.uniform(*FALSE_OFF)
+        ids = [f"p{k}" for k in range(n)]
+        try:
+            fit = solve_robust(P_base, P_cam, ids, params.robust)
+        except CelldError as exc:
+            failed += 1
+            rows.append({"n": n, "error": str(exc)})
+            continue
+        used = set(fit.inliers)
+        good_dropped = sum(1 for k in range(n) if k != bad and k not in used)
+        quality = assess_calibration(
+            ids, P_base, P_cam, fit.T_base_cam, used=sorted(used), uncertainty=fit.fit.uncertainty, params=params.quality
+        )
+        dropped += good_dropped
+        kept_false += bad in used
+        accepted_false += quality.passed and bad in used
+        thin_accepted += quality.passed and len(used) < MIN_PAIRS_USED
+        rows.append({"n": n, "good_dropped": good_dropped, "false_kept": bad in used, "used": len(used), "verdict": quality.verdict})
+    return {
+        "sessions": sessions,
+        "good_pairs_dropped": dropped,
+        "sessions_dropping_a_good_pair": sum(1 for r in rows if r.get("good_dropped", 0) > 0),
+        "false_detections_kept_by_the_estimator": kept_false,
+        "false_detections_accepted": accepted_false,
+        "accepted_on_fewer_than_5_pairs": thin_accepted,
+        "solver_failures": failed,
+        "rows": rows,
+    }
+
+
+def summarise(seeds: list[dict[str, Any]], small: dict[str, Any]) -> dict[str, Any]:
+    ok = [s for s in seeds if "error" not in s]
+    weld = [s["weld_error_mean_mm"] for s in ok]
+    points = sum(s["points"] for s in ok)
+    covered = sum(s["covered"] for s in ok)
+    bound_mean = float(np.mean([s["bound_mean_mm"] for s in ok])) if ok else None
+    error_mean = float(np.mean([s["error_mean_mm"] for s in ok])) if ok else None
+    return {
+        "weld_error_mean_mm": max(weld) if weld else None,
+        "seeds_weld_within_0_15": sum(1 for w in weld if w <= WELD_MEAN * 1e3),
+        "seeds_weld_within_0_25": sum(1 for w in weld if w <= WELD_MEAN_EVERY * 1e3),
+        "box_error_mean_mm": max(s["box_error_mean_mm"] for s in ok) if ok else None,
+        "coverage": covered / points if points else None,
+        "bound_over_error_mean": bound_mean / error_mean if ok and error_mean else None,
+        "good_pairs_dropped": small["good_pairs_dropped"],
+        "false_detections_accepted": small["false_detections_accepted"],
+        "accepted_on_fewer_than_5_pairs": small["accepted_on_fewer_than_5_pairs"],
+    }
+
+
+def write_table(seeds: list[dict[str, Any]], summary: dict[str, Any], quick: bool) -> None:
+    OUT.mkdir(parents=True, exist_ok=True)
+    lines = [
+        "| seed | weld mean / max mm | box mean / max mm | bound weld / box mm | 1-sigma mm | covered | pairs | verdict |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for s in seeds:
+        if "error" in s:
+            lines.append(f"| {s['seed']} | - | - | - | - | - | - | failed: {s['error']} |")
+            continue
+        lines.append(
+            f"| {s['seed']} | {s['weld_error_mean_mm']:.3f} / {s['weld_error_max_mm']:.3f} | "
+            f"{s['box_error_mean_mm']:.3f} / {s['box_error_max_mm']:.3f} | {s['bound_weld_mm']:.3f} / {s['bound_box_mm']:.3f} | "
+            f"{s['translation_std_norm_mm']:.3f} | {s['covered']}/{s['points']} | {s['pairs_used']} | {s['verdict']} |"
+        )
+    lines.append("")
+    lines.append("summary: " + json.dumps(summary))
+    (OUT / f"table{'_quick' if quick else ''}.md").write_text("\n".join(lines) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help="2 seeds of 10 poses, 30 small-count sessions")
+    p.add_argument("--json", action="store_true", help="print the figures as one JSON object, last line")
+    p.add_argument("--seeds", type=int, default=10, help="seeded worlds (full run)")
+    p.add_argument("--seed0", type=int, default=1)
+    p.add_argument("--poses", type=int, default=20, help="calibration poses per world (full run)")
+    p.add_argument("--sessions", type=int, default=90, help="small-count sessions (full run)")
+    args = p.parse_args(argv)
+    n_seeds, n_poses, sessions = (2, 10, 30) if args.quick else (args.seeds, args.poses, args.sessions)
+    failures = Failures("arm_calibration")
+    seeds = []
+    for seed in range(args.seed0, args.seed0 + n_seeds):
+        row = world_seed(seed, n_poses)
+        if "error" in row:
+            failures.add(f"seed {seed}", f"the calibration failed: {row['error']}")
+        else:
+            print(
+                f"seed {seed}: weld mean {row['weld_error_mean_mm']:.3f} mm (bound {row['bound_weld_mm']:.3f}), "
+                f"box mean {row['box_error_mean_mm']:.3f} mm (bound {row['bound_box_mm']:.3f}), "
+                f"1-sigma {row['translation_std_norm_mm']:.3f} mm, covered {row['covered']}/{row['points']}, "
+                f"{row['pairs_used']} pairs, {row['verdict']}, {row['duration_s']:.0f} s",
+                flush=True,
+            )
+        seeds.append(row)
+    small = small_counts(sessions, args.seed0)
+    print(
+        f"small counts: {small['sessions']} sessions, {small['good_pairs_dropped']} good pairs dropped "
+        f"(in {small['sessions_dropping_a_good_pair']} sessions), {small['false_detections_kept_by_the_estimator']} false detections "
+        f"kept by the estimator, {small['false_detections_accepted']} in an estimate the gate accepts, "
+        f"{small['accepted_on_fewer_than_5_pairs']} accepted on fewer than {MIN_PAIRS_USED} pairs",
+        flush=True,
+    )
+    summary = summarise(seeds, small)
+    write_table(seeds, summary, args.quick)
+    figures = {
+        "quick": args.quick,
+        "seeds": seeds,
+        **summary,
+        "small_counts": {k: v for k, v in small.items() if k != "rows"},
+        "targets_met": {
+            "weld_mean_0_15_in_8_of_10": summary["seeds_weld_within_0_15"] >= math.ceil(0.8 * n_seeds),
+            "weld_mean_0_25_every_seed": summary["seeds_weld_within_0_25"] == n_seeds,
+            "box_mean_0_10": summary["box_error_mean_mm"] is not None and summary["box_error_mean_mm"] <= BOX_MEAN * 1e3,
+            "coverage_0_9": summary["coverage"] is not None and summary["coverage"] >= COVERAGE,
+            "bound_over_error_3": summary["bound_over_error_mean"] is not None and summary["bound_over_error_mean"] <= BOUND_OVER_ERROR,
+            "no_good_pair_dropped": summary["good_pairs_dropped"] == 0,
+            "no_false_detection_accepted": summary["false_detections_accepted"] == 0,
+            "none_accepted_on_fewer_than_5_pairs": summary["accepted_on_fewer_than_5_pairs"] == 0,
+        },
+        "failed": failures.jobs,
+    }
+    print("summary: " + json.dumps({k: v for k, v in figures.items() if k not in ("seeds",)}))
+    if args.json:
+        print(json.dumps(figures))
+    return failures.exit_code()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
