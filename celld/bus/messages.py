@@ -391,6 +391,10 @@ _ROBOT_CONDITION = with_properties(
     {
         "link": {"enum": ["up", "down", "unknown"], "description": "The RTDE link."},
         "robot2_link": {"enum": ["up", "down", "unknown"], "description": "The second robot's RTDE link, when the cell has one."},
+        "robot2_held": {
+            "type": ["string", "null"],
+            "description": "The other program that keeps the second robot (celld did not take it over), null when none.",
+        },
         "mode": {"type": ["string", "null"], "description": "Dashboard robot mode (RUNNING, IDLE, POWER_OFF, ...), null when not read."},
         "safety": {
             "type": ["string", "null"],

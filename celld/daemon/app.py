@@ -238,11 +238,13 @@ class Daemon:
         return recording
 
     def _update_fault(self) -> None:
-        """The cell's fault in status: robot 1's link down (with what it waits for), or none."""
+        """The cell's fault in status: robot 1's link down (with what it waits for), robot 2 held by another
+        program, or none."""
         if self.manager is not None:
             age = self.devices.heartbeat_age()
             up = age is not None and age < HEARTBEAT_FRESH
-            self.manager.set_fault("" if up else self.devices.unready("move") or "the motion loop stalled")
+            fine = up and not self.devices.held2
+            self.manager.set_fault("" if fine else self.devices.unready("move") or "the motion loop stalled")
 
     async def _report_waiting(self) -> None:
         """Say what the cell waits for: systemd's STATUS every period, the log when it changes."""

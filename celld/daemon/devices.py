@@ -348,11 +348,13 @@ class CellDevices:
         "none"`` the cell runs without a tactile process, and weld jobs are
         refused.
     take_over : bool
-        Take robot 1 over even when another program runs on it at start
-        (``celld run --take-over``). Without it, a program the robot runs that
+        Take the robots over even when another program runs on one at start
+        (``celld run --take-over``). Without it, a program a robot runs that
         the previous celld did not leave (no child of it was reaped, none left
-        a note) keeps the robot: :attr:`held` says which, the motion process
-        is not started, and it is started once the program has stopped.
+        a note) keeps that robot: :attr:`held` (robot 1) or :attr:`held2`
+        (robot 2) says which, its motion process is not started, every moving
+        job is refused (robot 1 moves only beside robot 2 where it stands),
+        and the motion process is started once the program has stopped.
     """
 
     def __init__(self, config: Config, factories: DeviceFactories | None = None, take_over: bool = False) -> None:
@@ -368,6 +370,10 @@ class CellDevices:
         self._condition = ""
         self.take_over = take_over
         self.held = ""  # the program of another controller robot 1 runs, not taken over ("" when none)
+        self.held2 = ""  # the same for robot 2
+        # Robot 2's dashboard, read at start and, while robot 2 is held, beside robot 1's readings.
+        self._dashboard2 = Dashboard(self.robot2.config.robot.host) if self.robot2 is not None else None
+        self._reading2: asyncio.Task[None] | None = None
         self._heartbeat = ""
         self._opening: asyncio.Task[None] | None = None
 
@@ -415,21 +421,18 @@ class CellDevices:
         heartbeat = await self.life.open(loop_ticked)
         self._heartbeat = heartbeat.name
         await self.tactile.open(heartbeat.name, self.life.records)
-        running = foreign_program(await self.life.dashboard.read())
         ours = bool(self.life.leftovers or self.life.exit_notes)  # the previous celld's own program
-        if running and not (self.take_over or ours):
-            self.held = running
-            log.error("another program runs on the robot: celld does not take it over", program=running, remedy=HELD_REMEDY)
-        else:
-            if running:
-                log.warning("taking the robot over from the program it runs", program=running, take_over=self.take_over)
-                try:
-                    await self.life.dashboard.stop_program()
-                except CelldError as exc:  # the motion process's connect says the rest
-                    log.error("the running program could not be stopped", program=running, error=str(exc))
+        running = foreign_program(await self.life.dashboard.read())
+        if await self._take(running, ours, self.life.dashboard, 1):
             await self._open_robot()
-        if self.robot2 is not None:
-            await self.robot2.open_motion(heartbeat.name, self.life.records)
+        else:
+            self.held = running
+        if self.robot2 is not None and self._dashboard2 is not None:
+            running2 = foreign_program(await self._dashboard2.read())
+            if await self._take(running2, ours, self._dashboard2, 2):
+                await self.robot2.open_motion(heartbeat.name, self.life.records)
+            else:
+                self.held2 = running2
         self.life.read_dashboard(self._on_dashboard)
         await self.scanner.open()
         log.info(
@@ -439,6 +442,22 @@ class CellDevices:
             tactile=cfg.tactile.kind if self.tactile.process is not None else "none",
         )
 
+    async def _take(self, running: str, ours: bool, dashboard: Dashboard, robot: int) -> bool:
+        """Whether celld takes robot ``robot``, on which ``running`` runs ("" for nothing) at start: not from
+        another program unless told to (``take_over``) or it is the previous celld's (``ours``); a program it
+        takes the robot from is stopped first."""
+        if not running:
+            return True
+        if not (self.take_over or ours):
+            log.error("another program runs on the robot: celld does not take it over", robot=robot, program=running, remedy=HELD_REMEDY)
+            return False
+        log.warning("taking the robot over from the program it runs", robot=robot, program=running, take_over=self.take_over)
+        try:
+            await dashboard.stop_program()
+        except CelldError as exc:  # the motion process's connect says the rest
+            log.error("the running program could not be stopped", robot=robot, program=running, error=str(exc))
+        return True
+
     async def _open_robot(self) -> None:
         motion = await self.robot.open_motion(self._heartbeat, self.life.records, SERVO_LAWS, self.tactile.slot_name)
         motion.add_listener(self._on_state_batch)
@@ -446,6 +465,11 @@ class CellDevices:
     async def close(self) -> None:
         if self._opening is not None:
             await asyncio.gather(self._opening, return_exceptions=True)
+        self.held2 = ""  # no more readings of robot 2's dashboard from here
+        if self._reading2 is not None:
+            await asyncio.gather(self._reading2, return_exceptions=True)
+        if self._dashboard2 is not None:
+            await self._dashboard2.close()
         if self.robot2 is not None:
             await self.robot2.close_motion()
         await self.robot.close_motion()
@@ -483,6 +507,9 @@ class CellDevices:
     def _robot_wait(self) -> str:
         if self.held:
             return f"robot held by another program: waiting ({self.held} runs on it; {HELD_REMEDY})"
+        if self.held2:
+            # Robot 1 moves only beside robot 2 where it stands, and nobody knows where that is.
+            return f"robot 2 held by another program: waiting ({self.held2} runs on it; {HELD_REMEDY})"
         if self.robot.link_state() == "up":
             return ""
         cond = self.robot_condition()
@@ -504,10 +531,23 @@ class CellDevices:
                 log.info("the other program on the robot stopped: celld takes the robot", program=self.held)
                 self.held = ""
                 self._opening = asyncio.get_running_loop().create_task(self._open_robot(), name="celld-open-robot")
+        if self.held2 and (self._reading2 is None or self._reading2.done()):
+            self._reading2 = asyncio.get_running_loop().create_task(self._check_robot2(), name="celld-robot2-dashboard")
         cond = self.robot_condition()
         if cond.state != self._condition:
             (log.info if cond.ready else log.warning)("robot condition", state=cond.state, reason=cond.reason)
             self._condition = cond.state
+
+    async def _check_robot2(self) -> None:
+        """While robot 2 is held: read its dashboard, and take the robot once the other program has stopped."""
+        if self._dashboard2 is None or self.robot2 is None:
+            return
+        reading = await self._dashboard2.read()
+        if not self.held2 or not reading.reachable or foreign_program(reading):
+            return
+        log.info("the other program on the robot stopped: celld takes the robot", robot=2, program=self.held2)
+        self.held2 = ""
+        await self.robot2.open_motion(self._heartbeat, self.life.records)
 
     def robot_condition(self) -> RobotCondition:
         """Whether robot 1 can move, and if not why and what clears it (:mod:`celld.robot.dashboard`)."""
@@ -525,6 +565,7 @@ class CellDevices:
         out["dashboard"] = "reachable" if r is not None and r.reachable else (r.error if r is not None else "not read yet")
         if self.robot2 is not None:
             out["robot2_link"] = self.robot2.link_state()
+            out["robot2_held"] = self.held2 or None
         return out
 
     async def robot_action(self, action: str) -> dict[str, Any]:

@@ -155,3 +155,53 @@ def test_a_daemon_does_not_take_the_robot_from_another_program_or_celld_unless_t
                 stop_daemon(daemon.process)
         finally:
             dashboard.disconnect()
+
+
+def test_a_daemon_does_not_take_robot_2_from_another_program_either(tmp_path: Path, cell_config) -> None:
+    """Robot 2 of a two-robot cell is checked like robot 1: another program on it keeps it, and while it runs
+    nothing moves (robot 1 moves only beside robot 2 where it stands); once it stops, celld takes robot 2."""
+    from dashboard_client import DashboardClient
+
+    from celld import config as config_mod
+    from celld.sim.cell import launch, robot2_options, robot_options, start_daemon, stop_daemon, world_of
+    from celld.sim.world import WorldOptions
+    from tests.daemon.test_robot_faults_e2e import _wait
+
+    path = cell_config(
+        "sim-cell-two-robots.toml", "held-robot2", {"sim": {"scanner": {"resolution_scale": 0.25}}}, robot2=True, recording=False
+    )
+    cfg = config_mod.load(path)
+    assert cfg.robot2 is not None
+    r2 = cfg.robot2.robot
+    move = {"kind": "move", "target": {"space": "joint", "q": list(cfg.robot.home_q)}}
+    w = world_of(cfg, WorldOptions())
+    with (
+        launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(w)),
+        launch(r2.host, realtime=True, q0=tuple(r2.home_q), **robot2_options(w)),
+        open(tmp_path / "daemon.log", "ab") as log,
+    ):
+        dashboard = DashboardClient(r2.host)
+        dashboard.connect()
+        try:
+            dashboard.loadURP("fixture.urp")
+            dashboard.play()
+            daemon = start_daemon(path, log, timeout=60, links=False)
+            try:
+                client = daemon.client
+                status = _wait(lambda: "robot 2 held by another program" in (s := client.status())["message"] and s, 30, "status")
+                assert "PLAYING fixture.urp runs on it" in status["message"] and "--take-over" in status["message"]
+                assert status["robot"]["robot2_held"].startswith("PLAYING fixture.urp"), status["robot"]
+                assert status["robot"]["robot2_link"] != "up"
+                with pytest.raises(JobError, match="refused: robot 2 held by another program: waiting"):
+                    client.submit(move)
+                assert dashboard.programState().startswith("PLAYING fixture.urp")  # left alone
+                dashboard.stop()
+                _wait(lambda: client.status()["robot"]["robot2_link"] == "up", 30, "robot 2's link once the other program stopped")
+                assert client.status()["robot"]["robot2_held"] is None
+                _, moved = client.submit_and_wait(move, timeout=60)
+                assert moved["state"] == "succeeded", moved["reason"]
+            finally:
+                daemon.client.close()
+                stop_daemon(daemon.process)
+        finally:
+            dashboard.disconnect()
