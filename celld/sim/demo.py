@@ -187,6 +187,7 @@ def run_jobs(
             "recording": cal_result.get("recording"),
             "verdict": quality.get("verdict"),
             "forced": forced,
+            "bound": quality.get("bound"),  # what the calibration says of its own error (celld.calib.quality)
             "targeting": targeting(world, placed.T_base_cam(q_v), cfg, true_camera(world, q_v) if q_v is not None else None),
         }
         say(
@@ -309,6 +310,16 @@ def robot2_figures(entry: dict[str, Any], T_base1_base2_true: np.ndarray, verifi
     }
 
 
+def _bound_lines(bound: dict[str, Any] | None) -> list[str]:
+    """What the calibration reported of its own error, beside the truth above it."""
+    if not bound or bound.get("calibration_box_mm") is None or bound.get("work_radius_mm") is None:
+        return []
+    return [
+        f"  the calibration's own bounds ({bound['confidence']:.0%}): {bound['calibration_box_mm']:.3f} mm in the box, "
+        f"{bound['work_radius_mm']:.3f} mm elsewhere in reach (the arm's own error there taken as {bound['arm_error_prior_mm']:.1f} mm)"
+    ]
+
+
 def summary_lines(figures: dict[str, Any]) -> list[str]:
     """The demo's figures side by side, as printed."""
     c, w = figures["calibration"], figures["weld"]
@@ -321,6 +332,7 @@ def summary_lines(figures: dict[str, Any]) -> list[str]:
         f"quality gate {c['verdict']}{', accepted by force' if c['forced'] else ''})",
         f"  targeting (the flange sent to points the scanner saw): mean {tc['mean_mm']:.3f} mm, max {tc['max_mm']:.3f} mm "
         f"in the calibration box; mean {tt['mean_mm']:.3f}, max {tt['max_mm']:.3f} mm over the table",
+        *_bound_lines(c.get("bound")),
         *_robot2_lines(figures.get("robot2")),
         *_verification_lines(figures.get("verification")),
         "weld, lateral distance from the true seam        RMS mm   max mm",

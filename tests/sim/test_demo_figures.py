@@ -1,4 +1,4 @@
-"""The demo's robot-robot figures: the calibrated base 2 against the truth where the robots meet."""
+"""The demo's figures: the calibrated base 2 against the truth where the robots meet; the calibration's own bounds."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from celld import se3
-from celld.sim.demo import _robot2_lines, robot2_figures
+from celld.sim.demo import _bound_lines, _robot2_lines, robot2_figures
 
 
 def test_robot2_figures_measure_the_miss_where_the_robots_meet() -> None:
@@ -27,3 +27,11 @@ def test_robot2_figures_measure_the_miss_where_the_robots_meet() -> None:
     assert f["meet_mm"] == pytest.approx(1e-3 * np.hypot(*lever[:2]) * 1e3, rel=1e-3)
     assert f["meet_std_mm"] == pytest.approx(0.05) and f["rotation_deg"] == pytest.approx(math.degrees(1e-3), rel=1e-6)
     assert "0.650 mm where the robots meet" in _robot2_lines(f)[0] and _robot2_lines(None) == []
+
+
+def test_the_calibrations_own_bounds_are_printed_as_it_reported_them() -> None:
+    bound = {"confidence": 0.95, "calibration_box_mm": 0.2041, "work_radius_mm": 1.2563, "arm_error_prior_mm": 1.0}
+    (line,) = _bound_lines(bound)
+    assert "(95%): 0.204 mm in the box, 1.256 mm elsewhere in reach" in line and "taken as 1.0 mm" in line
+    # A calibration stored before the bounds existed, or one whose bounds are not finite, prints nothing.
+    assert _bound_lines(None) == [] and _bound_lines({**bound, "work_radius_mm": None}) == []
