@@ -112,39 +112,24 @@ def thread_ids() -> set[int]:
         return set()
 
 
-def settle_threads(tids: Iterable[int], nice: int) -> str:
-    """Put the threads ``tids`` of this process back to best effort at ``nice``; what the OS refused, "" for nothing."""
-    refused: list[str] = []
-    for tid in sorted(tids):
-        try:
-            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
-        except ProcessLookupError:
-            continue
-        except OSError as exc:
-            refused.append(f"best effort for thread {tid}: {exc.strerror or exc}")
-            continue
-        try:
-            os.setpriority(os.PRIO_PROCESS, tid, nice)  # Linux: a thread id sets that thread's niceness
-        except ProcessLookupError:
-            continue
-        except OSError as exc:
-            refused.append(f"nice {nice} for thread {tid}: {exc.strerror or exc}")
-    return "; ".join(refused)
-
-
-def raise_threads(tids: Iterable[int], priority: int) -> str:
-    """Put the threads ``tids`` of this process at SCHED_FIFO ``priority``; what the OS refused, "" for nothing.
+def schedule_threads(tids: Iterable[int], priority: int, nice: int = 0) -> str:
+    """Put the threads ``tids`` of this process at SCHED_FIFO ``priority``, or (``priority`` 0) back to best
+    effort at ``nice``; what the OS refused, "" for nothing.
 
     For threads a library starts and does not raise itself (ur-rtde raises its
     receive threads only on a PREEMPT_RT kernel). Their CPU affinity is left
     as it is. A thread that has ended meanwhile is skipped.
     """
+    policy = os.SCHED_FIFO if priority > 0 else os.SCHED_OTHER
+    asked = f"SCHED_FIFO {priority}" if priority > 0 else f"best effort at nice {nice}"
     refused: list[str] = []
     for tid in sorted(tids):
         try:
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            os.sched_setscheduler(tid, policy, os.sched_param(priority))
+            if priority == 0:
+                os.setpriority(os.PRIO_PROCESS, tid, nice)  # Linux: a thread id sets that thread's niceness
         except ProcessLookupError:
             continue
         except OSError as exc:
-            refused.append(f"SCHED_FIFO {priority} for thread {tid}: {exc.strerror or exc}")
+            refused.append(f"{asked} for thread {tid}: {exc.strerror or exc}")
     return "; ".join(refused)

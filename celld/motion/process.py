@@ -41,7 +41,7 @@ from celld.motion.channels import STATUS_DTYPE, ChannelNames, Channels, Phase, e
 from celld.motion.core import CoreParams, MotionCore
 from celld.motion.loop import LoopExit, LoopParams, MotionLoop
 from celld.motion.types import ControlStatus, ServoFactory
-from celld.realtime import RealtimeOptions, RealtimeReport, make_realtime, raise_threads, settle_threads
+from celld.realtime import RealtimeOptions, RealtimeReport, make_realtime, schedule_threads
 from celld.supervision import ParentWatch, write_exit_note
 
 # ur-rtde's receive threads poll their sockets (100 us sleeps): about a fifth of a core each, idle or not.
@@ -144,7 +144,7 @@ def run(spec: MotionSpec) -> LoopExit:
         link_priority = spec.realtime.priority - LINK_BELOW_LOOP if rt.fifo else 0
         if link_priority > 0:
             # ur-rtde's receive threads were started above, before the loop's thread was pinned: any CPU.
-            refused = raise_threads(link.threads, link_priority)
+            refused = schedule_threads(link.threads, link_priority)
             if refused:
                 rt = rt._replace(refused="; ".join(filter(None, (rt.refused, refused))))
         if rt.refused:
@@ -174,7 +174,7 @@ def run(spec: MotionSpec) -> LoopExit:
             # The first kick waits inside ur-rtde for the script to be ready again: then the handshake is over.
             link.kick()
             if link_priority > 0:
-                settled = settle_threads(link.threads, spec.link_nice)
+                settled = schedule_threads(link.threads, 0, spec.link_nice)
                 if settled:
                     log.warning("ur-rtde's receive threads not settled to best effort as asked", nice=spec.link_nice, refused=settled)
             end = loop.run()

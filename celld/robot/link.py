@@ -92,7 +92,7 @@ class RtdeLink:
         self.io = io  # RTDEIOInterface, for digital outputs and registers outside the loop
         # The threads ur-rtde started for these interfaces (its receive threads): the loop waits on them
         # (every command first waits for the script's state they receive), so the motion process raises
-        # them to real time just below itself (celld.realtime.raise_threads).
+        # them to real time just below itself through the watchdog handshake (celld.realtime.schedule_threads).
         self.threads = threads
 
     @classmethod
