@@ -52,6 +52,19 @@ _MOVED_FROM_TACTILE = {
 
 # A welding tool's tip, and its camera, lie within this of the TCP (m): a kilometre is a unit slip.
 MAX_TOOL_REACH = 1.0
+# The heaviest payload of any UR arm (the UR30), kg.
+MAX_PAYLOAD = 30.0
+
+
+def _com(r: TableReader) -> tuple[float, float, float]:
+    """``com_flange_mm``: the tool's centre of mass in the flange frame, within the tool's reach."""
+    v = r.vector("com_flange_mm", 3, [0.0, 0.0, 0.0], scale=1e-3)
+    if np.linalg.norm(v) > MAX_TOOL_REACH:
+        raise r.error(
+            "com_flange_mm",
+            f"expected the centre of mass within {MAX_TOOL_REACH * 1e3:g} mm of the flange (millimetres), got {[x * 1e3 for x in v]}",
+        )
+    return (float(v[0]), float(v[1]), float(v[2]))
 
 
 @dataclass(frozen=True)
@@ -149,6 +162,11 @@ class ToolConfig:
     # refused) or may run on tip_tcp as typed ("nominal": a tool known to be as
     # drawn; a measured tip, when there is one, still overrides it).
     measured: str = "required"
+    # The tool's mass and its centre of mass in the flange frame, as the
+    # controller's payload setting: the arm's calibration models the joints'
+    # sag under it (celld.calib.kinematic). 0 kg: not known.
+    mass: float = 0.0  # kg
+    com_flange: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m
 
     def R_tool_cam(self) -> np.ndarray:
         return np.array(self.T_tool_cam, dtype=np.float64)[:3, :3]
@@ -187,6 +205,8 @@ class ToolConfig:
             torch_offset=r.float("torch_offset_mm", cls.torch_offset * 1e3, lo=lo, hi=hi, scale=1e-3, open_lo=True),
             wire_diameter=r.float("wire_diameter_mm", cls.wire_diameter * 1e3, lo=0.2, hi=5.0, scale=1e-3),
             measured=r.str("measured", cls.measured, choices=TOOL_MEASURED),
+            mass=r.float("mass_kg", cls.mass, lo=0.0, hi=MAX_PAYLOAD),
+            com_flange=_com(r),
         )
 
 

@@ -43,16 +43,17 @@ from celld.tactile.tool import ToolGeometry
 Array = NDArray[np.float64]
 
 
-def true_flange(world: World, T_base_flange_cmd: ArrayLike, q_near: ArrayLike) -> tuple[Array, Array] | None:
+def true_flange(world: World, T_base_flange_cmd: ArrayLike, q_near: ArrayLike, rise: float = 0.0) -> tuple[Array, Array] | None:
     """Where the flange truly is when the controller puts it at ``T_base_flange_cmd`` (its belief).
 
     Returns ``(T_base_flange_true (4, 4), q (6,))`` with ``q`` the controller's
-    joints (nominal IK nearest ``q_near``), or None when the pose is out of reach.
+    joints (nominal IK nearest ``q_near``, which the arm comes from), or None
+    when the pose is out of reach. ``rise``: the arm's temperature above cold, K.
     """
     q = kin.inverse(np.asarray(T_base_flange_cmd, dtype=np.float64), q_near, world.nominal_dh)
     if q is None:
         return None
-    return kin.forward(q + np.asarray(world.arm.joint_offsets), world.arm.dh), q
+    return world.arm.flange(q, q - np.asarray(q_near, dtype=np.float64), rise), q
 
 
 def true_camera(world: World, q: ArrayLike) -> Array:
@@ -61,7 +62,8 @@ def true_camera(world: World, q: ArrayLike) -> Array:
     sc = world.scanner
     if not sc.link:
         return sc.T_base_cam
-    return sc.T_base_cam_at(np.asarray(q, dtype=np.float64) + np.asarray(world.arm.joint_offsets), world.arm.dh)
+    q_phys, dh = world.arm.physical(np.asarray(q, dtype=np.float64))
+    return sc.T_base_cam_at(np.asarray(q_phys), dh)
 
 
 def measured_in_camera(world: World, P_base: ArrayLike, metal: bool = True, T_base_cam: ArrayLike | None = None) -> Array:
@@ -139,7 +141,7 @@ def handover_errors(
         q2_cmd = kin.inverse(T2_cmd, q2, r2.nominal_dh)
         if q2_cmd is None:
             continue
-        p2_true = (r2.T_base1_base2 @ kin.forward(q2_cmd + np.asarray(r2.arm.joint_offsets), r2.arm.dh))[:3, 3]
+        p2_true = (r2.T_base1_base2 @ r2.arm.flange(q2_cmd, q2_cmd - q2))[:3, 3]
         T1_cmd = T_est @ T2_cmd
         got = true_flange(world, se3.transform_from(T1_cmd[:3, :3] @ flip, T1_cmd[:3, 3]), q1)
         if got is None:

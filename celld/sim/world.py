@@ -61,6 +61,7 @@ from celld.calib.flange import preset as flange_preset
 from celld.config import SCANNER_MOUNTS, ToolConfig
 from celld.config.reader import TableReader
 from celld.errors import ConfigError, InputError
+from celld.robot import dynamics
 from celld.robot import kinematics as kin
 from celld.sim.robot.truearm import ArmTruth
 
@@ -73,6 +74,10 @@ SOURCES: tuple[str, ...] = (
     "repeatability",  # a new rest error at every stop
     "encoder_noise",  # noise on the joints the controller reports
     "robot2_placement",  # a second robot's base is not exactly where the drawing puts it
+    "compliance",  # the joints yield under gravity (the true links and tool): a pose-dependent sag
+    "hose_pull",  # the hose package pulls on the torch; the joints yield to it
+    "thermal",  # the links grow as the arm warms up
+    "lost_motion",  # each joint rests behind where it was sent, on the side it came from
     # time
     "settle",  # the arm rings down after a stop
     "capture_delay",  # the scanner exposes a while after the state was read
@@ -131,6 +136,35 @@ class ErrorBudget:
     # Plausible; robot-robot calibration exists because it is not known.
     base_translation: float = 3.0e-3  # m
     base_rotation: float = math.radians(0.3)  # rad
+    # Joint stiffness (N m/rad, uniform per joint) of the base and shoulder,
+    # the elbow, and the wrists. Sized so the sag under gravity at weld poses
+    # (flange down over the table, a 1.6 kg tool) is the 0.2-0.7 mm a study of
+    # this cell's arm assumed (../research: arm and weld process);
+    # tests/sim/test_world.py measures it. Harmonic drives of these sizes are
+    # rated in this range; plausible.
+    stiffness_shoulder: tuple[float, float] = (1.2e5, 2.0e5)
+    stiffness_elbow: tuple[float, float] = (6.0e4, 1.0e5)
+    stiffness_wrist: tuple[float, float] = (1.5e4, 3.0e4)
+    # The true links' masses against UR's published ones, and the true tool's
+    # mass against its config (relative, 1 sigma), its centre of mass off (m, 1
+    # sigma per axis). Plausible: a published mass is a model's, a tool's is weighed.
+    link_mass_spread: float = 0.05
+    payload_mass_spread: float = 0.10
+    payload_com_offset: float = 10.0e-3
+    # The hose package's pull on the torch, uniform in size (N), downwards
+    # and towards the robot's base within 45 degrees. Plausible for a MIG hose
+    # package hung from a boom (a few kg of cable and hose, mostly carried).
+    hose_force: tuple[float, float] = (5.0, 20.0)
+    # The arm's temperature rise from cold to warm (K, uniform) and the time
+    # constant of its warm-up (s): aluminium links (23 um/m/K) over the arm's
+    # ~1.3 m give the 0.1-0.3 mm research notes cite for 5-10 K; the weld sits
+    # nearer the base, and 8-15 K (joints warm from their motors) gives 0.1-0.25 mm there.
+    warm_rise: tuple[float, float] = (8.0, 15.0)
+    warmup_tau: float = 1800.0
+    # Each joint's lost motion, full width (rad, uniform): with the ISO 9283
+    # repeatability near the datasheet's +-0.05 mm (approach from one side),
+    # a few arc seconds. Plausible.
+    lost_motion: tuple[float, float] = (1.0e-5, 3.0e-5)
 
     # -- time ------------------------------------------------------------------
     # Settling after a stop: kick per joint (1 sigma; about 0.05 mm at a 1 m
@@ -242,6 +276,16 @@ ERROR_KEYS: dict[str, tuple[str, float, float]] = {
     "encoder_noise": ("encoder_noise_deg", math.pi / 180, 0.1),
     "base_translation": ("base_translation_mm", 1e-3, 100.0),
     "base_rotation": ("base_rotation_deg", math.pi / 180, 10.0),
+    "stiffness_shoulder": ("stiffness_shoulder_nm_rad", 1.0, 1e8),
+    "stiffness_elbow": ("stiffness_elbow_nm_rad", 1.0, 1e8),
+    "stiffness_wrist": ("stiffness_wrist_nm_rad", 1.0, 1e8),
+    "link_mass_spread": ("link_mass_spread", 1.0, 0.5),
+    "payload_mass_spread": ("payload_mass_spread", 1.0, 0.5),
+    "payload_com_offset": ("payload_com_offset_mm", 1e-3, 100.0),
+    "hose_force": ("hose_force_n", 1.0, 100.0),
+    "warm_rise": ("warm_rise_k", 1.0, 50.0),
+    "warmup_tau": ("warmup_tau_s", 1.0, 1e6),
+    "lost_motion": ("lost_motion_deg", math.pi / 180, 0.5),
     "settle_amplitude": ("settle_amplitude_deg", math.pi / 180, 0.5),
     "settle_tau": ("settle_tau_ms", 1e-3, 5000.0),
     "settle_hz": ("settle_hz", 1.0, 200.0),
@@ -671,8 +715,16 @@ def _seed_of(seed: int, source: str) -> int:
     return int(_rng(seed, source).integers(0, 2**31 - 1))
 
 
-def _draw_arm(model: str, b: ErrorBudget, seed: int, tag: str = "") -> ArmTruth:
-    """The physical arm of a robot ``model``; ``tag`` names a second robot's own draws."""
+def _draw_arm(
+    model: str,
+    b: ErrorBudget,
+    seed: int,
+    tag: str = "",
+    payload: dynamics.Payload = dynamics.Payload(),
+    hose_at: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> ArmTruth:
+    """The physical arm of a robot ``model``; ``tag`` names a second robot's own draws; ``payload`` the tool
+    as drawn and ``hose_at`` where its hose package pulls (flange frame, m)."""
     dh = kin.model(model).dh
     offsets = (0.0,) * 6
     if b.on("kinematics"):
@@ -683,6 +735,28 @@ def _draw_arm(model: str, b: ErrorBudget, seed: int, tag: str = "") -> ArmTruth:
         dh = kin.DH(tuple(d.tolist()), tuple(a.tolist()), tuple(alpha.tolist()))
         offsets = tuple(_tnormal(r, b.joint_offset, 6).tolist())
     settle = b.on("settle")
+    bends: dict[str, Any] = {}
+    published = dynamics.links(model)
+    if (b.on("compliance") or b.on("hose_pull")) and published is not None:
+        r = _rng(seed, "compliance" + tag)
+        ranges = (b.stiffness_shoulder,) * 2 + (b.stiffness_elbow,) + (b.stiffness_wrist,) * 3
+        compliance = tuple(1.0 / float(r.uniform(*k)) for k in ranges)
+        if b.on("compliance"):
+            mass = np.asarray(published.mass) * (1.0 + _tnormal(r, b.link_mass_spread, 6))
+            m_tool = payload.mass * (1.0 + float(_tnormal(r, b.payload_mass_spread, 1)[0])) if payload.mass else 0.0
+            com_tool = np.asarray(payload.com) + (_tnormal(r, b.payload_com_offset, 3) if payload.mass else 0.0)
+            bends.update(link_mass=tuple(mass.tolist()), link_com=published.com, payload_mass=m_tool, payload_com=tuple(com_tool.tolist()))
+        if b.on("hose_pull"):
+            h = _rng(seed, "hose_pull" + tag)
+            # Down and towards the base (-x of a tool over the table), within 45 degrees of that.
+            axis = np.array([-1.0, 0.0, -1.0]) / math.sqrt(2.0)
+            tilt = Rotation.from_rotvec(h.uniform(-1.0, 1.0, 3) * math.radians(45.0) / math.sqrt(3.0)).as_matrix()
+            bends.update(hose_force=tuple((tilt @ axis * h.uniform(*b.hose_force)).tolist()), hose_point=hose_at)
+        bends["compliance"] = compliance
+    if b.on("thermal"):
+        bends.update(warm_rise=float(_rng(seed, "thermal" + tag).uniform(*b.warm_rise)), warmup_tau=b.warmup_tau)
+    if b.on("lost_motion"):
+        bends["lost_motion"] = tuple(_rng(seed, "lost_motion" + tag).uniform(*b.lost_motion, 6).tolist())
     return ArmTruth(
         dh=dh,
         joint_offsets=offsets,
@@ -692,6 +766,7 @@ def _draw_arm(model: str, b: ErrorBudget, seed: int, tag: str = "") -> ArmTruth:
         settle_tau=b.settle_tau if settle and b.settle_tau > 0.0 else ArmTruth.settle_tau,
         settle_hz=b.settle_hz if settle else ArmTruth.settle_hz,
         seed=_seed_of(seed, "arm-noise" + tag),
+        **bends,
     )
 
 
@@ -877,7 +952,9 @@ def draw_world(nominal: NominalCell, budget: ErrorBudget, seed: int, preset: str
         seed=seed,
         budget=budget,
         nominal=nominal,
-        arm=_draw_arm(nominal.robot, budget, seed),
+        arm=_draw_arm(
+            nominal.robot, budget, seed, payload=dynamics.Payload(nominal.tool.mass, nominal.tool.com_flange), hose_at=nominal.tool.tip_tcp
+        ),
         scanner=_draw_scanner(nominal, budget, seed),
         flange=_draw_flange(nominal.flange, budget, seed),
         tool=_draw_tool(nominal, budget, seed),
