@@ -27,12 +27,17 @@ import numpy as np
 from celld import config as config_mod
 from celld import se3
 from celld.calib.dataset import SessionWriter
+from celld.calib.detect import detect_flange
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
+from celld.calib.kinematic import WIDE, ArmFit, fit_arm
 from celld.calib.mount import ScannerMount, in_frame
 from celld.calib.poses import calibration_poses
 from celld.calib.session import CalibrationSession
 from celld.calib.solve import CalibrationResult, SolveParams
+from celld.errors import CelldError
+from celld.robot import dynamics
+from celld.robot import kinematics as kin
 from celld.sim.scanner import SimScanner, scanner_model
 from celld.sim.scene import robot_scene
 from celld.sim.world import World, add_world_arguments, options_from_args, world_of
@@ -64,6 +69,39 @@ class OfflineCalibration:
     seconds: float
 
 
+class _WorldView:
+    """The world's scanner looking at the flange where the world's arm truly puts it (the truth renders, the
+    caller only gets clouds and the controller's joints)."""
+
+    def __init__(self, cfg: config_mod.Config, world: World, seed: int, rise: float = 0.0) -> None:
+        sc = world.scanner
+        unit = scanner_model(sc.model) if sc.metal_bias is None else replace(scanner_model(sc.model), metal_bias=sc.metal_bias)
+        self.world, self.rise = world, rise
+        self.home = np.asarray(cfg.robot.home_q, dtype=np.float64)
+        self.q = self.home
+        from celld.sim.score import true_camera
+
+        self.scanner = SimScanner(
+            unit,
+            true_camera(world, self.home),
+            seed=seed,
+            resolution_scale=sc.resolution_scale,
+            roi_px=sc.roi_px,
+            measure=None if sc.ideal else sc.measure,
+        )
+
+    def seen(self, T_cmd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The scene with the flange where the arm truly puts it when told ``T_cmd`` (coming from the last
+        pose), and the controller's joints."""
+        from celld.sim.score import true_camera, true_flange
+
+        got = true_flange(self.world, T_cmd, self.q, self.rise)
+        T_true, q = (T_cmd, self.q) if got is None else got  # out of the nominal reach: drawn where commanded
+        self.q = q
+        self.scanner.move_to(true_camera(self.world, q))
+        return self.scanner.capture(robot_scene(T_true, self.world.flange)).points, q
+
+
 def calibrate_in_world(
     cfg: config_mod.Config, world: World, n: int, seed: int, writer: SessionWriter | None = None, say: Callable[[str], None] | None = None
 ) -> OfflineCalibration:
@@ -76,32 +114,13 @@ def calibrate_in_world(
     config's ``scanner.mount``, the world's own) moves with the arm's true
     joints and is calibrated on its link (Eq. 8).
     """
-    from celld.sim.score import true_camera, true_flange
-
     cal = cfg.calibration
-    model_name = cfg.scanner.model  # the controller's scanner: its detector parameters
     flange = preset(cal.flange)  # the controller's flange model
-    sc = world.scanner
-    unit = scanner_model(sc.model) if sc.metal_bias is None else replace(scanner_model(sc.model), metal_bias=sc.metal_bias)
-    home = np.asarray(cfg.robot.home_q, dtype=np.float64)
-    scanner = SimScanner(
-        unit,
-        true_camera(world, home),
-        seed=seed,
-        resolution_scale=sc.resolution_scale,
-        roi_px=sc.roi_px,
-        measure=None if sc.ideal else sc.measure,
-    )
+    view = _WorldView(cfg, world, seed)
     mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model)
+    seen = view.seen
 
-    def seen(T_cmd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The scene with the flange where the arm truly puts it when told ``T_cmd``, and the controller's joints."""
-        got = true_flange(world, T_cmd, home)
-        T_true, q = (T_cmd, home) if got is None else got  # out of the nominal reach: drawn where commanded
-        scanner.move_to(true_camera(world, q))
-        return scanner.capture(robot_scene(T_true, world.flange)).points, q
-
-    dparams: DetectParams = PARAMS_BY_SCANNER[model_name]
+    dparams: DetectParams = PARAMS_BY_SCANNER[cfg.scanner.model]  # the controller's scanner: its detector parameters
     T_v = se3.from_ur_pose(cal.verification_pose)
     poses = calibration_poses(T_v, cal.pose_box, n, cal.max_tilt, seed=seed)
     t0 = time.perf_counter()
@@ -121,7 +140,66 @@ def calibrate_in_world(
             f"  pair {got.id}: centre found, radius {det.radius * 1e3:.2f} mm, {det.inliers} rim points, "
             f"residual {det.residual * 1e6:.0f} um"
         )
-    return OfflineCalibration(session.finish(), sc.T_mount_cam, q_v, time.perf_counter() - t0)
+    return OfflineCalibration(session.finish(), world.scanner.T_mount_cam, q_v, time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class OfflineArmCalibration:
+    """What :func:`calibrate_arm_in_world` returns: the hand-eye calibration it starts from, the arm's fit, and
+    how many wide poses were shown and found."""
+
+    hand_eye: OfflineCalibration
+    fit: ArmFit
+    wide_poses: int
+    seconds: float
+    # What the fit was given: the controller's joints, the flange centres and face normals seen (camera frame).
+    q: np.ndarray
+    p_cam: np.ndarray
+    n_cam: np.ndarray
+
+    @property
+    def wide_found(self) -> int:
+        return len(self.q)
+
+
+def wide_poses(cfg: config_mod.Config, n: int, seed: int) -> np.ndarray:
+    """The arm calibration's flange poses (n, 4, 4): :data:`celld.calib.kinematic.WIDE` around the verification pose."""
+    T_c = se3.from_ur_pose(cfg.calibration.verification_pose)
+    T_c[:3, 3] += WIDE.centre_offset
+    return calibration_poses(T_c, WIDE.box, n, WIDE.max_tilt, seed=seed, max_spin=WIDE.max_spin)
+
+
+def calibrate_arm_in_world(
+    cfg: config_mod.Config, world: World, n: int, seed: int, n_wide: int | None = None, say: Callable[[str], None] | None = None
+) -> OfflineArmCalibration:
+    """The hand-eye calibration of :func:`calibrate_in_world` (``n`` poses), then the arm's kinematic
+    calibration from ``n_wide`` wide poses (:func:`celld.calib.kinematic.fit_arm`), as the cell ``cfg``
+    believes its arm (the controller's DH table, UR's published links, the configured payload)."""
+    t0 = time.perf_counter()
+    hand_eye = calibrate_in_world(cfg, world, n, seed)
+    T0 = hand_eye.result.T_base_cam
+    flange = preset(cfg.calibration.flange)
+    dparams: DetectParams = PARAMS_BY_SCANNER[cfg.scanner.model]
+    view = _WorldView(cfg, world, seed + 1)
+    poses = wide_poses(cfg, n_wide or WIDE.n_poses, seed)
+    Q, P, N = [], [], []
+    for T in poses:
+        cloud, q = view.seen(T)
+        p_pred = se3.apply(se3.invert(T0), T[:3, 3])  # where the hand-eye calibration says the flange is
+        try:
+            det = detect_flange(cloud, flange, dparams, roi_center=p_pred)
+        except CelldError as exc:
+            if say is not None:
+                say(f"  wide pose: no flange ({exc})")
+            continue
+        Q.append(q)
+        P.append(det.center)
+        N.append(det.normal)
+    model = cfg.robot.model
+    Qa, Pa, Na = np.asarray(Q), np.asarray(P), np.asarray(N)
+    payload = dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange)
+    fit = fit_arm(Qa, Pa, T0, kin.model(model).dh, dynamics.links(model), payload, n_cam=Na)
+    return OfflineArmCalibration(hand_eye, fit, len(poses), time.perf_counter() - t0, Qa, Pa, Na)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from celld import polyline, se3
+from celld.calib.kinematic import ArmModel
 from celld.errors import InputError
 from celld.robot import kinematics as kin
 from celld.seam.figures import TORCH_STEP, lateral_error
@@ -91,19 +92,30 @@ def targeting_errors(
     R_base_flange: ArrayLike,
     q_near: ArrayLike,
     T_base_cam_true: ArrayLike | None = None,
+    arm: ArmModel | None = None,
+    rise: float = 0.0,
 ) -> Array:
     """Distances (n,) between true points and where the flange lands when sent to them through the calibration, m.
 
     ``R_base_flange`` (3, 3) is the flange's orientation for every target;
     points out of reach give NaN. ``T_base_cam_true`` is where the scanner
-    truly is when it sees them (default: where it is fixed).
+    truly is when it sees them (default: where it is fixed). ``arm``: the
+    arm's calibrated model, through which each target is pre-corrected
+    (None: the controller is sent the target as it is); ``rise``: the arm's
+    temperature above cold, K.
     """
     P = np.asarray(P_base, dtype=np.float64).reshape(-1, 3)
     targets = se3.apply(np.asarray(T_base_cam_est, dtype=np.float64), measured_in_camera(world, P, T_base_cam=T_base_cam_true))
     out = np.full(len(P), np.nan)
     q = np.asarray(q_near, dtype=np.float64)
     for i, (p, t) in enumerate(zip(P, targets)):
-        got = true_flange(world, se3.transform_from(R_base_flange, t), q)
+        T_cmd = se3.transform_from(R_base_flange, t)
+        if arm is not None:
+            pre = arm.precorrect(T_cmd, q)
+            if pre is None:
+                continue
+            T_cmd = pre[0]
+        got = true_flange(world, T_cmd, q, rise)
         if got is not None:
             out[i] = float(np.linalg.norm(got[0][:3, 3] - p))
             q = got[1]

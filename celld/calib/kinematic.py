@@ -1,0 +1,375 @@
+"""The arm's kinematic calibration: corrections to the controller's kinematics, fitted with the scanner's pose (pure).
+
+A rigid ``T_base_cam`` fitted around the calibration poses absorbs the arm's
+own error there and nowhere else: at the weld, flange down over the table,
+the arm is off by what its kinematics are off (0.2-1 mm on a UR10e). This
+module fits that error from the same scans, at poses spread for it
+(:data:`WIDE`): the flange's centre and face normal seen by the scanner
+against where a corrected model of the arm puts them,
+
+    T_base_cam p_cam  =  FK(q + dtheta + C tau(q); DH + dDH) origin
+    R_base_cam n_cam  =  FK(...) z axis
+
+with ``q`` the controller's joints, ``dDH`` corrections to the controller's
+DH table (lengths d, a and twists alpha), ``dtheta`` to its joint zeros and
+``C`` each joint's compliance under the static torque ``tau`` of the
+published links and the configured payload (:mod:`celld.robot.dynamics`):
+the sag that makes the error depend on the pose and that no DH table holds.
+
+Not every parameter can be told apart from position and normal data (the
+base's rotation about its axis is the camera's; along parallel axes only
+the sum of the offsets shows; the flange's turn about its own axis moves
+neither centre nor normal; gravity puts no torque on the base joint). The
+fit finds which by a rank-revealing QR of its Jacobian, scaled by each
+parameter's prior, holds those at zero, and reports the rank, the condition
+number of what it kept and what it held. The kept ones are solved with
+weak priors (a maximum a posteriori fit), so a parameter the poses barely
+see stays near zero rather than wandering.
+
+:class:`ArmModel` is the corrected arm: :meth:`ArmModel.forward` predicts
+where the flange is, :meth:`ArmModel.precorrect` gives the pose to send the
+controller (which moves by its own kinematics) so that the flange lands
+where it is wanted.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import qr
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from celld import se3
+from celld.errors import InputError
+from celld.robot import dynamics
+from celld.robot import kinematics as kin
+
+Array = NDArray[np.float64]
+
+# Parameter groups, in the order of the parameter vector after the scanner's pose (rotation vector, translation).
+GROUPS = ("d", "a", "alpha", "theta", "compliance")
+POSE_NAMES = ("cam_rx", "cam_ry", "cam_rz", "cam_x", "cam_y", "cam_z")
+NAMES: tuple[str, ...] = POSE_NAMES + tuple(f"{g}{j + 1}" for g in GROUPS for j in range(6))
+
+# Prior 1 sigma of each group: what a factory-calibrated arm may still be off by (generous, so the data
+# decides), and a compliance well above any UR joint's (rad/(N m)).
+PRIOR = {"d": 1e-3, "a": 1e-3, "alpha": 1e-3, "theta": 1e-3, "compliance": 1e-4}
+# The scanner's pose is free: its prior only scales the identifiability test (m, rad).
+POSE_PRIOR = (0.01, 0.01, 0.01, 0.01, 0.01, 0.01)
+# A parameter whose scaled column adds less than this to the rank (|R_kk| over the largest) is held fixed.
+RANK_TOL = 1e-3
+# The joints whose compliance is fitted: the shoulder and the elbow, which carry the arm. A wrist's torque
+# hardly changes over poses the scanner can see the flange in (face up), so its compliance is barely seen
+# there, and a poor estimate of it moves the flange more at the weld (face down) than the wrist's whole
+# sag (about 0.02 mm under a 1.6 kg tool); the base's axis is vertical (gravity puts no torque on it).
+COMPLIANT = (1, 2)
+# The face normal's residual is weighed as a point this far along it (m): 1 mrad counts as 0.03 mm.
+NORMAL_LEVER = 0.03
+# Pose-to-pose error of a flange centre (m), the unit of the priors' residuals.
+SIGMA_POINT = 0.1e-3
+# Pre-correction: Newton steps and the residual (m, rad) that ends them.
+_NEWTON_STEPS = 8
+_NEWTON_TOL = 1e-9
+
+# Wide poses for the arm's calibration: a larger box than the hand-eye calibration's, tilted further and
+# turned all the way about the flange's axis, so every joint works over its range (the study behind the
+# research notes: 48 such poses took the weld site's error from 0.54 to 0.06 mm on a pure-DH arm).
+
+
+@dataclass(frozen=True)
+class WidePoses:
+    """Where the arm calibration shows the flange: a box (m) centred this far off the verification pose, tilts
+    and turns about the flange's axis up to these (rad), so many poses."""
+
+    box: tuple[float, float, float] = (0.5, 0.5, 0.2)
+    centre_offset: tuple[float, float, float] = (0.0, 0.0, -0.05)
+    max_tilt: float = 0.6
+    max_spin: float = math.pi
+    n_poses: int = 40
+
+
+WIDE = WidePoses()
+
+
+@dataclass(frozen=True)
+class ArmModel:
+    """The controller's kinematics with the calibration's corrections (SI, rad).
+
+    ``nominal`` is the DH table the controller moves by; ``dh`` the corrected
+    one; ``theta`` the joint zeros' corrections; ``compliance`` each joint's
+    (rad/(N m)) under the torque of ``links`` and ``payload``.
+    """
+
+    nominal: kin.DH
+    dh: kin.DH
+    theta: tuple[float, ...] = (0.0,) * 6
+    compliance: tuple[float, ...] = (0.0,) * 6
+    links: dynamics.Links | None = None
+    payload: dynamics.Payload = dynamics.Payload()
+
+    @classmethod
+    def identity(cls, nominal: kin.DH, links: dynamics.Links | None = None, payload: dynamics.Payload = dynamics.Payload()) -> ArmModel:
+        """The controller's own kinematics, no correction."""
+        return cls(nominal, nominal, links=links, payload=payload)
+
+    @property
+    def is_identity(self) -> bool:
+        return tuple(self.dh) == tuple(self.nominal) and not any(self.theta) and not any(self.compliance)
+
+    def joints(self, q: ArrayLike) -> Array:
+        """The model's joint angles (n, 6) for the controller's joints ``q`` (n, 6): zeros and sag added."""
+        Q = np.atleast_2d(np.asarray(q, dtype=np.float64)) + np.asarray(self.theta)
+        if any(self.compliance):
+            F = np.asarray([kin.forward_all_rows(row, self.dh) for row in Q.tolist()]).reshape(-1, 6, 3, 4)
+            Q = Q + np.asarray(self.compliance) * dynamics.joint_torques(F, self.links, self.payload)
+        return Q
+
+    def forward(self, q: ArrayLike) -> Array:
+        """Where the model puts the flange (4, 4) with the controller at joints ``q`` (6,)."""
+        return kin.forward(self.joints(q)[0], self.dh)
+
+    def precorrect(self, T_base_flange: ArrayLike, q_near: ArrayLike) -> tuple[Array, Array] | None:
+        """The pose to send the controller so that the flange lands at ``T_base_flange`` by this model.
+
+        Returns ``(T_cmd (4, 4), q (6,))``: the controller's joints ``q``
+        (nearest ``q_near``) put the modelled flange at the target, and
+        ``T_cmd`` is where the controller believes those joints put it. None
+        when the target is out of reach.
+        """
+        T = se3.check_transform(T_base_flange, "T_base_flange")
+        q = kin.inverse(T, q_near, self.nominal)
+        if q is None:
+            return None
+        if self.is_identity:
+            return T, q
+        for _ in range(_NEWTON_STEPS):
+            M = self.forward(q)
+            e = np.concatenate([T[:3, 3] - M[:3, 3], Rotation.from_matrix(T[:3, :3] @ M[:3, :3].T).as_rotvec()])
+            if np.linalg.norm(e) < _NEWTON_TOL:
+                break
+            q = q + np.linalg.lstsq(kin.jacobian(q, self.nominal), e, rcond=None)[0]
+        return kin.forward(q, self.nominal), q
+
+    def as_dict(self) -> dict[str, Any]:
+        """The corrections, for the stored calibration: mm, mrad and mrad/(kN m) beside the nominal table."""
+        return {
+            "d_mm": (np.subtract(self.dh.d, self.nominal.d) * 1e3).tolist(),
+            "a_mm": (np.subtract(self.dh.a, self.nominal.a) * 1e3).tolist(),
+            "alpha_mrad": (np.subtract(self.dh.alpha, self.nominal.alpha) * 1e3).tolist(),
+            "theta_mrad": (np.asarray(self.theta) * 1e3).tolist(),
+            "compliance_mrad_per_knm": (np.asarray(self.compliance) * 1e6).tolist(),
+            "payload_kg": self.payload.mass,
+        }
+
+
+@dataclass(frozen=True)
+class ArmFit:
+    """The arm's calibration from one session."""
+
+    T_base_cam: Array
+    model: ArmModel
+    residuals: Array  # (n,) distance of each flange centre from the model's, m
+    residuals_before: Array  # (n,) the same with the controller's kinematics and the start's T_base_cam
+    estimated: tuple[str, ...]
+    held: tuple[str, ...]
+    rank: int
+    condition: float
+    std: dict[str, float] = field(default_factory=dict)  # 1 sigma of each estimated parameter (SI)
+
+    @property
+    def rms(self) -> float:
+        return float(np.sqrt(np.mean(self.residuals**2)))
+
+    def report(self) -> dict[str, Any]:
+        """What the job reports: identifiability, residuals, the corrections."""
+        return {
+            "rank": self.rank,
+            "parameters": len(NAMES),
+            "condition": self.condition,
+            "estimated": list(self.estimated),
+            "held": list(self.held),
+            "residual_rms_mm": self.rms * 1e3,
+            "residual_max_mm": float(self.residuals.max()) * 1e3,
+            "residual_rms_before_mm": float(np.sqrt(np.mean(self.residuals_before**2))) * 1e3,
+            "corrections": self.model.as_dict(),
+        }
+
+
+def _unpack(x: Array, nominal: kin.DH) -> tuple[Array, kin.DH, Array, Array]:
+    """Parameter vector -> (pose correction (6,), corrected DH, theta (6,), compliance (6,))."""
+    g = x[6:].reshape(5, 6)
+    dh = kin.DH(
+        tuple((np.asarray(nominal.d) + g[0]).tolist()),
+        tuple((np.asarray(nominal.a) + g[1]).tolist()),
+        tuple((np.asarray(nominal.alpha) + g[2]).tolist()),
+    )
+    return x[:6], dh, g[3], g[4]
+
+
+def _forward_batch(Q: Array, dh: kin.DH) -> Array:
+    """``T_base_i`` (n, 6, 4, 4) of joint rows ``Q`` (n, 6), vectorised over the rows."""
+    n = Q.shape[0]
+    T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+    out = np.empty((n, 6, 4, 4))
+    for i in range(6):
+        c, s = np.cos(Q[:, i]), np.sin(Q[:, i])
+        ca, sa = math.cos(dh.alpha[i]), math.sin(dh.alpha[i])
+        L = np.zeros((n, 4, 4))
+        L[:, 0, 0], L[:, 0, 1], L[:, 0, 2], L[:, 0, 3] = c, -s * ca, s * sa, dh.a[i] * c
+        L[:, 1, 0], L[:, 1, 1], L[:, 1, 2], L[:, 1, 3] = s, c * ca, -c * sa, dh.a[i] * s
+        L[:, 2, 1], L[:, 2, 2], L[:, 2, 3] = sa, ca, dh.d[i]
+        L[:, 3, 3] = 1.0
+        T = T @ L
+        out[:, i] = T
+    return out
+
+
+class _Problem:
+    """The residuals of one session under a parameter vector."""
+
+    def __init__(
+        self,
+        q: Array,
+        p_cam: Array,
+        n_cam: Array | None,
+        T_base_cam0: Array,
+        nominal: kin.DH,
+        links: dynamics.Links | None,
+        payload: dynamics.Payload,
+    ) -> None:
+        self.q, self.p_cam, self.n_cam, self.T0 = q, p_cam, n_cam, T_base_cam0
+        self.nominal, self.links, self.payload = nominal, links, payload
+        self.bends = links is not None or payload.mass > 0.0
+
+    def camera(self, pose: Array) -> Array:
+        return se3.transform_from(Rotation.from_rotvec(pose[:3]).as_matrix() @ self.T0[:3, :3], self.T0[:3, 3] + pose[3:])
+
+    def flange(self, x: Array) -> Array:
+        """The model's flange poses (n, 4, 4) under ``x``."""
+        _, dh, theta, c = _unpack(x, self.nominal)
+        Q = self.q + theta
+        if self.bends:
+            F = _forward_batch(Q, dh)[:, :, :3, :]
+            Q = Q + c * dynamics.joint_torques(F, self.links, self.payload)
+        return _forward_batch(Q, dh)[:, 5]
+
+    def residuals(self, x: Array) -> Array:
+        T_cam = self.camera(x[:6])
+        M = self.flange(x)
+        r = [(self.p_cam @ T_cam[:3, :3].T + T_cam[:3, 3]) - M[:, :3, 3]]
+        if self.n_cam is not None:
+            r.append(NORMAL_LEVER * (self.n_cam @ T_cam[:3, :3].T - M[:, :3, 2]))
+        return np.concatenate([v.ravel() for v in r])
+
+    def jacobian(self, x: Array, steps: Array) -> Array:
+        r0 = self.residuals(x)
+        J = np.empty((r0.size, x.size))
+        for k in range(x.size):
+            dx = np.zeros_like(x)
+            dx[k] = steps[k]
+            J[:, k] = (self.residuals(x + dx) - self.residuals(x - dx)) / (2.0 * steps[k])
+        return J
+
+
+def _prior_sigmas() -> Array:
+    return np.concatenate([np.asarray(POSE_PRIOR), *(np.full(6, PRIOR[g]) for g in GROUPS)])
+
+
+def identifiable(J: Array, sigmas: Array, tol: float = RANK_TOL) -> tuple[NDArray[np.bool_], int, float]:
+    """Which parameters the data tells apart: a mask over the columns of ``J``, the rank and the condition
+    number of the kept columns, each scaled by its prior ``sigmas`` (a rank-revealing QR with column pivoting)."""
+    Js = J * sigmas
+    _, R, piv = qr(Js, mode="economic", pivoting=True)
+    d = np.abs(np.diag(R))
+    rank = int(np.count_nonzero(d > tol * d[0])) if d.size and d[0] > 0 else 0
+    keep = np.zeros(J.shape[1], dtype=bool)
+    keep[piv[:rank]] = True
+    s = np.linalg.svd(Js[:, keep], compute_uv=False)
+    return keep, rank, float(s[0] / s[-1]) if s.size and s[-1] > 0 else math.inf
+
+
+def fit_arm(
+    q: ArrayLike,
+    p_cam: ArrayLike,
+    T_base_cam0: ArrayLike,
+    nominal: kin.DH,
+    links: dynamics.Links | None = None,
+    payload: dynamics.Payload = dynamics.Payload(),
+    n_cam: ArrayLike | None = None,
+    compliance: bool = True,
+) -> ArmFit:
+    """Fit the arm's corrections and the scanner's pose from one session.
+
+    ``q`` (n, 6) are the controller's joints at each pose, ``p_cam`` (n, 3)
+    the flange centres the scanner saw (camera frame), ``n_cam`` (n, 3) the
+    face normals it saw (optional), ``T_base_cam0`` the hand-eye calibration
+    to start from, ``nominal`` the DH table the controller moves by; ``links``
+    and ``payload`` give the torques of the sag (``compliance`` False, or no
+    masses at all: no sag in the model).
+    """
+    Q = np.asarray(q, dtype=np.float64)
+    P = np.asarray(p_cam, dtype=np.float64)
+    if Q.ndim != 2 or Q.shape[1] != 6 or P.shape != (len(Q), 3):
+        raise InputError(f"arm calibration: expected joints (n, 6) and centres (n, 3), got {Q.shape} and {P.shape}")
+    if not (np.all(np.isfinite(Q)) and np.all(np.isfinite(P))):
+        raise InputError("arm calibration: the joints and centres must be finite")
+    N = None
+    if n_cam is not None:
+        N = np.asarray(n_cam, dtype=np.float64)
+        if N.shape != P.shape or not np.all(np.isfinite(N)):
+            raise InputError(f"arm calibration: expected finite normals (n, 3), got {N.shape}")
+        N = N / np.linalg.norm(N, axis=1, keepdims=True)
+    T0 = se3.check_transform(T_base_cam0, "T_base_cam0")
+    if not compliance:
+        links, payload = None, dynamics.Payload()
+    prob = _Problem(Q, P, N, T0, nominal, links, payload)
+    if N is not None:
+        # The detector's normal may point either way along the flange's axis: take the side the model sees.
+        z = prob.flange(np.zeros(len(NAMES)))[:, :3, 2]
+        if np.mean(np.sum((N @ T0[:3, :3].T) * z, axis=1)) < 0.0:
+            prob.n_cam = -N
+    n_params = len(NAMES)
+    if len(Q) * 3 < 12:
+        raise InputError(f"arm calibration: {len(Q)} poses cannot fit an arm (at least 4)")
+    sigmas = _prior_sigmas()
+    x0 = np.zeros(n_params)
+    J = prob.jacobian(x0, sigmas * 1e-3)
+    keep, rank, cond = identifiable(J, sigmas)
+    comp = 6 + 4 * 6
+    keep[comp : comp + 6] = keep[comp : comp + 6] & np.isin(np.arange(6), COMPLIANT) & prob.bends
+    keep[:6] = True  # the scanner's pose is always fitted
+    idx = np.flatnonzero(keep)
+    prior_w = SIGMA_POINT / sigmas[idx]
+    prior_w[:6] = 0.0  # no prior on the scanner's pose
+
+    def fun(xk: Array) -> Array:
+        x = np.zeros(n_params)
+        x[idx] = xk
+        return np.concatenate([prob.residuals(x), prior_w * xk])
+
+    sol = least_squares(fun, np.zeros(idx.size), x_scale=sigmas[idx], method="trf")
+    x = np.zeros(n_params)
+    x[idx] = sol.x
+    pose, dh, theta, c = _unpack(x, nominal)
+    model = ArmModel(nominal, dh, tuple(theta.tolist()), tuple(c.tolist()), links, payload)
+    T_cam = prob.camera(pose)
+    M = prob.flange(x)
+    res = np.linalg.norm(P @ T_cam[:3, :3].T + T_cam[:3, 3] - M[:, :3, 3], axis=1)
+    M0 = prob.flange(np.zeros(n_params))
+    res0 = np.linalg.norm(P @ T0[:3, :3].T + T0[:3, 3] - M0[:, :3, 3], axis=1)
+    # 1 sigma of each estimate: the Gauss-Newton covariance scaled by the residuals' own spread.
+    std: dict[str, float] = {}
+    dof = max(sol.fun.size - idx.size, 1)
+    s2 = float(np.sum(sol.fun**2) / dof)
+    try:
+        cov = np.linalg.inv(sol.jac.T @ sol.jac) * s2
+        std = {NAMES[i]: float(math.sqrt(max(cov[k, k], 0.0))) for k, i in enumerate(idx)}
+    except np.linalg.LinAlgError:
+        pass
+    held = tuple(NAMES[i] for i in range(n_params) if not keep[i])
+    return ArmFit(T_cam, model, res, res0, tuple(NAMES[i] for i in idx), held, rank, cond, std)
