@@ -259,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, default=10, help="seeded worlds (full run)")
     p.add_argument("--seed0", type=int, default=1)
     p.add_argument("--poses", type=int, default=20, help="hand-eye calibration poses per world (full run)")
-    p.add_argument("--wide", type=int, default=40, help="the arm calibration's wide poses per world (full run)")
+    p.add_argument("--wide", type=int, default=80, help="the arm calibration's wide poses per world (full run)")
     p.add_argument("--sessions", type=int, default=90, help="small-count sessions (full run)")
     args = p.parse_args(argv)
     n_seeds, n_poses, n_wide, sessions = (2, 10, 30, 30) if args.quick else (args.seeds, args.poses, args.wide, args.sessions)
