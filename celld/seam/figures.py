@@ -106,6 +106,24 @@ def lateral_error(P_base: Array, seam_base: Array, T_base_plane: Array) -> dict[
     }
 
 
+def height_over_root(P_base: Array, seam_base: Array, T_base_plane: Array) -> dict[str, float]:
+    """Height (mm) of path points over a seam's root line along the welding plane's normal: mean, min, max.
+
+    The root's height is taken where each point lies alongside it (its foot
+    in the plane); points beyond either end are left out, as by
+    :func:`lateral_error`.
+    """
+    R, o = T_base_plane[:3, :3], T_base_plane[:3, 3]
+    Q = (np.asarray(P_base, dtype=np.float64).reshape(-1, 3) - o) @ R
+    S = (np.asarray(seam_base, dtype=np.float64).reshape(-1, 3) - o) @ R
+    proj = polyline.project(Q[:, :2], S[:, :2])
+    root = np.interp(proj.arc, polyline.arc_length(S[:, :2]), S[:, 2])
+    h = (Q[:, 2] - root)[proj.inside]
+    if len(h) == 0:
+        return {"mean_mm": float("nan"), "min_mm": float("nan"), "max_mm": float("nan"), "points": 0}
+    return {"mean_mm": float(h.mean()) * 1e3, "min_mm": float(h.min()) * 1e3, "max_mm": float(h.max()) * 1e3, "points": int(len(h))}
+
+
 def track_summary(records: np.ndarray, geometry: WeldGeometry, tool: ToolGeometry, delta_d: float) -> TrackSummary:
     """The paths and figures of a finished track from the motion loop's records of it.
 

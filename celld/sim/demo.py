@@ -133,7 +133,7 @@ def run_jobs(
     from celld.calib.mount import placement_of
     from celld.errors import JobError
     from celld.sim.cell import run_cell, sim_part
-    from celld.sim.score import TruthRecorder, lateral, open_loop_torch, targeting, true_camera, true_torch_path
+    from celld.sim.score import TruthRecorder, height, lateral, open_loop_torch, targeting, true_camera, true_torch_path
 
     figures: dict[str, Any] = {}
     t0 = time.monotonic()
@@ -262,10 +262,14 @@ def run_jobs(
         planned, planned_wall = np.array(paths["planned"]), np.array(paths["planned_wall"])
         home = np.asarray(cfg.robot.home_q, dtype=np.float64)
         torch_true = true_torch_path(world, recorder.records(), cfg.robot.arc_output)
+        plan_alone = open_loop_torch(world, planned, planned_wall, home)
         figures["weld"] = {
             "job": weld["id"],
             # Following the plan without the finger: the controller's torch on the plan, the true arm and tool.
-            "plan_alone_error": lateral(part, open_loop_torch(world, planned, planned_wall, home)),
+            "plan_alone_error": lateral(part, plan_alone),
+            # The torch's height over the true root against the height the cell welds at (weld.tip_height).
+            "plan_alone_height": height(part, plan_alone, cfg.weld.tip_height),
+            "torch_height": height(part, torch_true, cfg.weld.tip_height),
             # The plan itself, as the scan and the calibration placed it in the base frame.
             "plan_error": lateral(part, planned),
             # The torch as it truly went, Algorithm 2 tracking the wall by touch.
@@ -310,6 +314,19 @@ def robot2_figures(entry: dict[str, Any], T_base1_base2_true: np.ndarray, verifi
     }
 
 
+def _height_lines(torch: dict[str, Any] | None, plan_alone: dict[str, Any] | None) -> list[str]:
+    """The torch's height over the true root (contact tip to work), tracked and on the plan alone."""
+    if not torch or not torch.get("points"):
+        return []
+    lines = [
+        f"torch height over the true root: mean {torch['mean_mm']:.3f} mm ({torch['min_mm']:.3f} to {torch['max_mm']:.3f}), "
+        f"at most {torch['error_max_mm']:.3f} mm from the height welded at"
+    ]
+    if plan_alone and plan_alone.get("points"):
+        lines.append(f"  (on the plan alone: mean {plan_alone['mean_mm']:.3f} mm, at most {plan_alone['error_max_mm']:.3f} mm from it)")
+    return lines
+
+
 def _bound_lines(bound: dict[str, Any] | None) -> list[str]:
     """What the calibration reported of its own error, beside the truth above it."""
     if not bound or bound.get("calibration_box_mm") is None or bound.get("work_radius_mm") is None:
@@ -340,6 +357,7 @@ def summary_lines(figures: dict[str, Any]) -> list[str]:
         f"  torch, tracked by touch (Algorithm 2)        {to['rms_mm']:7.3f}  {to['max_mm']:7.3f}",
         f"  (the plan's points as placed                 {pl['rms_mm']:7.3f}  {pl['max_mm']:7.3f})",
         f"  (the torch as the daemon believes it went    {tb['rms_mm']:7.3f}  {tb['max_mm']:7.3f})",
+        *_height_lines(w.get("torch_height"), w.get("plan_alone_height")),
         _probe_line(w.get("height_probe")),
         f"tracked {w['figures']['tracked_mm']:.0f} mm, arc on {w['figures']['arc_on_s']:.1f} s, "
         f"delta_n error {w['figures']['delta_n_error_rms_mm']} mm RMS",

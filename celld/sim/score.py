@@ -36,7 +36,7 @@ from celld import polyline, se3
 from celld.calib.kinematic import ArmModel
 from celld.errors import InputError
 from celld.robot import kinematics as kin
-from celld.seam.figures import TORCH_STEP, lateral_error
+from celld.seam.figures import TORCH_STEP, height_over_root, lateral_error
 from celld.sim.robot.truth import TRUTH_DTYPE, TruthReader, flange_of
 from celld.sim.world import World
 from celld.tactile.tool import ToolGeometry
@@ -290,6 +290,16 @@ def true_torch_path(world: World, records: np.ndarray, arc_output: int) -> Array
 def lateral(part: Any, P_base: ArrayLike) -> dict[str, float]:
     """Lateral distance (RMS, max mm) of a path from the part's true seam in its welding plane."""
     return lateral_error(np.asarray(P_base, dtype=np.float64), part.seam_base, part.T_base_plane)
+
+
+def height(part: Any, P_base: ArrayLike, target: float) -> dict[str, float]:
+    """Height (mm) of a path over the part's true root line, and its error from ``target`` (m): the largest
+    distance from it (``error_max_mm``) and the mean's (``error_mean_mm``, signed)."""
+    h = height_over_root(np.asarray(P_base, dtype=np.float64), part.seam_base, part.T_base_plane)
+    if not h["points"]:
+        return {**h, "error_mean_mm": float("nan"), "error_max_mm": float("nan")}
+    t = target * 1e3
+    return {**h, "error_mean_mm": h["mean_mm"] - t, "error_max_mm": max(abs(h["min_mm"] - t), abs(h["max_mm"] - t))}
 
 
 # A TCP slower than this counts as at rest, m/s.

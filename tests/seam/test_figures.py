@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from celld import se3
-from celld.seam.figures import lateral_error, lateral_offsets
+from celld.seam.figures import height_over_root, lateral_error, lateral_offsets
 from celld.seam.weldpath import model_geometry
 from celld.seam.workpiece import v_groove_butt
 
@@ -41,6 +41,26 @@ def test_lateral_error_ignores_height_and_points_beyond_the_seam() -> None:
     e = lateral_error(P, g.seam_base, g.T_base_plane)
     assert e["points"] == 2 and e["outside"] == 1
     assert abs(e["max_mm"] - 0.4) < 1e-6 and abs(e["rms_mm"] - np.sqrt((0.3**2 + 0.4**2) / 2)) < 1e-6
+
+
+def test_height_over_root_follows_a_root_that_climbs_and_ignores_the_lateral_offset() -> None:
+    wp = v_groove_butt()
+    g = model_geometry(wp, nominal_pose(wp), 0.004)
+    z = g.T_base_plane[:3, 2]
+    # The root rises 2 mm from start to end (a part lying tilted): heights are taken over it where each point is.
+    ramp = np.linspace(0.0, 0.002, len(g.seam_base))[:, None] * z
+    seam = g.seam_base + ramp
+    i, j = len(seam) // 4, 3 * len(seam) // 4
+    P = np.array(
+        [
+            seam[i] + 0.004 * z + 0.0005 * g.normals[i],  # 4 mm over the root, 0.5 mm across
+            seam[j] + 0.0035 * z,
+            seam[-1] + 0.02 * g.tangents[-1] + 0.004 * z,  # beyond the end
+        ]
+    )
+    h = height_over_root(P, seam, g.T_base_plane)
+    assert h["points"] == 2
+    np.testing.assert_allclose([h["max_mm"], h["min_mm"], h["mean_mm"]], [4.0, 3.5, 3.75], atol=1e-3)
 
 
 def test_a_touch_finds_the_deformed_tip_where_the_settled_cycles_put_it() -> None:

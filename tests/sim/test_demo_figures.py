@@ -35,3 +35,14 @@ def test_the_calibrations_own_bounds_are_printed_as_it_reported_them() -> None:
     assert "(95%): 0.204 mm in the box, 1.256 mm elsewhere in reach" in line and "taken as 1.0 mm" in line
     # A calibration stored before the bounds existed, or one whose bounds are not finite, prints nothing.
     assert _bound_lines(None) == [] and _bound_lines({**bound, "work_radius_mm": None}) == []
+
+
+def test_the_torch_height_is_printed_beside_the_plan_alones() -> None:
+    from celld.sim.demo import _height_lines
+
+    torch = {"mean_mm": 3.912, "min_mm": 3.51, "max_mm": 4.27, "points": 80, "error_mean_mm": -0.088, "error_max_mm": 0.49}
+    plan = {**torch, "mean_mm": 3.4, "error_max_mm": 1.2}
+    first, second = _height_lines(torch, plan)
+    assert "mean 3.912 mm (3.510 to 4.270)" in first and "at most 0.490 mm from the height welded at" in first
+    assert "plan alone: mean 3.400 mm, at most 1.200 mm" in second
+    assert _height_lines({**torch, "points": 0}, plan) == [] and _height_lines(torch, None) == [first]
