@@ -23,8 +23,10 @@ Two parts (figures in bench/README.md; tables in bench/out/arm_calibration/):
      the box bound for the points of the box, the bound within the work
      radius for those over the table; ``coverage``, the fraction of all test
      points whose true error (hand-eye) the bound covers, and
-     ``bound_over_error_mean``. The arm's fit reports its identifiability
-     (rank, condition number, parameters held) but no bound yet.
+     ``bound_over_error_mean``; the same for the arm fit's own bounds
+     (``arm_coverage``, ``arm_bound_over_error_mean``: its bound where its
+     poses went for the box, away from them for the weld). The arm's fit
+     also reports its identifiability (rank, condition number, parameters held).
 
    The touch check and the tool's figures are not built, and their keys are null.
 2. Small counts (no world; the robust estimator and the gate as the cell
@@ -116,9 +118,12 @@ def world_seed(seed: int, n_poses: int, n_wide: int) -> dict[str, Any]:
     e_weld_warm = errors(res.T_base_cam, None, weld, R_down, warm)
     a_box, a_weld = errors(fit.T_base_cam, fit.model, box, T_v[:3, :3]), errors(fit.T_base_cam, fit.model, weld, R_down)
     a_weld_warm = errors(fit.T_base_cam, fit.model, weld, R_down, warm)
-    # The bounds are the hand-eye calibration's (quality.bound); the arm's fit reports no bound yet.
+    # Each calibration's own bounds against its own errors: the hand-eye one's quality.bound, the arm fit's
+    # bound where its poses went (for the box) and away from them (at the weld).
     bounds = np.concatenate([np.full(len(e_box), q.bound_box), np.full(len(e_weld), q.bound_away)])
     hand_eye_errors = np.concatenate([e_box, e_weld])
+    arm_bounds = np.concatenate([np.full(len(a_box), fit.bound_poses), np.full(len(a_weld), fit.bound_away)])
+    arm_errors = np.concatenate([a_box, a_weld])
     report = fit.report()
     out.update(
         weld_error_mean_mm=float(a_weld.mean()) * 1e3,
@@ -144,6 +149,12 @@ def world_seed(seed: int, n_poses: int, n_wide: int) -> dict[str, Any]:
         covered=int(np.count_nonzero(hand_eye_errors <= bounds)),
         bound_mean_mm=float(bounds.mean()) * 1e3,
         error_mean_mm=float(hand_eye_errors.mean()) * 1e3,
+        arm_bound_poses_mm=fit.bound_poses * 1e3,
+        arm_bound_weld_mm=fit.bound_away * 1e3,
+        arm_points=int(len(arm_errors)),
+        arm_covered=int(np.count_nonzero(arm_errors <= arm_bounds)),
+        arm_bound_mean_mm=float(arm_bounds.mean()) * 1e3,
+        arm_error_mean_mm=float(arm_errors.mean()) * 1e3,
         pairs_used=sum(p.used for p in q.pairs),
         wide_found=done.wide_found,
         arm_rank=report["rank"],
@@ -222,6 +233,11 @@ def summarise(seeds: list[dict[str, Any]], small: dict[str, Any]) -> dict[str, A
         "hand_eye_seeds_weld_within_0_15": sum(1 for s in ok if s["hand_eye"]["weld_error_mean_mm"] <= WELD_MEAN * 1e3),
         "hand_eye_box_error_mean_mm": max(s["hand_eye"]["box_error_mean_mm"] for s in ok) if ok else None,
         "coverage": covered / points if points else None,
+        "arm_coverage": sum(s["arm_covered"] for s in ok) / max(sum(s["arm_points"] for s in ok), 1) if ok else None,
+        "arm_bound_over_error_mean": float(np.mean([s["arm_bound_mean_mm"] for s in ok]))
+        / float(np.mean([s["arm_error_mean_mm"] for s in ok]))
+        if ok
+        else None,
         "bound_over_error_mean": bound_mean / error_mean if ok and error_mean else None,
         "good_pairs_dropped": small["good_pairs_dropped"],
         "false_detections_accepted": small["false_detections_accepted"],
@@ -233,19 +249,20 @@ def write_table(seeds: list[dict[str, Any]], summary: dict[str, Any], quick: boo
     OUT.mkdir(parents=True, exist_ok=True)
     lines = [
         "| seed | arm cal: weld mean / max mm | warm | box mean mm | wide pairs | rank / cond | hand-eye: weld mean mm | warm | box mean mm "
-        "| bound weld / box mm | covered | pairs | verdict |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| bound weld / box mm | covered | arm bound weld / poses mm | arm covered | pairs | verdict |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in seeds:
         if "error" in s:
-            lines.append(f"| {s['seed']} | - | - | - | - | - | - | - | - | - | - | - | failed: {s['error']} |")
+            lines.append(f"| {s['seed']} | - | - | - | - | - | - | - | - | - | - | - | - | - | failed: {s['error']} |")
             continue
         he = s["hand_eye"]
         lines.append(
             f"| {s['seed']} | {s['weld_error_mean_mm']:.3f} / {s['weld_error_max_mm']:.3f} | {s['weld_error_warm_mean_mm']:.3f} | "
             f"{s['box_error_mean_mm']:.3f} | {s['wide_found']} | {s['arm_rank']} / {s['arm_condition']:.0f} | "
             f"{he['weld_error_mean_mm']:.3f} | {he['weld_error_warm_mean_mm']:.3f} | {he['box_error_mean_mm']:.3f} | "
-            f"{s['bound_weld_mm']:.3f} / {s['bound_box_mm']:.3f} | {s['covered']}/{s['points']} | {s['pairs_used']} | {s['verdict']} |"
+            f"{s['bound_weld_mm']:.3f} / {s['bound_box_mm']:.3f} | {s['covered']}/{s['points']} | "
+            f"{s['arm_bound_weld_mm']:.3f} / {s['arm_bound_poses_mm']:.3f} | {s['arm_covered']}/{s['arm_points']} | {s['pairs_used']} | {s['verdict']} |"
         )
     lines.append("")
     lines.append("summary: " + json.dumps(summary))
@@ -273,7 +290,8 @@ def main(argv: list[str] | None = None) -> int:
             he = row["hand_eye"]
             print(
                 f"seed {seed}: arm calibration: weld mean {row['weld_error_mean_mm']:.3f} mm (warm {row['weld_error_warm_mean_mm']:.3f}), "
-                f"box mean {row['box_error_mean_mm']:.3f} mm, {row['wide_found']} wide pairs, rank {row['arm_rank']}, "
+                f"box mean {row['box_error_mean_mm']:.3f} mm, bounds {row['arm_bound_weld_mm']:.3f} / {row['arm_bound_poses_mm']:.3f} mm "
+                f"covering {row['arm_covered']}/{row['arm_points']}, {row['wide_found']} wide pairs, rank {row['arm_rank']}, "
                 f"condition {row['arm_condition']:.0f}; hand-eye alone: weld mean {he['weld_error_mean_mm']:.3f} mm "
                 f"(warm {he['weld_error_warm_mean_mm']:.3f}, bound {row['bound_weld_mm']:.3f}), "
                 f"box mean {he['box_error_mean_mm']:.3f} mm (bound {row['bound_box_mm']:.3f}), "
@@ -302,6 +320,9 @@ def main(argv: list[str] | None = None) -> int:
             "weld_mean_0_25_every_seed": summary["seeds_weld_within_0_25"] == n_seeds,
             "box_mean_0_10": summary["box_error_mean_mm"] is not None and summary["box_error_mean_mm"] <= BOX_MEAN * 1e3,
             "coverage_0_9": summary["coverage"] is not None and summary["coverage"] >= COVERAGE,
+            "arm_coverage_0_9": summary["arm_coverage"] is not None and summary["arm_coverage"] >= COVERAGE,
+            "arm_bound_over_error_3": summary["arm_bound_over_error_mean"] is not None
+            and summary["arm_bound_over_error_mean"] <= BOUND_OVER_ERROR,
             "bound_over_error_3": summary["bound_over_error_mean"] is not None and summary["bound_over_error_mean"] <= BOUND_OVER_ERROR,
             "no_good_pair_dropped": summary["good_pairs_dropped"] == 0,
             "no_false_detection_accepted": summary["false_detections_accepted"] == 0,
