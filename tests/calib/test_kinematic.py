@@ -99,6 +99,13 @@ def test_the_fit_recovers_the_arm_where_it_is_identifiable_and_lands_the_weld(se
     # model, the same arm is off by what the rigid fit cannot hold.
     e = _weld_errors(arm, fit.model, fit.T_base_cam)
     assert e.mean() < 0.1e-3 and e.max() < 0.2e-3, e * 1e3
+    # Its bounds cover it: where its poses went (a flange centre seen without noise, placed by the fit's
+    # T_base_cam, against where the fit's model puts the flange there: the miss of a target there) and at the weld.
+    seen = se3.apply(fit.T_base_cam @ se3.invert(T_BASE_CAM), np.array([arm.flange(q)[:3, 3] for q in Q]))
+    at_poses = np.linalg.norm(seen - np.array([fit.model.forward(q)[:3, 3] for q in Q]), axis=1)
+    assert np.mean(at_poses <= fit.bound_poses) >= 0.9 and fit.bound_poses < 0.2e-3, (at_poses.max(), fit.bound_poses)
+    assert fit.bound_away == pytest.approx(fit.bound_poses + km.REMAINING_PRIOR) and e.max() <= fit.bound_away
+    assert fit.report()["bound"]["away_mm"] == pytest.approx(fit.bound_away * 1e3)
     rigid = km.fit_arm(Q, P, T0, NOMINAL, compliance=False)
     assert _weld_errors(arm, km.ArmModel.identity(NOMINAL), rigid.T_base_cam).mean() > 2 * e.mean()
 
