@@ -19,10 +19,12 @@ offline (``celld calib solve DIR``). A session directory holds::
                       "T_base_flange": [[...4 x 4, metres...]]},
      "pairs": [{"id": "p000", "cloud": "p000.cloud.json", "T_base_flange": [[...]]}, ...]}
 
-A scanner on the arm (eye-on-arm, :mod:`celld.calib.mount`) moves with the
-joints: its session adds the mount and the robot's DH table to the header
-and each capture's joints, so that the flange is placed in the scanner's
-link frame as the daemon placed it::
+Each capture keeps the robot's joints when its writer is given them (``"q"``,
+6 joints in rad): the arm's kinematic calibration solves from them
+(``celld calib solve DIR --arm``). A scanner on the arm (eye-on-arm,
+:mod:`celld.calib.mount`) moves with the joints: its session must have them,
+and adds the mount and the robot's DH table to the header, so that the
+flange is placed in the scanner's link frame as the daemon placed it::
 
     {..., "version": 4, "mount": "link1",
      "dh": {"d": [...], "a": [...], "alpha": [...]},
@@ -588,11 +590,12 @@ class SessionWriter:
         write_json(self.root / POSES_FILE, self._doc)
 
     def _joints(self, q: ArrayLike | None, what: str) -> Array | None:
-        """The joints of a capture, required when the scanner is on the arm."""
-        if not self.mount.on_arm:
-            return None
+        """The joints of a capture, required when the scanner is on the arm (kept whenever given: the arm's
+        calibration solves from them, :mod:`celld.calib.kinematic`)."""
         if q is None:
-            raise InputError(f"{what}: the scanner is on {self.mount.name}: the capture needs the robot's joints")
+            if self.mount.on_arm:
+                raise InputError(f"{what}: the scanner is on {self.mount.name}: the capture needs the robot's joints")
+            return None
         return check_q(q, f"{what}.q")
 
     @staticmethod
@@ -785,11 +788,9 @@ def _record(entry: Any, root: Path, where: str, on_arm: bool = False, key: str =
     cloud = entry.get("cloud")
     if cloud is not None and (not isinstance(cloud, str) or Path(cloud).name != cloud):
         raise InputError(f"{where}.cloud: expected a file name in the session directory, got {cloud!r}")
-    q = None
-    if on_arm:
-        q = _vector(entry.get("q"), 6, f"{where}.q")
-        if q is None:
-            raise InputError(f"{where}.q: missing (the robot's joints, rad: the scanner is on the arm)")
+    q = _vector(entry.get("q"), 6, f"{where}.q")
+    if on_arm and q is None:
+        raise InputError(f"{where}.q: missing (the robot's joints, rad: the scanner is on the arm)")
     return PairRecord(id=pid, p_base=T[:3, 3].copy(), T_base_flange=T, cloud_path=None if cloud is None else root / cloud, q=q)
 
 

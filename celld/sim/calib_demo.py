@@ -69,7 +69,7 @@ class OfflineCalibration:
     seconds: float
 
 
-class _WorldView:
+class WorldView:
     """The world's scanner looking at the flange where the world's arm truly puts it (the truth renders, the
     caller only gets clouds and the controller's joints)."""
 
@@ -116,7 +116,7 @@ def calibrate_in_world(
     """
     cal = cfg.calibration
     flange = preset(cal.flange)  # the controller's flange model
-    view = _WorldView(cfg, world, seed)
+    view = WorldView(cfg, world, seed)
     mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model)
     seen = view.seen
 
@@ -180,7 +180,7 @@ def calibrate_arm_in_world(
     T0 = hand_eye.result.T_base_cam
     flange = preset(cfg.calibration.flange)
     dparams: DetectParams = PARAMS_BY_SCANNER[cfg.scanner.model]
-    view = _WorldView(cfg, world, seed + 1)
+    view = WorldView(cfg, world, seed + 1)
     poses = wide_poses(cfg, n_wide or WIDE.n_poses, seed)
     Q, P, N = [], [], []
     for T in poses:

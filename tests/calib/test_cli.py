@@ -14,6 +14,8 @@ from celld.calib.flange import preset
 from celld.cli import main
 from celld.se3 import apply, error, invert, transform_from
 
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
 # The authors' public sample (tests/calib/data/.../README.md): six PhoXi captures of a Franka flange, coplanar poses.
 SAMPLE = Path(__file__).parent / "data" / "flange_handeye_sample_2019-06-14"
 T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
@@ -250,3 +252,41 @@ def test_compensate_offline_without_a_verification_cloud_stores_the_estimate(tmp
     assert code == 0 and out["stored"] == "estimate" and out["T_base_cam_compensated"] is None
     assert out["T_base_cam"] == out["T_base_cam_estimate"]
     assert any("not applied: no verification cloud" in w for w in out["quality"]["warnings"])
+
+
+@pytest.fixture(scope="module")
+def wide_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A session of the arm calibration's wide poses in a realistic world (its arm sags, errs in its
+    kinematics and has lost motion; its scanner at 0.4 of its resolution), each pair with its joints."""
+    from dataclasses import replace
+
+    from celld import config as config_mod
+    from celld.sim.calib_demo import WorldView, wide_poses
+    from celld.sim.world import WorldOptions, world_of
+
+    cfg = config_mod.load(CONFIGS / "sim-cell.toml")
+    world = world_of(cfg, WorldOptions(preset="realistic", seed=4))
+    world = replace(world, scanner=replace(world.scanner, resolution_scale=0.4))
+    view = WorldView(cfg, world, seed=4)
+    root = tmp_path_factory.mktemp("wide") / "session"
+    writer = SessionWriter(root, flange="ur10e", scanner="phoxi-m")
+    for T in wide_poses(cfg, 24, seed=4):
+        P, q = view.seen(T)
+        writer.add_pair(T, P, q=q)
+    return root
+
+
+def test_solve_fits_the_arm_from_a_sessions_joints(wide_session: Path, capsys) -> None:
+    config = str(CONFIGS / "sim-cell.toml")
+    code, out = run(capsys, "calib", "solve", str(wide_session), "--json", "--arm", "--config", config)
+    assert code == 0, out
+    arm = out["arm"]
+    assert arm["pairs"] >= 18 and arm["pairs"] + len(arm["skipped"]) == 24
+    # What centres and normals cannot tell apart is held and said; the rest fitted, the residuals shrunk.
+    assert {"theta1", "theta6", "compliance1"} <= set(arm["held"]) and arm["rank"] < arm["parameters"]
+    assert arm["residual_rms_mm"] < 0.5 * arm["residual_rms_before_mm"], arm
+    assert 0.0 < arm["bound"]["poses_mm"] < arm["bound"]["away_mm"] and arm["corrections"]["payload_kg"] == 1.6
+    assert np.array(arm["T_base_cam"]).shape == (4, 4)
+    # Without the cell's config (the robot model, the tool's weight) it is refused, with what to give.
+    code, out = run(capsys, "calib", "solve", str(wide_session), "--json", "--arm")
+    assert code == 2 and "--config" in out["error"]
