@@ -134,7 +134,7 @@ class ArmModel:
         """The model's joint angles (n, 6) for the controller's joints ``q`` (n, 6): zeros and sag added."""
         Q = np.atleast_2d(np.asarray(q, dtype=np.float64)) + np.asarray(self.theta)
         if any(self.compliance):
-            F = np.asarray([kin.forward_all_rows(row, self.dh) for row in Q.tolist()]).reshape(-1, 6, 3, 4)
+            F = kin.forward_batch(Q, self.dh)[:, :, :3, :]
             Q = Q + np.asarray(self.compliance) * dynamics.joint_torques(F, self.links, self.payload)
         return Q
 
@@ -230,24 +230,6 @@ def _unpack(x: Array, nominal: kin.DH) -> tuple[Array, kin.DH, Array, Array]:
     return x[:6], dh, g[3], g[4]
 
 
-def _forward_batch(Q: Array, dh: kin.DH) -> Array:
-    """``T_base_i`` (n, 6, 4, 4) of joint rows ``Q`` (n, 6), vectorised over the rows."""
-    n = Q.shape[0]
-    T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
-    out = np.empty((n, 6, 4, 4))
-    for i in range(6):
-        c, s = np.cos(Q[:, i]), np.sin(Q[:, i])
-        ca, sa = math.cos(dh.alpha[i]), math.sin(dh.alpha[i])
-        L = np.zeros((n, 4, 4))
-        L[:, 0, 0], L[:, 0, 1], L[:, 0, 2], L[:, 0, 3] = c, -s * ca, s * sa, dh.a[i] * c
-        L[:, 1, 0], L[:, 1, 1], L[:, 1, 2], L[:, 1, 3] = s, c * ca, -c * sa, dh.a[i] * s
-        L[:, 2, 1], L[:, 2, 2], L[:, 2, 3] = sa, ca, dh.d[i]
-        L[:, 3, 3] = 1.0
-        T = T @ L
-        out[:, i] = T
-    return out
-
-
 class _Problem:
     """The residuals of one session under a parameter vector."""
 
@@ -273,9 +255,9 @@ class _Problem:
         _, dh, theta, c = _unpack(x, self.nominal)
         Q = self.q + theta
         if self.bends:
-            F = _forward_batch(Q, dh)[:, :, :3, :]
+            F = kin.forward_batch(Q, dh)[:, :, :3, :]
             Q = Q + c * dynamics.joint_torques(F, self.links, self.payload)
-        return _forward_batch(Q, dh)[:, 5]
+        return kin.forward_batch(Q, dh)[:, 5]
 
     def residuals(self, x: Array) -> Array:
         T_cam = self.camera(x[:6])

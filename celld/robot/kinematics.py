@@ -280,6 +280,25 @@ def forward_all_rows(q: Sequence[float], dh: DH = UR10E) -> list[Rows]:
     return out
 
 
+def forward_batch(Q: ArrayLike, dh: DH = UR10E) -> Array:
+    """``T_base_i`` (n, 6, 4, 4), i = 1..6, of joint rows ``Q`` (n, 6): :func:`forward_all_rows` over many
+    poses at once (numpy, for fits that evaluate the arm at every pose of a session many times)."""
+    Q = np.atleast_2d(np.asarray(Q, dtype=np.float64))
+    n = Q.shape[0]
+    T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+    out = np.empty((n, 6, 4, 4))
+    for i, (ca, sa) in enumerate(_twists(dh)):
+        c, s = np.cos(Q[:, i]), np.sin(Q[:, i])
+        L = np.zeros((n, 4, 4))
+        L[:, 0, 0], L[:, 0, 1], L[:, 0, 2], L[:, 0, 3] = c, -s * ca, s * sa, dh.a[i] * c
+        L[:, 1, 0], L[:, 1, 1], L[:, 1, 2], L[:, 1, 3] = s, c * ca, -c * sa, dh.a[i] * s
+        L[:, 2, 1], L[:, 2, 2], L[:, 2, 3] = sa, ca, dh.d[i]
+        L[:, 3, 3] = 1.0
+        T = T @ L
+        out[:, i] = T
+    return out
+
+
 def _clamp_trig(x: float) -> float | None:
     """``x`` clipped to [-1, 1] if it is within rounding of it, else None."""
     if x > 1.0:

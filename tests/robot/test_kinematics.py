@@ -187,3 +187,14 @@ def test_batched_jacobian_matches_the_single_one(rng: np.random.Generator) -> No
         np.testing.assert_allclose(J[i], kin.jacobian(q), atol=1e-12)
     with pytest.raises(InputError, match=r"expected \(n, 6, 3, 4\)"):
         kin.jacobian_from_frames(np.zeros((5, 6, 4, 4)))
+
+
+def test_forward_batch_is_forward_all_rows_pose_by_pose() -> None:
+    rng = np.random.default_rng(7)
+    Q = rng.uniform(-math.pi, math.pi, (5, 6))
+    dh = kin.DH(tuple(np.add(kin.UR10E.d, 1e-4)), kin.UR10E.a, tuple(np.add(kin.UR10E.alpha, 2e-4)))  # twists off pi/2 too
+    F = kin.forward_batch(Q, dh)
+    for i, q in enumerate(Q):
+        rows = np.asarray(kin.forward_all_rows(q.tolist(), dh)).reshape(6, 3, 4)
+        np.testing.assert_allclose(F[i, :, :3, :], rows, atol=1e-14)
+        np.testing.assert_array_equal(F[i, :, 3, :], np.broadcast_to([0.0, 0.0, 0.0, 1.0], (6, 4)))
