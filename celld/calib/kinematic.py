@@ -184,10 +184,10 @@ class ArmFit:
     model: ArmModel
     residuals: Array  # (n,) distance of each flange centre from the model's, m
     residuals_before: Array  # (n,) the same with the controller's kinematics and the start's T_base_cam
-    estimated: tuple[str, ...]
-    held: tuple[str, ...]
-    rank: int
-    condition: float
+    estimated: tuple[str, ...]  # the parameters fitted (the scanner's pose always)
+    held: tuple[str, ...]  # those held at zero: not told apart by the data, or held by design (COMPLIANT)
+    rank: int  # of the data's Jacobian over every parameter, scaled by the priors
+    condition: float  # of the fitted parameters' scaled Jacobian
     std: dict[str, float] = field(default_factory=dict)  # 1 sigma of each estimated parameter (SI)
     # Bounds on the norm of the flange's error at BOUND_CONFIDENCE, m: where the poses went (the fit's own
     # uncertainty there and what the pairs err from pose to pose), and anywhere else (that plus REMAINING_PRIOR).
@@ -340,11 +340,13 @@ def fit_arm(
     sigmas = _prior_sigmas()
     x0 = np.zeros(n_params)
     J = prob.jacobian(x0, sigmas * 1e-3)
-    keep, rank, cond = identifiable(J, sigmas)
+    keep, rank, _ = identifiable(J, sigmas)
     comp = 6 + 4 * 6
     keep[comp : comp + 6] = keep[comp : comp + 6] & np.isin(np.arange(6), COMPLIANT) & prob.bends
     keep[:6] = True  # the scanner's pose is always fitted
     idx = np.flatnonzero(keep)
+    sv = np.linalg.svd(J[:, idx] * sigmas[idx], compute_uv=False)  # the condition of what is fitted
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
     prior_w = SIGMA_POINT / sigmas[idx]
     prior_w[:6] = 0.0  # no prior on the scanner's pose
 
