@@ -133,6 +133,8 @@ def _solve_dict(args: argparse.Namespace) -> dict[str, Any]:
     from celld.calib.session import calibrate_session
     from celld.calib.solve import SolveParams
 
+    if args.arm and not args.config:
+        raise InputError("--arm: give the cell's --config (its robot model and the tool's weight, tool.mass_kg)")
     session = load_session(args.dir)
     name = args.flange or session.flange
     flange = preset(name) if name else None

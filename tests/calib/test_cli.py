@@ -257,7 +257,7 @@ def test_compensate_offline_without_a_verification_cloud_stores_the_estimate(tmp
 @pytest.fixture(scope="module")
 def wide_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A session of the arm calibration's wide poses in a realistic world (its arm sags, errs in its
-    kinematics and has lost motion; its scanner at 0.4 of its resolution), each pair with its joints."""
+    kinematics and has lost motion; its scanner at 0.3 of its resolution), each pair with its joints."""
     from dataclasses import replace
 
     from celld import config as config_mod
@@ -266,7 +266,7 @@ def wide_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     cfg = config_mod.load(CONFIGS / "sim-cell.toml")
     world = world_of(cfg, WorldOptions(preset="realistic", seed=4))
-    world = replace(world, scanner=replace(world.scanner, resolution_scale=0.4))
+    world = replace(world, scanner=replace(world.scanner, resolution_scale=0.3))
     view = WorldView(cfg, world, seed=4)
     root = tmp_path_factory.mktemp("wide") / "session"
     writer = SessionWriter(root, flange="ur10e", scanner="phoxi-m")
@@ -284,7 +284,8 @@ def test_solve_fits_the_arm_from_a_sessions_joints(wide_session: Path, capsys) -
     assert arm["pairs"] >= 18 and arm["pairs"] + len(arm["skipped"]) == 24
     # What centres and normals cannot tell apart is held and said; the rest fitted, the residuals shrunk.
     assert {"theta1", "theta6", "compliance1"} <= set(arm["held"]) and arm["rank"] < arm["parameters"]
-    assert arm["residual_rms_mm"] < 0.5 * arm["residual_rms_before_mm"], arm
+    # (at this resolution a centre scatters by about 0.15 mm: the fit explains the arm's part of the rest)
+    assert arm["residual_rms_mm"] < 0.65 * arm["residual_rms_before_mm"], arm
     assert 0.0 < arm["bound"]["poses_mm"] < arm["bound"]["away_mm"] and arm["corrections"]["payload_kg"] == 1.6
     assert np.array(arm["T_base_cam"]).shape == (4, 4)
     # Without the cell's config (the robot model, the tool's weight) it is refused, with what to give.
