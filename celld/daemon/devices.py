@@ -219,6 +219,15 @@ class Tactile:
             self.error = str(exc)
             log.error("tactile process restart failed", error=str(exc), next_try_s=TACTILE_BACKOFF.delay(self._failures + 1))
 
+    def wait_reason(self) -> str:
+        """Why the cell waits for its finger camera ("" when it reads): its process ended, failed to start, or is
+        starting (alive, but not yet reading its camera: it may still fail, so no job counts on it yet)."""
+        process = self.process
+        if process is None or process.running():
+            return ""
+        why = self.error or ("its process is starting" if process.alive() else "its process ended; restarting it")
+        return f"finger camera not running: waiting ({why})"
+
     def sample(self) -> TactileSample | None:
         return None if self.process is None else self.process.latest()
 
@@ -520,10 +529,7 @@ class CellDevices:
         return "" if self.scanner.device is not None else f"scanner not open: waiting ({self.scanner.error or 'not opened yet'})"
 
     def _camera_wait(self) -> str:
-        process = self.tactile.process
-        if process is None or process.alive():
-            return ""
-        return f"finger camera not running: waiting ({self.tactile.error or 'its process ended; restarting it'})"
+        return self.tactile.wait_reason()
 
     def _on_dashboard(self) -> None:
         if self.held and self.life.dashboard.last is not None and self.life.dashboard.last.reachable:

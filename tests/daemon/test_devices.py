@@ -19,6 +19,7 @@ from celld.supervision import Backoff
 class FakeTactile:
     def __init__(self, fail: bool = False) -> None:
         self.up = True
+        self.ready = True
         self.fail = fail
         self.restarts = 0
         self.exitcode: int | None = None
@@ -26,12 +27,28 @@ class FakeTactile:
     def alive(self) -> bool:
         return self.up
 
+    def running(self) -> bool:
+        return self.up and self.ready
+
     def restart(self) -> int | None:
         self.restarts += 1
         if self.fail:
             raise DeviceError("the tactile process exited at start (exit code 1)")
         self.up = True
         return self.exitcode
+
+
+def test_the_cell_waits_for_its_finger_camera_until_its_process_reads_it() -> None:
+    srm = Tactile(Config(), None)
+    srm.process = FakeTactile()  # type: ignore[assignment]
+    assert srm.wait_reason() == ""
+    # Restarted, alive but not yet reading the camera (it may still fail at open): a weld must not count on it.
+    srm.process.ready = False
+    assert srm.wait_reason() == "finger camera not running: waiting (its process is starting)"
+    srm.process.up = False
+    assert srm.wait_reason() == "finger camera not running: waiting (its process ended; restarting it)"
+    srm.error = "the tactile process exited at start (exit code 1)"
+    assert srm.wait_reason().endswith("(the tactile process exited at start (exit code 1))")
 
 
 def test_a_dead_tactile_process_is_restarted_with_a_delay_between_attempts(monkeypatch) -> None:
