@@ -155,50 +155,29 @@ def _solve_dict(args: argparse.Namespace) -> dict[str, Any]:
     if session.mount.on_arm:
         out["mount"] = session.mount.name
     if args.arm:
-        out["arm"] = _arm_fit(session, flange, result.T_base_cam, config.load(args.config) if args.config else None)
+        out["arm"] = _arm_fit(session, flange, result.T_base_cam, config.load(args.config))
     return out
 
 
 def _arm_fit(session: Any, flange: Any, T_base_cam: np.ndarray, cfg: Any) -> dict[str, Any]:
     """The arm's kinematic calibration from a session's pairs: each flange found again in its cloud (centre and
     face normal, near where ``T_base_cam`` puts it), fitted with the controller's joints of the capture."""
-    import numpy as np
-
-    from celld import se3
-    from celld.calib.detect import detect_flange
     from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
-    from celld.calib.kinematic import fit_arm
+    from celld.calib.kinematic import ArmPairs
     from celld.robot import dynamics
-    from celld.robot import kinematics as kin
 
-    if cfg is None:
-        raise InputError("--arm: give the cell's --config (its robot model and the tool's weight, tool.mass_kg)")
     if session.mount.on_arm:
         raise InputError(f"--arm: the scanner is on {session.mount.name}; the arm's calibration needs a fixed scanner")
     if flange is None:
         raise InputError("--arm: the flange must be found in each cloud again: give --flange")
-    params = PARAMS_BY_SCANNER.get(session.scanner or "", DetectParams())
-    Q, P, N, skipped = [], [], [], []
+    pairs = ArmPairs(flange, PARAMS_BY_SCANNER.get(session.scanner or "", DetectParams()), T_base_cam)
     for rec in session.pairs:
-        if rec.q is None or rec.cloud_path is None or rec.T_base_flange is None:
-            skipped.append(f"{rec.id}: no joints, cloud or flange pose")
+        if rec.q is None or rec.cloud_path is None:
+            pairs.skipped.append(f"{rec.id}: no joints or no cloud")
             continue
-        try:
-            det = detect_flange(session.cloud(rec), flange, params, roi_center=se3.apply(se3.invert(T_base_cam), rec.p_base))
-        except CelldError as exc:
-            skipped.append(f"{rec.id}: {exc}")
-            continue
-        Q.append(rec.q)
-        P.append(det.center)
-        N.append(det.normal)
-    if len(Q) < 4:
-        raise InputError(
-            f"--arm: {len(Q)} pairs with joints and a flange found; the arm's calibration needs many more ({'; '.join(skipped[:3])})"
-        )
-    model = cfg.robot.model
-    payload = dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange)
-    fit = fit_arm(np.asarray(Q), np.asarray(P), T_base_cam, kin.model(model).dh, dynamics.links(model), payload, n_cam=np.asarray(N))
-    return {**fit.report(), "T_base_cam": fit.T_base_cam.tolist(), "pairs": len(Q), "skipped": skipped}
+        pairs.add(rec.id, session.cloud(rec), rec.p_base, rec.q)
+    fit = pairs.fit(cfg.robot.model, dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange))
+    return {**fit.report(), "T_base_cam": fit.T_base_cam.tolist(), "pairs": len(pairs.q), "skipped": pairs.skipped}
 
 
 def _read_any_cloud(path: Path, units: str) -> np.ndarray:

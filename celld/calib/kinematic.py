@@ -35,7 +35,7 @@ where it is wanted.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -43,10 +43,13 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import qr
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2
 
 from celld import se3
-from celld.errors import InputError
+from celld.calib.detect import detect_flange
+from celld.calib.detect_params import DetectParams
+from celld.calib.flange import FlangeModel
+from celld.calib.quality import norm_bound
+from celld.errors import CelldError, InputError
 from celld.robot import dynamics
 from celld.robot import kinematics as kin
 
@@ -122,9 +125,9 @@ class ArmModel:
     payload: dynamics.Payload = dynamics.Payload()
 
     @classmethod
-    def identity(cls, nominal: kin.DH, links: dynamics.Links | None = None, payload: dynamics.Payload = dynamics.Payload()) -> ArmModel:
+    def identity(cls, nominal: kin.DH) -> ArmModel:
         """The controller's own kinematics, no correction."""
-        return cls(nominal, nominal, links=links, payload=payload)
+        return cls(nominal, nominal)
 
     @property
     def is_identity(self) -> bool:
@@ -138,9 +141,13 @@ class ArmModel:
             Q = Q + np.asarray(self.compliance) * dynamics.joint_torques(F, self.links, self.payload)
         return Q
 
+    def flanges(self, q: ArrayLike) -> Array:
+        """Where the model puts the flange (n, 4, 4) with the controller at joints ``q`` (n, 6)."""
+        return kin.forward_batch(self.joints(q), self.dh)[:, 5]
+
     def forward(self, q: ArrayLike) -> Array:
         """Where the model puts the flange (4, 4) with the controller at joints ``q`` (6,)."""
-        return kin.forward(self.joints(q)[0], self.dh)
+        return self.flanges(q)[0]
 
     def precorrect(self, T_base_flange: ArrayLike, q_near: ArrayLike) -> tuple[Array, Array] | None:
         """The pose to send the controller so that the flange lands at ``T_base_flange`` by this model.
@@ -188,7 +195,6 @@ class ArmFit:
     held: tuple[str, ...]  # those held at zero: not told apart by the data, or held by design (COMPLIANT)
     rank: int  # of the data's Jacobian over every parameter, scaled by the priors
     condition: float  # of the fitted parameters' scaled Jacobian
-    std: dict[str, float] = field(default_factory=dict)  # 1 sigma of each estimated parameter (SI)
     # Bounds on the norm of the flange's error at BOUND_CONFIDENCE, m: where the poses went (the fit's own
     # uncertainty there and what the pairs err from pose to pose), and anywhere else (that plus REMAINING_PRIOR).
     bound_poses: float = math.inf
@@ -219,15 +225,15 @@ class ArmFit:
         }
 
 
-def _unpack(x: Array, nominal: kin.DH) -> tuple[Array, kin.DH, Array, Array]:
-    """Parameter vector -> (pose correction (6,), corrected DH, theta (6,), compliance (6,))."""
+def _unpack(x: Array, nominal: kin.DH, links: dynamics.Links | None, payload: dynamics.Payload) -> tuple[Array, ArmModel]:
+    """Parameter vector -> (the scanner's pose correction (6,), the arm's model)."""
     g = x[6:].reshape(5, 6)
     dh = kin.DH(
         tuple((np.asarray(nominal.d) + g[0]).tolist()),
         tuple((np.asarray(nominal.a) + g[1]).tolist()),
         tuple((np.asarray(nominal.alpha) + g[2]).tolist()),
     )
-    return x[:6], dh, g[3], g[4]
+    return x[:6], ArmModel(nominal, dh, tuple(g[3].tolist()), tuple(g[4].tolist()), links, payload)
 
 
 class _Problem:
@@ -247,17 +253,15 @@ class _Problem:
         self.nominal, self.links, self.payload = nominal, links, payload
         self.bends = links is not None or payload.mass > 0.0
 
+    def model(self, x: Array) -> tuple[Array, ArmModel]:
+        return _unpack(x, self.nominal, self.links, self.payload)
+
     def camera(self, pose: Array) -> Array:
         return se3.transform_from(Rotation.from_rotvec(pose[:3]).as_matrix() @ self.T0[:3, :3], self.T0[:3, 3] + pose[3:])
 
     def flange(self, x: Array) -> Array:
         """The model's flange poses (n, 4, 4) under ``x``."""
-        _, dh, theta, c = _unpack(x, self.nominal)
-        Q = self.q + theta
-        if self.bends:
-            F = kin.forward_batch(Q, dh)[:, :, :3, :]
-            Q = Q + c * dynamics.joint_torques(F, self.links, self.payload)
-        return kin.forward_batch(Q, dh)[:, 5]
+        return self.model(x)[1].flanges(self.q)
 
     def residuals(self, x: Array) -> Array:
         T_cam = self.camera(x[:6])
@@ -281,17 +285,15 @@ def _prior_sigmas() -> Array:
     return np.concatenate([np.asarray(POSE_PRIOR), *(np.full(6, PRIOR[g]) for g in GROUPS)])
 
 
-def identifiable(J: Array, sigmas: Array, tol: float = RANK_TOL) -> tuple[NDArray[np.bool_], int, float]:
-    """Which parameters the data tells apart: a mask over the columns of ``J``, the rank and the condition
-    number of the kept columns, each scaled by its prior ``sigmas`` (a rank-revealing QR with column pivoting)."""
-    Js = J * sigmas
-    _, R, piv = qr(Js, mode="economic", pivoting=True)
+def identifiable(J: Array, sigmas: Array, tol: float = RANK_TOL) -> tuple[NDArray[np.bool_], int]:
+    """Which parameters the data tells apart, a mask over the columns of ``J``, and its rank: each column
+    scaled by its prior ``sigmas``, a rank-revealing QR with column pivoting."""
+    _, R, piv = qr(J * sigmas, mode="economic", pivoting=True)
     d = np.abs(np.diag(R))
     rank = int(np.count_nonzero(d > tol * d[0])) if d.size and d[0] > 0 else 0
     keep = np.zeros(J.shape[1], dtype=bool)
     keep[piv[:rank]] = True
-    s = np.linalg.svd(Js[:, keep], compute_uv=False)
-    return keep, rank, float(s[0] / s[-1]) if s.size and s[-1] > 0 else math.inf
+    return keep, rank
 
 
 def fit_arm(
@@ -325,6 +327,8 @@ def fit_arm(
         if N.shape != P.shape or not np.all(np.isfinite(N)):
             raise InputError(f"arm calibration: expected finite normals (n, 3), got {N.shape}")
         N = N / np.linalg.norm(N, axis=1, keepdims=True)
+    if len(Q) < 4:
+        raise InputError(f"arm calibration: {len(Q)} poses cannot fit an arm (at least 4)")
     T0 = se3.check_transform(T_base_cam0, "T_base_cam0")
     if not compliance:
         links, payload = None, dynamics.Payload()
@@ -335,12 +339,9 @@ def fit_arm(
         if np.mean(np.sum((N @ T0[:3, :3].T) * z, axis=1)) < 0.0:
             prob.n_cam = -N
     n_params = len(NAMES)
-    if len(Q) * 3 < 12:
-        raise InputError(f"arm calibration: {len(Q)} poses cannot fit an arm (at least 4)")
     sigmas = _prior_sigmas()
-    x0 = np.zeros(n_params)
-    J = prob.jacobian(x0, sigmas * 1e-3)
-    keep, rank, _ = identifiable(J, sigmas)
+    J = prob.jacobian(np.zeros(n_params), sigmas * 1e-3)
+    keep, rank = identifiable(J, sigmas)
     comp = 6 + 4 * 6
     keep[comp : comp + 6] = keep[comp : comp + 6] & np.isin(np.arange(6), COMPLIANT) & prob.bends
     keep[:6] = True  # the scanner's pose is always fitted
@@ -358,37 +359,57 @@ def fit_arm(
     sol = least_squares(fun, np.zeros(idx.size), x_scale=sigmas[idx], method="trf")
     x = np.zeros(n_params)
     x[idx] = sol.x
-    pose, dh, theta, c = _unpack(x, nominal)
-    model = ArmModel(nominal, dh, tuple(theta.tolist()), tuple(c.tolist()), links, payload)
+    pose, model = prob.model(x)
     T_cam = prob.camera(pose)
-    M = prob.flange(x)
-    res = np.linalg.norm(P @ T_cam[:3, :3].T + T_cam[:3, 3] - M[:, :3, 3], axis=1)
-    M0 = prob.flange(np.zeros(n_params))
-    res0 = np.linalg.norm(P @ T0[:3, :3].T + T0[:3, 3] - M0[:, :3, 3], axis=1)
-    # 1 sigma of each estimate: the Gauss-Newton covariance scaled by the residuals' own spread.
-    std: dict[str, float] = {}
-    dof = max(sol.fun.size - idx.size, 1)
-    s2 = float(np.sum(sol.fun**2) / dof)
+    res = np.linalg.norm(P @ T_cam[:3, :3].T + T_cam[:3, 3] - prob.flange(x)[:, :3, 3], axis=1)
+    res0 = np.linalg.norm(P @ T0[:3, :3].T + T0[:3, 3] - prob.flange(np.zeros(n_params))[:, :3, 3], axis=1)
+    # The bound where the poses went: at each, the fit's own error (its Gauss-Newton covariance, scaled by
+    # the residuals' spread, carried to the flange centre) and the pose-to-pose error (the residuals' RMS
+    # per axis); away from them that plus what the arm keeps there.
     bound_poses = bound_away = math.inf
     try:
-        cov = np.linalg.inv(sol.jac.T @ sol.jac) * s2
-        std = {NAMES[i]: float(math.sqrt(max(cov[k, k], 0.0))) for k, i in enumerate(idx)}
-        bound_poses = _bound(sol.jac[: 3 * len(Q)], cov, res)
+        cov = np.linalg.inv(sol.jac.T @ sol.jac) * float(np.sum(sol.fun**2) / max(sol.fun.size - idx.size, 1))
+        G = sol.jac[: 3 * len(Q)].reshape(len(Q), 3, idx.size)
+        bound_poses = norm_bound(G @ cov @ G.transpose(0, 2, 1), float(np.sqrt(np.mean(res**2) / 3.0)), BOUND_CONFIDENCE)
         bound_away = bound_poses + REMAINING_PRIOR
     except np.linalg.LinAlgError:
         pass
     held = tuple(NAMES[i] for i in range(n_params) if not keep[i])
-    return ArmFit(T_cam, model, res, res0, tuple(NAMES[i] for i in idx), held, rank, cond, std, bound_poses, bound_away)
+    return ArmFit(T_cam, model, res, res0, tuple(NAMES[i] for i in idx), held, rank, cond, bound_poses, bound_away)
 
 
-def _bound(J_points: Array, cov: Array, residuals: Array) -> float:
-    """The bound where the poses went (m): at each pose the fit's own error (covariance ``J cov J^T`` of the
-    flange centre, its largest axis) and the pose-to-pose error (the residuals' RMS per axis), at the
-    chi-3 quantile of the confidence, the largest over the poses."""
-    r = math.sqrt(float(chi2.ppf(BOUND_CONFIDENCE, 3)))
-    scatter = float(np.sqrt(np.mean(residuals**2) / 3.0))
-    worst = 0.0
-    for i in range(len(J_points) // 3):
-        G = J_points[3 * i : 3 * i + 3]
-        worst = max(worst, float(np.linalg.eigvalsh(G @ cov @ G.T)[-1]))
-    return r * math.sqrt(worst + scatter**2)
+class ArmPairs:
+    """The flanges of an arm calibration's session: each found in its cloud near where ``T_base_cam`` (the
+    hand-eye calibration) puts it, its centre and face normal (camera frame) kept with the controller's
+    joints of the capture; then fitted (:func:`fit_arm`) as a cell of ``robot_model`` carrying ``payload``."""
+
+    def __init__(self, flange: FlangeModel, params: DetectParams, T_base_cam: ArrayLike) -> None:
+        self.flange, self.params = flange, params
+        self.T_base_cam = se3.check_transform(T_base_cam, "T_base_cam")
+        self._T_cam_base = se3.invert(self.T_base_cam)
+        self.q: list[Array] = []
+        self.p_cam: list[Array] = []
+        self.n_cam: list[Array] = []
+        self.skipped: list[str] = []
+
+    def add(self, name: str, cloud: ArrayLike, p_base: ArrayLike, q: ArrayLike) -> bool:
+        """One capture: ``cloud`` (camera frame), the flange centre the controller reports ``p_base`` and its
+        joints ``q``; False (and why in :attr:`skipped`) when the flange is not found."""
+        try:
+            det = detect_flange(np.asarray(cloud), self.flange, self.params, roi_center=se3.apply(self._T_cam_base, p_base))
+        except CelldError as exc:
+            self.skipped.append(f"{name}: {exc}")
+            return False
+        self.q.append(np.asarray(q, dtype=np.float64))
+        self.p_cam.append(det.center)
+        self.n_cam.append(det.normal)
+        return True
+
+    def fit(self, robot_model: str, payload: dynamics.Payload) -> ArmFit:
+        if len(self.q) < 4:
+            why = "; ".join(self.skipped[:3])
+            raise InputError(
+                f"arm calibration: {len(self.q)} pairs with the flange found; it needs many more" + (f" ({why})" if why else "")
+            )
+        nominal, links = kin.model(robot_model).dh, dynamics.links(robot_model)
+        return fit_arm(np.asarray(self.q), np.asarray(self.p_cam), self.T_base_cam, nominal, links, payload, n_cam=np.asarray(self.n_cam))

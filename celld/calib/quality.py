@@ -801,21 +801,29 @@ def _bounds(cov: Array, T: Array, P_used: Array, centre: Array, sigma: float, pa
     quantile of the noise per axis; the arm's own error away from the pairs
     adds its prior, whole (it is systematic, not a scatter).
     """
-    r = math.sqrt(float(chi2.ppf(params.bound_confidence, 3)))
 
-    def estimate(p: Array) -> float:
-        if not np.all(np.isfinite(cov)):
-            return math.inf
-        G = np.hstack([-_skew(p - T[:3, 3]), np.eye(3)])
-        return r * math.sqrt(max(float(np.linalg.eigvalsh(G @ cov @ G.T)[-1]), 0.0))
+    def at(points: Array) -> Array:
+        """The estimate's covariance (k, 3, 3) at each point (k, 3)."""
+        G = np.stack([np.hstack([-_skew(p - T[:3, 3]), np.eye(3)]) for p in points])
+        return np.asarray(G @ cov @ G.transpose(0, 2, 1))
 
     lo, hi = P_used.min(axis=0), P_used.max(axis=0)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    scatter = r * sigma
-    box = max(math.hypot(estimate(c), scatter) for c in corners)
+    box = norm_bound(at(corners), sigma, params.bound_confidence)
     away_points = centre + params.work_radius * np.vstack([np.eye(3), -np.eye(3)])
-    away = max(math.hypot(estimate(p), scatter) for p in away_points) + params.arm_error_prior
+    away = norm_bound(at(away_points), sigma, params.bound_confidence) + params.arm_error_prior
     return box, max(away, box + params.arm_error_prior)
+
+
+def norm_bound(cov_points: Array, sigma: float, confidence: float) -> float:
+    """A bound on the norm of a 3-D error, the largest over points: at each, the error of an estimate with
+    covariance ``cov_points[i]`` (3, 3), taken on its largest axis (conservative for the others), and a
+    scatter of ``sigma`` per axis, at the chi-3 quantile of ``confidence``; inf for a covariance not finite."""
+    C = np.asarray(cov_points, dtype=np.float64).reshape(-1, 3, 3)
+    if not np.all(np.isfinite(C)):
+        return math.inf
+    worst = max(float(np.linalg.eigvalsh(C)[:, -1].max()), 0.0) if len(C) else 0.0
+    return math.sqrt(float(chi2.ppf(confidence, 3))) * math.sqrt(worst + sigma**2)
 
 
 def _skew(v: Array) -> Array:

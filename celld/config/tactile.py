@@ -56,14 +56,11 @@ MAX_TOOL_REACH = 1.0
 MAX_PAYLOAD = 30.0
 
 
-def _com(r: TableReader) -> tuple[float, float, float]:
-    """``com_flange_mm``: the tool's centre of mass in the flange frame, within the tool's reach."""
-    v = r.vector("com_flange_mm", 3, [0.0, 0.0, 0.0], scale=1e-3)
+def _point_mm(r: TableReader, name: str, default: tuple[float, float, float], what: str, origin: str) -> tuple[float, float, float]:
+    """A point given in millimetres (``name``), in metres, within :data:`MAX_TOOL_REACH` of ``origin``."""
+    v = r.vector(name, 3, [x * 1e3 for x in default], scale=1e-3)
     if np.linalg.norm(v) > MAX_TOOL_REACH:
-        raise r.error(
-            "com_flange_mm",
-            f"expected the centre of mass within {MAX_TOOL_REACH * 1e3:g} mm of the flange (millimetres), got {[x * 1e3 for x in v]}",
-        )
+        raise r.error(name, f"expected {what} within {MAX_TOOL_REACH * 1e3:g} mm of the {origin} (millimetres), got {[x * 1e3 for x in v]}")
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
@@ -184,11 +181,7 @@ class ToolConfig:
         if abs(float(np.dot(tool_x, tool_z))) > 1e-6:
             raise r.error("tool_z_tcp", f"expected a direction perpendicular to tool_x_tcp {tool_x}, got {tool_z}")
         lo, hi = SERVO_BOUNDS["torch_offset"].lo * 1e3, SERVO_BOUNDS["torch_offset"].hi * 1e3
-        tip = r.vector("tip_tcp_mm", 3, [x * 1e3 for x in cls.tip_tcp], scale=1e-3)
-        if np.linalg.norm(tip) > MAX_TOOL_REACH:
-            raise r.error(
-                "tip_tcp_mm", f"expected the tip within {MAX_TOOL_REACH * 1e3:g} mm of the TCP (millimetres), got {[v * 1e3 for v in tip]}"
-            )
+        tip = _point_mm(r, "tip_tcp_mm", cls.tip_tcp, "the tip", "TCP")
         T_tool_cam = r.matrix4("T_tool_cam", [list(row) for row in cls.T_tool_cam])
         if np.linalg.norm(np.asarray(T_tool_cam)[:3, 3]) > MAX_TOOL_REACH:
             raise r.error(
@@ -198,7 +191,7 @@ class ToolConfig:
         return cls(
             tool_x_tcp=tool_x,
             tool_z_tcp=tool_z,
-            tip_tcp=tip,  # type: ignore[arg-type]
+            tip_tcp=tip,
             tip_radius=r.float("tip_radius_mm", cls.tip_radius * 1e3, lo=0.0, hi=20.0, scale=1e-3),
             T_tool_cam=T_tool_cam,
             wall_side=r.str("wall_side", cls.wall_side, choices=("left", "right")),
@@ -206,7 +199,7 @@ class ToolConfig:
             wire_diameter=r.float("wire_diameter_mm", cls.wire_diameter * 1e3, lo=0.2, hi=5.0, scale=1e-3),
             measured=r.str("measured", cls.measured, choices=TOOL_MEASURED),
             mass=r.float("mass_kg", cls.mass, lo=0.0, hi=MAX_PAYLOAD),
-            com_flange=_com(r),
+            com_flange=_point_mm(r, "com_flange_mm", cls.com_flange, "the centre of mass", "flange"),
         )
 
 

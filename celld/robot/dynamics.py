@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from celld.errors import InputError
+from celld.robot import kinematics as kin
 
 Array = NDArray[np.float64]
 
@@ -72,23 +72,6 @@ def links(model: str) -> Links | None:
     return LINKS.get(model)
 
 
-def _frames(frames: ArrayLike) -> Array:
-    F = np.asarray(frames, dtype=np.float64)
-    if F.ndim == 3:
-        F = F[None]
-    if F.ndim != 4 or F.shape[1:] != (6, 3, 4):
-        raise InputError(f"frames: expected (n, 6, 3, 4) transforms T_base_1..T_base_6, got shape {F.shape}")
-    return F
-
-
-def _axes(F: Array) -> tuple[Array, Array]:
-    """Joint axes z (n, 6, 3) and points o (n, 6, 3) on them: joint i turns about z of frame i-1 (0: the base)."""
-    n = F.shape[0]
-    z = np.concatenate([np.broadcast_to([0.0, 0.0, 1.0], (n, 1, 3)), F[:, :5, :, 2]], axis=1)
-    o = np.concatenate([np.zeros((n, 1, 3)), F[:, :5, :, 3]], axis=1)
-    return z, o
-
-
 def joint_torques(
     frames: ArrayLike,
     arm: Links | None,
@@ -105,8 +88,8 @@ def joint_torques(
     A positive torque turns its joint the positive way: a compliant joint
     yields by ``compliance * torque``.
     """
-    F = _frames(frames)
-    z, o = _axes(F)
+    F = np.asarray(frames, dtype=np.float64)
+    F, z, o = kin.joint_axes(F[None] if F.ndim == 3 else F)
     R, t = F[..., :3], F[..., 3]  # (n, 6, 3, 3), (n, 6, 3)
     # Every mass as a point in the base frame, and the last joint it sits beyond: link k (frame k)
     # beyond joint k, the payload (the flange frame) beyond all six.
@@ -121,8 +104,8 @@ def joint_torques(
     moment = np.einsum("mj,nmi->nji", beyond, P) - beyond.sum(axis=0)[None, :, None] * o
     tau = np.einsum("nji,nji->nj", z, np.cross(moment, [0.0, 0.0, -gravity]))
     if force is not None:
-        f = np.asarray(force, dtype=np.float64).reshape(3)
+        # A force at a point loads the joints by the transpose of that point's Jacobian.
         p_local = np.zeros(3) if force_point is None else np.asarray(force_point, dtype=np.float64).reshape(3)
-        p = np.einsum("nij,j->ni", R[:, 5], p_local) + t[:, 5]
-        tau += np.einsum("nji,nji->nj", z, np.cross(p[:, None, :] - o, f))
+        J = kin.jacobian_from_frames(F, np.einsum("nij,j->ni", R[:, 5], p_local) + t[:, 5])
+        tau += np.einsum("nij,i->nj", J[:, :3, :], np.asarray(force, dtype=np.float64).reshape(3))
     return tau

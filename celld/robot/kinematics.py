@@ -443,6 +443,18 @@ def inverse(
     return None if q is None else np.asarray(q)
 
 
+def joint_axes(frames: ArrayLike) -> tuple[Array, Array, Array]:
+    """The frames ``T_base_i`` (n, 6, 3, 4), i = 1..6, checked, and each joint's axis z (n, 6, 3) and a point
+    o (n, 6, 3) on it: joint i turns about z of frame i-1 through its origin; frame 0 is the base."""
+    F = np.asarray(frames, dtype=np.float64)
+    if F.ndim != 4 or F.shape[1:] != (6, 3, 4):
+        raise InputError(f"frames: expected (n, 6, 3, 4) transforms T_base_1..T_base_6, got shape {F.shape}")
+    n = F.shape[0]
+    z = np.concatenate([np.broadcast_to([0.0, 0.0, 1.0], (n, 1, 3)), F[:, :5, :, 2]], axis=1)
+    o = np.concatenate([np.zeros((n, 1, 3)), F[:, :5, :, 3]], axis=1)
+    return F, z, o
+
+
 def jacobian_from_frames(frames: ArrayLike, p_end: ArrayLike | None = None) -> Array:
     """Geometric Jacobians (n, 6, 6) from the frames ``T_base_i`` (n, 6, 3, 4), i = 1..6.
 
@@ -451,13 +463,8 @@ def jacobian_from_frames(frames: ArrayLike, p_end: ArrayLike | None = None) -> A
     origin when None. Rows 0-2 map joint speeds (rad/s) to that point's linear
     velocity (m/s), rows 3-5 to the angular velocity (rad/s), base frame.
     """
-    F = np.asarray(frames, dtype=np.float64)
-    if F.ndim != 4 or F.shape[1:] != (6, 3, 4):
-        raise InputError(f"frames: expected (n, 6, 3, 4) transforms T_base_1..T_base_6, got shape {F.shape}")
+    F, z, o = joint_axes(frames)
     n = F.shape[0]
-    # Joint i turns about z of frame i-1 through its origin; frame 0 is the base.
-    z = np.concatenate([np.broadcast_to([0.0, 0.0, 1.0], (n, 1, 3)), F[:, :5, :, 2]], axis=1)
-    o = np.concatenate([np.zeros((n, 1, 3)), F[:, :5, :, 3]], axis=1)
     p = F[:, 5, :, 3] if p_end is None else np.asarray(p_end, dtype=np.float64).reshape(n, 3)
     J = np.empty((n, 6, 6))
     J[:, :3, :] = np.cross(z, p[:, None, :] - o).transpose(0, 2, 1)

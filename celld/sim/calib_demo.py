@@ -27,17 +27,14 @@ import numpy as np
 from celld import config as config_mod
 from celld import se3
 from celld.calib.dataset import SessionWriter
-from celld.calib.detect import detect_flange
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
-from celld.calib.kinematic import WIDE, ArmFit, fit_arm
+from celld.calib.kinematic import WIDE, ArmFit, ArmPairs
 from celld.calib.mount import ScannerMount, in_frame
 from celld.calib.poses import calibration_poses
 from celld.calib.session import CalibrationSession
 from celld.calib.solve import CalibrationResult, SolveParams
-from celld.errors import CelldError
 from celld.robot import dynamics
-from celld.robot import kinematics as kin
 from celld.sim.scanner import SimScanner, scanner_model
 from celld.sim.scene import robot_scene
 from celld.sim.world import World, add_world_arguments, options_from_args, world_of
@@ -73,17 +70,16 @@ class WorldView:
     """The world's scanner looking at the flange where the world's arm truly puts it (the truth renders, the
     caller only gets clouds and the controller's joints)."""
 
-    def __init__(self, cfg: config_mod.Config, world: World, seed: int, rise: float = 0.0) -> None:
-        sc = world.scanner
-        unit = scanner_model(sc.model) if sc.metal_bias is None else replace(scanner_model(sc.model), metal_bias=sc.metal_bias)
-        self.world, self.rise = world, rise
-        self.home = np.asarray(cfg.robot.home_q, dtype=np.float64)
-        self.q = self.home
+    def __init__(self, cfg: config_mod.Config, world: World, seed: int) -> None:
         from celld.sim.score import true_camera
 
+        sc = world.scanner
+        unit = scanner_model(sc.model) if sc.metal_bias is None else replace(scanner_model(sc.model), metal_bias=sc.metal_bias)
+        self.world = world
+        self.q = np.asarray(cfg.robot.home_q, dtype=np.float64)  # where the arm comes from
         self.scanner = SimScanner(
             unit,
-            true_camera(world, self.home),
+            true_camera(world, self.q),
             seed=seed,
             resolution_scale=sc.resolution_scale,
             roi_px=sc.roi_px,
@@ -95,7 +91,7 @@ class WorldView:
         pose), and the controller's joints."""
         from celld.sim.score import true_camera, true_flange
 
-        got = true_flange(self.world, T_cmd, self.q, self.rise)
+        got = true_flange(self.world, T_cmd, self.q)
         T_true, q = (T_cmd, self.q) if got is None else got  # out of the nominal reach: drawn where commanded
         self.q = q
         self.scanner.move_to(true_camera(self.world, q))
@@ -177,29 +173,17 @@ def calibrate_arm_in_world(
     believes its arm (the controller's DH table, UR's published links, the configured payload)."""
     t0 = time.perf_counter()
     hand_eye = calibrate_in_world(cfg, world, n, seed)
-    T0 = hand_eye.result.T_base_cam
-    flange = preset(cfg.calibration.flange)
-    dparams: DetectParams = PARAMS_BY_SCANNER[cfg.scanner.model]
+    pairs = ArmPairs(preset(cfg.calibration.flange), PARAMS_BY_SCANNER[cfg.scanner.model], hand_eye.result.T_base_cam)
     view = WorldView(cfg, world, seed + 1)
     poses = wide_poses(cfg, n_wide or WIDE.n_poses, seed)
-    Q, P, N = [], [], []
-    for T in poses:
+    for i, T in enumerate(poses):
         cloud, q = view.seen(T)
-        p_pred = se3.apply(se3.invert(T0), T[:3, 3])  # where the hand-eye calibration says the flange is
-        try:
-            det = detect_flange(cloud, flange, dparams, roi_center=p_pred)
-        except CelldError as exc:
-            if say is not None:
-                say(f"  wide pose: no flange ({exc})")
-            continue
-        Q.append(q)
-        P.append(det.center)
-        N.append(det.normal)
-    model = cfg.robot.model
-    Qa, Pa, Na = np.asarray(Q), np.asarray(P), np.asarray(N)
-    payload = dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange)
-    fit = fit_arm(Qa, Pa, T0, kin.model(model).dh, dynamics.links(model), payload, n_cam=Na)
-    return OfflineArmCalibration(hand_eye, fit, len(poses), time.perf_counter() - t0, Qa, Pa, Na)
+        if not pairs.add(f"wide pose {i}", cloud, T[:3, 3], q) and say is not None:
+            say(f"  {pairs.skipped[-1]}")
+    fit = pairs.fit(cfg.robot.model, dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange))
+    return OfflineArmCalibration(
+        hand_eye, fit, len(poses), time.perf_counter() - t0, np.asarray(pairs.q), np.asarray(pairs.p_cam), np.asarray(pairs.n_cam)
+    )
 
 
 def run(args: argparse.Namespace) -> int:

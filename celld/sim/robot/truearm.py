@@ -40,6 +40,7 @@ import math
 import random
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from functools import cached_property
 from typing import cast
 
 import numpy as np
@@ -195,14 +196,19 @@ class ArmTruth:
         d, a, alpha = self.dh
         return kin.DH(tuple(v * k for v in d), tuple(v * k for v in a), alpha)  # type: ignore[arg-type]
 
+    @cached_property
+    def _loads(self) -> tuple[dynamics.Links, dynamics.Payload]:
+        return (
+            dynamics.Links(self.link_mass, self.link_com),  # type: ignore[arg-type]
+            dynamics.Payload(self.payload_mass, self.payload_com),  # type: ignore[arg-type]
+        )
+
     def sag(self, q: Sequence[float], dh: kin.DH | None = None) -> list[float]:
         """How far each joint yields at the physical joints ``q`` (rad): compliance times the load's torque."""
         if not self.bends:
             return [0.0] * 6
         frames = np.asarray(kin.forward_all_rows(q, self.dh if dh is None else dh)).reshape(1, 6, 3, 4)
-        links = dynamics.Links(self.link_mass, self.link_com)  # type: ignore[arg-type]
-        payload = dynamics.Payload(self.payload_mass, self.payload_com)  # type: ignore[arg-type]
-        tau = dynamics.joint_torques(frames, links, payload, self.hose_force, self.hose_point)[0]
+        tau = dynamics.joint_torques(frames, *self._loads, self.hose_force, self.hose_point)[0]
         return [float(c * t) for c, t in zip(self.compliance, tau)]
 
     def lag(self, direction: Sequence[float]) -> list[float]:
@@ -258,8 +264,10 @@ class TrueArm:
         self._t_stop = -math.inf
         self._moving = False
         self._came = [0.0] * 6  # the sign of each joint's last motion (lost motion)
+        self._lag = [0.0] * 6  # the lost motion that follows from it
         self._sag = [0.0] * 6
         self._cycle = 0
+        self._lags = any(truth.lost_motion)
         self._dh = truth.dh
         self.temperature_rise = 0.0
         self.q: list[float] = [0.0] * 6
@@ -283,9 +291,11 @@ class TrueArm:
         f = 0.0
         if 0.0 <= dt < _SETTLE_SPAN * tr.settle_tau:
             f = math.exp(-dt / tr.settle_tau) * math.cos(2.0 * math.pi * tr.settle_hz * dt)
-        if tr.lost_motion != (0.0,) * 6:
-            self._came = [(1.0 if v > 0 else -1.0) if abs(v) > _REST_SPEED else c for v, c in zip(qd, self._came)]
-        lag = tr.lag(self._came)
+        if moving and self._lags:
+            came = [(1.0 if v > 0 else -1.0) if abs(v) > _REST_SPEED else c for v, c in zip(qd, self._came)]
+            if came != self._came:
+                self._came, self._lag = came, tr.lag(came)
+        lag = self._lag
         off, rest, kick = tr.joint_offsets, self._rest, self._kick
         q_joint = [q[j] + off[j] + lag[j] + rest[j] + kick[j] * f for j in range(6)]
         if self._cycle % _SAG_EVERY == 0:
