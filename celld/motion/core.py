@@ -330,11 +330,11 @@ class MotionCore:
                 else:
                     self.status = status
         if self.mode == Mode.STOPPING:
-            qd, at_rest = ctrl.stop_step()
+            qd, at_rest = ctrl.stop_step(inp.state.stamp_ns)
             self.status = self._stop_status
             if at_rest:
                 return self._finish(faults, Action.SPEED_J)
-        faults |= self.joint_monitor.check(qd)
+        faults |= self.joint_monitor.check(qd, inp.state.stamp_ns)
         # The TCP's twist in a joint move is the robot's own; the stop is in joint space.
         if self.workspace(inp.state.T_base_tcp[:3, 3], inp.state.v_tcp[:3], _ZERO3):
             faults |= Fault.WORKSPACE

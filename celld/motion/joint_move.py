@@ -3,9 +3,18 @@
 A 6-DOF ruckig in its position interface plans the joints from where they
 are (at rest) to ``q_goal`` within the move's speed, acceleration and jerk
 per joint; phase synchronisation keeps the joints on the straight line from
-start to goal, the path the daemon checked against the cell. Each cycle the
-planned joint speeds go out as speedJ exactly as ruckig gives them, so the
-limits hold in every cycle with no limiter in between.
+start to goal, the path the daemon checked against the cell. The whole
+trajectory is computed once, at the start, and each cycle sends its joint
+speeds at the cycle's own time (the robot state's stamp), one period ahead:
+exactly as ruckig gives them, so the limits hold with no limiter in between.
+
+The reference is a function of time, not of the number of cycles: the robot
+integrates whatever speed it was last sent for as long as it holds it, so a
+cycle that comes late (a loaded machine, a command that waited on the link)
+must not stretch the plan, or the arm runs past its goal by every delay.
+Sampled by the clock, a late cycle sends the speed the plan has by then, and
+the arm ends where the plan ends up to the small difference between holding
+a speed and following the plan over the delay.
 
 The robot integrates the speeds with its own lag, so it ends near the goal,
 not on it. The loop is closed at rest: once the reference has ended and the
@@ -17,12 +26,13 @@ is DONE when every joint is within ``tolerance`` of the goal and still.
 A stop (requested, or a fault found by the core) is ruckig's velocity
 interface from the speeds and accelerations last sent down to zero, in joint
 space, at the cell's full joint limits, phase-synchronised so the arm brakes
-along the checked line: jerk-limited like every other stop.
+along the checked line: jerk-limited like every other stop, and sampled by
+the clock from the moment the last speeds went out.
 
 A joint move starts only from rest (the core refuses it while another
 motion runs), so it never has to take over a twist.
 
-Pure: the robot state comes in as values; no clock, no I/O.
+Pure: the robot state and the cycle's time come in as values; no clock, no I/O.
 """
 
 from __future__ import annotations
@@ -33,7 +43,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError, Synchronization
+from ruckig import ControlInterface, InputParameter, Ruckig, RuckigError, Synchronization, Trajectory
 
 from celld.motion.limits import JointMoveLimits
 from celld.motion.types import ControlStatus, RobotState
@@ -60,6 +70,7 @@ class _Phase(IntEnum):
     TRACK = 0  # sending the planned speeds
     SETTLE = 1  # reference ended; waiting for the joints to be still
     STOP = 2  # braking to zero speed
+    FAILED = 3  # the planner refused the move
 
 
 class JointMove:
@@ -99,19 +110,33 @@ class JointMove:
         self.params = params
         self.reason = ""
         self.corrections = 0
-        self._otg = Ruckig(6, period)
+        self._otg = Ruckig(6)
         self._inp = InputParameter(6)
-        self._out = OutputParameter(6)
+        self._traj = Trajectory(6)
+        self._t0_ns = 0  # when the trajectory starts: the cycle it was planned in
+        self._last_ns = 0  # when the speeds last sent went out
         self._phase = _Phase.TRACK
         self._still = 0
-        self._settling = 0
-        self._settle_limit = int(math.ceil(params.settle_timeout / period))
+        self._settle_ns = 0  # when the reference ended
         self.qd = _ZERO6.copy()  # the speeds sent last cycle
         self.qdd = _ZERO6.copy()  # and their acceleration
 
     # -- planning ----------------------------------------------------------------
 
-    def _plan_to_goal(self, q: Array) -> None:
+    def _calculate(self, inp: InputParameter, t_ns: int) -> bool:
+        """Plan ``inp`` as the trajectory sampled from ``t_ns``; False (with :attr:`reason`) if ruckig refuses."""
+        try:
+            res = self._otg.calculate(inp, self._traj)
+        except RuckigError as exc:
+            self.reason = f"joint move planner refused its input: {exc}"
+            return False
+        if int(res) < 0:
+            self.reason = f"joint move planner failed: {res}"
+            return False
+        self._t0_ns = t_ns
+        return True
+
+    def _plan_to_goal(self, q: Array, t_ns: int) -> bool:
         inp = self._inp
         lim = self.move_limits
         inp.control_interface = ControlInterface.Position
@@ -125,8 +150,17 @@ class JointMove:
         inp.target_position = self.q_goal.tolist()
         inp.target_velocity = [0.0] * 6
         inp.target_acceleration = [0.0] * 6
-        self._otg.reset()
         self._phase = _Phase.TRACK
+        return self._calculate(inp, t_ns)
+
+    def _sample(self, t_ns: int) -> bool:
+        """Take the trajectory's speeds one period after ``t_ns`` as the ones sent now; True once it has ended."""
+        t = (t_ns - self._t0_ns) * 1e-9 + self.period
+        _, v, a = self._traj.at_time(min(t, self._traj.duration))
+        self.qd = np.array(v)
+        self.qdd = np.array(a)
+        self._last_ns = t_ns
+        return t >= self._traj.duration
 
     def start(self, state: RobotState, twist: Array, accel: Array) -> None:
         """Plan from the measured joints; the core starts a joint move only from rest."""
@@ -134,44 +168,32 @@ class JointMove:
         self.corrections = 0
         self.qd = _ZERO6.copy()
         self.qdd = _ZERO6.copy()
-        self._plan_to_goal(state.q)
-
-    def _advance(self) -> Result | None:
-        try:
-            res = self._otg.update(self._inp, self._out)
-        except RuckigError as exc:
-            self.reason = f"joint move planner refused its input: {exc}"
-            return None
-        if int(res) < 0:
-            self.reason = f"joint move planner failed: {res}"
-            return None
-        out = self._out
-        self.qd = np.array(out.new_velocity)
-        self.qdd = np.array(out.new_acceleration)
-        out.pass_to_input(self._inp)
-        return res
+        self._last_ns = state.stamp_ns
+        if not self._plan_to_goal(state.q, state.stamp_ns):
+            self._phase = _Phase.FAILED
 
     # -- the cycle ---------------------------------------------------------------
 
     def step(self, state: RobotState) -> tuple[Array, ControlStatus]:
         """The joint speeds to send this cycle (6,) rad/s, and a status."""
+        if self._phase == _Phase.FAILED:
+            self.qd = _ZERO6.copy()
+            self.qdd = _ZERO6.copy()
+            return self.qd, ControlStatus.FAULT
         if self._phase == _Phase.TRACK:
-            res = self._advance()
-            if res is None:
-                self.qd = _ZERO6.copy()
-                return self.qd, ControlStatus.FAULT
-            if res == Result.Finished:
+            if self._sample(state.stamp_ns):
                 self._phase = _Phase.SETTLE
-                self._still = self._settling = 0
+                self._still = 0
+                self._settle_ns = state.stamp_ns
             return self.qd, ControlStatus.OK
         # SETTLE: the reference has ended at zero speed; wait for the arm.
         self.qd = _ZERO6.copy()
         self.qdd = _ZERO6.copy()
-        self._settling += 1
+        self._last_ns = state.stamp_ns
         still = float(np.max(np.abs(state.qd))) <= self.params.settle_speed
         self._still = self._still + 1 if still else 0
         if self._still < self.params.settle_cycles:
-            if self._settling > self._settle_limit:
+            if (state.stamp_ns - self._settle_ns) * 1e-9 > self.params.settle_timeout:
                 self.reason = (
                     f"joint move did not come to rest within {self.params.settle_timeout} s of its reference "
                     f"(joint speeds {np.round(state.qd, 4).tolist()} rad/s)"
@@ -196,7 +218,9 @@ class JointMove:
             )
             return self.qd, ControlStatus.FAULT
         self.corrections += 1
-        self._plan_to_goal(state.q)
+        if not self._plan_to_goal(state.q, state.stamp_ns):
+            self._phase = _Phase.FAILED
+            return self.qd, ControlStatus.FAULT
         return self.step(state)
 
     # -- stopping ----------------------------------------------------------------
@@ -217,24 +241,24 @@ class JointMove:
         inp.current_acceleration = self.qdd.tolist()
         inp.target_velocity = [0.0] * 6
         inp.target_acceleration = [0.0] * 6
-        self._otg.reset()
         self._phase = _Phase.STOP
+        # The brake starts from the speeds last sent, at the time they went out: the next cycle, one
+        # period on, samples it one period in (:meth:`_sample` looks one period ahead).
+        if self.at_rest() or not self._calculate(inp, self._last_ns + round(self.period * 1e9)):
+            # Cannot fail within the limits; brake at once rather than keep moving.
+            self.qd = _ZERO6.copy()
+            self.qdd = _ZERO6.copy()
 
-    def stop_step(self) -> tuple[Array, bool]:
-        """The joint speeds to send while stopping, and whether the arm is commanded to rest."""
+    def stop_step(self, t_ns: int) -> tuple[Array, bool]:
+        """The joint speeds to send while stopping at cycle time ``t_ns``, and whether the arm is commanded to rest."""
         if self._phase != _Phase.STOP:
             self.begin_stop()
         if self.at_rest():
             self.qd = _ZERO6.copy()
             self.qdd = _ZERO6.copy()
             return self.qd, True
-        res = self._advance()
-        if res is None:
-            # Cannot happen within the limits; brake at once rather than keep moving.
-            self.qd = _ZERO6.copy()
-            self.qdd = _ZERO6.copy()
-            return self.qd, True
-        return self.qd, res == Result.Finished and self.at_rest()
+        ended = self._sample(t_ns)
+        return self.qd, ended and self.at_rest()
 
     def at_rest(self) -> bool:
         """The speeds and accelerations last sent are zero."""

@@ -204,34 +204,53 @@ class SequenceMonitor:
         return f
 
 
+# Shortest spacing of two sends the joint monitor divides by, s (two cycles on one clock tick).
+_MIN_SPACING = 1e-6
+
+
 class JointSequenceMonitor:
-    """Checks every joint's speed sent in a joint move: speed, and acceleration and jerk by finite differences."""
+    """Checks every joint's speed sent in a joint move: speed, and acceleration and jerk by finite differences.
+
+    The differences are taken over the times the speeds went out: a joint move
+    samples its trajectory by the clock, so after a late cycle its speeds have
+    moved on by the time that passed, which the robot saw pass too.
+    """
 
     def __init__(self, limits: JointMoveLimits, period: float) -> None:
         self.limits = limits
         self.period = period
         self._prev1 = [0.0] * 6
         self._prev2 = [0.0] * 6
+        self._t1 = -1  # ns when prev1 went out; -1: at rest, nothing sent
+        self._dt1 = period  # s between prev2 and prev1
 
     def reset(self) -> None:
         """The robot is at rest and nothing is being sent."""
         self._prev1 = [0.0] * 6
         self._prev2 = [0.0] * 6
+        self._t1 = -1
+        self._dt1 = self.period
 
-    def check(self, qd: Sequence[float] | np.ndarray) -> Fault:
-        """Record the joint speeds ``qd`` (6,) sent this cycle and return the limits they break."""
+    def check(self, qd: Sequence[float] | np.ndarray, t_ns: int) -> Fault:
+        """Record the joint speeds ``qd`` (6,) sent at ``t_ns`` and return the limits they break."""
         lim = self.limits
-        dt = self.period
+        # Divided differences over the true spacing (a cycle can also come early, after a late one).
+        dt = max((t_ns - self._t1) * 1e-9, _MIN_SPACING) if self._t1 >= 0 else self.period
+        dt0 = self._dt1
+        mid = 0.5 * (dt + dt0)  # between the two accelerations' midpoints
         v = [float(x) for x in qd]
         p1, p2 = self._prev1, self._prev2
         f = Fault.NONE
         for i in range(6):
             if abs(v[i]) > lim.speed * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL:
                 f |= Fault.SPEED
-            if abs(v[i] - p1[i]) / dt > lim.accel * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / dt:
+            a1 = (v[i] - p1[i]) / dt
+            if abs(a1) > lim.accel * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / dt:
                 f |= Fault.ACCEL
-            if abs(v[i] - 2.0 * p1[i] + p2[i]) / (dt * dt) > lim.jerk * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / (dt * dt):
+            if abs(a1 - (p1[i] - p2[i]) / dt0) / mid > lim.jerk * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / (dt * mid):
                 f |= Fault.JERK
         self._prev2 = p1
         self._prev1 = v
+        self._t1 = t_ns
+        self._dt1 = dt
         return f

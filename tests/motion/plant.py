@@ -81,17 +81,19 @@ class JointPlant:
         self.stamp_ns = 0
         self.sent: list[np.ndarray] = []  # the joint speeds the core sent, one per cycle (zero with a kick)
 
-    def apply(self, out: CycleOutput) -> None:
+    def apply(self, out: CycleOutput, periods: int = 1) -> None:
+        """The robot over the next ``periods`` control periods, on ``out`` (more than one: the loop's next cycle came late)."""
         if out.action == Action.SPEED_J:
             cmd = out.twist.copy()
         else:
             assert out.action == Action.KICK, "a joint plant takes only speedJ and kicks"
             cmd = self._pending[-1].copy() if self._pending else np.zeros(6)
         self.sent.append(out.twist.copy() if out.action == Action.SPEED_J else np.zeros(6))
-        self._pending.append(cmd)
-        self.qd = self._pending.popleft() * self.follow
-        self.q = self.q + self.qd * self.period
-        self.stamp_ns += int(self.period * 1e9)
+        for _ in range(periods):
+            self._pending.append(cmd)
+            self.qd = self._pending.popleft() * self.follow
+            self.q = self.q + self.qd * self.period
+            self.stamp_ns += int(self.period * 1e9)
 
     def state(self) -> RobotState:
         T = kin.forward(self.q)

@@ -81,6 +81,26 @@ def test_a_joint_move_lands_within_a_hundredth_of_a_degree_straight_and_within_t
     assert core_out.action == Action.KICK and core_out.mode == Mode.IDLE
 
 
+def test_late_cycles_do_not_stretch_the_move_past_its_goal() -> None:
+    # A loaded machine: one cycle in seven comes 30 ms late, and the robot holds the speeds it was
+    # sent all that time (as a UR holds speedJ). A plan stepped once per cycle fell behind the
+    # clock by every delay and the arm ran tens of degrees past its goal; sampled by the clock it lands.
+    core = _core()
+    plant = JointPlant(Q0, PERIOD, latency_cycles=2)
+    outs = []
+    for k in range(6000):
+        out = core.step(plant.cycle_input(**({"command": move_joints(Q1), "command_id": 1} if k == 0 else {})))
+        plant.apply(out, periods=15 if k % 7 == 3 else 1)
+        outs.append(out)
+        if k > 0 and out.mode == Mode.IDLE:
+            break
+    assert outs[-1].status == ControlStatus.DONE, outs[-1].event
+    assert np.degrees(np.abs(plant.q - Q1)).max() < 0.01
+    # The speeds sent keep the limits over the times they went out: no fault from the sequence monitor.
+    assert all(o.faults == 0 for o in outs)
+    assert max(float(np.abs(o.twist).max()) for o in outs) <= JOINT_LIMITS.speed * (1 + 1e-9)
+
+
 def test_speed_scale_slows_every_joint() -> None:
     core = _core()
     plant = JointPlant(Q0, PERIOD)

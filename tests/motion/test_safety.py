@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from celld.config import MotionLimits
-from celld.motion.limits import CartesianLimits
+from celld.motion.limits import CartesianLimits, JointMoveLimits
 from celld.motion.safety import (
     Fault,
+    JointSequenceMonitor,
     SequenceMonitor,
     StopDistance,
     WorkspaceGuard,
@@ -73,3 +74,32 @@ def test_sequence_monitor_flags_each_breach() -> None:
     assert f & Fault.SPEED and f & Fault.ACCEL and f & Fault.JERK
     m.reset()
     assert m.check([0, 0, 0, 0, 0, 0.02]) & Fault.JERK  # angular: 5000 rad/s^3 > 40
+
+
+def test_the_joint_monitor_differences_the_speeds_over_the_times_they_went_out() -> None:
+    # A smooth speed profile within the limits (jerk 15, then accel 1.5 rad/s^2), sent at 2 ms with jitter
+    # and every seventh send 30 ms late: within the limits at every send, as the robot saw them.
+    lim = JointMoveLimits(speed=1.0, accel=2.0, jerk=20.0)
+    rng = np.random.default_rng(3)
+    m = JointSequenceMonitor(lim, 0.002)
+    u = np.array([1.0, -0.5, 0.3, 0.0, 0.2, -1.0])
+
+    def v(t: float) -> np.ndarray:  # jerk 15 for 0.1 s, then accel 1.5 held: an s-curve from rest
+        return u * (7.5 * t * t if t < 0.1 else 0.075 + 1.5 * (t - 0.1))
+
+    t = 0.0
+    for k in range(90):
+        t += 0.030 if k % 7 == 3 else 0.002 + rng.uniform(-5e-4, 5e-4)
+        assert m.check(v(t), round(t * 1e9)) == Fault.NONE, k
+    # The same speeds with their times taken as one period apart break the acceleration limit...
+    m.reset()
+    faults = Fault.NONE
+    t = 0.0
+    for k in range(60):
+        t += 0.030 if k % 7 == 3 else 0.002
+        faults |= m.check(v(t), k * 2_000_000)
+    assert faults & Fault.ACCEL
+    # ...and a jump is a jump however late it comes.
+    m.reset()
+    assert m.check([0.0] * 6, 0) == Fault.NONE
+    assert m.check([0.5, 0, 0, 0, 0, 0], 30_000_000) & Fault.ACCEL
