@@ -10,7 +10,8 @@ Each cycle:
    read keeps the last good sample and is counted), the control slot (stop,
    shutdown) and at most one command from the mailbox;
 4. step :class:`~celld.motion.core.MotionCore` and send what it says
-   (speedL, speedJ in a joint move, or a watchdog kick while it holds still), then switch the process
+   (speedL, speedJ in a joint move, or a watchdog kick while it holds still: after a motion, only once
+   the controller has run on its zero speeds), then switch the process
    output (the welding arc) when the core's ``process_on`` changed;
 5. append one record to the state ring.
 
@@ -53,6 +54,9 @@ from celld.tactile.sample import TACTILE_DTYPE, TactileSample, from_record
 _INF = float("inf")
 # The start of the loop's event when it finds the process output left on (the arc interlock is not set up).
 INTERLOCK_MISSING = "arc interlock missing"
+# Controller time (s) the zero speeds that end a motion are sent for before the loop kicks instead:
+# three controller cycles, so one has read them whatever came back to back.
+_ZERO_CONFIRM = 0.006
 # The loop looks for its daemon every this many cycles (10 ms at 500 Hz).
 _PARENT_CHECK_CYCLES = 5
 
@@ -136,6 +140,10 @@ class MotionLoop:
         self._tactile_seq = -1
         self._setpoint = np.zeros(6)
         self._setpoint_t = 0
+        # The speed command whose zero the robot has not been seen to run on yet (_confirm_zero), and
+        # the robot's stamp when the first zero went out (inf: not yet).
+        self._unconfirmed: Action | None = None
+        self._zero_from = _INF
         # The process output as last written: None until the first write succeeds.
         self._output_on: bool | None = None
         self._output_failed = False  # a failed write was reported; cleared by the next success
@@ -248,6 +256,33 @@ class MotionLoop:
                     # More than a whole period behind: skip the missed deadlines, keep the phase.
                     deadline += ((now - deadline) // period) * period
 
+    def _confirm_zero(self, action: Action, twist: np.ndarray, stamp: float) -> Action:
+        """The command to send for the core's ``action``: the zero speeds that end a motion, until the robot ran on them.
+
+        The robot keeps the speeds it was last sent. Its control script reads the
+        command registers once a cycle, so a write that another follows within
+        the same controller cycle (two loop cycles back to back after a late
+        one, or a stalled controller taking in what queued) is never seen. The
+        kick after a motion's final zero speeds must not be the write that hides
+        them, or the arm creeps on at its last small speed: the zero speeds go
+        on, in place of kicks, until the controller's clock has run
+        :data:`_ZERO_CONFIRM` past the first of them.
+        """
+        if action == Action.SPEED or action == Action.SPEED_J:
+            if twist.any():
+                self._unconfirmed, self._zero_from = action, _INF
+            elif self._unconfirmed is not None and self._zero_from == _INF:
+                self._zero_from = stamp
+            return action
+        if self._unconfirmed is None:
+            return action
+        if self._zero_from == _INF:
+            self._zero_from = stamp
+        if stamp - self._zero_from < _ZERO_CONFIRM:
+            return self._unconfirmed  # the core's twist is zero whenever it kicks
+        self._unconfirmed = None
+        return action
+
     # -- one cycle -------------------------------------------------------------
 
     def cycle(self, t_wake: int, deadline: int) -> LoopExit | None:
@@ -348,9 +383,10 @@ class MotionLoop:
                 f"stopped: {self.orphaned}" if self.orphaned else "",
             )
         )
-        if out.action == Action.SPEED:
+        action = self._confirm_zero(out.action, out.twist, raw.stamp)
+        if action == Action.SPEED:
             port.speed(out.twist.tolist(), p.speed_accel)
-        elif out.action == Action.SPEED_J:
+        elif action == Action.SPEED_J:
             port.speed_joints(out.twist.tolist(), p.joint_speed_accel)
         else:
             port.kick()
@@ -379,7 +415,7 @@ class MotionLoop:
         r["safety_bits"] = raw.safety_bits
         r["runtime_state"] = raw.runtime_state
         r["mode"] = int(out.mode)
-        r["action"] = int(out.action)
+        r["action"] = int(action)
         r["guarded"] = out.guarded
         r["status"] = int(out.status)
         r["faults"] = int(out.faults)

@@ -11,7 +11,7 @@ import pytest
 from celld.config import MotionLimits
 from celld.motion import commands as cmd
 from celld.motion.channels import CONTROL_DTYPE, SETPOINT_DTYPE, ChannelNames, Channels, decode_reason
-from celld.motion.core import CoreParams, Mode, MotionCore
+from celld.motion.core import Action, CoreParams, Mode, MotionCore
 from celld.motion.limits import CartesianLimits
 from celld.motion.loop import LoopParams, MotionLoop
 from celld.motion.types import ControlStatus, ServoPlan
@@ -151,6 +151,35 @@ def test_one_record_per_cycle_with_what_was_sent(channels: Channels) -> None:
     assert len(speeds) == 20
     np.testing.assert_allclose(recs["twist"], np.array(speeds))
     assert np.all(recs["period_ns"][1:] == PERIOD_NS)
+
+
+def test_the_zero_speeds_that_end_a_motion_go_on_until_the_controller_has_run_on_them(channels: Channels) -> None:
+    # The robot reads its command registers once a cycle: a kick written right after the final zero
+    # speeds could hide them, and the arm would creep on at its last speed. The loop sends the zero
+    # speeds in place of kicks until the controller's clock has run three cycles past the first.
+    port, clock = FakePort(), Clock()
+    loop = _loop(channels, port, clock)
+    sp = np.zeros(1, SETPOINT_DTYPE)
+    channels.commands.post(cmd.encode(cmd.stream()))
+    for _ in range(10):
+        sp["t_ns"], sp["twist"] = clock.t, [0.05, 0, 0, 0, 0, 0]
+        channels.setpoint.write(sp)
+        _cycles(loop, clock, 1)
+    _stop(channels)
+    port.sent.clear()
+    # A stalled controller: its clock stands still, so the zero speeds go on however many cycles pass.
+    while not port.sent or port.sent[-1][0] != "speedL" or any(port.sent[-1][1]):
+        _cycles(loop, clock, 1)
+    first_zero = len(port.sent) - 1
+    port.fresh = False
+    _cycles(loop, clock, 20)
+    assert all(kind == "speedL" and not any(tw) for kind, tw in port.sent[first_zero:])
+    port.fresh = True
+    _cycles(loop, clock, 10)
+    kinds = [kind for kind, _ in port.sent[first_zero:]]
+    assert kinds[-1] == "kick" and "kick" not in kinds[: 20 + 3]
+    recs, _, _ = channels.state.read_since(0)
+    assert int(recs["action"][-1]) == int(Action.KICK) and int(recs["action"][-11]) == int(Action.SPEED)
 
 
 def test_commands_posted_before_a_stop_never_run(channels: Channels) -> None:
