@@ -301,7 +301,9 @@ def test_stop_ends_the_motion_and_nothing_is_sent_after_it(sim: Any) -> None:
     assert len(after) > 100
     # After the stop only its zero speeds go on, until the controller has run on them (a few cycles), then kicks.
     speeds = np.flatnonzero(after["action"] != int(Action.KICK))
-    assert np.all(after["action"][speeds] == int(Action.SPEED)) and not after["twist"][speeds].any(), "a command was sent after the stop completed"
+    assert np.all(after["action"][speeds] == int(Action.SPEED)) and not after["twist"][speeds].any(), (
+        "a command was sent after the stop completed"
+    )
     assert len(speeds) < 50 and (len(speeds) == 0 or speeds[-1] == len(speeds) - 1), "kicks only once the zero speeds ran"
     # The ramp to rest held the limits.
     limits = CartesianLimits.from_config(_config().motion)
