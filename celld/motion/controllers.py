@@ -14,7 +14,11 @@ the 6-vector on the straight line from start to goal, so ``phi`` keeps its
 direction and ``dphi/dt`` is exactly the angular velocity (base frame) that
 speedL takes. The per-axis bounds are boxes inscribed in the norm balls and
 stretched along the move, so a straight move gets the whole speed,
-acceleration and jerk budget and never more. The reference is open loop; a
+acceleration and jerk budget and never more. The trajectory is computed once,
+when the move starts, and sampled at each cycle's own time (the robot state's
+stamp): the robot holds the last twist it was sent for as long as a late cycle
+takes, so a reference stepped once per cycle would fall behind the clock and
+the robot run past it. The reference is open loop; a
 proportional term on the pose error (against the reference delayed by the
 link's latency) closes the loop, and the move is done when the measured pose
 is within tolerance of the goal and the robot is still.
@@ -26,12 +30,11 @@ clock, no I/O.
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
-from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError, Synchronization
+from ruckig import ControlInterface, InputParameter, Ruckig, RuckigError, Synchronization, Trajectory
 
 from celld.motion import so3
 from celld.motion.limits import CartesianLimits, axis_weights
@@ -137,14 +140,14 @@ class CartesianMove:
         self.angle_tolerance = angle_tolerance
         self.params = params
         self.reason = ""
-        self._otg = Ruckig(6, period)
+        self._otg = Ruckig(6)
         self._inp = InputParameter(6)
-        self._out = OutputParameter(6)
+        self._traj = Trajectory(6)
         self._inp.control_interface = ControlInterface.Position
         self._inp.synchronization = Synchronization.Phase
         self._R0 = np.eye(3)
-        self._finished_cycles = -1
-        self._settle_cycles = int(math.ceil(params.settle_timeout / period))
+        self._t0_ns = 0  # the cycle the trajectory was planned in
+        self._failed = ""  # why the planner refused the move, "" when it did not
         self._fb_cap = (params.feedback_share * limits.linear_speed, params.feedback_share * limits.angular_speed)
 
     def start(self, state: RobotState, twist: Array, accel: Array) -> None:
@@ -180,23 +183,29 @@ class CartesianMove:
         inp.target_position = [*self.T_goal[:3, 3].tolist(), *dphi.tolist()]
         inp.target_velocity = [0.0] * 6
         inp.target_acceleration = [0.0] * 6
-        self._finished_cycles = -1
         self.reason = ""
+        self._failed = ""
+        self._t0_ns = state.stamp_ns
+        try:
+            res = self._otg.calculate(inp, self._traj)
+        except RuckigError as exc:
+            self._failed = f"move planner refused its input: {exc}"
+            return
+        if int(res) < 0:
+            self._failed = f"move planner failed: {res}"
 
     def step(self, inp: ControlInput) -> tuple[Demand, ControlStatus]:
-        try:
-            res = self._otg.update(self._inp, self._out)
-        except RuckigError as exc:
-            self.reason = f"move planner refused its input: {exc}"
+        if self._failed:
+            self.reason = self._failed
             return Demand(_ZERO6), ControlStatus.FAULT
-        if int(res) < 0:
-            self.reason = f"move planner failed: {res}"
-            return Demand(_ZERO6), ControlStatus.FAULT
-        out = self._out
-        ref = np.array(out.new_position)
-        v_ref = np.array(out.new_velocity)
-        a_ref = np.array(out.new_acceleration)
-        out.pass_to_input(self._inp)
+        # The reference at this cycle's time, one period ahead (as the joint move samples its own):
+        # a late cycle must not stretch the plan, or the robot, holding its last twist, runs past it.
+        t = (inp.state.stamp_ns - self._t0_ns) * 1e-9 + self.period
+        duration = self._traj.duration
+        p, v, a = self._traj.at_time(min(t, duration))
+        ref = np.array(p)
+        v_ref = np.array(v)
+        a_ref = np.array(a)
 
         T = inp.state.T_base_tcp
         R_meas = T[:3, :3]
@@ -214,10 +223,9 @@ class CartesianMove:
             if n > cap:
                 fb[sl] *= cap / n
         demand = v_ref + fb
-        if res != Result.Finished:
+        if t < duration:
             return Demand(demand, a_ref), ControlStatus.OK
 
-        self._finished_cycles += 1
         v = inp.state.v_tcp
         if (
             float(np.linalg.norm(e_p)) <= self.tolerance
@@ -226,7 +234,7 @@ class CartesianMove:
             and float(np.linalg.norm(v[3:])) <= self.params.settle_angular_speed
         ):
             return Demand(demand), ControlStatus.DONE
-        if self._finished_cycles > self._settle_cycles:
+        if t - duration > self.params.settle_timeout:
             self.reason = (
                 f"move did not settle within {self.params.settle_timeout} s: "
                 f"{np.linalg.norm(e_p) * 1e3:.3f} mm, {np.linalg.norm(e_r):.4f} rad from the goal"

@@ -80,6 +80,8 @@ Array = NDArray[np.float64]
 
 _ZERO6 = np.zeros(6)
 _ZERO3 = np.zeros(3)
+# Shortest time between two cycles the limiter and the monitors step over, s (two on one clock tick).
+_MIN_SPACING = 1e-6
 
 
 class Mode(IntEnum):
@@ -162,6 +164,8 @@ class MotionCore:
         self.joint_monitor = JointSequenceMonitor(params.joint_limits, params.period)
         # The breach is found after this cycle's twist went out: one more period of travel.
         self.workspace = WorkspaceGuard(params.workspace_min, params.workspace_max, params.limits, params.latency + params.period)
+        self._last_ns = -1  # the last cycle's state stamp; -1 before the first
+        self._dt = params.period  # s since the cycle before this one
         self.mode = Mode.IDLE
         self.controller: Controller | JointMove = Hold()
         self.command_id = 0
@@ -255,6 +259,14 @@ class MotionCore:
         """Advance one cycle."""
         self._event = ""
         p = self.params
+        # The time since the last cycle's command went out: the robot held it that long. The limiter
+        # and the monitors work over it, so a late cycle does not leave what is sent behind the clock.
+        stamp = inp.state.stamp_ns
+        # (A stamp that does not advance measures nothing: one period then.)
+        dt = (stamp - self._last_ns) * 1e-9 if 0 <= self._last_ns < stamp else p.period
+        dt = max(dt, _MIN_SPACING)
+        self._last_ns = stamp
+        self._dt = dt
         faults = robot_faults(inp.safety_bits)
         if inp.state_age > p.state_stale:
             faults |= Fault.STALE_STATE
@@ -292,14 +304,14 @@ class MotionCore:
             elif faults:
                 self._begin_stop(status_of(faults), describe(faults))
             else:
-                twist, result = self.limiter.step(demand.twist, demand.accel)
+                twist, result = self.limiter.step(demand.twist, demand.accel, dt)
                 guarded = result == LimiterResult.GUARDED
                 if result == LimiterResult.ERROR:
                     faults |= Fault.SPEED
                     self._begin_stop(ControlStatus.LIMIT, "the twist limiter failed")
                 self.status = status
         if self.mode == Mode.STOPPING:
-            twist, result = self.limiter.step(_ZERO6)
+            twist, result = self.limiter.step(_ZERO6, None, dt)
             guarded = result == LimiterResult.GUARDED
             self.status = self._stop_status
             if self.limiter.at_rest():
@@ -307,7 +319,7 @@ class MotionCore:
 
         if self.mode == Mode.IDLE:
             return self._output(Action.KICK, _ZERO6, faults, False)
-        faults |= self.monitor.check(twist)
+        faults |= self.monitor.check(twist, dt)
         a = self.limiter.accel
         if self.workspace(inp.state.T_base_tcp[:3, 3], twist[:3], a[:3]):
             faults |= Fault.WORKSPACE
@@ -334,7 +346,7 @@ class MotionCore:
             self.status = self._stop_status
             if at_rest:
                 return self._finish(faults, Action.SPEED_J)
-        faults |= self.joint_monitor.check(qd, inp.state.stamp_ns)
+        faults |= self.joint_monitor.check(qd, self._dt)
         # The TCP's twist in a joint move is the robot's own; the stop is in joint space.
         if self.workspace(inp.state.T_base_tcp[:3, 3], inp.state.v_tcp[:3], _ZERO3):
             faults |= Fault.WORKSPACE

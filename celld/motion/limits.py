@@ -245,8 +245,8 @@ class TwistLimiter:
         except RuckigError:
             return int(Result.ErrorInvalidInput)
 
-    def _shape(self, target: list[float], target_a: list[float]) -> int:
-        """The candidate step: boxes inscribed in the balls, stretched along the change."""
+    def _shape(self, target: list[float], target_a: list[float], dt: float) -> int:
+        """The candidate step over ``dt`` seconds: boxes inscribed in the balls, stretched along the change."""
         lim = self.limits
         v, a = self._v, self._a
         box_a = [0.0] * 6
@@ -257,7 +257,7 @@ class TwistLimiter:
             # target, the jerk to go from one to the other in a period, and the
             # velocity change against what one jerk phase (amax^2 / jmax) covers.
             ka = 1.0 / amax
-            kj = 1.0 / (jmax * self.period)
+            kj = 1.0 / (jmax * dt)
             kv = jmax / (amax * amax)
             ta = target_a[o : o + 3]
             w = axis_weights(
@@ -288,10 +288,16 @@ class TwistLimiter:
         return self._run(target, self._zeros, box_a, box_j, Synchronization.No)
 
     def step(
-        self, target_twist: Sequence[float] | Array, target_accel: Sequence[float] | Array | None = None
+        self,
+        target_twist: Sequence[float] | Array,
+        target_accel: Sequence[float] | Array | None = None,
+        dt: float | None = None,
     ) -> tuple[Array, LimiterResult]:
-        """Advance one period towards ``target_twist`` (6,), optionally arriving with ``target_accel``.
+        """Advance towards ``target_twist`` (6,), optionally arriving with ``target_accel``.
 
+        ``dt`` is the time (s) since the last twist went out, one period by
+        default: the robot held that twist for as long, so after a late cycle
+        the next may differ from it by what the limits allow over that time.
         Returns the twist to send (a new (6,) array) and how the step went.
         The target is clamped into the speed balls first. Never raises on
         finite input: a ruckig failure returns the previous twist and
@@ -300,8 +306,11 @@ class TwistLimiter:
         t = [float(x) for x in target_twist]
         target = [*_clamp_part(t[:3], self.limits.linear_speed), *_clamp_part(t[3:], self.limits.angular_speed)]
         t_acc = self._zeros if target_accel is None else [float(x) for x in target_accel]
+        d = self.period if dt is None else dt
+        if d != self._otg.delta_time:
+            self._otg.delta_time = d
         result = LimiterResult.SHAPED
-        res = self._shape(target, t_acc)
+        res = self._shape(target, t_acc, d)
         if res >= 0:
             v_new = self._out.new_velocity
             a_new = self._out.new_acceleration
@@ -336,7 +345,7 @@ class SequencePeaks(NamedTuple):
         return SequencePeaks(*(p / lim for p, lim in zip(self, limits)))
 
 
-def sequence_peaks(twists: ArrayLike, period: float, initial: ArrayLike | None = None) -> SequencePeaks:
+def sequence_peaks(twists: ArrayLike, period: float, initial: ArrayLike | None = None, spacing: ArrayLike | None = None) -> SequencePeaks:
     """Peak norms of speed, finite-difference acceleration and jerk of sent twists.
 
     Parameters
@@ -346,15 +355,23 @@ def sequence_peaks(twists: ArrayLike, period: float, initial: ArrayLike | None =
     period : float
         Seconds between them.
     initial : array, shape (k, 6), optional
-        Twists that came before (e.g. two zero twists for a start from rest).
+        Twists that came before (e.g. two zero twists for a start from rest), a period apart.
+    spacing : array, shape (n,), optional
+        Seconds from each twist's predecessor to it, where they did not go out a period apart (a loop's
+        cycles as they ran): the differences are divided over them (the limiter shapes over them).
     """
     V = np.asarray(twists, dtype=np.float64)
     if V.ndim != 2 or V.shape[1] != 6:
         raise InputError(f"twists: expected an (n, 6) array, got shape {V.shape}")
+    d = np.full(len(V), period) if spacing is None else np.asarray(spacing, dtype=np.float64).reshape(-1)
+    if len(d) != len(V) or not np.all(d > 0.0):
+        raise InputError(f"spacing: expected {len(V)} positive times, got {len(d)}")
     if initial is not None:
-        V = np.vstack([np.asarray(initial, dtype=np.float64).reshape(-1, 6), V])
-    A = np.diff(V, axis=0) / period
-    J = np.diff(V, n=2, axis=0) / period**2
+        I0 = np.asarray(initial, dtype=np.float64).reshape(-1, 6)
+        V = np.vstack([I0, V])
+        d = np.concatenate([np.full(len(I0), period), d])
+    A = np.diff(V, axis=0) / d[1:, None]
+    J = np.diff(A, axis=0) / (0.5 * (d[1:-1] + d[2:]))[:, None]
 
     def peak(X: Array, sl: slice) -> float:
         return float(np.linalg.norm(X[:, sl], axis=1).max()) if len(X) else 0.0

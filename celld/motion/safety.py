@@ -173,16 +173,21 @@ class SequenceMonitor:
         self.period = period
         self._prev1 = [0.0] * 6
         self._prev2 = [0.0] * 6
+        self._dt1 = period  # s between prev2 and prev1
 
     def reset(self) -> None:
         """The robot is at rest and nothing is being sent."""
         self._prev1 = [0.0] * 6
         self._prev2 = [0.0] * 6
+        self._dt1 = self.period
 
-    def check(self, twist: Sequence[float] | np.ndarray) -> Fault:
-        """Record ``twist`` (6,) as sent this cycle and return the limits it breaks."""
+    def check(self, twist: Sequence[float] | np.ndarray, dt: float | None = None) -> Fault:
+        """Record ``twist`` (6,) as sent this cycle, ``dt`` s after the last (one period by default), and
+        return the limits it breaks: differences over the times the twists went out, as the limiter shapes them."""
         lim = self.limits
-        dt = self.period
+        d1 = self.period if dt is None else dt
+        d0 = self._dt1
+        mid = 0.5 * (d0 + d1)  # between the two accelerations' midpoints
         v = [float(x) for x in twist]
         p1, p2 = self._prev1, self._prev2
         f = Fault.NONE
@@ -191,29 +196,28 @@ class SequenceMonitor:
             (3, lim.angular_speed, lim.angular_accel, lim.angular_jerk),
         ):
             s = math.hypot(v[o], v[o + 1], v[o + 2])
-            acc = math.hypot(*(v[i] - p1[i] for i in range(o, o + 3))) / dt
-            jerk = math.hypot(*(v[i] - 2.0 * p1[i] + p2[i] for i in range(o, o + 3))) / (dt * dt)
+            a1 = [(v[i] - p1[i]) / d1 for i in range(o, o + 3)]
+            acc = math.hypot(*a1)
+            jerk = math.hypot(*(a1[i - o] - (p1[i] - p2[i]) / d0 for i in range(o, o + 3))) / mid
             if s > vmax * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL:
                 f |= Fault.SPEED
-            if acc > amax * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / dt:
+            if acc > amax * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / d1:
                 f |= Fault.ACCEL
-            if jerk > jmax * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / (dt * dt):
+            if jerk > jmax * (1 + _SEQUENCE_RTOL) + _SEQUENCE_ATOL / (d1 * mid):
                 f |= Fault.JERK
         self._prev2 = p1
         self._prev1 = v
+        self._dt1 = d1
         return f
-
-
-# Shortest spacing of two sends the joint monitor divides by, s (two cycles on one clock tick).
-_MIN_SPACING = 1e-6
 
 
 class JointSequenceMonitor:
     """Checks every joint's speed sent in a joint move: speed, and acceleration and jerk by finite differences.
 
-    The differences are taken over the times the speeds went out: a joint move
-    samples its trajectory by the clock, so after a late cycle its speeds have
-    moved on by the time that passed, which the robot saw pass too.
+    The differences are taken over the times the speeds went out (as
+    :class:`SequenceMonitor`'s): a joint move samples its trajectory by the
+    clock, so after a late cycle its speeds have moved on by the time that
+    passed, which the robot saw pass too.
     """
 
     def __init__(self, limits: JointMoveLimits, period: float) -> None:
@@ -221,21 +225,19 @@ class JointSequenceMonitor:
         self.period = period
         self._prev1 = [0.0] * 6
         self._prev2 = [0.0] * 6
-        self._t1 = -1  # ns when prev1 went out; -1: at rest, nothing sent
         self._dt1 = period  # s between prev2 and prev1
 
     def reset(self) -> None:
         """The robot is at rest and nothing is being sent."""
         self._prev1 = [0.0] * 6
         self._prev2 = [0.0] * 6
-        self._t1 = -1
         self._dt1 = self.period
 
-    def check(self, qd: Sequence[float] | np.ndarray, t_ns: int) -> Fault:
-        """Record the joint speeds ``qd`` (6,) sent at ``t_ns`` and return the limits they break."""
+    def check(self, qd: Sequence[float] | np.ndarray, dt: float | None = None) -> Fault:
+        """Record the joint speeds ``qd`` (6,) sent ``dt`` s after the last (one period by default) and
+        return the limits they break."""
         lim = self.limits
-        # Divided differences over the true spacing (a cycle can also come early, after a late one).
-        dt = max((t_ns - self._t1) * 1e-9, _MIN_SPACING) if self._t1 >= 0 else self.period
+        dt = self.period if dt is None else dt
         dt0 = self._dt1
         mid = 0.5 * (dt + dt0)  # between the two accelerations' midpoints
         v = [float(x) for x in qd]
@@ -251,6 +253,5 @@ class JointSequenceMonitor:
                 f |= Fault.JERK
         self._prev2 = p1
         self._prev1 = v
-        self._t1 = t_ns
         self._dt1 = dt
         return f

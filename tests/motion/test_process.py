@@ -63,6 +63,12 @@ def sim(loopback_host: str):
         yield handle
 
 
+def _spacing(records: np.ndarray) -> np.ndarray:
+    """Seconds from each record's cycle to the one before: the times the limiter shaped the twists over."""
+    period = records["period_ns"].astype(np.float64) * 1e-9
+    return np.where(period > 0.0, period, PERIOD)
+
+
 def _run(sim: Any, scenario: Callable[[MotionHandle], Awaitable[None]], config: Config | None = None, **open_kw: Any) -> list[np.ndarray]:
     """Open a handle on ``sim``, run ``scenario``, close; return every state record read."""
     records: list[np.ndarray] = []
@@ -200,7 +206,7 @@ def test_velocity_streaming_holds_the_limits_in_every_cycle(sim: Any, rng: np.ra
     # Every cycle's sent twist (zero when nothing was sent), in order, with no gap.
     assert np.all(np.diff(records["cycle"].astype(np.int64)) == 1)
     twists = np.where((records["action"] == int(Action.SPEED))[:, None], records["twist"], 0.0)
-    ratios = sequence_peaks(twists, PERIOD, initial=np.zeros((2, 6))).ratios(limits)
+    ratios = sequence_peaks(twists, PERIOD, initial=np.zeros((2, 6)), spacing=_spacing(records)).ratios(limits)
     assert max(ratios) <= 1.0 + 1e-6, ratios
     # The stream reached the speed limit it was asked to exceed.
     assert ratios.linear_speed > 0.99
@@ -308,7 +314,7 @@ def test_stop_ends_the_motion_and_nothing_is_sent_after_it(sim: Any) -> None:
     # The ramp to rest held the limits.
     limits = CartesianLimits.from_config(_config().motion)
     twists = np.where((records["action"] == int(Action.SPEED))[:, None], records["twist"], 0.0)
-    assert max(sequence_peaks(twists, PERIOD, initial=np.zeros((2, 6))).ratios(limits)) <= 1.0 + 1e-6
+    assert max(sequence_peaks(twists, PERIOD, initial=np.zeros((2, 6)), spacing=_spacing(records)).ratios(limits)) <= 1.0 + 1e-6
 
 
 def test_a_protective_stop_raises_safety_stop(sim: Any) -> None:

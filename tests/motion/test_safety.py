@@ -89,17 +89,18 @@ def test_the_joint_monitor_differences_the_speeds_over_the_times_they_went_out()
 
     t = 0.0
     for k in range(90):
-        t += 0.030 if k % 7 == 3 else 0.002 + rng.uniform(-5e-4, 5e-4)
-        assert m.check(v(t), round(t * 1e9)) == Fault.NONE, k
+        dt = 0.030 if k % 7 == 3 else 0.002 + rng.uniform(-5e-4, 5e-4)
+        t += dt
+        assert m.check(v(t), dt) == Fault.NONE, k
     # The same speeds with their times taken as one period apart break the acceleration limit...
     m.reset()
     faults = Fault.NONE
     t = 0.0
     for k in range(60):
         t += 0.030 if k % 7 == 3 else 0.002
-        faults |= m.check(v(t), k * 2_000_000)
+        faults |= m.check(v(t))
     assert faults & Fault.ACCEL
     # ...and a jump is a jump however late it comes.
     m.reset()
-    assert m.check([0.0] * 6, 0) == Fault.NONE
-    assert m.check([0.5, 0, 0, 0, 0, 0], 30_000_000) & Fault.ACCEL
+    assert m.check([0.0] * 6) == Fault.NONE
+    assert m.check([0.5, 0, 0, 0, 0, 0], 0.030) & Fault.ACCEL
