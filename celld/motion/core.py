@@ -247,7 +247,10 @@ class MotionCore:
             self.limiter.reset()
             self.monitor.reset()
             self.joint_monitor.reset()
-        ctrl.start(inp.state, self.limiter.twist, self.limiter.accel)
+        if isinstance(ctrl, JointMove):
+            ctrl.start(inp.state, self.limiter.twist, self.limiter.accel, since=self._dt)
+        else:
+            ctrl.start(inp.state, self.limiter.twist, self.limiter.accel)
         self.controller = ctrl
         self.command_id = cid
         self.mode = Mode.ACTIVE

@@ -5,8 +5,9 @@ are (at rest) to ``q_goal`` within the move's speed, acceleration and jerk
 per joint; phase synchronisation keeps the joints on the straight line from
 start to goal, the path the daemon checked against the cell. The whole
 trajectory is computed once, at the start, and each cycle sends its joint
-speeds at the cycle's own time (the robot state's stamp), one period ahead:
-exactly as ruckig gives them, so the limits hold with no limiter in between.
+speeds at the cycle's own time (the robot state's stamp; the trajectory
+starts when the cycle before it sent its rest) exactly as ruckig gives them,
+so the limits hold with no limiter in between.
 
 The reference is a function of time, not of the number of cycles: the robot
 integrates whatever speed it was last sent for as long as it holds it, so a
@@ -113,7 +114,7 @@ class JointMove:
         self._otg = Ruckig(6)
         self._inp = InputParameter(6)
         self._traj = Trajectory(6)
-        self._t0_ns = 0  # when the trajectory starts: the cycle it was planned in
+        self._t0_ns = 0  # when the trajectory starts: when the speeds before its first went out
         self._last_ns = 0  # when the speeds last sent went out
         self._phase = _Phase.TRACK
         self._still = 0
@@ -154,22 +155,27 @@ class JointMove:
         return self._calculate(inp, t_ns)
 
     def _sample(self, t_ns: int) -> bool:
-        """Take the trajectory's speeds one period after ``t_ns`` as the ones sent now; True once it has ended."""
-        t = (t_ns - self._t0_ns) * 1e-9 + self.period
+        """Take the trajectory's speeds at ``t_ns`` as the ones sent now; True once it has ended."""
+        t = (t_ns - self._t0_ns) * 1e-9
         _, v, a = self._traj.at_time(min(t, self._traj.duration))
         self.qd = np.array(v)
         self.qdd = np.array(a)
         self._last_ns = t_ns
         return t >= self._traj.duration
 
-    def start(self, state: RobotState, twist: Array, accel: Array) -> None:
-        """Plan from the measured joints; the core starts a joint move only from rest."""
+    def start(self, state: RobotState, twist: Array, accel: Array, since: float | None = None) -> None:
+        """Plan from the measured joints; the core starts a joint move only from rest.
+
+        ``since`` is the time (s) since the last cycle sent something (one period by default): the
+        trajectory starts then, from the rest it commanded, so this cycle's speeds follow on from it
+        over the time that really passed (the monitor differences them over it).
+        """
         self.reason = ""
         self.corrections = 0
         self.qd = _ZERO6.copy()
         self.qdd = _ZERO6.copy()
-        self._last_ns = state.stamp_ns
-        if not self._plan_to_goal(state.q, state.stamp_ns):
+        self._last_ns = state.stamp_ns - round((self.period if since is None else since) * 1e9)
+        if not self._plan_to_goal(state.q, self._last_ns):
             self._phase = _Phase.FAILED
 
     # -- the cycle ---------------------------------------------------------------
@@ -189,7 +195,7 @@ class JointMove:
         # SETTLE: the reference has ended at zero speed; wait for the arm.
         self.qd = _ZERO6.copy()
         self.qdd = _ZERO6.copy()
-        self._last_ns = state.stamp_ns
+        before, self._last_ns = self._last_ns, state.stamp_ns
         still = float(np.max(np.abs(state.qd))) <= self.params.settle_speed
         self._still = self._still + 1 if still else 0
         if self._still < self.params.settle_cycles:
@@ -218,7 +224,9 @@ class JointMove:
             )
             return self.qd, ControlStatus.FAULT
         self.corrections += 1
-        if not self._plan_to_goal(state.q, state.stamp_ns):
+        # From the rest the last cycle sent, as at the start.
+        self._last_ns = before
+        if not self._plan_to_goal(state.q, before):
             self._phase = _Phase.FAILED
             return self.qd, ControlStatus.FAULT
         return self.step(state)
@@ -242,9 +250,8 @@ class JointMove:
         inp.target_velocity = [0.0] * 6
         inp.target_acceleration = [0.0] * 6
         self._phase = _Phase.STOP
-        # The brake starts from the speeds last sent, at the time they went out: the next cycle, one
-        # period on, samples it one period in (:meth:`_sample` looks one period ahead).
-        if self.at_rest() or not self._calculate(inp, self._last_ns + round(self.period * 1e9)):
+        # The brake starts from the speeds last sent, at the time they went out.
+        if self.at_rest() or not self._calculate(inp, self._last_ns):
             # Cannot fail within the limits; brake at once rather than keep moving.
             self.qd = _ZERO6.copy()
             self.qdd = _ZERO6.copy()
