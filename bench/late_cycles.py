@@ -30,6 +30,7 @@ import json
 import math
 import sys
 from collections import deque
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +42,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from celld.config import MotionLimits  # noqa: E402
-from celld.motion.commands import move_joints, move_to  # noqa: E402
+from celld.motion.commands import Command, move_joints, move_to  # noqa: E402
 from celld.motion.core import Action, CoreParams, CycleInput, CycleOutput, Mode, MotionCore  # noqa: E402
 from celld.motion.limits import CartesianLimits, JointMoveLimits  # noqa: E402
 from celld.motion.types import ControlStatus, RobotState  # noqa: E402
@@ -65,7 +66,7 @@ class HeldRobot:
         self.T = None if T is None else T.copy()
         self.v = np.zeros(6)
         self._pending: deque[np.ndarray] = deque([np.zeros(6)] * LATENCY)
-        self._held = np.zeros(6)
+        self._held: np.ndarray = np.zeros(6)
         self.t_ns = 0
 
     def hold(self, out: CycleOutput, seconds: float) -> None:
@@ -117,6 +118,7 @@ def run_case(kind: str, lateness: Any, rng: np.random.Generator) -> dict[str, An
         joint_limits=JointMoveLimits(speed=1.0, accel=2.0, jerk=20.0),
     )
     core = MotionCore(params)
+    command: Command
     if kind == "joint":
         robot = HeldRobot(Q0, None)
         command, start, goal = move_joints(Q1, speed_scale=0.25), Q0, Q1
@@ -152,6 +154,16 @@ def run_case(kind: str, lateness: Any, rng: np.random.Generator) -> dict[str, An
     }
 
 
+def _every(late: float, k: int, _rng: np.random.Generator) -> float:
+    """Every EVERY-th cycle ``late`` s late, the rest on time."""
+    return late if k % EVERY == 3 else 0.0
+
+
+def _random(_k: int, rng: np.random.Generator) -> float:
+    """Lateness drawn exponential, mean 0.4 ms."""
+    return float(rng.exponential(0.4e-3))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print the figures as one JSON object last")
@@ -159,10 +171,8 @@ def main() -> int:
     args = ap.parse_args()
     failures = Failures("late_cycles")
     rng = np.random.default_rng(args.seed)
-    cases: list[tuple[str, Any]] = [
-        (f"every {EVERY}th {ms} ms late", (lambda ms: lambda k, _r: ms * 1e-3 if k % EVERY == 3 else 0.0)(ms)) for ms in (0, 2, 4, 8, 28)
-    ]
-    cases.append(("random, mean 0.4 ms late", lambda _k, r: float(r.exponential(0.4e-3))))
+    cases: list[tuple[str, Any]] = [(f"every {EVERY}th {ms} ms late", partial(_every, ms * 1e-3)) for ms in (0, 2, 4, 8, 28)]
+    cases.append(("random, mean 0.4 ms late", _random))
     rows = []
     for name, lateness in cases:
         for kind in ("joint", "cartesian"):
