@@ -131,6 +131,7 @@ def _submit_arguments(p: argparse.ArgumentParser) -> None:
     target.add_argument("--joints", **_floats(6, "Q"), help="joint positions, rad")
     target.add_argument("--pose", **_floats(6, "P"), help="TCP pose [x, y, z, rx, ry, rz], m and rad, base frame")
     m.add_argument("--speed-scale", type=float, help="fraction of the configured speed limits (0, 1]")
+    m.add_argument("--robot", type=int, choices=(1, 2), help="the robot that moves (2: the cell's second robot, its own base frame)")
 
     h = kinds.add_parser("health", parents=[job_common], help="health check of the devices")
     h.add_argument("--check", choices=messages.HEALTH_CHECKS, default="all")
@@ -241,6 +242,7 @@ def _job_message(args: argparse.Namespace) -> dict[str, Any]:
     elif kind == "move":
         m["target"] = {"space": "joint", "q": args.joints} if args.joints else {"space": "cartesian", "pose": args.pose}
         _put(m, "speed_scale", args.speed_scale)
+        _put(m, "robot", args.robot)
     elif kind == "health":
         m["check"] = args.check
     if args.ref:

@@ -233,6 +233,12 @@ _MOVE = _submit_branch(
     {
         "target": _MOVE_TARGET,
         "speed_scale": number("Fraction of the configured speed limits.", 0.0, 1.0, open_lo=True),
+        "robot": {
+            "enum": [1, 2],
+            "default": 1,
+            "description": "The robot that moves: 1, or 2 on a cell with a second robot ([robot2]), whose TCP pose is in its "
+            "own base frame and whose moves are checked against robot 1 where it stands.",
+        },
     },
     ("target",),
 )

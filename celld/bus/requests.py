@@ -77,11 +77,13 @@ class WeldJob:
 
 @dataclass(frozen=True)
 class MoveJob:
-    """A move to joint positions (``space="joint"``, rad) or a TCP pose (``"cartesian"``)."""
+    """A move to joint positions (``space="joint"``, rad) or a TCP pose (``"cartesian"``) of robot ``robot``
+    (1, or 2: the cell's second robot, its TCP pose in its own base frame)."""
 
     space: str
     target: Pose6
     speed_scale: float = 0.5
+    robot: int = 1
     ref: str = ""
     request_id: str = ""  # the client's id of the submit
     kind: ClassVar[str] = "move"
@@ -219,6 +221,7 @@ def _build_move(m: Mapping[str, Any]) -> MoveJob:
         space=target["space"],
         target=_pose6(values),
         speed_scale=float(m.get("speed_scale", 0.5)),
+        robot=int(m.get("robot", 1)),
         ref=m.get("ref", ""),
         request_id=m.get("request_id", ""),
     )
@@ -358,6 +361,8 @@ def job_to_message(job: Job) -> dict[str, Any]:
         key = "q" if job.space == "joint" else "pose"
         m["target"] = {"space": job.space, key: list(job.target)}
         m["speed_scale"] = job.speed_scale
+        if job.robot != 1:
+            m["robot"] = job.robot
     elif isinstance(job, HealthJob):
         m["check"] = job.check
     elif isinstance(job, ToolCalibrateJob):

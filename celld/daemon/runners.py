@@ -9,7 +9,8 @@ worker threads so the event loop keeps answering the bus.
   :mod:`celld.daemon.two_robots`);
 - **move**: a jerk-limited straight move of the TCP to a pose, or a
   jerk-limited joint move (straight in joint space, sent as speedJ) to joint
-  positions; both checked against the cell first (planning module);
+  positions; both checked against the cell first (planning module); of robot
+  1, or of robot 2 (``robot: 2``) checked against robot 1 where it stands;
 - **health**: the robot link and loop timing, the scanner (one capture), the
   tactile sensor;
 - **weld**: :mod:`celld.daemon.weld`;
@@ -34,6 +35,7 @@ import numpy as np
 from celld import se3
 from celld.bus.requests import CalibrateJob, HealthJob, MoveJob
 from celld.config import Config
+from celld.daemon.arm import Arm
 from celld.daemon.calibrate import run_calibrate
 from celld.daemon.devices import INTERLOCK_SCHEMA, CellDevices
 from celld.daemon.jobs import JobContext, Runner
@@ -41,7 +43,7 @@ from celld.daemon.toolcal import run_tool_calibrate
 from celld.daemon.two_robots import run_calibrate_two
 from celld.daemon.verify import ensure_verified, run_verify
 from celld.daemon.weld import run_weld
-from celld.errors import CelldError, JobError
+from celld.errors import CelldError, DeviceError, JobError
 from celld.journal import utc_now
 from celld.motion.handle import HEALTH_SCHEMA
 from celld.robot.dashboard import CONDITION_SCHEMA
@@ -57,7 +59,10 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
         return await run_calibrate(ctx, config, devices)
 
     async def move(ctx: JobContext) -> Mapping[str, Any]:
-        return await run_move(ctx, devices)
+        if isinstance(ctx.job, MoveJob) and ctx.job.robot == 2:
+            return await run_move_robot2(ctx, devices)
+        async with devices.beside_robot2():
+            return await run_move(ctx, devices.robot)
 
     async def health(ctx: JobContext) -> Mapping[str, Any]:
         return await run_health(ctx, devices)
@@ -87,8 +92,8 @@ def build_runners(config: Config, devices: CellDevices) -> dict[str, Runner]:
 
         return checked
 
-    moving = {"calibrate": calibrate, "move": move, "weld": weld, "tool-calibrate": tool_calibrate, "verify": verify}
-    return {"health": health, **{kind: beside_robot2(run) for kind, run in moving.items()}}
+    moving = {"calibrate": calibrate, "weld": weld, "tool-calibrate": tool_calibrate, "verify": verify}
+    return {"health": health, "move": move, **{kind: beside_robot2(run) for kind, run in moving.items()}}
 
 
 # -- move ----------------------------------------------------------------------------
@@ -120,14 +125,30 @@ MOVE_RESULT_SCHEMA = one_of(
 )
 
 
-async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
+async def run_move_robot2(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
+    """A move job of robot 2: its target in its own base frame, checked against robot 1's arm and tool where
+    they stand (nothing moves robot 1 meanwhile)."""
+    arm2 = devices.robot2
+    if arm2 is None:
+        raise JobError("$.robot", "this cell has no second robot ([robot2] in its config)")
+    try:
+        q1 = await devices.robot.current_q()
+    except DeviceError as exc:
+        raise DeviceError(f"robot 1's place is unknown ({exc}); robot 2 does not move beside it") from exc
+    with arm2.avoiding(devices.robot1_obstacles(q1)):
+        return await run_move(ctx, arm2, tool=False)
+
+
+async def run_move(ctx: JobContext, arm: Arm, *, tool: bool = True) -> Mapping[str, Any]:
+    """A move job of ``arm`` (``tool``: its moves are checked with the welding tool on its flange)."""
     job = ctx.job
     if not isinstance(job, MoveJob):
         raise JobError("$.kind", "not a move job")
     target = np.asarray(job.target, dtype=np.float64)
+    who = "" if job.robot == 1 else f"robot {job.robot}: "
     if job.space == "joint":
-        ctx.progress("move", 0.0, f"joint move to {np.round(target, 4).tolist()} rad")
-        state = await devices.robot.move_joints(target, speed_scale=job.speed_scale)
+        ctx.progress("move", 0.0, f"{who}joint move to {np.round(target, 4).tolist()} rad")
+        state = await arm.move_joints(target, speed_scale=job.speed_scale, tool=tool)
         err = np.degrees(np.abs(np.asarray(state.q) - target))
         return {
             "space": "joint",
@@ -136,8 +157,8 @@ async def run_move(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]:
             "tcp_pose": se3.to_ur_pose(state.T_base_tcp).tolist(),
         }
     T = se3.from_ur_pose(target)
-    ctx.progress("move", 0.0, f"moving to {np.round(target, 4).tolist()}")
-    state = await devices.robot.move_to(T, speed_scale=job.speed_scale)
+    ctx.progress("move", 0.0, f"{who}moving to {np.round(target, 4).tolist()}")
+    state = await arm.move_to(T, speed_scale=job.speed_scale, tool=tool)
     dt, dr = se3.error(state.T_base_tcp, T)
     return {
         "space": "cartesian",

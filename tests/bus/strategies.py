@@ -38,9 +38,10 @@ valid_jobs = st.one_of(
         st.booleans(),
     ),
     st.builds(
-        lambda q, s: {"kind": "move", "target": {"space": "joint", "q": q}, "speed_scale": s},
+        lambda q, s, r: {"kind": "move", "target": {"space": "joint", "q": q}, "speed_scale": s, "robot": r},
         st.lists(st.floats(-6.28, 6.28), min_size=6, max_size=6),
         st.floats(0.01, 1.0),
+        st.sampled_from([1, 2]),
     ),
     st.builds(lambda c: {"kind": "health", "check": c}, st.sampled_from(messages.HEALTH_CHECKS)),
     st.builds(

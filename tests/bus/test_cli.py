@@ -155,3 +155,19 @@ def test_submit_tool_calibrate_builds_its_message() -> None:
     assert requests.parse_submit(wire.encode(message)) == requests.ToolCalibrateJob(
         n_poses=9, max_tilt=pytest.approx(0.2617993877991494), tip_position=(0.6, 0.0, 0.45), seed=4, dry_run=True, ref="tool-7"
     )
+
+
+def test_submit_move_of_the_second_robot_builds_its_message(capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+
+    from celld.bus.cli import _job_message, add_parser
+
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers(dest="cmd"))
+    args = parser.parse_args(["submit", "move", "--pose", "0.65", "0", "0.45", "0", "0", "0", "--robot", "2"])
+    message = _job_message(args)
+    assert message == {"kind": "move", "target": {"space": "cartesian", "pose": [0.65, 0.0, 0.45, 0.0, 0.0, 0.0]}, "robot": 2}
+    assert requests.parse_submit(wire.encode(message)) == requests.MoveJob("cartesian", (0.65, 0.0, 0.45, 0.0, 0.0, 0.0), robot=2)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["submit", "move", "--joints", "0", "0", "0", "0", "0", "0", "--robot", "3"])
+    assert "invalid choice: 3" in capsys.readouterr().err

@@ -46,8 +46,18 @@ def test_weld_move_health() -> None:
     move = submit({"kind": "move", "target": {"space": "joint", "q": [0, -1.57, 1.57, -1.57, -1.57, 0]}, "speed_scale": 0.2})
     assert move == MoveJob(space="joint", target=(0.0, -1.57, 1.57, -1.57, -1.57, 0.0), speed_scale=0.2)
     pose = submit({"kind": "move", "target": {"space": "cartesian", "pose": [0.6, 0, 0.4, 0, 3.14, 0]}})
-    assert pose.space == "cartesian" and pose.speed_scale == 0.5
+    assert pose.space == "cartesian" and pose.speed_scale == 0.5 and pose.robot == 1
     assert submit({"kind": "health"}) == HealthJob(check="all")
+
+
+def test_a_move_of_the_second_robot_names_it_and_goes_back_to_its_message() -> None:
+    message = {"kind": "move", "target": {"space": "joint", "q": [0, -1.57, 1.57, -1.57, -1.57, 0]}, "speed_scale": 0.2, "robot": 2}
+    job = submit(message)
+    assert isinstance(job, MoveJob) and job.robot == 2
+    assert submit(requests.job_to_message(job)) == job
+    for robot, reason in ((3, "expected one of 1, 2"), (True, "expected one of 1, 2"), ("2", "expected one of 1, 2")):
+        err = refusal({**message, "robot": robot})
+        assert err.field == "$.robot" and reason in err.reason, (robot, err)
 
 
 def test_integral_floats_count_as_integers() -> None:

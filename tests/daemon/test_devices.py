@@ -183,3 +183,31 @@ def test_robot_1_does_not_move_beside_a_second_robot_whose_place_is_unknown() ->
         assert two.robot.planner is planner
 
     asyncio.run(scenario())
+
+
+def test_a_move_of_robot_2_needs_a_second_robot_and_robot_1_where_it_stands(tmp_path) -> None:
+    from pathlib import Path
+
+    from celld.bus.requests import MoveJob
+    from celld.config import load
+    from celld.daemon.jobs import JobContext
+    from celld.daemon.runners import build_runners
+    from celld.errors import JobError
+
+    job = MoveJob(space="joint", target=(0.0, -1.57, 1.57, -1.57, -1.57, 0.0), robot=2)
+
+    def context() -> JobContext:
+        return JobContext("j", job, tmp_path, lambda *a, **k: None)
+
+    async def scenario() -> None:
+        one = CellDevices(Config())
+        with pytest.raises(JobError) as err:
+            await build_runners(one.config, one)["move"](context())
+        assert err.value.field == "$.robot" and "no second robot" in err.value.reason
+        two = CellDevices(load(Path(__file__).resolve().parents[2] / "configs" / "sim-cell-two-robots.toml"))
+        planner = two.robot2.planner
+        with pytest.raises(DeviceError, match="robot 1's place is unknown .*the robot is not connected"):
+            await build_runners(two.config, two)["move"](context())
+        assert two.robot2.planner is planner
+
+    asyncio.run(scenario())

@@ -8,7 +8,8 @@ of a degree (the error the job exists to measure). The daemon drives both
 arms through their own supervised motion processes, one at a time; the
 result is scored against the simulator's truth only at the end. The
 realistic worlds are bench/robot_robot.py's. Slow (six poses per robot at
-half resolution, and a kill -9 of the daemon while robot 2 moves; about two minutes).
+half resolution, a move job of robot 2 and a kill -9 of the daemon while
+robot 2 moves home; about a minute and a half).
 """
 
 from __future__ import annotations
@@ -139,10 +140,21 @@ def test_two_robots_are_calibrated_through_one_scanner(tmp_path: Path, cell_conf
         assert checked_result(client, refused) is None
         assert np.max(np.abs(cell.robot.truth()[2] - q_before)) < 1e-6
 
-        # A kill -9 of the daemon while robot 2 moves to its first pose of another job: robot 2's own
-        # motion process sees its daemon go and stops the arm; robot 1 waits at rest where it parked.
-        client.submit({"kind": "calibrate", "seed": 1, "robot2": True})
-        wait_moving(cell.robot2, timeout=240)
+        # A move job of robot 2 alone: its TCP pose in its own base frame, checked against robot 1 where it
+        # stands; robot 1 does not move.
+        q1_parked = np.asarray(cell.robot.truth()[2])
+        to_meet = {"kind": "move", "robot": 2, "target": {"space": "cartesian", "pose": list(cfg.robot2.verification_pose)}}
+        _, moved = client.submit_and_wait(to_meet, timeout=120)
+        assert moved["state"] == "succeeded", moved["reason"]
+        reached = checked_result(client, moved)
+        assert reached["space"] == "cartesian" and reached["error_mm"] < 0.5 and reached["error_deg"] < 0.1, reached
+        np.testing.assert_allclose(reached["tcp_pose"][:3], cfg.robot2.verification_pose[:3], atol=0.5e-3)
+        assert np.max(np.abs(cell.robot.truth()[2] - q1_parked)) < 1e-6
+
+        # A kill -9 of the daemon while robot 2 moves home: its own motion process sees its daemon go and
+        # stops the arm; robot 1 waits at rest where it parked.
+        client.submit({"kind": "move", "robot": 2, "target": {"space": "joint", "q": list(cfg.robot2.robot.home_q)}})
+        wait_moving(cell.robot2, timeout=60)
         t_kill = time.monotonic_ns()
         cell.daemon.send_signal(signal.SIGKILL)
         seen = after_kill(cell.robot2, t_kill, arc_output=0)
