@@ -9,7 +9,8 @@ calibration's pose box, facing the scanner as there (checked against the
 cell before the robot moves; as many spares, for views where the detector
 does not find the flange), and compares what the scanner sees with where the
 calibration puts it. Poses apart show a turn of the scanner as well as a
-shift: its error differs from pose to pose.
+shift: its error differs from pose to pose. The worst pose decides, so the
+arm stops looking once two poses are seen and one is beyond the bound.
 
 When it runs:
 
@@ -173,7 +174,11 @@ async def verify_calibration(ctx: JobContext, config: Config, devices: CellDevic
         sightings.append(sighting)
         if i == 0:
             _, repeat = await look(T_bf, q, "v0-again")  # the verification's own repeatability
-        if sum(s.center_cam is not None for s in sightings) >= cal.verify_poses:
+        seen = sum(s.center_cam is not None for s in sightings)
+        if seen >= cal.verify_poses:
+            break
+        # Two poses seen and one beyond the bound: the verdict (the worst pose's) is failed whatever comes next.
+        if seen >= 2 and not verify_placement(sightings, repeat, own_bound, cal.verify_bound).passed:
             break
     done = verify_placement(sightings, repeat, own_bound, cal.verify_bound)
     record = {

@@ -110,6 +110,9 @@ def test_a_calibrated_weld_tracks_the_seam_and_a_cancelled_or_killed_weld_stops(
         assert verified["state"] == "failed" and "the current calibration failed its verification" in verified["reason"]
         figure = float(verified["reason"].split("the flange is ")[1].split(" mm")[0])
         assert 40.0 < figure < 80.0, verified["reason"]
+        # The worst pose decides: the arm stopped looking once two poses were seen, one of them that far off.
+        record = sealed.read_sealed(Path(cfg.cell.state_dir) / "verification.json", "verification", "the verification record")
+        assert not record["passed"] and sum(p["seen"] for p in record["poses"]) == 2 < cfg.calibration.verify_poses, record
         _, refused = client.submit_and_wait({"kind": "weld"}, timeout=60)
         assert refused["state"] == "failed" and f"failed its verification by job {verified['id']}" in refused["reason"]
         assert f"the flange is {figure:.2f} mm" in refused["reason"]
