@@ -69,7 +69,7 @@ def sim_part(world: World) -> SimWorkpiece | None:
 
 
 def srm_source(world: World, robot_host: str, part: SimWorkpiece | None) -> SimSrmSource:
-    """The simulated SRM camera: the world's tool and finger on the true wall of ``part``, in its plane."""
+    """The simulated SRM camera: the world's camera, tool and finger on the true wall of ``part``, in its plane."""
     f = world.finger
     contact = replace(ContactParams(), stiffening=f.stiffening, static_friction_ratio=f.static_friction_ratio, hysteresis=f.hysteresis)
     cam = world.camera
@@ -78,8 +78,8 @@ def srm_source(world: World, robot_host: str, part: SimWorkpiece | None) -> SimS
     if part is None:
         wall = np.array([[_FAR, _FAR], [_FAR + 1.0, _FAR]])
         side = 1.0 if tool.wall_side == "left" else -1.0
-        return SimSrmSource(robot_host, wall, -side, np.eye(4), tool, params)
-    return SimSrmSource(robot_host, part.wall, part.wall.free, part.T_base_plane, tool, params, far_wall=part.far_wall)
+        return SimSrmSource(robot_host, wall, -side, np.eye(4), tool, params, camera=world.srm)
+    return SimSrmSource(robot_host, part.wall, part.wall.free, part.T_base_plane, tool, params, far_wall=part.far_wall, camera=world.srm)
 
 
 class _CellScanner:

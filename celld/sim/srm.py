@@ -27,8 +27,12 @@ Three parts, each usable alone:
   driven by the simulated controller's truth, and optionally shares each
   frame's truth through a slot (:data:`SRM_TRUTH_DTYPE`) for benchmarks.
 
-The simulated lens is a pinhole without distortion; the detector still applies
-the configured distortion coefficients, which are zero for the simulated cell.
+In the simulated cell the camera is the world's (:class:`celld.sim.world.SrmCamera`,
+source ``srm_camera``): its intrinsics, its mount in the tool and the tag's
+printed size drawn apart from what ``[tactile]`` tells the controller. The
+simulated lens is a pinhole without distortion (not drawn); the detector still
+applies the configured distortion coefficients, which are zero for the
+simulated cell.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import cv2
 import numpy as np
@@ -48,6 +52,9 @@ from celld.config import TactileConfig, ToolConfig
 from celld.errors import InputError
 from celld.se3 import invert, transform_from
 from celld.shm import SeqlockSlot
+
+if TYPE_CHECKING:
+    from celld.sim.world import SrmCamera
 
 Array = np.ndarray
 
@@ -457,6 +464,10 @@ class SimSrm:
     far_wall : WallSurface, optional
         The joint's other wall: the tip meets it when moved across the joint
         (a probe of the joint's width), else only ``wall``.
+    camera : SrmCamera, optional
+        The camera as built and the tag as printed (the simulated cell's
+        world, :class:`celld.sim.world.SrmCamera`); None: as ``cfg`` and
+        ``tool`` say (a camera exactly as the controller was told).
     """
 
     def __init__(
@@ -467,6 +478,7 @@ class SimSrm:
         T_base_plane: Array,
         params: SrmSimParams = SrmSimParams(),
         far_wall: WallSurface | None = None,
+        camera: SrmCamera | None = None,
     ) -> None:
         from celld.tactile.tool import ToolGeometry
 
@@ -477,11 +489,27 @@ class SimSrm:
         self.T_base_plane = np.asarray(T_base_plane, dtype=np.float64)
         self.params = params
         self.finger = Finger(params.contact)
-        self._T_cam_tool = invert(self.tool.T_tool_cam)
-        size = (cfg.width_px, cfg.height_px)
-        self.renderer = TagRenderer(cfg.tag_dictionary, cfg.tag_id, cfg.tag_size, cfg.intrinsics_px, size, params.seed)
-        foreign_id = (cfg.tag_id + 10) % 50
-        self._foreign = TagRenderer(cfg.tag_dictionary, foreign_id, cfg.tag_size, cfg.intrinsics_px, size, params.seed + 1)
+        if camera is None:
+            T_tool_cam = self.tool.T_tool_cam
+            dictionary, tag_id, tag_size, K, size = (
+                cfg.tag_dictionary,
+                cfg.tag_id,
+                cfg.tag_size,
+                cfg.intrinsics_px,
+                (cfg.width_px, cfg.height_px),
+            )
+        else:
+            T_tool_cam = self.tool.T_tool_cam if camera.T_tool_cam is None else np.asarray(camera.T_tool_cam, dtype=np.float64)
+            dictionary, tag_id, tag_size, K, size = (
+                camera.tag_dictionary,
+                camera.tag_id,
+                camera.tag_size,
+                camera.intrinsics_px,
+                camera.size_px,
+            )
+        self._T_cam_tool = invert(T_tool_cam)
+        self.renderer = TagRenderer(dictionary, tag_id, tag_size, K, size, params.seed)
+        self._foreign = TagRenderer(dictionary, (tag_id + 10) % 50, tag_size, K, size, params.seed + 1)
         # Fault injection: "" | "wrong_id" | "no_tag" | "blur".
         self.fault = ""
 
@@ -518,15 +546,16 @@ class SimSrm:
     def frame(self, stamp_ns: int, T_base_tcp: Array, v_base_tip: Array, t: float) -> SrmFrame:
         """Render the frame captured at ``stamp_ns`` for the TCP pose and tip velocity of that instant."""
         c, shift_tool, tag_tool = self.contact(T_base_tcp, v_base_tip)
+        return SrmFrame(stamp_ns, self.image(tag_tool, self.imaging(t)), -shift_tool, c.in_contact, c.bottomed)
+
+    def image(self, tag_tool: Array, imaging: Imaging) -> Array:
+        """The camera's image with the tag shifted by ``tag_tool`` (3,) in the tool frame (the finger bent so)."""
         T_cam_tag = self._T_cam_tool @ tag_pose_tool(tag_tool, self.params.contact.finger_length)
-        imaging = self.imaging(t)
         if self.fault == "no_tag":
-            image = self.renderer.render(None, imaging)
-        elif self.fault == "wrong_id":
-            image = self._foreign.render(T_cam_tag, imaging)
-        else:
-            image = self.renderer.render(T_cam_tag, imaging)
-        return SrmFrame(stamp_ns, image, -shift_tool, c.in_contact, c.bottomed)
+            return self.renderer.render(None, imaging)
+        if self.fault == "wrong_id":
+            return self._foreign.render(T_cam_tag, imaging)
+        return self.renderer.render(T_cam_tag, imaging)
 
 
 PoseAt = Callable[[int], tuple[Array, Array]]
@@ -703,6 +732,7 @@ class SimSrmSource:
     params: SrmSimParams | None = None
     truth_slot: str = ""
     far_wall: WallSurface | None = None
+    camera: SrmCamera | None = None
 
     def __call__(self, cfg: TactileConfig) -> _TruthSharingCamera:
         from dataclasses import replace
@@ -714,5 +744,5 @@ class SimSrmSource:
         params = self.params or SrmSimParams(fps=cfg.fps)
         if params.fps <= 0.0:
             params = replace(params, fps=cfg.fps)
-        srm = SimSrm(cfg, self.tool, wall, self.T_base_plane, params, self.far_wall)
+        srm = SimSrm(cfg, self.tool, wall, self.T_base_plane, params, self.far_wall, self.camera)
         return _TruthSharingCamera(SimSrmCamera(srm, _pose_at(reader.history)), reader.close, self.truth_slot)

@@ -32,12 +32,14 @@ its drawing, the world the simulated cell had before it owned one) and
                               # resolution_scale, roi_px (a window of the image: only it is cast), seed (noise)
     [sim.tool]                # the welding tool as drawn, flange frame: the keys of [tool]
     [sim.part]                # workpiece ("" for none), pose (UR pose; default the nominal place), bow_mm
+    [sim.srm]                 # the SRM camera as drawn: intrinsics_px, width_px, height_px, tag_dictionary,
+                              # tag_id, tag_size_mm (its mount is [sim.tool] T_tool_cam)
     [sim.errors]              # <source> = true|false, and magnitudes (ERROR_KEYS) over the preset's
 
 Who reads what: the simulated robot process gets :attr:`World.arm`
 (:class:`~celld.sim.robot.truearm.ArmTruth`, through its options), the
 simulated scanner :attr:`World.scanner` and :attr:`World.flange`, the SRM
-camera :attr:`World.tool`, :attr:`World.finger` and :attr:`World.camera`,
+camera :attr:`World.srm`, :attr:`World.tool`, :attr:`World.finger` and :attr:`World.camera`,
 the part builder (:mod:`celld.sim.workpiece`) :attr:`World.part`; the demo
 and the benchmarks score against all of it after the jobs end. The daemon
 never sees any of it.
@@ -93,6 +95,7 @@ SOURCES: tuple[str, ...] = (
     # tool
     "tool_offsets",  # the SRM tip and the torch are not where the tool config says
     "finger",  # the finger's stiffening, hysteresis and stick-slip
+    "srm_camera",  # the SRM camera's intrinsics and mount, and the tag's printed size, are not what the controller was told
     # part
     "part_placement",  # the part lies off its place by centimetres and degrees
     "part_shape",  # bow, twist, tack-weld kinks, root-gap variation
@@ -212,6 +215,21 @@ class ErrorBudget:
     tip_offset: float = 0.6e-3  # m
     torch_offset: float = 0.6e-3  # m
     tool_rotation: float = math.radians(0.4)  # rad
+    # The SRM tip's radius against its drawing, 1 sigma: a printed or turned
+    # ball of 2 mm held to a few hundredths. Plausible.
+    tip_radius: float = 0.02e-3  # m
+    # The SRM camera as built against the values the controller was given
+    # ([tactile]), 1 sigma: the focal lengths (relative) and the principal
+    # point, what a checkerboard calibration of a small 640 x 480 camera
+    # leaves (Zhang's method: a few tenths of a percent and a few pixels;
+    # plausible); the tag's printed side (relative: a laser print's scale or a
+    # laser-marked tag's tolerance, plausible); the camera's mount in the tool
+    # frame (per axis), a camera pressed into the finger's base. Plausible.
+    srm_focal: float = 0.005  # relative
+    srm_principal_point: float = 2.0  # px
+    tag_print: float = 0.0025  # relative
+    srm_mount_translation: float = 0.2e-3  # m
+    srm_mount_rotation: float = math.radians(0.5)  # rad
     # The finger: deflection at which its stiffness has doubled (F = k d (1 +
     # (d / s)^2)), width of the play between the tip and the tag (a few % of
     # the working deflection), and static over kinetic friction. Plausible
@@ -303,6 +321,12 @@ ERROR_KEYS: dict[str, tuple[str, float, float]] = {
     "tip_offset": ("tip_offset_mm", 1e-3, 20.0),
     "torch_offset": ("torch_offset_mm", 1e-3, 20.0),
     "tool_rotation": ("tool_rotation_deg", math.pi / 180, 10.0),
+    "tip_radius": ("tip_radius_mm", 1e-3, 1.0),
+    "srm_focal": ("srm_focal", 1.0, 0.1),
+    "srm_principal_point": ("srm_principal_point_px", 1.0, 50.0),
+    "tag_print": ("tag_print", 1.0, 0.1),
+    "srm_mount_translation": ("srm_mount_translation_mm", 1e-3, 10.0),
+    "srm_mount_rotation": ("srm_mount_rotation_deg", math.pi / 180, 10.0),
     "stiffening": ("stiffening_mm", 1e-3, 100.0),
     "hysteresis": ("hysteresis_mm", 1e-3, 1.0),
     "static_friction_ratio": ("static_friction_ratio", 1.0, 5.0),
@@ -322,6 +346,40 @@ ERROR_KEYS: dict[str, tuple[str, float, float]] = {
 DEFAULT_T_BASE_CAM = ((0.0, -1.0, 0.0, 0.6), (-1.0, 0.0, 0.0, -0.0125), (0.0, 0.0, -1.0, 1.0), (0.0, 0.0, 0.0, 1.0))
 SCANNER_MODELS = ("phoxi-s", "phoxi-m", "azure-kinect")
 ROBOT_MODELS = tuple(kin.MODELS)
+
+
+@dataclass(frozen=True)
+class SrmCamera:
+    """The SRM camera and the tag it watches (SI, pixels): as drawn in ``[sim.srm]``, or as built.
+
+    ``T_tool_cam`` is the camera's mount in the tool frame; None: as the
+    welding tool's drawing puts it (``[sim.tool] T_tool_cam``).
+    """
+
+    intrinsics_px: tuple[float, float, float, float] = (600.0, 600.0, 320.0, 240.0)  # fx, fy, cx, cy
+    size_px: tuple[int, int] = (640, 480)
+    tag_dictionary: str = "DICT_4X4_50"
+    tag_id: int = 7
+    tag_size: float = 0.008  # m, the side of the tag's black square
+    T_tool_cam: tuple[tuple[float, ...], ...] | None = None
+
+    @classmethod
+    def read(cls, r: TableReader) -> SrmCamera:
+        """The camera as drawn, from the ``[sim.srm]`` table's reader ``r``."""
+        fx, fy, cx, cy = r.vector("intrinsics_px", 4, list(cls.intrinsics_px))
+        w = r.int("width_px", cls.size_px[0], lo=16, hi=8192)
+        h = r.int("height_px", cls.size_px[1], lo=16, hi=8192)
+        if not (fx > 0.0 and fy > 0.0 and 0.0 <= cx <= w and 0.0 <= cy <= h):
+            raise r.error(
+                "intrinsics_px", f"expected fx, fy > 0 and the principal point inside the {w} x {h} image, got {[fx, fy, cx, cy]}"
+            )
+        return cls(
+            intrinsics_px=(fx, fy, cx, cy),
+            size_px=(w, h),
+            tag_dictionary=r.str("tag_dictionary", cls.tag_dictionary),
+            tag_id=r.int("tag_id", cls.tag_id, lo=0, hi=999),
+            tag_size=r.float("tag_size_mm", cls.tag_size * 1e3, lo=0.5, hi=200.0, scale=1e-3),
+        )
 
 
 @dataclass(frozen=True)
@@ -352,6 +410,8 @@ class NominalCell:
     robot2: str = ""
     robot2_pose: tuple[float, ...] = ()
     robot2_flange: str = ""
+    # The SRM camera and its tag as drawn ([sim.srm]); its mount is the tool's T_tool_cam.
+    srm: SrmCamera = field(default_factory=SrmCamera)
 
     @classmethod
     def read(cls, r: TableReader) -> NominalCell:
@@ -359,6 +419,7 @@ class NominalCell:
         sc = r.table("scanner")
         tool_r = r.table("tool")
         part = r.table("part")
+        srm = r.table("srm")
         pose = part.vector("pose", 6) if part.has("pose") else ()
         r2 = r.table("robot2")
         robot2, robot2_flange = "", ""
@@ -399,8 +460,9 @@ class NominalCell:
             robot2=robot2,
             robot2_pose=robot2_pose,
             robot2_flange=robot2_flange,
+            srm=SrmCamera.read(srm),
         )
-        for sub in (sc, tool_r, part, r2):
+        for sub in (sc, tool_r, part, r2, srm):
             sub.done()
         try:
             flange_preset(out.flange)
@@ -676,6 +738,7 @@ class World:
     camera: CameraTiming
     part: PartTruth | None
     robot2: Robot2Truth | None = None
+    srm: SrmCamera = field(default_factory=SrmCamera)  # the SRM camera as built, its mount in the tool frame set
 
     @property
     def nominal_dh(self) -> kin.DH:
@@ -868,11 +931,13 @@ def _draw_tool(nominal: NominalCell, b: ErrorBudget, seed: int) -> ToolTruth:
     torch = torch_nominal + _tnormal(r, b.torch_offset, 3)
     x = dR @ np.asarray(cfg.tool_x_tcp)
     z = dR @ np.asarray(cfg.tool_z_tcp)
+    radius = max(cfg.tip_radius + float(_tnormal(r, b.tip_radius, 1)[0]), 0.1 * cfg.tip_radius)
     true_cfg = replace(
         cfg,
         tool_x_tcp=tuple(x.tolist()),
         tool_z_tcp=tuple(z.tolist()),
         tip_tcp=tuple(tip.tolist()),
+        tip_radius=radius,
         torch_offset=float(np.linalg.norm(torch - tip)),
     )
     return ToolTruth(cfg, true_cfg, torch, torch_nominal)
@@ -890,6 +955,26 @@ def _draw_camera(b: ErrorBudget, seed: int) -> CameraTiming:
     if not b.on("camera_jitter"):
         return CameraTiming(seed=srm_seed)
     return CameraTiming(b.camera_stamp_sigma, b.camera_delivery_jitter, srm_seed)
+
+
+def _draw_srm(nominal: NominalCell, b: ErrorBudget, seed: int) -> SrmCamera:
+    drawn = replace(nominal.srm, T_tool_cam=nominal.tool.T_tool_cam)
+    if not b.on("srm_camera"):
+        return drawn
+    r = _rng(seed, "srm_camera")
+    fx, fy, cx, cy = drawn.intrinsics_px
+    f = 1.0 + _tnormal(r, b.srm_focal, 1)[0]
+    dc = _tnormal(r, b.srm_principal_point, 2)
+    size = drawn.tag_size * (1.0 + _tnormal(r, b.tag_print, 1)[0])
+    T = np.asarray(drawn.T_tool_cam, dtype=np.float64)
+    dR = Rotation.from_rotvec(_tnormal(r, b.srm_mount_rotation, 3)).as_matrix()
+    T_built = se3.transform_from(dR @ T[:3, :3], T[:3, 3] + _tnormal(r, b.srm_mount_translation, 3))
+    return replace(
+        drawn,
+        intrinsics_px=(float(fx * f), float(fy * f), float(cx + dc[0]), float(cy + dc[1])),
+        tag_size=float(size),
+        T_tool_cam=tuple(tuple(float(v) for v in row) for row in T_built),
+    )
 
 
 def _draw_robot2(nominal: NominalCell, b: ErrorBudget, seed: int) -> Robot2Truth | None:
@@ -962,6 +1047,7 @@ def draw_world(nominal: NominalCell, budget: ErrorBudget, seed: int, preset: str
         camera=_draw_camera(budget, seed),
         part=_draw_part(nominal, budget, seed),
         robot2=_draw_robot2(nominal, budget, seed),
+        srm=_draw_srm(nominal, budget, seed),
     )
 
 

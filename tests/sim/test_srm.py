@@ -196,3 +196,57 @@ def test_a_tip_moved_across_the_joint_meets_its_other_wall() -> None:
     # Without the other wall the tip passes through where it stands.
     alone = SimSrm(TactileConfig(), ToolConfig(), finger, np.eye(4)).frame(0, _tool_pose(-0.0058), np.zeros(3), 0.0)
     assert not alone.in_contact
+
+
+def _reader(camera):  # type: ignore[no-untyped-def]
+    """``read(shift_tool) -> tag centre (3,) in the camera frame`` as the controller's detector finds it (told
+    [tactile]'s defaults), through the simulated SRM with ``camera``, noise-free."""
+    from celld.config import TactileConfig, ToolConfig
+    from celld.sim.srm import Imaging, SimSrm, SrmSimParams
+    from celld.tactile.aruco import TagDetector
+
+    cfg = TactileConfig()
+    srm = SimSrm(cfg, ToolConfig(), WALL, np.eye(4), SrmSimParams(seed=5), camera=camera)
+    detector = TagDetector.from_config(cfg)
+    return lambda shift: detector.detect(srm.image(np.asarray(shift, dtype=np.float64), Imaging(noise=0.0))).p_cam
+
+
+@pytest.mark.parametrize("seed", [4, 5, 6])
+def test_the_worlds_srm_camera_is_its_own_and_the_estimator_reads_it_through_what_it_was_told(seed: int) -> None:
+    from celld.config import ToolConfig
+    from celld.se3 import invert
+    from celld.sim.world import PRESETS, NominalCell, draw_world
+    from celld.tactile.deformation import deformation_tool, tare
+
+    drawn = draw_world(NominalCell(), PRESETS["ideal"], seed).srm
+    assert drawn.tag_size == 0.008 and drawn.intrinsics_px == (600.0, 600.0, 320.0, 240.0)
+    built = draw_world(NominalCell(), PRESETS["ideal"].with_sources(on=["srm_camera"]), seed).srm
+    assert built.tag_size != drawn.tag_size and built.intrinsics_px != drawn.intrinsics_px and built.T_tool_cam != drawn.T_tool_cam
+
+    # The finger at rest: the tag at the tool frame's origin, seen by the camera as built and read with the drawn
+    # intrinsics and tag size. A pinhole camera predicts the reading: each coordinate scaled by the told over
+    # the printed size, the depth by the told over the true focal length, and the principal point's error as a
+    # lateral shift in proportion to the depth.
+    fx_told, _, cx_told, cy_told = drawn.intrinsics_px
+    fx, _, cx, cy = built.intrinsics_px
+    x, y, z = invert(np.asarray(built.T_tool_cam))[:3, 3]
+    k = drawn.tag_size / built.tag_size
+    predicted = k * np.array([x + (cx - cx_told) * z / fx, y + (cy - cy_told) * z / fx, z * fx_told / fx])
+    read_drawn, read_built = _reader(drawn), _reader(built)
+    at_rest = read_built(np.zeros(3))
+    told = invert(np.asarray(drawn.T_tool_cam))[:3, 3]
+    assert np.linalg.norm(read_drawn(np.zeros(3)) - told) < 20e-6  # the camera as drawn reads where it was told
+    assert np.linalg.norm(at_rest - told) > 200e-6, at_rest
+    assert np.linalg.norm(at_rest - predicted) < 40e-6, (at_rest, predicted)
+
+    # A 1 mm shift across the seam (n_d) after a tare: read through the built camera's turn, scale and depth, the
+    # deformation differs from the drawn camera's reading by a few hundredths of a millimetre at these sizes.
+    R_tool_cam = ToolConfig().R_tool_cam()
+    shift = np.array([0.0, 1.0e-3, 0.0])
+
+    def deformation(read) -> np.ndarray:  # type: ignore[no-untyped-def]
+        return deformation_tool(read(shift), tare(np.array([read(np.zeros(3))]), max_spread=1e-3), R_tool_cam)
+
+    ideal, seen = deformation(read_drawn), deformation(read_built)
+    assert np.linalg.norm(ideal + shift) < 20e-6, ideal
+    assert 5e-6 < np.linalg.norm(seen - ideal) < 100e-6, (seen, ideal)

@@ -69,6 +69,7 @@ def _components(w: Any) -> dict[str, str]:
         "flange_variant": t(f.chamfer, f2.chamfer, f.bore_depth, f2.hole_depth, f.dowel_depth),
         "tool_offsets": t(w.tool.config, w.tool.p_flange_torch),
         "finger": t(w.finger),
+        "srm_camera": t(w.srm),
         "part_placement": t(p.offset_xy, p.yaw),
         "part_shape": t(p.shape),
         # The joints' stiffness is drawn when either load is on, and belongs to neither alone.
@@ -102,6 +103,7 @@ def test_the_ideal_world_is_its_drawing() -> None:
     np.testing.assert_allclose(w.tool.p_flange_torch, [-0.03, 0.0, 0.2])
     assert w.finger.hysteresis == 0.0 and w.finger.static_friction_ratio == 1.0 and math.isinf(w.finger.stiffening)
     assert w.camera.stamp_sigma == 0.0 and w.camera.delivery_jitter == 0.0
+    assert w.srm == replace(NOMINAL.srm, T_tool_cam=NOMINAL.tool.T_tool_cam)
     assert w.part is not None and w.part.offset_xy == (0.0, 0.0) and w.part.yaw == 0.0
     assert w.part.shape == PartShape(bow=0.001)
     # The arm in the ideal world is the controller's model: the true pose is the reported one.
@@ -277,6 +279,11 @@ def test_the_sim_table_is_read_and_checked_by_the_simulator() -> None:
         ({**TABLE, "scanner": {"roi_px": [100, 100, 0, 100]}}, "sim.scanner.roi_px"),
         # Pixels of the image at its resolution_scale: the PhoXi M's 1544 rows are 772 at half.
         ({**TABLE, "scanner": {"resolution_scale": 0.5, "roi_px": [0, 800, 0, 100]}}, "sim.scanner.roi_px"),
+        ({**TABLE, "srm": {"intrinsics_px": [600.0, 600.0, 700.0, 240.0]}}, "sim.srm.intrinsics_px"),
+        ({**TABLE, "srm": {"intrinsics_px": [0.0, 600.0, 320.0, 240.0]}}, "sim.srm.intrinsics_px"),
+        ({**TABLE, "srm": {"tag_size_mm": 0.1}}, "sim.srm.tag_size_mm"),
+        ({**TABLE, "srm": {"lens": "wide"}}, "sim.srm.lens"),
+        ({**TABLE, "errors": {"tag_print": 0.5}}, "sim.errors.tag_print"),
     ):
         with pytest.raises(ConfigError) as exc:
             world_of(parse({"sim": table}))
