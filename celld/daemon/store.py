@@ -210,6 +210,7 @@ class CurrentTool(NamedTuple):
     job: str  # the tool-calibrate job that measured it, "" for none
     sensor_yaw: float = 0.0  # rad, Algorithm2Params.sensor_yaw
     torch_measured: bool = False
+    torch_height: float = 0.0  # m, the measured torch's end above the tip along the finger (0: as configured)
 
 
 def current_tool(state_dir: Path, tool: ToolConfig) -> CurrentTool:
@@ -239,7 +240,7 @@ def current_tool(state_dir: Path, tool: ToolConfig) -> CurrentTool:
         measured = with_measured_torch(tool, _stored_point(current, "torch_tcp_mm"))
     except InputError as exc:
         raise JobError("$", f"the current tool calibration {job} is unusable: {exc}") from exc
-    return CurrentTool(measured.tool, job, measured.sensor_yaw, True)
+    return CurrentTool(measured.tool, job, measured.sensor_yaw, True, measured.height)
 
 
 def _read_current(store: CalibrationStore) -> dict[str, Any] | None:

@@ -13,7 +13,9 @@ Steps, each published as a progress event:
    range bias on metal (time-of-flight scanner) has the scan's points moved
    back along their rays by it first: the part and the table are metal;
 3. **approach**: the finger's wall line at ``weld.tip_height`` above the seam
-   (:mod:`celld.seam.weldpath`) becomes the servo's plan; the tool comes down
+   (lower by as much as a measured torch's end stands above the tip, so the
+   torch is at that height: :func:`celld.weld.plan.for_torch`;
+   :mod:`celld.seam.weldpath`) becomes the servo's plan; the tool comes down
    ``approach_height`` above its start, then onto it, ``clearance`` off the
    wall on the free side; the SRM is tared there, free;
 4. **track**: Algorithm 2 in the motion process's servo slot touches the wall
@@ -75,6 +77,7 @@ from celld.weld.plan import (
     PROBED_SCHEMA,
     PreparedPart,
     WeldPlan,
+    for_torch,
     plan_weld,
     prepare_part,
     probe_across,
@@ -147,9 +150,16 @@ RESULT_SCHEMA = one_of(
             "calibration_job": string("The calibration the scan was placed with."),
             "tool_calibration_job": string("The tool calibration the tool was taken from (empty: the config's)."),
             "torch": obj(
-                "The torch the weld placed: measured (its offset and the tool's x turned by -sensor_yaw) or as configured.",
-                {"measured": boolean(), "torch_offset_mm": number(), "yaw_from_config_deg": number()},
-                ("measured", "torch_offset_mm", "yaw_from_config_deg"),
+                "The torch the weld placed: measured (its offset and the tool's x turned by -sensor_yaw) or as configured; "
+                "the tip rides lower by as much as the measured torch's end stands above it, so the torch is at weld.tip_height.",
+                {
+                    "measured": boolean(),
+                    "torch_offset_mm": number(),
+                    "yaw_from_config_deg": number(),
+                    "height_from_tip_mm": number("The measured torch's end above the tip along the finger (0: not measured)."),
+                    "tip_height_mm": number("The tip's height over the seam the weld planned (weld.tip_height less that)."),
+                },
+                ("measured", "torch_offset_mm", "yaw_from_config_deg", "height_from_tip_mm", "tip_height_mm"),
             ),
             "height_probe": HEIGHT_PROBE_SCHEMA,
             "retract_error": string("Why the retract after the weld failed (absent when it did not)."),
@@ -329,6 +339,8 @@ class WeldSetup:
     tool_job: str  # the tool calibration it came from ("": the config's)
     sensor_yaw: float  # rad: the measured torch turns the tool's x axis by it
     torch_measured: bool
+    torch_height: float  # m, the measured torch's end above the tip along the finger (0: not measured)
+    weld: WeldConfig  # the weld's settings, the tip's height moved for the torch (celld.weld.plan.for_torch)
     placement: Placement  # the current calibration's scanner
     range_bias: float  # m, the scanner's on metal
     calibration_job: str
@@ -387,6 +399,8 @@ class WeldOutcome:
                 "measured": setup.torch_measured,
                 "torch_offset_mm": round(setup.tool_config.torch_offset * 1e3, 4),
                 "yaw_from_config_deg": round(-math.degrees(setup.sensor_yaw), 4),
+                "height_from_tip_mm": round(setup.torch_height * 1e3, 4),
+                "tip_height_mm": round(setup.weld.tip_height * 1e3, 4),
             },
             "height_probe": self.height_probe,
         }
@@ -414,7 +428,11 @@ async def weld_setup(ctx: JobContext, config: Config, job: WeldJob, cache: dict[
         # The job's field of the refused value: its key in the section (delta_d_mm, ...).
         raise JobError("$." + exc.key.rsplit(".", 1)[-1], exc.reason) from exc
     placement, range_bias, cal_job = current_calibration(ctx.state_dir, config.scanner.mount)
-    tool_cfg, tool_job, sensor_yaw, torch_measured = current_tool(ctx.state_dir, tool_cfg)
+    tool_cfg, tool_job, sensor_yaw, torch_measured, torch_height = current_tool(ctx.state_dir, tool_cfg)
+    try:
+        weld = for_torch(config.weld, torch_height)
+    except WorkpieceError as exc:
+        raise JobError("$", f"the current tool calibration {tool_job}: {exc}") from exc
     if torch_measured and job.torch_offset is not None:
         raise JobError(
             "$.torch_offset_mm",
@@ -422,10 +440,12 @@ async def weld_setup(ctx: JobContext, config: Config, job: WeldJob, cache: dict[
             "leave torch_offset_mm out, or measure the tool again",
         )
     workpiece = resolve_workpiece(job.workpiece, config)
-    key = hashlib.sha1(workpiece.vertices.tobytes() + workpiece.triangles.tobytes() + workpiece.seam.tobytes()).hexdigest()
+    key = hashlib.sha1(
+        workpiece.vertices.tobytes() + workpiece.triangles.tobytes() + workpiece.seam.tobytes() + np.float64(weld.tip_height).tobytes()
+    ).hexdigest()
     if key not in cache:
         ctx.progress("prepare", None, f"preparing the model of {workpiece.name}")
-        cache[key] = await asyncio.to_thread(prepare_part, workpiece, config.seam, config.weld.tip_height)
+        cache[key] = await asyncio.to_thread(prepare_part, workpiece, config.seam, weld.tip_height)
     return WeldSetup(
         servo=servo,
         tool_config=tool_cfg,
@@ -433,6 +453,8 @@ async def weld_setup(ctx: JobContext, config: Config, job: WeldJob, cache: dict[
         tool_job=tool_job,
         sensor_yaw=sensor_yaw,
         torch_measured=torch_measured,
+        torch_height=torch_height,
+        weld=weld,
         placement=placement,
         range_bias=range_bias,
         calibration_job=cal_job,
@@ -474,7 +496,7 @@ async def _scan_and_plan(ctx: JobContext, config: Config, devices: CellDevices, 
 
     workpiece = setup.workpiece
     ctx.progress("seam", None, f"finding the seam of {workpiece.name} with calibration {setup.calibration_job or '(unnamed)'}")
-    plan = await asyncio.to_thread(plan_weld, points, T_base_cam, setup.part, config.weld, config.seam, setup.tool.T_tcp_tool, T_scan)
+    plan = await asyncio.to_thread(plan_weld, points, T_base_cam, setup.part, setup.weld, config.seam, setup.tool.T_tcp_tool, T_scan)
     seam = plan.seam
     if rec is not None:
         rec.later(rec.log_path_base, "planned", plan.geometry.seam_base, time.monotonic_ns())

@@ -3,6 +3,9 @@
 Pure: arrays and configs in, a plan out. The weld job
 (:mod:`celld.daemon.weld`) moves the arm, captures and records around it:
 
+0. :func:`for_torch`: the weld's tip height moved so that the torch, measured
+   off the tip's height along the finger (a wire cut short or long), sits
+   at ``weld.tip_height``: the finger and the torch are one rigid tool;
 1. :func:`prepare_part`: the part model sampled for the seam finder and its
    finger wall's offset from the seam at the tip's height (once per model);
 2. :func:`plan_weld`: the seam found in the scan (registration of the model,
@@ -62,6 +65,29 @@ class PreparedPart:
 
     model: PreparedWorkpiece
     wall_offset: float
+
+
+def for_torch(weld: WeldConfig, torch_height: float) -> WeldConfig:
+    """``weld`` with the tip's height over the seam moved by the torch's measured height above the tip along the
+    finger (``torch_height``, m; the wire's end above the tip when it is cut short), so that the torch sits at
+    ``weld.tip_height`` as with a torch level with the tip.
+
+    Raises
+    ------
+    WorkpieceError
+        The torch stands more than ``weld.max_height_correction`` off the tip's height: the tip would ride too
+        far from where the joint was planned for it (trim the wire, or measure the tool again).
+    """
+    if not math.isfinite(torch_height):
+        raise WorkpieceError(f"the measured torch's height from the tip is not a number ({torch_height})")
+    if abs(torch_height) > weld.max_height_correction:
+        where = "above" if torch_height > 0 else "below"
+        raise WorkpieceError(
+            f"the measured torch's end stands {abs(torch_height) * 1e3:.2f} mm {where} the tip along the finger, more than "
+            f"weld.max_height_correction_mm ({weld.max_height_correction * 1e3:g}) the tip's height can make up; trim the "
+            "wire and measure the tool again"
+        )
+    return replace(weld, tip_height=weld.tip_height - torch_height)
 
 
 def prepare_part(workpiece: Workpiece, params: SeamParams, tip_height: float) -> PreparedPart:

@@ -161,7 +161,7 @@ WELD = {
     "workpiece": "v-groove",
     "calibration_job": "20251231-000000-abcdef",
     "tool_calibration_job": "",
-    "torch": {"measured": False, "torch_offset_mm": 10.0, "yaw_from_config_deg": 0.0},
+    "torch": {"measured": False, "torch_offset_mm": 10.0, "yaw_from_config_deg": 0.0, "height_from_tip_mm": 0.0, "tip_height_mm": 4.0},
     "height_probe": {"probed": False, "why": "weld.probe_height is off"},
 }
 WELD_DRY = {

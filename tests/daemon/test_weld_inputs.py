@@ -96,14 +96,14 @@ def test_a_weld_takes_the_measured_tip_and_refuses_an_unmeasured_tool_unless_nom
     with pytest.raises(JobError, match='tool.measured = "nominal"'):
         current_tool(tmp_path, required)
     nominal = parse({"tool": {"tip_tcp_mm": [0, 0, 200], "measured": "nominal"}}).tool
-    assert current_tool(tmp_path, nominal) == (nominal, "", 0.0, False)
+    assert current_tool(tmp_path, nominal) == (nominal, "", 0.0, False, 0.0)
     store = tool_store(tmp_path)
     quality = {"verdict": "poor_data", "reasons": ["RMS residual 0.5 mm exceeds 0.3 mm"]}
     store.add_candidate("t1", {"job": "t1", "tip_tcp_mm": [0.8, -1.1, 200.9], "quality": quality})
     with pytest.raises(JobError, match="poor_data: RMS residual"):
         store.accept("t1")
     store.accept("t1", force=True)
-    tool, job, yaw, torch_measured = current_tool(tmp_path, required)
+    tool, job, yaw, torch_measured, _ = current_tool(tmp_path, required)
     assert job == "t1" and tool.tip_tcp == pytest.approx((0.8e-3, -1.1e-3, 0.2009))
     assert tool == ToolConfig(tip_tcp=tool.tip_tcp) and (yaw, torch_measured) == (0.0, False)  # only the tip changes
     sealed.write_sealed(tmp_path / "tool.json", {"job": "t2", "tip_tcp_mm": [0.0, "x", 200.0]}, "tool-calibration")
@@ -134,4 +134,7 @@ def test_a_weld_takes_a_measured_torch_for_the_tool_x_axis_and_offset(tmp_path: 
     with pytest.raises(JobError, match="torch_tcp_mm"):
         current_tool(tmp_path, required)
     sealed.write_sealed(tmp_path / "tool.json", {**entry, "torch_measured": False}, "tool-calibration")
-    assert current_tool(tmp_path, required) == (required, "t3", 0.0, False)
+    assert current_tool(tmp_path, required) == (required, "t3", 0.0, False, 0.0)
+    # The wire's end 0.7 mm nearer the flange than the tip (the finger points down the TCP's z): 0.7 mm above it.
+    sealed.write_sealed(tmp_path / "tool.json", {**entry, "torch_tcp_mm": [-30.0, 0.9, 199.3]}, "tool-calibration")
+    assert current_tool(tmp_path, required).torch_height == pytest.approx(0.7e-3)

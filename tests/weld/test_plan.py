@@ -17,7 +17,7 @@ from celld.seam.workpiece import example
 from celld.sim import workpiece as simscene
 from celld.sim.scanner import SimScanner
 from celld.tactile.tool import ToolGeometry
-from celld.weld.plan import LEAD_IN, PROBED_SCHEMA, WeldPlan, plan_weld, prepare_part, probe_targets, probed_height
+from celld.weld.plan import LEAD_IN, PROBED_SCHEMA, WeldPlan, for_torch, plan_weld, prepare_part, probe_targets, probed_height
 
 T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
 WELD = WeldConfig()
@@ -71,3 +71,15 @@ def test_a_probe_that_finds_the_planned_width_leaves_the_plan_and_a_wider_joint_
     assert (plan.T_start[:3, 3] - lifted.T_start[:3, 3]) @ plan.up == pytest.approx(0.001, abs=1e-6)
     with pytest.raises(WorkpieceError, match="check the calibration and the tool"):
         probed_height(plan, touches(planned + opening * 0.003), tool, tool.T_tcp_tool, WELD.max_height_correction)
+
+
+def test_a_torch_measured_off_the_tips_height_moves_the_tip_so_the_torch_welds_at_the_planned_height() -> None:
+    # The wire's end 0.7 mm above the tip (cut short): the tip rides 0.7 mm lower, the torch at weld.tip_height.
+    assert for_torch(WELD, 0.7e-3).tip_height == pytest.approx(WELD.tip_height - 0.7e-3)
+    assert for_torch(WELD, -0.4e-3).tip_height == pytest.approx(WELD.tip_height + 0.4e-3)
+    assert for_torch(WELD, 0.0) == WELD
+    # Beyond what the tip's height can make up: refused, with what to do.
+    with pytest.raises(WorkpieceError, match=r"2\.50 mm above the tip .*weld\.max_height_correction_mm \(2\).*trim the wire"):
+        for_torch(WELD, 2.5e-3)
+    with pytest.raises(WorkpieceError, match="not a number"):
+        for_torch(WELD, math.nan)
