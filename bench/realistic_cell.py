@@ -29,7 +29,10 @@ Per seed, against the world's truth (read after the jobs):
   table (the flange facing down, as when welding);
 - plan alone: the torch following the weld plan from scan and calibration
   without the tactile correction (open loop through the true arm and tool):
-  lateral RMS / max from the true seam;
+  lateral RMS / max from the true seam, with the tool as typed
+  (``plan_alone_rms_mm``) and as its calibration measured it, as the weld
+  used it (``plan_alone_measured_tool_rms_mm``): touch's own gain is the
+  difference between the second and the torch;
 - torch: the torch's true path while the arc was on: lateral RMS / max;
 - torch height: the same path's height over the true root (contact tip to
   work), mean, min and max, and its largest distance from weld.tip_height,
@@ -161,6 +164,7 @@ def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool,
     out["weld"] = {
         k: w[k] for k in ("plan_alone_error", "plan_error", "torch_error", "torch_believed_error", "torch_height", "plan_alone_height")
     }
+    out["weld"]["plan_alone_measured_tool_error"] = w.get("plan_alone_measured_tool_error")
     out["weld"]["tracked_mm"] = w["figures"]["tracked_mm"]
     out["weld"]["height_probe"] = w.get("height_probe")
     out["weld"]["wall_offset_used_mm"] = w["figures"].get("wall_offset_used_mm")
@@ -226,6 +230,10 @@ def summarise(preset: str, sources: list[str], runs: list[dict[str, Any]]) -> di
         "targeting_table_mean_mm": float(np.mean(col(cal, "calibration", "targeting", "table", "mean_mm"))) if cal else None,
         "plan_alone_rms_mm": [round(v, 3) for v in col(ok, "weld", "plan_alone_error", "rms_mm")],
         "plan_alone_max_mm": [round(v, 3) for v in col(ok, "weld", "plan_alone_error", "max_mm")],
+        # The plan alone with the tool as its calibration measured it (None: the torch not measured): touch's own gain.
+        "plan_alone_measured_tool_rms_mm": [
+            None if (m := (r["weld"].get("plan_alone_measured_tool_error") or {}).get("rms_mm")) is None else round(m, 3) for r in ok
+        ],
         "torch_rms_mm": [round(v, 3) for v in trms],
         "torch_max_mm": [round(v, 3) for v in tmax],
         # The torch's height over the true root against weld.tip_height: the largest distance from it, per seed.

@@ -13,8 +13,21 @@ plain :class:`argparse.ArgumentParser`) :func:`add_command` adds them at once.
 from __future__ import annotations
 
 import argparse
+import os
 from collections.abc import Callable, Sequence
 from typing import Any
+
+# Where an installed cell keeps its config, and the variable that names another.
+SYSTEM_CONFIG = "/etc/celld/cell.toml"
+CONFIG_ENV = "CELLD_CONFIG"
+CONFIG_HELP = f"the cell config (default: ${CONFIG_ENV}, else {SYSTEM_CONFIG})"
+
+
+def default_config() -> str:
+    """The cell config a command reads without ``--config``: ``$CELLD_CONFIG`` when set and not empty, else
+    :data:`SYSTEM_CONFIG`."""
+    return os.environ.get(CONFIG_ENV, "").strip() or SYSTEM_CONFIG
+
 
 # Adds a subcommand's arguments (and set_defaults(func=...)) to its parser.
 Define = Callable[[argparse.ArgumentParser], None]

@@ -92,3 +92,33 @@ def test_arguments_defined_when_used_are_those_defined_at_once(monkeypatch: pyte
     # A lazily defined subcommand parses as before.
     args = build_parser().parse_args(["jobs", "--state", "failed", "--config", "c.toml"])
     assert (args.state, args.limit, args.config, args.func.__name__) == ("failed", 20, "c.toml", "_jobs")
+
+
+def _readme_commands() -> set[tuple[str, ...]]:
+    """Each ``celld`` command README.md names in its code (blocks and inline spans): the words that name the
+    command, up to its first argument or option."""
+    import re
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    code = re.findall(r"```.*?```", text, flags=re.S) + re.findall(r"`([^`\n]+)`", text)
+    found = set()
+    for chunk in code:
+        for m in re.finditer(r"(?:^|bin/)celld((?: [a-z][a-z0-9-]*){1,3})", chunk, flags=re.M):
+            found.add(tuple(m.group(1).split()))
+    return found
+
+
+def test_every_command_the_readme_names_exists() -> None:
+    commands = _readme_commands()
+    assert ("submit", "weld") in commands and ("status",) in commands and len(commands) > 15, commands
+    parser = build_parser()
+    for words in sorted(commands):
+        # The longest prefix of the words the parser takes as commands (the rest are a command's values).
+        for n in range(len(words), 0, -1):
+            try:
+                parser.parse_args([*words[:n], "--help"])
+            except SystemExit as exc:
+                if exc.code == 0:
+                    break
+        else:
+            pytest.fail(f"README.md names `celld {' '.join(words)}`, which is no command")

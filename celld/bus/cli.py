@@ -1,7 +1,7 @@
 """Bus subcommands: ``celld submit``, ``status``, ``jobs``, ``result``, ``cancel``, ``accept``, ``robot``.
 
 Every subcommand that talks to a cell reads the bus settings from ``--config``
-(default ``/etc/celld/cell.toml``) and addresses the cell named there, or
+(default ``$CELLD_CONFIG``, else ``/etc/celld/cell.toml``) and addresses the cell named there, or
 ``--cell``. Credentials: ``--user`` (or ``$CELLD_BUS_USER``, or ``bus.user``)
 and ``--password-file`` (or ``$CELLD_BUS_PASSWORD``, or ``bus.password``).
 
@@ -18,15 +18,13 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from celld.cliparse import add_command
+from celld.cliparse import CONFIG_HELP, add_command, default_config
 from celld.errors import BusError, ConfigError, JobError
 
 if TYPE_CHECKING:
     from celld import config
     from celld.bus.client import CellClient
 
-# Where an installed cell keeps its config.
-DEFAULT_CONFIG = "/etc/celld/cell.toml"
 # Width of the progress bar, characters.
 _BAR = 30
 
@@ -37,7 +35,7 @@ _BAR = 30
 def _connection_options() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(add_help=False)
     g = p.add_argument_group("bus")
-    g.add_argument("--config", default=DEFAULT_CONFIG, help=f"cell config with the bus settings (default {DEFAULT_CONFIG})")
+    g.add_argument("--config", default=default_config(), help=CONFIG_HELP + ", with the bus settings")
     g.add_argument("--cell", help="cell name (default: cell.name of the config)")
     g.add_argument("--user", help="bus user (default $CELLD_BUS_USER, then bus.user)")
     g.add_argument("--password-file", help="file whose first line is the password (default $CELLD_BUS_PASSWORD, then bus.password)")

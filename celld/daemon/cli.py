@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import argparse
 
+from celld.cliparse import CONFIG_HELP, default_config
+
 TAKE_OVER_HELP = "take the robot even when another program runs on it (by default celld waits until it stops, and says so in status)"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the cell daemon (robot link, jobs over zenoh, recordings)")
-    p.add_argument("--config", default="/etc/celld/cell.toml", help="the cell config (default: %(default)s)")
+    p.add_argument("--config", default=default_config(), help=CONFIG_HELP)
     p.add_argument("--take-over", action="store_true", help=TAKE_OVER_HELP)
     p.set_defaults(func=_run)
 
@@ -31,7 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     a = jsub.add_parser("set-aside", help="move a damaged journal aside (kept as journal-set-aside-<time>.db) and start an empty one")
     a.add_argument("--force", action="store_true", help="set the journal aside even when it is intact")
     for p in (c, a):
-        p.add_argument("--config", default="/etc/celld/cell.toml", help="the cell config (default: %(default)s)")
+        p.add_argument("--config", default=default_config(), help=CONFIG_HELP)
         p.set_defaults(func=_journal)
 
 

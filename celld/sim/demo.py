@@ -265,7 +265,7 @@ def run_jobs(
         plan_alone = open_loop_torch(world, planned, planned_wall, home)
         figures["weld"] = {
             "job": weld["id"],
-            # Following the plan without the finger: the controller's torch on the plan, the true arm and tool.
+            # Following the plan without the finger: the typed tool's torch on the plan, the true arm and tool.
             "plan_alone_error": lateral(part, plan_alone),
             # The torch's height over the true root against the height the cell welds at (weld.tip_height).
             "plan_alone_height": height(part, plan_alone, cfg.weld.tip_height),
@@ -282,9 +282,27 @@ def run_jobs(
             "recording": res.get("recording"),
             "paths": res.get("paths"),
         }
+        if tool_calibrate and figures.get("tool", {}).get("torch_measured"):
+            # The same with the tool as its calibration measured it (as the weld used it): what touch adds beyond it.
+            measured = _measured_tool(cfg.tool, tool)
+            alone_measured = open_loop_torch(world, planned, planned_wall, home, measured)
+            figures["weld"]["plan_alone_measured_tool_error"] = lateral(part, alone_measured)
+            figures["weld"]["plan_alone_measured_tool_height"] = height(part, alone_measured, cfg.weld.tip_height)
         figures["verification"] = _verification(Path(cfg.cell.state_dir))
         figures["loop"] = _loop(cell.client)
     return figures
+
+
+def _measured_tool(typed: Any, tool: dict[str, Any]) -> Any:
+    """The tool as a tool calibration's result (``tool``: tip and torch, mm) gives it the controller."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from celld.tactile.tool import with_measured_torch
+
+    tip = np.asarray(tool["tip_tcp_mm"], dtype=np.float64) * 1e-3
+    return with_measured_torch(replace(typed, tip_tcp=tuple(tip.tolist())), np.asarray(tool["torch_tcp_mm"]) * 1e-3).tool
 
 
 def _verification(state: Path) -> dict[str, Any] | None:
@@ -342,6 +360,8 @@ def summary_lines(figures: dict[str, Any]) -> list[str]:
     c, w = figures["calibration"], figures["weld"]
     tc, tt = c["targeting"]["calibration"], c["targeting"]["table"]
     pa, pl, to, tb = w["plan_alone_error"], w["plan_error"], w["torch_error"], w["torch_believed_error"]
+    pm = w.get("plan_alone_measured_tool_error")
+    measured = [f"  plan alone, the tool as measured             {pm['rms_mm']:7.3f}  {pm['max_mm']:7.3f}"] if pm else []
     return [
         "",
         f"world: preset {figures['world']['preset']}, seed {figures['world']['seed']}",
@@ -354,6 +374,7 @@ def summary_lines(figures: dict[str, Any]) -> list[str]:
         *_verification_lines(figures.get("verification")),
         "weld, lateral distance from the true seam        RMS mm   max mm",
         f"  plan alone (scan + calibration, open loop)   {pa['rms_mm']:7.3f}  {pa['max_mm']:7.3f}",
+        *measured,
         f"  torch, tracked by touch (Algorithm 2)        {to['rms_mm']:7.3f}  {to['max_mm']:7.3f}",
         f"  (the plan's points as placed                 {pl['rms_mm']:7.3f}  {pl['max_mm']:7.3f})",
         f"  (the torch as the daemon believes it went    {tb['rms_mm']:7.3f}  {tb['max_mm']:7.3f})",

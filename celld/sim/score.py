@@ -34,6 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from celld import polyline, se3
 from celld.calib.kinematic import ArmModel
+from celld.config import ToolConfig
 from celld.errors import InputError
 from celld.robot import kinematics as kin
 from celld.seam.figures import TORCH_STEP, height_over_root, lateral_error
@@ -207,18 +208,20 @@ def _plan_frames(seam: Array, wall: Array) -> tuple[Array, Array, Array]:
     return t, n, z
 
 
-def open_loop_torch(world: World, planned: ArrayLike, planned_wall: ArrayLike, q_near: ArrayLike) -> Array:
+def open_loop_torch(world: World, planned: ArrayLike, planned_wall: ArrayLike, q_near: ArrayLike, tool: ToolConfig | None = None) -> Array:
     """The true torch positions (n, 3) if the robot followed the plan alone.
 
     ``planned`` (n, 3) is the weld's torch line (the seam at the tip height, as
     the scan and the calibration placed it) and ``planned_wall`` (n, 3) the
     wall line beside it (the weld job's ``paths.json``). The controller puts
-    the nominal tool's torch on each point, the tool's x along the travel and
-    its z out of the joint; the arm and the tool are the world's.
+    its tool's torch on each point, the tool's x along the travel and its z
+    out of the joint: ``tool`` (the tool as the controller knows it, e.g. with
+    its tool calibration's tip and torch), or the tool as typed (the world's
+    drawing); the arm and the tool are the world's.
     """
     S = np.asarray(planned, dtype=np.float64)
     t, _, z = _plan_frames(S, np.asarray(planned_wall, dtype=np.float64))
-    nominal = ToolGeometry.from_config(world.tool.nominal)
+    nominal = ToolGeometry.from_config(world.tool.nominal if tool is None else tool)
     T_tool_flange = se3.invert(nominal.T_tcp_tool)  # the simulated cell's TCP is the flange
     q = np.asarray(q_near, dtype=np.float64)
     out = np.full_like(S, np.nan)

@@ -171,3 +171,27 @@ def test_submit_move_of_the_second_robot_builds_its_message(capsys: pytest.Captu
     with pytest.raises(SystemExit):
         parser.parse_args(["submit", "move", "--joints", "0", "0", "0", "0", "0", "0", "--robot", "3"])
     assert "invalid choice: 3" in capsys.readouterr().err
+
+
+def test_the_config_comes_from_celld_config_when_no_option_names_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    import argparse
+
+    from celld.bus.cli import add_parser
+    from celld.cliparse import SYSTEM_CONFIG
+    from celld.daemon.cli import add_parser as add_daemon_parser
+
+    def parsed(*argv: str) -> argparse.Namespace:
+        parser = argparse.ArgumentParser()
+        sub = parser.add_subparsers(dest="cmd")
+        add_parser(sub)
+        add_daemon_parser(sub)
+        return parser.parse_args(list(argv))
+
+    monkeypatch.delenv("CELLD_CONFIG", raising=False)
+    assert parsed("status").config == SYSTEM_CONFIG and parsed("run").config == SYSTEM_CONFIG
+    monkeypatch.setenv("CELLD_CONFIG", "configs/sim-cell.toml")
+    assert parsed("status").config == "configs/sim-cell.toml" and parsed("run").config == "configs/sim-cell.toml"
+    assert parsed("journal", "check").config == "configs/sim-cell.toml"
+    assert parsed("status", "--config", "other.toml").config == "other.toml"  # the option wins
+    monkeypatch.setenv("CELLD_CONFIG", "  ")  # set but empty: as if unset
+    assert parsed("status").config == SYSTEM_CONFIG
