@@ -66,6 +66,7 @@ from celld.errors import ConfigError, InputError
 from celld.robot import dynamics
 from celld.robot import kinematics as kin
 from celld.sim.robot.truearm import ArmTruth
+from celld.sim.srm import SrmCamera
 
 Array = NDArray[np.float64]
 
@@ -346,40 +347,6 @@ ERROR_KEYS: dict[str, tuple[str, float, float]] = {
 DEFAULT_T_BASE_CAM = ((0.0, -1.0, 0.0, 0.6), (-1.0, 0.0, 0.0, -0.0125), (0.0, 0.0, -1.0, 1.0), (0.0, 0.0, 0.0, 1.0))
 SCANNER_MODELS = ("phoxi-s", "phoxi-m", "azure-kinect")
 ROBOT_MODELS = tuple(kin.MODELS)
-
-
-@dataclass(frozen=True)
-class SrmCamera:
-    """The SRM camera and the tag it watches (SI, pixels): as drawn in ``[sim.srm]``, or as built.
-
-    ``T_tool_cam`` is the camera's mount in the tool frame; None: as the
-    welding tool's drawing puts it (``[sim.tool] T_tool_cam``).
-    """
-
-    intrinsics_px: tuple[float, float, float, float] = (600.0, 600.0, 320.0, 240.0)  # fx, fy, cx, cy
-    size_px: tuple[int, int] = (640, 480)
-    tag_dictionary: str = "DICT_4X4_50"
-    tag_id: int = 7
-    tag_size: float = 0.008  # m, the side of the tag's black square
-    T_tool_cam: tuple[tuple[float, ...], ...] | None = None
-
-    @classmethod
-    def read(cls, r: TableReader) -> SrmCamera:
-        """The camera as drawn, from the ``[sim.srm]`` table's reader ``r``."""
-        fx, fy, cx, cy = r.vector("intrinsics_px", 4, list(cls.intrinsics_px))
-        w = r.int("width_px", cls.size_px[0], lo=16, hi=8192)
-        h = r.int("height_px", cls.size_px[1], lo=16, hi=8192)
-        if not (fx > 0.0 and fy > 0.0 and 0.0 <= cx <= w and 0.0 <= cy <= h):
-            raise r.error(
-                "intrinsics_px", f"expected fx, fy > 0 and the principal point inside the {w} x {h} image, got {[fx, fy, cx, cy]}"
-            )
-        return cls(
-            intrinsics_px=(fx, fy, cx, cy),
-            size_px=(w, h),
-            tag_dictionary=r.str("tag_dictionary", cls.tag_dictionary),
-            tag_id=r.int("tag_id", cls.tag_id, lo=0, hi=999),
-            tag_size=r.float("tag_size_mm", cls.tag_size * 1e3, lo=0.5, hi=200.0, scale=1e-3),
-        )
 
 
 @dataclass(frozen=True)
