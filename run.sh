@@ -72,14 +72,14 @@ case "$cmd" in
     test)
         ensure_libusb; ensure_venv
         # With arguments, one pytest run of them. Without, two passes: everything but the simulated
-        # cells on two workers, then the cells one at a time in one process: a cell's 2 ms loops miss
-        # their cycles when anything else runs beside it on two cores.
+        # cells and the motion process's real-time tests on two workers, then those one at a time in
+        # one process: their 2 ms loops miss cycles when anything else runs beside them on two cores.
         if [ $# -gt 0 ]; then
             exec .venv/bin/python -m pytest -m "not hardware" "$@"
         fi
         status=0
-        .venv/bin/python -m pytest -m "not hardware and not cell" || status=$?
-        .venv/bin/python -m pytest -m "cell and not hardware" -n 0 || status=$?
+        .venv/bin/python -m pytest -m "not hardware and not cell and not realtime" || status=$?
+        .venv/bin/python -m pytest -m "(cell or realtime) and not hardware" -n 0 || status=$?
         exit "$status" ;;
     setup)
         ensure_libusb; ensure_venv ;;

@@ -41,7 +41,7 @@ from celld.se3 import error
 from celld.supervision import Backoff
 from celld.tactile.sample import ContactState, TactileSample, to_record
 
-pytestmark = pytest.mark.process
+pytestmark = [pytest.mark.process, pytest.mark.realtime]
 
 PERIOD = 0.002
 
