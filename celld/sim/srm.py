@@ -523,24 +523,10 @@ class SimSrm:
         self.T_base_plane = np.asarray(T_base_plane, dtype=np.float64)
         self.params = params
         self.finger = Finger(params.contact)
-        if camera is None:
-            T_tool_cam = self.tool.T_tool_cam
-            dictionary, tag_id, tag_size, K, size = (
-                cfg.tag_dictionary,
-                cfg.tag_id,
-                cfg.tag_size,
-                cfg.intrinsics_px,
-                (cfg.width_px, cfg.height_px),
-            )
-        else:
-            T_tool_cam = self.tool.T_tool_cam if camera.T_tool_cam is None else np.asarray(camera.T_tool_cam, dtype=np.float64)
-            dictionary, tag_id, tag_size, K, size = (
-                camera.tag_dictionary,
-                camera.tag_id,
-                camera.tag_size,
-                camera.intrinsics_px,
-                camera.size_px,
-            )
+        if camera is None:  # the camera exactly as the controller was told
+            camera = SrmCamera(cfg.intrinsics_px, (cfg.width_px, cfg.height_px), cfg.tag_dictionary, cfg.tag_id, cfg.tag_size)
+        T_tool_cam = self.tool.T_tool_cam if camera.T_tool_cam is None else np.asarray(camera.T_tool_cam, dtype=np.float64)
+        dictionary, tag_id, tag_size, K, size = camera.tag_dictionary, camera.tag_id, camera.tag_size, camera.intrinsics_px, camera.size_px
         self._T_cam_tool = invert(T_tool_cam)
         self.renderer = TagRenderer(dictionary, tag_id, tag_size, K, size, params.seed)
         self._foreign = TagRenderer(dictionary, (tag_id + 10) % 50, tag_size, K, size, params.seed + 1)
