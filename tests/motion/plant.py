@@ -26,16 +26,18 @@ class KinematicPlant:
         self._pending: deque[np.ndarray] = deque([np.zeros(6)] * latency_cycles)
         self.stamp_ns = 0
 
-    def apply(self, out: CycleOutput) -> None:
+    def apply(self, out: CycleOutput, dt: float | None = None) -> None:
+        """The robot on ``out`` until the next cycle, one period later or ``dt`` s (a cycle that came late or early)."""
         if out.action == Action.SPEED:
             cmd = out.twist.copy()
         else:
             cmd = self._pending[-1].copy() if self._pending else np.zeros(6)
+        step = self.period if dt is None else dt
         self._pending.append(cmd)
         self.v = self._pending.popleft()
-        self.T[:3, 3] += self.v[:3] * self.period
-        self.T[:3, :3] = Rotation.from_rotvec(self.v[3:] * self.period).as_matrix() @ self.T[:3, :3]
-        self.stamp_ns += int(self.period * 1e9)
+        self.T[:3, 3] += self.v[:3] * step
+        self.T[:3, :3] = Rotation.from_rotvec(self.v[3:] * step).as_matrix() @ self.T[:3, :3]
+        self.stamp_ns += int(round(step * 1e9))
 
     def state(self) -> RobotState:
         return RobotState(self.stamp_ns, np.zeros(6), np.zeros(6), self.T.copy(), self.v.copy())
