@@ -168,9 +168,13 @@ class Tactile:
         self._restart_at = -math.inf
         self._failures = 0
 
-    async def open(self, heartbeat: str, records: ChildRecords) -> None:
-        """Start the process (when the cell has a finger camera); a failed start is retried by :meth:`supervise`."""
+    def prepare(self, heartbeat: str, records: ChildRecords) -> None:
+        """Make the process and its shared-memory slots (when the cell has a finger camera), not started yet:
+        the motion process reads the samples from :attr:`slot_name`."""
         self.process = make_tactile(self.config, self._camera, heartbeat, records)
+
+    async def open(self) -> None:
+        """Start the process made by :meth:`prepare`; a failed start is retried by :meth:`supervise`."""
         if self.process is None:
             return
         try:
@@ -424,26 +428,16 @@ class CellDevices:
     # -- life cycle ----------------------------------------------------------------
 
     async def open(self, loop_ticked: Callable[[], float]) -> None:
-        """The heartbeat (beating while ``loop_ticked()``, when the event loop last ran, is recent), the tactile
-        process, each robot's motion process, the dashboard reading, the scanner."""
+        """The heartbeat (beating while ``loop_ticked()``, when the event loop last ran, is recent), then side
+        by side the tactile process, each robot's motion process and the scanner (each a process of its own
+        to start: one after the other they held the daemon's start up by seconds), then the dashboard
+        reading."""
         cfg = self.config
         heartbeat = await self.life.open(loop_ticked)
         self._heartbeat = heartbeat.name
-        await self.tactile.open(heartbeat.name, self.life.records)
-        ours = bool(self.life.leftovers or self.life.exit_notes)  # the previous celld's own program
-        running = foreign_program(await self.life.dashboard.read())
-        if await self._take(running, ours, self.life.dashboard, 1):
-            await self._open_robot()
-        else:
-            self.held = running
-        if self.robot2 is not None and self._dashboard2 is not None:
-            running2 = foreign_program(await self._dashboard2.read())
-            if await self._take(running2, ours, self._dashboard2, 2):
-                await self.robot2.open_motion(heartbeat.name, self.life.records)
-            else:
-                self.held2 = running2
+        self.tactile.prepare(heartbeat.name, self.life.records)
+        await asyncio.gather(self.tactile.open(), self._open_robots(heartbeat.name), self.scanner.open())
         self.life.read_dashboard(self._on_dashboard)
-        await self.scanner.open()
         log.info(
             "devices open",
             robot=cfg.robot.host,
@@ -467,6 +461,21 @@ class CellDevices:
             log.error("the running program could not be stopped", robot=robot, program=running, error=str(exc))
         return True
 
+    async def _open_robots(self, heartbeat: str) -> None:
+        """Each robot's motion process, unless another program runs on it (:meth:`_take`)."""
+        ours = bool(self.life.leftovers or self.life.exit_notes)  # the previous celld's own program
+        running = foreign_program(await self.life.dashboard.read())
+        if await self._take(running, ours, self.life.dashboard, 1):
+            await self._open_robot()
+        else:
+            self.held = running
+        if self.robot2 is not None and self._dashboard2 is not None:
+            running2 = foreign_program(await self._dashboard2.read())
+            if await self._take(running2, ours, self._dashboard2, 2):
+                await self.robot2.open_motion(heartbeat, self.life.records)
+            else:
+                self.held2 = running2
+
     async def _open_robot(self) -> None:
         motion = await self.robot.open_motion(self._heartbeat, self.life.records, SERVO_LAWS, self.tactile.slot_name)
         motion.add_listener(self._on_state_batch)
@@ -482,8 +491,7 @@ class CellDevices:
         if self.robot2 is not None:
             await self.robot2.close_motion()
         await self.robot.close_motion()
-        await self.scanner.close()
-        await self.tactile.close()
+        await asyncio.gather(self.scanner.close(), self.tactile.close())
         await self.life.close()
 
     # -- robots ----------------------------------------------------------------------

@@ -15,8 +15,12 @@ imported ur-rtde, can deadlock). The process
    and says once in the log when any of it is refused;
 5. disables the garbage collector and runs the loop until the link is lost or
    a shutdown completes, then reports why in the status slot, switches the
-   process output (the welding arc) off if the loop may have left it on, and
-   exits with a code the supervisor reads (:data:`EXIT_CODES`).
+   process output (the welding arc) off if the loop may have left it on, ends
+   the control script on a graceful shutdown, and exits at once with a code
+   the supervisor reads (:data:`EXIT_CODES`): the sockets close with the
+   process, so ur-rtde's own disconnect (its receive threads joined, 1 s) and
+   the interpreter's shutdown (1 s more) would only keep a stopping daemon,
+   or the next one, waiting.
 
 Only the thread that runs the loop is pinned: ur-rtde's receive threads,
 created while connecting, keep the process's CPUs, so the loop spinning on
@@ -118,8 +122,12 @@ def _report(
     ch.status.write(rec)
 
 
-def run(spec: MotionSpec) -> LoopExit:
-    """Connect, set up and run the loop; return why it ended."""
+def run(spec: MotionSpec, hold: list[object]) -> LoopExit:
+    """Connect, set up and run the loop; return why it ended.
+
+    The link goes into ``hold``, to outlive this call: its ur-rtde objects disconnect when they are
+    destroyed (their receive threads joined: 1 s), which the process's exit (:func:`main`) skips.
+    """
     from celld.robot.link import RtdeLink
 
     log = get_logger(__name__).bind(host=spec.host, pid=os.getpid())
@@ -133,6 +141,7 @@ def run(spec: MotionSpec) -> LoopExit:
         _report(ch, Phase.CONNECTING)
         try:
             link = RtdeLink.connect(spec.host, spec.frequency_hz)
+            hold.append(link)
         except LinkLost as exc:
             log.warning("robot link not established", reason=str(exc))
             end = LoopExit(ControlStatus.LINK_LOST, str(exc))
@@ -199,17 +208,14 @@ def run(spec: MotionSpec) -> LoopExit:
         if loop is not None and not loop.release_output():
             # After the exit report: on a dead link ur-rtde tries to reconnect first.
             log.error("the process output could not be switched off; the robot's I/O set-up must do it", output=spec.loop.process_output)
-        if loop is not None and loop.orphaned and end is not None:
-            # Without its daemon, with the arm at rest and the output off: nothing here is owed to anyone,
-            # and the next daemon may be starting. ur-rtde's disconnect (1 s) and the interpreter's shutdown
-            # (1 s more) are skipped: the sockets close with the process, the robot's watchdog ends its program.
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(EXIT_CODES.get(end.status, 5))
-        if link is not None:
-            # A graceful end stops the robot's program; otherwise the watchdog does.
-            link.close(stop_script=end is not None and end.status == ControlStatus.OK)
+        if link is not None and end is not None and end.status == ControlStatus.OK and not (loop is not None and loop.orphaned):
+            # A graceful end stops the robot's program; otherwise the robot's watchdog does.
+            link.stop_script()
         ch.close()
+        # The arm is at rest and the output off: the process ends at once (main). ur-rtde's disconnect (its
+        # receive threads joined, 1 s) and the interpreter's shutdown (1 s more) are owed to no one: the
+        # sockets close with the process. Without its daemon the next one may be starting, and a stopping
+        # daemon waits for this exit.
 
 
 def main(spec: MotionSpec) -> None:
@@ -217,14 +223,17 @@ def main(spec: MotionSpec) -> None:
     configure(spec.log_level, json=spec.log_json)
     ch = Channels.attach(spec.channels)
     _report(ch, Phase.STARTING)
+    hold: list[object] = []  # the robot link, alive until the exit below
     try:
-        end = run(spec)
+        end = run(spec, hold)
     except Exception as exc:  # report any crash to the supervisor before dying  # noqa: BLE001
         end = LoopExit(ControlStatus.FAULT, f"motion process failed: {exc!r}")
         get_logger(__name__).exception("motion process failed")
     _report(ch, Phase.EXITED, None, end.status, end.reason)
     ch.close()
-    sys.exit(EXIT_CODES.get(end.status, 5))
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(EXIT_CODES.get(end.status, 5))
 
 
 def servo_laws_from(mapping: Mapping[str, str]) -> tuple[tuple[str, str], ...]:

@@ -56,7 +56,11 @@ class RawState(NamedTuple):
 
 
 class RobotPort(Protocol):
-    """What the motion loop needs from a robot; :class:`RtdeLink` is the real one."""
+    """What the motion loop needs from a robot; :class:`RtdeLink` is the real one.
+
+    ``read``, ``speed``, ``speed_joints`` and ``kick`` raise :class:`~celld.errors.LinkLost` when the link is
+    gone; the loop ends with it.
+    """
 
     def connected(self) -> bool: ...
 
@@ -75,6 +79,8 @@ class RobotPort(Protocol):
     def digital_outputs(self) -> int:
         """The controller's actual digital outputs (bits 0-7 standard, 8-15 configurable, 16-17 tool)."""
         ...
+
+    def stop_script(self) -> None: ...
 
     def close(self, stop_script: bool = False) -> None: ...
 
@@ -141,23 +147,36 @@ class RtdeLink:
 
     def read(self) -> RawState:
         r = self._r
-        return RawState(
-            r.getTimestamp(),  # type: ignore[attr-defined]
-            r.getActualQ(),  # type: ignore[attr-defined]
-            r.getActualQd(),  # type: ignore[attr-defined]
-            r.getActualTCPPose(),  # type: ignore[attr-defined]
-            r.getActualTCPSpeed(),  # type: ignore[attr-defined]
-            r.getSafetyStatusBits(),  # type: ignore[attr-defined]
-            r.getRuntimeState(),  # type: ignore[attr-defined]
-        )
+        try:
+            return RawState(
+                r.getTimestamp(),  # type: ignore[attr-defined]
+                r.getActualQ(),  # type: ignore[attr-defined]
+                r.getActualQd(),  # type: ignore[attr-defined]
+                r.getActualTCPPose(),  # type: ignore[attr-defined]
+                r.getActualTCPSpeed(),  # type: ignore[attr-defined]
+                r.getSafetyStatusBits(),  # type: ignore[attr-defined]
+                r.getRuntimeState(),  # type: ignore[attr-defined]
+            )
+        except RuntimeError as exc:
+            raise LinkLost(f"robot {self.host}: reading the robot state failed: {exc}") from exc
+
+    # The commands of the loop: on a link that has just dropped, ur-rtde tries to reconnect inside the call
+    # and raises RuntimeError when it cannot ("Could not connect to ..."). That is the link lost, not a
+    # fault of the motion process: raised as LinkLost, the loop ends with it and the supervisor reconnects.
 
     def speed(self, twist: Sequence[float], accel: float) -> bool:
         """speedL: the TCP twist (base frame) the robot ramps to at ``accel`` and then keeps."""
-        return bool(self._c.speedL(twist, accel, 0.0))  # type: ignore[attr-defined]
+        try:
+            return bool(self._c.speedL(twist, accel, 0.0))  # type: ignore[attr-defined]
+        except RuntimeError as exc:
+            raise LinkLost(f"robot {self.host}: speedL failed: {exc}") from exc
 
     def speed_joints(self, qd: Sequence[float], accel: float) -> bool:
         """speedJ: the joint speeds (rad/s) the robot ramps to at ``accel`` (rad/s^2) and then keeps."""
-        return bool(self._c.speedJ(qd, accel, 0.0))  # type: ignore[attr-defined]
+        try:
+            return bool(self._c.speedJ(qd, accel, 0.0))  # type: ignore[attr-defined]
+        except RuntimeError as exc:
+            raise LinkLost(f"robot {self.host}: speedJ failed: {exc}") from exc
 
     def speed_stop(self, accel: float) -> None:
         """speedStop: end speedL, decelerating at ``accel`` (stopL would not end it)."""
@@ -165,7 +184,10 @@ class RtdeLink:
 
     def kick(self) -> None:
         """Write the watchdog register without commanding anything."""
-        self._c.kickWatchdog()  # type: ignore[attr-defined]
+        try:
+            self._c.kickWatchdog()  # type: ignore[attr-defined]
+        except RuntimeError as exc:
+            raise LinkLost(f"robot {self.host}: kicking the watchdog failed: {exc}") from exc
 
     def set_digital_out(self, index: int, value: bool) -> bool:
         """Set standard digital output ``index`` (0..7) through the IO interface; never raises.
@@ -183,20 +205,23 @@ class RtdeLink:
         """actual_digital_output_bits as the controller last reported them."""
         return int(self._r.getActualDigitalOutputBits())  # type: ignore[attr-defined]
 
-    def close(self, stop_script: bool = False) -> None:
-        """Disconnect every interface; never raises.
+    def stop_script(self) -> None:
+        """End speedL and the control script politely; never raises.
 
-        ``stop_script`` first ends speedL and the control script politely (on
-        a graceful shutdown only: both are non-real-time commands that
-        ur-rtde waits on, seconds on a dead link). Without it the RTDE
-        watchdog ends the script once the writes stop.
+        For a graceful shutdown only: both are non-real-time commands that
+        ur-rtde waits on, seconds on a dead link. Without it the RTDE watchdog
+        ends the script once the writes stop.
         """
+        try:
+            self._c.speedStop(_SHUTDOWN_DECEL)  # type: ignore[attr-defined]
+            self._c.stopScript()  # type: ignore[attr-defined]
+        except Exception:  # the link may already be gone  # noqa: BLE001
+            pass
+
+    def close(self, stop_script: bool = False) -> None:
+        """Disconnect every interface (after :meth:`stop_script` with ``stop_script``); never raises."""
         if stop_script:
-            try:
-                self._c.speedStop(_SHUTDOWN_DECEL)  # type: ignore[attr-defined]
-                self._c.stopScript()  # type: ignore[attr-defined]
-            except Exception:  # the link may already be gone  # noqa: BLE001
-                pass
+            self.stop_script()
         for iface in (self.io, self._r, self._c):
             _disconnect(iface)
 

@@ -42,6 +42,7 @@ class FakePort:
         self.reads_left = -1  # >= 0: the link drops after this many reads
         self.watchdog_hz = 0.0
         self.closed = False
+        self.script_stopped = False
 
     def connected(self) -> bool:
         return self.is_connected and self.reads_left != 0
@@ -79,6 +80,9 @@ class FakePort:
 
     def set_watchdog(self, min_frequency_hz: float) -> None:
         self.watchdog_hz = min_frequency_hz
+
+    def stop_script(self) -> None:
+        self.script_stopped = True
 
     def close(self, stop_script: bool = False) -> None:
         self.closed = True
@@ -388,10 +392,14 @@ def test_the_motion_process_switches_the_output_off_when_the_link_drops(channels
         realtime=RealtimeOptions(enabled=False),
         servo_laws=(("probe", "tests.motion.laws:make_probe"),),
     )
-    end = process.run(spec)
+    hold: list[object] = []
+    end = process.run(spec, hold)
     assert end.status == ControlStatus.LINK_LOST
     assert port.outputs == [(ARC, False), (ARC, True), (ARC, False)]
-    assert port.closed and port.watchdog_hz == spec.watchdog_hz
+    assert port.watchdog_hz == spec.watchdog_hz
+    # On a lost link nothing is stopped politely (the robot's watchdog ends its program), and the link is
+    # kept for the process's exit to close its sockets, not disconnected here (ur-rtde's disconnect: 1 s).
+    assert not port.script_stopped and not port.closed and hold == [port]
 
 
 def test_the_handle_reports_loop_events_about_no_command_and_resolves_nothing_with_them(channels: Channels) -> None:
