@@ -125,7 +125,8 @@ class Arm:
         self.motion = None
 
     async def move_to(self, T_base_tcp: np.ndarray, speed_scale: float = 1.0, *, tool: bool = True) -> RobotState:
-        """A jerk-limited straight move of the TCP, checked against the cell first (:class:`MotionPlanner`).
+        """A jerk-limited straight move of the TCP, checked against the cell first and slowed so every joint
+        keeps ``max_joint_speed`` (:meth:`MotionPlanner.plan_move`).
 
         Raises
         ------
@@ -136,8 +137,15 @@ class Arm:
 
         async def move() -> RobotState:
             q = await self.current_q()
-            await asyncio.to_thread(self.planner.check_move, q, T_base_tcp, tool)
-            return await motion.move_to(T_base_tcp, speed_scale=speed_scale)
+            plan = await asyncio.to_thread(self.planner.plan_move, q, T_base_tcp, speed_scale, tool)
+            if plan.speed_scale < speed_scale:
+                log.info(
+                    "Cartesian move slowed for the joints' limits",
+                    asked=speed_scale,
+                    scale=round(plan.speed_scale, 4),
+                    joint_speed=round(plan.joint_speed, 4),
+                )
+            return await motion.move_to(T_base_tcp, speed_scale=plan.speed_scale)
 
         return await self._after_stale(move, "move")
 

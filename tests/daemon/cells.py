@@ -38,6 +38,22 @@ from celld.sim.world import World
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
+# The test cells move at speeds a UR10e runs in production (its joints reach 2.1-3.1 rad/s, its TCP 1 m/s),
+# not at the cautious defaults of configs/robots/ur10e.toml (0.25 m/s, 1 rad/s): most of what a cell test
+# costs is the arm moving between poses in real time. The simulated arm follows the commands kinematically,
+# so what the tests check (every limit held as configured, the calibration, the weld) is the same; the
+# realtime tests of tests/motion/test_process.py hold the limits at the defaults.
+FAST_MOTION = {
+    "max_linear_speed": 0.75,
+    "max_linear_accel": 2.5,
+    "max_linear_jerk": 25.0,
+    "max_angular_speed": 2.0,
+    "max_angular_accel": 8.0,
+    "max_angular_jerk": 80.0,
+    "max_joint_speed": 2.0,
+    "max_joint_accel": 4.0,
+    "max_joint_jerk": 40.0,
+}
 
 
 def _toml_value(value: Any) -> str:
@@ -96,7 +112,7 @@ def write_cell_config(
     ``include`` names the config file(s) under ``configs/`` it builds on.
     The cell is called ``name``, keeps its state beside ``path``
     (``state/``), runs its robot on ``host`` (a second robot on ``host2``)
-    and its bus on ``tcp/<host>:7447``; with ``recording`` false its jobs
+    at :data:`FAST_MOTION`'s limits and its bus on ``tcp/<host>:7447``; with ``recording`` false its jobs
     write no rerun recording (for tests that never read one). ``tables``
     comes on top: ``{"sim": {"preset": "ideal", "scanner": {"resolution_scale": 0.5}}}``.
     """
@@ -106,6 +122,7 @@ def write_cell_config(
         "cell": {"name": name, "state_dir": str(path.parent / "state")},
         "robot": {"host": host},
         "bus": {"listen": [f"tcp/{host}:7447"]},
+        "motion": dict(FAST_MOTION),
     }
     if host2 is not None:
         doc["robot2"] = {"host": host2}

@@ -4,6 +4,7 @@ stale state, robot 1 beside a robot 2 whose place is unknown."""
 from __future__ import annotations
 
 import asyncio
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -114,8 +115,9 @@ class FakePlanner:
     def __init__(self) -> None:
         self.checked = 0
 
-    def check_move(self, q, T, tool) -> None:
+    def plan_move(self, q, T, speed_scale, tool) -> SimpleNamespace:
         self.checked += 1
+        return SimpleNamespace(speed_scale=speed_scale, joint_speed=0.0)
 
 
 def test_a_move_stopped_on_a_stale_state_is_checked_and_posted_again_a_few_times() -> None:

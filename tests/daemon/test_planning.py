@@ -1,4 +1,4 @@
-"""The daemon's joint-move planning: the cell, the workspace box and the TCP's Cartesian limits."""
+"""The daemon's move planning: the cell, the workspace box, the TCP's Cartesian limits and the joints' speed limit."""
 
 from __future__ import annotations
 
@@ -7,7 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
+from celld import se3
 from celld.config import load
 from celld.daemon.planning import MotionPlanner, joint_move_scale
 from celld.errors import PathRefused
@@ -75,6 +77,49 @@ def test_a_joint_move_to_where_the_arm_stands_keeps_the_asked_scale(planner: Mot
         assert 0.05 < plan.speed_scale < 1.0, (span, plan.speed_scale)
         lin, ang = _tcp_peaks(planner, HOME, q1, plan.speed_scale)
         assert lin <= CONFIG.motion.max_linear_speed * 1.01 and ang <= CONFIG.motion.max_angular_speed * 1.01
+
+
+def _joint_peaks(planner: MotionPlanner, T0: np.ndarray, T1: np.ndarray, limits, scale: float) -> np.ndarray:
+    """Each joint's largest speed (6,) along the straight TCP move from ``T0`` to ``T1`` at ``scale`` of ``limits``,
+    its line sampled finely (position straight, rotation vector about the base frame growing linearly)."""
+    s = np.linspace(0.0, 1.0, 4001)
+    dphi = Rotation.from_matrix(T1[:3, :3] @ T0[:3, :3].T).as_rotvec()
+    T_tcp_flange = se3.invert(planner.T_flange_tcp)
+    q, Q = HOME.copy(), []
+    for si in s:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(si * dphi).as_matrix() @ T0[:3, :3]
+        T[:3, 3] = T0[:3, 3] + si * (T1[:3, 3] - T0[:3, 3])
+        q = kin.inverse(T @ T_tcp_flange, q, planner.arm.dh)
+        assert q is not None
+        Q.append(q)
+    dp, dang = se3.error(T1, T0)
+    sd = scale * min(limits.max_linear_speed / dp, limits.max_angular_speed / dang)
+    return np.abs(np.diff(np.array(Q), axis=0)).max(axis=0) / (s[1] - s[0]) * sd
+
+
+def test_a_cartesian_move_that_would_turn_a_joint_too_fast_is_slowed_to_the_joint_limit() -> None:
+    # At a UR10e's production speeds (0.75 m/s, 2 rad/s about the TCP) a straight move that turns the tool
+    # spun wrist 1 at 3.2 rad/s on the simulated controller, beyond its safety limit: a protective stop.
+    fast = dataclasses.replace(CONFIG.motion, max_linear_speed=0.75, max_angular_speed=2.0, max_joint_speed=2.0)
+    planner = MotionPlanner(dataclasses.replace(CONFIG, motion=fast))
+    T0 = kin.forward(HOME, planner.arm.dh, planner.T_flange_tcp)
+    T1 = T0.copy()
+    T1[:3, 3] += [-0.051, 0.087, -0.059]
+    T1[:3, :3] = Rotation.from_rotvec([-0.074, -0.586, -0.155]).as_matrix() @ T0[:3, :3]
+    plan = planner.plan_move(HOME, T1)
+    full = _joint_peaks(planner, T0, T1, fast, 1.0)
+    assert full.max() > 1.2 * fast.max_joint_speed  # unslowed, a joint would be past its limit
+    assert plan.speed_scale < 0.85
+    slowed = _joint_peaks(planner, T0, T1, fast, plan.speed_scale)
+    # Every joint within the limit, and the move not slowed more than that needs.
+    assert slowed.max() <= fast.max_joint_speed * 1.01 and slowed.max() >= fast.max_joint_speed * 0.97, slowed
+    assert plan.joint_speed == pytest.approx(slowed.max(), rel=0.02)
+    # A short move that turns no joint near its limit keeps the scale it was asked for.
+    T2 = T0.copy()
+    T2[:3, 3] += [0.02, 0.0, 0.0]
+    assert planner.plan_move(HOME, T2, speed_scale=0.5).speed_scale == 0.5
+    assert planner.plan_move(HOME, T0).speed_scale == 1.0  # where it stands
 
 
 def test_joint_moves_out_of_the_box_into_the_table_or_past_a_joint_limit_are_refused(planner: MotionPlanner) -> None:
