@@ -216,6 +216,10 @@ class Arm:
         if self.motion is None:
             return
         self.motion.stop()
+        if not self.motion.process_running():
+            # No loop runs to hold still (the robot's own watchdog ends its program): waiting for one held a
+            # daemon stopping beside a lost robot up by 5 s per robot, twice.
+            return
         try:
             await self.motion.wait_idle(STOP_TIMEOUT)
         except CelldError as exc:

@@ -381,6 +381,7 @@ class CellDevices:
         self.life = Lifecycle(config)
         self._recordings: list[Any] = []
         self._condition = ""
+        self._dashboard_reachable = False  # whether the last dashboard reading reached the robot
         self.take_over = take_over
         self.held = ""  # the program of another controller robot 1 runs, not taken over ("" when none)
         self.held2 = ""  # the same for robot 2
@@ -540,6 +541,14 @@ class CellDevices:
         return self.tactile.wait_reason()
 
     def _on_dashboard(self) -> None:
+        reading = self.life.dashboard.last
+        reachable = reading is not None and reading.reachable
+        motion = self.robot.motion
+        if reachable and not self._dashboard_reachable and motion is not None and not self.held:
+            # The robot answers again (powered on, cable back): its link is tried now, not after the motion
+            # supervisor's back-off, which by then may be 10 s (a cell that booted before its robot waited it out).
+            motion.supervisor.retry_now()
+        self._dashboard_reachable = reachable
         if self.held and self.life.dashboard.last is not None and self.life.dashboard.last.reachable:
             if not foreign_program(self.life.dashboard.last):
                 log.info("the other program on the robot stopped: celld takes the robot", program=self.held)

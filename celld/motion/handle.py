@@ -509,6 +509,11 @@ class MotionHandle:
             int(rec["t_ns"]), np.array(rec["q"]), np.array(rec["qd"]), from_ur_pose(rec["tcp_pose"]), np.array(rec["tcp_speed"])
         )
 
+    def process_running(self) -> bool:
+        """True while the motion process runs its loop (the supervisor's view: not starting, restarting or
+        stopped), fresh records or not."""
+        return self.supervisor.state == LinkState.RUNNING
+
     def link_running(self) -> bool:
         """True while the motion loop runs: its process is up and its latest record is fresh (cheap).
 

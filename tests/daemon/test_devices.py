@@ -213,3 +213,34 @@ def test_a_move_of_robot_2_needs_a_second_robot_and_robot_1_where_it_stands(tmp_
         assert two.robot2.planner is planner
 
     asyncio.run(scenario())
+
+
+def test_a_robot_that_answers_again_is_tried_at_once_not_after_the_back_off() -> None:
+    # A cell that booted before its robot: each failed connect lengthened the motion supervisor's back-off
+    # (to 10 s), and the cell waited it out after the robot came up. The dashboard's answer cuts it short.
+    from celld.robot.dashboard import DashboardReading
+
+    class Supervisor:
+        retries = 0
+
+        def retry_now(self) -> None:
+            self.retries += 1
+
+        def outage_cause(self) -> str:
+            return ""
+
+    class Motion:
+        supervisor = Supervisor()
+
+        def link_running(self) -> bool:
+            return False
+
+    def reading(reachable: bool) -> DashboardReading:
+        return DashboardReading(reachable, "RUNNING" if reachable else "", "NORMAL" if reachable else "", "", "", 0.0)
+
+    dev = CellDevices(Config())
+    dev.robot.motion = Motion()  # type: ignore[assignment]
+    for reachable in (False, False, True, True, False, True):
+        dev.life.dashboard.last = reading(reachable)
+        dev._on_dashboard()
+    assert Motion.supervisor.retries == 2  # each time it answered after it had not, and only then
