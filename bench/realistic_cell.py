@@ -8,7 +8,9 @@ celld/sim/world.py) and runs the cell of ``configs/sim-cell.toml`` in it:
 the simulated UR10e behind real ur-rtde and ``celld sim run``, driven over
 the bus (:func:`celld.sim.demo.run_jobs`):
 
-1. calibrate (the cell's 20 poses, Algorithm 1 may stop earlier) and accept;
+1. calibrate (the cell's 20 poses, Algorithm 1 may stop earlier; then the
+   arm's kinematic calibration from ``--arm-poses`` wide poses, 40 by
+   default as in the demo, 0 for the hand-eye calibration alone) and accept;
 2. tool-calibrate and accept: the SRM tip and the torch's wire end measured
    with the scanner (the realistic world's tool misses the configured one by
    up to 1-2 mm); the weld then uses the measured tip and torch (``--no-tool-calibrate`` welds with the
@@ -78,7 +80,7 @@ sys.path.insert(0, str(ROOT))
 from _common import Failures  # noqa: E402
 
 from celld.errors import CelldError  # noqa: E402
-from celld.sim.demo import run_jobs  # noqa: E402
+from celld.sim.demo import DEMO_ARM_POSES, run_jobs  # noqa: E402
 from celld.sim.world import SOURCES, WorldOptions  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "realistic_cell"
@@ -111,12 +113,19 @@ INFRASTRUCTURE = ("robot program stopped", "robot link", "stale state")
 
 
 def run_seed(
-    seed: int, options: WorldOptions, quick: bool, force_accept: bool, say: Any, retries: int = 1, tool_calibrate: bool = True
+    seed: int,
+    options: WorldOptions,
+    quick: bool,
+    force_accept: bool,
+    say: Any,
+    retries: int = 1,
+    tool_calibrate: bool = True,
+    arm_poses: int = DEMO_ARM_POSES,
 ) -> dict[str, Any]:
     """One seeded cell end to end, run again (up to ``retries`` times) after a starved robot link; its figures."""
     lost: list[str] = []
     while True:
-        r = _run_seed(seed, options, quick, force_accept, say, tool_calibrate)
+        r = _run_seed(seed, options, quick, force_accept, say, tool_calibrate, arm_poses)
         reason = str(r.get("failed", {}).get("reason", ""))
         if "failed" not in r or not any(k in reason for k in INFRASTRUCTURE) or len(lost) >= retries:
             if lost:
@@ -126,7 +135,15 @@ def run_seed(
         say(f"seed {seed}: {reason}; running it again")
 
 
-def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool, say: Any, tool_calibrate: bool = True) -> dict[str, Any]:
+def _run_seed(
+    seed: int,
+    options: WorldOptions,
+    quick: bool,
+    force_accept: bool,
+    say: Any,
+    tool_calibrate: bool = True,
+    arm_poses: int = DEMO_ARM_POSES,
+) -> dict[str, Any]:
     """One seeded cell end to end; its figures (or why it failed)."""
     with tempfile.TemporaryDirectory(prefix="celld-realistic-") as tmp:
         work = Path(tmp)
@@ -140,6 +157,7 @@ def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool,
                 calibrate_seed=seed,
                 force_accept=force_accept,
                 tool_calibrate=tool_calibrate,
+                arm_poses=arm_poses,
             )
         except CelldError as exc:
             log = (work / "daemon.log").read_text(errors="replace")[-2000:] if (work / "daemon.log").exists() else ""
@@ -157,6 +175,8 @@ def _run_seed(seed: int, options: WorldOptions, quick: bool, force_accept: bool,
     if "calibration" in figures:
         c = figures["calibration"]
         out["calibration"] = {k: c[k] for k in ("translation_error_mm", "rotation_error_deg", "pairs", "verdict", "forced", "targeting")}
+        out["calibration"]["targeting_hand_eye"] = c.get("targeting_hand_eye")  # None without the arm's calibration
+        out["calibration"]["arm"] = c.get("arm")
     if "failed" in figures:
         out.update(success=False, failed=figures["failed"])
         return out
@@ -228,6 +248,11 @@ def summarise(preset: str, sources: list[str], runs: list[dict[str, Any]]) -> di
         "targeting_mean_worst_mm": max(tmean) if tmean else None,
         "targeting_max_mm": max(col(cal, "calibration", "targeting", "calibration", "max_mm")) if cal else None,
         "targeting_table_mean_mm": float(np.mean(col(cal, "calibration", "targeting", "table", "mean_mm"))) if cal else None,
+        # The same over the table with the hand-eye calibration alone (the arm calibration's gain), per seed.
+        "targeting_table_hand_eye_mean_mm": [
+            None if (he := r["calibration"].get("targeting_hand_eye")) is None else round(he["table"]["mean_mm"], 3) for r in cal
+        ],
+        "targeting_table_mean_per_seed_mm": [round(v, 3) for v in col(cal, "calibration", "targeting", "table", "mean_mm")],
         "plan_alone_rms_mm": [round(v, 3) for v in col(ok, "weld", "plan_alone_error", "rms_mm")],
         "plan_alone_max_mm": [round(v, 3) for v in col(ok, "weld", "plan_alone_error", "max_mm")],
         # The plan alone with the tool as its calibration measured it (None: the torch not measured): touch's own gain.
@@ -289,6 +314,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--without", dest="without_sources", default="", help="error sources to switch off")
     ap.add_argument("--force-accept", action="store_true", help="accept calibrations that fail the daemon's quality gate")
     ap.add_argument("--no-tool-calibrate", action="store_true", help="weld with the configured tool, no tool-calibrate job")
+    ap.add_argument(
+        "--arm-poses",
+        type=int,
+        default=DEMO_ARM_POSES,
+        help=f"wide poses of the arm's kinematic calibration (default {DEMO_ARM_POSES}, as the demo; 0: hand-eye only)",
+    )
     ap.add_argument("--retries", type=int, default=1, help="runs again of a seed whose robot link was starved by the machine")
     ap.add_argument("--out", default=None, help="directory of a full run's results (default bench/out/realistic_cell/<preset>)")
     args = ap.parse_args(argv)
@@ -306,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
     quiet = lambda text: None  # noqa: E731  (the jobs' own progress lines)
     for seed in seeds:
         say(f"seed {seed} ...")
-        r = run_seed(seed, options, args.quick, args.force_accept, quiet, args.retries, not args.no_tool_calibrate)
+        r = run_seed(seed, options, args.quick, args.force_accept, quiet, args.retries, not args.no_tool_calibrate, args.arm_poses)
         runs.append(r)
         say("\n".join(table([r])[2:]) + f"   ({r.get('seconds', 0):.0f} s)")
         if (failed := failure(r)) is not None:

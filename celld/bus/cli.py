@@ -105,6 +105,11 @@ def _submit_arguments(p: argparse.ArgumentParser) -> None:
     c.add_argument("--seed", type=int, help="seed of the pose generator")
     c.add_argument("--dry-run", action="store_true", help="plan and check the poses against the cell, do not move")
     c.add_argument("--robot2", action="store_true", help="calibrate the cell's second robot too, and its base in robot 1's (Eq. 5-6)")
+    c.add_argument(
+        "--arm-poses",
+        type=int,
+        help="then the arm's kinematic calibration from this many wide poses (0: none; default calibration.arm_poses)",
+    )
 
     t = kinds.add_parser("tool-calibrate", parents=[job_common], help="measure the SRM tip in the TCP frame with the scanner")
     t.add_argument("--n-poses", type=int, help="orientations to present the tool at (default 12)")
@@ -220,6 +225,8 @@ def _job_message(args: argparse.Namespace) -> dict[str, Any]:
             m["dry_run"] = True
         if args.robot2:
             m["robot2"] = True
+        if args.arm_poses is not None:
+            m["arm_poses"] = args.arm_poses
     elif kind == "tool-calibrate":
         _put(m, "n_poses", args.n_poses)
         _put(m, "max_tilt_deg", args.max_tilt_deg)

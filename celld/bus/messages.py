@@ -169,6 +169,12 @@ _CALIBRATE: dict[str, Any] = _submit_branch(
             "description": "Calibrate the cell's second robot ([robot2]) through the same scanner in the same job, after robot 1, "
             "and give T_base1_base2 (Eq. 5-6 with the camera fixed); its poses are generated (no poses).",
         },
+        "arm_poses": integer(
+            "After the hand-eye calibration, calibrate the arm's kinematics too from this many wide poses, fitted with "
+            "T_base_cam (0: none; default: calibration.arm_poses). Needs a scanner on the base, not with robot2.",
+            0,
+            MAX_POSES,
+        ),
         "dry_run": _DRY_RUN,
     },
 )

@@ -54,6 +54,7 @@ class CalibrateJob:
     seed: int | None = None
     dry_run: bool = False
     robot2: bool = False  # calibrate the second robot too, and T_base1_base2
+    arm_poses: int | None = None  # wide poses for the arm's kinematic calibration after the hand-eye one (0: none)
     ref: str = ""
     request_id: str = ""  # the client's id of the submit
     kind: ClassVar[str] = "calibrate"
@@ -194,6 +195,7 @@ def _build_calibrate(m: Mapping[str, Any]) -> CalibrateJob:
         seed=_int_or_none(m.get("seed")),
         dry_run=bool(m.get("dry_run", False)),
         robot2=bool(m.get("robot2", False)),
+        arm_poses=_int_or_none(m.get("arm_poses")),
         ref=m.get("ref", ""),
         request_id=m.get("request_id", ""),
     )
@@ -345,6 +347,8 @@ def job_to_message(job: Job) -> dict[str, Any]:
             m["seed"] = job.seed
         if job.robot2:
             m["robot2"] = True
+        if job.arm_poses is not None:
+            m["arm_poses"] = job.arm_poses
     elif isinstance(job, WeldJob):
         if job.workpiece:
             m["workpiece"] = job.workpiece

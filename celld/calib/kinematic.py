@@ -48,10 +48,12 @@ from celld import se3
 from celld.calib.detect import detect_flange
 from celld.calib.detect_params import DetectParams
 from celld.calib.flange import FlangeModel
+from celld.calib.poses import calibration_poses
 from celld.calib.quality import norm_bound
 from celld.errors import CelldError, InputError
 from celld.robot import dynamics
 from celld.robot import kinematics as kin
+from celld.schemadoc import integer, matrix4, number, obj, string, texts, vector
 
 Array = NDArray[np.float64]
 
@@ -82,6 +84,18 @@ SIGMA_POINT = 0.1e-3
 REMAINING_PRIOR = 0.4e-3
 # The bounds' confidence on the norm of the 3-D error.
 BOUND_CONFIDENCE = 0.95
+# What a stored correction may be (the units of ArmModel.as_dict): far above what a factory-calibrated arm
+# is off by (0.2-1 mm, a few mrad); beyond it the file is not an arm's calibration. The compliance bound is
+# ten times PRIOR's.
+STORED_BOUNDS: dict[str, tuple[float, float]] = {
+    "d_mm": (-20.0, 20.0),
+    "a_mm": (-20.0, 20.0),
+    "alpha_mrad": (-50.0, 50.0),
+    "theta_mrad": (-50.0, 50.0),
+    "compliance_mrad_per_knm": (-1000.0, 1000.0),  # as fitted: noise may leave a held-near-zero one below 0
+}
+# The heaviest payload a stored model may carry (a UR20's is 20 kg), kg.
+MAX_PAYLOAD_KG = 30.0
 # Pre-correction: Newton steps and the residual (m, rad) that ends them.
 _NEWTON_STEPS = 8
 _NEWTON_TOL = 1e-9
@@ -106,6 +120,13 @@ class WidePoses:
 
 
 WIDE = WidePoses()
+
+
+def wide_poses(T_base_flange_v: ArrayLike, n: int, seed: int, wide: WidePoses = WIDE) -> Array:
+    """The arm calibration's flange poses (n, 4, 4): ``wide``'s box around the verification pose ``T_base_flange_v``."""
+    T_c = se3.check_transform(T_base_flange_v, "T_base_flange_v").copy()
+    T_c[:3, 3] += wide.centre_offset
+    return calibration_poses(T_c, wide.box, n, wide.max_tilt, seed=seed, max_spin=wide.max_spin)
 
 
 @dataclass(frozen=True)
@@ -171,8 +192,15 @@ class ArmModel:
             q = q + np.linalg.lstsq(kin.jacobian(q, self.nominal), e, rcond=None)[0]
         return kin.forward(q, self.nominal), q
 
+    def correction(self, q: ArrayLike) -> Array:
+        """``D`` (4, 4) with ``D @ T_reported`` where the model puts what the controller reports at ``T_reported``
+        with its joints at ``q`` (6,): the flange, or any frame fixed to it (the TCP)."""
+        q = np.asarray(q, dtype=np.float64)
+        return self.forward(q) @ se3.invert(kin.forward(q, self.nominal))
+
     def as_dict(self) -> dict[str, Any]:
-        """The corrections, for the stored calibration: mm, mrad and mrad/(kN m) beside the nominal table."""
+        """The corrections, for the stored calibration: mm, mrad and mrad/(kN m) beside the nominal table, and
+        the payload the sag was fitted with (:meth:`from_dict` reads them back)."""
         return {
             "d_mm": (np.subtract(self.dh.d, self.nominal.d) * 1e3).tolist(),
             "a_mm": (np.subtract(self.dh.a, self.nominal.a) * 1e3).tolist(),
@@ -180,7 +208,56 @@ class ArmModel:
             "theta_mrad": (np.asarray(self.theta) * 1e3).tolist(),
             "compliance_mrad_per_knm": (np.asarray(self.compliance) * 1e6).tolist(),
             "payload_kg": self.payload.mass,
+            "payload_com_mm": (np.asarray(self.payload.com) * 1e3).tolist(),
         }
+
+    @classmethod
+    def from_dict(cls, doc: Any, robot_model: str, where: str = "arm") -> ArmModel:
+        """The model :meth:`as_dict` stored, on the controller's kinematics of ``robot_model``.
+
+        Raises
+        ------
+        InputError
+            A correction that is missing, not six finite numbers, or larger than an arm's own error can be
+            (:data:`STORED_BOUNDS`), or a payload that is no payload; the message names the key.
+        """
+        if not isinstance(doc, dict):
+            raise InputError(f"{where}: expected the arm's corrections (an object), got {type(doc).__name__}")
+        rows: dict[str, Array] = {}
+        for key, (lo, hi) in STORED_BOUNDS.items():
+            v = doc.get(key)
+            try:
+                arr = np.asarray(v, dtype=np.float64)
+            except (TypeError, ValueError):
+                arr = np.zeros(0)
+            if isinstance(v, (str, bytes)) or arr.shape != (6,) or not np.all(np.isfinite(arr)):
+                raise InputError(f"{where}.{key}: expected 6 finite numbers, got {v!r}")
+            if np.any(arr < lo) or np.any(arr > hi):
+                raise InputError(f"{where}.{key}: expected each within [{lo:g}, {hi:g}], got {arr.tolist()}")
+            rows[key] = arr
+        mass, com = doc.get("payload_kg"), doc.get("payload_com_mm")
+        if isinstance(mass, bool) or not isinstance(mass, (int, float)) or not 0.0 <= float(mass) <= MAX_PAYLOAD_KG:
+            raise InputError(f"{where}.payload_kg: expected a mass within [0, {MAX_PAYLOAD_KG:g}] kg, got {mass!r}")
+        try:
+            com_m = np.asarray(com, dtype=np.float64) * 1e-3
+        except (TypeError, ValueError):
+            com_m = np.zeros(0)
+        if com_m.shape != (3,) or not np.all(np.isfinite(com_m)) or np.linalg.norm(com_m) > 1.0:
+            raise InputError(f"{where}.payload_com_mm: expected the payload's centre of mass, 3 numbers within 1 m, got {com!r}")
+        nominal = kin.model(robot_model).dh
+        dh = kin.DH(
+            tuple(np.add(nominal.d, rows["d_mm"] * 1e-3).tolist()),
+            tuple(np.add(nominal.a, rows["a_mm"] * 1e-3).tolist()),
+            tuple(np.add(nominal.alpha, rows["alpha_mrad"] * 1e-3).tolist()),
+        )
+        return cls(
+            nominal,
+            dh,
+            tuple((rows["theta_mrad"] * 1e-3).tolist()),
+            tuple((rows["compliance_mrad_per_knm"] * 1e-6).tolist()),
+            dynamics.links(robot_model),
+            dynamics.Payload(float(mass), (float(com_m[0]), float(com_m[1]), float(com_m[2]))),
+        )
 
 
 @dataclass(frozen=True)
@@ -413,3 +490,79 @@ class ArmPairs:
             )
         nominal, links = kin.model(robot_model).dh, dynamics.links(robot_model)
         return fit_arm(np.asarray(self.q), np.asarray(self.p_cam), self.T_base_cam, nominal, links, payload, n_cam=np.asarray(self.n_cam))
+
+
+# -- the calibration's arm entry ---------------------------------------------------------
+
+_SIX = {key: vector(f"{key}: one per joint.", 6) for key in STORED_BOUNDS}
+# The JSON shape of a calibration's ``arm`` entry (:func:`arm_entry`).
+ARM_ENTRY_SCHEMA = obj(
+    "The arm's kinematic calibration, fitted with the scanner's pose from wide poses (celld.calib.kinematic): "
+    "corrections to the controller's kinematics, by which the cell pre-corrects where it sends the arm and "
+    "reads where the arm is; T_base_cam is the scanner's pose fitted with them (it replaces the hand-eye one).",
+    {
+        "robot": string("The robot model whose controller kinematics the corrections are to."),
+        "T_base_cam": matrix4("The scanner's pose in the base frame the corrected arm is in."),
+        "corrections": obj(
+            "ArmModel.as_dict: mm, mrad and mrad/(kN m) beside the controller's table, and the payload of the sag.",
+            {
+                **_SIX,
+                "payload_kg": number("The payload the sag was fitted with, kg."),
+                "payload_com_mm": vector("Its centre of mass, flange frame, mm.", 3),
+            },
+            (*STORED_BOUNDS, "payload_kg", "payload_com_mm"),
+        ),
+        "pairs": integer("Wide poses whose flange the fit rests on.", lo=0),
+        "rank": integer("Rank of the fit's scaled Jacobian over every parameter.", lo=0),
+        "parameters": integer("Parameters there are (the scanner's pose and the arm's).", lo=0),
+        "condition": number("Condition number of the fitted parameters' scaled Jacobian."),
+        "estimated": texts("The parameters fitted."),
+        "held": texts("The parameters held at zero: not told apart by the data, or held by design."),
+        "residual_rms_mm": number("RMS distance of the flange centres from the fitted model's, mm."),
+        "residual_max_mm": number("The largest, mm."),
+        "residual_rms_before_mm": number("The same with the controller's kinematics and the hand-eye T_base_cam, mm."),
+        "bound": obj(
+            "Bounds on the norm of the flange's error (the poses' own region, and away from it).",
+            {
+                "confidence": number("The bounds' confidence."),
+                "poses_mm": number("Where the wide poses went, mm."),
+                "away_mm": number("Anywhere else in reach, mm (adds what an arm keeps after such a calibration)."),
+                "remaining_prior_mm": number("That remainder, mm."),
+            },
+            ("confidence", "poses_mm", "away_mm", "remaining_prior_mm"),
+        ),
+    },
+    ("robot", "T_base_cam", "corrections", "pairs", "rank", "parameters", "condition", "estimated", "held", "bound"),
+)
+
+
+def arm_entry(fit: ArmFit, robot_model: str, pairs: int) -> dict[str, Any]:
+    """A calibration's ``arm`` entry (:data:`ARM_ENTRY_SCHEMA`) from an arm fit over ``pairs`` flanges of ``robot_model``."""
+    report = fit.report()
+    corrections = report.pop("corrections")
+    return {"robot": robot_model, "T_base_cam": fit.T_base_cam.tolist(), "corrections": corrections, "pairs": int(pairs), **report}
+
+
+def arm_of(entry: Any, where: str = "calibration.arm") -> tuple[Array, ArmModel]:
+    """The scanner's pose and the arm's model a calibration's ``arm`` entry holds (:func:`arm_entry`).
+
+    Raises
+    ------
+    InputError
+        Not such an entry: an unknown robot model, a transform that is none, a correction out of bounds
+        (:meth:`ArmModel.from_dict`); the message names the key.
+    """
+    if not isinstance(entry, dict):
+        raise InputError(f"{where}: expected the arm's calibration (an object), got {type(entry).__name__}")
+    robot = entry.get("robot")
+    if not isinstance(robot, str):
+        raise InputError(f"{where}.robot: expected a robot model name, got {robot!r}")
+    try:
+        kin.model(robot)
+    except InputError as exc:
+        raise InputError(f"{where}.robot: {str(exc).removeprefix('robot model: ')}") from exc
+    try:
+        T = se3.check_transform(entry.get("T_base_cam", []), f"{where}.T_base_cam")
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"{where}.T_base_cam: expected a 4x4 rigid transform: {exc}") from exc
+    return T, ArmModel.from_dict(entry.get("corrections"), robot, f"{where}.corrections")

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from celld.calib.kinematic import ArmModel, arm_of
 from celld.config import SCANNER_MOUNTS
 from celld.errors import InputError
 from celld.robot import kinematics as kin
@@ -183,14 +184,50 @@ MOUNT_ENTRY_PROPERTIES: dict[str, dict[str, Any]] = {
 
 @dataclass(frozen=True)
 class Placement:
-    """A calibrated scanner: its mount and its pose in the mount's frame (``T_base_cam`` or ``T_linkN_cam``)."""
+    """A calibrated scanner: its mount and its pose in the mount's frame (``T_base_cam`` or ``T_linkN_cam``),
+    and the arm's kinematic calibration when it has one (:mod:`celld.calib.kinematic`).
+
+    With ``arm`` the base frame is the corrected arm's: ``T_ref_cam`` is the scanner's pose fitted with the
+    arm, where the controller reports a pose the arm is at :meth:`modelled` of it, and a pose the arm is
+    to reach is sent to the controller as :meth:`precorrect` of it. Without, both are the pose itself.
+    """
 
     mount: ScannerMount
     T_ref_cam: Array
+    arm: ArmModel | None = None
 
     def T_base_cam(self, q: ArrayLike | None) -> Array:
         """The scanner's pose in the base frame at joints ``q`` (any for a scanner on the base)."""
         return self.mount.T_base_cam(self.T_ref_cam, q)
+
+    def modelled(self, T_reported: ArrayLike, q: ArrayLike | None) -> Array:
+        """Where the calibrated arm is when the controller reports ``T_reported`` (the flange, or a frame fixed
+        to it such as the TCP) with its joints at ``q``; the pose itself without an arm calibration."""
+        T = check_transform(T_reported, "T_reported")
+        if self.arm is None:
+            return T
+        if q is None:
+            raise InputError("the arm's calibration corrects a reported pose by the joints it was reported at: none given")
+        return self.arm.correction(q) @ T
+
+    def precorrect(self, T_target: ArrayLike, q_near: ArrayLike, T_flange_frame: ArrayLike | None = None) -> Array:
+        """The pose to send the controller so that the calibrated arm puts a frame fixed to the flange
+        (``T_flange_frame``, the TCP; the flange itself by default) at ``T_target``, the joints nearest
+        ``q_near``; ``T_target`` itself without an arm calibration.
+
+        Raises
+        ------
+        InputError
+            The target is out of the arm's reach.
+        """
+        T = check_transform(T_target, "T_target")
+        if self.arm is None:
+            return T
+        T_ff = np.eye(4) if T_flange_frame is None else check_transform(T_flange_frame, "T_flange_frame")
+        got = self.arm.precorrect(T @ invert(T_ff), q_near)
+        if got is None:
+            raise InputError(f"the pose {np.round(T[:3, 3], 4).tolist()} m is out of the calibrated arm's reach")
+        return got[0] @ T_ff
 
 
 def mount_from(doc: Mapping[str, Any], where: str) -> ScannerMount:
@@ -225,6 +262,11 @@ def placement_of(calibration: Mapping[str, Any], where: str = "calibration") -> 
         A mount this project does not know, a missing or malformed DH table or transform.
     """
     mount = mount_from(calibration, where)
+    if "arm" in calibration:
+        if mount.on_arm:
+            raise InputError(f"{where}.arm: an arm calibration needs a fixed scanner, and this one is on {mount.name}")
+        T_arm, arm = arm_of(calibration["arm"], f"{where}.arm")
+        return Placement(mount, T_arm, arm)
     key = _key(mount.frame)
     try:
         T = check_transform(calibration.get(key, []), f"{where}.{key}")

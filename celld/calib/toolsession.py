@@ -211,10 +211,11 @@ class ToolCalibrationSession:
         return self._count
 
     def capture(self, T_base_tcp: ArrayLike, q: ArrayLike | None, cloud: ArrayLike) -> ToolCaptureStep:
-        """One capture at the TCP pose the robot reports, with its joints: the tip and the wire's end found in it."""
+        """One capture at the TCP pose the robot reports, with its joints: the tip and the wire's end found in it
+        (the pose through the calibration's arm model, when it has one: :meth:`Placement.modelled`)."""
         pid = f"{self._count:03d}"
         self._count += 1
-        T_bt = np.asarray(T_base_tcp, dtype=np.float64)
+        T_bt = self.placement.modelled(T_base_tcp, q) if self.placement.arm is not None else np.asarray(T_base_tcp, dtype=np.float64)
         points = correct_range_bias(cloud, self.range_bias) if self.range_bias else np.asarray(cloud)
         T_base_cam = self.placement.T_base_cam(q)  # a scanner on the arm moves with its link (Eq. 8)
         T_cam_tcp = se3.invert(T_base_cam) @ T_bt

@@ -44,12 +44,13 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from celld import se3
+from celld import fsutil, se3
 from celld.bus.requests import CalibrateJob
 from celld.calib.algorithm1 import Algorithm1Result
 from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
+from celld.calib.kinematic import ARM_ENTRY_SCHEMA, ArmPairs, arm_entry, wide_poses
 from celld.calib.mount import MOUNT_ENTRY_PROPERTIES, ScannerMount, in_any_frame, in_frame, mount_entry
 from celld.calib.pairs import Detections
 from celld.calib.poses import calibration_poses
@@ -65,9 +66,10 @@ from celld.daemon.jobs import JobContext
 from celld.daemon.planning import REFUSED_SCHEMA, CalibrationPlan, record_arm, record_cell, record_plan, report_plan
 from celld.daemon.retention import prune_sessions
 from celld.daemon.store import CalibrationStore
-from celld.errors import CalibrationError, DamagedStateError, JobError
+from celld.errors import CalibrationError, DamagedStateError, InputError, JobError
 from celld.log import get_logger
 from celld.recording import layout
+from celld.robot import dynamics
 from celld.scanner.base import OrganizedCloud
 from celld.schemadoc import array, boolean, const, enum, integer, number, obj, one_of, string, vector
 
@@ -75,6 +77,11 @@ if TYPE_CHECKING:
     from celld.recording.job import JobRecording
 
 log = get_logger(__name__)
+
+# Fewest wide poses an arm calibration takes (it fits the scanner's pose and some 20 of the arm's parameters).
+ARM_MIN_POSES = 8
+# The wide poses' generator seed, beside the job's: apart from the hand-eye poses'.
+ARM_SEED = 7919
 
 
 def calibration_entry(
@@ -202,6 +209,7 @@ CALIBRATION_SCHEMA = obj(
             "has its points moved back along their rays by it."
         ),
         "range_bias_std_mm": number("Its 1-sigma; null when not estimated.", null=True),
+        "arm": ARM_ENTRY_SCHEMA,
     },
     ("job", "stored", "cost_mm", "pairs", "dataset", "method", "quality", "range_bias", "range_bias_mm", "range_bias_std_mm"),
 )
@@ -371,6 +379,11 @@ async def calibrate_arm(
         )
     early = session.stopped_early and session.reached
     calibration = calibration_entry(ctx.job_id, mount, result, report, params, dataset, session.algorithm1())
+    n_arm = _arm_poses(config, job, mount, robot)
+    if n_arm:
+        calibration["arm"] = await _calibrate_kinematics(
+            ctx, config, arm, capture, planned.T_v, result.T_base_cam, n_arm, job.seed or 0, dataset
+        )
     log.info(
         "calibration solved",
         job=ctx.job_id,
@@ -383,6 +396,74 @@ async def calibrate_arm(
         range_bias_mm=round(result.bias * 1e3, 3),
     )
     return ArmCalibration(planned.as_dict(), result, calibration, report, early, session.n_captures, dataset)
+
+
+def _arm_poses(config: Config, job: CalibrateJob, mount: ScannerMount, robot: int) -> int:
+    """How many wide poses the job's arm calibration takes (0: none); refused where it cannot run."""
+    n = job.arm_poses if job.arm_poses is not None else config.calibration.arm_poses
+    if not n:
+        return 0
+    if mount.on_arm:
+        raise JobError("$.arm_poses", f"the arm's kinematic calibration needs a fixed scanner, and this one is on {mount.name}")
+    if robot != 1 or job.robot2:
+        raise JobError("$.arm_poses", "the arm's kinematic calibration is robot 1's: give arm_poses 0 with robot2")
+    if n < ARM_MIN_POSES:
+        raise JobError("$.arm_poses", f"the arm's kinematic calibration needs at least {ARM_MIN_POSES} wide poses, got {n}")
+    return n
+
+
+async def _calibrate_kinematics(
+    ctx: JobContext,
+    config: Config,
+    arm: Arm,
+    capture: Callable[[], Awaitable[OrganizedCloud]],
+    T_v: np.ndarray,
+    T_base_cam: np.ndarray,
+    n: int,
+    seed: int,
+    dataset: Path,
+) -> dict[str, Any]:
+    """The arm's kinematic calibration after the hand-eye one (:mod:`celld.calib.kinematic`): ``n`` wide poses
+    around the verification pose ``T_v``, checked against the cell (refused ones replaced), each flange
+    found near where ``T_base_cam`` puts it; the DH corrections, joint zeros and the shoulder's and elbow's
+    sag (the tool's weight as ``[tool]`` gives it) fitted with the scanner's pose. Returns the calibration's
+    ``arm`` entry; the flanges found (joints, centres and normals) are saved in the job's directory
+    (``arm.json``) to be fitted again offline."""
+    cal = config.calibration
+    ctx.progress("arm", 0.0, f"the arm's kinematic calibration: {n} wide poses")
+
+    def more(count: int, rnd: int) -> np.ndarray:
+        return wide_poses(T_v, count, seed + ARM_SEED + 1000 * (rnd + 1))
+
+    plan = await asyncio.to_thread(arm.planner.plan_calibration, await arm.current_q(), wide_poses(T_v, n, seed + ARM_SEED), n, more)
+    pairs = ArmPairs(preset(cal.flange), PARAMS_BY_SCANNER.get(config.scanner.model, DetectParams()), T_base_cam)
+    for i, T in enumerate(plan.poses):
+        T_bf, q = await _settled_flange_pose(arm, T, cal.settle)
+        cloud = await capture()
+        found = await asyncio.to_thread(pairs.add, f"w{i:03d}", cloud.points, T_bf[:3, 3], q)
+        ctx.progress(
+            "arm", (i + 1) / len(plan.poses), f"wide pose {i + 1} of {len(plan.poses)}: flange {'found' if found else 'not found'}"
+        )
+    ctx.progress("arm", None, f"fitting the arm from {len(pairs.q)} flanges")
+    payload = dynamics.Payload(config.tool.mass, config.tool.com_flange)
+    try:
+        fit = await asyncio.to_thread(pairs.fit, config.robot.model, payload)
+    except InputError as exc:
+        raise CalibrationError(f"the arm's kinematic calibration: {exc}") from exc
+    session = {"frame": "camera", "units": "m", "q": np.asarray(pairs.q).tolist(), "p_cam": np.asarray(pairs.p_cam).tolist()}
+    session |= {"n_cam": np.asarray(pairs.n_cam).tolist(), "skipped": pairs.skipped, "T_base_cam_hand_eye": T_base_cam.tolist()}
+    await asyncio.to_thread(fsutil.write_json, ctx.result_dir() / "arm.json", session)
+    entry = arm_entry(fit, config.robot.model, len(pairs.q))
+    log.info(
+        "arm calibrated",
+        job=ctx.job_id,
+        pairs=len(pairs.q),
+        rank=fit.rank,
+        condition=round(fit.condition, 1),
+        residual_rms_mm=round(fit.rms * 1e3, 4),
+        residual_rms_before_mm=round(entry["residual_rms_before_mm"], 4),
+    )
+    return entry
 
 
 async def _record_pair(rec: JobRecording, arm: Arm, T_base_flange: np.ndarray, step: CaptureStep) -> None:

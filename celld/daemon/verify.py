@@ -146,8 +146,10 @@ async def verify_calibration(ctx: JobContext, config: Config, devices: CellDevic
     plan = await asyncio.to_thread(planner.plan_calibration, to_v.q_end, candidates, 2 * n, more, True)
     targets = [T_v, *plan.poses]
 
-    async def look(T_bf: np.ndarray, q: np.ndarray, name: str) -> tuple[Sighting, np.ndarray | None]:
+    async def look(T_reported: np.ndarray, q: np.ndarray, name: str) -> tuple[Sighting, np.ndarray | None]:
         T_base_cam = placement.T_base_cam(q)
+        # Where the calibration puts the flange: the controller's report, through the arm's calibration if any.
+        T_bf = placement.modelled(T_reported, q)
         predicted = se3.invert(T_base_cam) @ np.append(T_bf[:3, 3], 1.0)
         cloud = await devices.scanner.capture()
         points = correct_range_bias(cloud.points, bias) if bias else np.asarray(cloud.points)

@@ -63,7 +63,7 @@ from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
 from celld.daemon.planning import record_arm, record_cell, record_plan
 from celld.daemon.store import current_calibration, current_tool
-from celld.errors import CelldError, ConfigError, JobError, SafetyStop, WorkpieceError
+from celld.errors import CelldError, ConfigError, InputError, JobError, SafetyStop, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
 from celld.motion.types import ServoPlan
@@ -79,6 +79,7 @@ from celld.weld.plan import (
     WeldPlan,
     for_torch,
     plan_weld,
+    precorrected,
     prepare_part,
     probe_across,
     probe_targets,
@@ -118,7 +119,11 @@ RESULT_SCHEMA = one_of(
             "workpiece": string(),
             "calibration_job": string("The calibration the scan was placed with."),
             "tool_calibration_job": string("The tool calibration the tool was taken from (empty: the config's)."),
-            "planned_path": {**_PATH, "description": "The seam as the scan placed it, base frame, m."},
+            "planned_path": {
+                **_PATH,
+                "description": "The seam as the scan placed it, base frame, m (as the controller was sent it: pre-corrected "
+                "through the arm's calibration when the calibration has one).",
+            },
             "tcp_path": array(
                 vector("A TCP pose [x, y, z, rx, ry, rz], m and rad, base frame.", 6), "Every TCP pose the weld would pass through."
             ),
@@ -497,6 +502,18 @@ async def _scan_and_plan(ctx: JobContext, config: Config, devices: CellDevices, 
     workpiece = setup.workpiece
     ctx.progress("seam", None, f"finding the seam of {workpiece.name} with calibration {setup.calibration_job or '(unnamed)'}")
     plan = await asyncio.to_thread(plan_weld, points, T_base_cam, setup.part, setup.weld, config.seam, setup.tool.T_tcp_tool, T_scan)
+    placement = setup.placement
+    if placement.arm is not None and here is not None:
+        # The plan is in the calibrated arm's base frame (the scan placed by the arm fit's T_base_cam): what
+        # the controller is sent, and what touch then measures by its reports, is in its own.
+        T_flange_tcp = devices.robot.planner.T_flange_tcp
+        q_near = np.asarray(here.q, dtype=np.float64)
+        try:
+            plan = await asyncio.to_thread(
+                precorrected, plan, lambda T: placement.precorrect(T, q_near, T_flange_tcp), setup.tool.T_tcp_tool
+            )
+        except InputError as exc:
+            raise WorkpieceError(f"the weld cannot be pre-corrected through the arm's calibration: {exc}") from exc
     seam = plan.seam
     if rec is not None:
         rec.later(rec.log_path_base, "planned", plan.geometry.seam_base, time.monotonic_ns())

@@ -30,6 +30,7 @@ from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
 from celld.calib.kinematic import WIDE, ArmFit, ArmPairs
+from celld.calib.kinematic import wide_poses as kinematic_wide_poses
 from celld.calib.mount import ScannerMount, in_frame
 from celld.calib.poses import calibration_poses
 from celld.calib.session import CalibrationSession
@@ -159,10 +160,9 @@ class OfflineArmCalibration:
 
 
 def wide_poses(cfg: config_mod.Config, n: int, seed: int) -> np.ndarray:
-    """The arm calibration's flange poses (n, 4, 4): :data:`celld.calib.kinematic.WIDE` around the verification pose."""
-    T_c = se3.from_ur_pose(cfg.calibration.verification_pose)
-    T_c[:3, 3] += WIDE.centre_offset
-    return calibration_poses(T_c, WIDE.box, n, WIDE.max_tilt, seed=seed, max_spin=WIDE.max_spin)
+    """The arm calibration's flange poses (n, 4, 4) of the cell ``cfg``: :func:`celld.calib.kinematic.wide_poses`
+    around its verification pose."""
+    return kinematic_wide_poses(se3.from_ur_pose(cfg.calibration.verification_pose), n, seed)
 
 
 def calibrate_arm_in_world(

@@ -171,7 +171,9 @@ def box_grid(centre: ArrayLike, size: ArrayLike, n: Sequence[int] = (5, 5, 3)) -
     return np.array(list(itertools.product(*axes)))
 
 
-def targeting(world: World, T_base_cam_est: ArrayLike, config: Any, T_base_cam_true: ArrayLike | None = None) -> dict[str, Any]:
+def targeting(
+    world: World, T_base_cam_est: ArrayLike, config: Any, T_base_cam_true: ArrayLike | None = None, arm: ArmModel | None = None
+) -> dict[str, Any]:
     """The calibration's targeting error (mm) over two workspaces of a cell config.
 
     ``calibration``: the box the calibration poses span about the verification
@@ -180,14 +182,15 @@ def targeting(world: World, T_base_cam_est: ArrayLike, config: Any, T_base_cam_t
     table, the flange facing down, as when the tool works on the table.
     Joints near the robot's home. ``T_base_cam_true``: where the scanner truly
     is when it sees the points (default: where it is fixed; a scanner on the
-    arm, where the arm holds it, with ``T_base_cam_est`` its estimate there).
+    arm, where the arm holds it, with ``T_base_cam_est`` its estimate there); ``arm``: the arm's calibrated
+    model, through which every target is pre-corrected (:func:`targeting_errors`).
     """
     cal = config.calibration
     T_v = se3.from_ur_pose(cal.verification_pose)
     home = np.asarray(config.robot.home_q, dtype=np.float64)
-    e_cal = targeting_errors(world, T_base_cam_est, box_grid(T_v[:3, 3], cal.pose_box), T_v[:3, :3], home, T_base_cam_true)
+    e_cal = targeting_errors(world, T_base_cam_est, box_grid(T_v[:3, 3], cal.pose_box), T_v[:3, :3], home, T_base_cam_true, arm)
     R_down = se3.from_xyz_rpy([0.0, 0.0, 0.0], [math.pi, 0.0, math.pi / 2])[:3, :3]
-    e_tab = targeting_errors(world, T_base_cam_est, box_grid([0.6, 0.0, 0.225], [0.3, 0.3, 0.15]), R_down, home, T_base_cam_true)
+    e_tab = targeting_errors(world, T_base_cam_est, box_grid([0.6, 0.0, 0.225], [0.3, 0.3, 0.15]), R_down, home, T_base_cam_true, arm)
 
     def stats(e: Array) -> dict[str, Any]:
         ok = e[np.isfinite(e)]

@@ -17,13 +17,16 @@ Pure: arrays and configs in, a plan out. The weld job
 3. :func:`probe_targets` and :func:`probed_height`: where the finger touches
    the joint's two walls at the start, and the tip's height in the joint
    from the width found there (the plan moved to the height it should have);
-4. :func:`summarise`: the refined and torch paths of a finished track and its
+4. :func:`precorrected`: with the arm's kinematic calibration, the plan (in
+   the calibrated arm's base frame) as the controller is to be sent it;
+5. :func:`summarise`: the refined and torch paths of a finished track and its
    figures.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -156,6 +159,44 @@ def plan_weld(
     T_above[:3, 3] += weld.approach_height * geometry.T_base_plane[:3, 2]
     path = weld_path(geometry, T_tcp_tool, T_above, T_start, T_scan, weld.retract_height)
     return WeldPlan(seam, geometry, offset, T_start, T_above, path)
+
+
+def precorrected(plan: WeldPlan, correct: Callable[[np.ndarray], np.ndarray], T_tcp_tool: np.ndarray) -> WeldPlan:
+    """``plan``, made in the calibrated arm's base frame, as the controller is to be sent it.
+
+    ``correct`` maps a TCP pose (4, 4) the arm is to reach to the pose to send the controller
+    (:meth:`celld.calib.mount.Placement.precorrect`). Every pose of the plan goes through it. The wall and
+    seam lines follow the tool: at each point of the wall line the tool's pose there
+    (:func:`~celld.seam.weldpath.tool_poses`) is pre-corrected, and the rigid correction that gives
+    (``D = T_cmd T^-1``: a fraction of a millimetre, a few mrad) moves that point of both lines and turns
+    its tangent and normal; the welding plane follows the first point's. What touch then finds (the probe,
+    Algorithm 2) is measured by the controller's own reports, in the frame the plan is now in.
+    """
+    g = plan.geometry
+    leads = polyline.arc_length(g.wall_base)
+    D = np.array([correct(T) @ se3.invert(T) for T in tool_poses(g, T_tcp_tool, leads)])
+    R, t = D[:, :3, :3], D[:, :3, 3]
+
+    def points(P: np.ndarray) -> np.ndarray:
+        return np.einsum("nij,nj->ni", R, P) + t
+
+    def turned(V: np.ndarray) -> np.ndarray:
+        return np.einsum("nij,nj->ni", R, V)
+
+    geometry = g._replace(
+        T_base_plane=D[0] @ g.T_base_plane,
+        wall_base=points(g.wall_base),
+        seam_base=points(g.seam_base),
+        tangents=turned(g.tangents),
+        normals=turned(g.normals),
+    )
+    return replace(
+        plan,
+        geometry=geometry,
+        T_start=correct(plan.T_start),
+        T_above=correct(plan.T_above),
+        path=np.array([correct(T) for T in plan.path]),
+    )
 
 
 def start_clearance(geometry: WeldGeometry, seam: SeamPath) -> float:

@@ -146,3 +146,30 @@ def test_bad_sessions_are_refused_with_what_was_wrong() -> None:
         km.fit_arm(Q, bad, T_BASE_CAM, NOMINAL)
     with pytest.raises(InputError, match="at least 4"):
         km.fit_arm(Q[:3], P[:3], T_BASE_CAM, NOMINAL)
+
+
+def test_the_stored_arm_entry_reads_back_as_the_same_model_and_bad_entries_are_refused_by_key() -> None:
+    arm = _arm(6)
+    Q, P, N = _session(arm, 40, 6, noise=0.02e-3)
+    fit = km.fit_arm(Q, P, T_BASE_CAM, NOMINAL, LINKS, PAYLOAD, n_cam=N)
+    entry = km.arm_entry(fit, "ur10e", len(Q))
+    T, model = km.arm_of(entry)
+    np.testing.assert_allclose(T, fit.T_base_cam, atol=1e-12)
+    for q in Q[:5]:
+        np.testing.assert_allclose(model.forward(q), fit.model.forward(q), atol=1e-12)
+    assert entry["pairs"] == 40 and entry["held"] and entry["corrections"]["payload_kg"] == pytest.approx(1.6)
+    # The controller's reported pose, corrected by the model at the joints it was reported at.
+    q = Q[3]
+    np.testing.assert_allclose(model.correction(q) @ kin.forward(q, NOMINAL), model.forward(q), atol=1e-12)
+    bad = {**entry, "corrections": {**entry["corrections"], "a_mm": [0.0, 35.0, 0.0, 0.0, 0.0, 0.0]}}
+    with pytest.raises(InputError, match=r"calibration\.arm\.corrections\.a_mm: expected each within \[-20, 20\]"):
+        km.arm_of(bad)
+    bad = {**entry, "corrections": {**entry["corrections"], "theta_mrad": [0.0] * 5}}
+    with pytest.raises(InputError, match=r"theta_mrad: expected 6 finite numbers"):
+        km.arm_of(bad)
+    with pytest.raises(InputError, match=r"calibration\.arm\.robot: expected one of"):
+        km.arm_of({**entry, "robot": "ur99"})
+    with pytest.raises(InputError, match=r"calibration\.arm\.T_base_cam"):
+        km.arm_of({**entry, "T_base_cam": [[1.0, 0.0], [0.0, 1.0]]})
+    with pytest.raises(InputError, match=r"payload_kg"):
+        km.arm_of({**entry, "corrections": {**entry["corrections"], "payload_kg": -1.0}})

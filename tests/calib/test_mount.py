@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from celld import se3
 from celld.calib.dataset import SessionWriter, load_session
 from celld.calib.mount import ScannerMount, in_frame, mount_entry, placement_of
 from celld.calib.session import calibrate_session
@@ -118,3 +119,42 @@ def test_a_calibration_on_the_arm_is_stored_and_read_back_in_its_frame() -> None
         placement_of({k: v for k, v in entry.items() if k != "T_link1_cam"})
     with pytest.raises(InputError, match=r"calibration\.mount"):
         placement_of({**entry, "mount": "wrist"})
+
+
+def test_a_calibration_with_an_arm_entry_places_the_scanner_and_corrects_poses_through_the_arm() -> None:
+    from celld.calib.kinematic import ArmModel
+    from celld.robot import dynamics
+
+    nominal = kin.UR10E
+    dh = kin.DH(nominal.d, tuple(np.add(nominal.a, [0.0, 0.4e-3, -0.3e-3, 0.0, 0.0, 0.0])), nominal.alpha)
+    model = ArmModel(
+        nominal, dh, (0.0, 0.2e-3, 0.0, 0.0, 0.0, 0.0), (0.0,) * 6, dynamics.links("ur10e"), dynamics.Payload(1.6, (0.0, 0.0, 0.09))
+    )
+    T_arm = se3.from_ur_pose([0.6, -0.01, 1.0, 3.1, 0.02, 0.0])
+    T_hand_eye = se3.from_ur_pose([0.6, -0.012, 1.0, 3.1, 0.02, 0.0])
+    corrections = model.as_dict()
+    arm_entry = {"robot": "ur10e", "T_base_cam": T_arm.tolist(), "corrections": corrections}
+    placed = placement_of({"T_base_cam": T_hand_eye.tolist(), "arm": arm_entry})
+    # The scanner is where the arm fit put it, the arm as the fit corrected it.
+    np.testing.assert_allclose(placed.T_base_cam(None), T_arm)
+    q = np.array([2.847, -1.401, 2.311, -2.481, 1.571, -1.276])
+    T_flange_tcp = se3.from_ur_pose([0.0, 0.0, 0.2, 0.0, 0.0, 0.0])
+    T_tcp = kin.forward(q, nominal) @ T_flange_tcp  # what the controller reports
+    np.testing.assert_allclose(placed.modelled(T_tcp, q), model.forward(q) @ T_flange_tcp, atol=1e-12)
+    # A TCP target pre-corrected: the controller sent there puts the modelled TCP on the target.
+    target = se3.from_ur_pose([0.55, 0.05, 0.25, 3.14, 0.0, 0.0])
+    T_cmd = placed.precorrect(target, q, T_flange_tcp)
+    q_cmd = kin.inverse(T_cmd @ se3.invert(T_flange_tcp), q, nominal)
+    assert q_cmd is not None
+    np.testing.assert_allclose(model.forward(q_cmd) @ T_flange_tcp, target, atol=1e-8)
+    assert np.linalg.norm(T_cmd[:3, 3] - target[:3, 3]) > 0.1e-3
+    # Without an arm entry: the hand-eye calibration, poses as they are.
+    plain = placement_of({"T_base_cam": T_hand_eye.tolist()})
+    assert plain.arm is None and np.array_equal(plain.precorrect(target, q, T_flange_tcp), target)
+    np.testing.assert_array_equal(plain.modelled(T_tcp, q), T_tcp)
+    with pytest.raises(InputError, match="out of the calibrated arm's reach"):
+        placed.precorrect(se3.from_ur_pose([3.0, 0.0, 0.2, 3.14, 0.0, 0.0]), q)
+    with pytest.raises(InputError, match=r"calibration\.arm\.corrections\.d_mm"):
+        placement_of({"T_base_cam": T_hand_eye.tolist(), "arm": {**arm_entry, "corrections": {**corrections, "d_mm": "x"}}})
+    with pytest.raises(InputError, match="needs a fixed scanner"):
+        placement_of({"mount": "link1", "dh": kin.UR10E._asdict(), "T_link1_cam": T_arm.tolist(), "arm": arm_entry})

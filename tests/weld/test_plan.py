@@ -17,7 +17,17 @@ from celld.seam.workpiece import example
 from celld.sim import workpiece as simscene
 from celld.sim.scanner import SimScanner
 from celld.tactile.tool import ToolGeometry
-from celld.weld.plan import LEAD_IN, PROBED_SCHEMA, WeldPlan, for_torch, plan_weld, prepare_part, probe_targets, probed_height
+from celld.weld.plan import (
+    LEAD_IN,
+    PROBED_SCHEMA,
+    WeldPlan,
+    for_torch,
+    plan_weld,
+    precorrected,
+    prepare_part,
+    probe_targets,
+    probed_height,
+)
 
 T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
 WELD = WeldConfig()
@@ -83,3 +93,42 @@ def test_a_torch_measured_off_the_tips_height_moves_the_tip_so_the_torch_welds_a
         for_torch(WELD, 2.5e-3)
     with pytest.raises(WorkpieceError, match="not a number"):
         for_torch(WELD, math.nan)
+
+
+def test_a_plan_pre_corrected_moves_each_pose_and_the_lines_with_the_tool_beside_them(plan: WeldPlan) -> None:
+    # A correction that grows along x (as the arm's own error grows away from where it was calibrated):
+    # 1 mm per metre along x, and a turn of 1 mrad about z.
+    turn = se3.from_ur_pose([0.0, 0.0, 0.0, 0.0, 0.0, 1e-3])
+
+    def correct(T: np.ndarray) -> np.ndarray:
+        D = turn.copy()
+        D[:3, 3] = [0.0, 1e-3 * T[0, 3], 0.0]
+        return D @ T
+
+    tool = ToolGeometry.from_config(TOOL)
+    got = precorrected(plan, correct, tool.T_tcp_tool)
+    for a, b in ((got.T_start, plan.T_start), (got.T_above, plan.T_above)):
+        np.testing.assert_allclose(a, correct(b), atol=1e-12)
+    np.testing.assert_allclose(got.path, np.array([correct(T) for T in plan.path]), atol=1e-12)
+    g0, g1 = plan.geometry, got.geometry
+    # Each wall point moved by the correction of the tool's pose there: the tool's own x is 0.1-0.3 mm off the
+    # point's, so the shift is the pose's, and the points keep the wall's shape.
+    expected = g0.wall_base @ turn[:3, :3].T
+    expected[:, 1] += 1e-3 * (g0.wall_base[:, 0] + np.array([T[0, 3] - p[0] for T, p in zip(tool_poses_at(g0, tool), g0.wall_base)]))
+    np.testing.assert_allclose(g1.wall_base, expected, atol=1e-9)
+    np.testing.assert_allclose(g1.seam_base - g1.wall_base, (g0.seam_base - g0.wall_base) @ turn[:3, :3].T, atol=1e-12)
+    np.testing.assert_allclose(g1.tangents, g0.tangents @ turn[:3, :3].T, atol=1e-12)
+    np.testing.assert_allclose(g1.normals, g0.normals @ turn[:3, :3].T, atol=1e-12)
+    np.testing.assert_allclose(g1.offsets, g0.offsets)
+    # No correction, no change.
+    same = precorrected(plan, lambda T: T, tool.T_tcp_tool)
+    np.testing.assert_allclose(same.geometry.wall_base, g0.wall_base, atol=1e-12)
+    np.testing.assert_allclose(same.path, plan.path, atol=1e-12)
+
+
+def tool_poses_at(geometry, tool: ToolGeometry) -> np.ndarray:
+    """The tool's TCP at every point of the wall line (the poses the pre-correction is taken at)."""
+    from celld import polyline
+    from celld.seam.weldpath import tool_poses
+
+    return tool_poses(geometry, tool.T_tcp_tool, polyline.arc_length(geometry.wall_base))
