@@ -165,7 +165,8 @@ def precorrected(plan: WeldPlan, correct: Callable[[np.ndarray], np.ndarray], T_
     """``plan``, made in the calibrated arm's base frame, as the controller is to be sent it.
 
     ``correct`` maps a TCP pose (4, 4) the arm is to reach to the pose to send the controller
-    (:meth:`celld.calib.mount.Placement.precorrect`). Every pose of the plan goes through it. The wall and
+    (:meth:`celld.calib.mount.Placement.precorrect`). Every pose of the plan goes through it but the scan
+    pose the path ends on, which is the controller's own (``weld.scan_pose``). The wall and
     seam lines follow the tool: at each point of the wall line the tool's pose there
     (:func:`~celld.seam.weldpath.tool_poses`) is pre-corrected, and the rigid correction that gives
     (``D = T_cmd T^-1``: a fraction of a millimetre, a few mrad) moves that point of both lines and turns
@@ -190,13 +191,9 @@ def precorrected(plan: WeldPlan, correct: Callable[[np.ndarray], np.ndarray], T_
         tangents=turned(g.tangents),
         normals=turned(g.normals),
     )
-    return replace(
-        plan,
-        geometry=geometry,
-        T_start=correct(plan.T_start),
-        T_above=correct(plan.T_above),
-        path=np.array([correct(T) for T in plan.path]),
-    )
+    # The path's last pose is the scan pose, the controller's own as configured (weld.scan_pose): as it is.
+    path = np.array([*(correct(T) for T in plan.path[:-1]), plan.path[-1]])
+    return replace(plan, geometry=geometry, T_start=correct(plan.T_start), T_above=correct(plan.T_above), path=path)
 
 
 def start_clearance(geometry: WeldGeometry, seam: SeamPath) -> float:
