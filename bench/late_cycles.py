@@ -55,6 +55,11 @@ Q0 = np.array([0.2, -1.6, 1.7, -1.7, -1.57, 0.1])
 Q1 = np.array([1.6, -1.3, 1.4, -1.9, -1.4, 0.6])
 T0 = from_ur_pose([0.5, 0.1, 0.4, 3.1, 0.1, 0.0])
 T1 = from_ur_pose([0.3, -0.2, 0.5, 2.9, 0.3, 0.2])
+# A shorter Cartesian move with a larger turn of the tool (0.24 m, 0.37 rad): the one whose first late twist
+# overshot the goal by 22 mm (tests/motion/test_core.py).
+T2 = T0.copy()
+T2[:3, 3] += [0.2, 0.1, -0.1]
+T2[:3, :3] = Rotation.from_rotvec([0.2, 0.1, 0.3]).as_matrix() @ T0[:3, :3]
 EVERY = 7
 
 
@@ -124,7 +129,8 @@ def run_case(kind: str, lateness: Any, rng: np.random.Generator) -> dict[str, An
         command, start, goal = move_joints(Q1, speed_scale=0.25), Q0, Q1
     else:
         robot = HeldRobot(None, T0)
-        command, start, goal = move_to(T1), T0[:3, 3], T1[:3, 3]
+        T_goal = T2 if kind == "cartesian, turning" else T1
+        command, start, goal = move_to(T_goal), T0[:3, 3], T_goal[:3, 3]
     u = (goal - start) / np.linalg.norm(goal - start)
     length = float(np.linalg.norm(goal - start))
     past, out = 0.0, None
@@ -142,7 +148,7 @@ def run_case(kind: str, lateness: Any, rng: np.random.Generator) -> dict[str, An
         figures = {"final_deg": round(final, 5), "past_goal_deg": round(math.degrees(past), 4)}
     else:
         assert robot.T is not None
-        dt, dr = error(robot.T, T1)
+        dt, dr = error(robot.T, T2 if kind == "cartesian, turning" else T1)
         figures = {"final_mm": round(dt * 1e3, 4), "final_deg": round(math.degrees(dr), 4), "past_goal_mm": round(past * 1e3, 3)}
     return {
         "move": kind,
@@ -159,6 +165,12 @@ def _every(late: float, k: int, _rng: np.random.Generator) -> float:
     return late if k % EVERY == 3 else 0.0
 
 
+def _first(k: int, _rng: np.random.Generator) -> float:
+    """The move's first twist 16 ms late (ur-rtde's wait for the control script's handshake before the first
+    command after a pause), and the loop's next cycle 0.5 ms after it, back on its schedule."""
+    return {0: 16e-3, 1: 0.5e-3 - PERIOD}.get(k, 0.0)
+
+
 def _random(_k: int, rng: np.random.Generator) -> float:
     """Lateness drawn exponential, mean 0.4 ms."""
     return float(rng.exponential(0.4e-3))
@@ -173,9 +185,10 @@ def main() -> int:
     rng = np.random.default_rng(args.seed)
     cases: list[tuple[str, Any]] = [(f"every {EVERY}th {ms} ms late", partial(_every, ms * 1e-3)) for ms in (0, 2, 4, 8, 28)]
     cases.append(("random, mean 0.4 ms late", _random))
+    cases.append(("the first twist 16 ms late, the next cycle 0.5 ms after", _first))
     rows = []
     for name, lateness in cases:
-        for kind in ("joint", "cartesian"):
+        for kind in ("joint", "cartesian", "cartesian, turning"):
             row = {"case": name, **run_case(kind, lateness, rng)}
             rows.append(row)
             if row["status"] != "DONE":
