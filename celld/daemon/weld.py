@@ -23,7 +23,8 @@ Steps, each published as a progress event:
    switched on (robot digital output ``robot.arc_output``) by the motion loop
    itself while the law tracks and off the cycle a stop begins, so no bus or
    event-loop delay stands between a fault and the arc going out;
-5. **retract**: straight up by ``retract_height``, then to the scan pose.
+5. **retract**: straight up by ``retract_height``, then back to the scan pose by a joint
+   move to the joints the arm scanned from.
    After a fault stopped the weld the arm moves only as
    ``weld.retract_after_fault`` says: ``none`` (it stays), ``clear`` (straight
    out of the joint, slowly) or ``full`` (that, then to the scan pose); never
@@ -61,13 +62,14 @@ from celld.calib.rangebias import correct_range_bias
 from celld.config import Config, ServoConfig, ToolConfig, WeldConfig, with_overrides
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
-from celld.daemon.planning import record_arm, record_cell, record_plan
+from celld.daemon.planning import MotionPlanner, record_arm, record_cell, record_plan
 from celld.daemon.store import current_calibration, current_tool
 from celld.errors import CelldError, ConfigError, InputError, JobError, SafetyStop, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
 from celld.motion.types import ServoPlan
 from celld.recording import layout
+from celld.robot.collision import PathCheck
 from celld.schemadoc import array, boolean, const, number, obj, one_of, string, vector
 from celld.seam.figures import contact_across
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
@@ -241,20 +243,24 @@ CLEAR_SPEED = 0.1
 
 
 async def _retract(
-    ctx: JobContext, devices: CellDevices, z: np.ndarray, height: float, T_scan: np.ndarray | None, speed: float, up_speed: float = 0.2
+    ctx: JobContext, devices: CellDevices, z: np.ndarray, height: float, q_scan: np.ndarray | None, speed: float, up_speed: float = 0.2
 ) -> str:
-    """Stop, the tool straight up by ``height`` (m, along ``z``) and back to the scan pose (when ``T_scan`` is
-    given); why not, or ""."""
+    """Stop, the tool straight up by ``height`` (m, along ``z``) and back to the scan pose (when ``q_scan``, the
+    joints the arm scanned from, is given) by a joint move; why not, or "".
+
+    A joint move, not a straight one: the tool along the seam may be turned half a turn about its axis from
+    the scan pose, where the shorter way round is a matter of milliradians (of the seam as found, or of the
+    arm's calibration) and the longer one takes wrist 3 past its limit."""
     try:
         await devices.stop_robot()
         state = devices.robot.require_motion().state()
         if state is not None:
             T_up = state.T_base_tcp.copy()
             T_up[:3, 3] += height * z
-            ctx.progress("retract", None, "tool up and away" if T_scan is not None else "tool straight out of the joint")
+            ctx.progress("retract", None, "tool up and away" if q_scan is not None else "tool straight out of the joint")
             await devices.robot.move_to(T_up, speed_scale=min(speed, up_speed))
-            if T_scan is not None:
-                await devices.robot.move_to(T_scan, speed_scale=speed)
+            if q_scan is not None:
+                await devices.robot.move_joints(q_scan, speed_scale=speed)
     except CelldError as exc:
         log.error("retract after the weld failed", job=ctx.job_id, error=str(exc))
         return str(exc)
@@ -262,7 +268,7 @@ async def _retract(
 
 
 async def _after_fault(
-    ctx: JobContext, devices: CellDevices, wc: WeldConfig, fault: CelldError, z: np.ndarray, T_scan: np.ndarray, speed: float
+    ctx: JobContext, devices: CellDevices, wc: WeldConfig, fault: CelldError, z: np.ndarray, q_scan: np.ndarray, speed: float
 ) -> None:
     """Move the arm after ``fault`` stopped the weld only as ``weld.retract_after_fault`` says, and never after a
     protective stop or with the link down; what it did is added to the fault (a note: the job's reason says it)
@@ -277,7 +283,7 @@ async def _after_fault(
         note = "the arm was left where it stopped: the robot link is down"
     else:
         full = mode == "full"
-        error = await _retract(ctx, devices, z, wc.retract_height, T_scan if full else None, speed, CLEAR_SPEED)
+        error = await _retract(ctx, devices, z, wc.retract_height, q_scan if full else None, speed, CLEAR_SPEED)
         moved = f"the tool {wc.retract_height * 1e3:g} mm straight up" + (", then to the scan pose" if full else "")
         note = f"after the fault, {moved} (weld.retract_after_fault = {mode})" + (f", which failed: {error}" if error else "")
     fault.add_note(note)
@@ -598,7 +604,6 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     wc = config.weld
     setup = await weld_setup(ctx, config, job, cache)
     speed = wc.speed_scale
-    T_scan = se3.from_ur_pose(wc.scan_pose)
 
     # 1, 2. scan, seam and the weld's plan
     plan = await _scan_and_plan(ctx, config, devices, setup, job.dry_run)
@@ -607,7 +612,9 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     rec = ctx.recording
     if rec is not None:
         rec.later(rec.log_path_base, "plan", plan.path[:, :3, 3], time.monotonic_ns())
-    check = await asyncio.to_thread(devices.robot.planner.check_path, await devices.robot.current_q(), plan.path)
+    # The arm is at the scan pose now (a dry run's too): the weld comes back to these joints (_retract).
+    q_scan = await devices.robot.current_q()
+    check = await asyncio.to_thread(_check_weld_path, devices.robot.planner, q_scan, plan.path)
     if job.dry_run:
         stations = np.linspace(0, len(check.q) - 1, min(len(check.q), DRY_RUN_ROBOTS)).round().astype(int)
         await asyncio.to_thread(record_plan, rec, devices.robot.planner.with_tool, [tuple(check.q[i]) for i in stations])
@@ -626,16 +633,16 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
             ctx, devices, config, plan, setup.servo, setup.tool_config, setup.sensor_yaw, min(speed, 0.2)
         )
     except CelldError as exc:
-        await _after_fault(ctx, devices, wc, exc, up, T_scan, speed)
+        await _after_fault(ctx, devices, wc, exc, up, q_scan, speed)
         raise
 
     # 4. touch and track; 5. retract (also after a failed track, while the robot can still be moved)
     try:
         records = await _track(ctx, config, devices, setup, plan, process=bool(job.arc) and config.robot.arc_output >= 0)
     except CelldError as exc:
-        await _after_fault(ctx, devices, wc, exc, up, T_scan, speed)
+        await _after_fault(ctx, devices, wc, exc, up, q_scan, speed)
         raise
-    retract_error = await _retract(ctx, devices, up, wc.retract_height, T_scan, speed)
+    retract_error = await _retract(ctx, devices, up, wc.retract_height, q_scan, speed)
 
     figures, paths = await asyncio.to_thread(summarise, records, plan, setup.tool, setup.servo.delta_d)
     path_file = await asyncio.to_thread(fsutil.write_json, ctx.result_dir() / "paths.json", paths)
@@ -644,6 +651,17 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
             if len(paths[name]) > 1:
                 rec.later(rec.log_path_base, name, np.asarray(paths[name]), time.monotonic_ns())
     return WeldOutcome(setup, figures, paths, Path(path_file), height_probe, retract_error).as_dict()
+
+
+def _check_weld_path(planner: MotionPlanner, q_scan: np.ndarray, path: np.ndarray) -> PathCheck:
+    """The weld's path against the cell from the scan pose's joints ``q_scan``: straight lines through its poses
+    up to the tool lifted at the seam's end, then the joint move back to ``q_scan`` (:func:`_retract`)."""
+    lines = planner.check_path(q_scan, path[:-1])
+    back = planner.check_joint_move(lines.q[-1], q_scan)
+    # The path parameter as check_waypoints gives it over the whole path: k / n at its k-th pose.
+    n = len(path)
+    s = np.concatenate([lines.s * (n - 1) / n, (n - 1 + back.s) / n])
+    return PathCheck(np.concatenate([lines.q, back.q]), s, min(lines.min_clearance, back.min_clearance), None)
 
 
 def _log_preview(devices: CellDevices, rec: JobRecording | None, last_stamp: int) -> int:
