@@ -435,7 +435,8 @@ async def _calibrate_kinematics(
     def more(count: int, rnd: int) -> np.ndarray:
         return wide_poses(T_v, count, seed + ARM_SEED + 1000 * (rnd + 1))
 
-    plan = await asyncio.to_thread(arm.planner.plan_calibration, await arm.current_q(), wide_poses(T_v, n, seed + ARM_SEED), n, more)
+    q_start = await arm.current_q()
+    plan = await asyncio.to_thread(arm.planner.plan_calibration, q_start, wide_poses(T_v, n, seed + ARM_SEED), n, more)
     pairs = ArmPairs(preset(cal.flange), PARAMS_BY_SCANNER.get(config.scanner.model, DetectParams()), T_base_cam)
     for i, T in enumerate(plan.poses):
         T_bf, q = await _settled_flange_pose(arm, T, cal.settle)
@@ -444,6 +445,9 @@ async def _calibrate_kinematics(
         ctx.progress(
             "arm", (i + 1) / len(plan.poses), f"wide pose {i + 1} of {len(plan.poses)}: flange {'found' if found else 'not found'}"
         )
+    # Back to the joints the wide poses began at, by a joint move: they turn the wrist up to half a turn either
+    # way, and a straight move from there to the next job's first pose can take wrist 3 past its limit.
+    await arm.move_joints(q_start, tool=False)
     ctx.progress("arm", None, f"fitting the arm from {len(pairs.q)} flanges")
     payload = dynamics.Payload(config.tool.mass, config.tool.com_flange)
     try:
