@@ -68,15 +68,23 @@ _TRIG_SLACK = 1e-9
 _WRIST_SINGULAR = 1e-9
 
 
+Six = tuple[float, float, float, float, float, float]
+_ZEROS: Six = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
 class DH(NamedTuple):
     """Standard Denavit-Hartenberg parameters of a 6-axis UR arm (m, rad).
 
-    ``T_{i-1,i} = Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``.
+    ``T_{i-1,i} = Rz(q_i + theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``. A model's
+    published table has every ``theta_i`` zero; a controller's own calibrated
+    table (:mod:`celld.robot.primary`) has joint zero offsets, and small
+    lengths and twists where the published table has none.
     """
 
-    d: tuple[float, float, float, float, float, float]
-    a: tuple[float, float, float, float, float, float]
-    alpha: tuple[float, float, float, float, float, float]
+    d: Six
+    a: Six
+    alpha: Six
+    theta: Six = _ZEROS
 
 
 class JointLimits(NamedTuple):
@@ -272,6 +280,8 @@ def forward_rows(q: Sequence[float], dh: DH = UR10E) -> Rows:
 def forward_all_rows(q: Sequence[float], dh: DH = UR10E) -> list[Rows]:
     """``T_base_i`` for i = 1..6 (the frame after each joint), plain Python."""
     tw = _twists(dh)
+    if dh.theta != _ZEROS:
+        q = [v + t for v, t in zip(q, dh.theta)]
     T = _link(q[0], dh.d[0], dh.a[0], *tw[0])
     out = [T]
     for i in range(1, 6):
@@ -283,12 +293,12 @@ def forward_all_rows(q: Sequence[float], dh: DH = UR10E) -> list[Rows]:
 def forward_batch(Q: ArrayLike, dh: DH = UR10E) -> Array:
     """``T_base_i`` (n, 6, 4, 4), i = 1..6, of joint rows ``Q`` (n, 6): :func:`forward_all_rows` over many
     poses at once (numpy, for fits that evaluate the arm at every pose of a session many times)."""
-    Q = np.atleast_2d(np.asarray(Q, dtype=np.float64))
-    n = Q.shape[0]
+    A = np.atleast_2d(np.asarray(Q, dtype=np.float64)) + np.asarray(dh.theta)
+    n = A.shape[0]
     T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
     out = np.empty((n, 6, 4, 4))
     for i, (ca, sa) in enumerate(_twists(dh)):
-        c, s = np.cos(Q[:, i]), np.sin(Q[:, i])
+        c, s = np.cos(A[:, i]), np.sin(A[:, i])
         L = np.zeros((n, 4, 4))
         L[:, 0, 0], L[:, 0, 1], L[:, 0, 2], L[:, 0, 3] = c, -s * ca, s * sa, dh.a[i] * c
         L[:, 1, 0], L[:, 1, 1], L[:, 1, 2], L[:, 1, 3] = s, c * ca, -c * sa, dh.a[i] * s
@@ -299,13 +309,27 @@ def forward_batch(Q: ArrayLike, dh: DH = UR10E) -> Array:
     return out
 
 
-def _clamp_trig(x: float) -> float | None:
-    """``x`` clipped to [-1, 1] if it is within rounding of it, else None."""
+def _clamp_trig(x: float, slack: float = _TRIG_SLACK) -> float | None:
+    """``x`` clipped to [-1, 1] if it is within ``slack`` (rounding) of it, else None."""
     if x > 1.0:
-        return 1.0 if x < 1.0 + _TRIG_SLACK else None
+        return 1.0 if x < 1.0 + slack else None
     if x < -1.0:
-        return -1.0 if x > -1.0 - _TRIG_SLACK else None
+        return -1.0 if x > -1.0 - slack else None
     return x
+
+
+@functools.lru_cache(maxsize=8)
+def ur_form(dh: DH) -> DH:
+    """The table of UR form nearest ``dh``: the six lengths of a published table (d1, a2, a3, d4, d5, d6)
+    kept, every other length and every joint zero nought, the twists exactly UR's (equal to ``dh`` when it is
+    of that form already, as every published table is).
+
+    Offsets along the three parallel axes are summed into d4, where they act. A controller's table near its
+    model's (millimetres and milliradians off) has its solutions within Newton's reach of this one's,
+    taken back by the table's joint zeros.
+    """
+    # Offsets along the three parallel axes (z1, z2, z3) add up to the wrist's d4.
+    return _dh(dh.d[0], dh.a[1], dh.a[2], dh.d[1] + dh.d[2] + dh.d[3], dh.d[4], dh.d[5])
 
 
 def inverse_rows(T_base_flange: Rows, dh: DH = UR10E, q6_seed: float = 0.0) -> list[list[float]]:
@@ -314,7 +338,87 @@ def inverse_rows(T_base_flange: Rows, dh: DH = UR10E, q6_seed: float = 0.0) -> l
     Returns up to eight solutions, each joint wrapped to [-pi, pi). At the wrist
     singularity (q5 = 0 or pi) q6 is not determined; ``q6_seed`` is used. An
     empty list means the pose is out of reach (or on the shoulder singularity).
+
+    A table not of UR form (a controller's calibrated one, :func:`ur_form`) has
+    no closed form: the closed form of its UR-form neighbour gives each branch's
+    start and Newton steps on the table itself finish it (:func:`_refine`); a
+    branch that does not converge (at a singularity) is left out.
     """
+    form = ur_form(dh)
+    if form == dh:
+        return _closed_form(T_base_flange, dh, q6_seed)
+    pi, two_pi = math.pi, 2 * math.pi
+    out: list[list[float]] = []
+    for q_form in _closed_form(T_base_flange, form, q6_seed, _SEED_SLACK):
+        # The form's joint angle is the table's q + theta.
+        q = _refine(T_base_flange, [a - t for a, t in zip(q_form, dh.theta)], dh)
+        if q is None:
+            continue
+        q = [(a + pi) % two_pi - pi for a in q]
+        if all(max(abs(a - b) for a, b in zip(q, other)) > _SAME_BRANCH for other in out):
+            out.append(q)
+    return out
+
+
+# Newton (damped) on a table not of UR form: at most _NEWTON_STEPS steps of at most _MAX_STEP (rad), done when
+# the pose is within _POSE_DONE (m, rad); two solutions closer than _SAME_BRANCH (rad) are one.
+_NEWTON_STEPS = 30
+_MAX_STEP = 0.3
+_POSE_DONE = 1e-10
+_SAME_BRANCH = 1e-6
+_DAMPING = 1e-12
+# How far beyond +-1 the UR form's trigonometry may go for a start (a table millimetres off reaches there).
+_SEED_SLACK = 0.05
+
+
+def _pose_error(T_goal: Rows, T: Rows) -> list[float]:
+    """Where ``T`` must go to be ``T_goal``: the position difference and the small rotation (base frame)."""
+    # 0.5 * sum_k x_k cross x_goal_k over the three axes: the rotation vector for small angles.
+    wx = wy = wz = 0.0
+    for k in range(3):
+        ax, ay, az = T[k], T[4 + k], T[8 + k]
+        bx, by, bz = T_goal[k], T_goal[4 + k], T_goal[8 + k]
+        wx += ay * bz - az * by
+        wy += az * bx - ax * bz
+        wz += ax * by - ay * bx
+    return [T_goal[3] - T[3], T_goal[7] - T[7], T_goal[11] - T[11], 0.5 * wx, 0.5 * wy, 0.5 * wz]
+
+
+def _flange_jacobian(frames: list[Rows]) -> Array:
+    """The flange's geometric Jacobian (6, 6) from :func:`forward_all_rows`' frames (base frame)."""
+    px, py, pz = frames[5][3], frames[5][7], frames[5][11]
+    J = np.empty((6, 6))
+    zx, zy, zz, ox, oy, oz = 0.0, 0.0, 1.0, 0.0, 0.0, 0.0
+    for i in range(6):
+        rx, ry, rz = px - ox, py - oy, pz - oz
+        J[:, i] = (zy * rz - zz * ry, zz * rx - zx * rz, zx * ry - zy * rx, zx, zy, zz)
+        F = frames[i]
+        zx, zy, zz, ox, oy, oz = F[2], F[6], F[10], F[3], F[7], F[11]
+    return J
+
+
+def _refine(T_goal: Rows, q0: Sequence[float], dh: DH) -> list[float] | None:
+    """Damped Newton steps from ``q0`` to joints whose flange is ``T_goal`` on ``dh``; None when they do not
+    converge (a singular pose, or a start too far)."""
+    q = list(q0)
+    damping = _DAMPING * np.eye(6)
+    for _ in range(_NEWTON_STEPS):
+        frames = forward_all_rows(q, dh)
+        e = _pose_error(T_goal, frames[-1])
+        if max(abs(v) for v in e) < _POSE_DONE:
+            return q
+        J = _flange_jacobian(frames)
+        dq = np.linalg.solve(J.T @ J + damping, J.T @ np.asarray(e))
+        big = float(np.max(np.abs(dq)))
+        if big > _MAX_STEP:
+            dq *= _MAX_STEP / big
+        q = [a + float(b) for a, b in zip(q, dq)]
+    return None
+
+
+def _closed_form(T_base_flange: Rows, dh: DH, q6_seed: float, slack: float = _TRIG_SLACK) -> list[list[float]]:
+    """:func:`inverse_rows` on a table of UR form; a ``slack`` beyond rounding gives the starts for a nearby
+    table's Newton steps also where this table's pose lies just out of reach (a boundary of its workspace)."""
     d1, _, _, d4, d5, d6 = dh.d
     _, a2, a3, _, _, _ = dh.a
     tw = _twists(dh)
@@ -325,14 +429,15 @@ def inverse_rows(T_base_flange: Rows, dh: DH = UR10E, q6_seed: float = 0.0) -> l
     p5x = px - d6 * r02
     p5y = py - d6 * r12
     rho = math.hypot(p5x, p5y)
-    if rho < d4:
+    cos_psi = _clamp_trig(d4 / rho, slack) if rho > 0.0 else None
+    if cos_psi is None:
         return []  # the wrist centre is inside the cylinder the shoulder offset cannot reach
     phi = math.atan2(p5y, p5x)
-    psi = math.acos(d4 / rho)
+    psi = math.acos(cos_psi)
     solutions: list[list[float]] = []
     for q1 in (phi + psi + _HALF_PI, phi - psi + _HALF_PI):
         s1, c1 = math.sin(q1), math.cos(q1)
-        c5 = _clamp_trig((px * s1 - py * c1 - d4) / d6)
+        c5 = _clamp_trig((px * s1 - py * c1 - d4) / d6, slack)
         if c5 is None:
             continue
         # The flange axes seen from frame 1 give s5*sin(q6) and s5*cos(q6); their norm
@@ -349,7 +454,7 @@ def inverse_rows(T_base_flange: Rows, dh: DH = UR10E, q6_seed: float = 0.0) -> l
             T14 = _mul(T16, _inv(_mul(_link(q5, d5, 0.0, *tw[4]), _link(q6, d6, 0.0, *tw[5]))))
             x14, y14 = T14[3], T14[7]
             # With alpha_1 = pi/2 the planar arm lies in frame 1's x-y plane.
-            c3 = _clamp_trig((x14 * x14 + y14 * y14 - a2 * a2 - a3 * a3) / (2.0 * a2 * a3))
+            c3 = _clamp_trig((x14 * x14 + y14 * y14 - a2 * a2 - a3 * a3) / (2.0 * a2 * a3), slack)
             if c3 is None:
                 continue
             q234 = math.atan2(T14[4], T14[0])

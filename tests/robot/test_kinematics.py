@@ -198,3 +198,40 @@ def test_forward_batch_is_forward_all_rows_pose_by_pose() -> None:
         rows = np.asarray(kin.forward_all_rows(q.tolist(), dh)).reshape(6, 3, 4)
         np.testing.assert_allclose(F[i, :, :3, :], rows, atol=1e-14)
         np.testing.assert_array_equal(F[i, :, 3, :], np.broadcast_to([0.0, 0.0, 0.0, 1.0], (6, 4)))
+
+
+def _controller_table(rng: np.random.Generator) -> kin.DH:
+    """A controller's calibrated UR10e table: every length, twist and joint zero a millimetre or milliradian off."""
+    rows = [np.asarray(row) + rng.normal(0.0, 1.5e-3, 6) for row in kin.UR10E[:3]]
+    return kin.DH(*(tuple(r.tolist()) for r in rows), tuple(rng.normal(0.0, 2e-3, 6).tolist()))  # type: ignore[arg-type]
+
+
+def _away_from_singularities(rng: np.random.Generator) -> np.ndarray:
+    """Joints with the elbow bent, the wrist not straight and the wrist centre off the shoulder's cylinder."""
+    while True:
+        q = rng.uniform(-math.pi, math.pi, 6)
+        p5 = kin.forward_all_rows(q.tolist())[4]
+        if abs(math.sin(q[2])) > 0.2 and abs(math.sin(q[4])) > 0.2 and math.hypot(p5[3], p5[7]) > kin.UR10E.d[3] + 0.05:
+            return q
+
+
+def test_a_controllers_calibrated_table_is_solved_exactly_by_newton_from_its_ur_form(rng: np.random.Generator) -> None:
+    dh = _controller_table(rng)
+    assert kin.ur_form(dh) != dh and kin.ur_form(kin.UR10E) == kin.UR10E
+    # The joint zeros turn each joint: theta is q's offset.
+    q = rng.uniform(-math.pi, math.pi, 6)
+    shifted = kin.DH(dh.d, dh.a, dh.alpha)
+    np.testing.assert_allclose(kin.forward(q, dh), kin.forward(q + np.asarray(dh.theta), shifted), atol=1e-12)
+    np.testing.assert_allclose(kin.forward_batch(q[None], dh)[0, 5], kin.forward(q, dh), atol=1e-12)
+    for _ in range(100):
+        q = _away_from_singularities(rng)
+        T = kin.forward(q, dh)
+        sols = kin.inverse_all(T, dh, float(q[5]))
+        # Every solution is exact on the table itself (the closed form of its UR form is millimetres off) ...
+        for s in sols:
+            np.testing.assert_allclose(kin.forward(s, dh), T, atol=1e-9)
+        assert np.linalg.norm(kin.forward(kin.inverse_all(T, kin.ur_form(dh), float(q[5]))[0], dh)[:3, 3] - T[:3, 3]) > 1e-4
+        # ... the original is among them, and inverse() picks it from its neighbourhood.
+        assert min(np.abs((s - q + math.pi) % (2 * math.pi) - math.pi).max() for s in sols) < 1e-8
+        q_near = kin.inverse(T, q + 0.05, dh)
+        assert q_near is not None and np.abs(q_near - q).max() < 1e-8
