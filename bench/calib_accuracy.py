@@ -623,7 +623,7 @@ def realization_4(job: tuple[str, int, int]) -> dict[str, Any]:
         return out
     res = done.result
     dt, dr = se3_error(res.T_base_cam, done.T_mount_cam_true)
-    mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model)
+    mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model, world.nominal_dh)
     q_v = done.q_verification
     aim = targeting(world, mount.T_base_cam(res.T_base_cam, q_v), cfg, true_camera(world, q_v))
     out.update(

@@ -155,16 +155,21 @@ def _solve_dict(args: argparse.Namespace) -> dict[str, Any]:
     if session.mount.on_arm:
         out["mount"] = session.mount.name
     if args.arm:
-        out["arm"] = _arm_fit(session, flange, result.T_base_cam, config.load(args.config))
+        out["arm"] = _arm_fit(session, flange, result.T_base_cam, config.load(args.config), Path(args.dir))
     return out
 
 
-def _arm_fit(session: Any, flange: Any, T_base_cam: np.ndarray, cfg: Any) -> dict[str, Any]:
+def _arm_fit(session: Any, flange: Any, T_base_cam: np.ndarray, cfg: Any, where: Path) -> dict[str, Any]:
     """The arm's kinematic calibration from a session's pairs: each flange found again in its cloud (centre and
-    face normal, near where ``T_base_cam`` puts it), fitted with the controller's joints of the capture."""
+    face normal, near where ``T_base_cam`` puts it), fitted with the controller's joints of the capture, on the
+    controller's own table where the dataset holds it (``kinematics.json``; else the published one)."""
+    from celld.calib.dataset import read_json
     from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
-    from celld.calib.kinematic import ArmPairs
+    from celld.calib.kinematic import KINEMATICS_FILE, ArmPairs, table_of
     from celld.robot import dynamics
+
+    stored = where / KINEMATICS_FILE
+    table = table_of(read_json(stored), cfg.robot.model, str(stored)) if stored.is_file() else None
 
     if session.mount.on_arm:
         raise InputError(f"--arm: the scanner is on {session.mount.name}; the arm's calibration needs a fixed scanner")
@@ -176,8 +181,9 @@ def _arm_fit(session: Any, flange: Any, T_base_cam: np.ndarray, cfg: Any) -> dic
             pairs.skipped.append(f"{rec.id}: no joints or no cloud")
             continue
         pairs.add(rec.id, session.cloud(rec), rec.p_base, rec.q)
-    fit = pairs.fit(cfg.robot.model, dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange))
-    return {**fit.report(), "T_base_cam": fit.T_base_cam.tolist(), "pairs": len(pairs.q), "skipped": pairs.skipped}
+    fit = pairs.fit(cfg.robot.model, dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange), table)
+    out = {**fit.report(), "T_base_cam": fit.T_base_cam.tolist(), "pairs": len(pairs.q), "skipped": pairs.skipped}
+    return out | ({"kinematics": stored.name} if table is not None else {})
 
 
 def _read_any_cloud(path: Path, units: str) -> np.ndarray:

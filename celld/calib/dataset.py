@@ -430,7 +430,7 @@ def read_compact_cloud(path: str | Path) -> Array:
     """
     path = Path(path)
     root, where = path.parent, path.name
-    doc = _read_json(path)
+    doc = read_json(path)
     if _get(doc, "format", str, where) != CLOUD_FORMAT or doc.get("version") != CLOUD_VERSION:
         raise InputError(
             f"{path}: expected a {CLOUD_FORMAT!r} version {CLOUD_VERSION} document, got {doc.get('format')!r} {doc.get('version')!r}"
@@ -558,7 +558,7 @@ class SessionWriter:
         if existing.exists():
             if not resume:
                 raise InputError(f"{existing}: a session is already there (resume it, or choose another directory)")
-            self._doc = _read_json(existing)
+            self._doc = read_json(existing)
             _check_header(self._doc, existing)
             if mount_from(self._doc, str(existing)) != mount:
                 raise InputError(f"{existing}: the session's scanner mount is not this writer's ({mount.name})")
@@ -730,7 +730,8 @@ def save_session(
     return load_session(root)
 
 
-def _read_json(path: Path) -> Any:
+def read_json(path: Path) -> Any:
+    """A JSON file of a dataset; InputError naming the file when it cannot be read or is not JSON."""
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as exc:
@@ -796,7 +797,7 @@ def _record(entry: Any, root: Path, where: str, on_arm: bool = False, key: str =
 
 def _load_celld(root: Path) -> Session:
     path = root / POSES_FILE
-    doc = _read_json(path)
+    doc = read_json(path)
     _check_header(doc, path)
     mount = mount_from(doc, str(path))
     if mount.on_arm and doc["version"] < VERSION_ON_ARM:
@@ -823,7 +824,7 @@ def _vector(value: Any, n: int, where: str) -> Array | None:
 
 def _load_reference(root: Path) -> Session:
     path = root / REFERENCE_FILE
-    doc = _read_json(path)
+    doc = read_json(path)
     if not isinstance(doc, dict) or not doc:
         raise InputError(f"{path}: expected an object of entries keyed by index")
     try:

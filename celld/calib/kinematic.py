@@ -51,7 +51,7 @@ from celld.calib.flange import FlangeModel
 from celld.calib.poses import calibration_poses
 from celld.calib.quality import norm_bound
 from celld.errors import CelldError, InputError
-from celld.robot import dynamics
+from celld.robot import dynamics, primary
 from celld.robot import kinematics as kin
 from celld.schemadoc import integer, matrix4, number, obj, string, texts, vector
 
@@ -212,8 +212,9 @@ class ArmModel:
         }
 
     @classmethod
-    def from_dict(cls, doc: Any, robot_model: str, where: str = "arm") -> ArmModel:
-        """The model :meth:`as_dict` stored, on the controller's kinematics of ``robot_model``.
+    def from_dict(cls, doc: Any, robot_model: str, where: str = "arm", table: kin.DH | None = None) -> ArmModel:
+        """The model :meth:`as_dict` stored, on the controller's kinematics ``table`` (the published table of
+        ``robot_model`` when None).
 
         Raises
         ------
@@ -244,11 +245,12 @@ class ArmModel:
             com_m = np.zeros(0)
         if com_m.shape != (3,) or not np.all(np.isfinite(com_m)) or np.linalg.norm(com_m) > 1.0:
             raise InputError(f"{where}.payload_com_mm: expected the payload's centre of mass, 3 numbers within 1 m, got {com!r}")
-        nominal = kin.model(robot_model).dh
+        nominal = table or kin.model(robot_model).dh
         dh = kin.DH(
             tuple(np.add(nominal.d, rows["d_mm"] * 1e-3).tolist()),
             tuple(np.add(nominal.a, rows["a_mm"] * 1e-3).tolist()),
             tuple(np.add(nominal.alpha, rows["alpha_mrad"] * 1e-3).tolist()),
+            nominal.theta,
         )
         return cls(
             nominal,
@@ -309,6 +311,7 @@ def _unpack(x: Array, nominal: kin.DH, links: dynamics.Links | None, payload: dy
         tuple((np.asarray(nominal.d) + g[0]).tolist()),
         tuple((np.asarray(nominal.a) + g[1]).tolist()),
         tuple((np.asarray(nominal.alpha) + g[2]).tolist()),
+        nominal.theta,
     )
     return x[:6], ArmModel(nominal, dh, tuple(g[3].tolist()), tuple(g[4].tolist()), links, payload)
 
@@ -482,13 +485,14 @@ class ArmPairs:
         self.n_cam.append(det.normal)
         return True
 
-    def fit(self, robot_model: str, payload: dynamics.Payload) -> ArmFit:
+    def fit(self, robot_model: str, payload: dynamics.Payload, table: kin.DH | None = None) -> ArmFit:
+        """The fit on the controller's kinematics ``table`` (``robot_model``'s published one when None)."""
         if len(self.q) < 4:
             why = "; ".join(self.skipped[:3])
             raise InputError(
                 f"arm calibration: {len(self.q)} pairs with the flange found; it needs many more" + (f" ({why})" if why else "")
             )
-        nominal, links = kin.model(robot_model).dh, dynamics.links(robot_model)
+        nominal, links = table or kin.model(robot_model).dh, dynamics.links(robot_model)
         return fit_arm(np.asarray(self.q), np.asarray(self.p_cam), self.T_base_cam, nominal, links, payload, n_cam=np.asarray(self.n_cam))
 
 
@@ -511,6 +515,15 @@ ARM_ENTRY_SCHEMA = obj(
                 "payload_com_mm": vector("Its centre of mass, flange frame, mm.", 3),
             },
             (*STORED_BOUNDS, "payload_kg", "payload_com_mm"),
+        ),
+        "kinematics": obj(
+            "The controller's own DH table the corrections are to, as its primary interface sent it (m, rad); "
+            "absent: the model's published table.",
+            {
+                "id": string("celld.robot.primary.table_id of the table: the cell uses the corrections only on it."),
+                **{k: vector(f"DH {k}, one per joint.", 6) for k in ("d", "a", "alpha", "theta")},
+            },
+            ("id", "d", "a", "alpha", "theta"),
         ),
         "pairs": integer("Wide poses whose flange the fit rests on.", lo=0),
         "rank": integer("Rank of the fit's scaled Jacobian over every parameter.", lo=0),
@@ -540,7 +553,52 @@ def arm_entry(fit: ArmFit, robot_model: str, pairs: int) -> dict[str, Any]:
     """A calibration's ``arm`` entry (:data:`ARM_ENTRY_SCHEMA`) from an arm fit over ``pairs`` flanges of ``robot_model``."""
     report = fit.report()
     corrections = report.pop("corrections")
-    return {"robot": robot_model, "T_base_cam": fit.T_base_cam.tolist(), "corrections": corrections, "pairs": int(pairs), **report}
+    entry = {"robot": robot_model, "T_base_cam": fit.T_base_cam.tolist(), "corrections": corrections, "pairs": int(pairs), **report}
+    table = fit.model.nominal
+    if table != kin.model(robot_model).dh:
+        entry["kinematics"] = kinematics_doc(table)
+    return entry
+
+
+# A calibration dataset's file of the controller's table its poses were reported with (:func:`kinematics_doc`).
+KINEMATICS_FILE = "kinematics.json"
+
+
+def kinematics_doc(table: kin.DH) -> dict[str, Any]:
+    """A controller's DH table as stored (an arm entry's ``kinematics``, a dataset's :data:`KINEMATICS_FILE`):
+    its id and its rows; :func:`table_of` reads it back."""
+    return {"id": primary.table_id(table), **{k: [float(v) for v in getattr(table, k)] for k in ("d", "a", "alpha", "theta")}}
+
+
+def table_of(doc: Any, robot_model: str, where: str) -> kin.DH:
+    """The controller's table an arm entry's ``kinematics`` holds, checked against its id and its model.
+
+    Raises
+    ------
+    InputError
+        Not four rows of six finite numbers, an id that is not the table's, or a table that is not one of
+        ``robot_model`` (:meth:`celld.robot.primary.ControllerKinematics.check_model`).
+    """
+    if not isinstance(doc, dict):
+        raise InputError(f"{where}: expected the controller's DH table (an object), got {type(doc).__name__}")
+    rows = []
+    for key in ("d", "a", "alpha", "theta"):
+        v = doc.get(key)
+        try:
+            arr = np.asarray(v, dtype=np.float64)
+        except (TypeError, ValueError):
+            arr = np.zeros(0)
+        if isinstance(v, (str, bytes)) or arr.shape != (6,) or not np.all(np.isfinite(arr)):
+            raise InputError(f"{where}.{key}: expected 6 finite numbers, got {v!r}")
+        rows.append(tuple(arr.tolist()))
+    table = kin.DH(*rows)
+    if doc.get("id") != primary.table_id(table):
+        raise InputError(f"{where}.id: {doc.get('id')!r} is not the id of the table beside it ({primary.table_id(table)})")
+    try:
+        primary.ControllerKinematics(table, (0,) * 6, 0).check_model(kin.model(robot_model))
+    except CelldError as exc:
+        raise InputError(f"{where}: {exc}") from exc
+    return table
 
 
 def arm_of(entry: Any, where: str = "calibration.arm") -> tuple[Array, ArmModel]:
@@ -565,4 +623,5 @@ def arm_of(entry: Any, where: str = "calibration.arm") -> tuple[Array, ArmModel]
         T = se3.check_transform(entry.get("T_base_cam", []), f"{where}.T_base_cam")
     except (ValueError, TypeError) as exc:
         raise InputError(f"{where}.T_base_cam: expected a 4x4 rigid transform: {exc}") from exc
-    return T, ArmModel.from_dict(entry.get("corrections"), robot, f"{where}.corrections")
+    table = table_of(entry["kinematics"], robot, f"{where}.kinematics") if "kinematics" in entry else None
+    return T, ArmModel.from_dict(entry.get("corrections"), robot, f"{where}.corrections", table)

@@ -62,15 +62,16 @@ class ScannerMount:
             raise InputError(f"scanner mount: expected one of {', '.join(SCANNER_MOUNTS)}, got {self.name!r}")
 
     @classmethod
-    def of(cls, name: str, robot_model: str) -> ScannerMount:
-        """The mount ``name`` on the robot model ``robot_model`` (a key of :data:`celld.robot.kinematics.MODELS`).
+    def of(cls, name: str, robot_model: str, table: kin.DH | None = None) -> ScannerMount:
+        """The mount ``name`` on the robot model ``robot_model`` (a key of :data:`celld.robot.kinematics.MODELS`),
+        whose controller computes with ``table`` (the model's published one when None).
 
         A scanner on the base does not move with the joints: its mount is
         the one base mount, whatever the robot, so that mounts compare by
         what they mean.
         """
         kin.model(robot_model)  # a model this project knows, on the base too
-        return cls() if name == "base" else cls(name, kin.model(robot_model).dh)
+        return cls() if name == "base" else cls(name, table or kin.model(robot_model).dh)
 
     def dh_entry(self) -> dict[str, list[float]]:
         """The DH table as stored beside a scanner on the arm (read back by :func:`mount_from`)."""
@@ -171,9 +172,9 @@ MOUNT_ENTRY_PROPERTIES: dict[str, dict[str, Any]] = {
     _key("base"): matrix4("The scanner's pose in the robot base frame (a scanner on the base)."),
     "mount": enum(SCANNER_MOUNTS, "Where the scanner is fixed (absent: the base)."),
     "dh": obj(
-        "The robot's DH table the link frame is computed with (m, rad).",
+        "The robot's DH table the link frame is computed with (m, rad): its controller's (theta: its joint zeros; absent: zeros).",
         {k: vector(k, 6) for k in kin.DH._fields},
-        kin.DH._fields,
+        ("d", "a", "alpha"),
     ),
     **{
         _key(ScannerMount(m).frame): matrix4(f"The scanner's pose in the frame of {m} (a scanner on the arm, Eq. 8).")
@@ -245,11 +246,13 @@ def mount_from(doc: Mapping[str, Any], where: str) -> ScannerMount:
         return ScannerMount()
     dh = doc.get("dh")
     try:
-        rows = [tuple(float(v) for v in dh[k]) for k in ("d", "a", "alpha")] if isinstance(dh, Mapping) else None
+        # theta: the controller's joint zeros, stored since celld reads its table (absent before: zeros).
+        keys = ("d", "a", "alpha", "theta") if isinstance(dh, Mapping) and "theta" in dh else ("d", "a", "alpha")
+        rows = [tuple(float(v) for v in dh[k]) for k in keys] if isinstance(dh, Mapping) else None
     except (KeyError, TypeError, ValueError):
         rows = None
     if rows is None or any(len(r) != 6 or not all(math.isfinite(v) for v in r) for r in rows):
-        raise InputError(f"{where}.dh: expected the robot's DH table (d, a, alpha: 6 numbers each) for a scanner on {name}")
+        raise InputError(f"{where}.dh: expected the robot's DH table (d, a, alpha and theta: 6 numbers each) for a scanner on {name}")
     return ScannerMount(name, kin.DH(*rows))  # type: ignore[arg-type]
 
 

@@ -21,11 +21,13 @@ import numpy as np
 from celld import se3
 from celld.config import Config
 from celld.daemon.planning import MotionPlanner
-from celld.errors import CelldError, ConfigError, DeviceError, StaleState
+from celld.errors import CelldError, ConfigError, DeviceError, RobotError, StaleState
 from celld.log import get_logger
 from celld.motion.handle import MotionHandle
 from celld.motion.types import RobotState
 from celld.realtime import RealtimeOptions
+from celld.robot import kinematics as kin
+from celld.robot import primary
 from celld.robot.cellmodel import CellObject
 from celld.supervision import ChildRecords
 
@@ -42,6 +44,8 @@ STOP_TIMEOUT = 5.0
 # cell PC two such stops have come within 2 s (a tool calibration's
 # detections running beside the move).
 STALE_RETRIES = 3
+# While the controller's kinematics are not read (its primary interface not up yet), read again after this, s.
+KINEMATICS_RETRY = 2.0
 
 
 def robot2_config(config: Config) -> Config:
@@ -78,6 +82,12 @@ class Arm:
         self.robot = robot  # the cell's robot 1 or 2
         self.motion: MotionHandle | None = None
         self.planner = MotionPlanner(config)
+        # The table the controller computes with (celld.robot.primary), read once the arm is opened; until
+        # then the planner computes with robot.model's published table, and jobs that need the controller's
+        # own (:meth:`require_kinematics`) wait for it.
+        self.kinematics: primary.ControllerKinematics | None = None
+        self.kinematics_error = "not read yet"
+        self._reading: asyncio.Task[None] | None = None
 
     @contextlib.contextmanager
     def avoiding(self, objects: Sequence[CellObject]) -> Iterator[None]:
@@ -90,6 +100,43 @@ class Arm:
             yield
         finally:
             self.planner = planner
+
+    @property
+    def dh(self) -> kin.DH:
+        """The DH table celld computes this arm with: its controller's once read, else the published one."""
+        return self.planner.arm.dh
+
+    def require_kinematics(self) -> primary.ControllerKinematics:
+        """The controller's own kinematics, or DeviceError naming why they are not known."""
+        if self.kinematics is None:
+            raise DeviceError(f"robot {self.robot}: the controller's kinematics (primary interface) are unknown: {self.kinematics_error}")
+        return self.kinematics
+
+    async def _read_kinematics(self) -> None:
+        """Read the controller's kinematics, again every :data:`KINEMATICS_RETRY` s until they are read and
+        are of ``robot.model``; then the planner computes with them."""
+        cfg = self.config.robot
+        model = kin.model(cfg.model)
+        while True:
+            try:
+                k = await asyncio.to_thread(primary.read_kinematics, cfg.host)
+                offset = k.check_model(model)
+            except RobotError as exc:
+                if str(exc) != self.kinematics_error:
+                    log.warning("the controller's kinematics are not read", robot=self.robot, error=str(exc), retry_s=KINEMATICS_RETRY)
+                self.kinematics_error = str(exc)
+                await asyncio.sleep(KINEMATICS_RETRY)
+                continue
+            break
+        self.kinematics = k
+        self.planner = MotionPlanner(self.config, k.dh)
+        log.info(
+            "the controller's kinematics read",
+            robot=self.robot,
+            id=k.id,
+            calibration_status=k.calibration_status,
+            published_table_off_mm=round(offset * 1e3, 2),
+        )
 
     async def open_motion(
         self, heartbeat: str, records: ChildRecords, servo_laws: dict[str, str] | None = None, tactile_slot: str | None = None
@@ -111,10 +158,16 @@ class Arm:
             records=records,
             role="motion" if self.robot == 1 else f"motion{self.robot}",  # its name in the daemon's child records
         )
+        if self._reading is None:
+            self._reading = asyncio.create_task(self._read_kinematics(), name=f"kinematics{self.robot}")
         return self.motion
 
     async def close_motion(self) -> None:
         """A jerk-limited stop, then the end of its motion process."""
+        if self._reading is not None:
+            self._reading.cancel()
+            await asyncio.gather(self._reading, return_exceptions=True)
+            self._reading = None
         if self.motion is None:
             return
         try:

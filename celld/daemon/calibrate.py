@@ -50,7 +50,7 @@ from celld.calib.algorithm1 import Algorithm1Result
 from celld.calib.dataset import SessionWriter
 from celld.calib.detect_params import PARAMS_BY_SCANNER, DetectParams
 from celld.calib.flange import preset
-from celld.calib.kinematic import ARM_ENTRY_SCHEMA, ArmPairs, arm_entry, wide_poses
+from celld.calib.kinematic import ARM_ENTRY_SCHEMA, KINEMATICS_FILE, ArmPairs, arm_entry, kinematics_doc, wide_poses
 from celld.calib.mount import MOUNT_ENTRY_PROPERTIES, ScannerMount, in_any_frame, in_frame, mount_entry
 from celld.calib.pairs import Detections
 from celld.calib.poses import calibration_poses
@@ -322,8 +322,12 @@ async def calibrate_arm(
         return ArmCalibration(planned.as_dict())
     dataset = ctx.result_dir() / dataset_name
     # A scanner on the arm: every pair's robot side is the flange in the scanner's link frame (Eq. 8).
-    mount = ScannerMount.of(config.scanner.mount, config.robot.model)
+    table = arm.require_kinematics().dh if config.scanner.mount != "base" else None
+    mount = ScannerMount.of(config.scanner.mount, config.robot.model, table)
     writer = SessionWriter(dataset, flange=cal.flange, scanner=config.scanner.model, mount=mount)
+    if arm.kinematics is not None:
+        # The table the pairs' poses were reported with, for an arm fit from the dataset (celld calib solve --arm).
+        await asyncio.to_thread(fsutil.write_json, dataset / KINEMATICS_FILE, kinematics_doc(arm.kinematics.dh))
     dparams = PARAMS_BY_SCANNER.get(config.scanner.model, DetectParams())
     session = CalibrationSession(flange, params, dparams, planned=len(poses), mount=mount, writer=writer)
     if rec is not None:
@@ -430,6 +434,7 @@ async def _calibrate_kinematics(
     ``arm`` entry; the flanges found (joints, centres and normals) are saved in the job's directory
     (``arm.json``) to be fitted again offline."""
     cal = config.calibration
+    table = arm.require_kinematics().dh  # the corrections are to the controller's own table
     ctx.progress("arm", 0.0, f"the arm's kinematic calibration: {n} wide poses")
 
     def more(count: int, rnd: int) -> np.ndarray:
@@ -451,7 +456,7 @@ async def _calibrate_kinematics(
     ctx.progress("arm", None, f"fitting the arm from {len(pairs.q)} flanges")
     payload = dynamics.Payload(config.tool.mass, config.tool.com_flange)
     try:
-        fit = await asyncio.to_thread(pairs.fit, config.robot.model, payload)
+        fit = await asyncio.to_thread(pairs.fit, config.robot.model, payload, table)
     except InputError as exc:
         raise CalibrationError(f"the arm's kinematic calibration: {exc}") from exc
     session = {"frame": "camera", "units": "m", "q": np.asarray(pairs.q).tolist(), "p_cam": np.asarray(pairs.p_cam).tolist()}

@@ -33,6 +33,7 @@ move (bench/collision_check.py); the daemon runs them in a worker thread.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -202,8 +203,11 @@ REFUSED_SCHEMA = schemadoc.array(
 class MotionPlanner:
     """The cell's collision and reach checks (module docstring)."""
 
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Config, table: kin.DH | None = None) -> None:
+        # The arm of robot.model, computed with its controller's own table where it is known.
         self.arm = kin.model(config.robot.model)
+        if table is not None:
+            self.arm = dataclasses.replace(self.arm, dh=table)
         self.limits = config.motion
         self.workspace = (np.asarray(config.robot.workspace_min), np.asarray(config.robot.workspace_max))
         T_flange_tcp = se3.from_ur_pose(config.robot.tcp_offset)

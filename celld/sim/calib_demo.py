@@ -114,7 +114,8 @@ def calibrate_in_world(
     cal = cfg.calibration
     flange = preset(cal.flange)  # the controller's flange model
     view = WorldView(cfg, world, seed)
-    mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model)
+    # The table the controller computes with: what its primary interface serves, and celld reads.
+    mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model, world.nominal_dh)
     seen = view.seen
 
     dparams: DetectParams = PARAMS_BY_SCANNER[cfg.scanner.model]  # the controller's scanner: its detector parameters
@@ -180,7 +181,8 @@ def calibrate_arm_in_world(
         cloud, q = view.seen(T)
         if not pairs.add(f"wide pose {i}", cloud, T[:3, 3], q) and say is not None:
             say(f"  {pairs.skipped[-1]}")
-    fit = pairs.fit(cfg.robot.model, dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange))
+    # On the controller's own table, as its primary interface serves it to celld.
+    fit = pairs.fit(cfg.robot.model, dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange), world.nominal_dh)
     return OfflineArmCalibration(
         hand_eye, fit, len(poses), time.perf_counter() - t0, np.asarray(pairs.q), np.asarray(pairs.p_cam), np.asarray(pairs.n_cam)
     )
@@ -192,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
     # The simulator's truth: it renders the scene, the estimator never reads it.
     world = world_of(cfg, options_from_args(args))
     out = Path(args.out) if args.out else Path(cfg.cell.state_dir) / "sim-calibrate" / time.strftime("%Y%m%d-%H%M%S")
-    mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model)
+    mount = ScannerMount.of(cfg.scanner.mount, cfg.robot.model, world.nominal_dh)
     writer = SessionWriter(out, flange=cfg.calibration.flange, scanner=cfg.scanner.model, mount=mount)
     say = _printer(args.json)
     name = f"T_{mount.frame}_cam"

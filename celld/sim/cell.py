@@ -157,9 +157,10 @@ def sim_devices(config: Config, world: World, part: SimWorkpiece | None) -> Devi
 
 
 def robot_options(world: World) -> dict[str, Any]:
-    """The simulated robot's options of the world: its model, and its physical arm when it is not the model."""
+    """The simulated robot's options of the world: its model, the table its controller computes with, and its
+    physical arm when it is not that table."""
     arm = None if world.arm.is_model(world.nominal_dh) else world.arm
-    return {"model": world.nominal.robot, "arm": arm}
+    return {"model": world.nominal.robot, "arm": arm, "kinematics": world.kinematics}
 
 
 def robot2_options(world: World) -> dict[str, Any]:
@@ -167,7 +168,7 @@ def robot2_options(world: World) -> dict[str, Any]:
     r2 = world.robot2
     if r2 is None:
         raise ConfigError("[sim]", "sim.robot2", "the world has no second robot")
-    return {"model": r2.model, "arm": None if r2.arm.is_model(r2.nominal_dh) else r2.arm}
+    return {"model": r2.model, "arm": None if r2.arm.is_model(r2.nominal_dh) else r2.arm, "kinematics": r2.kinematics}
 
 
 def check_robot2(config: Config, world: World) -> None:

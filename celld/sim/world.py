@@ -73,7 +73,8 @@ Array = NDArray[np.float64]
 # The error sources, grouped as the issue lists them. Each is switched on or off on its own.
 SOURCES: tuple[str, ...] = (
     # robot
-    "kinematics",  # true DH table and joint zeros: pose-dependent absolute error
+    "factory_calibration",  # the controller computes with its own calibrated table, not the published one
+    "kinematics",  # true DH table and joint zeros beyond the controller's: pose-dependent absolute error
     "repeatability",  # a new rest error at every stop
     "encoder_noise",  # noise on the joints the controller reports
     "robot2_placement",  # a second robot's base is not exactly where the drawing puts it
@@ -120,7 +121,17 @@ class ErrorBudget:
     enabled: frozenset[str] = frozenset(SOURCES)
 
     # -- robot -----------------------------------------------------------------
-    # Each DH length d_i, a_i, twist alpha_i and joint zero, 1 sigma. Sized so
+    # The factory calibration: the controller's table against the published
+    # one, each length d_i, a_i, twist alpha_i and joint zero theta_i, 1 sigma.
+    # Sized so the published table puts the flange several millimetres (up to
+    # about a centimetre) from where the controller does: the UR ROS driver's
+    # calibration notes say end-effector positions "might be off in the
+    # magnitude of centimeters" without it. tests/sim/test_world.py measures it.
+    factory_length: float = 1.0e-3  # m
+    factory_twist: float = 1.0e-3  # rad
+    factory_joint_zero: float = 1.5e-3  # rad
+    # Each DH length d_i, a_i, twist alpha_i and joint zero, 1 sigma, beyond the
+    # factory calibration (what remains of the arm's error with it). Sized so
     # the flange's absolute position error over the workspace is the 0.3-1 mm
     # of a factory-calibrated UR e-series arm (mean about 0.5 mm on the UR10e;
     # tests/sim/test_world.py measures it). UR publishes no accuracy figure,
@@ -288,6 +299,9 @@ PRESETS: dict[str, ErrorBudget] = {
 
 # [sim.errors] keys of the budget's magnitudes: field -> (key, scale from the key's unit to SI, upper bound in the key's unit).
 ERROR_KEYS: dict[str, tuple[str, float, float]] = {
+    "factory_length": ("factory_length_mm", 1e-3, 20.0),
+    "factory_twist": ("factory_twist_deg", math.pi / 180, 2.0),
+    "factory_joint_zero": ("factory_joint_zero_deg", math.pi / 180, 2.0),
     "dh_length": ("dh_length_mm", 1e-3, 10.0),
     "dh_twist": ("dh_twist_deg", math.pi / 180, 1.0),
     "joint_offset": ("joint_offset_deg", math.pi / 180, 1.0),
@@ -682,11 +696,12 @@ class Robot2Truth:
     flange: FlangeModel
     T_base1_base2: Array
     T_base1_base2_drawn: Array
+    kinematics: kin.DH | None = None  # the table its controller computes with; None: the published one
 
     @property
     def nominal_dh(self) -> kin.DH:
-        """The DH table its controller believes."""
-        return kin.model(self.model).dh
+        """The DH table its controller believes (its factory calibration's)."""
+        return self.kinematics or kin.model(self.model).dh
 
 
 @dataclass(frozen=True)
@@ -706,11 +721,12 @@ class World:
     part: PartTruth | None
     robot2: Robot2Truth | None = None
     srm: SrmCamera = field(default_factory=SrmCamera)  # the SRM camera as built, its mount in the tool frame set
+    kinematics: kin.DH | None = None  # the table the controller computes with; None: the published one
 
     @property
     def nominal_dh(self) -> kin.DH:
-        """The DH table the controller believes."""
-        return kin.model(self.nominal.robot).dh
+        """The DH table the controller believes (its factory calibration's)."""
+        return self.kinematics or kin.model(self.nominal.robot).dh
 
     def describe(self) -> str:
         """One line: the preset, the seed and the sources that are off or on."""
@@ -752,18 +768,21 @@ def _draw_arm(
     tag: str = "",
     payload: dynamics.Payload = dynamics.Payload(),
     hose_at: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    believed: kin.DH | None = None,
 ) -> ArmTruth:
-    """The physical arm of a robot ``model``; ``tag`` names a second robot's own draws; ``payload`` the tool
-    as drawn and ``hose_at`` where its hose package pulls (flange frame, m)."""
-    dh = kin.model(model).dh
-    offsets = (0.0,) * 6
+    """The physical arm of a robot ``model`` whose controller computes with ``believed`` (:func:`_draw_factory`);
+    ``tag`` names a second robot's own draws; ``payload`` the tool as drawn and ``hose_at`` where its hose
+    package pulls (flange frame, m)."""
+    believed = believed or kin.model(model).dh
+    dh = kin.DH(believed.d, believed.a, believed.alpha)
+    offsets = believed.theta
     if b.on("kinematics"):
         r = _rng(seed, "kinematics" + tag)
         d = np.asarray(dh.d) + _tnormal(r, b.dh_length, 6)
         a = np.asarray(dh.a) + _tnormal(r, b.dh_length, 6)
         alpha = np.asarray(dh.alpha) + _tnormal(r, b.dh_twist, 6)
         dh = kin.DH(tuple(d.tolist()), tuple(a.tolist()), tuple(alpha.tolist()))
-        offsets = tuple(_tnormal(r, b.joint_offset, 6).tolist())
+        offsets = tuple((np.asarray(offsets) + _tnormal(r, b.joint_offset, 6)).tolist())
     settle = b.on("settle")
     bends: dict[str, Any] = {}
     published = dynamics.links(model)
@@ -798,6 +817,20 @@ def _draw_arm(
         seed=_seed_of(seed, "arm-noise" + tag),
         **bends,
     )
+
+
+def _draw_factory(model: str, b: ErrorBudget, seed: int, tag: str = "") -> kin.DH | None:
+    """The table a robot ``model``'s controller computes with: the published one and its factory calibration's
+    deltas on every length, twist and joint zero; None (the published table) with the source off."""
+    if not b.on("factory_calibration"):
+        return None
+    dh, r = kin.model(model).dh, _rng(seed, "factory_calibration" + tag)
+
+    def drawn(row: tuple[float, ...], sigma: float) -> Any:
+        return tuple((np.asarray(row) + _tnormal(r, sigma, 6)).tolist())
+
+    d, a, alpha = drawn(dh.d, b.factory_length), drawn(dh.a, b.factory_length), drawn(dh.alpha, b.factory_twist)
+    return kin.DH(d, a, alpha, drawn((0.0,) * 6, b.factory_joint_zero))
 
 
 def _depth_field(model_name: str, rms: float, rng: np.random.Generator) -> DepthField:
@@ -955,9 +988,11 @@ def _draw_robot2(nominal: NominalCell, b: ErrorBudget, seed: int) -> Robot2Truth
         dR = Rotation.from_rotvec(_tnormal(r, b.base_rotation, 3)).as_matrix()
         T_true = se3.transform_from(dR @ T_drawn[:3, :3], T_drawn[:3, 3] + dp)
     tag = "/robot2"
+    factory = _draw_factory(nominal.robot2, b, seed, tag)
     return Robot2Truth(
         model=nominal.robot2,
-        arm=_draw_arm(nominal.robot2, b, seed, tag),
+        kinematics=factory,
+        arm=_draw_arm(nominal.robot2, b, seed, tag, believed=factory),
         flange=_draw_flange(nominal.robot2_flange or nominal.flange, b, seed, tag),
         T_base1_base2=T_true,
         T_base1_base2_drawn=T_drawn,
@@ -999,14 +1034,15 @@ def draw_world(nominal: NominalCell, budget: ErrorBudget, seed: int, preset: str
     """The true cell of ``nominal`` under ``budget`` for ``seed`` (deterministic)."""
     if not (isinstance(seed, int) and seed >= 0):
         raise InputError(f"world seed: expected an integer >= 0, got {seed!r}")
+    factory = _draw_factory(nominal.robot, budget, seed)
+    payload = dynamics.Payload(nominal.tool.mass, nominal.tool.com_flange)
     return World(
         preset=preset or _preset_name(budget),
         seed=seed,
         budget=budget,
         nominal=nominal,
-        arm=_draw_arm(
-            nominal.robot, budget, seed, payload=dynamics.Payload(nominal.tool.mass, nominal.tool.com_flange), hose_at=nominal.tool.tip_tcp
-        ),
+        kinematics=factory,
+        arm=_draw_arm(nominal.robot, budget, seed, payload=payload, hose_at=nominal.tool.tip_tcp, believed=factory),
         scanner=_draw_scanner(nominal, budget, seed),
         flange=_draw_flange(nominal.flange, budget, seed),
         tool=_draw_tool(nominal, budget, seed),

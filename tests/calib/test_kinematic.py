@@ -13,7 +13,7 @@ from celld import se3
 from celld.calib import kinematic as km
 from celld.calib.poses import calibration_poses
 from celld.errors import InputError
-from celld.robot import dynamics
+from celld.robot import dynamics, primary
 from celld.robot import kinematics as kin
 from celld.sim.robot.truearm import ArmTruth
 
@@ -173,3 +173,44 @@ def test_the_stored_arm_entry_reads_back_as_the_same_model_and_bad_entries_are_r
         km.arm_of({**entry, "T_base_cam": [[1.0, 0.0], [0.0, 1.0]]})
     with pytest.raises(InputError, match=r"payload_kg"):
         km.arm_of({**entry, "corrections": {**entry["corrections"], "payload_kg": -1.0}})
+
+
+def test_corrections_to_a_controllers_own_table_are_stored_with_it_and_checked() -> None:
+    # The controller computes with its factory calibration's table; the arm is off that table as _arm's is off
+    # the published one.
+    r = np.random.default_rng(11)
+    table = kin.DH(
+        *(tuple((np.asarray(row) + r.normal(0.0, 1e-3, 6)).tolist()) for row in NOMINAL[:3]), tuple(r.normal(0.0, 1.5e-3, 6).tolist())
+    )  # type: ignore[arg-type]
+    base = _arm(7)
+    arm = replace(
+        base,
+        dh=kin.DH(*(tuple(np.add(t, np.subtract(b, n)).tolist()) for t, b, n in zip(table[:3], base.dh[:3], NOMINAL[:3]))),  # type: ignore[arg-type]
+        joint_offsets=tuple(np.add(base.joint_offsets, table.theta).tolist()),
+    )
+    T_c = se3.from_xyz_rpy([0.6, 0.0, 0.4], [0.0, 0.0, 0.0])
+    Q, P, N, q = [], [], [], HOME
+    T_cam_base = se3.invert(T_BASE_CAM)
+    for T in calibration_poses(T_c, km.WIDE.box, 40, km.WIDE.max_tilt, seed=7, max_spin=km.WIDE.max_spin):
+        q = kin.inverse(T, q, table)  # the controller's own joints for the pose
+        assert q is not None
+        Q.append(q)
+        P.append(se3.apply(T_cam_base, arm.flange(q)[:3, 3]))
+        N.append(T_cam_base[:3, :3] @ arm.flange(q)[:3, 2])
+    fit = km.fit_arm(np.array(Q), np.array(P), T_BASE_CAM, table, LINKS, PAYLOAD, n_cam=np.array(N))
+    assert fit.rms < 0.03e-3  # the corrections to the controller's table explain the arm
+    entry = km.arm_entry(fit, "ur10e", len(Q))
+    assert entry["kinematics"]["id"] == primary.table_id(table)
+    _, model = km.arm_of(entry)
+    assert model.nominal == table
+    for q in Q[:5]:
+        np.testing.assert_allclose(model.forward(q), fit.model.forward(q), atol=1e-12)
+    # A table that is not its id's, or not the robot's model, is refused.
+    with pytest.raises(InputError, match=r"kinematics\.id: .* is not the id of the table"):
+        km.arm_of({**entry, "kinematics": {**entry["kinematics"], "id": "0123456789abcdef"}})
+    other = kin.model("ur5e").dh
+    doc = {"id": primary.table_id(other), **{k: list(getattr(other, k)) for k in ("d", "a", "alpha", "theta")}}
+    with pytest.raises(InputError, match=r"kinematics: robot\.model: .* from a ur10e's"):
+        km.arm_of({**entry, "kinematics": doc})
+    # On the published table nothing more is stored.
+    assert "kinematics" not in km.arm_entry(km.fit_arm(np.array(Q), np.array(P), T_BASE_CAM, NOMINAL, LINKS, PAYLOAD), "ur10e", 40)

@@ -43,8 +43,13 @@ TABLES = {
     "calibration": {"flange": "ur10e", "n_poses": 6, "e_required_mm": 0.0},
     # These tests need no finger camera; the weld test's cell has one.
     "tactile": {"kind": "none"},
-    # The simulator's world: the ideal cell (its truth is its drawing), the scanner where T_BASE_CAM_TRUE says.
-    "sim": {"preset": "ideal", "scanner": {"resolution_scale": 0.5, "T_base_cam": T_BASE_CAM_TRUE}},
+    # The simulator's world: the ideal cell (its truth is its drawing), the scanner where T_BASE_CAM_TRUE says,
+    # but a controller that computes with its factory calibration's table, as a real UR does (celld reads it).
+    "sim": {
+        "preset": "ideal",
+        "errors": {"factory_calibration": True},
+        "scanner": {"resolution_scale": 0.5, "T_base_cam": T_BASE_CAM_TRUE},
+    },
 }
 
 
@@ -107,6 +112,12 @@ def test_calibrate_over_the_bus_then_accept(recorded_daemon) -> None:
 
     arm = result["calibration"]["arm"]
     T_arm, model = arm_of(arm)
+    # The corrections are to the controller's own table, read from its primary interface.
+    from celld.robot import kinematics as kin
+    from celld.robot import primary
+
+    table = recorded_daemon.world.nominal_dh
+    assert table != kin.UR10E and model.nominal == table and arm["kinematics"]["id"] == primary.table_id(table)
     assert arm["pairs"] >= 6 and 6 < arm["rank"] <= arm["parameters"] and arm["held"], arm
     aim, aim_hand_eye = targeting(recorded_daemon.world, T_arm, cfg, arm=model), targeting(recorded_daemon.world, T, cfg)
     assert aim["calibration"]["mean_mm"] < 0.3 and aim["calibration"]["mean_mm"] < aim_hand_eye["calibration"]["mean_mm"] + 0.15, (

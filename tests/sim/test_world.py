@@ -52,9 +52,15 @@ def _components(w: Any) -> dict[str, str]:
 
     f, sc, a, p, r2 = w.flange, w.scanner, w.arm, w.part, w.robot2
     # A world without a second robot compares as one with its first robot's arm and flange twice.
-    a2, f2 = (a, f) if r2 is None else (r2.arm, r2.flange)
+    a2, f2, k2 = (a, f, w.nominal_dh) if r2 is None else (r2.arm, r2.flange, r2.nominal_dh)
+
+    def beyond(arm: Any, table: kin.DH) -> Any:
+        """The true arm's table and joint zeros beyond its controller's."""
+        return np.subtract(arm.dh[:3], table[:3]), np.subtract(arm.joint_offsets, table.theta)
+
     return {
-        "kinematics": t(a.dh, a.joint_offsets, a2.dh, a2.joint_offsets),
+        "factory_calibration": t(w.kinematics, None if r2 is None else r2.kinematics),
+        "kinematics": t(*beyond(a, w.nominal_dh), *beyond(a2, k2)),
         "repeatability": t(a.repeatability, a2.repeatability),
         "encoder_noise": t(a.encoder_noise, a2.encoder_noise),
         "robot2_placement": t(None if r2 is None else r2.T_base1_base2),
@@ -143,16 +149,32 @@ def test_the_realistic_arm_is_off_by_a_ur_e_series_class_absolute_error() -> Non
     means, maxes = [], []
     for seed in range(20):
         w = draw_world(NOMINAL, REALISTIC, seed)
-        d_dh = np.abs(np.concatenate([np.subtract(w.arm.dh.d, kin.UR10E.d), np.subtract(w.arm.dh.a, kin.UR10E.a)]))
+        k = w.nominal_dh  # the controller's table: its factory calibration's
+        d_dh = np.abs(np.concatenate([np.subtract(w.arm.dh.d, k.d), np.subtract(w.arm.dh.a, k.a)]))
         assert d_dh.max() <= TRUNCATE * REALISTIC.dh_length + 1e-12
-        assert np.abs(np.subtract(w.arm.dh.alpha, kin.UR10E.alpha)).max() <= TRUNCATE * REALISTIC.dh_twist + 1e-12
-        assert np.abs(w.arm.joint_offsets).max() <= TRUNCATE * REALISTIC.joint_offset + 1e-12
-        e = [np.linalg.norm(kin.forward(q + w.arm.joint_offsets, w.arm.dh)[:3, 3] - kin.forward(q)[:3, 3]) for q in qs]
+        assert np.abs(np.subtract(w.arm.dh.alpha, k.alpha)).max() <= TRUNCATE * REALISTIC.dh_twist + 1e-12
+        assert np.abs(np.subtract(w.arm.joint_offsets, k.theta)).max() <= TRUNCATE * REALISTIC.joint_offset + 1e-12
+        e = [np.linalg.norm(kin.forward(q + w.arm.joint_offsets, w.arm.dh)[:3, 3] - kin.forward(q, k)[:3, 3]) for q in qs]
         means.append(np.mean(e))
         maxes.append(np.max(e))
-    # "About 0.3-1 mm across the workspace": each arm's mean in it, and no point far beyond.
+    # "About 0.3-1 mm across the workspace" beyond the controller's own table: each arm's mean in it, and no
+    # point far beyond.
     assert 0.3e-3 <= np.mean(means) <= 1.0e-3, np.mean(means)
     assert min(means) >= 0.1e-3 and max(maxes) <= 2.0e-3, (min(means), max(maxes))
+
+
+def test_the_realistic_controller_computes_with_its_factory_calibration() -> None:
+    qs = _workspace_q()
+    means = []
+    for seed in range(20):
+        w = draw_world(NOMINAL, REALISTIC, seed)
+        k = w.nominal_dh
+        assert k != kin.UR10E and w.robot2 is not None and w.robot2.nominal_dh not in (kin.UR10E, k)
+        assert np.abs(k.theta).max() <= TRUNCATE * REALISTIC.factory_joint_zero + 1e-12
+        # The published table puts the flange millimetres from where the controller does.
+        means.append(np.mean([np.linalg.norm(kin.forward(q, k)[:3, 3] - kin.forward(q)[:3, 3]) for q in qs]))
+    assert 2e-3 <= np.mean(means) <= 10e-3 and max(means) <= 20e-3, (np.mean(means), max(means))
+    assert draw_world(NOMINAL, REALISTIC.with_sources(off=["factory_calibration"]), 3).nominal_dh == kin.UR10E
 
 
 def _weld_q() -> list[np.ndarray]:

@@ -93,6 +93,8 @@ class Controller:
     def __init__(self, options: SimOptions) -> None:
         self.options = options
         model = kin.model(options.model)
+        # The table it computes with (its factory calibration's), served on the primary interface.
+        self.kinematics = options.kinematics or model.dh
         self.arm = m.Arm(
             m.ArmLimits(
                 joints=model.limits,
@@ -104,10 +106,10 @@ class Controller:
             ),
             options.q0,
             options.tcp_offset,
-            model.dh,
+            self.kinematics,
         )
         # The physical arm when it differs from the model (celld.sim.robot.truearm); None: it is the model.
-        self.true_arm = TrueArm(options.arm) if options.arm is not None and not options.arm.is_model(model.dh) else None
+        self.true_arm = TrueArm(options.arm) if options.arm is not None and not options.arm.is_model(self.kinematics) else None
         self.ticks = 0
         self.time = 0.0  # controller time, s: ticks * PERIOD
         self.robot_mode = ROBOT_MODE_RUNNING if options.boot == "running" else ROBOT_MODE_POWER_OFF

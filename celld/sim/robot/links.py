@@ -1,4 +1,4 @@
-"""The simulator's TCP connections: RTDE sessions, dashboard, script ports, control endpoint.
+"""The simulator's TCP connections: RTDE sessions, dashboard, primary interface, script ports, control endpoint.
 
 Each :class:`Link` owns one non-blocking socket and its buffers; the server in
 :mod:`celld.sim.robot.server` multiplexes them. Nothing here blocks.
@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from celld.errors import InputError
 from celld.log import get_logger
-from celld.sim.robot import dashboard
+from celld.sim.robot import dashboard, primary
 from celld.sim.robot import rtde_protocol as P
 from celld.sim.robot.script import find_programs
 
@@ -301,6 +301,23 @@ class ScriptLink(Link):
         if len(self.buf) > MAX_SCRIPT_BUFFER:
             self.ctrl.message("script port: no complete program in 4 MB, connection closed", P.LEVEL_ERROR)
             self.close()
+
+
+class PrimaryLink(ScriptLink):
+    """One client of the primary interface (30001): programs in, as any script port; the version message
+    when it connects and robot state at 10 Hz out (:mod:`celld.sim.robot.primary`)."""
+
+    kind = "primary"
+
+    def __init__(self, sock: socket.socket, ctrl: Controller) -> None:
+        super().__init__(sock, ctrl)
+        self.send(primary.version_message(ctrl.options.version) + primary.robot_state_message(ctrl.kinematics))
+
+    def stream(self, tick: int) -> None:
+        """Robot state on every :data:`~celld.sim.robot.primary.STATE_EVERY`-th cycle (a client that does not
+        read loses it, as data packages are lost)."""
+        if tick % primary.STATE_EVERY == 0 and len(self.tx) < MAX_TX_BACKLOG:
+            self.send(primary.robot_state_message(self.ctrl.kinematics))
 
 
 class ControlLink(Link):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
+import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
@@ -39,6 +40,10 @@ class SimOptions:
     # How the physical arm differs from the controller's model (celld.sim.world
     # draws it); None: the arm is the model exactly.
     arm: ArmTruth | None = None
+    # The DH table the controller computes with, its model's published one plus
+    # its factory calibration (celld.sim.world draws it; it is served on the
+    # primary interface, port 30001); None: the published table.
+    kinematics: kin.DH | None = None
     # Initial joint vector, rad.
     q0: tuple[float, ...] = (0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0)
     # TCP in the flange frame, UR pose [x, y, z, rx, ry, rz].
@@ -76,6 +81,10 @@ class SimOptions:
             raise ConfigError(_SOURCE, "model", f"expected one of {', '.join(kin.MODELS)}, got {self.model!r}")
         if self.arm is not None and not isinstance(self.arm, ArmTruth):
             raise ConfigError(_SOURCE, "arm", f"expected an ArmTruth or None, got {type(self.arm).__name__}")
+        if self.kinematics is not None:
+            rows = tuple(self.kinematics)
+            if len(rows) != 4 or any(len(r) != 6 for r in rows) or not all(math.isfinite(v) for r in rows for v in r):
+                raise ConfigError(_SOURCE, "kinematics", f"expected a DH table of 6 joints (d, a, alpha, theta), got {rows}")
         _check_vector("q0", self.q0, 6)
         _check_vector("tcp_offset", self.tcp_offset, 6)
         _check_vector("workspace_min", self.workspace_min, 3)
@@ -115,6 +124,8 @@ class SimOptions:
         argv = ["--host", self.host, "--model", self.model]
         if self.arm is not None:
             argv += ["--arm-truth", self.arm.to_json()]
+        if self.kinematics is not None:
+            argv += ["--kinematics", json.dumps(self.kinematics._asdict())]
         argv += ["--q0", *map(repr, self.q0), "--tcp-offset", *map(repr, self.tcp_offset)]
         argv += ["--workspace", *map(repr, self.workspace_min), *map(repr, self.workspace_max)]
         argv += ["--tcp-speed-limit", repr(self.tcp_speed_limit), "--tcp-acc-limit", repr(self.tcp_acc_limit)]
@@ -159,6 +170,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="JSON",
         help="how the physical arm differs from the controller's model (celld.sim.robot.truearm.ArmTruth as JSON)",
     )
+    parser.add_argument(
+        "--kinematics",
+        default=None,
+        metavar="JSON",
+        help="the DH table the controller computes with ({d, a, alpha, theta}, 6 numbers each; default: the model's)",
+    )
     parser.add_argument("--q0", nargs=6, type=float, default=d.q0, metavar="RAD", help="initial joints")
     parser.add_argument("--tcp-offset", nargs=6, type=float, default=d.tcp_offset, metavar="V", help="TCP pose in the flange [m, rad]")
     parser.add_argument(
@@ -190,10 +207,18 @@ def from_args(args: argparse.Namespace) -> SimOptions:
     except ValueError as exc:
         raise ConfigError(_SOURCE, "version", f"expected a.b.c.d, got {args.version_number!r}") from exc
     arm = ArmTruth.from_json(args.arm_truth) if args.arm_truth else None
+    table = None
+    if args.kinematics:
+        try:
+            doc = json.loads(args.kinematics)
+            table = kin.DH(*(tuple(float(v) for v in doc[k]) for k in ("d", "a", "alpha", "theta")))  # type: ignore[arg-type]
+        except (ValueError, TypeError, KeyError) as exc:
+            raise ConfigError(_SOURCE, "kinematics", f"expected a JSON object of d, a, alpha, theta: {exc}") from exc
     return SimOptions(
         host=args.host,
         model=args.model,
         arm=arm,
+        kinematics=table,
         q0=tuple(args.q0),
         tcp_offset=tuple(args.tcp_offset),
         workspace_min=tuple(args.workspace[:3]),

@@ -11,7 +11,8 @@ Input writes are stamped with the monotonic clock on arrival and the RTDE
 watchdog measures silence on it, so a stall of this process is not taken for a
 silent client. ``--realtime`` raises the process to SCHED_FIFO where allowed.
 
-Ports on the host: dashboard 29999, script 30001-30003, RTDE 30004, and the
+Ports on the host: dashboard 29999, primary interface 30001 (script in, robot
+state with the controller's kinematics out), script 30002-30003, RTDE 30004, and the
 simulator's own control endpoint 30100 (opened last: when it answers, every
 other port is bound).
 """
@@ -31,6 +32,7 @@ from celld.errors import InputError
 from celld.log import get_logger
 from celld.realtime import RealtimeOptions, make_realtime
 from celld.robot import kinematics as kin
+from celld.robot.primary import PRIMARY_PORT
 from celld.sim.robot import geometry as g
 from celld.sim.robot import links as L
 from celld.sim.robot import rtde_protocol as P
@@ -119,6 +121,8 @@ class SimServer:
             link = L.DashboardLink(sock, self.ctrl)
         elif port == CONTROL_PORT:
             link = L.ControlLink(sock, self.dispatch)
+        elif port == PRIMARY_PORT:
+            link = L.PrimaryLink(sock, self.ctrl)
         else:
             link = L.ScriptLink(sock, self.ctrl)
         self.links.add(link)
@@ -221,7 +225,7 @@ class SimServer:
             ctrl.outbox.clear()
         if stamp_ns >= self.faults.stall_until_ns:
             for link in self.links:
-                if link.kind == "rtde":
+                if link.kind in ("rtde", "primary"):
                     link.stream(ctrl.ticks)  # type: ignore[attr-defined]
         if ctrl.ticks % _HOUSEKEEPING_EVERY == 0:
             self._housekeeping(stamp_ns)

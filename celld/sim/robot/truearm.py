@@ -125,7 +125,9 @@ class ArmTruth:
     lost_motion: tuple[float, ...] = (0.0,) * 6
 
     def __post_init__(self) -> None:
-        d, a, alpha = (cast("tuple[float, float, float, float, float, float]", tuple(float(v) for v in row)) for row in self.dh)
+        if len(self.dh) > 3 and any(self.dh[3]):
+            raise ConfigError(_SOURCE, "dh", "expected a table without joint zeros (the arm's are its joint_offsets)")
+        d, a, alpha = (cast("tuple[float, float, float, float, float, float]", tuple(float(v) for v in row)) for row in self.dh[:3])
         dh = kin.DH(d, a, alpha)
         object.__setattr__(self, "dh", dh)
         object.__setattr__(self, "joint_offsets", tuple(float(v) for v in self.joint_offsets))
@@ -169,8 +171,8 @@ class ArmTruth:
     def is_model(self, nominal: kin.DH) -> bool:
         """True when the arm is exactly the controller's ``nominal`` model and nothing is noisy."""
         return (
-            tuple(self.dh) == tuple(nominal)
-            and not any(self.joint_offsets)
+            (self.dh.d, self.dh.a, self.dh.alpha) == (nominal.d, nominal.a, nominal.alpha)
+            and tuple(self.joint_offsets) == tuple(nominal.theta)
             and self.encoder_noise == 0.0
             and self.repeatability == 0.0
             and self.settle_amplitude == 0.0
@@ -193,7 +195,7 @@ class ArmTruth:
         if not rise:
             return self.dh
         k = 1.0 + self.expansion * rise
-        d, a, alpha = self.dh
+        d, a, alpha = self.dh.d, self.dh.a, self.dh.alpha
         return kin.DH(tuple(v * k for v in d), tuple(v * k for v in a), alpha)  # type: ignore[arg-type]
 
     @cached_property
