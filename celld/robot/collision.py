@@ -577,13 +577,12 @@ class Checker:
                 s1 = min(1.0, s + ds)
                 R = (np.eye(3) + math.sin(s1 * angle) * K + (1.0 - math.cos(s1 * angle)) * (K @ K)) @ R0
                 T_flange = se3.transform_from(R, p0 + s1 * dp) @ self._T_tcp_flange
-                sols = kin.inverse_rows(kin.rows_from_matrix(T_flange), dh, q[5])
-                if not sols:
-                    failure = _Failure("unreachable", "unreachable: no IK solution", s1, None)
-                    break
-                q1 = kin.nearest_solution(sols, q, limits)
+                q1 = kin.inverse_nearest_rows(kin.rows_from_matrix(T_flange), dh, q, limits)
                 if q1 is None:
-                    failure = _Failure("joint_limits", "no IK solution within the joint limits", s1, None)
+                    if kin.inverse_rows(kin.rows_from_matrix(T_flange), dh, q[5]):
+                        failure = _Failure("joint_limits", "no IK solution within the joint limits", s1, None)
+                    else:
+                        failure = _Failure("unreachable", "unreachable: no IK solution", s1, None)
                     break
                 F1 = self._frames(np.asarray([q1]))
                 C1 = self._centres(F1)[0]
@@ -599,6 +598,7 @@ class Checker:
                 elif ds > ds_min:
                     ds /= 2.0
                 else:
+                    sols = kin.inverse_rows(kin.rows_from_matrix(T_flange), dh, q[5])  # every branch, to say why
                     failure = _jump(sols, q, q1, moved, s1, ds, limits, p.max_joint_step)
                     break
         F, C = np.asarray(Fs), np.asarray(Cs)

@@ -504,6 +504,22 @@ def nearest_solution(
     return best
 
 
+def inverse_nearest_rows(
+    T_base_flange: Rows, dh: DH, q_near: Sequence[float], limits: JointLimits = UR10E_LIMITS
+) -> list[float] | None:
+    """:func:`nearest_solution` of :func:`inverse_rows`, for a table not of UR form refining only the branch
+    nearest ``q_near`` (a path's next step, a move's goal), all of them only when that one does not converge."""
+    form = ur_form(dh)
+    if form == dh:
+        return nearest_solution(_closed_form(T_base_flange, dh, q_near[5]), q_near, limits)
+    starts = [[a - t for a, t in zip(q_form, dh.theta)] for q_form in _closed_form(T_base_flange, form, q_near[5], _SEED_SLACK)]
+    start = nearest_solution(starts, q_near, limits)
+    q = None if start is None else _refine(T_base_flange, start, dh)
+    if q is None:
+        return nearest_solution(inverse_rows(T_base_flange, dh, q_near[5]), q_near, limits)
+    return nearest_solution([q], q_near, limits)
+
+
 # --- numpy API ----------------------------------------------------------------
 
 
@@ -543,8 +559,7 @@ def inverse(
 ) -> Array | None:
     """The joint solution of ``T_base_flange`` (4, 4) nearest ``q_near`` (6,), or None if unreachable."""
     q_near = check_q(q_near, "q_near")
-    sols = inverse_rows(rows_from_matrix(T_base_flange), dh, float(q_near[5]))
-    q = nearest_solution(sols, q_near.tolist(), limits)
+    q = inverse_nearest_rows(rows_from_matrix(T_base_flange), dh, q_near.tolist(), limits)
     return None if q is None else np.asarray(q)
 
 

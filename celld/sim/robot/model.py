@@ -333,8 +333,7 @@ class Arm:
     def ik(self, T_base_tcp: Rows, q_near: Sequence[float]) -> list[float] | None:
         """Joints that put the TCP at ``T_base_tcp``, nearest ``q_near`` within the joint range."""
         T_flange = kin.compose_rows(T_base_tcp, self.T_tcp_flange)
-        sols = kin.inverse_rows(T_flange, self.dh, q_near[5])
-        return kin.nearest_solution(sols, q_near, self.limits.joints)
+        return kin.inverse_nearest_rows(T_flange, self.dh, q_near, self.limits.joints)
 
     def current_twist(self) -> list[float]:
         """TCP twist now: the active Cartesian velocity's own, else the measured one."""
