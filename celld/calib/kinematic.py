@@ -129,6 +129,18 @@ def wide_poses(T_base_flange_v: ArrayLike, n: int, seed: int, wide: WidePoses = 
     return calibration_poses(T_c, wide.box, n, wide.max_tilt, seed=seed, max_spin=wide.max_spin)
 
 
+def _six(doc: dict[str, Any], key: str, where: str) -> Array:
+    """``doc[key]`` as six finite numbers, or InputError naming ``where.key``."""
+    v = doc.get(key)
+    try:
+        arr = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = np.zeros(0)
+    if isinstance(v, (str, bytes)) or arr.shape != (6,) or not np.all(np.isfinite(arr)):
+        raise InputError(f"{where}.{key}: expected 6 finite numbers, got {v!r}")
+    return arr
+
+
 @dataclass(frozen=True)
 class ArmModel:
     """The controller's kinematics with the calibration's corrections (SI, rad).
@@ -226,13 +238,7 @@ class ArmModel:
             raise InputError(f"{where}: expected the arm's corrections (an object), got {type(doc).__name__}")
         rows: dict[str, Array] = {}
         for key, (lo, hi) in STORED_BOUNDS.items():
-            v = doc.get(key)
-            try:
-                arr = np.asarray(v, dtype=np.float64)
-            except (TypeError, ValueError):
-                arr = np.zeros(0)
-            if isinstance(v, (str, bytes)) or arr.shape != (6,) or not np.all(np.isfinite(arr)):
-                raise InputError(f"{where}.{key}: expected 6 finite numbers, got {v!r}")
+            arr = _six(doc, key, where)
             if np.any(arr < lo) or np.any(arr > hi):
                 raise InputError(f"{where}.{key}: expected each within [{lo:g}, {hi:g}], got {arr.tolist()}")
             rows[key] = arr
@@ -581,17 +587,8 @@ def table_of(doc: Any, robot_model: str, where: str) -> kin.DH:
     """
     if not isinstance(doc, dict):
         raise InputError(f"{where}: expected the controller's DH table (an object), got {type(doc).__name__}")
-    rows = []
-    for key in ("d", "a", "alpha", "theta"):
-        v = doc.get(key)
-        try:
-            arr = np.asarray(v, dtype=np.float64)
-        except (TypeError, ValueError):
-            arr = np.zeros(0)
-        if isinstance(v, (str, bytes)) or arr.shape != (6,) or not np.all(np.isfinite(arr)):
-            raise InputError(f"{where}.{key}: expected 6 finite numbers, got {v!r}")
-        rows.append(tuple(arr.tolist()))
-    table = kin.DH(*rows)
+    d, a, alpha, theta = (tuple(_six(doc, key, where).tolist()) for key in ("d", "a", "alpha", "theta"))
+    table = kin.DH(d, a, alpha, theta)
     if doc.get("id") != primary.table_id(table):
         raise InputError(f"{where}.id: {doc.get('id')!r} is not the id of the table beside it ({primary.table_id(table)})")
     try:
