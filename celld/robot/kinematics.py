@@ -504,9 +504,7 @@ def nearest_solution(
     return best
 
 
-def inverse_nearest_rows(
-    T_base_flange: Rows, dh: DH, q_near: Sequence[float], limits: JointLimits = UR10E_LIMITS
-) -> list[float] | None:
+def inverse_nearest_rows(T_base_flange: Rows, dh: DH, q_near: Sequence[float], limits: JointLimits = UR10E_LIMITS) -> list[float] | None:
     """:func:`nearest_solution` of :func:`inverse_rows`, for a table not of UR form refining only the branch
     nearest ``q_near`` (a path's next step, a move's goal), all of them only when that one does not converge."""
     form = ur_form(dh)
