@@ -148,7 +148,16 @@ def run_jobs(
     from celld.calib.mount import placement_of
     from celld.errors import JobError
     from celld.sim.cell import run_cell, sim_part
-    from celld.sim.score import TruthRecorder, height, lateral, open_loop_torch, targeting, true_camera, true_torch_path
+    from celld.sim.score import (
+        TruthRecorder,
+        height,
+        lateral,
+        measured_tool,
+        open_loop_torch,
+        targeting,
+        true_camera,
+        true_torch_path,
+    )
 
     figures: dict[str, Any] = {}
     t0 = time.monotonic()
@@ -307,25 +316,13 @@ def run_jobs(
         }
         if tool_calibrate and figures.get("tool", {}).get("torch_measured"):
             # The same with the tool as its calibration measured it (as the weld used it): what touch adds beyond it.
-            measured = _measured_tool(cfg.tool, tool)
+            measured = measured_tool(cfg.tool, tool)
             alone_measured = open_loop_torch(world, planned, planned_wall, home, measured)
             figures["weld"]["plan_alone_measured_tool_error"] = lateral(part, alone_measured)
             figures["weld"]["plan_alone_measured_tool_height"] = height(part, alone_measured, cfg.weld.tip_height)
         figures["verification"] = _verification(Path(cfg.cell.state_dir))
         figures["loop"] = _loop(cell.client)
     return figures
-
-
-def _measured_tool(typed: Any, tool: dict[str, Any]) -> Any:
-    """The tool as a tool calibration's result (``tool``: tip and torch, mm) gives it the controller."""
-    from dataclasses import replace
-
-    import numpy as np
-
-    from celld.tactile.tool import with_measured_torch
-
-    tip = np.asarray(tool["tip_tcp_mm"], dtype=np.float64) * 1e-3
-    return with_measured_torch(replace(typed, tip_tcp=tuple(tip.tolist())), np.asarray(tool["torch_tcp_mm"]) * 1e-3).tool
 
 
 def _verification(state: Path) -> dict[str, Any] | None:

@@ -211,6 +211,17 @@ def _plan_frames(seam: Array, wall: Array) -> tuple[Array, Array, Array]:
     return t, n, z
 
 
+def measured_tool(typed: ToolConfig, tool: dict[str, Any]) -> ToolConfig:
+    """The tool as a tool calibration's result (``tool``: its ``tip_tcp_mm`` and ``torch_tcp_mm``) gives it the
+    controller, on the ``typed`` one."""
+    from dataclasses import replace
+
+    from celld.tactile.tool import with_measured_torch
+
+    tip = np.asarray(tool["tip_tcp_mm"], dtype=np.float64) * 1e-3
+    return with_measured_torch(replace(typed, tip_tcp=tuple(tip.tolist())), np.asarray(tool["torch_tcp_mm"]) * 1e-3).tool
+
+
 def open_loop_torch(world: World, planned: ArrayLike, planned_wall: ArrayLike, q_near: ArrayLike, tool: ToolConfig | None = None) -> Array:
     """The true torch positions (n, 3) if the robot followed the plan alone.
 

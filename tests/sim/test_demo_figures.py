@@ -50,11 +50,11 @@ def test_the_torch_height_is_printed_beside_the_plan_alones() -> None:
 
 def test_the_plan_alone_with_the_measured_tool_is_built_from_the_tool_calibrations_result() -> None:
     from celld.config import ToolConfig
-    from celld.sim.demo import _measured_tool
+    from celld.sim.score import measured_tool
 
     typed = ToolConfig(tip_tcp=(0.0, 0.0, 0.2), torch_offset=0.03)
     # Measured: the tip 0.8 mm off in x, the torch 0.9 mm to the side and its end 0.5 mm nearer the flange.
-    tool = _measured_tool(typed, {"tip_tcp_mm": [0.8, 0.0, 200.0], "torch_tcp_mm": [-29.2, 0.9, 199.5]})
+    tool = measured_tool(typed, {"tip_tcp_mm": [0.8, 0.0, 200.0], "torch_tcp_mm": [-29.2, 0.9, 199.5]})
     assert tool.tip_tcp == pytest.approx((0.8e-3, 0.0, 0.2))
     assert tool.torch_offset == pytest.approx(np.hypot(30.0, 0.9) * 1e-3)
     np.testing.assert_allclose(tool.tool_x_tcp, np.array([30.0, -0.9, 0.0]) / np.hypot(30.0, 0.9))
