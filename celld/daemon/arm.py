@@ -46,6 +46,9 @@ STOP_TIMEOUT = 5.0
 STALE_RETRIES = 3
 # While the controller's kinematics are not read (its primary interface not up yet), read again after this, s.
 KINEMATICS_RETRY = 2.0
+# Longest a job's first read of the joints waits for the controller's kinematics once the link is up, s (they
+# come within milliseconds of a connection; a job planned before them would plan on the published table).
+KINEMATICS_WAIT = 3.0
 
 
 def robot2_config(config: Config) -> Config:
@@ -88,6 +91,7 @@ class Arm:
         self.kinematics: primary.ControllerKinematics | None = None
         self.kinematics_error = "not read yet"
         self._reading: asyncio.Task[None] | None = None
+        self._kinematics_read = asyncio.Event()
 
     @contextlib.contextmanager
     def avoiding(self, objects: Sequence[CellObject]) -> Iterator[None]:
@@ -130,6 +134,7 @@ class Arm:
             break
         self.kinematics = k
         self.planner = MotionPlanner(self.config, k.dh)
+        self._kinematics_read.set()
         log.info(
             "the controller's kinematics read",
             robot=self.robot,
@@ -257,6 +262,11 @@ class Arm:
             state = motion.state()
         if state is None:
             raise DeviceError(f"no robot state within {timeout:g} s: the robot link is not up")
+        if self.kinematics is None and self._reading is not None and not self._reading.done():
+            # The link is up: the table follows within milliseconds; what plans next should plan on it.
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._kinematics_read.wait(), KINEMATICS_WAIT)
+            state = motion.state() or state
         return np.asarray(state.q, dtype=np.float64)
 
     def require_motion(self) -> MotionHandle:

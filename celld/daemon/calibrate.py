@@ -265,8 +265,9 @@ async def _plan(arm: Arm, config: Config, job: CalibrateJob) -> _Plan:
     poses that fail are replaced, given ones refuse the job."""
     cal = config.calibration
     T_v = se3.from_ur_pose(job.verification_pose if job.verification_pose is not None else cal.verification_pose)
+    q_now = await arm.current_q()  # first: it waits for the controller's kinematics, which the planner takes up
     planner = arm.planner
-    to_v = await asyncio.to_thread(planner.check_move, await arm.current_q(), T_v, False)
+    to_v = await asyncio.to_thread(planner.check_move, q_now, T_v, False)
     seed = job.seed or 0
     if job.poses:
         candidates = np.array([se3.from_ur_pose(p) for p in job.poses])

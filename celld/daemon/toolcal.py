@@ -144,8 +144,9 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         return tool_calibration_poses(T_v[:3, :3], p_tip, p_tcp_nominal, z_tcp, count + 1, max_tilt, seed + 1000 * (rnd + 1))[1:]
 
     candidates = tool_calibration_poses(T_v[:3, :3], p_tip, p_tcp_nominal, z_tcp, n, max_tilt, seed)
+    q_now = await devices.robot.current_q()  # first: it waits for the controller's kinematics
     planner = devices.robot.planner
-    plan = await asyncio.to_thread(planner.plan_calibration, await devices.robot.current_q(), candidates, n, more, True)
+    plan = await asyncio.to_thread(planner.plan_calibration, q_now, candidates, n, more, True)
     poses = np.array(plan.poses)
     report_plan(ctx, plan, "tool calibration")
     planned = {

@@ -132,8 +132,9 @@ async def verify_calibration(ctx: JobContext, config: Config, devices: CellDevic
 
     # The verification pose, then poses drawn around it: checked with the tool on before the robot moves.
     T_v = se3.from_ur_pose(cal.verification_pose)
+    q_now = await arm.current_q()  # first: it waits for the controller's kinematics
     planner = arm.planner
-    to_v = await asyncio.to_thread(planner.check_move, await arm.current_q(), T_v, True)
+    to_v = await asyncio.to_thread(planner.check_move, q_now, T_v, True)
     n = cal.verify_poses - 1
 
     # Shifted in the pose box, facing the scanner as at the verification pose (with the tool on, a tilted flange
