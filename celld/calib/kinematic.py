@@ -129,18 +129,6 @@ def wide_poses(T_base_flange_v: ArrayLike, n: int, seed: int, wide: WidePoses = 
     return calibration_poses(T_c, wide.box, n, wide.max_tilt, seed=seed, max_spin=wide.max_spin)
 
 
-def _six(doc: dict[str, Any], key: str, where: str) -> Array:
-    """``doc[key]`` as six finite numbers, or InputError naming ``where.key``."""
-    v = doc.get(key)
-    try:
-        arr = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
-        arr = np.zeros(0)
-    if isinstance(v, (str, bytes)) or arr.shape != (6,) or not np.all(np.isfinite(arr)):
-        raise InputError(f"{where}.{key}: expected 6 finite numbers, got {v!r}")
-    return arr
-
-
 @dataclass(frozen=True)
 class ArmModel:
     """The controller's kinematics with the calibration's corrections (SI, rad).
@@ -238,7 +226,7 @@ class ArmModel:
             raise InputError(f"{where}: expected the arm's corrections (an object), got {type(doc).__name__}")
         rows: dict[str, Array] = {}
         for key, (lo, hi) in STORED_BOUNDS.items():
-            arr = _six(doc, key, where)
+            arr = kin.six_numbers(doc, key, where)
             if np.any(arr < lo) or np.any(arr > hi):
                 raise InputError(f"{where}.{key}: expected each within [{lo:g}, {hi:g}], got {arr.tolist()}")
             rows[key] = arr
@@ -573,7 +561,7 @@ KINEMATICS_FILE = "kinematics.json"
 def kinematics_doc(table: kin.DH) -> dict[str, Any]:
     """A controller's DH table as stored (an arm entry's ``kinematics``, a dataset's :data:`KINEMATICS_FILE`):
     its id and its rows; :func:`table_of` reads it back."""
-    return {"id": primary.table_id(table), **{k: [float(v) for v in getattr(table, k)] for k in ("d", "a", "alpha", "theta")}}
+    return {"id": primary.table_id(table), **kin.dh_as_dict(table)}
 
 
 def table_of(doc: Any, robot_model: str, where: str) -> kin.DH:
@@ -583,16 +571,13 @@ def table_of(doc: Any, robot_model: str, where: str) -> kin.DH:
     ------
     InputError
         Not four rows of six finite numbers, an id that is not the table's, or a table that is not one of
-        ``robot_model`` (:meth:`celld.robot.primary.ControllerKinematics.check_model`).
+        ``robot_model`` (:func:`celld.robot.primary.check_model`).
     """
-    if not isinstance(doc, dict):
-        raise InputError(f"{where}: expected the controller's DH table (an object), got {type(doc).__name__}")
-    d, a, alpha, theta = (tuple(_six(doc, key, where).tolist()) for key in ("d", "a", "alpha", "theta"))
-    table = kin.DH(d, a, alpha, theta)
+    table = kin.dh_from_dict(doc, where)
     if doc.get("id") != primary.table_id(table):
         raise InputError(f"{where}.id: {doc.get('id')!r} is not the id of the table beside it ({primary.table_id(table)})")
     try:
-        primary.ControllerKinematics(table, (0,) * 6, 0).check_model(kin.model(robot_model))
+        primary.check_model(table, kin.model(robot_model))
     except CelldError as exc:
         raise InputError(f"{where}: {exc}") from exc
     return table

@@ -24,7 +24,6 @@ joints, as the controller reports its own poses.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -75,7 +74,7 @@ class ScannerMount:
 
     def dh_entry(self) -> dict[str, list[float]]:
         """The DH table as stored beside a scanner on the arm (read back by :func:`mount_from`)."""
-        return {k: [float(x) for x in v] for k, v in self.dh._asdict().items()}
+        return kin.dh_as_dict(self.dh)
 
     @property
     def link(self) -> int:
@@ -244,16 +243,12 @@ def mount_from(doc: Mapping[str, Any], where: str) -> ScannerMount:
         raise InputError(f"{where}.mount: expected one of {', '.join(SCANNER_MOUNTS)}, got {name!r}")
     if name == "base":
         return ScannerMount()
-    dh = doc.get("dh")
     try:
-        # theta: the controller's joint zeros, stored since celld reads its table (absent before: zeros).
-        keys = ("d", "a", "alpha", "theta") if isinstance(dh, Mapping) and "theta" in dh else ("d", "a", "alpha")
-        rows = [tuple(float(v) for v in dh[k]) for k in keys] if isinstance(dh, Mapping) else None
-    except (KeyError, TypeError, ValueError):
-        rows = None
-    if rows is None or any(len(r) != 6 or not all(math.isfinite(v) for v in r) for r in rows):
-        raise InputError(f"{where}.dh: expected the robot's DH table (d, a, alpha and theta: 6 numbers each) for a scanner on {name}")
-    return ScannerMount(name, kin.DH(*rows))  # type: ignore[arg-type]
+        return ScannerMount(name, kin.dh_from_dict(doc.get("dh"), f"{where}.dh"))
+    except InputError as exc:
+        raise InputError(
+            f"{where}.dh: expected the robot's DH table (d, a, alpha and theta: 6 numbers each) for a scanner on {name}: {exc}"
+        ) from exc
 
 
 def placement_of(calibration: Mapping[str, Any], where: str = "calibration") -> Placement:

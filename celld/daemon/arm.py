@@ -91,7 +91,6 @@ class Arm:
         self.kinematics: primary.ControllerKinematics | None = None
         self.kinematics_error = "not read yet"
         self._reading: asyncio.Task[None] | None = None
-        self._kinematics_read = asyncio.Event()
 
     @contextlib.contextmanager
     def avoiding(self, objects: Sequence[CellObject]) -> Iterator[None]:
@@ -124,7 +123,7 @@ class Arm:
         while True:
             try:
                 k = await asyncio.to_thread(primary.read_kinematics, cfg.host)
-                offset = k.check_model(model)
+                offset = primary.check_model(k.dh, model)
             except RobotError as exc:
                 if str(exc) != self.kinematics_error:
                     log.warning("the controller's kinematics are not read", robot=self.robot, error=str(exc), retry_s=KINEMATICS_RETRY)
@@ -134,7 +133,6 @@ class Arm:
             break
         self.kinematics = k
         self.planner = MotionPlanner(self.config, k.dh)
-        self._kinematics_read.set()
         log.info(
             "the controller's kinematics read",
             robot=self.robot,
@@ -262,10 +260,11 @@ class Arm:
             state = motion.state()
         if state is None:
             raise DeviceError(f"no robot state within {timeout:g} s: the robot link is not up")
-        if self.kinematics is None and self._reading is not None and not self._reading.done():
-            # The link is up: the table follows within milliseconds; what plans next should plan on it.
+        if self._reading is not None and not self._reading.done():
+            # The link is up: the table follows within milliseconds (the reading ends with it); what plans next
+            # should plan on it.
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._kinematics_read.wait(), KINEMATICS_WAIT)
+                await asyncio.wait_for(asyncio.shield(self._reading), KINEMATICS_WAIT)
             state = motion.state() or state
         return np.asarray(state.q, dtype=np.float64)
 

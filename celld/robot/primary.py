@@ -79,37 +79,24 @@ class ControllerKinematics:
         """:func:`table_id` of the table."""
         return table_id(self.dh)
 
-    def as_dict(self) -> dict[str, object]:
-        """The table for a health reply or a log: id, status, and the table's rows (m, rad)."""
-        return {
-            "id": self.id,
-            "calibration_status": self.calibration_status,
-            **{k: [float(v) for v in getattr(self.dh, k)] for k in ("theta", "a", "d", "alpha")},
-        }
 
-    def flange_offset(self, model: kin.URModel) -> float:
-        """The largest distance (m) between where this table and ``model``'s published one put the flange,
-        over a few spread-out joint vectors."""
-        return max(
-            float(np.linalg.norm(np.subtract(kin.forward(q, self.dh)[:3, 3], kin.forward(q, model.dh)[:3, 3]))) for q in _CHECK_POSES
+def check_model(dh: kin.DH, model: kin.URModel) -> float:
+    """The largest distance (m) between where table ``dh`` and ``model``'s published one put the flange, over a
+    few spread-out joint vectors; or raise when ``dh`` is not a table of that model.
+
+    Raises
+    ------
+    RobotError
+        The table puts the flange more than :data:`MODEL_TOLERANCE` from ``model``'s: the robot is not a
+        ``model`` (``robot.model`` names another).
+    """
+    offset = max(float(np.linalg.norm(kin.forward(q, dh)[:3, 3] - kin.forward(q, model.dh)[:3, 3])) for q in _CHECK_POSES)
+    if offset > MODEL_TOLERANCE:
+        raise RobotError(
+            f"robot.model: the controller's kinematics put the flange {offset * 1e3:.0f} mm from a {model.name}'s "
+            f"(at most {MODEL_TOLERANCE * 1e3:.0f} mm for a factory calibration): is the robot a {model.name}?"
         )
-
-    def check_model(self, model: kin.URModel) -> float:
-        """:meth:`flange_offset` against ``model``, or raise when it is not a table of that model.
-
-        Raises
-        ------
-        RobotError
-            The table puts the flange more than :data:`MODEL_TOLERANCE` from ``model``'s: the robot is not a
-            ``model`` (``robot.model`` names another).
-        """
-        offset = self.flange_offset(model)
-        if offset > MODEL_TOLERANCE:
-            raise RobotError(
-                f"robot.model: the controller's kinematics put the flange {offset * 1e3:.0f} mm from a {model.name}'s "
-                f"(at most {MODEL_TOLERANCE * 1e3:.0f} mm for a factory calibration): is the robot a {model.name}?"
-            )
-        return offset
+    return offset
 
 
 def kinematics_of(payload: bytes) -> ControllerKinematics:

@@ -31,7 +31,7 @@ def test_a_robot_state_message_gives_the_controllers_table_past_other_messages_a
     only_mode = pi.HEADER.pack(5 + 47, pi.MESSAGE_ROBOT_STATE) + pi.HEADER.pack(47, sp.PACKAGE_ROBOT_MODE) + bytes(42)
     assert pi.parse_message(only_mode) is None
     # Its table differs from the published one by what a factory calibration moves: millimetres.
-    assert 1e-3 < k.check_model(kin.model("ur10e")) < pi.MODEL_TOLERANCE
+    assert 1e-3 < pi.check_model(k.dh, kin.model("ur10e")) < pi.MODEL_TOLERANCE
 
 
 def test_bad_messages_are_refused_naming_what_is_wrong() -> None:
@@ -54,7 +54,7 @@ def test_bad_messages_are_refused_naming_what_is_wrong() -> None:
     k = pi.parse_message(sp.robot_state_message(kin.model("ur5e").dh))
     assert k is not None
     with pytest.raises(RobotError, match=r"robot.model: .* mm from a ur10e's"):
-        k.check_model(kin.model("ur10e"))
+        pi.check_model(k.dh, kin.model("ur10e"))
 
 
 def _serve(host: str, payload: bytes) -> socket.socket:

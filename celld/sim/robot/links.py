@@ -311,13 +311,15 @@ class PrimaryLink(ScriptLink):
 
     def __init__(self, sock: socket.socket, ctrl: Controller) -> None:
         super().__init__(sock, ctrl)
-        self.send(primary.version_message(ctrl.options.version) + primary.robot_state_message(ctrl.kinematics))
+        # The controller's table does not change while it runs: its robot state is encoded once.
+        self._state = primary.robot_state_message(ctrl.kinematics)
+        self.send(primary.version_message(ctrl.options.version) + self._state)
 
     def stream(self, tick: int) -> None:
         """Robot state on every :data:`~celld.sim.robot.primary.STATE_EVERY`-th cycle (a client that does not
         read loses it, as data packages are lost)."""
         if tick % primary.STATE_EVERY == 0 and len(self.tx) < MAX_TX_BACKLOG:
-            self.send(primary.robot_state_message(self.ctrl.kinematics))
+            self.send(self._state)
 
 
 class ControlLink(Link):

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
-from celld.errors import ConfigError
+from celld.errors import ConfigError, InputError
 from celld.robot import kinematics as kin
 from celld.sim.robot.truearm import ArmTruth
 
@@ -125,7 +125,7 @@ class SimOptions:
         if self.arm is not None:
             argv += ["--arm-truth", self.arm.to_json()]
         if self.kinematics is not None:
-            argv += ["--kinematics", json.dumps(self.kinematics._asdict())]
+            argv += ["--kinematics", json.dumps(kin.dh_as_dict(self.kinematics))]
         argv += ["--q0", *map(repr, self.q0), "--tcp-offset", *map(repr, self.tcp_offset)]
         argv += ["--workspace", *map(repr, self.workspace_min), *map(repr, self.workspace_max)]
         argv += ["--tcp-speed-limit", repr(self.tcp_speed_limit), "--tcp-acc-limit", repr(self.tcp_acc_limit)]
@@ -210,9 +210,8 @@ def from_args(args: argparse.Namespace) -> SimOptions:
     table = None
     if args.kinematics:
         try:
-            doc = json.loads(args.kinematics)
-            table = kin.DH(*(tuple(float(v) for v in doc[k]) for k in ("d", "a", "alpha", "theta")))  # type: ignore[arg-type]
-        except (ValueError, TypeError, KeyError) as exc:
+            table = kin.dh_from_dict(json.loads(args.kinematics), "kinematics")
+        except (ValueError, InputError) as exc:
             raise ConfigError(_SOURCE, "kinematics", f"expected a JSON object of d, a, alpha, theta: {exc}") from exc
     return SimOptions(
         host=args.host,
