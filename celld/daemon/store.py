@@ -14,7 +14,7 @@ a job uses them, refusing what is missing or unusable with the reason.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -24,9 +24,10 @@ import numpy as np
 from celld import sealed
 from celld.calib.mount import Placement, placement_of
 from celld.config import ToolConfig
-from celld.errors import DamagedStateError, InputError, JobError
+from celld.errors import CalibrationError, DamagedStateError, InputError, JobError
 from celld.journal import utc_now
 from celld.log import get_logger
+from celld.robot import primary
 from celld.schemadoc import boolean, string, with_properties
 from celld.tactile.tool import with_measured_torch
 
@@ -143,6 +144,29 @@ def current_calibration(state_dir: Path, mount: str = "base") -> tuple[Placement
     cal = required_calibration(state_dir)
     placement, range_bias = placed(cal, mount)
     return placement, range_bias, str(cal.get("job", ""))
+
+
+def for_controller(placement: Placement, kinematics: Callable[[], primary.ControllerKinematics]) -> Placement:
+    """``placement`` once it is known to hold on the controller as it computes now: its arm corrections, when it
+    has them, are to the table the controller computes with (``kinematics``: the arm's
+    :meth:`~celld.daemon.arm.Arm.require_kinematics`). Every job that reads or sends poses through the
+    corrections takes its placement through here.
+
+    Raises
+    ------
+    CalibrationError
+        The corrections are to another table (the robot recalibrated, or another robot in its place).
+    DeviceError
+        The controller's table is not read yet.
+    """
+    if placement.arm is not None:
+        made_on, now = primary.table_id(placement.arm.nominal), kinematics().id
+        if made_on != now:
+            raise CalibrationError(
+                f"the arm calibration's corrections are to the controller kinematics {made_on}; the controller now "
+                f"computes with {now}: calibrate again (calibrate job with arm_poses)"
+            )
+    return placement
 
 
 def required_calibration(state_dir: Path) -> dict[str, Any]:

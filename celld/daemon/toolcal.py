@@ -54,7 +54,7 @@ from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
 from celld.daemon.planning import REFUSED_SCHEMA, record_arm, record_cell, record_plan, report_plan
-from celld.daemon.store import current_calibration
+from celld.daemon.store import current_calibration, for_controller
 from celld.errors import CalibrationError, JobError
 from celld.log import get_logger
 from celld.schemadoc import array, const, integer, obj, one_of, string, vector
@@ -131,6 +131,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
     if not isinstance(job, ToolCalibrateJob):
         raise JobError("$.kind", "not a tool-calibrate job")
     placement, range_bias, cal_job = current_calibration(ctx.state_dir, config.scanner.mount)
+    for_controller(placement, devices.robot.require_kinematics)
     tool = config.tool
     p_tcp_nominal = np.asarray(tool.tip_tcp, dtype=np.float64)
     z_tcp = np.asarray(tool.tool_z_tcp, dtype=np.float64)

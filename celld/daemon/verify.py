@@ -46,7 +46,15 @@ from celld.calib.verify import SCHEMA, Sighting, Verification, calibration_bound
 from celld.config import Config
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
-from celld.daemon.store import VERIFICATION, VERIFICATION_KIND, failed_verification, last_verification, placed, required_calibration
+from celld.daemon.store import (
+    VERIFICATION,
+    VERIFICATION_KIND,
+    failed_verification,
+    for_controller,
+    last_verification,
+    placed,
+    required_calibration,
+)
 from celld.errors import CalibrationError, CelldError, JobError
 from celld.journal import utc_now
 from celld.log import get_logger
@@ -121,6 +129,7 @@ async def verify_calibration(ctx: JobContext, config: Config, devices: CellDevic
     if any(abs(v) > 1e-12 for v in config.robot.tcp_offset):
         raise JobError("$", "a verification reads the flange pose: set robot.tcp_offset to zero")
     placement, bias = placed(calibration, config.scanner.mount)
+    for_controller(placement, devices.robot.require_kinematics)
     try:
         own_bound = calibration_bound(calibration)
     except CalibrationError as exc:

@@ -63,14 +63,12 @@ from celld.config import Config, ServoConfig, ToolConfig, WeldConfig, with_overr
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
 from celld.daemon.planning import MotionPlanner, record_arm, record_cell, record_plan
-from celld.daemon.store import current_calibration, current_tool
-from celld.errors import CalibrationError, CelldError, ConfigError, InputError, JobError, SafetyStop, WorkpieceError
+from celld.daemon.store import current_calibration, current_tool, for_controller
+from celld.errors import CelldError, ConfigError, InputError, JobError, SafetyStop, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
 from celld.motion.types import ServoPlan
 from celld.recording import layout
-from celld.robot import kinematics as kin
-from celld.robot import primary
 from celld.robot.collision import PathCheck
 from celld.schemadoc import array, boolean, const, number, obj, one_of, string, vector
 from celld.seam.figures import contact_across
@@ -514,7 +512,6 @@ async def _scan_and_plan(ctx: JobContext, config: Config, devices: CellDevices, 
     if placement.arm is not None and here is not None:
         # The plan is in the calibrated arm's base frame (the scan placed by the arm fit's T_base_cam): what
         # the controller is sent, and what touch then measures by its reports, is in its own.
-        _check_arm_table(placement.arm.nominal, devices.robot.require_kinematics())
         T_flange_tcp = devices.robot.planner.T_flange_tcp
         q_near = np.asarray(here.q, dtype=np.float64)
         try:
@@ -530,16 +527,6 @@ async def _scan_and_plan(ctx: JobContext, config: Config, devices: CellDevices, 
         await asyncio.to_thread(rec.log_mesh, layout.WORKPIECE, workpiece.vertices, workpiece.triangles, seam.T_base_obj)
     ctx.progress("seam", None, f"seam found: {seam.length * 1e3:.1f} mm", length_mm=seam.length * 1e3, **_quality(seam))
     return plan
-
-
-def _check_arm_table(table: kin.DH, controller: primary.ControllerKinematics) -> None:
-    """The arm calibration's corrections are to ``table``; raise CalibrationError when the controller now
-    computes with another (a robot recalibrated, or another robot in its place)."""
-    if primary.table_id(table) != controller.id:
-        raise CalibrationError(
-            f"the arm calibration's corrections are to the controller kinematics {primary.table_id(table)}; the controller "
-            f"now computes with {controller.id}: calibrate again (calibrate job with arm_poses)"
-        )
 
 
 async def _track(ctx: JobContext, config: Config, devices: CellDevices, setup: WeldSetup, plan: WeldPlan, process: bool) -> np.ndarray:
@@ -616,6 +603,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     devices.robot.require_motion()  # refused at once without a motion process
     wc = config.weld
     setup = await weld_setup(ctx, config, job, cache)
+    for_controller(setup.placement, devices.robot.require_kinematics)
     speed = wc.speed_scale
 
     # 1, 2. scan, seam and the weld's plan

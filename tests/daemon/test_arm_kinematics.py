@@ -11,10 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from celld.calib.kinematic import ArmModel
+from celld.calib.mount import Placement, ScannerMount
 from celld.config import load
 from celld.daemon import arm as arm_mod
 from celld.daemon.arm import Arm
-from celld.daemon.weld import _check_arm_table
+from celld.daemon.store import for_controller
 from celld.errors import CalibrationError, DeviceError
 from celld.robot import kinematics as kin
 from celld.robot import primary
@@ -86,8 +88,13 @@ def test_a_table_of_another_model_is_not_taken_and_the_reason_kept(loopback_host
         arm.require_kinematics()
 
 
-def test_a_weld_through_an_arm_calibration_made_on_another_table_is_refused() -> None:
+def test_a_job_through_an_arm_calibration_made_on_another_table_is_refused() -> None:
     table = _table(5)
-    _check_arm_table(table, primary.ControllerKinematics(table, (0,) * 6, 2))
+    controller = primary.ControllerKinematics(table, (0,) * 6, 2)
+    on = Placement(ScannerMount(), np.eye(4), ArmModel.identity(table))
+    assert for_controller(on, lambda: controller) is on
     with pytest.raises(CalibrationError, match="now computes with .*: calibrate again"):
-        _check_arm_table(kin.UR10E, primary.ControllerKinematics(table, (0,) * 6, 2))
+        for_controller(Placement(ScannerMount(), np.eye(4), ArmModel.identity(kin.UR10E)), lambda: controller)
+    # A hand-eye calibration alone holds on any table, and does not wait for it.
+    hand_eye = Placement(ScannerMount(), np.eye(4))
+    assert for_controller(hand_eye, lambda: (_ for _ in ()).throw(AssertionError("not asked"))) is hand_eye
