@@ -53,6 +53,12 @@ TABLES = {
 }
 
 
+# Wide poses of the arm's calibration in the calibrate test: 8, the fewest it takes, once left its corrections
+# 0.2 mm off in the box on the factory-calibrated controller's table (1 failure in 5 runs); 12 give the fit more to
+# rest on (passed once so far).
+ARM_POSES = 12
+
+
 def e2e_config(cell_config, recording: bool = True) -> Path:
     """This test's config of the e2e cell (the ``cell_config`` fixture's factory), its jobs recorded or not."""
     return cell_config(INCLUDE, "e2e", TABLES, recording=recording)
@@ -84,14 +90,14 @@ def idle_cell(tmp_path_factory: pytest.TempPathFactory, module_loopback_host: st
 def test_calibrate_over_the_bus_then_accept(recorded_daemon) -> None:
     client, proc, cfg = recorded_daemon.client, recorded_daemon.daemon, recorded_daemon.config
     events: list[dict] = []
-    # The hand-eye calibration, then the arm's kinematic calibration from eight wide poses (the fewest it takes;
-    # how much it gains at the weld with 80 is bench/arm_calibration.py's).
-    reply, record = client.submit_and_wait({"kind": "calibrate", "seed": 3, "arm_poses": 8}, on_event=events.append, timeout=400)
+    # The hand-eye calibration, then the arm's kinematic calibration from ARM_POSES wide poses (how much it gains at
+    # the weld with 80 is bench/arm_calibration.py's).
+    reply, record = client.submit_and_wait({"kind": "calibrate", "seed": 3, "arm_poses": ARM_POSES}, on_event=events.append, timeout=400)
     assert record["state"] == "succeeded", record["reason"]
     pairs = [e for e in events if e.get("stage") == "pair"]
     assert len(pairs) == 6, "one progress event per pair"
     assert any("cost_mm" in e.get("data", {}) for e in pairs), "Algorithm 1's cost is reported per pair"
-    assert len([e for e in events if e.get("stage") == "arm" and e.get("message", "").startswith("wide pose")]) == 8
+    assert len([e for e in events if e.get("stage") == "arm" and e.get("message", "").startswith("wide pose")]) == ARM_POSES
 
     result = checked_result(client, record)
     assert result == json.loads(Path(record["result"]).read_text())
@@ -103,7 +109,7 @@ def test_calibrate_over_the_bus_then_accept(recorded_daemon) -> None:
     p_v = np.asarray(cfg.calibration.verification_pose[:3])[None]
     miss = np.linalg.norm(se3.apply(T @ se3.invert(np.array(T_BASE_CAM_TRUE)), p_v) - p_v)
     assert miss < 0.2e-3 and math.degrees(dr) < 0.1, (miss, math.degrees(dr))
-    # The arm's calibration: its own T_base_cam with corrections to an arm that is as drawn in this world. Eight
+    # The arm's calibration: its own T_base_cam with corrections to an arm that is as drawn in this world. A dozen
     # wide poses barely tell the scanner's pose from the arm's (the scanner's pose moves a millimetre, the
     # corrections make up for it); what counts is where the flange lands when sent through both to points the
     # scanner saw, against the world's truth: about as well as with the hand-eye calibration.
