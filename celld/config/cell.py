@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from celld.config.cell_model import read_cell_model
+from celld.config.power_source import PowerSourceConfig
 from celld.config.reader import TableReader
 from celld.config.seam import SeamParams, read_seam
 from celld.config.sections import (
@@ -57,6 +58,8 @@ class Config:
     bus: BusConfig = field(default_factory=BusConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     weld: WeldConfig = field(default_factory=WeldConfig)
+    # The welding power source on the robot's I/O ([power_source]); empty: the arc is robot.arc_output alone.
+    power_source: PowerSourceConfig = field(default_factory=PowerSourceConfig)
     # The seam finder: the scanner's preset, with the file's [seam] table over it.
     seam: SeamParams = field(default_factory=SeamParams)
     # What the arm and its tool must not hit: the cell's objects, the tool, the margin.
@@ -86,6 +89,7 @@ _SECTIONS: dict[str, Callable[[TableReader], Any]] = {
     "bus": BusConfig.read,
     "recording": RecordingConfig.read,
     "weld": WeldConfig.read,
+    "power_source": PowerSourceConfig.read,
     "sim": lambda r: MappingProxyType(copy.deepcopy(r.raw())),
 }
 
@@ -187,7 +191,8 @@ def check_cell(config: Config) -> None:
     """The rules between sections; raises ConfigError naming the key.
 
     - the poses the cell moves to (the verification pose of a calibration,
-      the weld's scan pose) lie inside the workspace box.
+      the weld's scan pose) lie inside the workspace box;
+    - the arc has one switch: ``robot.arc_output`` or ``power_source.arc_start``.
 
     The servo's rules (its speeds within the motion limits among them) are
     :func:`~celld.config.tactile.check_servo`'s.
@@ -197,6 +202,10 @@ def check_cell(config: Config) -> None:
     for key, pose in (("calibration.verification_pose", config.calibration.verification_pose), ("weld.scan_pose", config.weld.scan_pose)):
         if not all(lo[i] <= pose[i] <= hi[i] for i in range(3)):
             raise ConfigError(src, key, f"expected a position inside the workspace box {list(lo)} .. {list(hi)} m, got {list(pose[:3])}")
+    if config.power_source.enabled and config.robot.arc_output >= 0:
+        raise ConfigError(
+            src, "robot.arc_output", "a cell with a [power_source] starts its arc with power_source.arc_start: leave arc_output out"
+        )
     r2 = config.robot2
     if r2 is not None:
         if r2.robot.host == config.robot.host:
