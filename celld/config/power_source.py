@@ -68,14 +68,14 @@ _DEFAULT_RANGE = {"wire_feed": (0.0, 25.0 / 60.0), "voltage_set": (0.0, 50.0), "
 
 
 class Signal(NamedTuple):
-    """One wire or register bit: ``kind`` (see the module table), ``index``, ``bit`` (-1: not a register bit)."""
+    """One wire or register bit: ``kind`` (see the module table), its ``number``, ``bit`` (-1: not a register bit)."""
 
     kind: str
-    index: int
+    number: int
     bit: int = -1
 
     def __str__(self) -> str:
-        return f"{self.kind}{self.index}" + (f".{self.bit}" if self.bit >= 0 else "")
+        return f"{self.kind}{self.number}" + (f".{self.bit}" if self.bit >= 0 else "")
 
 
 def parse_signal(text: str, kinds: tuple[str, ...]) -> Signal:

@@ -124,6 +124,13 @@ _E_MAX = 0.003
 # Largest angle between the finger axis and the plane normal accepted at start, rad.
 _MAX_TILT = math.radians(30.0)
 _ZERO6 = np.zeros(6)
+# With a power source (ServoInput.travel not None) the torch comes to rest at the seam's start before the
+# arc is struck: its travel speed falls as sqrt(2 a d) over the last distance d (a, m/s^2), and it counts as
+# at the start within this distance of it, m.
+_START_DECEL = 0.05
+_START_TOLERANCE = 0.0002
+# The speed at which the torch backs off along the welded path before a re-strike, share of v_const.
+_BACKOFF_SHARE = 0.5
 
 
 # -- the lines of Algorithm 2, one pure function each ---------------------------
@@ -474,6 +481,7 @@ class Algorithm2Servo:
         self._h0 = 0.0
         self._start_ns = 0
         self._status = ControlStatus.OK
+        self._d_start = math.inf  # the torch's distance to the seam's start along the path (last cycle), m
         self._tel_n = 0  # refined points when _tel_refined was computed
         self._tel_refined = np.full(3, math.nan)
         self.last = Diagnostics(
@@ -692,6 +700,8 @@ class Algorithm2Servo:
             return self._out(_ZERO6, self._status, latency)
 
         delta_d = self.p.side * self.p.delta_d
+        gate = inp.travel
+        v_t = self._travel_speed(gate)
         _, t_v, n_v, s_tip, past_end = self._plan_at(P_r)
         # The wall stands still: the normal deformation grows by how far the
         # tip has moved towards it since the frame was captured.
@@ -737,8 +747,8 @@ class Algorithm2Servo:
                 return self._out(_ZERO6, self._status, latency)
 
         if self.phase == Phase.TRACK:
-            # Line 8: SERVO.
-            V_r = servo_velocity(t_v, n_v, self.p.v_const, delta_n, delta_d, self.p.k_p, self.p.max_correction_speed)
+            # Line 8: SERVO (the travel speed gated by the arc, when there is a power source).
+            V_r = servo_velocity(t_v, n_v, v_t, delta_n, delta_d, self.p.k_p, self.p.max_correction_speed)
             if abs(delta_n - delta_d) < _KEEP_BAND * self.p.delta_d:
                 # The steady correction (the drift between plan and wall), kept for a loss.
                 a = min(max((state.stamp_ns - self._last_ns) * 1e-9 / _KEEP_TAU, 0.0), 1.0)
@@ -746,9 +756,9 @@ class Algorithm2Servo:
             self._t_last, self._n_last = t_v, n_v
         elif self.phase == Phase.SEARCH:
             # Keep the last steady correction and the last tangent (departure 4).
-            V_r = self.p.v_const * self._t_last + self._corr_kept * self._n_last
+            V_r = v_t * self._t_last + self._corr_kept * self._n_last
         else:
-            V_r = self.p.v_const * self._t_last
+            V_r = v_t * self._t_last
         # Line 9: the torch.
         P_t = torch_position(P_r, t_d, self.p.torch_offset)
         # Lines 10-11 on the refined path; on the plan until it is long enough.
@@ -759,17 +769,35 @@ class Algorithm2Servo:
             self._torch_on_path = False
         else:
             t_t, n_t, e, torch_done = near
-            # The torch has reached the refined path once it is past its first point.
-            self._torch_on_path = self._i_torch > 0 or float((P_t - self._ref[0]) @ t_t) >= 0.0
+            # The torch has reached the refined path once it is past its first point (with a power source:
+            # once it has come to rest there, within _START_TOLERANCE).
+            self._d_start = float((self._ref[0] - P_t) @ t_t)
+            reach = 0.0 if gate is None else _START_TOLERANCE
+            on_now = self._i_torch > 0 or self._d_start <= reach
+            self._torch_on_path = on_now or (gate is not None and self._torch_on_path)
             if self.phase == Phase.FINISH:
                 # The seam has ended ahead: go on along the refined path where the torch is.
-                V_r = self.p.v_const * t_t
+                V_r = v_t * t_t
         if self.phase == Phase.FINISH and torch_done:
             self.phase = Phase.DONE
             return self._out(_ZERO6, ControlStatus.DONE, latency)
-        # Lines 12-13.
-        omega, guarded = omega_line13(V_r, t_d, n_d, n_t, self.p.torch_offset, e, self.p.k_torch, self.p.guard_cos, self.p.omega_max)
+        # Lines 12-13 (no turning while the torch backs off: the heading law steers forward travel).
+        if gate is not None and gate < 0:
+            omega, guarded = 0.0, False
+        else:
+            omega, guarded = omega_line13(V_r, t_d, n_d, n_t, self.p.torch_offset, e, self.p.k_torch, self.p.guard_cos, self.p.omega_max)
         return self._twist(T, V_r, omega, guarded, h, e if near is not None else math.nan, delta_n, P_r, P_t, latency)
+
+    def _travel_speed(self, gate: int | None) -> float:
+        """The speed along the seam the arc's travel gate allows (ServoInput.travel), m/s."""
+        v = self.p.v_const
+        if gate is None or gate > 0:
+            return v
+        if gate < 0:
+            return -_BACKOFF_SHARE * v
+        if self._torch_on_path:
+            return 0.0  # at the start, or where the arc went out: hold until it burns
+        return min(v, math.sqrt(2.0 * _START_DECEL * max(self._d_start - _START_TOLERANCE, 0.0)))
 
     def _begin_finish(self) -> None:
         self.phase = Phase.FINISH

@@ -61,6 +61,7 @@ class ControlInput(NamedTuple):
     tactile_age: float  # s since the tactile sample was captured, inf without one
     setpoint: Array  # (6,) latest streaming twist setpoint, base frame
     setpoint_age: float  # s since the setpoint was written, inf without one
+    travel: int | None = None  # the arc sequence's travel gate for a servo law (ServoInput.travel)
 
 
 class Demand(NamedTuple):
@@ -324,7 +325,7 @@ class ServoSlot:
             self.reason = self._failed
             return Demand(_ZERO6), ControlStatus.FAULT
         try:
-            twist, status = self.law.step(ServoInput(inp.state, inp.tactile, inp.tactile_age))
+            twist, status = self.law.step(ServoInput(inp.state, inp.tactile, inp.tactile_age, inp.travel))
             twist = np.asarray(twist, dtype=np.float64)
             status = ControlStatus(status)
         except Exception as exc:  # a law must not take the loop down  # noqa: BLE001

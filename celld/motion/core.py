@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 
 from celld.config import MotionLimits
 from celld.errors import InputError
+from celld.motion.arc import ArcOutput, ArcPhase, ArcSequence, SourceSignals, params_of
 from celld.motion.commands import Command, MoveJoints, MoveTo, StartServo, Stream
 from celld.motion.controllers import (
     CartesianMove,
@@ -82,6 +83,8 @@ _ZERO6 = np.zeros(6)
 _ZERO3 = np.zeros(3)
 # Shortest time between two cycles the limiter and the monitors step over, s (two on one clock tick).
 _MIN_SPACING = 1e-6
+# What the power source is told while no weld has been sequenced.
+_ARC_IDLE = ArcOutput(False, False, 0.0, 0.0, 0, ArcPhase.OFF)
 
 
 class Mode(IntEnum):
@@ -98,6 +101,14 @@ class Action(IntEnum):
     SPEED_J = 2  # speedJ(joint speeds)
 
 
+class SourceParams(NamedTuple):
+    """What the core knows of the cell's welding power source (:mod:`celld.motion.arc`)."""
+
+    has_process_active: bool = False
+    has_heartbeat: bool = False
+    heartbeat_timeout: float = 2.5  # s
+
+
 class CoreParams(NamedTuple):
     """Everything the core needs to know about the cell (SI)."""
 
@@ -110,6 +121,8 @@ class CoreParams(NamedTuple):
     latency: float = 0.004  # s from a command to its effect in the measured state
     move: MoveParams = MoveParams()
     joint_limits: JointMoveLimits = JointMoveLimits.from_config(MotionLimits())
+    # The cell's welding power source; None: the arc is the process output alone (the law's wish).
+    source: SourceParams | None = None
 
 
 class CycleInput(NamedTuple):
@@ -127,6 +140,8 @@ class CycleInput(NamedTuple):
     command_error: str = ""  # why the command with command_id could not be decoded
     stop: bool = False  # the supervisor asked for a stop this cycle
     stop_reason: str = ""  # why, when not on request (the daemon hung or is gone)
+    source: SourceSignals | None = None  # the power source's inputs, None without a source
+    collision: bool = False  # the torch's collision input (a stop of any motion)
 
 
 class CycleOutput(NamedTuple):
@@ -144,6 +159,7 @@ class CycleOutput(NamedTuple):
     event_status: ControlStatus
     process_on: bool = False  # the process output (welding arc) should be on (module docstring)
     telemetry: ServoTelemetry = NO_TELEMETRY  # the servo law's, NO_TELEMETRY without a servo
+    arc: ArcOutput | None = None  # what the power source is told this cycle, None without a source
 
 
 class MotionCore:
@@ -175,6 +191,12 @@ class MotionCore:
         self._event = ""
         self._event_id = 0
         self._event_status = ControlStatus.OK
+        # The power source's sequence of the latest weld (kept after it ends: its gas may still post-flow).
+        self.arc: ArcSequence | None = None
+        self._arc_servo: ServoSlot | None = None  # the servo whose weld ``arc`` sequences
+        self._law_done = False  # that servo's law reported DONE last cycle
+        self._t = 0.0  # this cycle's state stamp, s
+        self._sig: SourceSignals | None = None
 
     # -- transitions ----------------------------------------------------------
 
@@ -184,6 +206,8 @@ class MotionCore:
     def _begin_stop(self, status: ControlStatus, reason: str) -> None:
         if self.mode != Mode.ACTIVE:
             return
+        if self.arc is not None and self.arc.active:
+            self.arc.abort(self._t, reason)
         self.mode = Mode.STOPPING
         self._stop_status = status
         self._stop_reason = reason
@@ -209,6 +233,15 @@ class MotionCore:
         if isinstance(cmd, StartServo) and cmd.plan.name not in self.factories:
             known = ", ".join(sorted(self.factories)) or "none"
             return ControlStatus.BAD_COMMAND, f"no servo law registered as {cmd.plan.name!r}; known: {known}"
+        sig = self._sig
+        if sig is not None:
+            if sig.wire_stuck:
+                return ControlStatus.ARC, "the wire is stuck in the pool (the source's wire_stuck input): no motion until it is cut"
+            if isinstance(cmd, StartServo) and cmd.plan.params.get("process"):
+                if sig.fault:
+                    return ControlStatus.ARC, "the power source reports a fault: no weld starts until it is cleared"
+                if not sig.ready:
+                    return ControlStatus.ARC, "the power source is not ready: no weld starts"
         return None
 
     def _build(self, cmd: Command) -> Controller | JointMove:
@@ -220,7 +253,16 @@ class MotionCore:
         if isinstance(cmd, Stream):
             return VelocityStream(cmd.timeout)
         if isinstance(cmd, StartServo):
-            return ServoSlot(self.factories[cmd.plan.name](cmd.plan), cmd.plan.name)
+            slot = ServoSlot(self.factories[cmd.plan.name](cmd.plan), cmd.plan.name)
+            if p.source is not None and cmd.plan.params.get("process"):
+                try:
+                    arc_params = params_of(cmd.plan.params)._replace(heartbeat_timeout=p.source.heartbeat_timeout)
+                except ValueError as exc:
+                    raise InputError(f"the weld's arc sequence: {exc}") from exc
+                self.arc = ArcSequence(arc_params, p.source.has_process_active, p.source.has_heartbeat)
+                self._arc_servo = slot
+                self._law_done = False
+            return slot
         raise InputError(f"unknown command {type(cmd).__name__}")
 
     def _accept(self, inp: CycleInput, faults: Fault) -> None:
@@ -230,6 +272,9 @@ class MotionCore:
             return
         if faults & Fault.STALE_STATE:
             self._refuse(cid, ControlStatus.STALE_STATE, "robot state is stale: no motion can start")
+            return
+        if faults & Fault.COLLISION:
+            self._refuse(cid, ControlStatus.COLLISION, "the torch's collision input is set: no motion until the torch is reseated")
             return
         refusal = self._refusal(inp.command)  # type: ignore[arg-type]
         if refusal is not None:
@@ -270,15 +315,21 @@ class MotionCore:
         dt = max(dt, _MIN_SPACING)
         self._last_ns = stamp
         self._dt = dt
+        self._t = stamp * 1e-9
+        self._sig = inp.source
         faults = robot_faults(inp.safety_bits)
         if inp.state_age > p.state_stale:
             faults |= Fault.STALE_STATE
+        if inp.collision:
+            faults |= Fault.COLLISION
 
         if faults & ROBOT_STOPPED:
             # The robot has stopped by itself; nothing we send would move it.
             if self.mode != Mode.IDLE:
                 self._refuse(self.command_id, ControlStatus.SAFETY, f"the robot stopped itself: {describe(faults)}")
                 self.status = ControlStatus.SAFETY
+            if self.arc is not None and self.arc.active:
+                self.arc.abort(self._t, f"the robot stopped itself: {describe(faults)}")
             self.mode = Mode.IDLE
             self.controller = Hold()
             self.limiter.reset()
@@ -297,11 +348,26 @@ class MotionCore:
 
         twist: Array = _ZERO6
         guarded = False
+        welding = self.arc is not None and self.controller is self._arc_servo and self.mode == Mode.ACTIVE
+        if self.arc is not None:
+            self._step_arc(inp, welding)
         if self.mode == Mode.ACTIVE:
-            cinp = ControlInput(inp.state, inp.tactile, inp.tactile_age, inp.setpoint, inp.setpoint_age)
+            travel = self.arc.output(self._t).travel if welding and self.arc is not None else None
+            cinp = ControlInput(inp.state, inp.tactile, inp.tactile_age, inp.setpoint, inp.setpoint_age, travel)
             demand, status = self.controller.step(cinp)
             if isinstance(self.controller, ServoSlot) and inp.tactile_age > p.tactile_stale:
                 faults |= Fault.STALE_TACTILE
+            if welding and self.arc is not None:
+                # The seam's end is the sequence's to close (crater, burn-back, post-flow, the wire's check):
+                # the arm holds at rest until it has, then the servo ends as the sequence says.
+                self._law_done = status == ControlStatus.DONE
+                if self._law_done and self.arc.active:
+                    status = ControlStatus.OK
+                elif self.arc.phase == ArcPhase.DONE and status < ControlStatus.WORKSPACE:
+                    status = ControlStatus.DONE
+                elif self.arc.phase in (ArcPhase.FAILED, ArcPhase.STUCK) and status < ControlStatus.WORKSPACE:
+                    status = ControlStatus.ARC
+                    self.controller.reason = self.arc.reason
             if status == ControlStatus.DONE or status >= ControlStatus.WORKSPACE:
                 self._begin_stop(status, self.controller.reason)
             elif faults:
@@ -330,6 +396,20 @@ class MotionCore:
             # The twist is sent (the limiter's state already holds it); the stop starts next cycle.
             self._begin_stop(status_of(faults), describe(faults))
         return self._output(Action.SPEED, twist, faults, guarded)
+
+    def _step_arc(self, inp: CycleInput, welding: bool) -> None:
+        """Step the weld's arc sequence with the law's wish of the last cycle and the source's signals now."""
+        arc = self.arc
+        sig = inp.source
+        if arc is None or sig is None:
+            return
+        want = end = False
+        if welding and isinstance(self.controller, ServoSlot):
+            want = self.controller.telemetry().process_on
+            end = self._law_done
+        v = inp.state.v_tcp
+        speed = float(np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
+        arc.step(self._t, want, end, speed, self._dt, sig)
 
     def _step_joint(self, ctrl: JointMove, inp: CycleInput, faults: Fault) -> CycleOutput:
         """The cycle of a joint move (module docstring)."""
@@ -370,7 +450,12 @@ class MotionCore:
     def _output(self, action: Action, twist: Array, faults: Fault, guarded: bool) -> CycleOutput:
         ctrl = self.controller
         telemetry = ctrl.telemetry() if isinstance(ctrl, ServoSlot) else NO_TELEMETRY
-        process_on = self.mode == Mode.ACTIVE and not faults and telemetry.process_on
+        arc: ArcOutput | None = None
+        if self.params.source is not None:
+            arc = self.arc.output(self._t) if self.arc is not None else _ARC_IDLE
+            process_on = arc.arc_start
+        else:
+            process_on = self.mode == Mode.ACTIVE and not faults and telemetry.process_on
         return CycleOutput(
             action,
             twist,
@@ -384,4 +469,5 @@ class MotionCore:
             self._event_status,
             process_on,
             telemetry,
+            arc,
         )

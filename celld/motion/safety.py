@@ -57,6 +57,7 @@ class Fault(IntFlag):
     PROTECTIVE_STOP = 1 << 6
     EMERGENCY_STOP = 1 << 7
     ROBOT_FAULT = 1 << 8
+    COLLISION = 1 << 9  # the torch's collision (breakaway) input of the power source's wiring
 
 
 ROBOT_STOPPED = Fault.PROTECTIVE_STOP | Fault.EMERGENCY_STOP | Fault.ROBOT_FAULT
@@ -79,6 +80,8 @@ def status_of(faults: Fault) -> ControlStatus:
     """The status a set of faults is reported as, most severe first."""
     if faults & ROBOT_STOPPED:
         return ControlStatus.SAFETY
+    if faults & Fault.COLLISION:
+        return ControlStatus.COLLISION
     if faults & Fault.STALE_STATE:
         return ControlStatus.STALE_STATE
     if faults & Fault.WORKSPACE:

@@ -35,6 +35,8 @@ class ControlStatus(IntEnum):
     LINK_LOST = 17  # the RTDE link dropped
     BAD_COMMAND = 18  # a command could not be decoded or was refused
     FAULT = 19  # any other failure
+    ARC = 20  # the weld's arc could not be established or kept (celld.motion.arc), or its source failed
+    COLLISION = 21  # the torch's collision (breakaway) input
 
 
 class RobotState(NamedTuple):
@@ -65,6 +67,10 @@ class ServoInput(NamedTuple):
     state: RobotState
     tactile: TactileSample | None  # the latest good sample, None before the first
     tactile_age: float  # seconds since the sample's capture
+    # The arc sequence's travel gate (celld.motion.arc): +1 travel, 0 hold (the arc is not established:
+    # come to rest at the seam's start or where the arc went out), -1 back off along the welded path.
+    # None: the cell has no power source, travel as planned.
+    travel: int | None = None
 
 
 class ServoTelemetry(NamedTuple):

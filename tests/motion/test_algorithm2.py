@@ -30,8 +30,9 @@ from celld.motion.algorithm2 import (
     servo_velocity,
     torch_position,
 )
+from celld.motion.arc import plan_keys
 from celld.motion.commands import start_servo
-from celld.motion.core import CoreParams, CycleInput, Mode, MotionCore
+from celld.motion.core import CoreParams, CycleInput, Mode, MotionCore, SourceParams
 from celld.motion.limits import CartesianLimits, sequence_peaks
 from celld.motion.types import ControlStatus, RobotState, ServoInput
 from celld.sim.srm import ContactParams, Wall, finger_contact
@@ -204,7 +205,11 @@ class Loop:
         process: bool = False,
         seam_offset: float = 0.0,
         touch_only: bool = False,
+        source=None,
+        arc=None,
     ) -> None:
+        """``source`` (callable of t_s and the core's last ArcOutput, returning SourceSignals) is a power source
+        on the cell's I/O, ``arc`` (ArcParams) the weld's sequence; without them the cell has none."""
         self.sensor, self.servo_cfg, self.tool = TactileConfig(), ServoConfig(), ToolConfig()
         self.motion = MotionLimits()
         self.limits = CartesianLimits.from_config(self.motion)
@@ -225,10 +230,22 @@ class Loop:
             seam_offset=seam_offset,
             touch_only=touch_only,
         )
+        if arc is not None:
+            self.plan = self.plan._replace(params={**self.plan.params, **plan_keys(arc)})
+        self.source = source
         self.core = MotionCore(
-            CoreParams(self.limits, PERIOD, (-1.5, -1.5, -0.5), (1.5, 1.5, 1.5), 0.05, self.motion.tactile_stale),
+            CoreParams(
+                self.limits,
+                PERIOD,
+                (-1.5, -1.5, -0.5),
+                (1.5, 1.5, 1.5),
+                0.05,
+                self.motion.tactile_stale,
+                source=SourceParams() if source is not None else None,
+            ),
             {NAME: make_algorithm2},
         )
+        self.arc_out = None  # the core's last ArcOutput
         T = np.eye(4)
         T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # TCP x along the seam, z down the finger
         T[:3, 3] = P_plan[5] - np.array([0.0, 0.003, 0.0])
@@ -283,11 +300,23 @@ class Loop:
             age = (self.t_ns - self.latest.stamp_ns) * 1e-9 if self.latest is not None else math.inf
             starting = self.servo is None and self.t_ns * 1e-9 >= start_after and self.latest is not None
             cmd = start_servo(self.plan) if starting else None
+            sig = self.source(self.t_ns * 1e-9, self.arc_out) if self.source is not None else None
             out = self.core.step(
                 CycleInput(
-                    state, 0.0, 1, self.latest, age, np.zeros(6), math.inf, cmd, 1 if starting else 0, stop=self.t_ns * 1e-9 >= stop_at
+                    state,
+                    0.0,
+                    1,
+                    self.latest,
+                    age,
+                    np.zeros(6),
+                    math.inf,
+                    cmd,
+                    1 if starting else 0,
+                    stop=self.t_ns * 1e-9 >= stop_at,
+                    source=sig,
                 )
             )
+            self.arc_out = out.arc
             if starting:
                 self.servo = self.core.controller.law
             self.v, self._next = self._next, out.twist.copy()
