@@ -70,6 +70,11 @@ STATE_DTYPE = np.dtype(
         # The tactile sample the loop holds (celld.tactile.sample.TactileSample).
         ("delta_tool", np.float64, (3,)),  # m, tool frame: tangential, normal, out of plane; NaN when not valid
         ("contact", np.int8),  # ContactState, -1 without a sample
+        # The welding power source (celld.motion.arc, celld.motion.source_io); -1 and NaN without one.
+        ("arc_phase", np.int8),  # ArcPhase of the weld's sequence
+        ("source_bits", np.uint16),  # the source's inputs, bits in celld.motion.source_io.BIT_ROLES order
+        ("weld_current", np.float64),  # A, as the source reports it; NaN when not wired
+        ("weld_voltage", np.float64),  # V, likewise
     ]
 )
 

@@ -42,6 +42,7 @@ import scipy.spatial.transform  # noqa: F401
 from numpy.typing import ArrayLike
 
 from celld.config import Config
+from celld.config.power_source import PowerSourceConfig
 from celld.errors import CelldError, InputError, LinkLost, MotionError, SafetyStop, StaleState
 from celld.log import get_logger
 from celld.motion import commands as cmd
@@ -53,7 +54,7 @@ from celld.motion.channels import (
     decode_reason,
 )
 from celld.motion.controllers import MoveParams
-from celld.motion.core import CoreParams, Mode
+from celld.motion.core import CoreParams, Mode, SourceParams
 from celld.motion.limits import CartesianLimits, JointMoveLimits, check_twist
 from celld.motion.loop import LoopParams
 from celld.motion.process import MotionSpec, servo_laws_from
@@ -174,6 +175,7 @@ def spec_from_config(
             tactile_stale=motion.tactile_stale,
             move=move,
             joint_limits=joint_limits,
+            source=source_params(config.power_source),
         ),
         loop=LoopParams(
             period_ns=int(round(period * 1e9)),
@@ -193,6 +195,18 @@ def spec_from_config(
         heartbeat=heartbeat,
         parent_timeout_ns=int(motion.parent_timeout * 1e9),
         link_nice=motion.link_nice,
+        source=config.power_source if config.power_source.enabled else None,
+    )
+
+
+def source_params(source: PowerSourceConfig) -> SourceParams | None:
+    """What the motion core knows of the cell's power source (None: the cell has none)."""
+    if not source.enabled:
+        return None
+    return SourceParams(
+        has_process_active=source.signal("process_active") is not None,
+        has_heartbeat=source.signal("heartbeat") is not None,
+        heartbeat_timeout=source.heartbeat_timeout,
     )
 
 

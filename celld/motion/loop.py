@@ -42,10 +42,12 @@ import numpy as np
 
 from celld.errors import InputError
 from celld.motion import so3
+from celld.motion.arc import ArcOutput
 from celld.motion.channels import CONTROL_DTYPE, EVENT_DTYPE, SETPOINT_DTYPE, STATE_DTYPE, Channels, encode_reason
 from celld.motion.commands import Command, decode
 from celld.motion.core import Action, CycleInput, Mode, MotionCore
 from celld.motion.safety import describe, robot_faults
+from celld.motion.source_io import SourceIO
 from celld.motion.types import ControlStatus, RobotState
 from celld.robot.link import RUNTIME_PLAYING, RobotPort
 from celld.supervision import ParentWatch
@@ -101,6 +103,10 @@ class MotionLoop:
         The daemon this loop must not outlive: when it is gone (or hangs) the
         loop stops the robot (jerk-limited, the process output off at once)
         and ends, as on a shutdown request.
+    source : SourceIO, optional
+        The welding power source's signals (attached to the port's link): read
+        every cycle into the core's input, its outputs written when the core's
+        arc output changes, every one off in :meth:`release_output`.
     """
 
     def __init__(
@@ -111,8 +117,12 @@ class MotionLoop:
         params: LoopParams,
         clock: Callable[[], int] = time.monotonic_ns,
         parent: ParentWatch | None = None,
+        source: SourceIO | None = None,
     ) -> None:
         self.port = port
+        self.source = source
+        self._source_checked = False  # the arc_start output's interlock check was made
+        self._source_failed = False  # a failed source write was reported; cleared by the next success
         self.parent = parent
         self.orphaned = ""  # why the loop took its daemon for gone, "" while it is there
         self.orphaned_ns = 0  # when it did (the cycle's wake-up, monotonic ns), 0 while it is there
@@ -132,6 +142,9 @@ class MotionLoop:
         # The tactile sample's fields of the record change only with a new sample (set where it is read).
         self._rec["delta_tool"] = np.nan
         self._rec["contact"] = -1
+        self._rec["arc_phase"] = -1
+        self._rec["weld_current"] = np.nan
+        self._rec["weld_voltage"] = np.nan
         self._evt = np.zeros(1, EVENT_DTYPE)
         self._tac = np.zeros(1, TACTILE_DTYPE)
         self._sp = np.zeros(1, SETPOINT_DTYPE)
@@ -219,10 +232,35 @@ class MotionLoop:
 
         Call after the loop has ended (module docstring); never raises.
         """
+        source_off = self.source.release() if self.source is not None else True
         if self.params.process_output < 0 or self._output_on is False:
-            return True
+            return source_off
         self._output_failed = False  # a failure here is news, whatever happened in the loop
-        return self._switch_output(False)
+        return self._switch_output(False) and source_off
+
+    def _write_source(self, arc: ArcOutput) -> None:
+        """Write the power source's outputs that changed; a failure is reported once and retried every cycle."""
+        src = self.source
+        if src is None:
+            return
+        if not self._source_checked:
+            self._source_checked = True
+            try:
+                left_on = src.left_on(self.port.digital_outputs())
+            except Exception:  # a port must not take the loop down  # noqa: BLE001
+                left_on = False
+            if left_on:
+                self._event(
+                    0,
+                    ControlStatus.FAULT,
+                    f"{INTERLOCK_MISSING}: the power source's arc_start output was still on when this motion process "
+                    "started; set it to go low when the program stops (robot Installation > I/O Setup)",
+                )
+        if src.write(arc):
+            self._source_failed = False
+        elif not self._source_failed:
+            self._source_failed = True
+            self._event(0, ControlStatus.FAULT, f"{src.write_error or 'a power source output could not be written'}; retrying every cycle")
 
     # -- waiting -------------------------------------------------------------
 
@@ -330,6 +368,8 @@ class MotionLoop:
             self._setpoint = self._sp["twist"][0]
             setpoint_age = (t_wake - int(self._sp["t_ns"][0])) * 1e-9
 
+        reading = self.source.read() if self.source is not None else None
+
         stop = False
         shutdown = False
         if self.parent is not None and not self.orphaned and self.cycles % _PARENT_CHECK_CYCLES == 0:
@@ -381,6 +421,8 @@ class MotionLoop:
                 command_error,
                 stop,
                 f"stopped: {self.orphaned}" if self.orphaned else "",
+                reading.signals if reading is not None else None,
+                reading.collision if reading is not None else False,
             )
         )
         action = self._confirm_zero(out.action, out.twist, raw.stamp)
@@ -395,6 +437,8 @@ class MotionLoop:
             if self._output_on is None:
                 self._check_interlock()
             self._switch_output(out.process_on)
+        if self.source is not None and out.arc is not None:
+            self._write_source(out.arc)
 
         if out.event:
             self._event(out.event_id, out.event_status, out.event)
@@ -431,6 +475,11 @@ class MotionLoop:
         r["refined_base"] = tel.refined_base
         r["process_on"] = out.process_on
         r["delta_d"] = tel.delta_d
+        if reading is not None and out.arc is not None:
+            r["arc_phase"] = int(out.arc.phase)
+            r["source_bits"] = reading.bits
+            r["weld_current"] = reading.current
+            r["weld_voltage"] = reading.voltage
         ch.state.append(r)
         self._prev_wake = t_wake
 

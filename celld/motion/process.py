@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from celld.config.power_source import PowerSourceConfig
 from celld.errors import LinkLost, MotionError
 from celld.log import configure, get_logger
 from celld.motion.channels import STATUS_DTYPE, ChannelNames, Channels, Phase, encode_reason
@@ -94,6 +95,8 @@ class MotionSpec:
     exit_note: str = ""
     # Niceness of ur-rtde's receive threads after the watchdog handshake (motion.link_nice).
     link_nice: int = -10
+    # The welding power source's wiring ([power_source]); None: the cell has none.
+    source: PowerSourceConfig | None = None
 
 
 def load_factories(servo_laws: tuple[tuple[str, str], ...]) -> dict[str, ServoFactory]:
@@ -128,6 +131,7 @@ def run(spec: MotionSpec, hold: list[object]) -> LoopExit:
     The link goes into ``hold``, to outlive this call: its ur-rtde objects disconnect when they are
     destroyed (their receive threads joined: 1 s), which the process's exit (:func:`main`) skips.
     """
+    from celld.motion.source_io import SourceIO
     from celld.robot.link import RtdeLink
 
     log = get_logger(__name__).bind(host=spec.host, pid=os.getpid())
@@ -140,15 +144,18 @@ def run(spec: MotionSpec, hold: list[object]) -> LoopExit:
     try:
         _report(ch, Phase.CONNECTING)
         try:
-            link = RtdeLink.connect(spec.host, spec.frequency_hz)
+            source = SourceIO(spec.source) if spec.source is not None else None
+            link = RtdeLink.connect(spec.host, spec.frequency_hz, source.variables() if source is not None else ())
             hold.append(link)
+            if source is not None:
+                source.attach(link.receive, link.io)
         except LinkLost as exc:
             log.warning("robot link not established", reason=str(exc))
             end = LoopExit(ControlStatus.LINK_LOST, str(exc))
             return end
         factories = load_factories(spec.servo_laws)
         core = MotionCore(spec.core, factories)
-        loop = MotionLoop(link, core, ch, spec.loop, parent=parent)
+        loop = MotionLoop(link, core, ch, spec.loop, parent=parent, source=source)
         rt = make_realtime(spec.realtime)
         link_priority = spec.realtime.priority - LINK_BELOW_LOOP if rt.fifo else 0
         if link_priority > 0:
@@ -207,7 +214,11 @@ def run(spec: MotionSpec, hold: list[object]) -> LoopExit:
     finally:
         if loop is not None and not loop.release_output():
             # After the exit report: on a dead link ur-rtde tries to reconnect first.
-            log.error("the process output could not be switched off; the robot's I/O set-up must do it", output=spec.loop.process_output)
+            log.error(
+                "the process output could not be switched off; the robot's I/O set-up must do it",
+                output=spec.loop.process_output,
+                power_source=str(spec.source.signal("arc_start")) if spec.source is not None else "",
+            )
         if link is not None and end is not None and end.status == ControlStatus.OK and not (loop is not None and loop.orphaned):
             # A graceful end stops the robot's program; otherwise the robot's watchdog does.
             link.stop_script()

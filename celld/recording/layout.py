@@ -24,6 +24,8 @@ daemon, the viewer layout and the tests agree on one tree::
     /servo/phase                Algorithm 2's phase (touch, track, search, finish, ...)
     /weld/contact               the finger's contact state (0 none, 1 contact, 2 overload)
     /weld/arc                   the arc output the loop asked for (0 off, 1 on)
+    /weld/arc_phase             the power source's sequence (celld.motion.arc.ArcPhase: 4 weld)
+    /arc/current, /arc/voltage  welding current (A) and voltage (V) as the power source reports them
     /robot/v_tcp                measured TCP twist, base frame (m/s, rad/s)
     /robot/q                    joint positions (rad)
     /motion/loop/<signal>_ms    RT loop timing, milliseconds (late, period, work)
@@ -73,6 +75,9 @@ SERVO_PHASE = "/servo/phase"
 WELD = "/weld"
 WELD_CONTACT = "/weld/contact"
 WELD_ARC = "/weld/arc"
+WELD_ARC_PHASE = "/weld/arc_phase"  # the power source's sequence (celld.motion.arc.ArcPhase)
+WELD_CURRENT = "/arc/current"  # A, as the power source reports it (its own tab: not on /weld's 0-2 scale)
+WELD_VOLTAGE = "/arc/voltage"  # V
 ROBOT_V_TCP = "/robot/v_tcp"
 ROBOT_Q = "/robot/q"
 MOTION_LOOP = "/motion/loop"
@@ -103,6 +108,8 @@ def default_blueprint(kind: str = "other") -> rrb.Blueprint:
     tabs = [
         (SERVO_DELTA_N, "delta_n, delta_d (m)"),
         (WELD, "contact, arc"),
+        (WELD_CURRENT, "current (A)"),
+        (WELD_VOLTAGE, "voltage (V)"),
         (SERVO_DELTA, "delta (m)"),
         (SERVO_V_R, "V_r (m/s)"),
         (SERVO_OMEGA, "omega (rad/s)"),

@@ -31,6 +31,9 @@ delta_d         ()        /servo/delta_n (its target)       m
 servo_phase     ()        /servo/phase                      the law's phase
 contact         ()        /weld/contact                     ContactState
 process_on      ()        /weld/arc                         0 off, 1 on
+arc_phase       ()        /weld/arc_phase                   ArcPhase of the source's sequence
+weld_current    ()        /arc/current                      A
+weld_voltage    ()        /arc/voltage                      V
 late_ns         ()        /motion/loop/late_ms              ms
 period_ns       ()        /motion/loop/period_ms            ms
 work_ns         ()        /motion/loop/work_ms              ms
@@ -98,6 +101,9 @@ DEFAULT_SERIES: tuple[Series, ...] = (
     Series("servo_phase", layout.SERVO_PHASE, ("phase",)),
     Series("contact", layout.WELD_CONTACT, ("contact",)),
     Series("process_on", layout.WELD_ARC, ("arc",)),
+    Series("arc_phase", layout.WELD_ARC_PHASE, ("phase",)),
+    Series("weld_current", layout.WELD_CURRENT, ("current",)),
+    Series("weld_voltage", layout.WELD_VOLTAGE, ("voltage",)),
     Series("late_ns", f"{layout.MOTION_LOOP}/late_ms", ("late",), _MS),
     Series("period_ns", f"{layout.MOTION_LOOP}/period_ms", ("period",), _MS),
     Series("work_ns", f"{layout.MOTION_LOOP}/work_ms", ("work",), _MS),

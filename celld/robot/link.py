@@ -96,14 +96,17 @@ class RtdeLink:
         self._c = control
         self._r = receive
         self.io = io  # RTDEIOInterface, for digital outputs and registers outside the loop
+        self.receive = receive  # RTDEReceiveInterface (the power source reads its inputs from it)
         # The threads ur-rtde started for these interfaces (its receive threads): the loop waits on them
         # (every command first waits for the script's state they receive), so the motion process raises
         # them to real time just below itself through the watchdog handshake (celld.realtime.schedule_threads).
         self.threads = threads
 
     @classmethod
-    def connect(cls, host: str, frequency_hz: float = 500.0) -> RtdeLink:
+    def connect(cls, host: str, frequency_hz: float = 500.0, variables: Sequence[str] = ()) -> RtdeLink:
         """Open the control, receive and IO interfaces (blocking; holds the GIL while it waits).
+
+        ``variables``: RTDE outputs to receive beside :data:`RECEIVE_VARIABLES` (the power source's inputs).
 
         Raises
         ------
@@ -120,7 +123,7 @@ class RtdeLink:
         try:
             control = rtde_control.RTDEControlInterface(host, frequency_hz)
             step = "receive interface"
-            receive = rtde_receive.RTDEReceiveInterface(host, frequency_hz, list(RECEIVE_VARIABLES))
+            receive = rtde_receive.RTDEReceiveInterface(host, frequency_hz, list(dict.fromkeys((*RECEIVE_VARIABLES, *variables))))
             step = "IO interface"
             io = rtde_io.RTDEIOInterface(host)
         except RuntimeError as exc:
