@@ -127,6 +127,7 @@ def _submit_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--v-const-mm-s", type=float, help="tangential speed, mm/s")
     w.add_argument("--torch-offset-mm", type=float, help="|d| of Eq. 14, mm")
     w.add_argument("--no-arc", action="store_true", help="track without the arc")
+    w.add_argument("--procedure", help="the weld procedure (procedures/<name>.toml beside the cell's config)")
     w.add_argument("--dry-run", action="store_true", help="scan (the arm at the scan pose), plan and check the weld, do not move")
 
     m = kinds.add_parser("move", parents=[job_common], help="jerk-limited move to joint positions or a TCP pose")
@@ -240,6 +241,7 @@ def _job_message(args: argparse.Namespace) -> dict[str, Any]:
         _put(m, "k_p", args.k_p)
         _put(m, "v_const_mm_s", args.v_const_mm_s)
         _put(m, "torch_offset_mm", args.torch_offset_mm)
+        _put(m, "procedure", args.procedure)
         if args.no_arc:
             m["arc"] = False
         if args.dry_run:

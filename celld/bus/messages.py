@@ -220,6 +220,13 @@ _WELD = _submit_branch(
         "v_const_mm_s": _servo_number("v_const", "Tangential speed V_const, mm/s"),
         "torch_offset_mm": _servo_number("torch_offset", "|d| of Eq. 14, mm"),
         "arc": {"type": "boolean", "default": True, "description": "Switch the arc on while tracking; false: track without it."},
+        "procedure": {
+            "type": "string",
+            "pattern": r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$",
+            "description": "The weld procedure (a file <name>.toml in the cell's procedures directory) the power source "
+            "welds with: set points, travel speed, the arc's sequence and the current and voltage windows; absent: the "
+            "cell's weld.procedure. Needed by a cell with a [power_source] when the arc is on.",
+        },
         "dry_run": _DRY_RUN,
     },
 )

@@ -70,6 +70,7 @@ class WeldJob:
     v_const: float | None = None  # m/s
     torch_offset: float | None = None  # m
     arc: bool = True
+    procedure: str = ""  # "": the cell's weld.procedure
     dry_run: bool = False
     ref: str = ""
     request_id: str = ""  # the client's id of the submit
@@ -210,6 +211,7 @@ def _build_weld(m: Mapping[str, Any]) -> WeldJob:
         v_const=_mm(m.get("v_const_mm_s")),
         torch_offset=_mm(m.get("torch_offset_mm")),
         arc=bool(m.get("arc", True)),
+        procedure=m.get("procedure", ""),
         dry_run=bool(m.get("dry_run", False)),
         ref=m.get("ref", ""),
         request_id=m.get("request_id", ""),
@@ -359,6 +361,8 @@ def job_to_message(job: Job) -> dict[str, Any]:
             m["k_p"] = job.k_p
         if not job.arc:
             m["arc"] = False
+        if job.procedure:
+            m["procedure"] = job.procedure
         if job.dry_run:
             m["dry_run"] = True
     elif isinstance(job, MoveJob):

@@ -652,6 +652,10 @@ class WeldConfig:
     probe_height: bool = True
     # A probed height further than this off the plan's is refused (the calibration or the tool is off), m.
     max_height_correction: float = 0.002
+    # The weld procedure a cell with a [power_source] welds with when a job names none ("": a job must name one),
+    # a file <name>.toml in procedures_dir ("": procedures/ beside the config file).
+    procedure: str = ""
+    procedures_dir: str = ""
 
     @classmethod
     def read(cls, r: TableReader) -> WeldConfig:
@@ -672,4 +676,6 @@ class WeldConfig:
             max_height_correction=r.float(
                 "max_height_correction_mm", cls.max_height_correction * 1e3, lo=0.0, hi=20.0, open_lo=True, scale=1e-3
             ),
+            procedure=r.str("procedure", cls.procedure),
+            procedures_dir=r.str("procedures_dir", cls.procedures_dir),
         )

@@ -67,13 +67,16 @@ from celld.daemon.store import current_calibration, current_tool, for_controller
 from celld.errors import CelldError, ConfigError, InputError, JobError, SafetyStop, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
+from celld.motion.arc import plan_keys
+from celld.motion.source_io import BIT_ROLES
 from celld.motion.types import ServoPlan
 from celld.recording import layout
 from celld.robot.collision import PathCheck
 from celld.schemadoc import array, boolean, const, number, obj, one_of, string, vector
-from celld.seam.figures import contact_across
+from celld.seam.figures import contact_across, torch_positions
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
 from celld.tactile.tool import ToolGeometry
+from celld.weld.arc_report import ARC_SCHEMA, arc_report, sequence_of
 from celld.weld.plan import (
     FIGURES_SCHEMA,
     PROBED_SCHEMA,
@@ -88,6 +91,7 @@ from celld.weld.plan import (
     probed_height,
     summarise,
 )
+from celld.weld.procedure import PROCEDURE_SCHEMA, WeldProcedure, cell_procedures, list_procedures, load_procedure
 
 if TYPE_CHECKING:
     from celld.recording.job import JobRecording
@@ -170,6 +174,8 @@ RESULT_SCHEMA = one_of(
             ),
             "height_probe": HEIGHT_PROBE_SCHEMA,
             "retract_error": string("Why the retract after the weld failed (absent when it did not)."),
+            "procedure": PROCEDURE_SCHEMA,
+            "arc": ARC_SCHEMA,
         },
         (
             "dry_run",
@@ -357,6 +363,8 @@ class WeldSetup:
     calibration_job: str
     workpiece: Workpiece
     part: PreparedPart
+    # The weld procedure the power source welds with (None: the cell has no [power_source], or the arc is off).
+    procedure: WeldProcedure | None = None
 
 
 @dataclass(frozen=True)
@@ -391,6 +399,7 @@ class WeldOutcome:
     paths_file: Path
     height_probe: dict[str, Any]
     retract_error: str = ""
+    arc: dict[str, Any] | None = None  # what the arc did (celld.weld.arc_report), with a power source
 
     def as_dict(self) -> dict[str, Any]:
         """The result as :data:`RESULT_SCHEMA` has it."""
@@ -417,12 +426,25 @@ class WeldOutcome:
         }
         if self.retract_error:
             out["retract_error"] = self.retract_error
+        if setup.procedure is not None:
+            out["procedure"] = setup.procedure.as_dict()
+        if self.arc is not None:
+            out["arc"] = self.arc
         return out
 
 
 async def weld_setup(ctx: JobContext, config: Config, job: WeldJob, cache: dict[str, Any]) -> WeldSetup:
-    """The job's overrides checked against the config, the current calibration and tool, the part prepared
-    (once per model: ``cache`` keeps them by content, so a user's model edited on disk is prepared again)."""
+    """The job's overrides checked against the config, the weld procedure, the current calibration and tool, the
+    part prepared (once per model: ``cache`` keeps them by content, so a user's model edited on disk is prepared again)."""
+    procedure = weld_procedure(config, job)
+    v_const = job.v_const
+    if procedure is not None:
+        if job.v_const is not None:
+            raise JobError(
+                "$.v_const_mm_s",
+                f"the travel speed is the procedure's ({procedure.ident}: {procedure.travel_speed * 1e3:g} mm/s): leave v_const_mm_s out",
+            )
+        v_const = procedure.travel_speed
     try:
         servo, tool_cfg = with_overrides(
             config.servo,
@@ -432,7 +454,7 @@ async def weld_setup(ctx: JobContext, config: Config, job: WeldJob, cache: dict[
             config.motion.max_linear_speed,
             delta_d=job.delta_d,
             k_p=job.k_p,
-            v_const=job.v_const,
+            v_const=v_const,
             torch_offset=job.torch_offset,
         )
     except ConfigError as exc:
@@ -471,7 +493,41 @@ async def weld_setup(ctx: JobContext, config: Config, job: WeldJob, cache: dict[
         calibration_job=cal_job,
         workpiece=workpiece,
         part=cache[key],
+        procedure=procedure,
     )
+
+
+def weld_procedure(config: Config, job: WeldJob) -> WeldProcedure | None:
+    """The procedure a weld runs with: the job's, else ``weld.procedure``; None without a power source or an arc."""
+    name = job.procedure or config.weld.procedure
+    if not config.power_source.enabled:
+        if job.procedure:
+            raise JobError("$.procedure", "this cell has no [power_source]: its arc is robot.arc_output alone, with no procedure")
+        return None
+    if not job.arc:
+        return None
+    directory = Path(config.weld.procedures_dir) if config.weld.procedures_dir else cell_procedures(Path(config.source))
+    if not name:
+        known = ", ".join(list_procedures(directory)) or "none"
+        raise JobError("$.procedure", f"this cell welds with a power source: name a weld procedure (in {directory}: {known})")
+    try:
+        return load_procedure(directory, name)
+    except ConfigError as exc:
+        raise JobError("$.procedure", str(exc)) from exc
+
+
+def check_source_ready(last: np.void | None) -> None:
+    """Refuse a weld at once when the motion loop's latest record says the power source cannot weld."""
+    if last is None or int(last["arc_phase"]) < 0:
+        return  # no record yet, or no source read: the motion core refuses the servo itself
+    bits = int(last["source_bits"])
+    on = {role: bool(bits >> k & 1) for k, role in enumerate(BIT_ROLES)}
+    if on["fault"]:
+        raise JobError("$", "the power source reports a fault: clear it at the source first")
+    if on["wire_stuck"]:
+        raise JobError("$", "the power source says the wire is stuck: cut the wire first")
+    if not on["ready"]:
+        raise JobError("$", "the power source is not ready (its ready signal is low)")
 
 
 async def _scan_and_plan(ctx: JobContext, config: Config, devices: CellDevices, setup: WeldSetup, dry_run: bool) -> WeldPlan:
@@ -530,9 +586,10 @@ async def _scan_and_plan(ctx: JobContext, config: Config, devices: CellDevices, 
 
 
 async def _track(ctx: JobContext, config: Config, devices: CellDevices, setup: WeldSetup, plan: WeldPlan, process: bool) -> np.ndarray:
-    """Step 4: Algorithm 2 touches the wall and tracks it, the arc on while it tracks when ``process``;
-    progress and the finger's camera while it runs. Returns the motion records of the track; raises its
-    failure, or the motion loop's own trouble during it (a failed arc write: the weld is not good)."""
+    """Step 4: Algorithm 2 touches the wall and tracks it, the arc on while it tracks when ``process`` (with a power
+    source, in the sequence of the setup's procedure); progress and the finger's camera while it runs. Returns the
+    motion records of the track; raises its failure, or the motion loop's own trouble during it (a failed arc
+    write: the weld is not good). A failure with a power source says how much of the seam was welded."""
     motion = devices.robot.require_motion()
     geometry = plan.geometry
     servo_plan = algorithm2_plan(
@@ -545,6 +602,11 @@ async def _track(ctx: JobContext, config: Config, devices: CellDevices, setup: W
         seam_offset=geometry.offsets,
         sensor_yaw=setup.sensor_yaw,
     )
+    procedure = setup.procedure if process else None
+    if procedure is not None:
+        servo_plan = servo_plan._replace(params={**servo_plan.params, **plan_keys(sequence_of(procedure))})
+        if ctx.recording is not None:
+            ctx.recording.event_later(f"weld procedure {procedure.ident} (digest {procedure.digest[:12]})")
     events_before = motion.loop_event_count
     with _Collector(motion) as collector:
         cid = await motion.start_servo(servo_plan)
@@ -574,7 +636,12 @@ async def _track(ctx: JobContext, config: Config, devices: CellDevices, setup: W
                         f"{s_wall[i] * 1e3:.0f} of {s_wall[-1] * 1e3:.0f} mm",
                         arc=bool(last["process_on"]),
                     )
-            waiting.result()
+            try:
+                waiting.result()
+            except CelldError as exc:
+                if procedure is not None:
+                    await _report_arc_after_fault(ctx, exc, collector.records(), setup, plan, procedure)
+                raise
         finally:
             if not waiting.done():
                 waiting.cancel()
@@ -605,6 +672,9 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     setup = await weld_setup(ctx, config, job, cache)
     for_controller(setup.placement, devices.robot.require_kinematics)
     speed = wc.speed_scale
+    welding = bool(job.arc) and (config.robot.arc_output >= 0 or config.power_source.enabled)
+    if welding and setup.procedure is not None and not job.dry_run:
+        check_source_ready(devices.robot.require_motion().last_record())
 
     # 1, 2. scan, seam and the weld's plan
     plan = await _scan_and_plan(ctx, config, devices, setup, job.dry_run)
@@ -639,19 +709,42 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
 
     # 4. touch and track; 5. retract (also after a failed track, while the robot can still be moved)
     try:
-        records = await _track(ctx, config, devices, setup, plan, process=bool(job.arc) and config.robot.arc_output >= 0)
+        records = await _track(ctx, config, devices, setup, plan, process=welding)
     except CelldError as exc:
         await _after_fault(ctx, devices, wc, exc, up, q_scan, speed)
         raise
     retract_error = await _retract(ctx, devices, up, wc.retract_height, q_scan, speed)
 
     figures, paths = await asyncio.to_thread(summarise, records, plan, setup.tool, setup.servo.delta_d)
+    arc = None
+    if welding and setup.procedure is not None:
+        arc = await asyncio.to_thread(arc_report, records, torch_positions(records, setup.tool), plan.geometry.seam_base, setup.procedure)
+        if arc["flagged"]:
+            data = arc["weld_data"]
+            log.warning("weld outside its procedure's window", job=ctx.job_id, procedure=setup.procedure.ident, outside_s=data["outside_s"])
+            ctx.progress("track", 1.0, f"flagged: {data['outside_s']:.2f} s outside {setup.procedure.ident}'s current or voltage window")
     path_file = await asyncio.to_thread(fsutil.write_json, ctx.result_dir() / "paths.json", paths)
     if rec is not None:
         for name in ("refined", "torch"):
             if len(paths[name]) > 1:
                 rec.later(rec.log_path_base, name, np.asarray(paths[name]), time.monotonic_ns())
-    return WeldOutcome(setup, figures, paths, Path(path_file), height_probe, retract_error).as_dict()
+    return WeldOutcome(setup, figures, paths, Path(path_file), height_probe, retract_error, arc).as_dict()
+
+
+async def _report_arc_after_fault(
+    ctx: JobContext, fault: CelldError, records: np.ndarray | None, setup: WeldSetup, plan: WeldPlan, procedure: WeldProcedure
+) -> None:
+    """What the arc did before ``fault`` ended the weld: written to the job's arc.json and added to the fault."""
+    if records is None or len(records) == 0:
+        return
+    report = await asyncio.to_thread(arc_report, records, torch_positions(records, setup.tool), plan.geometry.seam_base, procedure)
+    path = await asyncio.to_thread(fsutil.write_json, ctx.result_dir() / "arc.json", report)
+    stretches = ", ".join(f"{a:.1f}-{b:.1f}" for a, b in report["unwelded_stretches_mm"]) or "none"
+    fault.add_note(
+        f"the arc ({procedure.ident}) welded {report['welded_mm']:.1f} of {report['seam_length_mm']:.1f} mm; "
+        f"unwelded {report['unwelded_mm']:.1f} mm (mm along the seam: {stretches}); "
+        f"{report['failed_starts']} failed starts, {report['arc_losses']} arc losses; {path}"
+    )
 
 
 def _check_weld_path(planner: MotionPlanner, q_scan: np.ndarray, path: np.ndarray) -> PathCheck:

@@ -124,6 +124,12 @@ def height_over_root(P_base: Array, seam_base: Array, T_base_plane: Array) -> di
     return {"mean_mm": float(h.mean()) * 1e3, "min_mm": float(h.min()) * 1e3, "max_mm": float(h.max()) * 1e3, "points": int(len(h))}
 
 
+def torch_positions(records: np.ndarray, tool: ToolGeometry) -> np.ndarray:
+    """The torch's position (n, 3), base frame, m, at each of the motion loop's ``records`` (their TCP poses)."""
+    T_tool = se3.from_ur_poses(records["tcp_pose"]) @ tool.T_tcp_tool
+    return np.einsum("nij,j->ni", T_tool[:, :3, :3], tool.torch_tool()) + T_tool[:, :3, 3]
+
+
 def track_summary(records: np.ndarray, geometry: WeldGeometry, tool: ToolGeometry, delta_d: float) -> TrackSummary:
     """The paths and figures of a finished track from the motion loop's records of it.
 
@@ -138,9 +144,7 @@ def track_summary(records: np.ndarray, geometry: WeldGeometry, tool: ToolGeometr
     delta_d : float
         The deformation the servo held, m.
     """
-    T_tcp = se3.from_ur_poses(records["tcp_pose"])
-    T_tool = T_tcp @ tool.T_tcp_tool
-    torch = np.einsum("nij,j->ni", T_tool[:, :3, :3], tool.torch_tool()) + T_tool[:, :3, 3]
+    torch = torch_positions(records, tool)
     refined = records["refined_base"]
     refined = refined[np.all(np.isfinite(refined), axis=1)]
     if len(refined):
