@@ -322,3 +322,43 @@ def test_the_shipped_two_robot_cell_places_its_second_robot_across_the_table() -
     # The table, 0.6 m in front of robot 1, lies 0.65 m in front of robot 2 (its base 1.25 m away, turned round).
     table = next(o for o in seen.cell_model.objects if o.name == "table")
     assert table.T_base_obj[:3, 3] == pytest.approx([0.65, 0.0, -0.4], abs=1e-6)
+
+
+_SOURCE = {"arc_start": "do0", "ready": "di0", "arc_stable": "di1"}
+
+
+def test_a_power_source_is_read_by_role_and_its_analog_ranges_in_si() -> None:
+    c = config.parse(
+        {"power_source": {**_SOURCE, "gas": "ireg18.1", "wire_stuck": "oreg12.3", "current": "ai0", "current_range": [0, 400]}}
+    )
+    ps = c.power_source
+    assert ps.enabled and str(ps.signal("gas")) == "ireg18.1" and str(ps.signal("wire_stuck")) == "oreg12.3"
+    assert ps.range("current") == (0.0, 400.0) and ps.range("voltage") == (0.0, 50.0)
+    assert ps.signal("collision") is None
+    assert not config.parse({}).power_source.enabled
+
+
+@pytest.mark.parametrize(
+    ("table", "key", "reason"),
+    [
+        ({"arc_start": "do0", "ready": "di0"}, "power_source.arc_stable", "needs its arc_stable signal"),
+        ({**_SOURCE, "arc_start": "di3"}, "power_source.arc_start", "this role takes do, cdo, tdo, ireg"),
+        ({**_SOURCE, "arc_stable": "di0"}, "power_source.arc_stable", "already ready's signal"),
+        ({**_SOURCE, "gas": "do8"}, "power_source.gas", "do numbers run 0-7"),
+        ({**_SOURCE, "gas": "ireg30.0"}, "power_source.gas", "ireg numbers run 18-22"),
+        ({**_SOURCE, "fault": "oreg12"}, "power_source.fault", "names its bit"),
+        ({**_SOURCE, "fault": "di2.1"}, "power_source.fault", "only ireg and oreg signals have a bit"),
+        ({**_SOURCE, "current": "ai0", "current_range": [5, 5]}, "power_source.current_range", "two different values"),
+        ({**_SOURCE, "wirefeed": "ao0"}, "power_source.wirefeed", "unknown key"),
+    ],
+)
+def test_a_bad_power_source_is_refused_naming_its_key(table: dict, key: str, reason: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        config.parse({"power_source": table})
+    assert err.value.key == key and reason in err.value.reason
+
+
+def test_the_arc_has_one_switch() -> None:
+    with pytest.raises(ConfigError) as err:
+        config.parse({"robot": {"arc_output": 0}, "power_source": _SOURCE})
+    assert err.value.key == "robot.arc_output" and "power_source.arc_start" in err.value.reason
