@@ -44,19 +44,19 @@ class FakeReceive:
         self.oint: dict[int, int] = {}
         self.odouble: dict[int, float] = {}
 
-    def getActualDigitalInputBits(self) -> int:  # noqa: N802 (ur-rtde's names)
+    def getActualDigitalInputBits(self) -> int:  # ur-rtde's names
         return self.din
 
-    def getStandardAnalogInput0(self) -> float:  # noqa: N802
+    def getStandardAnalogInput0(self) -> float:
         return self.ai[0]
 
-    def getStandardAnalogInput1(self) -> float:  # noqa: N802
+    def getStandardAnalogInput1(self) -> float:
         return self.ai[1]
 
-    def getOutputIntRegister(self, n: int) -> int:  # noqa: N802
+    def getOutputIntRegister(self, n: int) -> int:
         return self.oint.get(n, 0)
 
-    def getOutputDoubleRegister(self, n: int) -> float:  # noqa: N802
+    def getOutputDoubleRegister(self, n: int) -> float:
         return self.odouble.get(n, 0.0)
 
 
@@ -71,22 +71,22 @@ class FakeIO:
         self.calls.append(args)
         return True
 
-    def setStandardDigitalOut(self, n: int, v: bool) -> bool:  # noqa: N802
+    def setStandardDigitalOut(self, n: int, v: bool) -> bool:
         return self._call("do", n, v)
 
-    def setConfigurableDigitalOut(self, n: int, v: bool) -> bool:  # noqa: N802
+    def setConfigurableDigitalOut(self, n: int, v: bool) -> bool:
         return self._call("cdo", n, v)
 
-    def setToolDigitalOut(self, n: int, v: bool) -> bool:  # noqa: N802
+    def setToolDigitalOut(self, n: int, v: bool) -> bool:
         return self._call("tdo", n, v)
 
-    def setAnalogOutputVoltage(self, n: int, ratio: float) -> bool:  # noqa: N802
+    def setAnalogOutputVoltage(self, n: int, ratio: float) -> bool:
         return self._call("ao", n, ratio)
 
-    def setInputIntRegister(self, n: int, v: int) -> bool:  # noqa: N802
+    def setInputIntRegister(self, n: int, v: int) -> bool:
         return self._call("ireg", n, v)
 
-    def setInputDoubleRegister(self, n: int, v: float) -> bool:  # noqa: N802
+    def setInputDoubleRegister(self, n: int, v: float) -> bool:
         return self._call("dreg", n, v)
 
 
