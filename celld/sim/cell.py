@@ -8,7 +8,10 @@ controller's sections. How it reaches each device:
 - the simulated robot process gets the world's physical arm
   (:attr:`World.arm`) through its options (:func:`robot_options`): it
   publishes the true pose in shared memory while RTDE reports the
-  controller's nominal kinematics;
+  controller's nominal kinematics. In a cell with a ``[power_source]`` it
+  also runs the world's power source (:attr:`World.power_source`) on the
+  signals the config wires it to, with the tool's true wire end and the
+  part's true work plane for the CTWD (:func:`source_options`);
 - :func:`sim_devices` builds the simulated scanner (the world's unit at its
   true pose, ray casting the scene at the arm's true flange pose, read from
   the robot's shared memory, with the flange as made and the part as placed)
@@ -47,6 +50,7 @@ from celld.errors import BusError, CelldError, ConfigError, WorkpieceError
 from celld.scanner.base import Scanner
 from celld.scanner.process import ScannerProcess
 from celld.sim.robot import SimRobotHandle, launch
+from celld.sim.robot.source import SourceOptions
 from celld.sim.robot.truth import TruthReader
 from celld.sim.scanner import SceneObject, SimulatedScanner, robot_scene_source, scanner_model
 from celld.sim.scene import robot_scene
@@ -156,11 +160,39 @@ def sim_devices(config: Config, world: World, part: SimWorkpiece | None) -> Devi
     return DeviceFactories(scanner=scanner, camera=camera)
 
 
-def robot_options(world: World) -> dict[str, Any]:
+def source_options(config: Config, world: World, part: SimWorkpiece | None) -> SourceOptions | None:
+    """The power source on the simulated robot's I/O, or None when the config wires none.
+
+    The wires are where the config says (the signals of ``[power_source]``
+    and the spans of its analog ones); the behaviour is the world's. The CTWD
+    is measured from the tool's true wire end to ``part``'s true work plane
+    (its welding plane: through the root line, normal out of the joint;
+    without a part the CTWD is the nominal). The world's nominal CTWD, when
+    ``[sim.power_source]`` gives none, is the height the cell plans its torch
+    at (``weld.tip_height``): the job was set up for the weld as planned.
+    """
+    ps = config.power_source
+    if not ps.enabled:
+        return None
+    signals = tuple((role, str(sig)) for role, sig in ps.signals)
+    ranges = tuple((role, ps.range(role)) for role, sig in ps.signals if sig.kind in ("ao", "ai"))
+    truth = world.power_source
+    if truth.ctwd_nominal is None:
+        truth = replace(truth, ctwd_nominal=config.weld.tip_height)
+    plane: dict[str, Any] = {}
+    if part is not None:
+        T = part.T_base_plane
+        plane = {"p_base_plane": tuple(T[:3, 3].tolist()), "n_base_plane": tuple(T[:3, 2].tolist())}
+    return SourceOptions(signals, ranges, truth, p_flange_wire=tuple(world.tool.p_flange_torch.tolist()), **plane)
+
+
+def robot_options(world: World, config: Config | None = None, part: SimWorkpiece | None = None) -> dict[str, Any]:
     """The simulated robot's options of the world: its model, the table its controller computes with, and its
-    physical arm when it is not that table."""
+    physical arm when it is not that table; with the cell's ``config``, the power source it wires
+    (:func:`source_options`, on the world's ``part`` as :func:`sim_part` builds it)."""
     arm = None if world.arm.is_model(world.nominal_dh) else world.arm
-    return {"model": world.nominal.robot, "arm": arm, "kinematics": world.kinematics}
+    source = source_options(config, world, part) if config is not None else None
+    return {"model": world.nominal.robot, "arm": arm, "kinematics": world.kinematics, "power_source": source}
 
 
 def robot2_options(world: World) -> dict[str, Any]:
@@ -313,10 +345,11 @@ def run_cell(
     def _run() -> Iterator[RunningCell]:
         cfg = config_mod.load(config_path)
         w = world_of(cfg, world)  # a bad [sim] table is refused before anything starts
-        sim_part(w)
+        part = sim_part(w)
         check_robot2(cfg, w)
         with contextlib.ExitStack() as stack:
-            robot = stack.enter_context(launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(w)))
+            options = robot_options(w, cfg, part)
+            robot = stack.enter_context(launch(cfg.robot.host, realtime=True, q0=tuple(cfg.robot.home_q), **options))
             robot2 = None
             if cfg.robot2 is not None:
                 r2 = cfg.robot2.robot

@@ -114,7 +114,7 @@ def _run_cell(args: argparse.Namespace) -> int:
     print(f"simulated cell {cfg.cell.name}: {world.describe()}", flush=True)
     if part is not None:
         print(f"  {part.workpiece.name} at {se3_text(part.T_base_obj)}", flush=True)
-    return serve(SimOptions(host=host).with_(realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(world)))
+    return serve(SimOptions(host=host).with_(realtime=True, q0=tuple(cfg.robot.home_q), **robot_options(world, cfg, part)))
 
 
 def _run_daemon(args: argparse.Namespace) -> int:

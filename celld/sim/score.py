@@ -14,6 +14,10 @@ is read afterwards); the daemon never sees the world.
   line, the nominal tool, nominal IK, the true arm and the true tool.
 - :class:`TruthRecorder` and :func:`true_torch_path`: the torch as it truly
   went during a weld (the true flange x the true torch point).
+- :func:`arc_figures`: the arc as it truly burned during a weld (the
+  simulated power source's truth): how far the torch went with it and how
+  far without it between the first strike and the last arc-off, the arc
+  time, the strikes and the mean current;
 - :func:`lateral`: a path's lateral distance from the part's true seam in the
   welding plane (RMS and max, mm; :func:`celld.seam.figures.lateral_error`).
 - :func:`after_fault`: what the true arm and the arc output did after a fault
@@ -302,6 +306,35 @@ def true_torch_path(world: World, records: np.ndarray, arc_output: int) -> Array
     F = flange_of(recs["T_base_tcp"], recs["T_flange_tcp"])
     P = np.einsum("nij,j->ni", F[:, :3, :3], world.tool.p_flange_torch) + F[:, :3, 3]
     return polyline.thin(P, TORCH_STEP)
+
+
+def arc_figures(world: World, records: np.ndarray) -> dict[str, float]:
+    """The true arc of the records of a weld (:data:`~celld.sim.robot.truth.TRUTH_DTYPE`, oldest first).
+
+    ``arc_on_m``: the torch's true travel with an arc burning; ``no_arc_m``:
+    its travel without one between the first strike and the last arc-off (a
+    lost arc, a failed re-strike: a stretch of seam left unwelded); ``arc_s``:
+    the arc time; ``strikes``: how often an arc came on; ``mean_current_a``:
+    the mean true current while it burned (nan without an arc).
+    """
+    on = records["arc_on"].astype(bool)
+    lit = np.flatnonzero(on)
+    if len(lit) == 0:
+        return {"arc_on_m": 0.0, "no_arc_m": 0.0, "arc_s": 0.0, "strikes": 0.0, "mean_current_a": math.nan}
+    F = flange_of(records["T_base_tcp"], records["T_flange_tcp"])
+    P = np.einsum("nij,j->ni", F[:, :3, :3], world.tool.p_flange_torch) + F[:, :3, 3]
+    step = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    dt = np.diff(records["stamp_ns"].astype(np.int64)) * 1e-9
+    burning = on[:-1]  # a step is travelled with the arc as it was at its start
+    span = np.zeros(len(step), bool)
+    span[lit[0] : lit[-1] + 1] = True
+    return {
+        "arc_on_m": float(step[burning].sum()),
+        "no_arc_m": float(step[span & ~burning].sum()),
+        "arc_s": float(dt[burning].sum()),
+        "strikes": float(np.count_nonzero(on[1:] & ~on[:-1]) + int(on[0])),
+        "mean_current_a": float(records["weld_current"][on].mean()),
+    }
 
 
 def lateral(part: Any, P_base: ArrayLike) -> dict[str, float]:

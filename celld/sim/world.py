@@ -35,9 +35,12 @@ its drawing, the world the simulated cell had before it owned one) and
     [sim.srm]                 # the SRM camera as drawn: intrinsics_px, width_px, height_px, tag_dictionary,
                               # tag_id, tag_size_mm (its mount is [sim.tool] T_tool_cam)
     [sim.errors]              # <source> = true|false, and magnitudes (ERROR_KEYS) over the preset's
+    [sim.power_source]        # the welding power source's rates, ranges and forced schedules over the
+                              # preset's (celld.sim.power_source)
 
 Who reads what: the simulated robot process gets :attr:`World.arm`
-(:class:`~celld.sim.robot.truearm.ArmTruth`, through its options), the
+(:class:`~celld.sim.robot.truearm.ArmTruth`, through its options) and, in a
+cell with a ``[power_source]``, :attr:`World.power_source`, the
 simulated scanner :attr:`World.scanner` and :attr:`World.flange`, the SRM
 camera :attr:`World.srm`, :attr:`World.tool`, :attr:`World.finger` and :attr:`World.camera`,
 the part builder (:mod:`celld.sim.workpiece`) :attr:`World.part`; the demo
@@ -65,6 +68,8 @@ from celld.config.reader import TableReader
 from celld.errors import ConfigError, InputError
 from celld.robot import dynamics
 from celld.robot import kinematics as kin
+from celld.sim.power_source import SOURCE_PRESETS, SourceBudget, draw_source, read_source_budget
+from celld.sim.robot.source import SourceTruth
 from celld.sim.robot.truearm import ArmTruth
 from celld.sim.srm import SrmCamera
 
@@ -723,6 +728,8 @@ class World:
     robot2: Robot2Truth | None = None
     srm: SrmCamera = field(default_factory=SrmCamera)  # the SRM camera as built, its mount in the tool frame set
     kinematics: kin.DH | None = None  # the table the controller computes with; None: the published one
+    # The welding power source's behaviour (celld.sim.power_source); it runs only where the cell wires one.
+    power_source: SourceTruth = field(default_factory=SourceTruth)
 
     @property
     def nominal_dh(self) -> kin.DH:
@@ -1031,8 +1038,9 @@ def _draw_part(nominal: NominalCell, b: ErrorBudget, seed: int) -> PartTruth | N
     return PartTruth(nominal.workpiece, T_place, offset, yaw, shape)
 
 
-def draw_world(nominal: NominalCell, budget: ErrorBudget, seed: int, preset: str = "") -> World:
-    """The true cell of ``nominal`` under ``budget`` for ``seed`` (deterministic)."""
+def draw_world(nominal: NominalCell, budget: ErrorBudget, seed: int, preset: str = "", source: SourceBudget | None = None) -> World:
+    """The true cell of ``nominal`` under ``budget`` for ``seed`` (deterministic); its power source drawn from
+    ``source`` (None: the source preset of the budget's preset, the ideal one for a budget of neither)."""
     if not (isinstance(seed, int) and seed >= 0):
         raise InputError(f"world seed: expected an integer >= 0, got {seed!r}")
     factory = _draw_factory(nominal.robot, budget, seed)
@@ -1052,6 +1060,11 @@ def draw_world(nominal: NominalCell, budget: ErrorBudget, seed: int, preset: str
         part=_draw_part(nominal, budget, seed),
         robot2=_draw_robot2(nominal, budget, seed),
         srm=_draw_srm(nominal, budget, seed),
+        power_source=draw_source(
+            source if source is not None else SOURCE_PRESETS.get(_preset_name(budget), SOURCE_PRESETS["ideal"]),
+            _rng(seed, "power_source"),
+            _seed_of(seed, "power-source-events"),
+        ),
     )
 
 
@@ -1100,8 +1113,12 @@ def world_from_table(table: Mapping[str, Any], source: str = "<sim>", options: W
     errors = r.table("errors")
     budget = read_budget(errors, preset).with_sources(options.on, options.off)
     errors.done()
+    power = r.table("power_source")
+    power_budget = read_source_budget(power, preset)
+    power.done()
     r.done()
-    return draw_world(nominal, budget, seed, preset if budget == PRESETS[preset] else f"{preset} (changed)")
+    same = budget == PRESETS[preset] and power_budget == SOURCE_PRESETS[preset]
+    return draw_world(nominal, budget, seed, preset if same else f"{preset} (changed)", power_budget)
 
 
 def world_of(config: Any, options: WorldOptions = WorldOptions()) -> World:

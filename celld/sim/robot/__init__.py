@@ -14,6 +14,7 @@ Modules: :mod:`~.rtde_protocol` (RTDE codecs), :mod:`~.controller` (modes,
 registers, IO, the cycle), :mod:`~.model` (the arm and its motions),
 :mod:`~.script` (ur-rtde's control script), :mod:`~.dashboard`,
 :mod:`~.faults`, :mod:`~.truth` (true state in shared memory),
+:mod:`~.source` (a welding power source on the I/O),
 :mod:`~.links` and :mod:`~.server` (sockets and the 500 Hz loop),
 :mod:`~.launcher` (this package's entry point for other processes).
 """

@@ -12,6 +12,10 @@ as the UR controller has them:
   is RUNNING in NORMAL safety mode; a protective stop, an e-stop, a power-off,
   the RTDE watchdog or a runtime error stops it.
 
+A welding power source on its I/O (:mod:`celld.sim.robot.source`, when the
+options give one) is stepped at the end of every cycle, whatever the robot's
+mode: it has its own supply.
+
 Text messages for RTDE clients collect in :attr:`Controller.outbox`.
 """
 
@@ -28,6 +32,7 @@ from celld.sim.robot import model as m
 from celld.sim.robot import rtde_protocol as P
 from celld.sim.robot.options import SimOptions
 from celld.sim.robot.script import ControlScript, CustomProgram, IdleProgram, Program, ScriptError
+from celld.sim.robot.source import SimPowerSource
 from celld.sim.robot.truearm import TrueArm
 
 # Controller cycle, s (500 Hz).
@@ -129,8 +134,13 @@ class Controller:
         self.now = 0.0  # the watchdog clock at the last tick
         self.digital_out = 0  # bits 0-7 standard, 8-15 configurable, 16-17 tool
         self.digital_in = 0
-        self.analog_out = [0.0, 0.0]
+        self.analog_out = [0.0, 0.0]  # ratios of the span, as ur-rtde writes them
         self.analog_out_types = 0
+        self.analog_in = [0.0, 0.0]  # V
+        # The welding power source on the I/O (None: nothing is wired), and the analog inputs it drives,
+        # which the installation sets to the voltage domain.
+        self.source = SimPowerSource(options.power_source) if options.power_source is not None else None
+        self.analog_in_types = self.source.analog_in_mask if self.source is not None else 0
         self.speed_fraction = 1.0
         self.external_ft = [0.0] * 6
         self.payload = 0.0
@@ -148,6 +158,7 @@ class Controller:
         self.T_tcp_actual = list(self.arm.T_tcp)
         self.q_true: list[float] = list(self.arm.q)
         self.T_tcp_true = list(self.arm.T_tcp)
+        self.T_flange_true = list(self.arm.T_flange)
         self.sense()
 
     # --- messages -----------------------------------------------------------------
@@ -318,7 +329,7 @@ class Controller:
     # --- the cycle ----------------------------------------------------------------
 
     def tick(self, now: float | None = None) -> None:
-        """One controller cycle: watchdog, program, arm, safety.
+        """One controller cycle: watchdog, program, arm, safety, the power source.
 
         ``now`` is the clock (s) the watchdog measures silence on, the one the
         server also stamps input writes with; by default the controller time.
@@ -348,17 +359,20 @@ class Controller:
         if self.robot_mode != ROBOT_MODE_RUNNING or self.safety_mode != SAFETY_NORMAL:
             if not self.arm.steady:
                 self.arm.halt()
-            self.sense()
-            return
-        fault = self.arm.step(PERIOD * self.speed_fraction)
-        if fault is not None:
-            self.protective_stop(fault)
+        else:
+            fault = self.arm.step(PERIOD * self.speed_fraction)
+            if fault is not None:
+                self.protective_stop(fault)
         self.sense()
+        src = self.source
+        if src is not None:
+            src.step(self.time, self.digital_out, self.in_int, self.in_double, self.analog_out, self.T_flange_true)
+            self.digital_in = src.write(self.digital_in, self.out_int, self.out_double, self.analog_in)
 
     def sense(self) -> None:
-        """The joints and TCP the controller reports, and the physical arm's, for the arm as it is now.
+        """The joints and TCP the controller reports, and the physical arm's (joints, flange, TCP), for the arm as it is now.
 
-        Without a physical arm of its own (:attr:`true_arm` None) all three are
+        Without a physical arm of its own (:attr:`true_arm` None) all of them are
         the controller's model. With one, the physical joints and the true TCP
         come from :class:`~celld.sim.robot.truearm.TrueArm`, and the reported
         joints carry its encoder noise, the reported TCP being the model's
@@ -369,9 +383,11 @@ class Controller:
         if ta is None:
             self.q_actual = self.q_true = arm.q
             self.T_tcp_actual = self.T_tcp_true = arm.T_tcp
+            self.T_flange_true = arm.T_flange
             return
         ta.update(arm.q, arm.qd, self.time)
         self.q_true = ta.q
+        self.T_flange_true = ta.T_flange
         self.T_tcp_true = kin.compose_rows(ta.T_flange, arm.T_flange_tcp)
         if ta.truth.encoder_noise:
             self.q_actual = ta.q_reported
@@ -491,7 +507,9 @@ class Controller:
             "actual_digital_input_bits": lambda: (self.digital_in,),
             "standard_analog_output0": lambda: (self.analog_out[0],),
             "standard_analog_output1": lambda: (self.analog_out[1],),
-            "analog_io_types": lambda: (self.analog_out_types << 2,),
+            "standard_analog_input0": lambda: (self.analog_in[0],),
+            "standard_analog_input1": lambda: (self.analog_in[1],),
+            "analog_io_types": lambda: ((self.analog_out_types << 2) | self.analog_in_types,),
             "payload": lambda: (self.payload,),
             "payload_cog": lambda: self.payload_cog,
             "payload_inertia": lambda: self.payload_inertia,

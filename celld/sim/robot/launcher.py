@@ -90,7 +90,8 @@ class SimRobotHandle:
         self.request("set_q", q=values)
 
     def set_digital_inputs(self, bits: int) -> None:
-        """Set ``actual_digital_input_bits`` (standard 0-7, configurable 8-15, tool 16-17)."""
+        """Set ``actual_digital_input_bits`` (standard 0-7, configurable 8-15, tool 16-17); the inputs a power
+        source drives (:mod:`celld.sim.robot.source`) are its own again from the next cycle."""
         self.request("set_digital_in", bits=int(bits))
 
     def status(self) -> dict[str, Any]:

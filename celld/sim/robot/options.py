@@ -18,6 +18,7 @@ from typing import Any
 
 from celld.errors import ConfigError, InputError
 from celld.robot import kinematics as kin
+from celld.sim.robot.source import SourceOptions
 from celld.sim.robot.truearm import ArmTruth
 
 # UR ports: dashboard, primary/secondary/real-time script interfaces, RTDE.
@@ -74,6 +75,9 @@ class SimOptions:
     # The I/O set-up "standard outputs go low when the program stops" (on in a
     # correctly set-up cell: it is the arc's interlock); False keeps them.
     outputs_low_at_stop: bool = True
+    # A welding power source on the controller's I/O: its wiring, the CTWD's geometry and
+    # its behaviour (celld.sim.robot.source; celld.sim.cell fills it); None: nothing is wired.
+    power_source: SourceOptions | None = None
 
     def __post_init__(self) -> None:
         check_host(self.host)
@@ -81,6 +85,8 @@ class SimOptions:
             raise ConfigError(_SOURCE, "model", f"expected one of {', '.join(kin.MODELS)}, got {self.model!r}")
         if self.arm is not None and not isinstance(self.arm, ArmTruth):
             raise ConfigError(_SOURCE, "arm", f"expected an ArmTruth or None, got {type(self.arm).__name__}")
+        if self.power_source is not None and not isinstance(self.power_source, SourceOptions):
+            raise ConfigError(_SOURCE, "power_source", f"expected a SourceOptions or None, got {type(self.power_source).__name__}")
         if self.kinematics is not None:
             rows = tuple(self.kinematics)
             if len(rows) != 4 or any(len(r) != 6 for r in rows) or not all(math.isfinite(v) for r in rows for v in r):
@@ -126,6 +132,8 @@ class SimOptions:
             argv += ["--arm-truth", self.arm.to_json()]
         if self.kinematics is not None:
             argv += ["--kinematics", json.dumps(kin.dh_as_dict(self.kinematics))]
+        if self.power_source is not None:
+            argv += ["--power-source", self.power_source.to_json()]
         argv += ["--q0", *map(repr, self.q0), "--tcp-offset", *map(repr, self.tcp_offset)]
         argv += ["--workspace", *map(repr, self.workspace_min), *map(repr, self.workspace_max)]
         argv += ["--tcp-speed-limit", repr(self.tcp_speed_limit), "--tcp-acc-limit", repr(self.tcp_acc_limit)]
@@ -176,6 +184,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="JSON",
         help="the DH table the controller computes with ({d, a, alpha, theta}, 6 numbers each; default: the model's)",
     )
+    parser.add_argument(
+        "--power-source",
+        default=None,
+        metavar="JSON",
+        help="a welding power source on the I/O: wiring, CTWD geometry, behaviour (celld.sim.robot.source.SourceOptions as JSON)",
+    )
     parser.add_argument("--q0", nargs=6, type=float, default=d.q0, metavar="RAD", help="initial joints")
     parser.add_argument("--tcp-offset", nargs=6, type=float, default=d.tcp_offset, metavar="V", help="TCP pose in the flange [m, rad]")
     parser.add_argument(
@@ -207,6 +221,7 @@ def from_args(args: argparse.Namespace) -> SimOptions:
     except ValueError as exc:
         raise ConfigError(_SOURCE, "version", f"expected a.b.c.d, got {args.version_number!r}") from exc
     arm = ArmTruth.from_json(args.arm_truth) if args.arm_truth else None
+    source = SourceOptions.from_json(args.power_source) if args.power_source else None
     table = None
     if args.kinematics:
         try:
@@ -234,4 +249,5 @@ def from_args(args: argparse.Namespace) -> SimOptions:
         parent_pid=args.parent_pid,
         text_messages=not args.no_text_messages,
         outputs_low_at_stop=not args.keep_outputs_at_stop,
+        power_source=source,
     )

@@ -234,10 +234,12 @@ class SimServer:
         if self.truth is not None:
             c = self.ctrl
             arm = c.arm
-            # The physical arm (its joints and true TCP), not the controller's belief.
+            src = c.source
+            # The physical arm (its joints and true TCP), not the controller's belief; the arc as it truly burns.
             self.truth.publish(
                 stamp_ns, c.q_true, arm.qd, c.T_tcp_true, arm.T_flange_tcp, c.digital_out,
                 (c.robot_mode, c.safety_mode, c.runtime_state),
+                src is not None and src.arc_on, src.current if src is not None else 0.0,
             )  # fmt: skip
 
     def _release_held(self, now_ns: int) -> None:
@@ -321,6 +323,7 @@ class SimServer:
             "late_cycles": self.late_cycles,
             "skipped_cycles": self.skipped_cycles,
             "max_lateness_ms": self.max_lateness_ns * 1e-6,
+            "power_source": c.source.status() if c.source is not None else None,
         }
 
     def _inject(self, name: str, args: dict[str, float]) -> None:

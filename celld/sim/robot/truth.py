@@ -1,7 +1,9 @@
 """True state of the simulated arm in shared memory, for the other simulated devices.
 
 The simulated scanner and SRM camera need the TCP pose at their own capture
-times, without going through RTDE. What is published is the physical arm
+times, without going through RTDE; a benchmark scores a weld against whether
+an arc truly burned and at what current (the simulated power source,
+:mod:`celld.sim.robot.source`). What is published is the physical arm
 (:mod:`celld.sim.robot.truearm`): its joints and its true TCP, which differ
 from what the controller reports over RTDE by the world's kinematic error,
 repeatability, settling and encoder noise (identical when the world has none). Every 2 ms cycle the simulator writes one
@@ -41,6 +43,8 @@ TRUTH_DTYPE = np.dtype(
         ("robot_mode", "<i4"),
         ("safety_mode", "<i4"),
         ("runtime_state", "<i4"),
+        ("arc_on", "u1"),  # 1: a welding arc truly burns this cycle (the simulated power source's)
+        ("weld_current", "<f4"),  # the arc's true current, A (0 without an arc or a source)
     ]
 )
 # Records in the history ring: 1024 cycles = 2.048 s at 500 Hz.
@@ -58,6 +62,8 @@ class TruthSample(NamedTuple):
     qd: NDArray[np.float64]  # (6,) rad/s
     digital_out: int
     T_flange_tcp: NDArray[np.float64] = np.eye(4)  # (4, 4) the controller's TCP offset at that cycle
+    arc_on: bool = False  # a welding arc truly burns
+    weld_current: float = 0.0  # its true current, A
 
     @property
     def T_base_flange(self) -> NDArray[np.float64]:
@@ -108,6 +114,8 @@ class TruthPublisher:
         T_flange_tcp_rows: Sequence[float],
         digital_out: int,
         modes: tuple[int, int, int],
+        arc_on: bool = False,
+        weld_current: float = 0.0,
     ) -> None:
         r = self._rec
         r["stamp_ns"] = stamp_ns
@@ -117,6 +125,8 @@ class TruthPublisher:
         self._T_ft[:] = T_flange_tcp_rows
         r["digital_out"] = digital_out
         r["robot_mode"], r["safety_mode"], r["runtime_state"] = modes
+        r["arc_on"] = arc_on
+        r["weld_current"] = weld_current
         self._slot.write(r[0])
         self._ring.append(r[0])
 
@@ -191,7 +201,9 @@ class TruthReader:
         T[:3, :3] = Slerp([0.0, 1.0], rots)([w]).as_matrix()[0]
         q = (1 - w) * a["q"] + w * b["q"]
         qd = (1 - w) * a["qd"] + w * b["qd"]
-        return TruthSample(int(stamp_ns), T, q, qd, int(a["digital_out"]), np.array(a["T_flange_tcp"]))
+        return TruthSample(
+            int(stamp_ns), T, q, qd, int(a["digital_out"]), np.array(a["T_flange_tcp"]), bool(a["arc_on"]), float(a["weld_current"])
+        )
 
     def close(self) -> None:
         self._slot.close()
@@ -206,4 +218,6 @@ def _sample(rec: np.void) -> TruthSample:
         np.array(rec["qd"]),
         int(rec["digital_out"]),
         np.array(rec["T_flange_tcp"]),
+        bool(rec["arc_on"]),
+        float(rec["weld_current"]),
     )
