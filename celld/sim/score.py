@@ -403,3 +403,60 @@ def orphaned_after(log_text: str, t_fault_ns: int, host: str = "") -> tuple[floa
         if at and int(at.group(1)):
             return (int(at.group(1)) - t_fault_ns) * 1e-9, (why.group(1) or why.group(2)) if why else "?"
     return math.nan, "no exit line"
+
+
+# The arc counts as off the seam when the torch is further than this from the true seam line, m.
+OFF_SEAM = 0.005
+# A stuck wire counts as dragged when the torch moved further than this while it was stuck, m.
+STUCK_MOVE = 1e-4
+
+
+def arc_truth(world: World, part: Any, records: np.ndarray, arc_start_bit: int) -> dict[str, Any]:
+    """The weld's true arc along the true seam, from the simulator's truth records of it (oldest first).
+
+    ``arc_start_bit``: the bit of ``digital_out`` the cell's arc start is wired to (-1: a register, whose
+    starts the truth does not see: no per-start figures). Returns the seam's true length and the union of
+    its stretches the torch passed over with an arc burning (``welded_m``, each stretch once), per start
+    attempt the torch's travel along the seam from its welding start to a stable arc (or to the attempt's
+    end when none came), the arc-on samples more than :data:`OFF_SEAM` across the seam (in its welding
+    plane), and how many times
+    the torch moved more than :data:`STUCK_MOVE` while its wire was stuck.
+    """
+    from celld.weld.arc_report import welded_intervals
+
+    F = flange_of(records["T_base_tcp"], records["T_flange_tcp"])
+    P = np.einsum("nij,j->ni", F[:, :3, :3], world.tool.p_flange_torch) + F[:, :3, 3]
+    seam = np.asarray(part.seam_base, dtype=np.float64)
+    length = float(polyline.arc_length(seam)[-1])
+    proj = polyline.project(P, seam)
+    s = np.clip(proj.arc, 0.0, length)
+    on = records["arc_on"].astype(bool)
+    # Across the seam in its welding plane (the torch's height over the root is not "off the seam").
+    across = np.cross(np.asarray(part.T_base_plane)[:3, 2], proj.tangent)
+    off_seam = np.abs(np.einsum("ij,ij->i", P - proj.point, across))
+    welded = welded_intervals(s, on)
+    starts: list[float] = []
+    if arc_start_bit >= 0:
+        start = (records["digital_out"].astype(np.int64) >> arc_start_bit & 1).astype(bool)
+        rises = np.flatnonzero(start[1:] & ~start[:-1]) + 1
+        for i in rises:
+            after = np.flatnonzero(~start[i:])
+            end = i + (int(after[0]) if len(after) else len(start) - i)
+            lit = np.flatnonzero(on[i:end])
+            j = i + int(lit[0]) if len(lit) else end - 1
+            starts.append(float(np.abs(np.diff(s[i : j + 1])).sum()))
+    stuck = records["wire_stuck"].astype(bool)
+    dragged = 0
+    for k in np.flatnonzero(stuck & ~np.concatenate([[False], stuck[:-1]])):
+        run = np.flatnonzero(~stuck[k:])
+        stop = k + (int(run[0]) if len(run) else len(stuck) - k)
+        if float(np.linalg.norm(P[k:stop] - P[k], axis=1).max()) > STUCK_MOVE:
+            dragged += 1
+    return {
+        "seam_length_m": length,
+        "welded_m": float(sum(b - a for a, b in welded)),
+        "start_travel_m": starts,
+        "arc_on_off_seam_samples": int(np.count_nonzero(on & (off_seam > OFF_SEAM))),
+        "stuck_windows": int(np.count_nonzero(stuck & ~np.concatenate([[False], stuck[:-1]]))),
+        "stuck_wire_moves": dragged,
+    }

@@ -45,6 +45,7 @@ TRUTH_DTYPE = np.dtype(
         ("runtime_state", "<i4"),
         ("arc_on", "u1"),  # 1: a welding arc truly burns this cycle (the simulated power source's)
         ("weld_current", "<f4"),  # the arc's true current, A (0 without an arc or a source)
+        ("wire_stuck", "u1"),  # 1: the simulated source's wire is stuck in the pool this cycle
     ]
 )
 # Records in the history ring: 1024 cycles = 2.048 s at 500 Hz.
@@ -116,6 +117,7 @@ class TruthPublisher:
         modes: tuple[int, int, int],
         arc_on: bool = False,
         weld_current: float = 0.0,
+        wire_stuck: bool = False,
     ) -> None:
         r = self._rec
         r["stamp_ns"] = stamp_ns
@@ -127,6 +129,7 @@ class TruthPublisher:
         r["robot_mode"], r["safety_mode"], r["runtime_state"] = modes
         r["arc_on"] = arc_on
         r["weld_current"] = weld_current
+        r["wire_stuck"] = wire_stuck
         self._slot.write(r[0])
         self._ring.append(r[0])
 

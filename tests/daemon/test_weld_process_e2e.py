@@ -1,0 +1,121 @@
+"""A weld with its power source, over the bus: the daemon, the simulated cell with a simulated source on the
+controller's I/O, real ur-rtde (the source's signals on standard digital and analog I/O).
+
+The cell is ``configs/sim-cell.toml`` on this test's own loopback address in the ideal world, its arc not a
+bare digital output but a power source wired as ``[power_source]`` says, welding with the procedure
+``steel-1.0mm-mag-short`` (configs/procedures/). The world's source fails the weld's first start, loses the
+arc after 3 s of arc and sticks the wire at the weld's end (``[sim.power_source]``); the daemon sees only its
+signals. The weld re-strikes at the start, stops where the arc went out, backs off and strikes again, fills
+the crater, and then holds the arm where it is with the wire stuck: the job fails saying so and how much of
+the seam it welded, which the test checks against the simulator's truth. About a minute.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from celld.recording import layout
+from celld.recording.readback import read_scalars
+from celld.sim.cell import run_cell, sim_part
+from celld.sim.score import TruthRecorder, arc_truth
+from tests.daemon.cells import CONFIGS, install_calibration
+
+pytestmark = pytest.mark.cell
+
+WORLD_SEED = 3
+CAL_POSES = 8
+CAL_SEED = 5
+PROCEDURE = "steel-1.0mm-mag-short"
+# A source on the control box: digital outputs 0-2, inputs 0-5, wire feed and voltage on the two analog outputs,
+# current and voltage on the two analog inputs (their spans over 0-10 V).
+POWER_SOURCE = {
+    "arc_start": "do0",
+    "gas": "do1",
+    "robot_ready": "do2",
+    "ready": "di0",
+    "arc_stable": "di1",
+    "process_active": "di2",
+    "wire_stuck": "di3",
+    "fault": "di4",
+    "heartbeat": "di5",
+    "wire_feed": "ao0",
+    "wire_feed_range": [0.0, 25.0 / 60.0],
+    "voltage_set": "ao1",
+    "voltage_set_range": [0.0, 50.0],
+    "current": "ai0",
+    "current_range": [0.0, 500.0],
+    "voltage": "ai1",
+    "voltage_range": [0.0, 50.0],
+}
+ARC_START_BIT = 0
+
+
+def _config(cell_config) -> Path:
+    return cell_config(
+        "sim-cell.toml",
+        "weld-process-e2e",
+        {
+            "robot": {"arc_output": -1},
+            "power_source": POWER_SOURCE,
+            "weld": {"procedure": PROCEDURE, "procedures_dir": str(CONFIGS / "procedures")},
+            "calibration": {"n_poses": CAL_POSES},
+            "sim": {
+                "preset": "ideal",
+                "seed": WORLD_SEED,
+                "scanner": {"resolution_scale": 0.5},
+                "power_source": {"fail_first_start": True, "arc_loss_after_s": 3.0, "stuck_every": 1, "stuck_clear_s": [4.0, 4.0]},
+            },
+        },
+    )
+
+
+def test_a_weld_restrikes_after_a_failed_start_and_an_arc_loss_and_holds_on_a_stuck_wire(
+    tmp_path: Path, cell_config, offline_calibration
+) -> None:
+    cfg_path = _config(cell_config)
+    calibration = offline_calibration(cfg_path, CAL_POSES, CAL_SEED)
+    with run_cell(cfg_path, tmp_path / "daemon.log", timeout=120) as cell:
+        client, cfg, world = cell.client, cell.config, cell.world
+        part = sim_part(world)
+        install_calibration(cfg.cell.state_dir, calibration)
+
+        # A procedure the cell does not have is refused before anything moves, naming the ones it has.
+        _, refused = client.submit_and_wait({"kind": "weld", "procedure": "no-such-procedure"}, timeout=60)
+        assert refused["state"] == "failed" and "steel-1.0mm-mag-short" in refused["reason"], refused["reason"]
+
+        with TruthRecorder(cfg.robot.host) as truth:
+            _, record = client.submit_and_wait({"kind": "weld"}, timeout=400)
+        # The seam was welded to its end; then the wire stuck in the crater: the arm held where it was.
+        assert record["state"] == "failed" and "wire is stuck" in record["reason"], record["reason"]
+        assert f"the arc ({PROCEDURE}@1) welded" in record["reason"], record["reason"]
+        report = json.loads((Path(cfg.cell.state_dir) / "jobs" / record["id"] / "arc.json").read_text())
+        assert report["ended_in"] == "stuck" and report["procedure"] == f"{PROCEDURE}@1", report
+        assert report["failed_starts"] == 1 and report["arc_losses"] == 1 and report["restrikes"] == 2, report
+
+        # Against the truth: the welded stretches and the reported unwelded length make the seam.
+        t = arc_truth(world, part, truth.records(), ARC_START_BIT)
+        assert abs(t["welded_m"] * 1e3 + report["unwelded_mm"] - t["seam_length_m"] * 1e3) <= 1.0, (t, report)
+        # Unwelded only before the point where the finger first touched (the arc lights there, Algorithm 2):
+        # the stretch the arc went out in was backed over and welded again.
+        assert len(report["unwelded_stretches_mm"]) == 1, report
+        a, b = report["unwelded_stretches_mm"][0]
+        assert a == 0.0 and b < 8.0, report
+        # The torch waited for the arc at every start: the first that failed, the re-strike, and the one after the loss.
+        assert len(t["start_travel_m"]) == 3 and max(t["start_travel_m"]) < 2e-5, t
+        assert t["arc_on_off_seam_samples"] == 0, t
+        assert t["stuck_windows"] == 1 and t["stuck_wire_moves"] == 0, t
+
+        # The weld's data in the recording at the loop's rate: the current while the arc burned.
+        _, current = read_scalars(Path(record["recording"]), layout.WELD_CURRENT)
+        burning = current[:, 0] > 50.0
+        assert burning.sum() > 5 * 500 and 100.0 < float(np.median(current[burning, 0])) < 200.0
+
+        # The operator cuts the wire (the world's 4 s): the arm moves again.
+        time.sleep(4.5)
+        _, moved = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": list(cfg.weld.scan_pose)}}, timeout=120)
+        assert moved["state"] == "succeeded", moved["reason"]
