@@ -2,17 +2,19 @@
 controller's I/O, real ur-rtde (the source's signals on standard digital and analog I/O).
 
 The cell is ``configs/sim-cell.toml`` on this test's own loopback address in the ideal world, its arc not a
-bare digital output but a power source wired as ``[power_source]`` says, welding with the procedure
+bare digital output but a power source on the control box's I/O (``configs/power-source-io.toml``), welding with the procedure
 ``steel-1.0mm-mag-short`` (configs/procedures/). The world's source fails the weld's first start, loses the
 arc after 3 s of arc and sticks the wire at the weld's end (``[sim.power_source]``); the daemon sees only its
 signals. The weld re-strikes at the start, stops where the arc went out, backs off and strikes again, fills
 the crater, and then holds the arm where it is with the wire stuck: the job fails saying so and how much of
-the seam it welded, which the test checks against the simulator's truth. About a minute.
+the seam it welded, which the test checks against the simulator's truth. Then a kill -9 of the daemon mid-weld,
+the arc burning: the source's outputs go off with the orphaned motion process. About a minute and a half.
 """
 
 from __future__ import annotations
 
 import json
+import signal
 import time
 from pathlib import Path
 
@@ -24,6 +26,7 @@ from celld.recording.readback import read_scalars
 from celld.sim.cell import run_cell, sim_part
 from celld.sim.score import TruthRecorder, arc_truth
 from tests.daemon.cells import CONFIGS, install_calibration
+from tests.daemon.orphans import after_kill, motion_exits
 
 pytestmark = pytest.mark.cell
 
@@ -31,37 +34,14 @@ WORLD_SEED = 3
 CAL_POSES = 8
 CAL_SEED = 5
 PROCEDURE = "steel-1.0mm-mag-short"
-# A source on the control box: digital outputs 0-2, inputs 0-5, wire feed and voltage on the two analog outputs,
-# current and voltage on the two analog inputs (their spans over 0-10 V).
-POWER_SOURCE = {
-    "arc_start": "do0",
-    "gas": "do1",
-    "robot_ready": "do2",
-    "ready": "di0",
-    "arc_stable": "di1",
-    "process_active": "di2",
-    "wire_stuck": "di3",
-    "fault": "di4",
-    "heartbeat": "di5",
-    "wire_feed": "ao0",
-    "wire_feed_range": [0.0, 25.0 / 60.0],
-    "voltage_set": "ao1",
-    "voltage_set_range": [0.0, 50.0],
-    "current": "ai0",
-    "current_range": [0.0, 500.0],
-    "voltage": "ai1",
-    "voltage_range": [0.0, 50.0],
-}
-ARC_START_BIT = 0
+ARC_START_BIT = 0  # power_source.arc_start in configs/power-source-io.toml: do0
 
 
 def _config(cell_config) -> Path:
     return cell_config(
-        "sim-cell.toml",
+        ["sim-cell.toml", "power-source-io.toml"],
         "weld-process-e2e",
         {
-            "robot": {"arc_output": -1},
-            "power_source": POWER_SOURCE,
             "weld": {"procedure": PROCEDURE, "procedures_dir": str(CONFIGS / "procedures")},
             "calibration": {"n_poses": CAL_POSES},
             "sim": {
@@ -80,7 +60,7 @@ def test_a_weld_restrikes_after_a_failed_start_and_an_arc_loss_and_holds_on_a_st
     cfg_path = _config(cell_config)
     calibration = offline_calibration(cfg_path, CAL_POSES, CAL_SEED)
     with run_cell(cfg_path, tmp_path / "daemon.log", timeout=120) as cell:
-        client, cfg, world = cell.client, cell.config, cell.world
+        client, cfg, world, robot = cell.client, cell.config, cell.world, cell.robot
         part = sim_part(world)
         install_calibration(cfg.cell.state_dir, calibration)
 
@@ -119,3 +99,27 @@ def test_a_weld_restrikes_after_a_failed_start_and_an_arc_loss_and_holds_on_a_st
         time.sleep(4.5)
         _, moved = client.submit_and_wait({"kind": "move", "target": {"space": "cartesian", "pose": list(cfg.weld.scan_pose)}}, timeout=120)
         assert moved["state"] == "succeeded", moved["reason"]
+
+        # kill -9 of the daemon mid-weld with the arc burning: the orphaned motion process switches the source's
+        # arc start off at once and stops the arm; the gas and every other output of the source go off with it.
+        with client.watch_progress() as events:
+            killed = client.submit({"kind": "weld", "ref": "killed"})["job"]
+            events.wait_stage(killed, "track", timeout=240)
+        deadline = time.monotonic() + 90
+        burning_since = None
+        while burning_since is None or time.monotonic() - burning_since < 0.5:  # past the failed first start
+            assert time.monotonic() < deadline, "the arc never burned"
+            on = bool(robot.status()["power_source"]["arc_on"])
+            burning_since = (burning_since or time.monotonic()) if on else None
+            time.sleep(0.02)
+        t_kill = time.monotonic_ns()
+        cell.daemon.send_signal(signal.SIGKILL)
+        cell.daemon.wait(10)
+        seen = after_kill(robot, t_kill, arc_output=ARC_START_BIT)
+        assert seen.moving_at_kill > 0.002, seen  # welding at the procedure's 6 mm/s
+        assert seen.arc_off_s < 0.05 and seen.at_rest_s < 0.5, (seen, motion_exits(tmp_path / "daemon.log"))
+        deadline = time.monotonic() + 5
+        while int(robot.status()["digital_out"]) & 0b111:  # arc start, gas, robot ready
+            assert time.monotonic() < deadline, robot.status()["digital_out"]
+            time.sleep(0.05)
+        assert not robot.status()["power_source"]["arc_on"]

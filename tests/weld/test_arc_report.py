@@ -7,10 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from celld.bus.checker import validate
 from celld.motion.arc import ArcPhase, params_of, plan_keys
 from celld.motion.channels import STATE_DTYPE
 from celld.motion.source_io import BIT_ROLES
-from celld.weld.arc_report import arc_report, sequence_of, welded_intervals
+from celld.weld.arc_report import ARC_SCHEMA, arc_report, sequence_of, welded_intervals
 from celld.weld.procedure import load_procedure
 
 PROCEDURES = Path(__file__).resolve().parents[2] / "configs" / "procedures"
@@ -59,6 +60,7 @@ def test_a_clean_weld_covers_its_seam_and_ends_done() -> None:
     assert r["welded_mm"] == pytest.approx(50.0, abs=0.05) and r["unwelded_mm"] == pytest.approx(0.0, abs=0.05)
     assert r["unwelded_stretches_mm"] == [] and not r["flagged"]
     assert r["weld_data"]["arc_breaks"] == 0 and r["weld_data"]["arc_time_s"] == pytest.approx(50 / 6 + 0.4, abs=0.01)
+    validate(ARC_SCHEMA, r)
 
 
 def test_a_loss_with_a_backoff_counts_the_overlap_once_and_a_retract_reports_the_rest_unwelded() -> None:
@@ -86,6 +88,7 @@ def test_a_loss_with_a_backoff_counts_the_overlap_once_and_a_retract_reports_the
     assert r["unwelded_mm"] == pytest.approx(50.0 - 27.2, abs=0.05)
     assert len(r["unwelded_stretches_mm"]) == 1 and r["unwelded_stretches_mm"][0] == pytest.approx([27.2, 50.0], abs=0.05)
     assert r["weld_data"]["arc_breaks"] == 2
+    validate(ARC_SCHEMA, r)
 
 
 def test_a_weld_outside_its_window_is_flagged() -> None:
