@@ -53,7 +53,7 @@ sys.path.insert(0, str(ROOT))
 from _common import Failures, JobFailed  # noqa: E402
 
 from celld.sim.cell import run_cell, sim_part  # noqa: E402
-from celld.sim.score import TruthRecorder, arc_truth, lateral  # noqa: E402
+from celld.sim.score import TruthRecorder, arc_truth, lateral, true_torch_path  # noqa: E402
 from celld.weld.procedure import load_procedure  # noqa: E402
 
 HOST = "127.0.0.11"
@@ -115,13 +115,9 @@ def weld_once(cell: Any, k: int, say: Any) -> dict[str, Any]:
     recs = truth.records()
     t = arc_truth(world, part, recs, ARC_START_BIT)
     # The torch's true path while an arc burned: lateral from the true seam.
-    on = recs["arc_on"].astype(bool)
-    from celld.sim.robot.truth import flange_of
-
-    F = flange_of(recs["T_base_tcp"][on], recs["T_flange_tcp"][on])
-    torch = np.einsum("nij,j->ni", F[:, :3, :3], world.tool.p_flange_torch) + F[:, :3, 3]
+    torch = true_torch_path(world, recs, -1) if recs["arc_on"].any() else np.zeros((0, 3))
     lat = lateral(part, torch) if len(torch) > 1 else {"rms_mm": math.nan, "max_mm": math.nan}
-    arc_s = float(np.count_nonzero(on)) * PERIOD
+    arc_s = float(np.count_nonzero(recs["arc_on"])) * PERIOD
     start_cycles = [m / travel_speed / PERIOD for m in t["start_travel_m"]]
     stretches = arc["unwelded_stretches_mm"]
     # Before the point where the finger first touched the seam is not welded (the arc lights there): the

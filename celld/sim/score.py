@@ -298,8 +298,14 @@ class TruthRecorder:
 
 
 def true_torch_path(world: World, records: np.ndarray, arc_output: int) -> Array:
-    """The torch's true path (m, 3) while the arc was on (digital output ``arc_output``), thinned as the weld's own."""
-    on = (records["digital_out"].astype(np.int64) >> arc_output) & 1 == 1 if arc_output >= 0 else np.ones(len(records), bool)
+    """The torch's true path (m, 3) while the arc was on, thinned as the weld's own: digital output ``arc_output``
+    on, or with ``arc_output`` -1 an arc truly burning (a cell with a power source); every record without either."""
+    if arc_output >= 0:
+        on = (records["digital_out"].astype(np.int64) >> arc_output) & 1 == 1
+    elif records["arc_on"].any():
+        on = records["arc_on"].astype(bool)
+    else:
+        on = np.ones(len(records), bool)
     recs = records[on]
     if len(recs) == 0:
         return np.zeros((0, 3))
