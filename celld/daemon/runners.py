@@ -46,6 +46,7 @@ from celld.daemon.weld import run_weld
 from celld.errors import CelldError, DeviceError, JobError
 from celld.journal import utc_now
 from celld.motion.handle import HEALTH_SCHEMA
+from celld.motion.source_io import BIT_ROLES, source_problem, source_state
 from celld.robot.dashboard import CONDITION_SCHEMA
 from celld.schemadoc import boolean, const, integer, number, obj, one_of, string, texts, vector, with_properties
 
@@ -173,12 +174,21 @@ async def run_move(ctx: JobContext, arm: Arm, *, tool: bool = True) -> Mapping[s
 # The JSON shape of a health job's result (run_health): what was checked, and every problem found.
 HEALTH_RESULT_SCHEMA = obj(
     "A health check: the robot link and the loop's timing with the robot's condition (and the second robot's link), the "
-    "arc interlock, the scanner (one capture), the tactile sensor: each checked one, and every problem found "
+    "arc interlock, the welding power source, the scanner (one capture), the tactile sensor: each checked one, and every problem found "
     "(check all reports them here and succeeds; a single check fails the job on one). Null where a figure is not finite.",
     {
         "robot": with_properties(HEALTH_SCHEMA, {"condition": CONDITION_SCHEMA}, ("condition",)),
         "robot2": {**HEALTH_SCHEMA, "description": "The second robot's link and loop, on a cell with one."},
         "arc_interlock": INTERLOCK_SCHEMA,
+        "power_source": obj(
+            "The welding power source's inputs as the motion loop last read them (a cell with a [power_source]).",
+            {
+                **{role: boolean() for role in BIT_ROLES},
+                "current_a": number("Welding current.", null=True),
+                "voltage_v": number("Welding voltage.", null=True),
+            },
+            (*BIT_ROLES, "current_a", "voltage_v"),
+        ),
         "scanner": obj(
             "One capture.",
             {
@@ -230,6 +240,11 @@ async def run_health(ctx: JobContext, devices: CellDevices) -> Mapping[str, Any]
         out["arc_interlock"] = devices.interlock_report()
         if out["arc_interlock"]["missing_seen"]:
             problems.append(out["arc_interlock"]["detail"])
+        source = source_state(devices.robot.require_motion().last_record())
+        if source is not None:
+            out["power_source"] = source
+            if problem := source_problem(source):
+                problems.append(problem)
     if job.check in ("all", "scanner"):
         try:
             cloud = await devices.scanner.capture()

@@ -68,7 +68,7 @@ from celld.errors import CelldError, ConfigError, InputError, JobError, SafetySt
 from celld.log import get_logger
 from celld.motion.algorithm2 import algorithm2_plan
 from celld.motion.arc import plan_keys
-from celld.motion.source_io import BIT_ROLES
+from celld.motion.source_io import source_problem, source_state
 from celld.motion.types import ServoPlan
 from celld.recording import layout
 from celld.robot.collision import PathCheck
@@ -518,16 +518,12 @@ def weld_procedure(config: Config, job: WeldJob) -> WeldProcedure | None:
 
 def check_source_ready(last: np.void | None) -> None:
     """Refuse a weld at once when the motion loop's latest record says the power source cannot weld."""
-    if last is None or int(last["arc_phase"]) < 0:
+    state = source_state(last)
+    if state is None:
         return  # no record yet, or no source read: the motion core refuses the servo itself
-    bits = int(last["source_bits"])
-    on = {role: bool(bits >> k & 1) for k, role in enumerate(BIT_ROLES)}
-    if on["fault"]:
-        raise JobError("$", "the power source reports a fault: clear it at the source first")
-    if on["wire_stuck"]:
-        raise JobError("$", "the power source says the wire is stuck: cut the wire first")
-    if not on["ready"]:
-        raise JobError("$", "the power source is not ready (its ready signal is low)")
+    problem = source_problem(state)
+    if problem:
+        raise JobError("$", problem)
 
 
 async def _scan_and_plan(ctx: JobContext, config: Config, devices: CellDevices, setup: WeldSetup, dry_run: bool) -> WeldPlan:

@@ -21,6 +21,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+import numpy as np
+
 from celld.config.power_source import ANALOG_SPAN_V, PowerSourceConfig, Signal
 from celld.motion.arc import ArcOutput, SourceSignals
 
@@ -197,3 +199,27 @@ class SourceIO:
         except Exception as exc:  # noqa: BLE001 (as _send)
             self.write_error = self.write_error or f"power source register ireg{number}: {exc}"
             return False
+
+
+def source_state(record: np.void | None) -> dict[str, bool | float] | None:
+    """The power source's inputs in a motion state record (STATE_DTYPE), by role; None when the record has none."""
+    if record is None or int(record["arc_phase"]) < 0:
+        return None
+    bits = int(record["source_bits"])
+    out: dict[str, bool | float] = {role: bool(bits >> k & 1) for k, role in enumerate(BIT_ROLES)}
+    out["current_a"] = float(record["weld_current"])
+    out["voltage_v"] = float(record["weld_voltage"])
+    return out
+
+
+def source_problem(state: dict[str, bool | float]) -> str:
+    """Why the source cannot weld now ("" when it can)."""
+    if state["fault"]:
+        return "the power source reports a fault: clear it at the source first"
+    if state["wire_stuck"]:
+        return "the power source says the wire is stuck: cut the wire first"
+    if not state["ready"]:
+        return "the power source is not ready (its ready signal is low)"
+    if state["collision"]:
+        return "the torch's collision input is set: reseat the torch first"
+    return ""

@@ -26,6 +26,7 @@ from celld.recording.readback import read_scalars
 from celld.sim.cell import run_cell, sim_part
 from celld.sim.score import TruthRecorder, arc_truth
 from tests.daemon.cells import CONFIGS, install_calibration
+from tests.daemon.exported import checked_result
 from tests.daemon.orphans import after_kill, motion_exits
 
 pytestmark = pytest.mark.cell
@@ -63,6 +64,12 @@ def test_a_weld_restrikes_after_a_failed_start_and_an_arc_loss_and_holds_on_a_st
         client, cfg, world, robot = cell.client, cell.config, cell.world, cell.robot
         part = sim_part(world)
         install_calibration(cfg.cell.state_dir, calibration)
+
+        # The health check reads the source as the motion loop does: ready, no fault, the wire free.
+        _, health = client.submit_and_wait({"kind": "health", "check": "robot"}, timeout=60)
+        assert health["state"] == "succeeded", health["reason"]
+        source = checked_result(client, health)["power_source"]
+        assert source["ready"] and not source["fault"] and not source["wire_stuck"] and not source["arc_stable"], source
 
         # A procedure the cell does not have is refused before anything moves, naming the ones it has.
         _, refused = client.submit_and_wait({"kind": "weld", "procedure": "no-such-procedure"}, timeout=60)
