@@ -73,10 +73,10 @@ from celld.motion.types import ServoPlan
 from celld.recording import layout
 from celld.robot.collision import PathCheck
 from celld.schemadoc import array, boolean, const, number, obj, one_of, string, vector
-from celld.seam.figures import contact_across, torch_positions
+from celld.seam.figures import contact_across, refined_of, torch_positions
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
 from celld.tactile.tool import ToolGeometry
-from celld.weld.arc_report import ARC_SCHEMA, arc_report, sequence_of
+from celld.weld.arc_report import ARC_SCHEMA, arc_report, known_seam, sequence_of
 from celld.weld.plan import (
     FIGURES_SCHEMA,
     PROBED_SCHEMA,
@@ -714,7 +714,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     figures, paths = await asyncio.to_thread(summarise, records, plan, setup.tool, setup.servo.delta_d)
     arc = None
     if welding and setup.procedure is not None:
-        arc = await asyncio.to_thread(arc_report, records, torch_positions(records, setup.tool), plan.geometry.seam_base, setup.procedure)
+        arc = await asyncio.to_thread(_arc_report, records, setup, plan, setup.procedure)
         if arc["flagged"]:
             data = arc["weld_data"]
             log.warning("weld outside its procedure's window", job=ctx.job_id, procedure=setup.procedure.ident, outside_s=data["outside_s"])
@@ -727,13 +727,19 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     return WeldOutcome(setup, figures, paths, Path(path_file), height_probe, retract_error, arc).as_dict()
 
 
+def _arc_report(records: np.ndarray, setup: WeldSetup, plan: WeldPlan, procedure: WeldProcedure) -> dict[str, Any]:
+    """What the arc did along the seam as the weld found it (the plan to the first touch, then the refined path)."""
+    seam = known_seam(plan.geometry.seam_base, refined_of(records))
+    return arc_report(records, torch_positions(records, setup.tool), seam, procedure)
+
+
 async def _report_arc_after_fault(
     ctx: JobContext, fault: CelldError, records: np.ndarray | None, setup: WeldSetup, plan: WeldPlan, procedure: WeldProcedure
 ) -> None:
     """What the arc did before ``fault`` ended the weld: written to the job's arc.json and added to the fault."""
     if records is None or len(records) == 0:
         return
-    report = await asyncio.to_thread(arc_report, records, torch_positions(records, setup.tool), plan.geometry.seam_base, procedure)
+    report = await asyncio.to_thread(_arc_report, records, setup, plan, procedure)
     path = await asyncio.to_thread(fsutil.write_json, ctx.result_dir() / "arc.json", report)
     stretches = ", ".join(f"{a:.1f}-{b:.1f}" for a, b in report["unwelded_stretches_mm"]) or "none"
     fault.add_note(

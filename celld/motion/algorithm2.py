@@ -781,6 +781,10 @@ class Algorithm2Servo:
         if self.phase == Phase.FINISH and torch_done:
             self.phase = Phase.DONE
             return self._out(_ZERO6, ControlStatus.DONE, latency)
+        if gate == 0 and self._torch_on_path:
+            # The arc is not established and the torch is where it must burn (the seam's start, or where it went
+            # out): the arm holds still, no correction across or in height either, so the torch does not creep.
+            return self._out(_ZERO6, ControlStatus.OK, latency)
         # Lines 12-13 (no turning while the torch backs off: the heading law steers forward travel).
         if gate is not None and gate < 0:
             omega, guarded = 0.0, False
@@ -796,7 +800,7 @@ class Algorithm2Servo:
         if gate < 0:
             return -_BACKOFF_SHARE * v
         if self._torch_on_path:
-            return 0.0  # at the start, or where the arc went out: hold until it burns
+            return 0.0  # at the start, or where the arc went out: held still until it burns (step)
         return min(v, math.sqrt(2.0 * _START_DECEL * max(self._d_start - _START_TOLERANCE, 0.0)))
 
     def _begin_finish(self) -> None:

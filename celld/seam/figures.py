@@ -130,6 +130,15 @@ def torch_positions(records: np.ndarray, tool: ToolGeometry) -> np.ndarray:
     return np.einsum("nij,j->ni", T_tool[:, :3, :3], tool.torch_tool()) + T_tool[:, :3, 3]
 
 
+def refined_of(records: np.ndarray) -> np.ndarray:
+    """The refined path (k, 3), base frame, m, in the motion loop's ``records``: each point once, as it was found."""
+    refined = records["refined_base"]
+    refined = refined[np.all(np.isfinite(refined), axis=1)]
+    if len(refined):
+        refined = refined[np.concatenate([[True], np.any(np.diff(refined, axis=0) != 0.0, axis=1)])]
+    return refined
+
+
 def track_summary(records: np.ndarray, geometry: WeldGeometry, tool: ToolGeometry, delta_d: float) -> TrackSummary:
     """The paths and figures of a finished track from the motion loop's records of it.
 
@@ -145,11 +154,7 @@ def track_summary(records: np.ndarray, geometry: WeldGeometry, tool: ToolGeometr
         The deformation the servo held, m.
     """
     torch = torch_positions(records, tool)
-    refined = records["refined_base"]
-    refined = refined[np.all(np.isfinite(refined), axis=1)]
-    if len(refined):
-        keep = np.concatenate([[True], np.any(np.diff(refined, axis=0) != 0.0, axis=1)])
-        refined = refined[keep]
+    refined = refined_of(records)
     tracking = records["servo_phase"] == 1
     torch_weld = polyline.thin(torch[records["process_on"]] if records["process_on"].any() else torch[tracking], TORCH_STEP)
     delta_n = records["delta_n"][tracking]

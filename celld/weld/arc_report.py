@@ -10,10 +10,16 @@ and voltage. From them:
 - the weld data of :func:`celld.weld.weld_data.summarize` against the
   procedure's windows;
 - the seam's welded length: the torch's positions while the source said the
-  arc was stable, projected onto the planned seam, as a union of intervals
-  (a back-off and its re-strike weld a stretch twice: it counts once); the
-  unwelded length is the rest of the seam, and its stretches of a millimetre
-  or more are listed (where a weld that ended early must be finished).
+  arc was stable, projected onto the seam as the weld found it, as a union of
+  intervals (a back-off and its re-strike weld a stretch twice: it counts
+  once); the unwelded length is the rest of the seam, and its stretches of a
+  millimetre or more are listed (where a weld that ended early must be
+  finished).
+
+The seam as the weld found it (:func:`known_seam`) is the planned seam up to
+where the finger first touched it, then the refined path (the seam as the
+finger found it): the finger finds where the part's joint truly ends, which
+a part shorter than its model puts short of the planned end.
 """
 
 from __future__ import annotations
@@ -56,6 +62,16 @@ def sequence_of(procedure: WeldProcedure) -> ArcParams:
     )
 
 
+def known_seam(seam_base: NDArray[np.float64], refined_base: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The seam as a weld found it (module docstring): ``seam_base`` (m, 3) planned, ``refined_base`` (k, 3) found."""
+    if len(refined_base) < 2:
+        return seam_base
+    s0 = float(polyline.project(refined_base[:1], seam_base).arc[0])
+    s_plan = polyline.arc_length(seam_base)
+    before = seam_base[s_plan < s0 - 1e-6]
+    return np.concatenate([before, refined_base]) if len(before) else refined_base
+
+
 def _transitions(phase: NDArray[np.int64], a: ArcPhase, b: ArcPhase) -> int:
     return int(np.count_nonzero((phase[:-1] == a) & (phase[1:] == b))) if len(phase) > 1 else 0
 
@@ -91,7 +107,7 @@ def arc_report(
     torch_base : (n, 3)
         The torch's position at each record, base frame, m.
     seam_base : (m, 3)
-        The planned seam, base frame, m.
+        The seam as the weld found it (:func:`known_seam`), base frame, m.
     procedure : WeldProcedure
         The procedure the weld ran with (its windows and grace).
     """

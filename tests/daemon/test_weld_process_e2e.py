@@ -93,7 +93,8 @@ def test_a_weld_restrikes_after_a_failed_start_and_an_arc_loss_and_holds_on_a_st
         a, b = report["unwelded_stretches_mm"][0]
         assert a == 0.0 and b < 8.0, report
         # The torch waited for the arc at every start: the first that failed, the re-strike, and the one after the loss.
-        assert len(t["start_travel_m"]) == 3 and max(t["start_travel_m"]) < 2e-5, t
+        # (at most one 2 ms cycle of the procedure's 6 mm/s each: 12 um).
+        assert len(t["start_travel_m"]) == 3 and max(t["start_travel_m"]) <= 0.006 * 0.002, t
         assert t["arc_on_off_seam_samples"] == 0, t
         assert t["stuck_windows"] == 1 and t["stuck_wire_moves"] == 0, t
 

@@ -11,7 +11,7 @@ from celld.bus.checker import validate
 from celld.motion.arc import ArcPhase, params_of, plan_keys
 from celld.motion.channels import STATE_DTYPE
 from celld.motion.source_io import BIT_ROLES
-from celld.weld.arc_report import ARC_SCHEMA, arc_report, sequence_of, welded_intervals
+from celld.weld.arc_report import ARC_SCHEMA, arc_report, known_seam, sequence_of, welded_intervals
 from celld.weld.procedure import load_procedure
 
 PROCEDURES = Path(__file__).resolve().parents[2] / "configs" / "procedures"
@@ -112,3 +112,13 @@ def test_a_procedure_maps_onto_the_motion_process_sequence_and_through_the_plan(
     seq = sequence_of(proc)
     assert seq.wire_feed == proc.wire_feed and seq.arc_loss == proc.arc_loss and seq.restrikes == proc.restrikes
     assert params_of(plan_keys(seq)) == seq
+
+
+def test_the_seam_as_found_is_the_plan_to_the_first_touch_then_the_refined_path() -> None:
+    plan = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0], [0.05, 0.0, 0.0]])
+    refined = np.column_stack([np.linspace(0.015, 0.048, 34), np.full(34, 1e-4), np.zeros(34)])
+    seam = known_seam(plan, refined)
+    assert np.allclose(seam[:2], plan[:2]) and np.allclose(seam[2:], refined)
+    # A part 2 mm shorter than its model: the found seam ends where the finger found the joint's end.
+    assert float(np.linalg.norm(np.diff(seam, axis=0), axis=1).sum()) == pytest.approx(0.048, abs=1e-4)
+    assert np.array_equal(known_seam(plan, refined[:1]), plan)
