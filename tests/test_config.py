@@ -15,7 +15,7 @@ from celld.errors import ConfigError
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
-@pytest.mark.parametrize("name", ["sim-cell.toml", "cell.toml"])
+@pytest.mark.parametrize("name", ["sim-cell.toml", "sim-cell-power-source.toml", "cell.toml"])
 def test_shipped_configs_load(name: str) -> None:
     cfg = config.load(CONFIGS / name)
     assert cfg.robot.frequency_hz == 500.0

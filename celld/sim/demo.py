@@ -311,6 +311,8 @@ def run_jobs(
             "figures": res["figures"],
             # The tip's height in the joint, probed by touch before tracking, and the correction made.
             "height_probe": res.get("height_probe"),
+            # What the arc did, with a power source.
+            "arc": res.get("arc"),
             "recording": res.get("recording"),
             "paths": res.get("paths"),
         }
@@ -415,6 +417,21 @@ def summary_lines(figures: dict[str, Any]) -> list[str]:
         _probe_line(w.get("height_probe")),
         f"tracked {w['figures']['tracked_mm']:.0f} mm, arc on {w['figures']['arc_on_s']:.1f} s, "
         f"delta_n error {w['figures']['delta_n_error_rms_mm']} mm RMS",
+        *_arc_lines(w.get("arc")),
+    ]
+
+
+def _arc_lines(arc: dict[str, Any] | None) -> list[str]:
+    """What a power source's arc did (a cell with a [power_source])."""
+    if arc is None:
+        return []
+    d = arc["weld_data"]
+    return [
+        f"arc ({arc['procedure']}): {arc['ended_in']}, {arc['failed_starts']} failed starts, {arc['restrikes']} re-strikes, "
+        f"{arc['arc_losses']} arc losses; welded {arc['welded_mm']:.1f} of {arc['seam_length_mm']:.1f} mm",
+        f"  current {d['current_mean_a']:.0f} A ({d['current_min_a']:.0f}-{d['current_max_a']:.0f}), voltage "
+        f"{d['voltage_mean_v']:.1f} V, {d['outside_s']:.2f} s outside the procedure's windows"
+        + (" (flagged)" if arc["flagged"] else ""),
     ]
 
 
