@@ -33,6 +33,18 @@ telemetry says ``process_on``. It drops on the cycle a stop begins (a stop
 request, a fault, the law's own DONE or fault), when the robot stops itself,
 and whenever another command takes over. The loop switches the output.
 
+With a welding power source (``CoreParams.source``) a servo whose plan asks
+for the process runs with the weld's arc sequence (:mod:`celld.motion.arc`):
+the law's wish starts it, its travel gate goes to the law each cycle
+(``ServoInput.travel``: the torch comes to rest at the seam's start, holds
+while the arc is not established, backs off before a re-strike), the law's
+DONE waits at rest until the sequence has closed the seam, and a sequence
+that failed (no arc, a source fault, a stuck wire) ends the servo with
+``ARC``. Every stop aborts it: the arc off at once. No command starts while
+the source says the wire is stuck, no weld while it is not ready or
+faulted, and no motion while the torch's collision input is set (a stop of
+the one running).
+
 Every record carries the command id it serves and a status; the status of a
 finished command stays until the next command, so a reader that comes late
 still learns how it ended.
