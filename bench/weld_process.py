@@ -52,6 +52,7 @@ sys.path.insert(0, str(ROOT))
 
 from _common import Failures, JobFailed  # noqa: E402
 
+from celld.errors import JobError  # noqa: E402
 from celld.sim.cell import run_cell, sim_part  # noqa: E402
 from celld.sim.score import TruthRecorder, arc_truth, lateral, true_torch_path  # noqa: E402
 from celld.weld.procedure import load_procedure  # noqa: E402
@@ -62,6 +63,8 @@ ARC_START_BIT = 0  # configs/power-source-io.toml: arc_start = "do0"
 STUCK_EVERY = 3
 STUCK_CLEAR = 3.0  # s
 PERIOD = 0.002  # s, the motion loop's cycle
+# A weld refused because the robot link was down (the machine starved the simulated robot) is submitted again.
+LINK_RETRIES = 3
 # Targets.
 MISMATCH_MAX = 1.0  # mm
 START_CYCLES_MAX = 1.0
@@ -99,9 +102,18 @@ def weld_once(cell: Any, k: int, say: Any) -> dict[str, Any]:
     client, cfg, world = cell.client, cell.config, cell.world
     part = sim_part(world)
     travel_speed = load_procedure(ROOT / "configs" / "procedures", PROCEDURE).travel_speed
-    t0 = time.monotonic()
-    with TruthRecorder(cfg.robot.host) as truth:
-        _, record = client.submit_and_wait({"kind": "weld", "ref": f"weld {k}"}, timeout=900)
+    for attempt in range(LINK_RETRIES + 1):
+        t0 = time.monotonic()
+        try:
+            with TruthRecorder(cfg.robot.host) as truth:
+                _, record = client.submit_and_wait({"kind": "weld", "ref": f"weld {k}"}, timeout=900)
+            break
+        except JobError as exc:
+            # Refused at submit while the robot link is down (a starved machine): the daemon reconnects by itself.
+            if "robot link down" not in str(exc) or attempt == LINK_RETRIES:
+                raise JobFailed(f"weld {k}", str(exc)) from exc
+            say(f"weld {k} refused ({exc}); again in 5 s")
+            time.sleep(5.0)
     seconds = time.monotonic() - t0
     state_dir = Path(cfg.cell.state_dir)
     if record["state"] == "succeeded":
