@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
 import sys
 import tempfile
 import time
@@ -58,6 +59,7 @@ from celld.sim.score import TruthRecorder, arc_truth, lateral, true_torch_path  
 from celld.weld.procedure import load_procedure  # noqa: E402
 
 HOST = "127.0.0.11"
+OUT = ROOT / "bench" / "out" / "weld_process"
 PROCEDURE = "steel-1.0mm-mag-short"
 ARC_START_BIT = 0  # configs/power-source-io.toml: arc_start = "do0"
 STUCK_EVERY = 3
@@ -261,6 +263,11 @@ def main(argv: list[str] | None = None) -> int:
             failures.add(exc.job, exc.reason)
         except Exception as exc:  # noqa: BLE001 (the cell did not come up, or a job's transport failed: named, not a traceback)
             failures.add("cell", f"{type(exc).__name__}: {exc}")
+        if failures and (work / "daemon.log").exists():
+            OUT.mkdir(parents=True, exist_ok=True)
+            kept = OUT / f"daemon-seed{args.seed}.log"
+            shutil.copyfile(work / "daemon.log", kept)
+            say(f"the daemon's log of the failed run: {kept}")
     summary = summarise(welds)
     say(json.dumps(summary, indent=1))
     if args.json:

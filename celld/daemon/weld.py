@@ -66,7 +66,7 @@ from celld.daemon.planning import MotionPlanner, record_arm, record_cell, record
 from celld.daemon.store import current_calibration, current_tool, for_controller
 from celld.errors import CelldError, ConfigError, InputError, JobError, SafetyStop, WorkpieceError
 from celld.log import get_logger
-from celld.motion.algorithm2 import algorithm2_plan
+from celld.motion.algorithm2 import Phase, algorithm2_plan
 from celld.motion.arc import plan_keys
 from celld.motion.source_io import source_problem, source_state
 from celld.motion.types import ServoPlan
@@ -103,6 +103,8 @@ DRY_RUN_AT_SCAN = 0.002
 DRY_RUN_AT_SCAN_ANGLE = 0.01
 # A dry run draws the arm at this many configurations along the checked path.
 DRY_RUN_ROBOTS = 12
+# Algorithm 2's phase once the seam has ended ahead of the finger (celld.motion.algorithm2.Phase.FINISH).
+FINISH_PHASE = int(Phase.FINISH)
 # Seconds between progress events while tracking.
 PROGRESS_PERIOD = 0.5
 # Seconds between SRM camera frames logged to the recording while tracking.
@@ -729,7 +731,9 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
 
 def _arc_report(records: np.ndarray, setup: WeldSetup, plan: WeldPlan, procedure: WeldProcedure) -> dict[str, Any]:
     """What the arc did along the seam as the weld found it (the plan to the first touch, then the refined path)."""
-    seam = known_seam(plan.geometry.seam_base, refined_of(records))
+    # The law's FINISH phase (3: the seam ended ahead of the finger) means the finger found the joint's end.
+    found_end = bool(np.any(records["servo_phase"] == FINISH_PHASE))
+    seam = known_seam(plan.geometry.seam_base, refined_of(records), found_end)
     return arc_report(records, torch_positions(records, setup.tool), seam, procedure)
 
 

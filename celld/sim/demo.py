@@ -430,8 +430,7 @@ def _arc_lines(arc: dict[str, Any] | None) -> list[str]:
         f"arc ({arc['procedure']}): {arc['ended_in']}, {arc['failed_starts']} failed starts, {arc['restrikes']} re-strikes, "
         f"{arc['arc_losses']} arc losses; welded {arc['welded_mm']:.1f} of {arc['seam_length_mm']:.1f} mm",
         f"  current {d['current_mean_a']:.0f} A ({d['current_min_a']:.0f}-{d['current_max_a']:.0f}), voltage "
-        f"{d['voltage_mean_v']:.1f} V, {d['outside_s']:.2f} s outside the procedure's windows"
-        + (" (flagged)" if arc["flagged"] else ""),
+        f"{d['voltage_mean_v']:.1f} V, {d['outside_s']:.2f} s outside the procedure's windows" + (" (flagged)" if arc["flagged"] else ""),
     ]
 
 

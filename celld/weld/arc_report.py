@@ -18,8 +18,10 @@ and voltage. From them:
 
 The seam as the weld found it (:func:`known_seam`) is the planned seam up to
 where the finger first touched it, then the refined path (the seam as the
-finger found it): the finger finds where the part's joint truly ends, which
-a part shorter than its model puts short of the planned end.
+finger found it), then, for a weld that stopped before the finger found the
+joint's end, the planned seam on from there: the finger finds where the
+part's joint truly ends, which a part shorter than its model puts short of
+the planned end.
 """
 
 from __future__ import annotations
@@ -62,14 +64,17 @@ def sequence_of(procedure: WeldProcedure) -> ArcParams:
     )
 
 
-def known_seam(seam_base: NDArray[np.float64], refined_base: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The seam as a weld found it (module docstring): ``seam_base`` (m, 3) planned, ``refined_base`` (k, 3) found."""
+def known_seam(seam_base: NDArray[np.float64], refined_base: NDArray[np.float64], found_end: bool) -> NDArray[np.float64]:
+    """The seam as a weld found it (module docstring): ``seam_base`` (m, 3) planned, ``refined_base`` (k, 3) found,
+    ``found_end`` whether the finger found the joint's end (the law finished the seam) or the weld stopped before."""
     if len(refined_base) < 2:
         return seam_base
-    s0 = float(polyline.project(refined_base[:1], seam_base).arc[0])
+    s0, s1 = (float(a) for a in polyline.project(refined_base[[0, -1]], seam_base).arc)
     s_plan = polyline.arc_length(seam_base)
-    before = seam_base[s_plan < s0 - 1e-6]
-    return np.concatenate([before, refined_base]) if len(before) else refined_base
+    parts = [seam_base[s_plan < s0 - 1e-6], refined_base]
+    if not found_end:
+        parts.append(seam_base[s_plan > s1 + 1e-6])
+    return np.concatenate([p for p in parts if len(p)])
 
 
 def _transitions(phase: NDArray[np.int64], a: ArcPhase, b: ArcPhase) -> int:

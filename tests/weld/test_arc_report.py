@@ -117,8 +117,13 @@ def test_a_procedure_maps_onto_the_motion_process_sequence_and_through_the_plan(
 def test_the_seam_as_found_is_the_plan_to_the_first_touch_then_the_refined_path() -> None:
     plan = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0], [0.05, 0.0, 0.0]])
     refined = np.column_stack([np.linspace(0.015, 0.048, 34), np.full(34, 1e-4), np.zeros(34)])
-    seam = known_seam(plan, refined)
+    seam = known_seam(plan, refined, found_end=True)
     assert np.allclose(seam[:2], plan[:2]) and np.allclose(seam[2:], refined)
     # A part 2 mm shorter than its model: the found seam ends where the finger found the joint's end.
     assert float(np.linalg.norm(np.diff(seam, axis=0), axis=1).sum()) == pytest.approx(0.048, abs=1e-4)
-    assert np.array_equal(known_seam(plan, refined[:1]), plan)
+    assert np.array_equal(known_seam(plan, refined[:1], found_end=True), plan)
+    # A weld that stopped at 30 mm: the rest of the seam is the plan's.
+    stopped = known_seam(plan, refined[:16], found_end=False)
+    assert np.allclose(stopped[-1], plan[-1]) and float(np.linalg.norm(np.diff(stopped, axis=0), axis=1).sum()) == pytest.approx(
+        0.05, abs=2e-4
+    )
