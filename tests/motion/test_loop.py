@@ -381,7 +381,7 @@ def test_the_motion_process_switches_the_output_off_when_the_link_drops(channels
 
     port = Port()
     port.reads = 0
-    monkeypatch.setattr(link.RtdeLink, "connect", classmethod(lambda cls, host, frequency_hz=500.0: port))
+    monkeypatch.setattr(link.RtdeLink, "connect", classmethod(lambda cls, host, frequency_hz=500.0, variables=(): port))
     monkeypatch.setattr(process.gc, "freeze", lambda: None)  # keep the test process's collector as it is
     channels.tactile.write(to_record(TactileSample(time.monotonic_ns(), 1, np.zeros(3), ContactState.CONTACT, 1.0, True, 0)))
     spec = process.MotionSpec(
