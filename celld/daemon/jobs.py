@@ -562,15 +562,21 @@ class JobManager:
         except asyncio.CancelledError:
             if not task.done():
                 raise
+        except Exception:  # noqa: BLE001 (logged below as the task's exception; the job still gets its end)
+            pass
         finally:
             self._running = None
             self._recording = None
-        if task.done() and not task.cancelled() and task.exception() is not None:
-            log.error("job task failed", job=job_id, error=repr(task.exception()))
+        error = task.exception() if task.done() and not task.cancelled() else None
+        if error is not None:
+            log.error("job task failed", job=job_id, error=repr(error))
         record = self._record(job_id)
         if record is not None and not record.terminal:
             # Cancelled before its first step, or ended by a bug before its end was recorded.
-            self._end(job_id, job, "cancelled", self._cancel_reasons.pop(job_id, "cancelled before it started"))
+            if error is not None:
+                self._end(job_id, job, "failed", f"internal error: {type(error).__name__}: {error}")
+            else:
+                self._end(job_id, job, "cancelled", self._cancel_reasons.pop(job_id, "cancelled before it started"))
 
     async def _run(self, job_id: str, job: Job) -> None:
         recording = None
@@ -629,6 +635,10 @@ class JobManager:
                         reason = f"{reason}; and {fault}" if reason else str(fault)
                 except CelldError as exc:
                     log.error("job recording not closed cleanly", job=job_id, error=str(exc))
+                except Exception as exc:  # a bug in the recording's close must not leave the job without an end
+                    log.exception("job recording not closed: internal error", job=job_id)
+                    note = f"its recording was not closed: internal error: {type(exc).__name__}: {exc}"
+                    reason = f"{reason}; {note}" if reason else note
         self._end(job_id, job, state, reason, result_path)
 
     async def _save_result(self, job_id: str, job: Job, result: dict[str, Any]) -> tuple[str | None, str]:

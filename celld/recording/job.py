@@ -357,6 +357,10 @@ class JobRecording:
         self._ignored_reported: set[str] = set()
         self._feed: queue.Queue[Callable[[], Any] | np.ndarray | None] = queue.Queue(_FEED_DEPTH)
         self._feeding: threading.Thread | None = None
+        # Guards the feed thread's start against close(): a batch handed over from the event loop while a worker
+        # thread closes the recording must not leave close() joining a thread that is not started yet.
+        self._feed_lock = threading.Lock()
+        self._feed_closing = False
         self.dropped_batches = 0  # state batches the feed had no room for
         self._log = log.bind(job=job_id, kind=kind)
         self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=job_id, default_enabled=config.enabled, send_properties=True)
@@ -809,8 +813,13 @@ class JobRecording:
         if not self._active():
             return False
         if self._feeding is None:
-            self._feeding = threading.Thread(target=self._feed_forever, name=f"rrd-feed-{self.job_id}", daemon=True)
-            self._feeding.start()
+            with self._feed_lock:
+                if self._feed_closing:
+                    return False
+                if self._feeding is None:
+                    feeding = threading.Thread(target=self._feed_forever, name=f"rrd-feed-{self.job_id}", daemon=True)
+                    feeding.start()
+                    self._feeding = feeding
         try:
             self._feed.put_nowait(item)
         except queue.Full:
@@ -899,10 +908,12 @@ class JobRecording:
         """
         if self._closed:
             return
-        if self._feeding is not None:  # the state handed over so far goes in first
+        with self._feed_lock:  # no feed thread starts from here on
+            self._feed_closing = True
+            feeding, self._feeding = self._feeding, None
+        if feeding is not None:  # the state handed over so far goes in first
             self._feed.put(None)
-            self._feeding.join()
-            self._feeding = None
+            feeding.join()
         self._closed = True
         if self.dropped_batches:
             self._log.warning("recording_state_batches_dropped", batches=self.dropped_batches)

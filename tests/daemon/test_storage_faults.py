@@ -389,3 +389,24 @@ def test_a_full_disk_fails_the_job_refuses_new_ones_and_recovers(tmp_path: Path,
         await h.close()
 
     asyncio.run(asyncio.wait_for(body(), 60))
+
+
+@run
+async def test_a_recording_whose_close_raises_a_bug_still_ends_the_job_and_the_queue_lives_on(tmp_path: Path, monkeypatch) -> None:
+    """Not a storage fault: a bug in the recording's close (it once joined a feed thread not yet started) fails
+    the job with the reason and the next job runs; no job waits forever for its end."""
+    h = Harness(tmp_path, recording=True)
+    real_close = recording_job.JobRecording.close
+
+    def broken_close(self) -> None:
+        real_close(self)
+        raise RuntimeError("cannot join thread before it is started")
+
+    monkeypatch.setattr(recording_job.JobRecording, "close", broken_close)
+    job = (await h.manager.on_submit(WeldJob()))["job"]
+    record = await h.until_state(job, "failed", "succeeded", timeout=30)
+    assert record["state"] == "succeeded" and "recording was not closed: internal error: RuntimeError" in record["reason"], record
+    monkeypatch.setattr(recording_job.JobRecording, "close", real_close)
+    job = (await h.manager.on_submit(WeldJob()))["job"]
+    assert (await h.until_state(job, "succeeded", "failed", timeout=30))["state"] == "succeeded"
+    await h.close()

@@ -599,3 +599,39 @@ def test_a_recording_a_dead_process_left_open_is_finalised_into_a_readable_file(
         assert len(it) >= (6 if job.endswith("a") else 1)  # the cut one keeps what came before the cut
     assert done["garbage"].error and done["garbage"].path.is_file()  # not an RRD stream: kept, with why
     assert (recordings / "merged.rrd").read_bytes() == b"x" and not (recordings / "merged.rrd.part").exists()
+
+
+def test_a_close_while_the_feed_thread_is_starting_waits_for_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The event loop hands a batch over (which starts the feed thread) while a worker thread closes the
+    recording: close must not find a feed thread that is not started yet (it joined one, and raised)."""
+    import threading
+
+    import celld.recording.job as job_mod
+
+    rec = JobRecording(tmp_path / "race.rrd", "job-race", "other")
+    in_start, closed = threading.Event(), threading.Event()
+    real_start = threading.Thread.start
+
+    def slow_start(self: threading.Thread) -> None:
+        if self.name.startswith("rrd-feed-"):
+            in_start.set()
+            closed.wait(0.5)  # give close() its chance in the window between creating and starting the thread
+        real_start(self)
+
+    monkeypatch.setattr(job_mod.threading.Thread, "start", slow_start)
+    errors: list[BaseException] = []
+
+    def close() -> None:
+        in_start.wait(5.0)
+        try:
+            rec.close()
+        except BaseException as exc:  # noqa: BLE001 (the race's RuntimeError is the failure)
+            errors.append(exc)
+        closed.set()
+
+    closer = threading.Thread(target=close)
+    closer.start()
+    rec.event_later("a progress line from the event loop")
+    closer.join(10.0)
+    assert not closer.is_alive() and errors == [], errors
+    assert rec.closed and (tmp_path / "race.rrd").exists()
