@@ -127,3 +127,16 @@ def test_the_seam_as_found_is_the_plan_to_the_first_touch_then_the_refined_path(
     assert np.allclose(stopped[-1], plan[-1]) and float(np.linalg.norm(np.diff(stopped, axis=0), axis=1).sum()) == pytest.approx(
         0.05, abs=2e-4
     )
+
+
+def test_the_demo_says_what_the_arc_did() -> None:
+    from celld.sim.demo import _arc_lines
+
+    proc = load_procedure(PROCEDURES, "steel-1.0mm-mag-short")
+    rec, torch = _weld(
+        [(ArcPhase.WELD, 2.0, True, 0.006), (ArcPhase.CRATER, 0.1, True, 0.0), (ArcPhase.DONE, 0.01, False, 0.0)], current=220.0
+    )
+    lines = _arc_lines(arc_report(rec, torch, SEAM, proc))
+    assert lines[0].startswith("arc (steel-1.0mm-mag-short@1): done, 0 failed starts") and "welded 12.0 of 50.0 mm" in lines[0]
+    assert "current 220 A" in lines[1] and lines[1].endswith("(flagged)")
+    assert _arc_lines(None) == []
