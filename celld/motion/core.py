@@ -209,6 +209,7 @@ class MotionCore:
         self._law_done = False  # that servo's law reported DONE last cycle
         self._t = 0.0  # this cycle's state stamp, s
         self._sig: SourceSignals | None = None
+        self._last_telemetry = NO_TELEMETRY  # the telemetry of the last cycle's output (the law's wish then)
 
     # -- transitions ----------------------------------------------------------
 
@@ -274,6 +275,7 @@ class MotionCore:
                 self.arc = ArcSequence(arc_params, p.source.has_process_active, p.source.has_heartbeat)
                 self._arc_servo = slot
                 self._law_done = False
+                self._last_telemetry = NO_TELEMETRY  # not the wish of the law it takes over from
             return slot
         raise InputError(f"unknown command {type(cmd).__name__}")
 
@@ -361,10 +363,8 @@ class MotionCore:
         twist: Array = _ZERO6
         guarded = False
         welding = self.arc is not None and self.controller is self._arc_servo and self.mode == Mode.ACTIVE
-        if self.arc is not None:
-            self._step_arc(inp, welding)
+        travel = self._step_arc(inp, welding)
         if self.mode == Mode.ACTIVE:
-            travel = self.arc.output(self._t).travel if welding and self.arc is not None else None
             cinp = ControlInput(inp.state, inp.tactile, inp.tactile_age, inp.setpoint, inp.setpoint_age, travel)
             demand, status = self.controller.step(cinp)
             if isinstance(self.controller, ServoSlot) and inp.tactile_age > p.tactile_stale:
@@ -409,19 +409,18 @@ class MotionCore:
             self._begin_stop(status_of(faults), describe(faults))
         return self._output(Action.SPEED, twist, faults, guarded)
 
-    def _step_arc(self, inp: CycleInput, welding: bool) -> None:
-        """Step the weld's arc sequence with the law's wish of the last cycle and the source's signals now."""
+    def _step_arc(self, inp: CycleInput, welding: bool) -> int | None:
+        """Step the weld's arc sequence with the law's wish of the last cycle and the source's signals now; the
+        travel gate for the law this cycle (None: not welding)."""
         arc = self.arc
         sig = inp.source
         if arc is None or sig is None:
-            return
-        want = end = False
-        if welding and isinstance(self.controller, ServoSlot):
-            want = self.controller.telemetry().process_on
-            end = self._law_done
+            return None
         v = inp.state.v_tcp
         speed = float(np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
-        arc.step(self._t, want, end, speed, self._dt, sig)
+        want = welding and self._last_telemetry.process_on
+        out = arc.step(self._t, want, welding and self._law_done, speed, self._dt, sig)
+        return out.travel if welding else None
 
     def _step_joint(self, ctrl: JointMove, inp: CycleInput, faults: Fault) -> CycleOutput:
         """The cycle of a joint move (module docstring)."""
@@ -462,6 +461,7 @@ class MotionCore:
     def _output(self, action: Action, twist: Array, faults: Fault, guarded: bool) -> CycleOutput:
         ctrl = self.controller
         telemetry = ctrl.telemetry() if isinstance(ctrl, ServoSlot) else NO_TELEMETRY
+        self._last_telemetry = telemetry
         arc: ArcOutput | None = None
         if self.params.source is not None:
             arc = self.arc.output(self._t) if self.arc is not None else _ARC_IDLE

@@ -47,6 +47,10 @@ class SourceIO:
 
     def __init__(self, config: PowerSourceConfig) -> None:
         self.config = config
+        # The wiring by role, and the output registers read, once (PowerSourceConfig.signal builds a dict per call).
+        self._signals: dict[str, Signal] = dict(config.signals)
+        self._out_registers = tuple(dict.fromkeys(sig.number for sig in self._signals.values() if sig.kind == "oreg"))
+        self._last_out: ArcOutput | None = None  # the last output written in full (None: owed, or a write failed)
         self._receive: Any = None
         self._io: Any = None
         self._readers: list[tuple[int, Callable[[], bool]]] = []
@@ -78,7 +82,7 @@ class SourceIO:
         self._receive, self._io = receive, io
         self._readers = []
         for k, role in enumerate(BIT_ROLES):
-            sig = self.config.signal(role)
+            sig = self._signals.get(role)
             if sig is not None:
                 self._readers.append((k, self._digital_reader(sig)))
         self._digital_in = any(sig.kind in ("di", "cdi", "tdi") for _, sig in self.config.signals)
@@ -93,7 +97,7 @@ class SourceIO:
         return lambda: bool(self._in_bits >> shift & 1)
 
     def _analog_reader(self, role: str) -> Callable[[], float] | None:
-        sig = self.config.signal(role)
+        sig = self._signals.get(role)
         if sig is None:
             return None
         r = self._receive
@@ -109,8 +113,8 @@ class SourceIO:
         r = self._receive
         if self._digital_in:
             self._in_bits = int(r.getActualDigitalInputBits())
-        for sig in self._int_registers():
-            self._regs[sig] = int(r.getOutputIntRegister(sig))
+        for number in self._out_registers:
+            self._regs[number] = int(r.getOutputIntRegister(number))
         bits = 0
         for k, get in self._readers:
             if get():
@@ -120,26 +124,28 @@ class SourceIO:
         b = [bool(bits >> k & 1) for k in range(len(BIT_ROLES))]
         return SourceReading(SourceSignals(b[0], b[1], b[2], b[3], b[4], b[6]), b[5], current, voltage, bits)
 
-    def _int_registers(self) -> tuple[int, ...]:
-        return tuple(dict.fromkeys(sig.number for _, sig in self.config.signals if sig.kind == "oreg"))
-
     # -- outputs -------------------------------------------------------------------------------------------
 
-    def write(self, out: ArcOutput, robot_ready: bool = True) -> bool:
-        """Write what changed of ``out``; False when a write failed (retried at the next call)."""
-        wanted: dict[str, bool | float] = {"arc_start": out.arc_start, "gas": out.gas, "robot_ready": robot_ready}
-        wanted["wire_feed"] = out.wire_feed
-        wanted["voltage_set"] = out.voltage
-        return self._apply(wanted)
+    def write(self, out: ArcOutput) -> bool:
+        """Write what changed of ``out`` (robot ready held high); False when a write failed (retried at the next
+        call). An output like the last one written in full costs nothing: most cycles."""
+        if out == self._last_out:
+            return True
+        ok = self._apply(
+            {"arc_start": out.arc_start, "gas": out.gas, "robot_ready": True, "wire_feed": out.wire_feed, "voltage_set": out.voltage}
+        )
+        self._last_out = out if ok else None
+        return ok
 
     def release(self) -> bool:
         """Every output off, every set point zero (after the loop ended); never raises."""
         self._written = {}
+        self._last_out = None
         return self._apply({"arc_start": False, "gas": False, "robot_ready": False, "wire_feed": 0.0, "voltage_set": 0.0})
 
     def left_on(self, digital_outputs: int) -> bool:
         """Whether the arc_start output is on in ``digital_outputs`` (actual_digital_output_bits) before any write."""
-        sig = self.config.signal("arc_start")
+        sig = self._signals.get("arc_start")
         if sig is None or sig.kind == "ireg":
             return False
         return bool(digital_outputs >> (_BIT_BASE[sig.kind] + sig.number) & 1)
@@ -149,7 +155,7 @@ class SourceIO:
         words: dict[int, int] = {}
         dirty_words: set[int] = set()
         for role, value in wanted.items():
-            sig = self.config.signal(role)
+            sig = self._signals.get(role)
             if sig is None:
                 continue
             if sig.kind == "ireg":
@@ -167,7 +173,7 @@ class SourceIO:
         for number in dirty_words:
             done = self._send_word(number, words[number])
             for role, value in wanted.items():
-                sig = self.config.signal(role)
+                sig = self._signals.get(role)
                 if sig is not None and sig.kind == "ireg" and sig.number == number:
                     self._written[role] = value if done else None
             ok = ok and done
