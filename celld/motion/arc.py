@@ -3,7 +3,7 @@
 The servo law asks for the arc when the torch reaches the seam's start; what
 the power source is told and when the torch may travel is this sequence's::
 
-    OFF ─ask─▶ PREFLOW ─preflow─▶ STRIKE ─arc stable─▶ WELD ─seam end, at rest─▶ CRATER ─▶ BURNBACK ─▶ POSTFLOW ─▶ DONE
+    OFF ─ask─▶ PREFLOW ─preflow─▶ STRIKE ─arc stable (─▶ RETURN after a scratch)─▶ WELD ─seam end, at rest─▶ CRATER ─▶ BURNBACK ─▶ POSTFLOW ─▶ DONE
                                    │  ▲                  │                                    │
                 timeout, restrikes │  │ pause            │ arc lost: travel 0 at once          └ wire stuck ─▶ STUCK
                 left               ▼  │                  ▼
@@ -15,6 +15,13 @@ the power source is told and when the torch may travel is this sequence's::
   A start that times out switches ``arc_start`` off, counts a failed start,
   and after ``restrike_pause`` tries again, at most ``restrikes`` times in all
   over the weld (a failed start and an arc loss each take one).
+- A re-strike (a strike after the first) is a scratch start: while the arc is
+  not yet stable the torch moves forward along the seam from the point it
+  strikes at (``travel`` +1), at most ``scratch``, then holds; once the arc
+  is stable it comes back to that point with the arc on (RETURN, ``travel``
+  -1) and welds on from there. A scratch that timed out comes back to the
+  strike point with the arc off (in PAUSE) before the next strike. The
+  scratch is not travel: the weld starts where the torch struck.
 - WELD: the torch may travel (``travel`` +1) for as long as the arc is stable.
 - LOST: the arc went out mid-seam: ``travel`` is 0 from the same cycle (the
   law's travel command drops at once; the limiter brakes it jerk-limited),
@@ -65,6 +72,7 @@ class ArcPhase(IntEnum):
     DONE = 10
     STUCK = 11
     FAILED = 12
+    RETURN = 13  # after a scratch start: back to the strike point with the arc on
 
 
 # The phases after which no more arc comes in this weld.
@@ -82,6 +90,8 @@ class ArcParams(NamedTuple):
     restrike_pause: float = 0.2  # s
     arc_loss: str = "restrike"  # ARC_LOSS_POLICIES
     backoff: float = 0.003  # m
+    # How far a re-strike's scratch goes along the seam at most, m (0: re-strikes at rest).
+    scratch: float = 0.002
     crater: float = 0.3  # s
     burnback: float = 0.08  # s
     postflow: float = 0.5  # s
@@ -143,6 +153,13 @@ class ArcSequence:
         self.strikes = 0
         self._since = math.nan  # when the phase began, s
         self._backed = 0.0  # m gone back in BACKOFF
+        # A scratch start's bookkeeping: whether the torch left its strike point, how far ahead of it the torch
+        # is (m, along the direction it was last told to travel in: a braking arm goes on the same way, and the
+        # travel gate turns round only once the arm is at rest).
+        self._scratching = False
+        self._ahead = 0.0
+        self._dir = 0
+        self._moving = False
         self._beat = False
         self._beat_since = math.nan
         self._gas_until = -math.inf  # the gas flows until then after an abort, s
@@ -156,6 +173,11 @@ class ArcSequence:
     def active(self) -> bool:
         """The weld's sequence has begun and not ended."""
         return self.phase not in (ArcPhase.OFF, *FINAL)
+
+    @property
+    def _to_undo(self) -> bool:
+        """The torch is ahead of the point a scratch start struck at."""
+        return self._scratching and self._ahead > 0.0
 
     def _enter(self, phase: ArcPhase, t: float) -> None:
         self.phase = phase
@@ -204,19 +226,32 @@ class ArcSequence:
                     self._fail(t, f"the power source's heartbeat stopped {t - self._beat_since:.1f} s ago")
         ph = self.phase
         age = t - self._since
+        self._moving = speed >= AT_REST_SPEED
+        if self._scratching:
+            self._ahead += self._dir * speed * dt
         if ph == ArcPhase.PREFLOW and age >= p.preflow:
             self.strikes += 1
             self._enter(ArcPhase.STRIKE, t)
         elif ph == ArcPhase.STRIKE:
             if sig.arc_stable:
-                self._enter(ArcPhase.WELD, t)
+                self._enter(ArcPhase.RETURN if self._scratching else ArcPhase.WELD, t)
             elif age >= p.strike_timeout:
                 self.failed_starts += 1
                 self._strike_or_fail(t, f"no stable arc {p.strike_timeout * 1e3:.0f} ms after welding start")
-        elif ph == ArcPhase.PAUSE and age >= p.restrike_pause and speed < AT_REST_SPEED:
+        elif ph == ArcPhase.PAUSE and age >= p.restrike_pause and speed < AT_REST_SPEED and not self._to_undo:
             self.strikes += 1
             self.restrikes += 1
+            # A scratch start from where the torch rests now.
+            self._scratching, self._ahead, self._dir = p.scratch > 0.0, 0.0, 0
             self._enter(ArcPhase.STRIKE, t)
+        elif ph == ArcPhase.RETURN:
+            if not sig.arc_stable:
+                self.arc_losses += 1
+                self._scratching = False
+                self._enter(ArcPhase.LOST, t)
+            elif not self._to_undo and speed < AT_REST_SPEED:
+                self._scratching = False
+                self._enter(ArcPhase.WELD, t)
         elif ph == ArcPhase.WELD:
             if end and speed < AT_REST_SPEED:
                 self._enter(ArcPhase.CRATER, t)
@@ -254,20 +289,33 @@ class ArcSequence:
         ):
             self._gas_until = -math.inf
             self._enter(ArcPhase.DONE, t)
-        return self.output(t)
+        out = self.output(t)
+        if out.travel:
+            self._dir = out.travel
+        return out
 
     def output(self, t: float) -> ArcOutput:
         """What the source is told and the travel gate in the current phase at ``t`` (s); no transition."""
         ph = self.phase
         p = self.p
-        if ph in (ArcPhase.STRIKE, ArcPhase.WELD):
-            return ArcOutput(True, True, p.wire_feed, p.voltage, 1 if ph == ArcPhase.WELD else 0, ph)
+        back = self._to_undo
+        if ph == ArcPhase.WELD:
+            return ArcOutput(True, True, p.wire_feed, p.voltage, self._turn(1), ph)
+        if ph == ArcPhase.STRIKE:
+            scratch = self._scratching and self._ahead < p.scratch
+            return ArcOutput(True, True, p.wire_feed, p.voltage, self._turn(1) if scratch else 0, ph)
+        if ph == ArcPhase.RETURN:
+            return ArcOutput(True, True, p.wire_feed, p.voltage, self._turn(-1) if back else 0, ph)
         if ph == ArcPhase.CRATER:
             return ArcOutput(True, True, p.crater_wire_feed, p.crater_voltage, 0, ph)
         gas = ph in (ArcPhase.PREFLOW, ArcPhase.PAUSE, ArcPhase.LOST, ArcPhase.BACKOFF, ArcPhase.BURNBACK, ArcPhase.POSTFLOW)
         gas = gas or t < self._gas_until
-        travel = -1 if ph == ArcPhase.BACKOFF and self._backed < p.backoff else 0
-        return ArcOutput(False, gas, 0.0, 0.0, travel, ph)
+        backing = (ph == ArcPhase.BACKOFF and self._backed < p.backoff) or (ph == ArcPhase.PAUSE and back)
+        return ArcOutput(False, gas, 0.0, 0.0, self._turn(-1) if backing else 0, ph)
+
+    def _turn(self, travel: int) -> int:
+        """``travel``, or 0 (hold) while the arm still moves the other way: the gate turns round at rest."""
+        return 0 if self._moving and self._dir == -travel else travel
 
 
 def params_of(plan: dict[str, float | int | bool | str]) -> ArcParams:

@@ -6,7 +6,8 @@ its inputs (``source_bits``: the arc stable signal among them), its current
 and voltage. From them:
 
 - the sequence's events: failed starts (a strike that timed out), re-strikes,
-  arc losses mid-seam, and the phase the weld ended in;
+  arc losses mid-seam, and the phase the weld ended in; how far the longest
+  re-strike's scratch took the torch ahead of the point it struck at;
 - the weld data of :func:`celld.weld.weld_data.summarize` against the
   procedure's windows;
 - the seam's welded length: the torch's positions while the source said the
@@ -54,6 +55,7 @@ def sequence_of(procedure: WeldProcedure) -> ArcParams:
         restrike_pause=procedure.restrike_pause,
         arc_loss=procedure.arc_loss,
         backoff=procedure.backoff,
+        scratch=procedure.scratch,
         crater=procedure.crater,
         burnback=procedure.burnback,
         postflow=procedure.postflow,
@@ -100,6 +102,18 @@ def welded_intervals(s: NDArray[np.float64], on: NDArray[np.bool_], max_step: fl
     return out
 
 
+def _scratch_max(phase: NDArray[np.int64], s: NDArray[np.float64]) -> float:
+    """The farthest a re-strike's scratch start took the torch ahead of where it struck (m along the seam; 0 with no
+    re-strike): from each PAUSE -> STRIKE to the end of its STRIKE and RETURN."""
+    out = 0.0
+    for i in np.flatnonzero((phase[:-1] == ArcPhase.PAUSE) & (phase[1:] == ArcPhase.STRIKE)) + 1:
+        j = i
+        while j < len(phase) and phase[j] in (ArcPhase.STRIKE, ArcPhase.RETURN):
+            j += 1
+        out = max(out, float(np.max(s[i:j]) - s[i]))
+    return out
+
+
 def arc_report(
     records: np.ndarray, torch_base: NDArray[np.float64], seam_base: NDArray[np.float64], procedure: WeldProcedure
 ) -> dict[str, Any]:
@@ -132,9 +146,9 @@ def arc_report(
     )
     seam_length = float(polyline.arc_length(seam_base)[-1])
     welded: list[tuple[float, float]] = []
+    s = polyline.project(torch_base, seam_base).arc if len(torch_base) else np.zeros(0)
     if on.any():
-        proj = polyline.project(torch_base, seam_base)
-        welded = welded_intervals(np.clip(proj.arc, 0.0, seam_length), on)
+        welded = welded_intervals(np.clip(s, 0.0, seam_length), on)
     welded_length = float(sum(b - a for a, b in welded))
     gaps: list[tuple[float, float]] = []
     edge = 0.0
@@ -149,7 +163,8 @@ def arc_report(
         "completed": final == ArcPhase.DONE,
         "failed_starts": _transitions(phase, ArcPhase.STRIKE, ArcPhase.PAUSE),
         "restrikes": _transitions(phase, ArcPhase.PAUSE, ArcPhase.STRIKE),
-        "arc_losses": _transitions(phase, ArcPhase.WELD, ArcPhase.LOST),
+        "arc_losses": _transitions(phase, ArcPhase.WELD, ArcPhase.LOST) + _transitions(phase, ArcPhase.RETURN, ArcPhase.LOST),
+        "scratch_max_mm": round(_scratch_max(phase, s) * 1e3, 2),
         "seam_length_mm": round(seam_length * 1e3, 2),
         "welded_mm": round(welded_length * 1e3, 2),
         "unwelded_mm": round(max(seam_length - welded_length, 0.0) * 1e3, 2),
@@ -170,6 +185,11 @@ ARC_SCHEMA = obj(
         "failed_starts": integer("Strikes with no stable arc within the procedure's strike timeout.", lo=0),
         "restrikes": integer("Strikes after the first.", lo=0),
         "arc_losses": integer("Arcs that went out mid-seam.", lo=0),
+        "scratch_max_mm": number(
+            "The farthest a re-strike's scratch start took the torch along the seam ahead of the point it struck at "
+            "(0 without a re-strike).",
+            lo=0.0,
+        ),
         "seam_length_mm": number(lo=0.0),
         "welded_mm": number("Along the seam with the arc stable, counted once.", lo=0.0),
         "unwelded_mm": number(lo=0.0),
@@ -184,6 +204,7 @@ ARC_SCHEMA = obj(
         "failed_starts",
         "restrikes",
         "arc_losses",
+        "scratch_max_mm",
         "seam_length_mm",
         "welded_mm",
         "unwelded_mm",

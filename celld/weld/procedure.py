@@ -51,6 +51,7 @@ KEYS = {
     "restrike_pause_s": "s",
     "arc_loss": "",
     "backoff_mm": "mm",
+    "scratch_mm": "mm",
     "crater_s": "s",
     "crater_wire_feed_m_min": "m/min",
     "crater_voltage_v": "V",
@@ -76,6 +77,9 @@ _PER_MIN = 1.0 / 60.0
 _MM = 1e-3
 # The back-off when a procedure names none, as written (mm).
 _BACKOFF_MM = 5.0
+# A re-strike's scratch along the seam at most (mm): "a few millimetres" at the point it strikes.
+_SCRATCH_MM = 2.0
+_SCRATCH_MAX_MM = 5.0
 
 
 @dataclass(frozen=True)
@@ -108,6 +112,9 @@ class WeldProcedure:
         One of :data:`ARC_LOSS`.
     backoff : float
         How far back along the welded path the torch goes before a re-strike mid-seam, m.
+    scratch : float
+        How far a re-strike's scratch start moves the torch forward along the seam at most while the arc is not
+        yet stable, m (0: re-strikes at rest); the torch then comes back to where it struck (0-5 mm).
     crater, crater_wire_feed, crater_voltage : float
         Crater fill at the seam's end: dwell (s), wire feed (m/s), voltage (V).
     burnback : float
@@ -139,6 +146,7 @@ class WeldProcedure:
     restrike_pause: float = 0.5
     arc_loss: str = "retract"
     backoff: float = _BACKOFF_MM * _MM
+    scratch: float = _SCRATCH_MM * _MM
     crater: float = 0.3
     burnback: float = 0.05
     postflow: float = 1.0
@@ -168,6 +176,7 @@ class WeldProcedure:
             "restrike_pause_s": self.restrike_pause,
             "arc_loss": self.arc_loss,
             "backoff_m": self.backoff,
+            "scratch_m": self.scratch,
             "crater_s": self.crater,
             "crater_wire_feed_m_s": self.crater_wire_feed,
             "crater_voltage_v": self.crater_voltage,
@@ -195,6 +204,7 @@ _PROCEDURE_PROPERTIES = {
     "restrike_pause_s": number("Wait before each further attempt.", lo=0.0),
     "arc_loss": enum(ARC_LOSS, "What an arc loss mid-seam does."),
     "backoff_m": number("How far back along the welded path the torch goes before a re-strike.", lo=0.0),
+    "scratch_m": number("How far a re-strike's scratch start goes along the seam at most (0: at rest).", lo=0.0),
     "crater_s": number("Crater fill dwell at the seam's end.", lo=0.0),
     "crater_wire_feed_m_s": number("Wire feed speed during the crater fill.", lo=0.0),
     "crater_voltage_v": number("Voltage during the crater fill.", lo=0.0),
@@ -278,6 +288,7 @@ def parse(data: dict[str, Any], source: str, stem: str, digest: str = "") -> Wel
         restrike_pause=r.float("restrike_pause_s", WeldProcedure.restrike_pause, lo=0.0, hi=2.0),
         arc_loss=r.str("arc_loss", WeldProcedure.arc_loss, choices=ARC_LOSS),
         backoff=r.float("backoff_mm", _BACKOFF_MM, lo=0.0, hi=10.0, scale=_MM),
+        scratch=r.float("scratch_mm", _SCRATCH_MM, lo=0.0, hi=_SCRATCH_MAX_MM, scale=_MM),
         crater=r.float("crater_s", WeldProcedure.crater, lo=0.0, hi=5.0),
         # The crater fill runs at the main set points unless it names its own: the same number scaled the same way.
         crater_wire_feed=r.float("crater_wire_feed_m_min", data["wire_feed_m_min"], lo=0.5, hi=25.0, scale=_PER_MIN),

@@ -294,7 +294,59 @@ def test_a_failed_first_start_is_struck_again_at_the_start_point_and_the_weld_co
     loop = _run(source)
     assert loop.statuses[-1] == ControlStatus.DONE
     assert loop.core.arc.failed_starts == 1 and loop.core.arc.restrikes == 1 and source.attempt >= 2
-    assert _travel_without_arc(loop, source) < 2e-5
+    phases = _phases(loop)
+    x = np.array(loop.positions)[-len(loop.outs) :, 0]
+    i_restrike = next(i for i in range(1, len(phases)) if phases[i - 1] == ArcPhase.PAUSE and phases[i] == ArcPhase.STRIKE)
+    i_weld = phases.index(ArcPhase.WELD)
+    # The re-strike scratched forward from the start point, came back to it with the arc on, and welded from there.
+    assert ArcPhase.RETURN in phases[i_restrike:i_weld]
+    assert 0.0 < np.max(x[i_restrike:i_weld]) - x[i_restrike] <= ARC.scratch
+    assert abs(x[i_weld] - x[i_restrike]) < 2e-4
+    assert np.ptp(x[phases.index(ArcPhase.STRIKE) : i_restrike]) < 2e-5  # the first start was struck at rest
+
+
+def test_a_restrike_scratches_at_most_its_distance_then_comes_back_to_where_it_struck() -> None:
+    seq = ArcSequence(ARC)
+    t, out = _steps(seq, 0.0, 0.1 + 0.2 + 0.004 + 0.06, READY)  # a failed start, then the pause
+    assert out.phase == ArcPhase.STRIKE and seq.restrikes == 1 and out.travel == 1 and out.arc_start
+    t, out = _steps(seq, t, 0.05, READY, speed=0.02)  # 1 mm of scratch: on
+    assert out.phase == ArcPhase.STRIKE and out.travel == 1
+    t, out = _steps(seq, t, 0.05 + PERIOD, READY, speed=0.02)  # 2 mm: the scratch's end, held there
+    assert out.phase == ArcPhase.STRIKE and out.travel == 0
+    t, out = _steps(seq, t, 0.02, READY._replace(arc_stable=True), speed=0.002)  # braking on: 2.04 mm out
+    assert out.phase == ArcPhase.RETURN and out.travel == 0 and out.arc_start and out.wire_feed == ARC.wire_feed
+    t, out = _steps(seq, t, PERIOD, READY._replace(arc_stable=True))  # at rest: back the 2.04 mm
+    assert out.phase == ArcPhase.RETURN and out.travel == -1
+    t, out = _steps(seq, t, 0.1, READY._replace(arc_stable=True), speed=0.02)
+    assert out.phase == ArcPhase.RETURN and out.travel == -1
+    t, out = _steps(seq, t, 0.01, READY._replace(arc_stable=True), speed=0.02)
+    assert out.phase == ArcPhase.RETURN and out.travel == 0  # back: now to rest
+    t, out = _steps(seq, t, PERIOD, READY._replace(arc_stable=True))
+    assert out.phase == ArcPhase.WELD and out.travel == 1
+    assert seq.failed_starts == 1 and seq.strikes == 2
+
+
+def test_a_scratch_that_finds_no_arc_comes_back_with_the_arc_off_before_the_next_strike() -> None:
+    seq = ArcSequence(ARC)
+    t, out = _steps(seq, 0.0, 0.1 + 0.2 + 0.004 + 0.06, READY)
+    t, out = _steps(seq, t, 0.2, READY, speed=0.01)  # scratched out to 2 mm, no arc: timed out
+    assert out.phase == ArcPhase.PAUSE and not out.arc_start and out.gas and out.travel == 0 and seq.failed_starts == 2
+    t, out = _steps(seq, t, PERIOD, READY)  # at rest 2 mm out: back to the strike point
+    assert out.phase == ArcPhase.PAUSE and out.travel == -1
+    t, out = _steps(seq, t, 0.1, READY, speed=0.01)  # 1 mm back of 2: still going
+    assert out.phase == ArcPhase.PAUSE and out.travel == -1
+    t, out = _steps(seq, t, 0.11, READY, speed=0.01)
+    assert out.phase == ArcPhase.PAUSE and out.travel == 0
+    t, out = _steps(seq, t, PERIOD, READY)  # at rest at the strike point, the pause long over
+    assert out.phase == ArcPhase.STRIKE and seq.restrikes == 2
+
+
+def test_without_a_scratch_distance_a_restrike_strikes_at_rest() -> None:
+    seq = ArcSequence(ARC._replace(scratch=0.0))
+    t, out = _steps(seq, 0.0, 0.1 + 0.2 + 0.004 + 0.06, READY)
+    assert out.phase == ArcPhase.STRIKE and seq.restrikes == 1 and out.travel == 0
+    t, out = _steps(seq, t, PERIOD, READY._replace(arc_stable=True))
+    assert out.phase == ArcPhase.WELD
 
 
 def test_no_arc_at_all_ends_the_weld_with_its_reason_and_the_torch_never_left_the_start() -> None:
@@ -304,7 +356,13 @@ def test_no_arc_at_all_ends_the_weld_with_its_reason_and_the_torch_never_left_th
     assert "no re-strike left" in loop.core.controller.reason or "no re-strike left" in loop.outs[-1].event
     phases = _phases(loop)
     x = np.array(loop.positions)[-len(loop.outs) :, 0]
-    assert np.ptp(x[phases.index(ArcPhase.STRIKE) :]) < 2e-5
+    x_start = x[phases.index(ArcPhase.STRIKE)]
+    # Each re-strike scratched out and came back to the start before the next: never farther than the scratch
+    # and the arm's stop from it.
+    scratched = float(np.max(x[phases.index(ArcPhase.STRIKE) :]) - x_start)
+    assert 0.9 * ARC.scratch < scratched < ARC.scratch + 1e-3
+    restrikes = [i for i in range(1, len(phases)) if phases[i - 1] == ArcPhase.PAUSE and phases[i] == ArcPhase.STRIKE]
+    assert len(restrikes) == 2 and all(abs(x[i] - x_start) < 2e-4 for i in restrikes)
     assert not any(h[3] for h in source.history)
 
 

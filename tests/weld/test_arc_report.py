@@ -55,7 +55,7 @@ def test_a_clean_weld_covers_its_seam_and_ends_done() -> None:
         ]
     )
     r = arc_report(rec, torch, SEAM, proc)
-    assert r["completed"] and r["ended_in"] == "done" and r["procedure"] == "steel-1.0mm-mag-short@1"
+    assert r["completed"] and r["ended_in"] == "done" and r["procedure"] == "steel-1.0mm-mag-short@2"
     assert (r["failed_starts"], r["restrikes"], r["arc_losses"]) == (0, 0, 0)
     assert r["welded_mm"] == pytest.approx(50.0, abs=0.05) and r["unwelded_mm"] == pytest.approx(0.0, abs=0.05)
     assert r["unwelded_stretches_mm"] == [] and not r["flagged"]
@@ -88,6 +88,28 @@ def test_a_loss_with_a_backoff_counts_the_overlap_once_and_a_retract_reports_the
     assert r["unwelded_mm"] == pytest.approx(50.0 - 27.2, abs=0.05)
     assert len(r["unwelded_stretches_mm"]) == 1 and r["unwelded_stretches_mm"][0] == pytest.approx([27.2, 50.0], abs=0.05)
     assert r["weld_data"]["arc_breaks"] == 2
+    validate(ARC_SCHEMA, r)
+
+
+def test_a_scratch_start_is_measured_from_where_it_struck_and_its_return_welds() -> None:
+    proc = load_procedure(PROCEDURES, "steel-1.0mm-mag-short")
+    rec, torch = _weld(
+        [
+            (ArcPhase.STRIKE, 0.2, False, 0.0),
+            (ArcPhase.PAUSE, 0.5, False, 0.0),  # a failed start at rest
+            (ArcPhase.STRIKE, 0.3, False, 0.006),  # the re-strike scratches 1.8 mm
+            (ArcPhase.RETURN, 0.3, True, -0.006),  # the arc caught: back to the strike point, arc on
+            (ArcPhase.WELD, 50e-3 / 0.006, True, 0.006),
+            (ArcPhase.CRATER, 0.1, True, 0.0),
+            (ArcPhase.DONE, 0.01, False, 0.0),
+        ]
+    )
+    r = arc_report(rec, torch, SEAM, proc)
+    assert r["completed"] and (r["failed_starts"], r["restrikes"], r["arc_losses"]) == (1, 1, 0)
+    assert r["scratch_max_mm"] == pytest.approx(1.8, abs=0.01)
+    assert r["welded_mm"] == pytest.approx(50.0, abs=0.05)  # from the strike point on: the scratch is no travel
+    clean = arc_report(*_weld([(ArcPhase.WELD, 1.0, True, 0.006), (ArcPhase.DONE, 0.01, False, 0.0)]), SEAM, proc)
+    assert clean["scratch_max_mm"] == 0.0
     validate(ARC_SCHEMA, r)
 
 
@@ -137,6 +159,6 @@ def test_the_demo_says_what_the_arc_did() -> None:
         [(ArcPhase.WELD, 2.0, True, 0.006), (ArcPhase.CRATER, 0.1, True, 0.0), (ArcPhase.DONE, 0.01, False, 0.0)], current=220.0
     )
     lines = _arc_lines(arc_report(rec, torch, SEAM, proc))
-    assert lines[0].startswith("arc (steel-1.0mm-mag-short@1): done, 0 failed starts") and "welded 12.0 of 50.0 mm" in lines[0]
+    assert lines[0].startswith("arc (steel-1.0mm-mag-short@2): done, 0 failed starts") and "welded 12.0 of 50.0 mm" in lines[0]
     assert "current 220 A" in lines[1] and lines[1].endswith("(flagged)")
     assert _arc_lines(None) == []

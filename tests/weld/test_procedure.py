@@ -39,7 +39,7 @@ def _example(name: str = SHORT) -> dict[str, Any]:
 def test_the_examples_load_in_si() -> None:
     assert list_procedures(PROCEDURES) == [SHORT, SPRAY]
     short = load_procedure(PROCEDURES, SHORT)
-    assert short.ident == f"{SHORT}@1" and short.process == "MAG"
+    assert short.ident == f"{SHORT}@2" and short.process == "MAG"
     assert short.wire_feed == pytest.approx(5.0 / 60.0)  # 5 m/min
     assert short.travel_speed == pytest.approx(0.006)  # 6 mm/s
     assert short.backoff == pytest.approx(0.005)  # 5 mm
@@ -56,7 +56,7 @@ def test_as_dict_is_the_shape_it_promises_and_json_ready() -> None:
     d = procedure.as_dict()
     validate(PROCEDURE_SCHEMA, d)
     assert json.loads(json.dumps(d)) == d
-    assert d["ident"] == f"{SPRAY}@1"
+    assert d["ident"] == f"{SPRAY}@2"
     assert d["wire_feed_m_s"] == pytest.approx(10.0 / 60.0) and d["travel_speed_m_s"] == pytest.approx(0.009)
     assert d["current_window_a"] == [250.0, 310.0] and d["voltage_window_v"] == [26.0, 31.0]
 
