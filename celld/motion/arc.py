@@ -152,14 +152,13 @@ class ArcSequence:
         self.arc_losses = 0
         self.strikes = 0
         self._since = math.nan  # when the phase began, s
-        self._backed = 0.0  # m gone back in BACKOFF
-        # A scratch start's bookkeeping: whether the torch left its strike point, how far ahead of it the torch
-        # is (m, along the direction it was last told to travel in: a braking arm goes on the same way, and the
-        # travel gate turns round only once the arm is at rest).
-        self._scratching = False
-        self._ahead = 0.0
+        # Where the torch is along the seam since the weld began (m): its speed along the direction it was last
+        # told to travel in (a braking arm goes on the same way; the gate turns round only at rest, _turn).
+        self._s = 0.0
         self._dir = 0
         self._moving = False
+        self._backoff_to = 0.0  # where BACKOFF goes back to
+        self._strike_at: float | None = None  # where a scratch start struck (None: no scratch to come back from)
         self._beat = False
         self._beat_since = math.nan
         self._gas_until = -math.inf  # the gas flows until then after an abort, s
@@ -177,7 +176,7 @@ class ArcSequence:
     @property
     def _to_undo(self) -> bool:
         """The torch is ahead of the point a scratch start struck at."""
-        return self._scratching and self._ahead > 0.0
+        return self._strike_at is not None and self._s > self._strike_at
 
     def _enter(self, phase: ArcPhase, t: float) -> None:
         self.phase = phase
@@ -227,14 +226,13 @@ class ArcSequence:
         ph = self.phase
         age = t - self._since
         self._moving = speed >= AT_REST_SPEED
-        if self._scratching:
-            self._ahead += self._dir * speed * dt
+        self._s += self._dir * speed * dt
         if ph == ArcPhase.PREFLOW and age >= p.preflow:
             self.strikes += 1
             self._enter(ArcPhase.STRIKE, t)
         elif ph == ArcPhase.STRIKE:
             if sig.arc_stable:
-                self._enter(ArcPhase.RETURN if self._scratching else ArcPhase.WELD, t)
+                self._enter(ArcPhase.WELD if self._strike_at is None else ArcPhase.RETURN, t)
             elif age >= p.strike_timeout:
                 self.failed_starts += 1
                 self._strike_or_fail(t, f"no stable arc {p.strike_timeout * 1e3:.0f} ms after welding start")
@@ -242,15 +240,15 @@ class ArcSequence:
             self.strikes += 1
             self.restrikes += 1
             # A scratch start from where the torch rests now.
-            self._scratching, self._ahead, self._dir = p.scratch > 0.0, 0.0, 0
+            self._strike_at = self._s if p.scratch > 0.0 else None
             self._enter(ArcPhase.STRIKE, t)
         elif ph == ArcPhase.RETURN:
             if not sig.arc_stable:
                 self.arc_losses += 1
-                self._scratching = False
+                self._strike_at = None
                 self._enter(ArcPhase.LOST, t)
             elif not self._to_undo and speed < AT_REST_SPEED:
-                self._scratching = False
+                self._strike_at = None
                 self._enter(ArcPhase.WELD, t)
         elif ph == ArcPhase.WELD:
             if end and speed < AT_REST_SPEED:
@@ -267,11 +265,10 @@ class ArcSequence:
             elif self.failed_starts + self.arc_losses > p.restrikes:
                 self._fail(t, f"the arc went out mid-seam: no re-strike left ({p.restrikes} allowed)")
             else:
-                self._backed = 0.0
+                self._backoff_to = self._s - p.backoff
                 self._enter(ArcPhase.BACKOFF, t)
         elif ph == ArcPhase.BACKOFF:
-            self._backed += speed * dt
-            if self._backed >= p.backoff and speed < AT_REST_SPEED:
+            if self._s <= self._backoff_to and speed < AT_REST_SPEED:
                 self._enter(ArcPhase.PAUSE, t)
         elif ph == ArcPhase.CRATER and age >= p.crater:
             self._enter(ArcPhase.BURNBACK, t)
@@ -299,10 +296,10 @@ class ArcSequence:
         ph = self.phase
         p = self.p
         back = self._to_undo
-        if ph == ArcPhase.WELD:
-            return ArcOutput(True, True, p.wire_feed, p.voltage, self._turn(1), ph)
+        if ph == ArcPhase.WELD:  # entered at rest
+            return ArcOutput(True, True, p.wire_feed, p.voltage, 1, ph)
         if ph == ArcPhase.STRIKE:
-            scratch = self._scratching and self._ahead < p.scratch
+            scratch = self._strike_at is not None and self._s - self._strike_at < p.scratch
             return ArcOutput(True, True, p.wire_feed, p.voltage, self._turn(1) if scratch else 0, ph)
         if ph == ArcPhase.RETURN:
             return ArcOutput(True, True, p.wire_feed, p.voltage, self._turn(-1) if back else 0, ph)
@@ -310,7 +307,7 @@ class ArcSequence:
             return ArcOutput(True, True, p.crater_wire_feed, p.crater_voltage, 0, ph)
         gas = ph in (ArcPhase.PREFLOW, ArcPhase.PAUSE, ArcPhase.LOST, ArcPhase.BACKOFF, ArcPhase.BURNBACK, ArcPhase.POSTFLOW)
         gas = gas or t < self._gas_until
-        backing = (ph == ArcPhase.BACKOFF and self._backed < p.backoff) or (ph == ArcPhase.PAUSE and back)
+        backing = (ph == ArcPhase.BACKOFF and self._s > self._backoff_to) or (ph == ArcPhase.PAUSE and back)
         return ArcOutput(False, gas, 0.0, 0.0, self._turn(-1) if backing else 0, ph)
 
     def _turn(self, travel: int) -> int:

@@ -106,10 +106,10 @@ def _scratch_max(phase: NDArray[np.int64], s: NDArray[np.float64]) -> float:
     """The farthest a re-strike's scratch start took the torch ahead of where it struck (m along the seam; 0 with no
     re-strike): from each PAUSE -> STRIKE to the end of its STRIKE and RETURN."""
     out = 0.0
+    striking = np.isin(phase, (ArcPhase.STRIKE, ArcPhase.RETURN))
     for i in np.flatnonzero((phase[:-1] == ArcPhase.PAUSE) & (phase[1:] == ArcPhase.STRIKE)) + 1:
-        j = i
-        while j < len(phase) and phase[j] in (ArcPhase.STRIKE, ArcPhase.RETURN):
-            j += 1
+        after = np.flatnonzero(~striking[i:])
+        j = i + (int(after[0]) if len(after) else len(phase) - i)
         out = max(out, float(np.max(s[i:j]) - s[i]))
     return out
 
