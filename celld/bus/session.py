@@ -259,6 +259,9 @@ def client_config(bus: BusConfig, user: str | None = None, password: str | None 
             "endpoints": endpoints,
             "timeout_ms": {"router": -1, "peer": -1, "client": timeout_ms},
             "exit_on_failure": {"router": False, "peer": False, "client": True},
+            # A cell that is starting (or restarting) answers within a tenth of a second of listening, not at
+            # zenoh's next attempt of 1-4 s later.
+            "retry": {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2},
         },
         "scouting": _scouting(bus),
     }

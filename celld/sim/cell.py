@@ -51,12 +51,10 @@ from celld.scanner.base import Scanner
 from celld.scanner.process import ScannerProcess
 from celld.sim.robot import SimRobotHandle, launch
 from celld.sim.robot.source import SourceOptions
-from celld.sim.robot.truth import TruthReader
-from celld.sim.scanner import SceneObject, SimulatedScanner, robot_scene_source, scanner_model
-from celld.sim.scene import robot_scene
 from celld.sim.srm import ContactParams, SimSrmSource, SrmSimParams
-from celld.sim.workpiece import SimWorkpiece, true_part, workpiece_scene
+from celld.sim.workpiece import SimWorkpiece, true_part
 from celld.sim.world import World, WorldOptions, world_of
+from celld.sim.world_scanner import open_world_scanner
 
 # A wall this far away (m) stands for "no workpiece": the finger touches nothing.
 _FAR = 100.0
@@ -89,7 +87,8 @@ def srm_source(world: World, robot_host: str, part: SimWorkpiece | None) -> SimS
 class _CellScanner:
     """Opens the simulated scanner of a world in a process of its own (:class:`~celld.scanner.process.ScannerProcess`:
     the ray casting holds the GIL, which the daemon's event loop needs): the robot scene at the true flange pose
-    with the tool as built, plus the part."""
+    with the tool as built, plus the part (:func:`celld.sim.world_scanner.open_world_scanner`, in a module of its own
+    so the child imports only what the scanner needs, not the daemon)."""
 
     def __init__(self, world: World, part: SimWorkpiece | None) -> None:
         self.world = world
@@ -98,59 +97,6 @@ class _CellScanner:
     def __call__(self, config: Config) -> Scanner:
         host2 = config.robot2.robot.host if config.robot2 is not None else None
         return ScannerProcess(partial(open_world_scanner, self.world, self.part, config.robot.host, host2), name="sim-scanner")
-
-
-def open_world_scanner(world: World, part: SimWorkpiece | None, host: str, host2: str | None = None) -> Scanner:
-    """The simulated scanner of ``world``: it sees the robot on ``host`` (and a second one on ``host2``) where their
-    simulators truly put them, and ``part`` as placed."""
-    objects: list[SceneObject] = [] if part is None else workpiece_scene(part.workpiece, part.T_base_obj)
-    truth = TruthReader(host)  # the simulated robot on the controller's address
-    sc = world.scanner
-    model = scanner_model(sc.model)
-    if sc.metal_bias is not None:
-        model = replace(model, metal_bias=sc.metal_bias)
-    # One table: the part's scene brings the steel welding table (the robot
-    # scene's would lie in the same plane, a matte twin a time-of-flight
-    # camera reads 8 mm apart from it).
-    arm = world.arm
-    robot2 = world.robot2
-    # The second robot (its simulator on the controller's address for it), if the cell has one.
-    truth2 = TruthReader(host2) if robot2 is not None and host2 is not None else None
-    closers = [truth.close] if truth2 is None else [truth.close, truth2.close]
-
-    def extra() -> list[SceneObject]:
-        if robot2 is None or truth2 is None:
-            return objects
-        # Its flange and wrist where its true base and joints put them.
-        T_base1_flange2 = robot2.T_base1_base2 @ truth2.latest().T_base_flange
-        return [*objects, *robot_scene(T_base1_flange2, robot2.flange, table=False)]
-
-    def close() -> None:
-        for c in closers:
-            c()
-
-    def T_base_cam() -> np.ndarray:
-        # A scanner on the arm is where the arm's true joints put its link now.
-        return sc.T_base_cam_at(truth.latest().q, arm.dh)
-
-    return SimulatedScanner(
-        model,
-        T_base_cam if sc.link else sc.T_base_cam,
-        robot_scene_source(
-            lambda: truth.latest().T_base_flange,
-            world.flange,
-            table=not objects,
-            extra=extra,
-            tool=world.tool.config,  # the tool as built, never the controller's [tool]
-            p_flange_torch=world.tool.p_flange_torch,
-        ),
-        seed=sc.noise_seed,
-        resolution_scale=sc.resolution_scale,
-        roi_px=sc.roi_px,
-        on_close=close,
-        measure=None if sc.ideal else sc.measure,
-        capture_delay=sc.capture_delay,
-    )
 
 
 def sim_devices(config: Config, world: World, part: SimWorkpiece | None) -> DeviceFactories:
@@ -301,10 +247,10 @@ def start_daemon(
             try:
                 client = CellClient(cfg.bus, cfg.cell.name, timeout=20.0)
             except BusError:
-                time.sleep(0.5)
+                time.sleep(0.1)
         while links and not _links_up(client.status()):
             check("the robot link")
-            time.sleep(0.5)
+            time.sleep(0.1)
     except BaseException:
         if client is not None:
             client.close()
