@@ -14,6 +14,7 @@ a job uses them, refusing what is missing or unusable with the reason.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
@@ -144,6 +145,20 @@ def current_calibration(state_dir: Path, mount: str = "base") -> tuple[Placement
     cal = required_calibration(state_dir)
     placement, range_bias = placed(cal, mount)
     return placement, range_bias, str(cal.get("job", ""))
+
+
+def weld_site_bound(state_dir: Path) -> float | None:
+    """The current calibration's own 95 % bound on its error away from where it was calibrated (m): its arm fit's
+    away from its poses when it has one, else its quality's within the work radius; None when it stores none."""
+    cal = required_calibration(state_dir)
+    arm = cal.get("arm")
+    try:
+        mm = arm["bound"]["away_mm"] if isinstance(arm, Mapping) else cal["quality"]["bound"]["work_radius_mm"]
+    except (KeyError, TypeError):
+        return None
+    if isinstance(mm, bool) or not isinstance(mm, (int, float)) or not 0.0 <= mm < math.inf:
+        return None
+    return float(mm) * 1e-3
 
 
 def for_controller(placement: Placement, kinematics: Callable[[], primary.ControllerKinematics]) -> Placement:

@@ -63,7 +63,7 @@ from celld.config import Config, ServoConfig, ToolConfig, WeldConfig, with_overr
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
 from celld.daemon.planning import MotionPlanner, record_arm, record_cell, record_plan
-from celld.daemon.store import current_calibration, current_tool, for_controller
+from celld.daemon.store import current_calibration, current_tool, for_controller, weld_site_bound
 from celld.errors import CelldError, ConfigError, InputError, JobError, SafetyStop, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import Phase, algorithm2_plan
@@ -309,10 +309,12 @@ async def _probe_height(
     tool_cfg: ToolConfig,
     sensor_yaw: float,
     speed: float,
+    bound: float | None,
 ) -> tuple[dict[str, Any], WeldPlan]:
     """Touch the far wall and the finger wall at the start; the tip's height in the joint from the width
-    there (:func:`celld.weld.plan.probed_height`). Returns what was found and the plan moved to that
-    height, the tool at its new start (unchanged when not probed)."""
+    there (:func:`celld.weld.plan.probed_height`), and the calibration's error there against ``bound`` (m,
+    the calibration's own; :func:`celld.weld.plan.touch_check`). Returns what was found and the plan moved to
+    that height, the tool at its new start (unchanged when not probed)."""
     wc = config.weld
     if not wc.probe_height:
         return {"probed": False, "why": "weld.probe_height is off"}, plan
@@ -332,7 +334,22 @@ async def _probe_height(
         touches[target.name] = contact_across(records, tool, origin, across, tool.side, servo.delta_d)
         await devices.robot.move_to(plan.T_start, speed_scale=speed)
     found, moved = probed_height(plan, touches, tool, tool.T_tcp_tool, wc.max_height_correction)
-    log.info("tip height probed", job=ctx.job_id, **found)
+    check = found["touch_check"]
+    within = None if bound is None else check["error_mm"] <= bound * 1e3
+    check.update(
+        bound_mm=None if bound is None else round(bound * 1e3, 4),
+        within_bound=within,
+        verdict="no_bound" if within is None else "ok" if within else "beyond_bound",
+    )
+    log.info("tip height probed", job=ctx.job_id, **{k: v for k, v in found.items() if k != "touch_check"})
+    log.info("touch check", job=ctx.job_id, **{k: check[k] for k in ("across_mm", "height_mm", "error_mm", "bound_mm", "verdict")})
+    if within is False:
+        log.warning(
+            "the calibration is off at the weld by more than its bound: calibrate again",
+            job=ctx.job_id,
+            error_mm=check["error_mm"],
+            bound_mm=check["bound_mm"],
+        )
     await devices.robot.move_to(moved.T_start, speed_scale=speed)
     return found, moved
 
@@ -363,6 +380,7 @@ class WeldSetup:
     placement: Placement  # the current calibration's scanner
     range_bias: float  # m, the scanner's on metal
     calibration_job: str
+    site_bound: float | None  # m, the calibration's own bound on its error at the weld (None: it stores none)
     workpiece: Workpiece
     part: PreparedPart
     # The weld procedure the power source welds with (None: the cell has no [power_source], or the arc is off).
@@ -493,6 +511,7 @@ async def weld_setup(ctx: JobContext, config: Config, job: WeldJob, cache: dict[
         placement=placement,
         range_bias=range_bias,
         calibration_job=cal_job,
+        site_bound=weld_site_bound(ctx.state_dir),
         workpiece=workpiece,
         part=cache[key],
         procedure=procedure,
@@ -699,7 +718,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     up = plan.up
     try:
         height_probe, plan = await _probe_height(
-            ctx, devices, config, plan, setup.servo, setup.tool_config, setup.sensor_yaw, min(speed, 0.2)
+            ctx, devices, config, plan, setup.servo, setup.tool_config, setup.sensor_yaw, min(speed, 0.2), setup.site_bound
         )
     except CelldError as exc:
         await _after_fault(ctx, devices, wc, exc, up, q_scan, speed)

@@ -155,6 +155,7 @@ def run_jobs(
         measured_tool,
         open_loop_torch,
         targeting,
+        touch_check_truth,
         true_camera,
         true_torch_path,
     )
@@ -322,6 +323,13 @@ def run_jobs(
             alone_measured = open_loop_torch(world, planned, planned_wall, home, measured)
             figures["weld"]["plan_alone_measured_tool_error"] = lateral(part, alone_measured)
             figures["weld"]["plan_alone_measured_tool_height"] = height(part, alone_measured, cfg.weld.tip_height)
+        probe = res.get("height_probe") or {}
+        if probe.get("probed"):
+            # What the touch check should have read: its point where the arm truly put it, against the part's true root.
+            used = measured_tool(cfg.tool, tool) if tool_calibrate and figures.get("tool", {}).get("torch_measured") else cfg.tool
+            figures["weld"]["touch_check_truth"] = touch_check_truth(
+                part, probe["touch_check"], recorder.records(), used.tip_tcp, world.tool.config.tip_tcp
+            )
         figures["verification"] = _verification(Path(cfg.cell.state_dir))
         figures["loop"] = _loop(cell.client)
     return figures

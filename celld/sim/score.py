@@ -256,6 +256,46 @@ def open_loop_torch(world: World, planned: ArrayLike, planned_wall: ArrayLike, q
     return out[np.all(np.isfinite(out), axis=1)]
 
 
+# The truth of a touch check is read from the arm's states with the believed tip this close to the checked point, m
+# (the touches reach the joint's walls, 2-3 mm either side of it).
+TOUCH_CHECK_NEAR = 4e-3
+
+
+def touch_check_truth(
+    part: Any, check: dict[str, Any], records: np.ndarray, tip_believed: ArrayLike, tip_true: ArrayLike
+) -> dict[str, float] | None:
+    """What a weld's touch check (its ``height_probe.touch_check``, :func:`celld.weld.plan.touch_check`) should have
+    read, from the simulated arm's states during the weld (``records``, :data:`TRUTH_DTYPE`).
+
+    Where the controller believed the finger's tip was (its model's TCP, ``tip_believed`` the tip in the TCP frame as
+    the weld knew the tool) and where it truly was (the true TCP, ``tip_true`` the tool as built), over the states
+    with the believed tip within :data:`TOUCH_CHECK_NEAR` of the check's point before the arc first burned: their
+    mean difference carries the check's point, as the controller was sent it, to where the arm truly puts it (the
+    arm's error there as it came: its temperature, rest error and lost motion included). ``across_mm``: the part's
+    true root line's foot minus that point, across; ``height_mm``: the planned height minus its true height over
+    the true root. None when no state was near the point.
+    """
+    p, a = np.asarray(check["at_base"], dtype=np.float64), np.asarray(check["across"], dtype=np.float64)
+    recs = records[: int(np.argmax(records["arc_on"]))] if records["arc_on"].any() else records
+    tb = np.append(np.asarray(tip_believed, dtype=np.float64), 1.0)
+    tt = np.append(np.asarray(tip_true, dtype=np.float64), 1.0)
+    believed = (recs["T_base_tcp_model"] @ tb)[:, :3]
+    near = np.linalg.norm(believed - p, axis=1) <= TOUCH_CHECK_NEAR
+    if not near.any():
+        return None
+    true = (recs["T_base_tcp"][near] @ tt)[:, :3]
+    x = p + np.mean(true - believed[near], axis=0)  # the checked point where the arm truly puts it
+    R, o = part.T_base_plane[:3, :3], part.T_base_plane[:3, 3]
+    S = (np.asarray(part.seam_base, dtype=np.float64) - o) @ R
+    q = (x - o) @ R
+    proj = polyline.project(q[None, :2], S[:, :2])
+    arc = polyline.arc_length(S[:, :2])
+    foot = np.array([np.interp(proj.arc[0], arc, S[:, k]) for k in range(3)])  # plane coordinates
+    across = float((R @ (foot - q)) @ a)
+    height = float(check["tip_height_mm"]) * 1e-3 - float(q[2] - foot[2])
+    return {"across_mm": across * 1e3, "height_mm": height * 1e3, "error_mm": math.hypot(across, height) * 1e3, "states": int(near.sum())}
+
+
 class TruthRecorder:
     """Gathers the simulated arm's true states while a job runs (the shared history holds only ~2 s).
 

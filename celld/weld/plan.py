@@ -17,6 +17,9 @@ Pure: arrays and configs in, a plan out. The weld job
 3. :func:`probe_targets` and :func:`probed_height`: where the finger touches
    the joint's two walls at the start, and the tip's height in the joint
    from the width found there (the plan moved to the height it should have);
+   :func:`touch_check`: from the same touches, how far the joint is from where
+   the scan and the calibration put it, across and in height: the
+   calibration's error where the weld happens;
 4. :func:`precorrected`: with the arm's kinematic calibration, the plan (in
    the calibrated arm's base frame) as the controller is to be sent it;
 5. :func:`summarise`: the refined and torch paths of a finished track and its
@@ -36,7 +39,7 @@ from celld import polyline, se3
 from celld.config import ToolConfig, WeldConfig
 from celld.config.seam import SeamParams
 from celld.errors import WorkpieceError
-from celld.schemadoc import const, number, obj, vector, with_properties
+from celld.schemadoc import boolean, const, enum, nullable, number, obj, vector, with_properties
 from celld.seam.figures import TRACK_FIGURES_SCHEMA, track_summary
 from celld.seam.pipeline import PreparedWorkpiece, SeamPath, find_seam, prepare
 from celld.seam.weldpath import (
@@ -250,19 +253,80 @@ def probe_across(plan: WeldPlan) -> tuple[np.ndarray, np.ndarray]:
     return geometry.T_base_plane[:3, 3], N / np.linalg.norm(N)
 
 
+# The JSON shape of touch_check's reading, with the calibration's bound the weld job sets beside it.
+TOUCH_CHECK_SCHEMA = obj(
+    "The calibration's error where the weld starts, from the height probe's two touches: where the finger found the "
+    "joint against where the scan, placed by the calibration (and the arm's corrections), put it. It holds the whole "
+    "chain from the scanner to the finger's tip (calibration, arm, tool calibration), which is what the weld rests on.",
+    {
+        "across_mm": number("The joint's centre as touched minus as scanned, across the joint (positive towards the finger wall)."),
+        "height_mm": number("The joint's root as touched minus as scanned, along the welding plane's normal (positive: higher)."),
+        "error_mm": number("The norm of the two.", lo=0.0),
+        "tip_height_mm": number("The tip's height over the scanned root the plan touched at."),
+        "at_base": vector("Where it was checked: the scan's joint centre at the planned tip height, base frame, m (as sent).", 3),
+        "across": vector("The direction across the joint there (unit, base frame, towards the finger wall).", 3),
+        "up": vector("The welding plane's normal (unit, base frame).", 3),
+        "tcp_pose": vector("The TCP pose (x, y, z, rx, ry, rz; m, rad) that puts the tip on at_base as the weld starts (as sent).", 6),
+        "bound_mm": nullable(
+            number("The calibration's own 95 % bound on its error away from the calibration box (null: none stored).", lo=0.0)
+        ),
+        "within_bound": nullable(boolean("Whether that bound covers the error the touches found (null: no bound).")),
+        "verdict": enum(
+            ("ok", "beyond_bound", "no_bound"),
+            "ok: the bound covers the error; beyond_bound: the calibration is off at the weld by more than it says: calibrate again.",
+        ),
+    },
+    ("across_mm", "height_mm", "error_mm", "tip_height_mm", "at_base", "across", "up", "tcp_pose"),
+)
+
 # The JSON shape of what probed_height found (a joint that was probed).
 PROBED_SCHEMA = obj(
     "The tip's height in the joint, probed by touch at the start: the joint's width where the finger met its two walls, "
-    "the height that width gives, and the plan's correction to it.",
+    "the height that width gives, and the plan's correction to it; and the calibration's error there (touch_check).",
     {
         "probed": const(True),
         "joint_width_mm": number("The joint's width at the tip, from the two touches."),
         "scan_width_mm": number("Its width there as the scan measured it, at the planned height."),
         "height_mm": number("The tip's height above the seam that the width gives."),
         "height_correction_mm": number("How far the plan moved up (positive) or down to the height it should have."),
+        "touch_check": TOUCH_CHECK_SCHEMA,
     },
-    ("probed", "joint_width_mm", "scan_width_mm", "height_mm", "height_correction_mm"),
+    ("probed", "joint_width_mm", "scan_width_mm", "height_mm", "height_correction_mm", "touch_check"),
 )
+
+
+def touch_check(plan: WeldPlan, touches: dict[str, float], height: float, T_tcp_tool: np.ndarray) -> dict[str, Any]:
+    """The calibration's error at the weld's start from the probe's two touches (``touches`` as for
+    :func:`probed_height`; ``height``, m, the tip's height in the joint they gave; ``T_tcp_tool`` the tool's):
+    :data:`TOUCH_CHECK_SCHEMA` but the bound, which the job adds.
+
+    Across: the midpoint of the two walls as touched (each touch is the tip's centre, a radius from its wall on
+    either side, so the radii cancel) against the midpoint of the scan's walls at ``height``, both along
+    :func:`probe_across`. In height: the plan put the tip ``tip_height`` above the scanned root, the width says it
+    stands ``height`` above the true one; the root is higher than scanned by the difference.
+    """
+    geometry, seam = plan.geometry, plan.seam
+    i = int(geometry.stations([LEAD_IN])[0])
+    origin, across = probe_across(plan)
+    finger, far = seam.wall_across[i], seam.far_wall_across[i]
+    y_seam = float((geometry.seam_base[i] - origin) @ across)
+    centre_scan = y_seam + 0.5 * (float(finger[0] + finger[1] * height) - float(far[0] + far[1] * height))
+    centre_touch = 0.5 * (touches["finger"] + touches["far"])
+    d_across, d_height = centre_touch - centre_scan, geometry.tip_height - height
+    # The start's tool orientation, its tip on the checked point.
+    T_base_tool = plan.T_start @ T_tcp_tool
+    T_base_tool[:3, 3] = geometry.seam_base[i]
+    tcp = se3.to_ur_pose(T_base_tool @ se3.invert(T_tcp_tool))
+    return {
+        "across_mm": round(float(d_across) * 1e3, 4),
+        "height_mm": round(float(d_height) * 1e3, 4),
+        "error_mm": round(math.hypot(d_across, d_height) * 1e3, 4),
+        "tip_height_mm": round(geometry.tip_height * 1e3, 4),
+        "at_base": [round(float(v), 7) for v in geometry.seam_base[i]],
+        "across": [round(float(v), 7) for v in across],
+        "up": [round(float(v), 7) for v in geometry.T_base_plane[:3, 2]],
+        "tcp_pose": [round(float(v), 7) for v in tcp],
+    }
 
 
 def probed_height(
@@ -288,6 +352,7 @@ def probed_height(
         "scan_width_mm": round(joint_width(finger, far, geometry.tip_height) * 1e3, 4),
         "height_mm": round(height * 1e3, 4),
         "height_correction_mm": round(-dh * 1e3, 4),
+        "touch_check": touch_check(plan, touches, height, T_tcp_tool),
     }
     if abs(dh) > max_correction:
         raise WorkpieceError(

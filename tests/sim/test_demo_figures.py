@@ -58,3 +58,32 @@ def test_the_plan_alone_with_the_measured_tool_is_built_from_the_tool_calibratio
     assert tool.tip_tcp == pytest.approx((0.8e-3, 0.0, 0.2))
     assert tool.torch_offset == pytest.approx(np.hypot(30.0, 0.9) * 1e-3)
     np.testing.assert_allclose(tool.tool_x_tcp, np.array([30.0, -0.9, 0.0]) / np.hypot(30.0, 0.9))
+
+
+def test_the_touch_checks_truth_carries_its_point_by_the_arms_error_there_against_the_true_root() -> None:
+    from types import SimpleNamespace
+
+    from celld.sim.robot.truth import TRUTH_DTYPE
+    from celld.sim.score import touch_check_truth
+
+    # The true root along x in the plane z = 0; the check at x = 50 mm, 3 mm up, across along +y.
+    part = SimpleNamespace(T_base_plane=np.eye(4), seam_base=np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]]))
+    check = {"at_base": [0.05, 0.0, 0.003], "across": [0.0, 1.0, 0.0], "tip_height_mm": 3.0}
+    tip_believed, tip_true = np.array([0.0, 0.0, 0.2]), np.array([0.0, 1e-4, 0.2])  # the tool as built 0.1 mm off
+    recs = np.zeros(30, TRUTH_DTYPE)
+    for k, r in enumerate(recs):
+        wobble = 1e-3 * np.array([0.0, (k % 3) - 1.0, 0.0])  # the touches move the tip across
+        model = se3.transform_from(np.eye(3), np.array(check["at_base"]) - tip_believed + wobble)
+        r["T_base_tcp_model"] = model
+        # The arm truly 0.4 mm to -y and 0.2 mm low; after the arc lit (the last 10), 5 mm off: not the check's.
+        off = np.array([0.0, -4e-4, -2e-4]) if k < 20 else np.array([0.0, 5e-3, 0.0])
+        r["T_base_tcp"] = se3.transform_from(np.eye(3), model[:3, 3] + off)
+        r["arc_on"] = k >= 20
+    got = touch_check_truth(part, check, recs, tip_believed, tip_true)
+    assert got is not None and got["states"] == 20
+    # The point truly at y = -0.3 mm, z = 2.8 mm: the root 0.3 mm across towards +y, and 0.2 mm higher than planned.
+    assert got["across_mm"] == pytest.approx(0.3, abs=1e-6) and got["height_mm"] == pytest.approx(0.2, abs=1e-6)
+    assert got["error_mm"] == pytest.approx(math.hypot(0.3, 0.2), abs=1e-6)
+    # No state near the point: no truth.
+    far = {**check, "at_base": [0.08, 0.0, 0.003]}
+    assert touch_check_truth(part, far, recs, tip_believed, tip_true) is None

@@ -25,8 +25,10 @@ from celld.weld.plan import (
     plan_weld,
     precorrected,
     prepare_part,
+    probe_across,
     probe_targets,
     probed_height,
+    touch_check,
 )
 
 T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0.0, -1.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
@@ -81,6 +83,45 @@ def test_a_probe_that_finds_the_planned_width_leaves_the_plan_and_a_wider_joint_
     assert (plan.T_start[:3, 3] - lifted.T_start[:3, 3]) @ plan.up == pytest.approx(0.001, abs=1e-6)
     with pytest.raises(WorkpieceError, match="check the calibration and the tool"):
         probed_height(plan, touches(planned + opening * 0.003), tool, tool.T_tcp_tool, WELD.max_height_correction)
+
+
+def test_the_touch_check_reads_how_far_the_touched_joint_is_from_the_scanned_one_across_and_in_height(plan: WeldPlan) -> None:
+    tool = ToolGeometry.from_config(TOOL)
+    i = int(plan.geometry.stations([LEAD_IN])[0])
+    finger, far = plan.seam.wall_across[i], plan.seam.far_wall_across[i]
+    origin, across = probe_across(plan)
+    h = plan.geometry.tip_height
+    y_seam = float((plan.geometry.seam_base[i] - origin) @ across)
+
+    def touches(shift: float, lower: float = 0.0) -> dict[str, float]:
+        # The tip's centre a radius inside each wall, the walls as the scan measured them but the joint moved
+        # ``shift`` towards the finger wall and its root ``lower`` down (the tip, at the planned height over the
+        # scanned root, meets the walls where they are ``h + lower`` over the true one).
+        finger_wall = y_seam + finger[0] + finger[1] * (h + lower) + shift
+        far_wall = y_seam - (far[0] + far[1] * (h + lower)) + shift
+        return {"finger": finger_wall - tool.tip_radius, "far": far_wall + tool.tip_radius}
+
+    # Where the scan put it: no error.
+    found, _ = probed_height(plan, touches(0.0), tool, tool.T_tcp_tool, WELD.max_height_correction)
+    check = found["touch_check"]
+    assert check["across_mm"] == pytest.approx(0.0, abs=1e-4) and check["height_mm"] == pytest.approx(0.0, abs=1e-4)
+    np.testing.assert_allclose(check["at_base"], plan.geometry.seam_base[i], atol=1e-6)
+    # The TCP pose given puts the tip there, the tool turned as at the start.
+    T_tool = se3.from_ur_pose(check["tcp_pose"]) @ tool.T_tcp_tool
+    np.testing.assert_allclose(T_tool[:3, 3], plan.geometry.seam_base[i], atol=1e-6)
+    np.testing.assert_allclose(T_tool[:3, :3], (plan.T_start @ tool.T_tcp_tool)[:3, :3], atol=1e-6)
+    # The joint 0.3 mm further towards the finger wall than scanned: +0.3 mm across, none in height.
+    check = touch_check(plan, touches(0.3e-3), h, tool.T_tcp_tool)
+    assert check["across_mm"] == pytest.approx(0.3, abs=1e-4) and check["error_mm"] == pytest.approx(0.3, abs=1e-4)
+    # The root 0.5 mm lower than scanned and the joint 0.2 mm towards the far wall: the tip stands 0.5 mm higher
+    # than planned, and the plan comes down by it.
+    found, _ = probed_height(plan, touches(-0.2e-3, 0.5e-3), tool, tool.T_tcp_tool, WELD.max_height_correction)
+    check = found["touch_check"]
+    assert check["across_mm"] == pytest.approx(-0.2, abs=1e-4), check
+    assert check["height_mm"] == pytest.approx(-0.5, abs=1e-4) and found["height_correction_mm"] == pytest.approx(-0.5, abs=1e-4)
+    assert check["error_mm"] == pytest.approx(math.hypot(0.2, 0.5), abs=1e-4)
+    check.update(bound_mm=1.0, within_bound=True, verdict="ok")  # the job adds the calibration's bound
+    validate(PROBED_SCHEMA, found)
 
 
 def test_a_torch_measured_off_the_tips_height_moves_the_tip_so_the_torch_welds_at_the_planned_height() -> None:

@@ -240,7 +240,7 @@ class SimServer:
                 stamp_ns, c.q_true, arm.qd, c.T_tcp_true, arm.T_flange_tcp, c.digital_out,
                 (c.robot_mode, c.safety_mode, c.runtime_state),
                 src is not None and src.arc_on, src.current if src is not None else 0.0,
-                src is not None and src.wire_stuck,
+                src is not None and src.wire_stuck, arm.T_tcp,
             )  # fmt: skip
 
     def _release_held(self, now_ns: int) -> None:

@@ -39,6 +39,7 @@ TRUTH_DTYPE = np.dtype(
         ("qd", "<f8", (6,)),  # joint speeds, rad/s
         ("T_base_tcp", "<f8", (4, 4)),  # true TCP pose in the base frame (true flange x the TCP offset)
         ("T_flange_tcp", "<f8", (4, 4)),  # TCP offset in force at that cycle
+        ("T_base_tcp_model", "<f8", (4, 4)),  # the controller's belief: its model's TCP at the joints it commands
         ("digital_out", "<u8"),  # actual_digital_output_bits (bit 0-7 standard outputs)
         ("robot_mode", "<i4"),
         ("safety_mode", "<i4"),
@@ -99,12 +100,14 @@ class TruthPublisher:
         self._rec = np.zeros(1, TRUTH_DTYPE)
         self._rec["T_base_tcp"][0] = np.eye(4)
         self._rec["T_flange_tcp"][0] = np.eye(4)
+        self._rec["T_base_tcp_model"][0] = np.eye(4)
         r = self._rec[0]
         # Views into the one record, filled in place each cycle.
         self._q = r["q"]
         self._qd = r["qd"]
         self._T = r["T_base_tcp"][:3].reshape(12)
         self._T_ft = r["T_flange_tcp"][:3].reshape(12)
+        self._T_model = r["T_base_tcp_model"][:3].reshape(12)
 
     def publish(
         self,
@@ -118,6 +121,7 @@ class TruthPublisher:
         arc_on: bool = False,
         weld_current: float = 0.0,
         wire_stuck: bool = False,
+        T_base_tcp_model_rows: Sequence[float] | None = None,
     ) -> None:
         r = self._rec
         r["stamp_ns"] = stamp_ns
@@ -125,6 +129,7 @@ class TruthPublisher:
         self._qd[:] = qd
         self._T[:] = T_base_tcp_rows
         self._T_ft[:] = T_flange_tcp_rows
+        self._T_model[:] = T_base_tcp_rows if T_base_tcp_model_rows is None else T_base_tcp_model_rows
         r["digital_out"] = digital_out
         r["robot_mode"], r["safety_mode"], r["runtime_state"] = modes
         r["arc_on"] = arc_on
