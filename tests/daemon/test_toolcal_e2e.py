@@ -21,6 +21,7 @@ refuses, dry-runs, cancels and kills welds in the ideal world.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,7 @@ from celld import se3
 from celld.calib.toolcal import solve_tool_tip
 from celld.errors import JobError
 from celld.sim.cell import run_cell, sim_part
-from celld.sim.score import TruthRecorder, lateral, open_loop_torch, true_flange, true_torch_path
+from celld.sim.score import TruthRecorder, lateral, open_loop_torch, touch_check_truth, true_flange, true_torch_path
 from tests.daemon.cells import install_calibration
 from tests.daemon.exported import check_exported, checked_result
 from tests.daemon.welds import ArcWatch, check_weld
@@ -57,6 +58,9 @@ ROI_PX = [600, 1020, 810, 1290]
 # The calibration the tool calibration starts from: every pose of 10 (Algorithm 1 down to 0.01 mm keeps
 # them all: the realistic arm's error needs the pairs), the scanner's whole view at half resolution.
 CAL_POSES = 10
+# The touch check against its truth, mm: the finger's estimate of its deformation and the scan's wall shape are
+# all that part them (bench/realistic_cell.py's target is 0.10 mm; here one weld, with room for its scatter).
+TOUCH_CHECK_AGREE = 0.15
 CAL_SCALE = 0.5
 
 
@@ -178,3 +182,11 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         print(f"weld: plan alone {plan_alone}, torch tracked by touch {torch_path}")
         assert plan_alone["rms_mm"] > 0.2 or plan_alone["max_mm"] > 0.5, plan_alone
         assert torch_path["points"] > 100 and torch_path["rms_mm"] <= 0.2 and torch_path["max_mm"] <= 0.5, (torch_path, plan_alone)
+        # The touch check: the calibration's error at the weld's start as the probe's touches read it, against where
+        # the arm truly put the checked point (the controller's belief against the truth, near it).
+        check = res["height_probe"]["touch_check"]
+        truth_check = touch_check_truth(part, check, truth.records(), tip, world.tool.config.tip_tcp)
+        assert truth_check is not None
+        print(f"touch check: {check}, its truth {truth_check}")
+        assert check["verdict"] in ("ok", "beyond_bound") and check["bound_mm"] is not None
+        assert math.hypot(check["across_mm"] - truth_check["across_mm"], check["height_mm"] - truth_check["height_mm"]) <= TOUCH_CHECK_AGREE
