@@ -83,6 +83,7 @@ from celld.weld.plan import (
     PreparedPart,
     WeldPlan,
     for_torch,
+    judged,
     plan_weld,
     precorrected,
     prepare_part,
@@ -334,16 +335,10 @@ async def _probe_height(
         touches[target.name] = contact_across(records, tool, origin, across, tool.side, servo.delta_d)
         await devices.robot.move_to(plan.T_start, speed_scale=speed)
     found, moved = probed_height(plan, touches, tool, tool.T_tcp_tool, wc.max_height_correction)
-    check = found["touch_check"]
-    within = None if bound is None else check["error_mm"] <= bound * 1e3
-    check.update(
-        bound_mm=None if bound is None else round(bound * 1e3, 4),
-        within_bound=within,
-        verdict="no_bound" if within is None else "ok" if within else "beyond_bound",
-    )
+    check = found["touch_check"] = judged(found["touch_check"], bound)
     log.info("tip height probed", job=ctx.job_id, **{k: v for k, v in found.items() if k != "touch_check"})
     log.info("touch check", job=ctx.job_id, **{k: check[k] for k in ("across_mm", "height_mm", "error_mm", "bound_mm", "verdict")})
-    if within is False:
+    if check["verdict"] == "beyond_bound":
         log.warning(
             "the calibration is off at the weld by more than its bound: calibrate again",
             job=ctx.job_id,

@@ -279,6 +279,20 @@ TOUCH_CHECK_SCHEMA = obj(
     ("across_mm", "height_mm", "error_mm", "tip_height_mm", "at_base", "across", "up", "tcp_pose"),
 )
 
+
+def judged(check: dict[str, Any], bound: float | None) -> dict[str, Any]:
+    """A :func:`touch_check` reading with the calibration's own bound at the weld (m; None: it stores none) and
+    the verdict: ``ok`` when the bound covers the error, ``beyond_bound`` when the calibration is off there by more
+    than it says, ``no_bound`` without one."""
+    within = None if bound is None else check["error_mm"] <= bound * 1e3
+    return {
+        **check,
+        "bound_mm": None if bound is None else round(bound * 1e3, 4),
+        "within_bound": within,
+        "verdict": "no_bound" if within is None else "ok" if within else "beyond_bound",
+    }
+
+
 # The JSON shape of what probed_height found (a joint that was probed).
 PROBED_SCHEMA = obj(
     "The tip's height in the joint, probed by touch at the start: the joint's width where the finger met its two walls, "

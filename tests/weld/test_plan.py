@@ -22,6 +22,7 @@ from celld.weld.plan import (
     PROBED_SCHEMA,
     WeldPlan,
     for_torch,
+    judged,
     plan_weld,
     precorrected,
     prepare_part,
@@ -120,8 +121,13 @@ def test_the_touch_check_reads_how_far_the_touched_joint_is_from_the_scanned_one
     assert check["across_mm"] == pytest.approx(-0.2, abs=1e-4), check
     assert check["height_mm"] == pytest.approx(-0.5, abs=1e-4) and found["height_correction_mm"] == pytest.approx(-0.5, abs=1e-4)
     assert check["error_mm"] == pytest.approx(math.hypot(0.2, 0.5), abs=1e-4)
-    check.update(bound_mm=1.0, within_bound=True, verdict="ok")  # the job adds the calibration's bound
-    validate(PROBED_SCHEMA, found)
+    # The job adds the calibration's own bound at the weld: covered, exceeded, or none stored.
+    assert judged(check, 1e-3)["verdict"] == "ok" and judged(check, 1e-3)["within_bound"] is True
+    beyond = judged(check, 0.4e-3)
+    assert beyond["verdict"] == "beyond_bound" and beyond["bound_mm"] == pytest.approx(0.4) and beyond["within_bound"] is False
+    assert judged(check, None)["verdict"] == "no_bound" and judged(check, None)["bound_mm"] is None
+    for bound in (1e-3, 0.4e-3, None):
+        validate(PROBED_SCHEMA, {**found, "touch_check": judged(check, bound)})
 
 
 def test_a_torch_measured_off_the_tips_height_moves_the_tip_so_the_torch_welds_at_the_planned_height() -> None:
