@@ -34,8 +34,8 @@ def test_a_calibration_moved_by_hand_is_refused_by_its_checksum(tmp_path: Path) 
     T[:3, 3] = [0.6, 0.0, 1.0]
     path = tmp_path / "calibration.json"
     sealed.write_sealed(path, _calibration(T), "calibration")
-    placed, _, job = current_calibration(tmp_path)
-    assert job == "j1" and np.allclose(placed.T_base_cam(None), T)
+    current = current_calibration(tmp_path)
+    assert current.job == "j1" and np.allclose(current.placement.T_base_cam(None), T)
     # Well-formed and wrong: the scanner moved 50 mm in x by an editor.
     doc = json.loads(path.read_text())
     doc["T_base_cam"][0][3] += 0.05
@@ -45,7 +45,7 @@ def test_a_calibration_moved_by_hand_is_refused_by_its_checksum(tmp_path: Path) 
     # Only whitespace changed: the same content, still trusted.
     sealed.write_sealed(path, _calibration(T), "calibration")
     path.write_text(json.dumps(json.loads(path.read_text()), indent=None))
-    assert current_calibration(tmp_path)[2] == "j1"
+    assert current_calibration(tmp_path).job == "j1"
 
 
 @pytest.mark.parametrize(

@@ -138,19 +138,25 @@ def tool_store(state_dir: Path) -> CalibrationStore:
     return CalibrationStore(state_dir, "tool.json", "tool-calibrations", "tool-calibrate", "tool-calibration", "tool calibration")
 
 
-def current_calibration(state_dir: Path, mount: str = "base") -> tuple[Placement, float, str]:
-    """The accepted calibration: the scanner's placement (``T_base_cam``, or its pose on its link of the
-    arm), the scanner's range bias on metal (m) and the job that made it (:func:`required_calibration`,
-    :func:`placed`)."""
+class CurrentCalibration(NamedTuple):
+    """The accepted calibration as a job uses it (:func:`current_calibration`)."""
+
+    placement: Placement  # the scanner's (T_base_cam, or its pose on its link of the arm)
+    range_bias: float  # m, the scanner's on metal
+    job: str  # the job that made it
+    site_bound: float | None  # m, its own bound on its error at the weld (:func:`site_bound`)
+
+
+def current_calibration(state_dir: Path, mount: str = "base") -> CurrentCalibration:
+    """The accepted calibration, read once (:func:`required_calibration`, :func:`placed`, :func:`site_bound`)."""
     cal = required_calibration(state_dir)
     placement, range_bias = placed(cal, mount)
-    return placement, range_bias, str(cal.get("job", ""))
+    return CurrentCalibration(placement, range_bias, str(cal.get("job", "")), site_bound(cal))
 
 
-def weld_site_bound(state_dir: Path) -> float | None:
-    """The current calibration's own 95 % bound on its error away from where it was calibrated (m): its arm fit's
+def site_bound(cal: Mapping[str, Any]) -> float | None:
+    """A stored calibration's own 95 % bound on its error away from where it was calibrated (m): its arm fit's
     away from its poses when it has one, else its quality's within the work radius; None when it stores none."""
-    cal = required_calibration(state_dir)
     arm = cal.get("arm")
     try:
         mm = arm["bound"]["away_mm"] if isinstance(arm, Mapping) else cal["quality"]["bound"]["work_radius_mm"]

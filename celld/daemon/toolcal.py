@@ -130,7 +130,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
     job = ctx.job
     if not isinstance(job, ToolCalibrateJob):
         raise JobError("$.kind", "not a tool-calibrate job")
-    placement, range_bias, cal_job = current_calibration(ctx.state_dir, config.scanner.mount)
+    placement, range_bias, cal_job, _ = current_calibration(ctx.state_dir, config.scanner.mount)
     for_controller(placement, devices.robot.require_kinematics)
     tool = config.tool
     p_tcp_nominal = np.asarray(tool.tip_tcp, dtype=np.float64)

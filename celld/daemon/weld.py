@@ -63,7 +63,7 @@ from celld.config import Config, ServoConfig, ToolConfig, WeldConfig, with_overr
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
 from celld.daemon.planning import MotionPlanner, record_arm, record_cell, record_plan
-from celld.daemon.store import current_calibration, current_tool, for_controller, weld_site_bound
+from celld.daemon.store import current_calibration, current_tool, for_controller
 from celld.errors import CelldError, ConfigError, InputError, JobError, SafetyStop, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import Phase, algorithm2_plan
@@ -475,7 +475,7 @@ async def weld_setup(ctx: JobContext, config: Config, job: WeldJob, cache: dict[
     except ConfigError as exc:
         # The job's field of the refused value: its key in the section (delta_d_mm, ...).
         raise JobError("$." + exc.key.rsplit(".", 1)[-1], exc.reason) from exc
-    placement, range_bias, cal_job = current_calibration(ctx.state_dir, config.scanner.mount)
+    placement, range_bias, cal_job, bound = current_calibration(ctx.state_dir, config.scanner.mount)
     tool_cfg, tool_job, sensor_yaw, torch_measured, torch_height = current_tool(ctx.state_dir, tool_cfg)
     try:
         weld = for_torch(config.weld, torch_height)
@@ -506,7 +506,7 @@ async def weld_setup(ctx: JobContext, config: Config, job: WeldJob, cache: dict[
         placement=placement,
         range_bias=range_bias,
         calibration_job=cal_job,
-        site_bound=weld_site_bound(ctx.state_dir),
+        site_bound=bound,
         workpiece=workpiece,
         part=cache[key],
         procedure=procedure,

@@ -325,10 +325,11 @@ def run_jobs(
             figures["weld"]["plan_alone_measured_tool_height"] = height(part, alone_measured, cfg.weld.tip_height)
         probe = res.get("height_probe") or {}
         if probe.get("probed"):
-            # What the touch check should have read: its point where the arm truly put it, against the part's true root.
-            used = measured_tool(cfg.tool, tool) if tool_calibrate and figures.get("tool", {}).get("torch_measured") else cfg.tool
+            # What the touch check should have read: its point where the arm truly put it, against the part's true root;
+            # the tip as the weld knew it (the tool calibration's, once accepted).
+            tip_used = np.asarray(tool["tip_tcp_mm"]) * 1e-3 if tool_calibrate else cfg.tool.tip_tcp
             figures["weld"]["touch_check_truth"] = touch_check_truth(
-                part, probe["touch_check"], recorder.records(), used.tip_tcp, world.tool.config.tip_tcp
+                part, probe["touch_check"], recorder.records(), tip_used, world.tool.config.tip_tcp, cfg.robot.arc_output
             )
         figures["verification"] = _verification(Path(cfg.cell.state_dir))
         figures["loop"] = _loop(cell.client)

@@ -262,21 +262,23 @@ TOUCH_CHECK_NEAR = 4e-3
 
 
 def touch_check_truth(
-    part: Any, check: dict[str, Any], records: np.ndarray, tip_believed: ArrayLike, tip_true: ArrayLike
+    part: Any, check: dict[str, Any], records: np.ndarray, tip_believed: ArrayLike, tip_true: ArrayLike, arc_output: int
 ) -> dict[str, float] | None:
     """What a weld's touch check (its ``height_probe.touch_check``, :func:`celld.weld.plan.touch_check`) should have
     read, from the simulated arm's states during the weld (``records``, :data:`TRUTH_DTYPE`).
 
     Where the controller believed the finger's tip was (its model's TCP, ``tip_believed`` the tip in the TCP frame as
     the weld knew the tool) and where it truly was (the true TCP, ``tip_true`` the tool as built), over the states
-    with the believed tip within :data:`TOUCH_CHECK_NEAR` of the check's point before the arc first burned: their
+    with the believed tip within :data:`TOUCH_CHECK_NEAR` of the check's point before the arc was first on
+    (:func:`arc_on`): their
     mean difference carries the check's point, as the controller was sent it, to where the arm truly puts it (the
     arm's error there as it came: its temperature, rest error and lost motion included). ``across_mm``: the part's
     true root line's foot minus that point, across; ``height_mm``: the planned height minus its true height over
     the true root. None when no state was near the point.
     """
     p, a = np.asarray(check["at_base"], dtype=np.float64), np.asarray(check["across"], dtype=np.float64)
-    recs = records[: int(np.argmax(records["arc_on"]))] if records["arc_on"].any() else records
+    on = arc_on(records, arc_output)
+    recs = records[: int(np.argmax(on))] if on.any() else records
     tb = np.append(np.asarray(tip_believed, dtype=np.float64), 1.0)
     tt = np.append(np.asarray(tip_true, dtype=np.float64), 1.0)
     believed = (recs["T_base_tcp_model"] @ tb)[:, :3]
@@ -337,16 +339,19 @@ class TruthRecorder:
         return np.concatenate(self._chunks) if self._chunks else np.zeros(0, TRUTH_DTYPE)
 
 
-def true_torch_path(world: World, records: np.ndarray, arc_output: int) -> Array:
-    """The torch's true path (m, 3) while the arc was on, thinned as the weld's own: digital output ``arc_output``
-    on, or with ``arc_output`` -1 an arc truly burning (a cell with a power source); every record without either."""
+def arc_on(records: np.ndarray, arc_output: int) -> np.ndarray:
+    """Which truth ``records`` had the arc on: digital output ``arc_output`` on, or with ``arc_output`` -1 an arc
+    truly burning (a cell with a power source); every record without either."""
     if arc_output >= 0:
-        on = (records["digital_out"].astype(np.int64) >> arc_output) & 1 == 1
-    elif records["arc_on"].any():
-        on = records["arc_on"].astype(bool)
-    else:
-        on = np.ones(len(records), bool)
-    recs = records[on]
+        return np.asarray((records["digital_out"].astype(np.int64) >> arc_output) & 1 == 1)
+    if records["arc_on"].any():
+        return records["arc_on"].astype(bool)
+    return np.ones(len(records), bool)
+
+
+def true_torch_path(world: World, records: np.ndarray, arc_output: int) -> Array:
+    """The torch's true path (m, 3) while the arc was on (:func:`arc_on`), thinned as the weld's own."""
+    recs = records[arc_on(records, arc_output)]
     if len(recs) == 0:
         return np.zeros((0, 3))
     F = flange_of(recs["T_base_tcp"], recs["T_flange_tcp"])

@@ -266,7 +266,6 @@ TOUCH_CHECK_SCHEMA = obj(
         "at_base": vector("Where it was checked: the scan's joint centre at the planned tip height, base frame, m (as sent).", 3),
         "across": vector("The direction across the joint there (unit, base frame, towards the finger wall).", 3),
         "up": vector("The welding plane's normal (unit, base frame).", 3),
-        "tcp_pose": vector("The TCP pose (x, y, z, rx, ry, rz; m, rad) that puts the tip on at_base as the weld starts (as sent).", 6),
         "bound_mm": nullable(
             number("The calibration's own 95 % bound on its error away from the calibration box (null: none stored).", lo=0.0)
         ),
@@ -276,7 +275,7 @@ TOUCH_CHECK_SCHEMA = obj(
             "ok: the bound covers the error; beyond_bound: the calibration is off at the weld by more than it says: calibrate again.",
         ),
     },
-    ("across_mm", "height_mm", "error_mm", "tip_height_mm", "at_base", "across", "up", "tcp_pose"),
+    ("across_mm", "height_mm", "error_mm", "tip_height_mm", "at_base", "across", "up"),
 )
 
 
@@ -309,10 +308,10 @@ PROBED_SCHEMA = obj(
 )
 
 
-def touch_check(plan: WeldPlan, touches: dict[str, float], height: float, T_tcp_tool: np.ndarray) -> dict[str, Any]:
+def touch_check(plan: WeldPlan, touches: dict[str, float], height: float) -> dict[str, Any]:
     """The calibration's error at the weld's start from the probe's two touches (``touches`` as for
-    :func:`probed_height`; ``height``, m, the tip's height in the joint they gave; ``T_tcp_tool`` the tool's):
-    :data:`TOUCH_CHECK_SCHEMA` but the bound, which the job adds.
+    :func:`probed_height`; ``height``, m, the tip's height in the joint they gave): :data:`TOUCH_CHECK_SCHEMA`
+    but the bound (:func:`judged`).
 
     Across: the midpoint of the two walls as touched (each touch is the tip's centre, a radius from its wall on
     either side, so the radii cancel) against the midpoint of the scan's walls at ``height``, both along
@@ -327,10 +326,6 @@ def touch_check(plan: WeldPlan, touches: dict[str, float], height: float, T_tcp_
     centre_scan = y_seam + 0.5 * (float(finger[0] + finger[1] * height) - float(far[0] + far[1] * height))
     centre_touch = 0.5 * (touches["finger"] + touches["far"])
     d_across, d_height = centre_touch - centre_scan, geometry.tip_height - height
-    # The start's tool orientation, its tip on the checked point.
-    T_base_tool = plan.T_start @ T_tcp_tool
-    T_base_tool[:3, 3] = geometry.seam_base[i]
-    tcp = se3.to_ur_pose(T_base_tool @ se3.invert(T_tcp_tool))
     return {
         "across_mm": round(float(d_across) * 1e3, 4),
         "height_mm": round(float(d_height) * 1e3, 4),
@@ -339,7 +334,6 @@ def touch_check(plan: WeldPlan, touches: dict[str, float], height: float, T_tcp_
         "at_base": [round(float(v), 7) for v in geometry.seam_base[i]],
         "across": [round(float(v), 7) for v in across],
         "up": [round(float(v), 7) for v in geometry.T_base_plane[:3, 2]],
-        "tcp_pose": [round(float(v), 7) for v in tcp],
     }
 
 
@@ -366,7 +360,7 @@ def probed_height(
         "scan_width_mm": round(joint_width(finger, far, geometry.tip_height) * 1e3, 4),
         "height_mm": round(height * 1e3, 4),
         "height_correction_mm": round(-dh * 1e3, 4),
-        "touch_check": touch_check(plan, touches, height, T_tcp_tool),
+        "touch_check": touch_check(plan, touches, height),
     }
     if abs(dh) > max_correction:
         raise WorkpieceError(

@@ -246,7 +246,6 @@ GOOD: dict[str, list[dict[str, Any]]] = {
                     "at_base": [0.6, 0.0, 0.05],
                     "across": [0.0, 1.0, 0.0],
                     "up": [0.0, 0.0, 1.0],
-                    "tcp_pose": [0.6, 0.0, 0.25, 0.0, 3.14, 0.0],
                     "bound_mm": 0.4,
                     "within_bound": True,
                     "verdict": "ok",

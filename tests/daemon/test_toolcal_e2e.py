@@ -185,7 +185,7 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         # The touch check: the calibration's error at the weld's start as the probe's touches read it, against where
         # the arm truly put the checked point (the controller's belief against the truth, near it).
         check = res["height_probe"]["touch_check"]
-        truth_check = touch_check_truth(part, check, truth.records(), tip, world.tool.config.tip_tcp)
+        truth_check = touch_check_truth(part, check, truth.records(), tip, world.tool.config.tip_tcp, cfg.robot.arc_output)
         assert truth_check is not None
         print(f"touch check: {check}, its truth {truth_check}")
         assert check["verdict"] in ("ok", "beyond_bound") and check["bound_mm"] is not None

@@ -11,7 +11,7 @@ import pytest
 from celld import sealed
 from celld.calib.mount import ScannerMount, mount_entry
 from celld.config import parse
-from celld.daemon.store import current_calibration
+from celld.daemon.store import current_calibration, site_bound
 from celld.daemon.weld import resolve_workpiece
 from celld.errors import JobError
 from celld.seam.workpiece import v_groove_butt
@@ -56,8 +56,9 @@ def test_a_weld_needs_a_usable_current_calibration(tmp_path: Path) -> None:
     T[:3, 3] = [0.6, 0.0, 1.0]
     # Without a range bias (structured light, or a calibration from before it): none.
     sealed.write_sealed(tmp_path / "calibration.json", {"job": "j2", "T_base_cam": T.tolist()}, "calibration")
-    placed, bias, job = current_calibration(tmp_path)
+    placed, bias, job, bound = current_calibration(tmp_path)
     assert job == "j2" and np.allclose(placed.T_base_cam(None), T) and bias == 0.0
+    assert bound is None  # it stores no bound
     # A time-of-flight calibration's range bias comes in metres.
     sealed.write_sealed(tmp_path / "calibration.json", {"job": "j3", "T_base_cam": T.tolist(), "range_bias_mm": 8.1}, "calibration")
     assert current_calibration(tmp_path)[1] == pytest.approx(0.0081)
@@ -79,12 +80,23 @@ def test_a_calibration_is_used_only_with_the_scanner_mount_it_was_made_for(tmp_p
     sealed.write_sealed(tmp_path / "calibration.json", {"job": "j1", **mount_entry(on_arm, T)}, "calibration")
     with pytest.raises(JobError, match="a scanner on link1, and scanner.mount is 'base'"):
         current_calibration(tmp_path)
-    placed, _, _ = current_calibration(tmp_path, "link1")
+    placed = current_calibration(tmp_path, "link1").placement
     q = np.array([2.8, -1.4, 2.3, -2.5, 1.6, -1.3])
     np.testing.assert_allclose(placed.T_base_cam(q), on_arm.T_base_link(q) @ T, atol=1e-15)
     sealed.write_sealed(tmp_path / "calibration.json", {"job": "j2", "T_base_cam": T.tolist()}, "calibration")
     with pytest.raises(JobError, match="a scanner on base, and scanner.mount is 'link1'"):
         current_calibration(tmp_path, "link1")
+
+
+def test_the_bound_at_the_weld_is_the_arm_fits_when_there_is_one_else_the_quality_s() -> None:
+    quality = {"quality": {"bound": {"work_radius_mm": 0.9}}}
+    assert site_bound(quality) == pytest.approx(0.9e-3)
+    assert site_bound({**quality, "arm": {"bound": {"away_mm": 0.25}}}) == pytest.approx(0.25e-3)
+    # An arm fit with no bound of its own is not covered by the hand-eye fit's: no bound, not the wrong one.
+    assert site_bound({**quality, "arm": {}}) is None
+    for bad in (-0.1, float("inf"), float("nan"), True, "0.9", None):
+        assert site_bound({"quality": {"bound": {"work_radius_mm": bad}}}) is None
+    assert site_bound({}) is None
 
 
 def test_a_weld_takes_the_measured_tip_and_refuses_an_unmeasured_tool_unless_nominal(tmp_path: Path) -> None:

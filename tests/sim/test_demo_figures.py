@@ -79,11 +79,14 @@ def test_the_touch_checks_truth_carries_its_point_by_the_arms_error_there_agains
         off = np.array([0.0, -4e-4, -2e-4]) if k < 20 else np.array([0.0, 5e-3, 0.0])
         r["T_base_tcp"] = se3.transform_from(np.eye(3), model[:3, 3] + off)
         r["arc_on"] = k >= 20
-    got = touch_check_truth(part, check, recs, tip_believed, tip_true)
+    got = touch_check_truth(part, check, recs, tip_believed, tip_true, -1)  # the arc as a power source burns it
     assert got is not None and got["states"] == 20
     # The point truly at y = -0.3 mm, z = 2.8 mm: the root 0.3 mm across towards +y, and 0.2 mm higher than planned.
     assert got["across_mm"] == pytest.approx(0.3, abs=1e-6) and got["height_mm"] == pytest.approx(0.2, abs=1e-6)
     assert got["error_mm"] == pytest.approx(math.hypot(0.3, 0.2), abs=1e-6)
     # No state near the point: no truth.
     far = {**check, "at_base": [0.08, 0.0, 0.003]}
-    assert touch_check_truth(part, far, recs, tip_believed, tip_true) is None
+    assert touch_check_truth(part, far, recs, tip_believed, tip_true, -1) is None
+    # The arc on a digital output (bit 0) from the same record: the same states before it.
+    recs["digital_out"] = recs["arc_on"]
+    assert touch_check_truth(part, check, recs, tip_believed, tip_true, 0) == got

@@ -30,8 +30,8 @@ def test_reader_interpolates_between_cycles(loopback_host: str) -> None:
         T1 = se3.from_xyz_rpy([0.5, 0.01, 0.3], [math.pi, 0.0, 0.02])
         q = np.zeros(6)
         t0 = 1_000_000_000
-        pub.publish(t0, q, q, _rows(T0), _rows(np.eye(4)), 1, (7, 1, 2))
-        pub.publish(t0 + 2_000_000, q + 0.02, q, _rows(T1), _rows(np.eye(4)), 1, (7, 1, 2))
+        pub.publish(t0, q, q, _rows(T0), _rows(T0), _rows(np.eye(4)), 1, (7, 1, 2))
+        pub.publish(t0 + 2_000_000, q + 0.02, q, _rows(T1), _rows(T1), _rows(np.eye(4)), 1, (7, 1, 2))
         latest = reader.latest()
         assert latest.stamp_ns == t0 + 2_000_000 and latest.digital_out == 1
         np.testing.assert_allclose(latest.T_base_tcp, T1, atol=1e-15)
@@ -52,7 +52,7 @@ def test_history_keeps_the_last_two_seconds(loopback_host: str) -> None:
     try:
         q = np.zeros(6)
         for k in range(HISTORY_CAPACITY + 100):
-            pub.publish(k * 2_000_000, q, q, _rows(np.eye(4)), _rows(np.eye(4)), 0, (7, 1, 1))
+            pub.publish(k * 2_000_000, q, q, _rows(np.eye(4)), _rows(np.eye(4)), _rows(np.eye(4)), 0, (7, 1, 1))
         stamps = reader.history()["stamp_ns"]
         assert len(stamps) == HISTORY_CAPACITY
         assert stamps[-1] == (HISTORY_CAPACITY + 99) * 2_000_000 and np.all(np.diff(stamps) == 2_000_000)
@@ -66,7 +66,7 @@ def test_latest_waits_out_a_write_in_progress_instead_of_answering_an_old_state(
     reader = TruthReader(loopback_host, timeout=1.0)
     try:
         q = np.zeros(6)
-        pub.publish(1_000_000, q, q, _rows(np.eye(4)), _rows(np.eye(4)), 0, (7, 1, 2))
+        pub.publish(1_000_000, q, q, _rows(np.eye(4)), _rows(np.eye(4)), _rows(np.eye(4)), 0, (7, 1, 2))
         assert reader.latest().stamp_ns == 1_000_000  # the reader now holds a whole copy of that state
         # The simulator is caught half-way through a write (its seqlock counter odd), minutes later.
         seq = pub._slot._seq

@@ -237,10 +237,10 @@ class SimServer:
             src = c.source
             # The physical arm (its joints and true TCP), not the controller's belief; the arc as it truly burns.
             self.truth.publish(
-                stamp_ns, c.q_true, arm.qd, c.T_tcp_true, arm.T_flange_tcp, c.digital_out,
+                stamp_ns, c.q_true, arm.qd, c.T_tcp_true, arm.T_tcp, arm.T_flange_tcp, c.digital_out,
                 (c.robot_mode, c.safety_mode, c.runtime_state),
                 src is not None and src.arc_on, src.current if src is not None else 0.0,
-                src is not None and src.wire_stuck, arm.T_tcp,
+                src is not None and src.wire_stuck,
             )  # fmt: skip
 
     def _release_held(self, now_ns: int) -> None:

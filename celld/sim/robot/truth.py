@@ -115,21 +115,23 @@ class TruthPublisher:
         q: Sequence[float],
         qd: Sequence[float],
         T_base_tcp_rows: Sequence[float],
+        T_base_tcp_model_rows: Sequence[float],
         T_flange_tcp_rows: Sequence[float],
         digital_out: int,
         modes: tuple[int, int, int],
         arc_on: bool = False,
         weld_current: float = 0.0,
         wire_stuck: bool = False,
-        T_base_tcp_model_rows: Sequence[float] | None = None,
     ) -> None:
+        """One cycle's record: the physical joints, the true TCP and the controller's (its model's TCP at the joints
+        it commands), the TCP offset, the outputs and modes, the arc as it truly burns."""
         r = self._rec
         r["stamp_ns"] = stamp_ns
         self._q[:] = q
         self._qd[:] = qd
         self._T[:] = T_base_tcp_rows
         self._T_ft[:] = T_flange_tcp_rows
-        self._T_model[:] = T_base_tcp_rows if T_base_tcp_model_rows is None else T_base_tcp_model_rows
+        self._T_model[:] = T_base_tcp_model_rows
         r["digital_out"] = digital_out
         r["robot_mode"], r["safety_mode"], r["runtime_state"] = modes
         r["arc_on"] = arc_on
