@@ -47,6 +47,9 @@ Per seed, against the world's truth (read after the jobs):
   it, from the simulated arm's states near it, the controller's belief against
   the truth, against the part's true root), and how far apart
   (``touch_check_disagree_mm``; target 0.10 mm);
+- finger gain: the tip's deflection over the tag's along the joint's normal
+  as the probe's touches measured it (``celld.tactile.fingermap``), beside the
+  world's tag (``finger_gain``, ``finger_gain_true``, ``finger_gain_error``);
 - success: the weld job succeeded, tracked at least 120 of the 150 mm, and the
   torch stayed within 0.5 mm of the seam (it did not weld off the seam).
 
@@ -198,6 +201,7 @@ def _run_seed(
     out["weld"]["tracked_mm"] = w["figures"]["tracked_mm"]
     out["weld"]["height_probe"] = w.get("height_probe")
     out["weld"]["touch_check"] = touch_check_figures(w.get("height_probe"), w.get("touch_check_truth"))
+    out["weld"]["finger"] = finger_figures(w.get("height_probe"), w.get("finger_truth"))
     out["weld"]["wall_offset_used_mm"] = w["figures"].get("wall_offset_used_mm")
     out["weld"]["arc_on_s"] = w["figures"]["arc_on_s"]
     # The calibration held against the cell before the weld (celld.daemon.verify): a drift caught, noise not.
@@ -218,6 +222,19 @@ def touch_check_figures(probe: dict[str, Any] | None, truth: dict[str, float] | 
     if truth is not None:
         out["true"] = {k: round(v, 4) if isinstance(v, float) else v for k, v in truth.items()}
         out["disagree_mm"] = round(math.hypot(check["across_mm"] - truth["across_mm"], check["height_mm"] - truth["height_mm"]), 4)
+    return out
+
+
+def finger_figures(probe: dict[str, Any] | None, truth: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The finger's gain the weld's touches measured (celld.tactile.fingermap) beside the world's tag: the tip's
+    deflection over the tag's along the joint's normal, and the measured one's error relative to it; None when
+    the joint was not probed."""
+    finger = (probe or {}).get("finger")
+    if finger is None:
+        return None
+    out: dict[str, Any] = {**finger, "true_gain": None if truth is None else round(truth["tip_over_tag"], 5)}
+    if truth is not None and finger["measured"]:
+        out["gain_error"] = round(finger["gain"] / truth["tip_over_tag"] - 1.0, 5)
     return out
 
 
@@ -296,6 +313,10 @@ def summarise(preset: str, sources: list[str], runs: list[dict[str, Any]]) -> di
         ],
         "touch_check_disagree_mm": [(r["weld"].get("touch_check") or {}).get("disagree_mm") for r in ok],
         "touch_check_verdict": [(r["weld"].get("touch_check") or {}).get("verdict") for r in ok],
+        # The finger's gain as the weld's touches measured it (None: not measured), the world's, and the relative error.
+        "finger_gain": [(r["weld"].get("finger") or {}).get("gain") for r in ok],
+        "finger_gain_true": [(r["weld"].get("finger") or {}).get("true_gain") for r in ok],
+        "finger_gain_error": [(r["weld"].get("finger") or {}).get("gain_error") for r in ok],
         "successes": sum(1 for r in runs if r.get("success")),
         "failures": [{"seed": r["seed"], **r["failed"]} for r in runs if "failed" in r],
     }

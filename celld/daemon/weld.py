@@ -73,8 +73,9 @@ from celld.motion.types import ServoPlan
 from celld.recording import layout
 from celld.robot.collision import PathCheck
 from celld.schemadoc import array, boolean, const, number, obj, one_of, string, vector
-from celld.seam.figures import contact_across, refined_of, torch_positions
+from celld.seam.figures import contact_across, refined_of, torch_positions, touch_press
 from celld.seam.workpiece import EXAMPLES, Workpiece, example, load_workpiece
+from celld.tactile.fingermap import FingerGain
 from celld.tactile.tool import ToolGeometry
 from celld.weld.arc_report import ARC_SCHEMA, arc_report, known_seam, sequence_of
 from celld.weld.plan import (
@@ -84,6 +85,7 @@ from celld.weld.plan import (
     WeldPlan,
     for_torch,
     judged,
+    measured_finger,
     plan_weld,
     precorrected,
     prepare_part,
@@ -311,32 +313,38 @@ async def _probe_height(
     sensor_yaw: float,
     speed: float,
     bound: float | None,
-) -> tuple[dict[str, Any], WeldPlan]:
-    """Touch the far wall and the finger wall at the start; the tip's height in the joint from the width
-    there (:func:`celld.weld.plan.probed_height`), and the calibration's error there against ``bound`` (m,
-    the calibration's own; :func:`celld.weld.plan.touch_check`). Returns what was found and the plan moved to
-    that height, the tool at its new start (unchanged when not probed)."""
+) -> tuple[dict[str, Any], WeldPlan, FingerGain]:
+    """Touch the far wall and the finger wall at the start; the finger's gain from the touches
+    (:func:`celld.weld.plan.measured_finger`), the tip's height in the joint from the width there
+    (:func:`celld.weld.plan.probed_height`), and the calibration's error there against ``bound`` (m, the
+    calibration's own; :func:`celld.weld.plan.touch_check`). Returns what was found, the plan moved to that
+    height, the tool at its new start (unchanged when not probed), and the finger's gain (Eq. 15's, 1, when not
+    probed or not measured)."""
     wc = config.weld
     if not wc.probe_height:
-        return {"probed": False, "why": "weld.probe_height is off"}, plan
+        return {"probed": False, "why": "weld.probe_height is off"}, plan, FingerGain()
     targets, why = probe_targets(plan, tool_cfg)
     if not targets:
-        return {"probed": False, "why": why}, plan
+        return {"probed": False, "why": why}, plan, FingerGain()
     motion = devices.robot.require_motion()
     tool = ToolGeometry.from_config(tool_cfg)
     origin, across = probe_across(plan)
-    touches = {}
+    touched = {}
     for target in targets:
         ctx.progress("probe", None, f"touching the {target.name} wall of the joint")
         servo_plan = algorithm2_plan(
             target.line, servo, target.tool, config.motion, T_base_plane=plan.geometry.T_base_plane, touch_only=True, sensor_yaw=sensor_yaw
         )
-        records = await _run_servo(motion, servo_plan, wc.timeout)
-        touches[target.name] = contact_across(records, tool, origin, across, tool.side, servo.delta_d)
+        touched[target.name] = await _run_servo(motion, servo_plan, wc.timeout)
         await devices.robot.move_to(plan.T_start, speed_scale=speed)
-    found, moved = probed_height(plan, touches, tool, tool.T_tcp_tool, wc.max_height_correction)
+    # The finger's gain from the touches' approaches; the walls where the tip, not the tag, says they are.
+    presses = [touch_press(records, tool, origin, across, tool.side, servo.delta_d) for records in touched.values()]
+    finger, finger_found = measured_finger(presses, servo.delta_d)
+    log.info("finger gain", job=ctx.job_id, **finger_found)
+    touches = {name: contact_across(records, tool, origin, across, tool.side, servo.delta_d, finger) for name, records in touched.items()}
+    found, moved = probed_height(plan, touches, finger_found, tool, tool.T_tcp_tool, wc.max_height_correction)
     check = found["touch_check"] = judged(found["touch_check"], bound)
-    log.info("tip height probed", job=ctx.job_id, **{k: v for k, v in found.items() if k != "touch_check"})
+    log.info("tip height probed", job=ctx.job_id, **{k: v for k, v in found.items() if k not in ("touch_check", "finger")})
     log.info("touch check", job=ctx.job_id, **{k: check[k] for k in ("across_mm", "height_mm", "error_mm", "bound_mm", "verdict")})
     if check["verdict"] == "beyond_bound":
         log.warning(
@@ -346,7 +354,7 @@ async def _probe_height(
             bound_mm=check["bound_mm"],
         )
     await devices.robot.move_to(moved.T_start, speed_scale=speed)
-    return found, moved
+    return found, moved, finger
 
 
 async def _run_servo(motion: Any, plan: ServoPlan, timeout: float) -> np.ndarray:
@@ -597,8 +605,10 @@ async def _scan_and_plan(ctx: JobContext, config: Config, devices: CellDevices, 
     return plan
 
 
-async def _track(ctx: JobContext, config: Config, devices: CellDevices, setup: WeldSetup, plan: WeldPlan, process: bool) -> np.ndarray:
-    """Step 4: Algorithm 2 touches the wall and tracks it, the arc on while it tracks when ``process`` (with a power
+async def _track(
+    ctx: JobContext, config: Config, devices: CellDevices, setup: WeldSetup, plan: WeldPlan, finger: FingerGain, process: bool
+) -> np.ndarray:
+    """Step 4: Algorithm 2 touches the wall and tracks it with the finger's gain, the arc on while it tracks when ``process`` (with a power
     source, in the sequence of the setup's procedure); progress and the finger's camera while it runs. Returns the
     motion records of the track; raises its failure, or the motion loop's own trouble during it (a failed arc
     write: the weld is not good). A failure with a power source says how much of the seam was welded."""
@@ -613,6 +623,7 @@ async def _track(ctx: JobContext, config: Config, devices: CellDevices, setup: W
         process=process,
         seam_offset=geometry.offsets,
         sensor_yaw=setup.sensor_yaw,
+        finger=finger,
     )
     procedure = setup.procedure if process else None
     if procedure is not None:
@@ -712,7 +723,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     # meets a sloping wall, and so where the torch goes. The plan moves to the height it should have.
     up = plan.up
     try:
-        height_probe, plan = await _probe_height(
+        height_probe, plan, finger = await _probe_height(
             ctx, devices, config, plan, setup.servo, setup.tool_config, setup.sensor_yaw, min(speed, 0.2), setup.site_bound
         )
     except CelldError as exc:
@@ -721,7 +732,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
 
     # 4. touch and track; 5. retract (also after a failed track, while the robot can still be moved)
     try:
-        records = await _track(ctx, config, devices, setup, plan, process=welding)
+        records = await _track(ctx, config, devices, setup, plan, finger, process=welding)
     except CelldError as exc:
         await _after_fault(ctx, devices, wc, exc, up, q_scan, speed)
         raise

@@ -95,6 +95,7 @@ from celld.errors import InputError
 from celld.motion.plan import PlannedPath, prepare_plan, welding_plane
 from celld.motion.types import ControlStatus, RobotState, ServoInput, ServoPlan, ServoTelemetry
 from celld.se3 import check_points, check_transform
+from celld.tactile.fingermap import FingerGain, along_normal
 from celld.tactile.sample import ContactState, TactileSample, TactileStatus
 from celld.tactile.tool import MAX_TORCH_YAW, ToolGeometry, yaw_in_plane
 
@@ -256,6 +257,10 @@ class Algorithm2Params(NamedTuple):
     seam_offset: float = 0.0  # m, seam's distance from the wall, on the free side (module docstring)
     touch_only: bool = False  # touch the wall, settle, report DONE (module docstring)
     sensor_yaw: float = 0.0  # rad, the tactile frame's yaw from the tool frame's (module docstring)
+    # The finger's tip deflection for its tag's along the normal, a d + b d^3 (celld.tactile.fingermap), as the
+    # weld's touches measured it: 1 and 0 take the tag's deformation as the tip's (Eq. 15).
+    finger_gain: float = 1.0
+    finger_cubic: float = 0.0  # 1/m^2
 
     @classmethod
     def from_config(cls, servo: ServoConfig, tool: ToolConfig, motion: MotionLimits) -> Algorithm2Params:
@@ -284,7 +289,8 @@ class Algorithm2Params(NamedTuple):
     def from_plan(cls, params: dict[str, Any]) -> Algorithm2Params:
         """Read and check the parameters carried by a :class:`ServoPlan`.
 
-        Parameters with a default (``process``, ``seam_offset``, ``touch_only``, ``sensor_yaw``) may be left out.
+        Parameters with a default (``process``, ``seam_offset``, ``touch_only``, ``sensor_yaw``, ``finger_gain``,
+        ``finger_cubic``) may be left out.
         """
         values: dict[str, Any] = {}
         for name in cls._fields:
@@ -315,6 +321,10 @@ class Algorithm2Params(NamedTuple):
         if not 0.0 <= p.seam_offset < p.torch_offset:
             # The torch trails the tip by |d|: it cannot reach a seam |d| or more off the wall.
             raise InputError(f"algorithm2 plan: seam_offset must be >= 0 and below torch_offset {p.torch_offset} m, got {p.seam_offset} m")
+        try:
+            FingerGain(p.finger_gain, p.finger_cubic).check(p.delta_d)
+        except InputError as exc:
+            raise InputError(f"algorithm2 plan: {exc}") from exc
         return p
 
 
@@ -330,6 +340,7 @@ def algorithm2_plan(
     seam_offset: float | Array = 0.0,
     sensor_yaw: float = 0.0,
     touch_only: bool = False,
+    finger: FingerGain = FingerGain(),
 ) -> ServoPlan:
     """The :class:`ServoPlan` that starts Algorithm 2 on the planned seam ``P_base`` (n, 3).
 
@@ -339,7 +350,8 @@ def algorithm2_plan(
     seam's distance from the wall the finger touches, one value or one per
     point of ``P_base``; ``sensor_yaw`` (rad) the tactile frame's yaw from the
     tool frame's; ``touch_only`` ends the law once the finger has settled on
-    the wall (module docstring).
+    the wall (module docstring); ``finger`` the finger's tip deflection for its
+    tag's, as the weld's touches measured it (:mod:`celld.tactile.fingermap`).
 
     Raises
     ------
@@ -356,7 +368,12 @@ def algorithm2_plan(
         arrays["seam_offsets"] = offsets
         seam_offset = float(np.median(offsets))
     params = Algorithm2Params.from_config(servo, tool, motion)._replace(
-        process=bool(process), seam_offset=float(seam_offset), sensor_yaw=float(sensor_yaw), touch_only=bool(touch_only)
+        process=bool(process),
+        seam_offset=float(seam_offset),
+        sensor_yaw=float(sensor_yaw),
+        touch_only=bool(touch_only),
+        finger_gain=float(finger.gain),
+        finger_cubic=float(finger.cubic),
     )
     Algorithm2Params.from_plan(dict(params._asdict()))  # refuse a bad plan where it is made
     return ServoPlan(NAME, arrays, dict(params._asdict()))
@@ -437,6 +454,7 @@ class Algorithm2Servo:
     ) -> None:
         self.path = path
         self.p = params
+        self._finger = FingerGain(params.finger_gain, params.finger_cubic)
         self._offsets = seam_offsets
         self.T_tcp_tool = np.array(T_tcp_tool, dtype=np.float64)
         self._tip_offset = bool(np.any(self.T_tcp_tool[:3, 3] != 0.0))
@@ -632,7 +650,9 @@ class Algorithm2Servo:
         self.samples_used += 1
         self._last_valid = sample
         P_cap, t_cap = self._at(sample.stamp_ns)
-        delta = deformation_in_plane(yaw_in_plane(sample.delta_tool, self.p.sensor_yaw), t_cap, _left(t_cap))
+        n_cap = _left(t_cap)
+        # The tip's deflection along the normal from the tag's (the finger's gain; Eq. 15 as is with 1 and 0).
+        delta = along_normal(deformation_in_plane(yaw_in_plane(sample.delta_tool, self.p.sensor_yaw), t_cap, n_cap), n_cap, self._finger)
         self._delta_meas = delta
         self._P_r_cap = P_cap
         if sample.contact == ContactState.OVERLOAD:

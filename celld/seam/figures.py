@@ -21,6 +21,7 @@ from celld import polyline, se3
 from celld.errors import CelldError
 from celld.schemadoc import integer, number, obj
 from celld.seam.weldpath import WeldGeometry, in_plane
+from celld.tactile.fingermap import FingerGain, Press
 from celld.tactile.tool import ToolGeometry
 
 Array = NDArray[np.float64]
@@ -192,7 +193,9 @@ _CONTACT_RECORDS = 25
 _SETTLED = 0.2
 
 
-def contact_across(records: np.ndarray, tool: ToolGeometry, origin: Array, across: Array, side: float, delta_d: float) -> float:
+def contact_across(
+    records: np.ndarray, tool: ToolGeometry, origin: Array, across: Array, side: float, delta_d: float, finger: FingerGain = FingerGain()
+) -> float:
     """Where a touch found its wall: the deformed tip centre's coordinate (m) along ``across`` from ``origin``.
 
     ``records`` are the motion loop's records of a touch-only Algorithm 2 plan
@@ -201,7 +204,9 @@ def contact_across(records: np.ndarray, tool: ToolGeometry, origin: Array, acros
     ``P_s = P_r - delta``), averaged over the last settled cycles of the touch.
     ``across`` (3,) is unit, in the welding plane, towards the finger wall;
     ``side`` the finger wall's side (+1 left of the travel, as the law's
-    ``delta_n`` is signed), whichever wall was touched.
+    ``delta_n`` is signed), whichever wall was touched; ``finger`` the tip's
+    deflection for the tag's (:mod:`celld.tactile.fingermap`; the touches' own
+    :func:`touch_press` measure it).
 
     Raises
     ------
@@ -214,4 +219,33 @@ def contact_across(records: np.ndarray, tool: ToolGeometry, origin: Array, acros
         raise CelldError("the touch ended without settling on a wall")
     T_tool = se3.from_ur_poses(settled["tcp_pose"]) @ tool.T_tcp_tool
     y = (T_tool[:, :3, 3] - np.asarray(origin, dtype=np.float64)) @ np.asarray(across, dtype=np.float64)
-    return float(np.mean(y - side * settled["delta_n"]))
+    return float(np.mean(y - side * np.asarray(finger.tip(settled["delta_n"]))))
+
+
+# A touch's frames that measure the finger's gain: the tag's deformation within these shares of delta_d (below,
+# the tip may not yet bear on the wall through the finger's play; above, the approach has overshot).
+_PRESS_BAND = (0.25, 1.15)
+
+
+def touch_press(records: np.ndarray, tool: ToolGeometry, origin: Array, across: Array, side: float, delta_d: float) -> Press:
+    """A touch's frames while it came onto its wall, for the finger's gain (:func:`celld.tactile.fingermap.fit_finger_gain`).
+
+    Each new frame of the touch's approach, up to its deepest deformation (after it, the servo settles back and
+    the finger's play turns round): the undeformed tip centre's position along ``across`` at the frame's capture
+    (the motion records interpolated to it) and the tag's normal deformation that frame showed (the law's
+    ``delta_n`` less what it predicted from the tip's motion since the capture). ``origin``, ``across``,
+    ``side`` as for :func:`contact_across`.
+    """
+    touch = records[(records["servo_phase"] == 0) & np.isfinite(records["delta_n"])]
+    if len(touch) < 2:
+        return Press(np.zeros(0), np.zeros(0), side)
+    T_tool = se3.from_ur_poses(touch["tcp_pose"]) @ tool.T_tcp_tool
+    y = (T_tool[:, :3, 3] - np.asarray(origin, dtype=np.float64)) @ np.asarray(across, dtype=np.float64)
+    t = touch["t_ns"].astype(np.float64)
+    y_cap = np.interp(t - touch["tactile_age_ns"], t, y)
+    d = touch["delta_n"] - side * (y - y_cap)
+    fresh = np.concatenate([[True], np.diff(touch["tactile_seq"]) != 0]) & (touch["tactile_seq"] >= 0)
+    deepest = int(np.argmax(np.abs(d)))
+    band = (np.abs(d) >= _PRESS_BAND[0] * delta_d) & (np.abs(d) <= _PRESS_BAND[1] * delta_d)
+    keep = fresh & band & (np.arange(len(touch)) <= deepest)
+    return Press(y_cap[keep], d[keep], side)

@@ -73,7 +73,14 @@ def sim_part(world: World) -> SimWorkpiece | None:
 def srm_source(world: World, robot_host: str, part: SimWorkpiece | None) -> SimSrmSource:
     """The simulated SRM camera: the world's camera, tool and finger on the true wall of ``part``, in its plane."""
     f = world.finger
-    contact = replace(ContactParams(), stiffening=f.stiffening, static_friction_ratio=f.static_friction_ratio, hysteresis=f.hysteresis)
+    contact = replace(
+        ContactParams(),
+        stiffening=f.stiffening,
+        static_friction_ratio=f.static_friction_ratio,
+        hysteresis=f.hysteresis,
+        tag_gain=f.tag_gain,
+        tag_softening=f.tag_softening,
+    )
     cam = world.camera
     params = SrmSimParams(contact=contact, fps=0.0, seed=cam.seed, stamp_sigma=cam.stamp_sigma, delivery_jitter=cam.delivery_jitter)
     tool = world.tool.config

@@ -323,6 +323,12 @@ def run_jobs(
             alone_measured = open_loop_torch(world, planned, planned_wall, home, measured)
             figures["weld"]["plan_alone_measured_tool_error"] = lateral(part, alone_measured)
             figures["weld"]["plan_alone_measured_tool_height"] = height(part, alone_measured, cfg.weld.tip_height)
+        # The finger as the world made it: its tag's gain along the tool's y, the joint's normal the touches press along.
+        figures["weld"]["finger_truth"] = {
+            "tag_gain": list(world.finger.tag_gain),
+            "tag_softening_mm": world.finger.tag_softening * 1e3,
+            "tip_over_tag": 1.0 / world.finger.tag_gain[1],
+        }
         probe = res.get("height_probe") or {}
         if probe.get("probed"):
             # What the touch check should have read: its point where the arm truly put it, against the part's true root;
@@ -424,6 +430,7 @@ def summary_lines(figures: dict[str, Any]) -> list[str]:
         f"  (the torch as the daemon believes it went    {tb['rms_mm']:7.3f}  {tb['max_mm']:7.3f})",
         *_height_lines(w.get("torch_height"), w.get("plan_alone_height")),
         _probe_line(w.get("height_probe")),
+        _finger_line(w.get("height_probe"), w.get("finger_truth")),
         f"tracked {w['figures']['tracked_mm']:.0f} mm, arc on {w['figures']['arc_on_s']:.1f} s, "
         f"delta_n error {w['figures']['delta_n_error_rms_mm']} mm RMS",
         *_arc_lines(w.get("arc")),
@@ -467,6 +474,19 @@ def _probe_line(probe: dict[str, Any] | None) -> str:
     return (
         f"height probe: the joint {probe['joint_width_mm']:.3f} mm wide at the tip (the scan: {probe['scan_width_mm']:.3f} at the planned "
         f"height), the tip {probe['height_mm']:.3f} mm above the seam; plan moved {probe['height_correction_mm']:+.3f} mm"
+    )
+
+
+def _finger_line(probe: dict[str, Any] | None, truth: dict[str, Any] | None) -> str:
+    finger = (probe or {}).get("finger")
+    if not finger:
+        return "finger gain: not measured (no height probe)"
+    true = f" (the world's tag: {truth['tip_over_tag']:.4f} along the joint's normal)" if truth else ""
+    if not finger["measured"]:
+        return f"finger gain: not measured ({finger['why']}): the tag's deformation taken as the tip's{true}"
+    return (
+        f"finger gain: the tip moves {finger['gain']:.4f} +- {finger['gain_sigma']:.4f} times the tag{true}, "
+        f"{finger['frames']} frames, residual {finger['residual_rms_um']:.1f} um"
     )
 
 

@@ -13,7 +13,11 @@ Three parts, each usable alone:
   the height where its tip is. :class:`Finger` adds what a real soft finger
   does over time: a stiffness that grows with the deflection, stick-slip
   (static friction above kinetic) and hysteresis between the tip and the tag
-  (the tag follows the tip through a play), all off by default.
+  (the tag follows the tip through a play), all off by default. The tag sits
+  inside the finger, short of its tip: :func:`tag_of_tip` moves it less than
+  the tip, per in-plane axis, and less still as the finger bends (world
+  source ``tag_map``), a relation of the world's own that the controller
+  measures by touch (:mod:`celld.tactile.fingermap`), never reads.
 - :class:`TagRenderer`: renders the ArUco tag at a pose in the camera frame as
   an 8-bit grey image with perspective, lens blur, sensor noise and lighting
   changes. The tag is rendered supersampled in a window around it, then
@@ -100,6 +104,10 @@ class ContactParams:
     static_friction_ratio: float = 1.0
     # Width of the play between the tip's deflection and the tag's (:class:`Finger`), m.
     hysteresis: float = 0.0
+    # The tag inside the finger: its in-plane shift over the tip's along the tool's x and y, and the deflection
+    # at which it falls behind by a further (d / s)^2 (:func:`tag_of_tip`; inf: not at all).
+    tag_gain: tuple[float, float] = (1.0, 1.0)
+    tag_softening: float = math.inf  # m
 
     def force(self, normal: float) -> float:
         """The normal force (N) at a normal deflection (m)."""
@@ -254,6 +262,15 @@ class Finger:
                 self._drag = math.copysign(kinetic, self._drag)  # slip back to the kinetic drag
         self._s_prev = s
         return c._replace(tip_shift_plane=normal * n_free - self._drag * t)
+
+
+def tag_of_tip(shift_tool: Array, params: ContactParams) -> Array:
+    """The tag's shift in the tool frame (3,) for the tip's (after the play): the in-plane part scaled per axis by
+    ``tag_gain`` and by ``1 - (d / tag_softening)^2`` at the in-plane deflection ``d``; along the finger as is."""
+    shift = np.array(shift_tool, dtype=np.float64)
+    d = math.hypot(float(shift[0]), float(shift[1]))
+    shift[:2] *= np.asarray(params.tag_gain, dtype=np.float64) * (1.0 - (d / params.tag_softening) ** 2)
+    return shift
 
 
 def tag_pose_tool(tip_shift_tool: Array, finger_length: float) -> Array:
@@ -547,7 +564,7 @@ class SimSrm:
                 wall = far
         c, tag_plane = self.finger.touch(p_plane[:2], v_rest, wall, r)
         R_tb = T_bt[:3, :3].T
-        return c, R_tb @ (R_bp[:, :2] @ c.tip_shift_plane), R_tb @ (R_bp[:, :2] @ tag_plane)
+        return c, R_tb @ (R_bp[:, :2] @ c.tip_shift_plane), tag_of_tip(R_tb @ (R_bp[:, :2] @ tag_plane), contact)
 
     def imaging(self, t: float) -> Imaging:
         """The image conditions at time ``t`` (s): a slow change of the light."""

@@ -15,7 +15,7 @@ its world:
 - :func:`draw_world` draws a :class:`World` from (nominal cell, budget,
   seed): the true robot kinematics and its noise, the scanner's true pose,
   scale and distortion, the flange as made, the tool as built, the finger's
-  mechanics, the part as placed and as distorted, the timing of captures.
+  mechanics and how its tag follows its tip, the part as placed and as distorted, the timing of captures.
   Each source draws from its own generator (seeded by the world's seed and
   the source's name), so switching one source on or off changes nothing else.
 
@@ -102,6 +102,7 @@ SOURCES: tuple[str, ...] = (
     # tool
     "tool_offsets",  # the SRM tip and the torch are not where the tool config says
     "finger",  # the finger's stiffening, hysteresis and stick-slip
+    "tag_map",  # the tag inside the finger moves less than the tip, per axis, and less still as the finger bends
     "srm_camera",  # the SRM camera's intrinsics and mount, and the tag's printed size, are not what the controller was told
     # part
     "part_placement",  # the part lies off its place by centimetres and degrees
@@ -255,6 +256,15 @@ class ErrorBudget:
     stiffening: tuple[float, float] = (2.5e-3, 4.0e-3)  # m
     hysteresis: tuple[float, float] = (0.02e-3, 0.06e-3)  # m
     static_friction_ratio: tuple[float, float] = (1.3, 1.7)
+    # The tag sits inside the finger, short of its tip: a cantilever loaded at its tip deflects at a fraction x
+    # of its length by x^2 (3 - x) / 2 of the tip's (Euler-Bernoulli), so a tag at 90-100 % of the bending length
+    # moves 0.85-1.0 times the tip (a gain off by up to 15 %); the printed lattice bends unevenly, 1 sigma per
+    # in-plane axis on top; and the tag falls further behind as the lattice's cells close, by (d / s)^2 at a
+    # deflection d. Plausible for a printed metamaterial finger, whose own body deformation is estimated to
+    # 2.1 % of its length (the SRM family, arXiv 2312.09863).
+    tag_position: tuple[float, float] = (0.90, 1.0)  # fraction of the bending length
+    tag_anisotropy: float = 0.02  # relative
+    tag_softening: tuple[float, float] = (6.0e-3, 12.0e-3)  # m
 
     # -- part ------------------------------------------------------------------
     # Placement off its place on the table, 1 sigma per axis and in yaw
@@ -351,6 +361,9 @@ ERROR_KEYS: dict[str, tuple[str, float, float]] = {
     "stiffening": ("stiffening_mm", 1e-3, 100.0),
     "hysteresis": ("hysteresis_mm", 1e-3, 1.0),
     "static_friction_ratio": ("static_friction_ratio", 1.0, 5.0),
+    "tag_position": ("tag_position", 1.0, 1.0),
+    "tag_anisotropy": ("tag_anisotropy", 1.0, 0.3),
+    "tag_softening": ("tag_softening_mm", 1e-3, 1000.0),
     "placement_offset": ("placement_offset_mm", 1e-3, 100.0),
     "placement_yaw": ("placement_yaw_deg", math.pi / 180, 30.0),
     "bow": ("bow_mm", 1e-3, 10.0),
@@ -649,6 +662,10 @@ class FingerTruth:
     stiffening: float = math.inf  # m, deflection at which the stiffness has doubled (inf: linear)
     hysteresis: float = 0.0  # m, width of the play between the tip and the tag
     static_friction_ratio: float = 1.0  # static over kinetic friction (1: no stick-slip)
+    # The tag's shift over the tip's along the tool's x and y, and the deflection s at which it has fallen
+    # behind by a further (d / s)^2 (inf: none): celld.sim.srm.tag_of_tip.
+    tag_gain: tuple[float, float] = (1.0, 1.0)
+    tag_softening: float = math.inf  # m
 
 
 @dataclass(frozen=True)
@@ -952,10 +969,17 @@ def _draw_tool(nominal: NominalCell, b: ErrorBudget, seed: int) -> ToolTruth:
 
 
 def _draw_finger(b: ErrorBudget, seed: int) -> FingerTruth:
-    if not b.on("finger"):
-        return FingerTruth()
-    r = _rng(seed, "finger")
-    return FingerTruth(r.uniform(*b.stiffening), r.uniform(*b.hysteresis), r.uniform(*b.static_friction_ratio))
+    finger = FingerTruth()
+    if b.on("finger"):
+        r = _rng(seed, "finger")
+        finger = FingerTruth(r.uniform(*b.stiffening), r.uniform(*b.hysteresis), r.uniform(*b.static_friction_ratio))
+    if not b.on("tag_map"):
+        return finger
+    r = _rng(seed, "tag_map")
+    x = r.uniform(*b.tag_position)
+    bent = x * x * (3.0 - x) / 2.0  # the cantilever's deflection at x over the tip's
+    gain = bent * (1.0 + _tnormal(r, b.tag_anisotropy, 2))
+    return replace(finger, tag_gain=(float(gain[0]), float(gain[1])), tag_softening=float(r.uniform(*b.tag_softening)))
 
 
 def _draw_camera(b: ErrorBudget, seed: int) -> CameraTiming:

@@ -38,8 +38,8 @@ import numpy as np
 from celld import polyline, se3
 from celld.config import ToolConfig, WeldConfig
 from celld.config.seam import SeamParams
-from celld.errors import WorkpieceError
-from celld.schemadoc import boolean, const, enum, nullable, number, obj, vector, with_properties
+from celld.errors import TactileError, WorkpieceError
+from celld.schemadoc import boolean, const, enum, integer, nullable, number, obj, one_of, string, vector, with_properties
 from celld.seam.figures import TRACK_FIGURES_SCHEMA, track_summary
 from celld.seam.pipeline import PreparedWorkpiece, SeamPath, find_seam, prepare
 from celld.seam.weldpath import (
@@ -54,6 +54,7 @@ from celld.seam.weldpath import (
     weld_geometry,
 )
 from celld.seam.workpiece import Workpiece
+from celld.tactile.fingermap import FingerGain, FingerRefused, Press, fit_finger_gain
 from celld.tactile.tool import ToolGeometry
 
 # The tool starts this far along the wall line (m) ...
@@ -292,10 +293,54 @@ def judged(check: dict[str, Any], bound: float | None) -> dict[str, Any]:
     }
 
 
+# The JSON shape of measured_finger's reading.
+FINGER_SCHEMA = one_of(
+    "The finger's tip deflection for its tag's along the joint's normal, as the probe's touches measured it while they "
+    "came onto the walls (celld.tactile.fingermap): the weld's servo tracks with it.",
+    obj(
+        "Measured: tip = gain d + cubic d^3 for the tag's deformation d.",
+        {
+            "measured": const(True),
+            "gain": number("The tip's deflection over the tag's, at small deflections."),
+            "gain_sigma": number("Its 1 sigma from the fit's scatter.", lo=0.0),
+            "cubic_per_mm2": number("The cubic term, 1/mm^2."),
+            "residual_rms_um": number("The frames' RMS distance from the fit, um.", lo=0.0),
+            "frames": integer("Frames fitted, both touches.", lo=0),
+            "span_mm": vector("The least and largest tag deformation fitted, mm.", 2),
+        },
+        ("measured", "gain", "gain_sigma", "cubic_per_mm2", "residual_rms_um", "frames", "span_mm"),
+    ),
+    obj(
+        "Not measured (the touches came onto their walls too fast for the camera): the tag's deformation taken as the tip's.",
+        {"measured": const(False), "why": string()},
+        ("measured", "why"),
+    ),
+)
+
+
+def measured_finger(presses: list[Press], delta_d: float) -> tuple[FingerGain, dict[str, Any]]:
+    """The finger's gain from the probe's touches (:func:`celld.tactile.fingermap.fit_finger_gain`) and its reading
+    (:data:`FINGER_SCHEMA`); Eq. 15 as is, and why, when the touches cannot tell it.
+
+    Raises
+    ------
+    FingerRefused
+        The touches measured a gain no working finger has: the weld does not go on with it.
+    """
+    try:
+        fit = fit_finger_gain(presses, delta_d)
+    except FingerRefused:
+        raise
+    except TactileError as exc:
+        return FingerGain(), {"measured": False, "why": str(exc)}
+    return fit.finger, {"measured": True, **fit.as_dict()}
+
+
 # The JSON shape of what probed_height found (a joint that was probed).
 PROBED_SCHEMA = obj(
     "The tip's height in the joint, probed by touch at the start: the joint's width where the finger met its two walls, "
-    "the height that width gives, and the plan's correction to it; and the calibration's error there (touch_check).",
+    "the height that width gives, and the plan's correction to it; the calibration's error there (touch_check); and the "
+    "finger's gain the touches measured (finger).",
     {
         "probed": const(True),
         "joint_width_mm": number("The joint's width at the tip, from the two touches."),
@@ -303,8 +348,9 @@ PROBED_SCHEMA = obj(
         "height_mm": number("The tip's height above the seam that the width gives."),
         "height_correction_mm": number("How far the plan moved up (positive) or down to the height it should have."),
         "touch_check": TOUCH_CHECK_SCHEMA,
+        "finger": FINGER_SCHEMA,
     },
-    ("probed", "joint_width_mm", "scan_width_mm", "height_mm", "height_correction_mm", "touch_check"),
+    ("probed", "joint_width_mm", "scan_width_mm", "height_mm", "height_correction_mm", "touch_check", "finger"),
 )
 
 
@@ -338,10 +384,16 @@ def touch_check(plan: WeldPlan, touches: dict[str, float], height: float) -> dic
 
 
 def probed_height(
-    plan: WeldPlan, touches: dict[str, float], tool: ToolGeometry, T_tcp_tool: np.ndarray, max_correction: float
+    plan: WeldPlan,
+    touches: dict[str, float],
+    finger_reading: dict[str, Any],
+    tool: ToolGeometry,
+    T_tcp_tool: np.ndarray,
+    max_correction: float,
 ) -> tuple[dict[str, Any], WeldPlan]:
     """The tip's height in the joint from where the finger met its two walls (``touches``: ``far`` and
-    ``finger``, m across the joint), and the plan moved to the height it should have.
+    ``finger``, m across the joint, found with the finger's gain whose reading is ``finger_reading``,
+    :func:`measured_finger`), and the plan moved to the height it should have.
 
     Raises
     ------
@@ -361,6 +413,7 @@ def probed_height(
         "height_mm": round(height * 1e3, 4),
         "height_correction_mm": round(-dh * 1e3, 4),
         "touch_check": touch_check(plan, touches, height),
+        "finger": finger_reading,
     }
     if abs(dh) > max_correction:
         raise WorkpieceError(

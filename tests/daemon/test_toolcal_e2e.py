@@ -62,6 +62,9 @@ CAL_POSES = 10
 # all that part them (bench/realistic_cell.py's target is 0.10 mm; here one weld, with room for its scatter).
 TOUCH_CHECK_AGREE = 0.15
 CAL_SCALE = 0.5
+# The finger's measured gain against the world's tag (relative): the fit's cubic term trades with its gain at
+# small deflections (a few tenths of a percent, tests/tactile/test_fingermap.py), the touch's frames scatter.
+FINGER_GAIN = 0.02
 
 
 def _config(cell_config) -> Path:
@@ -184,6 +187,11 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         assert torch_path["points"] > 100 and torch_path["rms_mm"] <= 0.2 and torch_path["max_mm"] <= 0.5, (torch_path, plan_alone)
         # The touch check: the calibration's error at the weld's start as the probe's touches read it, against where
         # the arm truly put the checked point (the controller's belief against the truth, near it).
+        # The finger's gain, measured by the probe's touches, against the world's tag along the tool's y (the joint's
+        # normal): the tip's deflection over the tag's at small deflections is one over the tag's gain there.
+        finger = res["height_probe"]["finger"]
+        print(f"finger: {finger}, the world's tag gain {world.finger.tag_gain}, softening {world.finger.tag_softening}")
+        assert finger["measured"] and finger["gain"] * world.finger.tag_gain[1] == pytest.approx(1.0, abs=FINGER_GAIN), finger
         check = res["height_probe"]["touch_check"]
         truth_check = touch_check_truth(part, check, truth.records(), tip, world.tool.config.tip_tcp, cfg.robot.arc_output)
         assert truth_check is not None

@@ -37,6 +37,7 @@ from celld.motion.limits import CartesianLimits, sequence_peaks
 from celld.motion.types import ControlStatus, RobotState, ServoInput
 from celld.sim.srm import ContactParams, Wall, finger_contact
 from celld.tactile.deformation import contact_state, invalid_sample
+from celld.tactile.fingermap import FingerGain
 from celld.tactile.sample import ContactState, TactileSample, TactileStatus
 
 PERIOD = 0.002
@@ -207,9 +208,13 @@ class Loop:
         touch_only: bool = False,
         source=None,
         arc=None,
+        tag_gain: float = 1.0,
+        finger: FingerGain = FingerGain(),
     ) -> None:
         """``source`` (callable of t_s and the core's last ArcOutput, returning SourceSignals) is a power source
-        on the cell's I/O, ``arc`` (ArcParams) the weld's sequence; without them the cell has none."""
+        on the cell's I/O, ``arc`` (ArcParams) the weld's sequence; without them the cell has none. The samples
+        show ``tag_gain`` of the tip's deflection (a tag inside the finger); the plan carries ``finger``."""
+        self.tag_gain = tag_gain
         self.sensor, self.servo_cfg, self.tool = TactileConfig(), ServoConfig(), ToolConfig()
         self.motion = MotionLimits()
         self.limits = CartesianLimits.from_config(self.motion)
@@ -229,6 +234,7 @@ class Loop:
             process=process,
             seam_offset=seam_offset,
             touch_only=touch_only,
+            finger=finger,
         )
         if arc is not None:
             self.plan = self.plan._replace(params={**self.plan.params, **plan_keys(arc)})
@@ -278,7 +284,7 @@ class Loop:
                 shift = c.tip_shift_plane
         t_d = T_bt[:2, 0] / np.linalg.norm(T_bt[:2, 0])
         n_d = np.array([-t_d[1], t_d[0]])
-        delta = np.array([-shift @ t_d, -shift @ n_d, 0.0]) + self.rng.normal(0, 3e-6, 3)
+        delta = self.tag_gain * np.array([-shift @ t_d, -shift @ n_d, 0.0]) + self.rng.normal(0, 3e-6, 3)
         self.seq += 1
         state = contact_state(delta, self.contact, self.sensor.contact_threshold, self.sensor.overload)
         self.contact = state
@@ -526,6 +532,23 @@ def test_with_a_seam_offset_the_torch_follows_the_seam_not_the_wall() -> None:
     assert abs(loop.torch_error() + 0.001) < 1e-4
 
 
+def test_a_tag_that_shows_less_than_the_tip_leaves_the_seam_off_unless_the_plan_carries_the_finger_s_gain() -> None:
+    delta_d = ServoConfig().delta_d
+    off = Loop(length=0.03, seam_offset=0.001, tag_gain=0.9)
+    off.run(20.0)
+    fixed = Loop(length=0.03, seam_offset=0.001, tag_gain=0.9, finger=FingerGain(1 / 0.9))
+    fixed.run(20.0)
+    assert off.statuses[-1] == ControlStatus.DONE and fixed.statuses[-1] == ControlStatus.DONE
+    # Taken as the tip's, the tag's deformation puts the wall delta_d (1 / 0.9 - 1) = 0.167 mm too far in; the
+    # finger's gain puts it back on the wall (y = 0 in the plane), the seam 1 mm on the free side.
+    y_off, y_fixed = (float(np.mean(loop.servo.refined_plane[:, 1])) for loop in (off, fixed))
+    assert y_off + 0.001 == pytest.approx(delta_d * (1 / 0.9 - 1), abs=5e-6)
+    assert abs(y_fixed + 0.001) < 5e-6 and abs(fixed.torch_error() + 0.001) < 1e-4
+    # It holds the tip, not the tag, at delta_d: the law's delta_n while tracking is the tip's, so the tag shows 0.9 of it.
+    held = np.array([o.telemetry.delta_n for o in fixed.outs if o.telemetry.phase == Phase.TRACK])
+    assert len(held) > 100 and float(np.median(held)) == pytest.approx(delta_d, abs=2e-5)
+
+
 def test_the_new_plan_parameters_are_checked() -> None:
     servo, tool, motion = ServoConfig(), ToolConfig(), MotionLimits()
     P = np.column_stack([np.linspace(0, 0.1, 50), np.zeros(50), np.zeros(50)])
@@ -538,7 +561,11 @@ def test_the_new_plan_parameters_are_checked() -> None:
     with pytest.raises(InputError, match="process"):
         make_algorithm2(plan._replace(params={**plan.params, "process": 1}))
     # A plan that leaves them out gets the defaults: no process, the wall is the seam.
-    older = {k: v for k, v in plan.params.items() if k not in ("process", "seam_offset", "touch_only", "sensor_yaw")}
+    older = {
+        k: v
+        for k, v in plan.params.items()
+        if k not in ("process", "seam_offset", "touch_only", "sensor_yaw", "finger_gain", "finger_cubic")
+    }
     p = make_algorithm2(plan._replace(params=older)).p
     assert (p.process, p.seam_offset, p.touch_only, p.sensor_yaw) == (False, 0.0, False, 0.0)
     with pytest.raises(InputError, match="touch_only"):
@@ -550,6 +577,13 @@ def test_the_new_plan_parameters_are_checked() -> None:
     for bad_yaw in (0.2, -0.2, math.nan):
         with pytest.raises(InputError, match="sensor_yaw"):
             make_algorithm2(plan._replace(params={**plan.params, "sensor_yaw": bad_yaw}))
+    # The finger's gain: left out, Eq. 15 as is; no finger has a gain outside 0.7-1.4.
+    assert (p.finger_gain, p.finger_cubic) == (1.0, 0.0)
+    for bad_gain in (0.5, 2.0, math.nan, True):
+        with pytest.raises(InputError, match="finger_gain|finger gain"):
+            make_algorithm2(plan._replace(params={**plan.params, "finger_gain": bad_gain}))
+    with pytest.raises(InputError, match="cubic term"):
+        algorithm2_plan(P, servo, tool, motion, finger=FingerGain(1.0, 1e6))
 
 
 def test_sensor_yaw_turns_the_deformation_into_the_measured_tool_frame() -> None:

@@ -250,3 +250,31 @@ def test_the_worlds_srm_camera_is_its_own_and_the_estimator_reads_it_through_wha
     ideal, seen = deformation(read_drawn), deformation(read_built)
     assert np.linalg.norm(ideal + shift) < 20e-6, ideal
     assert 5e-6 < np.linalg.norm(seen - ideal) < 100e-6, (seen, ideal)
+
+
+def test_the_tag_inside_the_finger_shows_less_than_the_tip_and_the_camera_reads_what_the_tag_shows() -> None:
+    from celld.config import TactileConfig, ToolConfig
+    from celld.sim.srm import Imaging, SimSrm, SrmSimParams, tag_of_tip
+    from celld.tactile.aruco import TagDetector
+    from celld.tactile.deformation import deformation_tool, tare
+
+    wall = Wall(np.array([[-0.05, 0.0], [0.05, 0.0]]), free=-1.0)
+    cfg, tool = TactileConfig(), ToolConfig()
+    detector = TagDetector.from_config(cfg)
+
+    def seen(params: ContactParams) -> tuple[np.ndarray, np.ndarray]:
+        """The tip's deflection 1 mm into the wall and the deformation the controller reads from the image of it."""
+        srm = SimSrm(cfg, tool, wall, np.eye(4), SrmSimParams(contact=params, seed=3))
+        rest = detector.detect(srm.image(np.zeros(3), Imaging(noise=0.0))).p_cam
+        _, tip, tag = srm.contact(_tool_pose(0.0), np.zeros(3))  # the tip's centre on the wall: its radius, 1 mm, into it
+        read = deformation_tool(detector.detect(srm.image(tag, Imaging(noise=0.0))).p_cam, tare(np.array([rest]), 1e-3), tool.R_tool_cam())
+        return -tip, read  # both as Eq. 15's delta
+
+    truth, read = seen(ContactParams())
+    assert truth[1] == pytest.approx(0.001) and read[1] == pytest.approx(truth[1], abs=10e-6)
+    inside = ContactParams(tag_gain=(0.95, 0.9), tag_softening=8e-3)
+    truth, read = seen(inside)
+    # The tip is where it was, the tag (and so Eq. 15's reading) 0.9 (1 - (1/8)^2) of it: 0.114 mm short.
+    assert truth[1] == pytest.approx(0.001)
+    assert read[1] == pytest.approx(0.9 * (1 - (1 / 8) ** 2) * truth[1], abs=10e-6)
+    np.testing.assert_allclose(tag_of_tip(np.array([1e-3, 0.0, 2e-4]), inside), [0.95 * (1 - (1 / 8) ** 2) * 1e-3, 0.0, 2e-4])

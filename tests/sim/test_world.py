@@ -74,7 +74,8 @@ def _components(w: Any) -> dict[str, str]:
         "flange_tolerance": t(*(g.outer_diameter for g in (f, f2)), *(g.bore_diameter for g in (f, f2)), f.pitch_diameter, f2.thickness),
         "flange_variant": t(f.chamfer, f2.chamfer, f.bore_depth, f2.hole_depth, f.dowel_depth),
         "tool_offsets": t(w.tool.config, w.tool.p_flange_torch),
-        "finger": t(w.finger),
+        "finger": t(w.finger.stiffening, w.finger.hysteresis, w.finger.static_friction_ratio),
+        "tag_map": t(w.finger.tag_gain, w.finger.tag_softening),
         "srm_camera": t(w.srm),
         "part_placement": t(p.offset_xy, p.yaw),
         "part_shape": t(p.shape),
@@ -108,6 +109,7 @@ def test_the_ideal_world_is_its_drawing() -> None:
     assert w.tool.config == NOMINAL.tool
     np.testing.assert_allclose(w.tool.p_flange_torch, [-0.03, 0.0, 0.2])
     assert w.finger.hysteresis == 0.0 and w.finger.static_friction_ratio == 1.0 and math.isinf(w.finger.stiffening)
+    assert w.finger.tag_gain == (1.0, 1.0) and math.isinf(w.finger.tag_softening)
     assert w.camera.stamp_sigma == 0.0 and w.camera.delivery_jitter == 0.0
     assert w.srm == replace(NOMINAL.srm, T_tool_cam=NOMINAL.tool.T_tool_cam)
     assert w.part is not None and w.part.offset_xy == (0.0, 0.0) and w.part.yaw == 0.0
@@ -264,6 +266,9 @@ def test_the_scanner_tool_flange_and_part_errors_are_sized_as_budgeted() -> None
         turn = math.degrees(math.acos(np.clip(np.dot(w.tool.config.tool_z_tcp, NOMINAL.tool.tool_z_tcp), -1, 1)))
         assert turn <= 1.75  # cut at 1 degree per axis
         assert b.hysteresis[0] <= w.finger.hysteresis <= b.hysteresis[1]
+        # The tag at 90-100 % of the finger's bending length moves 0.85-1.0 of the tip, each axis 2 % apart at 1 sigma.
+        assert all(0.8505 * (1 - TRUNCATE * b.tag_anisotropy) <= g <= 1 + TRUNCATE * b.tag_anisotropy for g in w.finger.tag_gain)
+        assert b.tag_softening[0] <= w.finger.tag_softening <= b.tag_softening[1]
         p = w.part
         assert np.abs(p.offset_xy).max() <= TRUNCATE * b.placement_offset and abs(p.yaw) <= TRUNCATE * b.placement_yaw
         assert b.bow[0] <= abs(p.shape.bow) <= b.bow[1]  # NOMINAL's part has no bow of its own

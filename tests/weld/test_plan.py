@@ -36,6 +36,17 @@ T_BASE_CAM = np.array([[0.0, -1.0, 0.0, 0.6], [-1.0, 0.0, 0.0, -0.0125], [0.0, 0
 WELD = WeldConfig()
 TOOL = ToolConfig()
 
+# A finger's gain as a weld's touches read it (celld.weld.plan.measured_finger): the probe carries it in its reading.
+FINGER = {
+    "measured": True,
+    "gain": 1.12,
+    "gain_sigma": 0.004,
+    "cubic_per_mm2": 0.02,
+    "residual_rms_um": 1.8,
+    "frames": 31,
+    "span_mm": [0.4, 1.5],
+}
+
 
 @pytest.fixture(scope="module")
 def plan() -> WeldPlan:
@@ -73,17 +84,17 @@ def test_a_probe_that_finds_the_planned_width_leaves_the_plan_and_a_wider_joint_
     def touches(width: float) -> dict[str, float]:  # where the tip's centre stood at each wall, across the joint
         return {"far": 0.0, "finger": width - 2.0 * tool.tip_radius}
 
-    found, same = probed_height(plan, touches(planned), tool, tool.T_tcp_tool, WELD.max_height_correction)
+    found, same = probed_height(plan, touches(planned), FINGER, tool, tool.T_tcp_tool, WELD.max_height_correction)
     assert found["probed"] and abs(found["height_correction_mm"]) < 1e-6
     validate(PROBED_SCHEMA, found)  # the shape the weld's result promises
     np.testing.assert_allclose(same.T_start, plan.T_start, atol=1e-9)
     opening = finger[1] + far[1]
-    found, lifted = probed_height(plan, touches(planned + opening * 0.001), tool, tool.T_tcp_tool, WELD.max_height_correction)
+    found, lifted = probed_height(plan, touches(planned + opening * 0.001), FINGER, tool, tool.T_tcp_tool, WELD.max_height_correction)
     # The joint is wider than planned: the tip stands 1 mm higher than the plan says, and the plan comes down by it.
     assert found["height_correction_mm"] == pytest.approx(-1.0, abs=1e-6)
     assert (plan.T_start[:3, 3] - lifted.T_start[:3, 3]) @ plan.up == pytest.approx(0.001, abs=1e-6)
     with pytest.raises(WorkpieceError, match="check the calibration and the tool"):
-        probed_height(plan, touches(planned + opening * 0.003), tool, tool.T_tcp_tool, WELD.max_height_correction)
+        probed_height(plan, touches(planned + opening * 0.003), FINGER, tool, tool.T_tcp_tool, WELD.max_height_correction)
 
 
 def test_the_touch_check_reads_how_far_the_touched_joint_is_from_the_scanned_one_across_and_in_height(plan: WeldPlan) -> None:
@@ -103,7 +114,7 @@ def test_the_touch_check_reads_how_far_the_touched_joint_is_from_the_scanned_one
         return {"finger": finger_wall - tool.tip_radius, "far": far_wall + tool.tip_radius}
 
     # Where the scan put it: no error.
-    found, _ = probed_height(plan, touches(0.0), tool, tool.T_tcp_tool, WELD.max_height_correction)
+    found, _ = probed_height(plan, touches(0.0), FINGER, tool, tool.T_tcp_tool, WELD.max_height_correction)
     check = found["touch_check"]
     assert check["across_mm"] == pytest.approx(0.0, abs=1e-4) and check["height_mm"] == pytest.approx(0.0, abs=1e-4)
     np.testing.assert_allclose(check["at_base"], plan.geometry.seam_base[i], atol=1e-6)
@@ -112,7 +123,7 @@ def test_the_touch_check_reads_how_far_the_touched_joint_is_from_the_scanned_one
     assert check["across_mm"] == pytest.approx(0.3, abs=1e-4) and check["error_mm"] == pytest.approx(0.3, abs=1e-4)
     # The root 0.5 mm lower than scanned and the joint 0.2 mm towards the far wall: the tip stands 0.5 mm higher
     # than planned, and the plan comes down by it.
-    found, _ = probed_height(plan, touches(-0.2e-3, 0.5e-3), tool, tool.T_tcp_tool, WELD.max_height_correction)
+    found, _ = probed_height(plan, touches(-0.2e-3, 0.5e-3), FINGER, tool, tool.T_tcp_tool, WELD.max_height_correction)
     check = found["touch_check"]
     assert check["across_mm"] == pytest.approx(-0.2, abs=1e-4), check
     assert check["height_mm"] == pytest.approx(-0.5, abs=1e-4) and found["height_correction_mm"] == pytest.approx(-0.5, abs=1e-4)
@@ -176,3 +187,22 @@ def tool_poses_at(geometry, tool: ToolGeometry) -> np.ndarray:
     from celld.seam.weldpath import tool_poses
 
     return tool_poses(geometry, tool.T_tcp_tool, polyline.arc_length(geometry.wall_base))
+
+
+def test_the_finger_s_gain_is_measured_from_the_touches_or_said_why_not_and_a_broken_finger_stops_the_weld() -> None:
+    from celld.tactile.fingermap import FingerGain, FingerRefused, Press
+    from celld.weld.plan import FINGER_SCHEMA, measured_finger
+
+    tip = np.linspace(0.4e-3, 1.6e-3, 15)
+    # Two touches of a finger whose tag moves 0.9 times its tip, walls 6 mm apart (the far one towards -y).
+    presses = [Press(0.003 + tip, 0.9 * tip, 1.0), Press(-0.003 - tip, -0.9 * tip, 1.0)]
+    finger, reading = measured_finger(presses, 1.5e-3)
+    assert finger.gain == pytest.approx(1 / 0.9, rel=1e-6) and abs(finger.cubic) < 1.0 and reading["frames"] == 30
+    validate(FINGER_SCHEMA, reading)
+    validate(FINGER_SCHEMA, FINGER)
+    # Touches that came on too fast for the camera: Eq. 15 as it is, and why.
+    finger, reading = measured_finger([Press(tip[:3], 0.9 * tip[:3], 1.0)], 1.5e-3)
+    assert finger == FingerGain() and reading["measured"] is False and "span" in reading["why"]
+    validate(FINGER_SCHEMA, reading)
+    with pytest.raises(FingerRefused, match="check the finger and its tag"):
+        measured_finger([Press(0.003 + tip, 0.4 * tip, 1.0)], 1.5e-3)
