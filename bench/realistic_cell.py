@@ -235,6 +235,10 @@ def finger_figures(probe: dict[str, Any] | None, truth: dict[str, Any] | None) -
     out: dict[str, Any] = {**finger, "true_gain": None if truth is None else round(truth["tip_over_tag"], 5)}
     if truth is not None and finger["measured"]:
         out["gain_error"] = round(finger["gain"] / truth["tip_over_tag"] - 1.0, 5)
+        # Where the servo holds the tag (delta_d): the tip's deflection over the tag's, measured and true.
+        held = finger["gain"] + finger["cubic_per_mm2"] * truth["delta_d_mm"] ** 2
+        out["held_error"] = round(held / truth["tip_over_tag_held"] - 1.0, 5)
+        out["held_error_um"] = round((held - truth["tip_over_tag_held"]) * truth["delta_d_mm"] * 1e3, 2)
     return out
 
 
@@ -317,6 +321,8 @@ def summarise(preset: str, sources: list[str], runs: list[dict[str, Any]]) -> di
         "finger_gain": [(r["weld"].get("finger") or {}).get("gain") for r in ok],
         "finger_gain_true": [(r["weld"].get("finger") or {}).get("true_gain") for r in ok],
         "finger_gain_error": [(r["weld"].get("finger") or {}).get("gain_error") for r in ok],
+        # ... and at the deformation the servo holds: the tip's deflection there off by this (um).
+        "finger_held_error_um": [(r["weld"].get("finger") or {}).get("held_error_um") for r in ok],
         "successes": sum(1 for r in runs if r.get("success")),
         "failures": [{"seed": r["seed"], **r["failed"]} for r in runs if "failed" in r],
     }

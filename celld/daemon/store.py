@@ -30,6 +30,7 @@ from celld.journal import utc_now
 from celld.log import get_logger
 from celld.robot import primary
 from celld.schemadoc import boolean, string, with_properties
+from celld.tactile.fingermap import FingerGain
 from celld.tactile.tool import with_measured_torch
 
 log = get_logger(__name__)
@@ -235,6 +236,55 @@ def last_verification(state_dir: Path) -> dict[str, Any] | None:
         return sealed.read_sealed(state_dir / VERIFICATION, VERIFICATION_KIND, "verification record")
     except DamagedStateError:
         return None
+
+
+FINGER = "finger.json"
+FINGER_KIND = "finger"
+
+
+class StoredFinger(NamedTuple):
+    """The finger's gain the last probed weld measured (:func:`stored_finger`)."""
+
+    finger: FingerGain
+    gain_sigma: float
+    job: str  # the weld that measured it
+    at: str  # when (UTC)
+
+
+def store_finger(state_dir: Path, job: str, tool_job: str, reading: Mapping[str, Any]) -> None:
+    """Keep a weld's measured finger gain (``reading``: :data:`celld.weld.plan.FINGER_SCHEMA`'s measured branch),
+    for the tool calibration ``tool_job`` it was measured with, sealed in ``<state_dir>/finger.json``."""
+    body = {
+        "gain": reading["gain"],
+        "cubic_per_mm2": reading["cubic_per_mm2"],
+        "gain_sigma": reading["gain_sigma"],
+        "tool_calibration_job": tool_job,
+        "at": utc_now(),
+    }
+    sealed.write_sealed(state_dir / FINGER, body, FINGER_KIND, job)
+
+
+def stored_finger(state_dir: Path, tool_job: str, delta_d: float) -> tuple[StoredFinger | None, str]:
+    """The finger's gain the last probed weld measured with the tool calibration ``tool_job``, checked as a plan's
+    gain is where the servo holds ``delta_d`` (m); or None and why there is none to use (none kept, kept for
+    another tool calibration, damaged or unusable: a weld then takes the tag's deformation as the tip's)."""
+    try:
+        doc = sealed.read_sealed(state_dir / FINGER, FINGER_KIND, "finger gain")
+    except DamagedStateError as exc:
+        return None, str(exc)
+    if doc is None:
+        return None, "no probed weld has measured it yet"
+    if doc.get("tool_calibration_job") != tool_job:
+        return None, f"the one kept was measured with tool calibration {doc.get('tool_calibration_job')!r}, not the current {tool_job!r}"
+    try:
+        values = [doc.get(k) for k in ("gain", "cubic_per_mm2", "gain_sigma")]
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+            raise InputError(f"finger gain: expected numbers, got {values}")
+        gain, cubic, sigma = (float(v) for v in values)  # type: ignore[arg-type]
+        finger = FingerGain(gain, cubic * 1e6).check(delta_d)
+    except InputError as exc:
+        return None, f"the one kept in {state_dir / FINGER} is unusable: {exc}"
+    return StoredFinger(finger, sigma, str(doc.get(sealed.JOB_KEY, "")), str(doc.get("at", ""))), ""
 
 
 def failed_verification(record: Mapping[str, Any] | None, calibration: Mapping[str, Any]) -> str:

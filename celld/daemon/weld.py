@@ -63,7 +63,7 @@ from celld.config import Config, ServoConfig, ToolConfig, WeldConfig, with_overr
 from celld.daemon.devices import CellDevices
 from celld.daemon.jobs import JobContext
 from celld.daemon.planning import MotionPlanner, record_arm, record_cell, record_plan
-from celld.daemon.store import current_calibration, current_tool, for_controller
+from celld.daemon.store import current_calibration, current_tool, for_controller, store_finger, stored_finger
 from celld.errors import CelldError, ConfigError, InputError, JobError, SafetyStop, WorkpieceError
 from celld.log import get_logger
 from celld.motion.algorithm2 import Phase, algorithm2_plan
@@ -80,9 +80,11 @@ from celld.tactile.tool import ToolGeometry
 from celld.weld.arc_report import ARC_SCHEMA, arc_report, known_seam, sequence_of
 from celld.weld.plan import (
     FIGURES_SCHEMA,
+    FINGER_SCHEMA,
     PROBED_SCHEMA,
     PreparedPart,
     WeldPlan,
+    compared_finger,
     for_torch,
     judged,
     measured_finger,
@@ -118,7 +120,7 @@ _PATH = array(vector("A point, base frame, m.", 3))
 HEIGHT_PROBE_SCHEMA = one_of(
     "The tip's height in the joint, probed by touch at the start; or why it was not.",
     PROBED_SCHEMA,
-    obj("Not probed.", {"probed": const(False), "why": string()}, ("probed", "why")),
+    obj("Not probed.", {"probed": const(False), "why": string(), "finger": FINGER_SCHEMA}, ("probed", "why")),
 )
 # The JSON shape of a weld job's result (run_weld).
 RESULT_SCHEMA = one_of(
@@ -313,19 +315,21 @@ async def _probe_height(
     sensor_yaw: float,
     speed: float,
     bound: float | None,
+    tool_job: str,
 ) -> tuple[dict[str, Any], WeldPlan, FingerGain]:
     """Touch the far wall and the finger wall at the start; the finger's gain from the touches
     (:func:`celld.weld.plan.measured_finger`), the tip's height in the joint from the width there
     (:func:`celld.weld.plan.probed_height`), and the calibration's error there against ``bound`` (m, the
     calibration's own; :func:`celld.weld.plan.touch_check`). Returns what was found, the plan moved to that
-    height, the tool at its new start (unchanged when not probed), and the finger's gain (Eq. 15's, 1, when not
-    probed or not measured)."""
+    height, the tool at its new start (unchanged when not probed), and the finger's gain. A measured gain is kept
+    for the welds with the same tool calibration (``tool_job``) that cannot measure it (not probed, or touches
+    too fast for the camera), and held against the one kept before it (:func:`celld.weld.plan.compared_finger`)."""
     wc = config.weld
-    if not wc.probe_height:
-        return {"probed": False, "why": "weld.probe_height is off"}, plan, FingerGain()
-    targets, why = probe_targets(plan, tool_cfg)
+    targets, why = probe_targets(plan, tool_cfg) if wc.probe_height else ([], "weld.probe_height is off")
     if not targets:
-        return {"probed": False, "why": why}, plan, FingerGain()
+        finger, reading = _kept_finger(ctx.state_dir, tool_job, servo.delta_d, f"not probed: {why}")
+        log.info("finger gain", job=ctx.job_id, **reading)
+        return {"probed": False, "why": why, "finger": reading}, plan, finger
     motion = devices.robot.require_motion()
     tool = ToolGeometry.from_config(tool_cfg)
     origin, across = probe_across(plan)
@@ -340,6 +344,10 @@ async def _probe_height(
     # The finger's gain from the touches' approaches; the walls where the tip, not the tag, says they are.
     presses = [touch_press(records, tool, origin, across, tool.side, servo.delta_d) for records in touched.values()]
     finger, finger_found = measured_finger(presses, servo.delta_d)
+    if finger_found["measured"]:
+        finger_found = await asyncio.to_thread(_keep_finger, ctx, tool_job, servo.delta_d, finger_found)
+    else:
+        finger, finger_found = _kept_finger(ctx.state_dir, tool_job, servo.delta_d, finger_found["why"])
     log.info("finger gain", job=ctx.job_id, **finger_found)
     touches = {name: contact_across(records, tool, origin, across, tool.side, servo.delta_d, finger) for name, records in touched.items()}
     found, moved = probed_height(plan, touches, finger_found, tool, tool.T_tcp_tool, wc.max_height_correction)
@@ -355,6 +363,34 @@ async def _probe_height(
         )
     await devices.robot.move_to(moved.T_start, speed_scale=speed)
     return found, moved, finger
+
+
+def _kept_finger(state_dir: Path, tool_job: str, delta_d: float, why: str) -> tuple[FingerGain, dict[str, Any]]:
+    """The finger's gain a weld that did not measure it (``why``) tracks with: the one kept for its tool calibration
+    (:func:`celld.daemon.store.stored_finger`), else the tag's deformation as the tip's; and its reading."""
+    stored, none = stored_finger(state_dir, tool_job, delta_d)
+    if stored is None:
+        return FingerGain(), {"measured": False, "why": f"{why}; none kept to use ({none}): the tag's deformation taken as the tip's"}
+    kept = {"gain": round(stored.finger.gain, 5), "cubic_per_mm2": round(stored.finger.cubic * 1e-6, 6), "job": stored.job, "at": stored.at}
+    return stored.finger, {"measured": False, "why": why, "stored": kept}
+
+
+def _keep_finger(ctx: JobContext, tool_job: str, delta_d: float, reading: dict[str, Any]) -> dict[str, Any]:
+    """A weld's measured finger gain held against the one kept before it (a warning when the finger has changed),
+    then kept in its place."""
+    before, _ = stored_finger(ctx.state_dir, tool_job, delta_d)
+    if before is not None:
+        reading = compared_finger(reading, before.finger.gain, before.gain_sigma, before.job)
+        if reading["previous"]["changed"]:
+            log.warning(
+                "the finger's gain has changed since the last probed weld: check the finger and its tag for wear",
+                job=ctx.job_id,
+                gain=reading["gain"],
+                before=before.finger.gain,
+                before_job=before.job,
+            )
+    store_finger(ctx.state_dir, ctx.job_id, tool_job, reading)
+    return reading
 
 
 async def _run_servo(motion: Any, plan: ServoPlan, timeout: float) -> np.ndarray:
@@ -724,7 +760,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
     up = plan.up
     try:
         height_probe, plan, finger = await _probe_height(
-            ctx, devices, config, plan, setup.servo, setup.tool_config, setup.sensor_yaw, min(speed, 0.2), setup.site_bound
+            ctx, devices, config, plan, setup.servo, setup.tool_config, setup.sensor_yaw, min(speed, 0.2), setup.site_bound, setup.tool_job
         )
     except CelldError as exc:
         await _after_fault(ctx, devices, wc, exc, up, q_scan, speed)

@@ -328,6 +328,9 @@ def run_jobs(
             "tag_gain": list(world.finger.tag_gain),
             "tag_softening_mm": world.finger.tag_softening * 1e3,
             "tip_over_tag": 1.0 / world.finger.tag_gain[1],
+            # The same where the servo holds the tag's deformation at delta_d: the finger softened there.
+            "delta_d_mm": cfg.servo.delta_d * 1e3,
+            "tip_over_tag_held": tip_for_tag(cfg.servo.delta_d, world.finger.tag_gain[1], world.finger.tag_softening) / cfg.servo.delta_d,
         }
         probe = res.get("height_probe") or {}
         if probe.get("probed"):
@@ -340,6 +343,15 @@ def run_jobs(
         figures["verification"] = _verification(Path(cfg.cell.state_dir))
         figures["loop"] = _loop(cell.client)
     return figures
+
+
+def tip_for_tag(tag: float, gain: float, softening: float) -> float:
+    """The tip's deflection (m) at which the world's tag (:func:`celld.sim.srm.tag_of_tip` along one axis, ``gain``
+    and ``softening``) shows ``tag`` (m): its inverse, by fixed-point iteration (the softening is a few % at most)."""
+    tip = tag / gain
+    for _ in range(50):
+        tip = tag / (gain * (1.0 - (tip / softening) ** 2))
+    return tip
 
 
 def _verification(state: Path) -> dict[str, Any] | None:
@@ -481,7 +493,12 @@ def _finger_line(probe: dict[str, Any] | None, truth: dict[str, Any] | None) -> 
     finger = (probe or {}).get("finger")
     if not finger:
         return "finger gain: not measured (no height probe)"
-    true = f" (the world's tag: {truth['tip_over_tag']:.4f} along the joint's normal)" if truth else ""
+    true = (
+        f" (the world's: {truth['tip_over_tag']:.4f} along the joint's normal, {truth['tip_over_tag_held']:.4f} at "
+        f"{truth['delta_d_mm']:g} mm, where the measured gives {finger['gain'] + finger['cubic_per_mm2'] * truth['delta_d_mm'] ** 2:.4f})"
+        if truth and finger.get("measured")
+        else ""
+    )
     if not finger["measured"]:
         return f"finger gain: not measured ({finger['why']}): the tag's deformation taken as the tip's{true}"
     return (

@@ -307,15 +307,53 @@ FINGER_SCHEMA = one_of(
             "residual_rms_um": number("The frames' RMS distance from the fit, um.", lo=0.0),
             "frames": integer("Frames fitted, both touches.", lo=0),
             "span_mm": vector("The least and largest tag deformation fitted, mm.", 2),
+            "previous": obj(
+                "The gain the last probed weld with this tool calibration measured, and how far this one is from it.",
+                {
+                    "gain": number(),
+                    "job": string("The weld that measured it."),
+                    "change": number("This gain over that one, less 1."),
+                    "changed": boolean(
+                        "Beyond FINGER_CHANGE and three sigmas of the two: the finger has changed (wear, a loosened tag); "
+                        "also a warning in the log."
+                    ),
+                },
+                ("gain", "job", "change", "changed"),
+            ),
         },
         ("measured", "gain", "gain_sigma", "cubic_per_mm2", "residual_rms_um", "frames", "span_mm"),
     ),
     obj(
-        "Not measured (the touches came onto their walls too fast for the camera): the tag's deformation taken as the tip's.",
-        {"measured": const(False), "why": string()},
+        "Not measured by this weld (not probed, or its touches came onto their walls too fast for the camera): the gain "
+        "the last probed weld with this tool calibration measured (stored), or without one the tag's deformation taken "
+        "as the tip's.",
+        {
+            "measured": const(False),
+            "why": string(),
+            "stored": obj(
+                "The kept gain the weld tracked with.",
+                {"gain": number(), "cubic_per_mm2": number(), "job": string("The weld that measured it."), "at": string()},
+                ("gain", "cubic_per_mm2", "job", "at"),
+            ),
+        },
         ("measured", "why"),
     ),
 )
+
+# A finger whose gain moved by more than this share (and three sigmas of the two measurements) since the last
+# probed weld has changed: its wear, or its tag working loose.
+FINGER_CHANGE = 0.03
+
+
+def compared_finger(reading: dict[str, Any], gain: float, sigma: float, job: str) -> dict[str, Any]:
+    """A measured :data:`FINGER_SCHEMA` reading with the last weld's gain (``gain``, its 1 sigma ``sigma``, from the
+    weld ``job``) beside it: how far it moved and whether that is beyond :data:`FINGER_CHANGE` and its scatter."""
+    change = reading["gain"] / gain - 1.0
+    noise = 3.0 * math.hypot(reading["gain_sigma"], sigma) / gain
+    return {
+        **reading,
+        "previous": {"gain": gain, "job": job, "change": round(change, 5), "changed": abs(change) > max(FINGER_CHANGE, noise)},
+    }
 
 
 def measured_finger(presses: list[Press], delta_d: float) -> tuple[FingerGain, dict[str, Any]]:

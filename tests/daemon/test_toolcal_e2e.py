@@ -12,7 +12,7 @@ needs is a real one of this world, solved offline before the cell starts
 (10 poses, :func:`tests.daemon.cells.solve_offline`) and installed as the
 accepted one once the daemon has refused a tool calibration without it; the
 calibrate job is tested end to end in ``test_daemon_e2e.py``. About two
-minutes (a tool calibration of the job's default 12 poses and a weld). The
+minutes (a tool calibration of 14 poses and a weld). The
 weld is this suite's whole one: its stages, paths, recording and timeline are
 checked here (:func:`tests.daemon.welds.check_weld`); ``test_weld_e2e.py``
 refuses, dry-runs, cancels and kills welds in the ideal world.
@@ -31,6 +31,7 @@ from celld import se3
 from celld.calib.toolcal import solve_tool_tip
 from celld.errors import JobError
 from celld.sim.cell import run_cell, sim_part
+from celld.sim.demo import tip_for_tag
 from celld.sim.score import TruthRecorder, lateral, open_loop_torch, touch_check_truth, true_flange, true_torch_path
 from tests.daemon.cells import install_calibration
 from tests.daemon.exported import check_exported, checked_result
@@ -49,8 +50,10 @@ TIP_TOLERANCE = 0.2e-3
 # The wire's end: each axis within this many of the job's own 1-sigma (the cut end's cap fit spreads 0.04-0.07 mm
 # per axis over the job's default 12 poses; along the tool's x it only sets how far behind the tip the
 # torch is). Over 8 poses the arm's own error at each orientation once left the wire end fixed to 0.13 mm
-# (1 sigma), and the job rightly refused it: this test takes the job's default pose count.
+# (1 sigma), and the job rightly refused it; over the default 12 it once came to 0.101 mm against the job's
+# 0.100 (a weak axis at 0.068-0.101 mm between runs of this world): this test takes 14.
 TORCH_SIGMAS = 4.0
+TOOL_POSES = 14
 # The PhoXi M's full-resolution pixels this test's assertions need (row0, row1, col0, col1): the tip and the
 # wire's end at every tool calibration pose (rows 792-934, columns 914-1068 in this world) and the part for
 # the weld's scan (rows 660-955, columns 870-1228), with 60-80 pixels (15 mm or more) around them.
@@ -62,9 +65,9 @@ CAL_POSES = 10
 # all that part them (bench/realistic_cell.py's target is 0.10 mm; here one weld, with room for its scatter).
 TOUCH_CHECK_AGREE = 0.15
 CAL_SCALE = 0.5
-# The finger's measured gain against the world's tag (relative): the fit's cubic term trades with its gain at
-# small deflections (a few tenths of a percent, tests/tactile/test_fingermap.py), the touch's frames scatter.
-FINGER_GAIN = 0.02
+# The finger's measured gain against the world's tag where the servo holds it (relative; 0.06 % in this world,
+# 0.3 % in seed 1's, bench/README.md): the touch's frames scatter and end short of delta_d.
+FINGER_GAIN = 0.01
 
 
 def _config(cell_config) -> Path:
@@ -117,7 +120,7 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
 
         # (A weld on this unmeasured tool is refused, naming tool.measured: tests/daemon/test_weld_inputs.py.)
         events: list[dict] = []
-        _, tc = client.submit_and_wait({"kind": "tool-calibrate", "seed": 1}, on_event=events.append, timeout=900)
+        _, tc = client.submit_and_wait({"kind": "tool-calibrate", "seed": 1, "n_poses": TOOL_POSES}, on_event=events.append, timeout=900)
         assert tc["state"] == "succeeded", tc["reason"]
         assert [e for e in events if e["stage"] == "pose" and e.get("data", {}).get("detected")]
         for e in events:
@@ -188,10 +191,13 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         # The touch check: the calibration's error at the weld's start as the probe's touches read it, against where
         # the arm truly put the checked point (the controller's belief against the truth, near it).
         # The finger's gain, measured by the probe's touches, against the world's tag along the tool's y (the joint's
-        # normal): the tip's deflection over the tag's at small deflections is one over the tag's gain there.
+        # normal), where the servo holds the tag's deformation (delta_d): the tip's deflection there over the tag's.
         finger = res["height_probe"]["finger"]
-        print(f"finger: {finger}, the world's tag gain {world.finger.tag_gain}, softening {world.finger.tag_softening}")
-        assert finger["measured"] and finger["gain"] * world.finger.tag_gain[1] == pytest.approx(1.0, abs=FINGER_GAIN), finger
+        d = cfg.servo.delta_d
+        held = finger["gain"] + finger["cubic_per_mm2"] * (d * 1e3) ** 2
+        held_true = tip_for_tag(d, world.finger.tag_gain[1], world.finger.tag_softening) / d
+        print(f"finger: {finger}, at {d * 1e3:g} mm {held:.4f}, the world's {held_true:.4f} (its tag {world.finger.tag_gain})")
+        assert finger["measured"] and held == pytest.approx(held_true, rel=FINGER_GAIN) and abs(held_true - 1.0) > 0.05, finger
         check = res["height_probe"]["touch_check"]
         truth_check = touch_check_truth(part, check, truth.records(), tip, world.tool.config.tip_tcp, cfg.robot.arc_output)
         assert truth_check is not None

@@ -150,3 +150,29 @@ def test_a_weld_takes_a_measured_torch_for_the_tool_x_axis_and_offset(tmp_path: 
     # The wire's end 0.7 mm nearer the flange than the tip (the finger points down the TCP's z): 0.7 mm above it.
     sealed.write_sealed(tmp_path / "tool.json", {**entry, "torch_tcp_mm": [-30.0, 0.9, 199.3]}, "tool-calibration")
     assert current_tool(tmp_path, required).torch_height == pytest.approx(0.7e-3)
+
+
+def test_a_measured_finger_gain_is_kept_sealed_for_its_tool_calibration_and_refused_when_it_cannot_be_used(tmp_path: Path) -> None:
+    from celld.daemon.store import FINGER, store_finger, stored_finger
+    from celld.tactile.fingermap import FingerGain
+
+    assert stored_finger(tmp_path, "t1", 1.5e-3) == (None, "no probed weld has measured it yet")
+    reading = {"measured": True, "gain": 1.104, "gain_sigma": 0.02, "cubic_per_mm2": 0.04, "residual_rms_um": 7.5, "frames": 44}
+    store_finger(tmp_path, "w1", "t1", reading)
+    kept, why = stored_finger(tmp_path, "t1", 1.5e-3)
+    assert why == "" and kept is not None and kept.job == "w1" and kept.gain_sigma == 0.02
+    assert kept.finger == FingerGain(1.104, pytest.approx(0.04e6))
+    # Another tool calibration (the finger may be another): not used.
+    none, why = stored_finger(tmp_path, "t2", 1.5e-3)
+    assert none is None and "tool calibration 't1', not the current 't2'" in why
+    # Edited on disk: damaged, said, not used.
+    doc = json.loads((tmp_path / FINGER).read_text())
+    doc["gain"] = 1.3
+    (tmp_path / FINGER).write_text(json.dumps(doc))
+    none, why = stored_finger(tmp_path, "t1", 1.5e-3)
+    assert none is None and "checksum" in why
+    # Sealed but no finger's: refused where it is read.
+    for bad in (0.3, "1.1", None):
+        sealed.write_sealed(tmp_path / FINGER, {**doc, "gain": bad}, "finger", "w2")
+        none, why = stored_finger(tmp_path, "t1", 1.5e-3)
+        assert none is None and "unusable" in why, why

@@ -206,3 +206,16 @@ def test_the_finger_s_gain_is_measured_from_the_touches_or_said_why_not_and_a_br
     validate(FINGER_SCHEMA, reading)
     with pytest.raises(FingerRefused, match="check the finger and its tag"):
         measured_finger([Press(0.003 + tip, 0.4 * tip, 1.0)], 1.5e-3)
+
+
+def test_a_finger_whose_gain_moved_beyond_its_scatter_since_the_last_weld_is_said_to_have_changed() -> None:
+    from celld.weld.plan import FINGER_SCHEMA, compared_finger
+
+    same = compared_finger(FINGER, 1.11, 0.004, "w1")  # 0.9 % apart: within FINGER_CHANGE
+    assert same["previous"] == {"gain": 1.11, "job": "w1", "change": pytest.approx(0.009009, abs=1e-5), "changed": False}
+    worn = compared_finger(FINGER, 1.06, 0.004, "w1")  # 5.7 %
+    assert worn["previous"]["changed"] is True
+    # Two scattered measurements 5.7 % apart: not beyond three of their sigmas.
+    assert compared_finger({**FINGER, "gain_sigma": 0.02}, 1.06, 0.02, "w1")["previous"]["changed"] is False
+    validate(FINGER_SCHEMA, worn)
+    validate(FINGER_SCHEMA, {"measured": False, "why": "not probed", "stored": {"gain": 1.1, "cubic_per_mm2": 0.0, "job": "w1", "at": "x"}})
