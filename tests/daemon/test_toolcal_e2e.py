@@ -65,9 +65,10 @@ CAL_POSES = 10
 # all that part them (bench/realistic_cell.py's target is 0.10 mm; here one weld, with room for its scatter).
 TOUCH_CHECK_AGREE = 0.15
 CAL_SCALE = 0.5
-# The finger's measured gain against the world's tag where the servo holds it (relative; 0.06 % in this world,
-# 0.3 % in seed 1's, bench/README.md): the touch's frames scatter and end short of delta_d.
-FINGER_GAIN = 0.01
+# The finger's measured gain against the world's tag where the servo holds it: within this many of the gain's
+# own 1 sigma (0.06-0.7 % off against 1.3-1.9 % in this world's runs, bench/README.md; the touch's frames
+# scatter through the finger's play and end short of delta_d).
+FINGER_SIGMAS = 3.0
 
 
 def _config(cell_config) -> Path:
@@ -197,7 +198,8 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         held = finger["gain"] + finger["cubic_per_mm2"] * (d * 1e3) ** 2
         held_true = tip_for_tag(d, world.finger.tag_gain[1], world.finger.tag_softening) / d
         print(f"finger: {finger}, at {d * 1e3:g} mm {held:.4f}, the world's {held_true:.4f} (its tag {world.finger.tag_gain})")
-        assert finger["measured"] and held == pytest.approx(held_true, rel=FINGER_GAIN) and abs(held_true - 1.0) > 0.05, finger
+        assert finger["measured"] and abs(held_true - 1.0) > 0.05, finger
+        assert abs(held - held_true) <= FINGER_SIGMAS * finger["gain_sigma"], (held, held_true, finger)
         check = res["height_probe"]["touch_check"]
         truth_check = touch_check_truth(part, check, truth.records(), tip, world.tool.config.tip_tcp, cfg.robot.arc_output)
         assert truth_check is not None
