@@ -48,6 +48,12 @@ def add_parser(sub: Any) -> None:
         help="calibrate the simulated scanner from the robot's flange, offline (no robot, no daemon)",
     )
     add_command(sim_sub, "fault", _fault_arguments, help="play a fault on a running simulated robot")
+    add_command(
+        sim_sub,
+        "world",
+        _world_arguments,
+        help="print the world a cell config draws: every error source, its budget, what was drawn, its anchor",
+    )
     sim.set_defaults(func=lambda args: sim.print_help() or 2)
 
 
@@ -80,6 +86,27 @@ def _calibrate_arguments(p: argparse.ArgumentParser) -> None:
     from celld.sim import calib_demo
 
     calib_demo.add_arguments(p)
+
+
+def _world_arguments(p: argparse.ArgumentParser) -> None:
+    from celld.sim.world import add_world_arguments
+
+    p.add_argument("--config", required=True, help="the cell config (e.g. configs/sim-cell.toml)")
+    p.add_argument("--json", action="store_true", help="print the world as one JSON object")
+    add_world_arguments(p)
+    p.set_defaults(func=_run_world)
+
+
+def _run_world(args: argparse.Namespace) -> int:
+    import json
+
+    from celld import config as config_mod
+    from celld.sim.world import options_from_args, world_of
+    from celld.sim.worldreport import report_lines, world_report
+
+    report = world_report(world_of(config_mod.load(args.config), options_from_args(args)))
+    print(json.dumps(report, indent=1) if args.json else "\n".join(report_lines(report)))
+    return 0
 
 
 def _fault_arguments(fault: argparse.ArgumentParser) -> None:
