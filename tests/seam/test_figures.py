@@ -92,3 +92,47 @@ def test_a_touch_finds_the_deformed_tip_where_the_settled_cycles_put_it() -> Non
     recs["delta_n"][40:] = 0.0005  # never settled
     with pytest.raises(CelldError, match="without settling"):
         contact_across(recs, tool, np.zeros(3), across, 1.0, delta_d)
+
+
+def test_a_touch_s_approach_gives_each_frame_s_tag_deformation_beside_where_the_tip_was_at_its_capture() -> None:
+    import pytest
+
+    from celld.config import ToolConfig
+    from celld.motion.channels import STATE_DTYPE
+    from celld.seam.figures import touch_press
+    from celld.tactile.fingermap import fit_finger_gain
+    from celld.tactile.tool import ToolGeometry
+
+    tool = ToolGeometry.from_config(ToolConfig(tip_tcp=(0.0, 0.0, 0.2)))
+    delta_d, gain, latency = 0.0015, 0.88, 0.012  # the tag moves 0.88 of the tip; frames 12 ms late
+    # 1.5 s at 500 Hz: the tip's centre comes onto a wall at y = 10 mm (contact from y = 10 mm on), decelerating
+    # as Algorithm 2's touch does, to 1.6 mm into it, then backs off 0.1 mm (the settle).
+    t = np.arange(750) * 0.002
+    y = 0.0095 + 0.0021 * (1.0 - np.exp(-t / 0.25)) - 0.0001 * np.clip((t - 1.2) / 0.3, 0.0, 1.0)
+    frames = np.arange(0.0, 1.5, 1 / 60)  # capture times
+    recs = np.zeros(len(t), STATE_DTYPE)
+    recs["t_ns"] = (t * 1e9).astype(np.int64)
+    recs["servo_phase"] = 0
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # the tool's +y along base +y
+    poses = np.repeat(T[None], len(t), axis=0)
+    poses[:, 1, 3] = y
+    poses[:, 0, 3], poses[:, 2, 3] = 0.5, 0.4 + 0.2  # the tip (0.2 m down the TCP's z) at z = 0.4
+    recs["tcp_pose"] = [se3.to_ur_pose(P) for P in poses]
+    for k, tk in enumerate(t):
+        seen = frames[frames + latency <= tk]  # the newest frame delivered by this cycle
+        if len(seen) == 0:
+            recs["delta_n"][k], recs["tactile_seq"][k] = np.nan, -1
+            continue
+        cap = seen[-1]
+        y_cap = float(np.interp(cap, t, y))
+        tag = gain * max(0.0, y_cap - 0.010)
+        recs["tactile_seq"][k], recs["tactile_age_ns"][k] = len(seen), int(round((tk - cap) * 1e9))
+        recs["delta_n"][k] = tag + (y[k] - y_cap)  # the law's prediction from the tip's motion since the capture
+    press = touch_press(recs, tool, np.zeros(3), np.array([0.0, 1.0, 0.0]), 1.0, delta_d)
+    assert len(press.d) >= 10 and press.d.min() >= 0.25 * delta_d and press.d.max() <= 1.15 * delta_d
+    # Each kept frame is one of the approach's, before the deepest: the tag's own deformation at its capture.
+    np.testing.assert_allclose(press.d, gain * (press.y - 0.010), atol=2e-6)
+    assert press.y.max() <= float(y.max()) + 1e-12
+    fit = fit_finger_gain([press], delta_d)
+    assert fit.finger.gain == pytest.approx(1 / gain, rel=2e-3) and fit.walls[0] == pytest.approx(0.010, abs=2e-6)
