@@ -16,6 +16,7 @@ from celld.calib import quality, toolcal
 from celld.cli import main
 from celld.daemon.results import BUNDLE, CALIBRATION_SCHEMA, RESULTS
 from celld.errors import JobError
+from tests.weld.test_plan import FINGER
 
 I4 = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 NONE3 = [None, None, None]
@@ -250,15 +251,7 @@ GOOD: dict[str, list[dict[str, Any]]] = {
                     "within_bound": True,
                     "verdict": "ok",
                 },
-                "finger": {
-                    "measured": True,
-                    "gain": 1.12,
-                    "gain_sigma": 0.004,
-                    "cubic_per_mm2": 0.02,
-                    "residual_rms_um": 1.8,
-                    "frames": 31,
-                    "span_mm": [0.4, 1.5],
-                },
+                "finger": FINGER,
             },
             "retract_error": "link lost",
         },
