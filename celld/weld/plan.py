@@ -459,7 +459,18 @@ def probed_height(
             f"(the joint is {width * 1e3:.2f} mm wide there; at most {max_correction * 1e3:.1f} mm off is corrected): "
             "check the calibration and the tool"
         )
-    moved = weld_geometry(seam.points_base, seam.tangents, seam.normals, seam.plane_normal, geometry.offsets, geometry.tip_height - dh)
+    # The plan's lines and plane moved along its normal to the height they should have: the plan as it is, so a
+    # plan pre-corrected through the arm's calibration (precorrected) keeps its correction; for one that is not,
+    # the same as building it again from the seam at that height (celld.seam.weldpath.weld_geometry).
+    shift = -dh * geometry.T_base_plane[:3, 2]
+    T_plane = geometry.T_base_plane.copy()
+    T_plane[:3, 3] += shift
+    moved = geometry._replace(
+        T_base_plane=T_plane,
+        wall_base=geometry.wall_base + shift,
+        seam_base=geometry.seam_base + shift,
+        tip_height=geometry.tip_height - dh,
+    )
     T_start = start_pose(moved, T_tcp_tool, LEAD_IN, start_clearance(geometry, seam))
     return found, replace(plan, geometry=moved, T_start=T_start)
 

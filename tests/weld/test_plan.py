@@ -12,7 +12,7 @@ from celld.bus.checker import validate
 from celld.config import ToolConfig, WeldConfig
 from celld.config.seam import SeamParams
 from celld.errors import WorkpieceError
-from celld.seam.weldpath import joint_width
+from celld.seam.weldpath import joint_width, weld_geometry
 from celld.seam.workpiece import example
 from celld.sim import workpiece as simscene
 from celld.sim.scanner import SimScanner
@@ -219,3 +219,33 @@ def test_a_finger_whose_gain_moved_beyond_its_scatter_since_the_last_weld_is_sai
     assert compared_finger({**FINGER, "gain_sigma": 0.02}, 1.06, 0.02, "w1")["previous"]["changed"] is False
     validate(FINGER_SCHEMA, worn)
     validate(FINGER_SCHEMA, {"measured": False, "why": "not probed", "stored": {"gain": 1.1, "cubic_per_mm2": 0.0, "job": "w1", "at": "x"}})
+
+
+def test_a_pre_corrected_plan_keeps_its_correction_when_the_probe_moves_it_to_its_height(plan: WeldPlan) -> None:
+    # A rigid correction of the arm's calibration at the weld: 0.4 mm down and 0.3 mm across, and a turn of 1 mrad.
+    D = se3.from_ur_pose([0.0, 0.3e-3, -0.4e-3, 0.0, 0.0, 1e-3])
+    tool = ToolGeometry.from_config(TOOL)
+    corrected = precorrected(plan, lambda T: D @ T, tool.T_tcp_tool)
+    i = int(plan.geometry.stations([LEAD_IN])[0])
+    finger, far = plan.seam.wall_across[i], plan.seam.far_wall_across[i]
+    planned = joint_width(finger, far, plan.geometry.tip_height)
+    touches = {"far": 0.0, "finger": planned + (finger[1] + far[1]) * 0.0005 - 2.0 * tool.tip_radius}  # 0.5 mm higher
+    _, moved = probed_height(corrected, touches, FINGER, tool, tool.T_tcp_tool, WELD.max_height_correction)
+    _, plain = probed_height(plan, touches, FINGER, tool, tool.T_tcp_tool, WELD.max_height_correction)
+    # Probing the corrected plan is the corrected plan of the probed one: the correction stays, the height moves.
+    again = precorrected(plain, lambda T: D @ T, tool.T_tcp_tool)
+    for name in ("wall_base", "seam_base", "T_base_plane"):
+        np.testing.assert_allclose(getattr(moved.geometry, name), getattr(again.geometry, name), atol=1e-9)
+    np.testing.assert_allclose(moved.T_start, again.T_start, atol=1e-9)
+    assert moved.geometry.tip_height == pytest.approx(plan.geometry.tip_height - 0.0005, abs=1e-9)
+    # And the plain plan moved exactly as one built again from the seam at that height.
+    rebuilt = weld_geometry(
+        plan.seam.points_base,
+        plan.seam.tangents,
+        plan.seam.normals,
+        plan.seam.plane_normal,
+        plan.geometry.offsets,
+        plain.geometry.tip_height,
+    )
+    np.testing.assert_allclose(plain.geometry.wall_base, rebuilt.wall_base, atol=1e-12)
+    np.testing.assert_allclose(plain.geometry.T_base_plane, rebuilt.T_base_plane, atol=1e-12)
