@@ -93,6 +93,7 @@ from _common import Failures  # noqa: E402
 from celld.errors import CelldError  # noqa: E402
 from celld.sim.demo import DEMO_ARM_POSES, run_jobs  # noqa: E402
 from celld.sim.world import SOURCES, WorldOptions  # noqa: E402
+from celld.tactile.fingermap import FingerGain  # noqa: E402
 
 OUT = ROOT / "bench" / "out" / "realistic_cell"
 # The benchmark's own loopback address (the demo uses 127.0.0.2, the tests from 127.0.0.12 up).
@@ -236,7 +237,7 @@ def finger_figures(probe: dict[str, Any] | None, truth: dict[str, Any] | None) -
     if truth is not None and finger["measured"]:
         out["gain_error"] = round(finger["gain"] / truth["tip_over_tag"] - 1.0, 5)
         # Where the servo holds the tag (delta_d): the tip's deflection over the tag's, measured and true.
-        held = finger["gain"] + finger["cubic_per_mm2"] * truth["delta_d_mm"] ** 2
+        held = FingerGain.of_reading(finger).over(truth["delta_d_mm"] * 1e-3)
         out["held_error"] = round(held / truth["tip_over_tag_held"] - 1.0, 5)
         out["held_error_um"] = round((held - truth["tip_over_tag_held"]) * truth["delta_d_mm"] * 1e3, 2)
     return out

@@ -280,11 +280,10 @@ def stored_finger(state_dir: Path, tool_job: str, delta_d: float) -> tuple[Store
         values = [doc.get(k) for k in ("gain", "cubic_per_mm2", "gain_sigma")]
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
             raise InputError(f"finger gain: expected numbers, got {values}")
-        gain, cubic, sigma = (float(v) for v in values)  # type: ignore[arg-type]
-        finger = FingerGain(gain, cubic * 1e6).check(delta_d)
+        finger = FingerGain.of_reading(doc).check(delta_d)
     except InputError as exc:
         return None, f"the one kept in {state_dir / FINGER} is unusable: {exc}"
-    return StoredFinger(finger, sigma, str(doc.get(sealed.JOB_KEY, "")), str(doc.get("at", ""))), ""
+    return StoredFinger(finger, float(doc["gain_sigma"]), str(doc.get(sealed.JOB_KEY, "")), str(doc.get("at", ""))), ""
 
 
 def failed_verification(record: Mapping[str, Any] | None, calibration: Mapping[str, Any]) -> str:

@@ -371,7 +371,7 @@ def _kept_finger(state_dir: Path, tool_job: str, delta_d: float, why: str) -> tu
     stored, none = stored_finger(state_dir, tool_job, delta_d)
     if stored is None:
         return FingerGain(), {"measured": False, "why": f"{why}; none kept to use ({none}): the tag's deformation taken as the tip's"}
-    kept = {"gain": round(stored.finger.gain, 5), "cubic_per_mm2": round(stored.finger.cubic * 1e-6, 6), "job": stored.job, "at": stored.at}
+    kept = {**stored.finger.reading(), "job": stored.job, "at": stored.at}
     return stored.finger, {"measured": False, "why": why, "stored": kept}
 
 

@@ -159,6 +159,7 @@ def run_jobs(
         true_camera,
         true_torch_path,
     )
+    from celld.sim.srm import tip_of_tag
 
     figures: dict[str, Any] = {}
     t0 = time.monotonic()
@@ -330,7 +331,7 @@ def run_jobs(
             "tip_over_tag": 1.0 / world.finger.tag_gain[1],
             # The same where the servo holds the tag's deformation at delta_d: the finger softened there.
             "delta_d_mm": cfg.servo.delta_d * 1e3,
-            "tip_over_tag_held": tip_for_tag(cfg.servo.delta_d, world.finger.tag_gain[1], world.finger.tag_softening) / cfg.servo.delta_d,
+            "tip_over_tag_held": tip_of_tag(cfg.servo.delta_d, world.finger.tag_gain[1], world.finger.tag_softening) / cfg.servo.delta_d,
         }
         probe = res.get("height_probe") or {}
         if probe.get("probed"):
@@ -343,15 +344,6 @@ def run_jobs(
         figures["verification"] = _verification(Path(cfg.cell.state_dir))
         figures["loop"] = _loop(cell.client)
     return figures
-
-
-def tip_for_tag(tag: float, gain: float, softening: float) -> float:
-    """The tip's deflection (m) at which the world's tag (:func:`celld.sim.srm.tag_of_tip` along one axis, ``gain``
-    and ``softening``) shows ``tag`` (m): its inverse, by fixed-point iteration (the softening is a few % at most)."""
-    tip = tag / gain
-    for _ in range(50):
-        tip = tag / (gain * (1.0 - (tip / softening) ** 2))
-    return tip
 
 
 def _verification(state: Path) -> dict[str, Any] | None:
@@ -490,12 +482,14 @@ def _probe_line(probe: dict[str, Any] | None) -> str:
 
 
 def _finger_line(probe: dict[str, Any] | None, truth: dict[str, Any] | None) -> str:
+    from celld.tactile.fingermap import FingerGain
+
     finger = (probe or {}).get("finger")
     if not finger:
         return "finger gain: not measured (no height probe)"
     true = (
         f" (the world's: {truth['tip_over_tag']:.4f} along the joint's normal, {truth['tip_over_tag_held']:.4f} at "
-        f"{truth['delta_d_mm']:g} mm, where the measured gives {finger['gain'] + finger['cubic_per_mm2'] * truth['delta_d_mm'] ** 2:.4f})"
+        f"{truth['delta_d_mm']:g} mm, where the measured gives {FingerGain.of_reading(finger).over(truth['delta_d_mm'] * 1e-3):.4f})"
         if truth and finger.get("measured")
         else ""
     )

@@ -273,6 +273,15 @@ def tag_of_tip(shift_tool: Array, params: ContactParams) -> Array:
     return shift
 
 
+def tip_of_tag(tag: float, gain: float, softening: float) -> float:
+    """The tip's deflection (m) at which the tag shows ``tag`` (m) along one axis of :func:`tag_of_tip` (``gain`` and
+    ``softening`` that axis's): its inverse, by fixed-point iteration (the softening is a few % at most)."""
+    tip = tag / gain
+    for _ in range(50):
+        tip = tag / (gain * (1.0 - (tip / softening) ** 2))
+    return tip
+
+
 def tag_pose_tool(tip_shift_tool: Array, finger_length: float) -> Array:
     """Pose of the tag in the tool frame for a tip shift (3,), (4, 4).
 

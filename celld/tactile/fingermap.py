@@ -22,8 +22,8 @@ All functions here are pure.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from typing import NamedTuple
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -54,6 +54,19 @@ class FingerGain(NamedTuple):
     def tip(self, d: float | Array) -> float | Array:
         """The tip's deflection (m) for the tag's ``d`` (m, signed)."""
         return self.gain * d + self.cubic * d * d * d
+
+    def over(self, d: float) -> float:
+        """The tip's deflection over the tag's where the tag shows ``d`` (m)."""
+        return self.gain + self.cubic * d * d
+
+    def reading(self) -> dict[str, float]:
+        """The gain in a result's units (``gain``, ``cubic_per_mm2``)."""
+        return {"gain": round(self.gain, 5), "cubic_per_mm2": round(self.cubic * 1e-6, 6)}
+
+    @classmethod
+    def of_reading(cls, reading: Mapping[str, Any]) -> FingerGain:
+        """The gain of a reading in a result's units (:meth:`reading`)."""
+        return cls(float(reading["gain"]), float(reading["cubic_per_mm2"]) * 1e6)
 
     def check(self, delta_d: float) -> FingerGain:
         """This gain, if a finger can have it where the servo holds ``delta_d`` (m).
@@ -97,9 +110,8 @@ class FingerFit(NamedTuple):
     def as_dict(self) -> dict[str, float | int | list[float]]:
         """The fit as a weld's result has it (mm, um)."""
         return {
-            "gain": round(self.finger.gain, 5),
+            **self.finger.reading(),
             "gain_sigma": round(self.gain_sigma, 5),
-            "cubic_per_mm2": round(self.finger.cubic * 1e-6, 6),
             "residual_rms_um": round(self.residual_rms * 1e6, 3),
             "frames": self.frames,
             "span_mm": [round(self.span[0] * 1e3, 4), round(self.span[1] * 1e3, 4)],

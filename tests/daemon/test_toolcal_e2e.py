@@ -31,8 +31,9 @@ from celld import se3
 from celld.calib.toolcal import solve_tool_tip
 from celld.errors import JobError
 from celld.sim.cell import run_cell, sim_part
-from celld.sim.demo import tip_for_tag
 from celld.sim.score import TruthRecorder, lateral, open_loop_torch, touch_check_truth, true_flange, true_torch_path
+from celld.sim.srm import tip_of_tag
+from celld.tactile.fingermap import FingerGain
 from tests.daemon.cells import install_calibration
 from tests.daemon.exported import check_exported, checked_result
 from tests.daemon.welds import ArcWatch, check_weld
@@ -195,8 +196,8 @@ def test_tool_calibrate_measures_the_tip_as_built(tmp_path: Path, cell_config, o
         # normal), where the servo holds the tag's deformation (delta_d): the tip's deflection there over the tag's.
         finger = res["height_probe"]["finger"]
         d = cfg.servo.delta_d
-        held = finger["gain"] + finger["cubic_per_mm2"] * (d * 1e3) ** 2
-        held_true = tip_for_tag(d, world.finger.tag_gain[1], world.finger.tag_softening) / d
+        held = FingerGain.of_reading(finger).over(d)
+        held_true = tip_of_tag(d, world.finger.tag_gain[1], world.finger.tag_softening) / d
         print(f"finger: {finger}, at {d * 1e3:g} mm {held:.4f}, the world's {held_true:.4f} (its tag {world.finger.tag_gain})")
         assert finger["measured"] and abs(held_true - 1.0) > 0.05, finger
         assert abs(held - held_true) <= FINGER_SIGMAS * finger["gain_sigma"], (held, held_true, finger)

@@ -278,3 +278,12 @@ def test_the_tag_inside_the_finger_shows_less_than_the_tip_and_the_camera_reads_
     assert truth[1] == pytest.approx(0.001)
     assert read[1] == pytest.approx(0.9 * (1 - (1 / 8) ** 2) * truth[1], abs=10e-6)
     np.testing.assert_allclose(tag_of_tip(np.array([1e-3, 0.0, 2e-4]), inside), [0.95 * (1 - (1 / 8) ** 2) * 1e-3, 0.0, 2e-4])
+
+
+def test_the_tip_for_a_tag_s_deformation_is_the_inverse_of_the_tag_for_the_tip() -> None:
+    from celld.sim.srm import tag_of_tip, tip_of_tag
+
+    params = ContactParams(tag_gain=(0.95, 0.87), tag_softening=6.4e-3)
+    for tip in (0.2e-3, 1.0e-3, 1.8e-3):
+        tag = tag_of_tip(np.array([0.0, tip, 0.0]), params)[1]
+        assert tip_of_tag(tag, 0.87, 6.4e-3) == pytest.approx(tip, rel=1e-9)

@@ -69,3 +69,10 @@ def test_a_gain_is_checked_where_it_is_used_and_taken_along_the_normal_only() ->
     delta = 1e-3 * n + 0.4e-3 * t
     mapped = along_normal(delta, n, FingerGain(1.2, 0.0))
     assert mapped @ n == pytest.approx(1.2e-3) and mapped @ t == pytest.approx(0.4e-3)
+
+
+def test_a_gain_goes_to_a_result_and_back_in_its_units_and_gives_its_ratio_where_the_tag_shows_a_deformation() -> None:
+    finger = FingerGain(1.12, 0.03e6)  # 0.03 /mm^2
+    assert finger.reading() == {"gain": 1.12, "cubic_per_mm2": 0.03}
+    assert FingerGain.of_reading(finger.reading()) == (1.12, pytest.approx(0.03e6))
+    assert finger.over(1.5e-3) == pytest.approx(1.12 + 0.03 * 1.5**2) == pytest.approx(float(finger.tip(1.5e-3)) / 1.5e-3)
