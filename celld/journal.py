@@ -48,9 +48,10 @@ import os
 import secrets
 import sqlite3
 import threading
+import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -105,7 +106,18 @@ _COLUMNS = "id, kind, params, ref, state, reason, created, started, ended, resul
 
 def utc_now() -> str:
     """The wall clock in the journal's format."""
-    return datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return _utc(datetime.now(UTC))
+
+
+def utc_at(t_ns: int) -> str:
+    """The wall-clock time, in the journal's format, of ``t_ns`` on this machine's monotonic clock
+    (``time.monotonic_ns``, which every process of the cell stamps its samples with)."""
+    ago_ns = time.monotonic_ns() - t_ns
+    return _utc(datetime.now(UTC) - timedelta(microseconds=ago_ns / 1e3))
+
+
+def _utc(t: datetime) -> str:
+    return t.isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def new_job_id() -> str:

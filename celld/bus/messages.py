@@ -386,6 +386,13 @@ _FILE = obj(
     ("path", "bytes"),
 )
 
+# When a publication's event or sample happened, on the cell PC's clock (keep it synchronised: chrony or PTP).
+WALL_TIME = {
+    "type": "string",
+    "pattern": r"^\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}\.\d{3}Z$",
+    "description": "UTC wall clock, ISO 8601 to the millisecond (2026-12-04T13:25:41.423Z): when the event or the sample happened.",
+}
+
 _PROGRESS = obj(
     "Progress of one job, published on progress/<job>. seq counts from 0 without gaps at "
     "the sender; a gap at the receiver means dropped events (ask status).",
@@ -393,6 +400,7 @@ _PROGRESS = obj(
         "job": JOB_ID,
         "kind": {"enum": list(JOB_KINDS)},
         "seq": {"type": "integer", "minimum": 0},
+        "time": WALL_TIME,
         "state": {"enum": list(JOB_STATES)},
         "stage": {
             "type": "string",
@@ -402,7 +410,7 @@ _PROGRESS = obj(
         "message": {"type": "string"},
         "data": {"type": "object", "description": 'Stage figures, e.g. {"pair": 3, "cost_mm": 0.41}.'},
     },
-    ("job", "seq", "state", "stage"),
+    ("job", "seq", "time", "state", "stage"),
 )
 
 _ROBOT_CONDITION = with_properties(
@@ -428,6 +436,7 @@ _STATE_ROBOT = obj(
     "The robot state, decimated to bus.state_rate_hz.",
     {
         "t_ns": {"type": "integer", "minimum": 0, "description": "Sample time, monotonic clock of the cell, ns."},
+        "time": WALL_TIME,
         "link": {"enum": ["up", "down"]},
         "q": vector("Joint positions, rad.", 6),
         "qd": vector("Joint speeds, rad/s.", 6),
@@ -436,18 +445,19 @@ _STATE_ROBOT = obj(
         "mode": {"type": "string", "description": "Robot mode as the controller reports it."},
         "safety": {"type": "string", "description": "Safety mode as the controller reports it."},
     },
-    ("t_ns", "link"),
+    ("t_ns", "time", "link"),
 )
 
 _STATE_TACTILE = obj(
     "The SRM deformation, decimated to bus.state_rate_hz.",
     {
         "t_ns": {"type": "integer", "minimum": 0, "description": "Sample time, monotonic clock of the cell, ns."},
+        "time": WALL_TIME,
         "valid": {"type": "boolean", "description": "The tag was found in the frame."},
         "contact": {"type": "boolean"},
         "delta": vector("Deformation of the SRM tip in the tool frame, m.", 3),
     },
-    ("t_ns", "valid"),
+    ("t_ns", "time", "valid"),
 )
 
 

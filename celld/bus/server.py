@@ -86,6 +86,7 @@ from celld.bus.requests import (
 from celld.bus.security import OPEN, Caller
 from celld.bus.wire import MAX_PAYLOAD_BYTES, encode, error_reply
 from celld.errors import BusError, CelldError, JobError
+from celld.journal import utc_at, utc_now
 from celld.log import get_logger
 
 log = get_logger(__name__)
@@ -442,7 +443,7 @@ class BusServer:
                 self._seq.pop(job, None)
             else:
                 self._seq[job] = seq + 1
-        event: dict[str, Any] = {"job": job, "kind": kind, "seq": seq, "state": state, "stage": stage}
+        event: dict[str, Any] = {"job": job, "kind": kind, "seq": seq, "state": state, "stage": stage, "time": utc_now()}
         if fraction is not None:
             event["fraction"] = fraction
         if message:
@@ -466,8 +467,11 @@ class BusServer:
         publisher = self._publishers.get(stream)
         if publisher is None:
             return False
+        # The sample's own time on the wall clock (a sample without one, t_ns 0: the link is down, is sent now).
+        t_ns = int(state.get("t_ns", 0))
+        stamped = {**state, "time": utc_at(t_ns) if t_ns > 0 else utc_now()}
         try:
-            publisher.put(encode(state))
+            publisher.put(encode(stamped))
         except (TypeError, ValueError, zenoh.ZError) as exc:
             if stream not in self._warned:  # once per stream: samples come at the state rate
                 self._warned.add(stream)

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import time
 from collections.abc import Mapping
+from datetime import UTC, datetime, timedelta
 from typing import Any
 
 import pytest
@@ -17,6 +19,12 @@ from celld.errors import BusError, JobError
 from tests.bus.strategies import HOSTILE_PAYLOADS, hostile_jobs
 
 CALIBRATE = {"kind": "calibrate", "n_poses": 6, "e_required_mm": 0.3}
+MS = timedelta(milliseconds=1)
+
+
+def _wall(text: str) -> datetime:
+    """A bus message's ``time`` (UTC, ISO 8601 with a Z)."""
+    return datetime.fromisoformat(text)
 
 
 def wait_until(condition, timeout: float = 3.0) -> None:
@@ -75,12 +83,17 @@ def test_full_queue_refuses_with_a_reason(serve_cell) -> None:
 
 def test_progress_events_are_numbered_and_end_terminal(cell, client) -> None:
     events: list[dict[str, Any]] = []
+    before = datetime.now(UTC)
     with client.watch_progress() as watch:
         reply = client.submit({"kind": "health"})
         watch.wait(reply["job"], events.append, timeout=5.0)
+    after = datetime.now(UTC)
     for e in events:
         messages.check_message("progress", e)
     assert [e["seq"] for e in events] == list(range(len(events)))
+    # Each event says when it happened, on the wall clock (to the millisecond), in order.
+    times = [_wall(e["time"]) for e in events]
+    assert times == sorted(times) and before - MS <= times[0] and times[-1] <= after + MS, (before, times, after)
     # queued, start, one per step, end.
     assert [e["stage"] for e in events] == ["queued", "start"] + ["wait"] * cell.cell.steps + ["end"]
     assert events[-1]["state"] == "succeeded"
@@ -249,6 +262,29 @@ def test_state_publications_are_decimated(cell) -> None:
     assert [r["t_ns"] for r in robot] == [stamps[i] for i in (0, 10, 20, 30, 40)]
     for r in robot + tactile:
         messages.check_message("state-robot" if "link" in r else "state-tactile", r)
+    # A sample's wall-clock time is its own (t_ns on the monotonic clock), not when it was sent: 50 ms apart here.
+    gaps = [(_wall(b["time"]) - _wall(a["time"])).total_seconds() for a, b in itertools.pairwise(robot)]
+    assert all(abs(g - 0.050) <= 0.0015 for g in gaps), gaps
+
+
+def test_a_state_sample_is_stamped_with_its_own_time_on_the_wall_clock(cell) -> None:
+    robot: list[dict[str, Any]] = []
+    with CellClient(cell.client_bus(), cell.keys.cell) as client:
+        sub = client.subscribe_state("robot", robot.append)
+        while not robot:
+            t_ns = time.monotonic_ns() - 2 * 10**9  # samples taken two seconds ago
+            cell.server.publish_robot_state({"t_ns": t_ns, "link": "up"}, now_ns=t_ns)
+            time.sleep(0.01)
+        cell.server.publish_robot_state({"t_ns": 0, "link": "down"}, now_ns=t_ns + 10**9)  # no sample: the link is down
+        wait_until(lambda: robot[-1]["link"] == "down")
+        sub.undeclare()
+    now, now_ns = datetime.now(UTC), time.monotonic_ns()
+    first = robot[0]
+    # Its age on the wall clock is its age on the monotonic one (two seconds and a little), not the moment it was sent.
+    age = (now - _wall(first["time"])).total_seconds()
+    assert first["t_ns"] < now_ns - 2 * 10**9 and abs(age - (now_ns - first["t_ns"]) * 1e-9) < 0.02, (age, first)
+    # A sample without its own time (t_ns 0) is stamped when it is sent.
+    assert abs((now - _wall(robot[-1]["time"])).total_seconds()) < 0.25
 
 
 def test_no_cell_no_reply_is_a_bus_error(cell) -> None:
