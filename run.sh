@@ -71,27 +71,15 @@ case "$cmd" in
         exec .venv/bin/celld demo "$@" ;;
     test)
         ensure_libusb; ensure_venv
-        # With arguments, one pytest run of them. Without, two passes at once: the simulated cells and
-        # the motion process's real-time tests one at a time in one process, and beside them everything
-        # else on two workers at the lowest priority (nice 19), which takes only the cores the cells
-        # leave idle (a cell keeps about 1.2 of 2 busy, most of its time is the arm's motion): the cells
-        # then run as they do alone. The cells' report comes as they run, the rest's after it.
+        # With arguments, one pytest run of them. Without, two passes: everything but the simulated
+        # cells and the motion process's real-time tests on two workers, then those one at a time in
+        # one process: their 2 ms loops miss cycles when anything else runs beside them on two cores.
         if [ $# -gt 0 ]; then
             exec .venv/bin/python -m pytest -m "not hardware" "$@"
         fi
-        rest_log=$(mktemp "${TMPDIR:-/tmp}/celld-tests.XXXXXX")
-        nice -n 19 .venv/bin/python -m pytest -m "not hardware and not cell and not realtime" >"$rest_log" 2>&1 &
-        rest=$!
-        trap 'kill "$rest" 2>/dev/null; rm -f "$rest_log"; exit 130' INT TERM
         status=0
+        .venv/bin/python -m pytest -m "not hardware and not cell and not realtime" || status=$?
         .venv/bin/python -m pytest -m "(cell or realtime) and not hardware" -n 0 || status=$?
-        rest_status=0
-        wait "$rest" || rest_status=$?
-        echo
-        echo "== everything but the simulated cells and the real-time tests (nice 19, beside them) =="
-        cat "$rest_log"
-        rm -f "$rest_log"
-        [ "$rest_status" = 0 ] || status=$rest_status
         exit "$status" ;;
     setup)
         ensure_libusb; ensure_venv ;;
