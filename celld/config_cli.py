@@ -31,7 +31,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     psub = p.add_subparsers(dest="config_command", metavar="ACTION", required=True)
     check = psub.add_parser("check", help="validate a config file and print it resolved")
     check.add_argument("file")
-    check.add_argument("--json", action="store_true", help="print the resolved config as JSON (passwords shown as ***)")
+    check.add_argument(
+        "--json",
+        action="store_true",
+        help="print the config as JSON by the file's own keys and units, defaults filled in (passwords as ***)",
+    )
     check.add_argument("--client", action="store_true", help="a client's config (the CLI's, an MES's): it needs no [robot]")
     check.set_defaults(func=_check)
 
@@ -75,7 +79,7 @@ def _check(args: argparse.Namespace) -> int:
             print(f"{cfg.source}: {f.key}: {f.reason}", file=sys.stderr)
         return 1
     if args.json:
-        print(json.dumps(redact(plain(cfg))))
+        print(json.dumps(redact(plain(cfg.resolved))))
     else:
         print(f"{cfg.source}: ok (cell {cfg.cell.name!r}, robot {cfg.robot.host}, scanner {cfg.scanner.kind}/{cfg.scanner.model})")
     return 0

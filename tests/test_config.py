@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 from pathlib import Path
@@ -362,3 +363,19 @@ def test_the_arc_has_one_switch() -> None:
     with pytest.raises(ConfigError) as err:
         config.parse({"robot": {"arc_output": 0}, "power_source": _SOURCE})
     assert err.value.key == "robot.arc_output" and "power_source.arc_start" in err.value.reason
+
+
+@pytest.mark.parametrize(
+    "name", ["sim-cell.toml", "sim-cell-power-source.toml", "sim-cell-two-robots.toml", "sim-cell-eye-on-arm.toml", "cell.toml"]
+)
+def test_config_check_json_is_a_config_file_that_loads_into_the_same_config(name: str, capsys) -> None:
+    from celld.cli import main
+    from celld.config_cli import plain
+
+    assert main(["config", "check", "--json", str(CONFIGS / name)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    loaded = config.load(CONFIGS / name)
+    # By the file's own keys and units: every key the parse accepts, and the same config out of it.
+    assert printed["calibration"]["e_required_mm"] == pytest.approx(loaded.calibration.e_required * 1e3)
+    assert "e_required" not in printed["calibration"]
+    assert plain(config.parse(printed, source=str(CONFIGS / name))) == plain(loaded)

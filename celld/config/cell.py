@@ -71,6 +71,9 @@ class Config:
     robot2: Robot2Config | None = None
     # The tables the file gave (a daemon's config must give [robot]: celld.preflight); not a key of the file.
     tables: frozenset[str] = field(default=frozenset(), compare=False, metadata={"derived": True})
+    # Every key the config read, by the file's own names and in its units, defaults filled in
+    # (:attr:`celld.config.reader.TableReader.resolved`): what `celld config check --json` prints.
+    resolved: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False, metadata={"derived": True})
 
     def T_base_cam_nominal(self) -> np.ndarray:
         return np.array(self.scanner.T_base_cam, dtype=np.float64)
@@ -177,6 +180,7 @@ def parse(data: dict[str, Any], source: str = "<dict>") -> Config:
         values["robot2"] = Robot2Config.read(sub)
         sub.done()
     top.done()
+    values["resolved"] = top.resolved
     check_servo(values["servo"], values["tactile"], values["tool"], source, values["motion"].max_linear_speed)
     if values["calibration"].range_bias is None:
         values["calibration"] = replace(

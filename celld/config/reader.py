@@ -40,6 +40,9 @@ class TableReader:
         self.source = source
         self.prefix = prefix
         self._used: set[str] = set()
+        # Every key a getter asked for, under the file's own name and in the file's units: the value the file gave,
+        # else the default it fell back to; a table's as its own such mapping (what `celld config check --json` prints).
+        self.resolved: dict[str, Any] = {}
 
     def key(self, name: builtins.str) -> builtins.str:
         return f"{self.prefix}.{name}" if self.prefix else name
@@ -64,10 +67,13 @@ class TableReader:
     def _get(self, name: builtins.str, default: Any) -> Any:
         self._used.add(name)
         if name in self._table:
-            return self._table[name]
-        if default is _REQUIRED:
+            value = self._table[name]
+        elif default is _REQUIRED:
             raise self.error(name, "required key is missing")
-        return default
+        else:
+            value = default
+        self.resolved[name] = value
+        return value
 
     def str(self, name: builtins.str, default: Any = None, choices: Sequence[builtins.str] | None = None) -> builtins.str:
         value = self._get(name, _REQUIRED if default is None else default)
@@ -148,7 +154,9 @@ class TableReader:
         raw = self._get(name, [])
         if not isinstance(raw, list):
             raise self.error(name, f"expected an array of tables [[{self.key(name)}]], got {type(raw).__name__}")
-        return [TableReader(t, self.source, self.key(f"{name}[{i}]")) for i, t in enumerate(raw)]
+        readers = [TableReader(t, self.source, self.key(f"{name}[{i}]")) for i, t in enumerate(raw)]
+        self.resolved[name] = [r.resolved for r in readers]
+        return readers
 
     def names(self, name: builtins.str) -> tuple[builtins.str, ...]:
         """A list of non-empty strings (empty when absent)."""
@@ -159,11 +167,14 @@ class TableReader:
 
     def table(self, name: builtins.str, required: builtins.bool = False) -> TableReader:
         value = self._get(name, _REQUIRED if required else {})
-        return TableReader(value, self.source, self.key(name))
+        reader = TableReader(value, self.source, self.key(name))
+        self.resolved[name] = reader.resolved
+        return reader
 
     def raw(self) -> dict[builtins.str, Any]:
         """The whole table as it is, every key counted as read: for a table that another layer validates."""
         self._used.update(self._table)
+        self.resolved.update(self._table)
         return self._table
 
     def done(self) -> None:
