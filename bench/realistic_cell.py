@@ -91,6 +91,7 @@ sys.path.insert(0, str(ROOT))
 from _common import Failures  # noqa: E402
 
 from celld.errors import CelldError  # noqa: E402
+from celld.log import read_events  # noqa: E402
 from celld.sim.demo import DEMO_ARM_POSES, run_jobs  # noqa: E402
 from celld.sim.world import SOURCES, WorldOptions  # noqa: E402
 from celld.tactile.fingermap import FingerGain  # noqa: E402
@@ -247,11 +248,12 @@ def stops_in(log: str) -> dict[str, int]:
     """How often the daemon's log says motion stopped because the daemon seemed hung (its motion process's
     exit: the heartbeat too old) or the robot state went stale; the run hangs no daemon, so every hang stop
     is spurious."""
+    ends = list(read_events(log, "motion_loop_ended"))
+    failed = list(read_events(log, "job_failed"))
     return {
-        "spurious_hang_stops": sum(1 for line in log.splitlines() if "motion loop ended" in line and "(it hangs)" in line),
-        "stale_stops": sum(
-            1 for line in log.splitlines() if "stale state" in line and ("job failed" in line or "motion loop ended" in line)
-        ),
+        "spurious_hang_stops": sum(1 for e in ends if "(it hangs)" in str(e.get("reason", ""))),
+        "stale_stops": sum(1 for e in ends if "stale state" in str(e.get("reason", "")))
+        + sum(1 for e in failed if "stale state" in str(e.get("error", ""))),
     }
 
 

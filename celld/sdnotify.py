@@ -92,7 +92,7 @@ class Notifier:
             self.failures += 1
             if not self._warned:
                 self._warned = True
-                log.warning("sd_notify failed", socket=self.address.replace("\0", "@"), error=str(exc))
+                log.warning("sd_notify_failed", socket=self.address.replace("\0", "@"), error=str(exc))
             return False
         return True
 

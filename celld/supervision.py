@@ -175,7 +175,7 @@ def exit_notes(run_dir: str | os.PathLike[str]) -> list[dict[str, Any]]:
             doc = json.loads(path.read_text())
             notes.append({"role": str(doc["role"]), "reason": str(doc["reason"]), "at": str(doc["at"])})
         except (OSError, ValueError, KeyError, TypeError) as exc:
-            log.warning("unreadable exit note of a previous child", path=str(path), error=str(exc))
+            log.warning("child_exit_note_unreadable", path=str(path), error=str(exc))
         path.unlink(missing_ok=True)
     return sorted(notes, key=lambda n: n["at"])
 
@@ -313,7 +313,7 @@ class ChildRecords:
                     done.append(f"{path.stem}: removed shared memory {name}")
             path.unlink(missing_ok=True)
         for line in done:
-            log.warning("leftover of a previous daemon", what=line)
+            log.warning("leftover_of_a_previous_daemon", what=line)
         return done
 
     @staticmethod

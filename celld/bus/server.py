@@ -243,7 +243,7 @@ class BusServer:
         except zenoh.ZError as exc:
             await self.close()
             raise BusError(f"cannot declare the bus entities of {self.keys.base}: {exc}") from exc
-        log.info("bus server up", cell=self.keys.cell, base=self.keys.base)
+        log.info("bus_server_up", cell=self.keys.cell, base=self.keys.base)
 
     async def close(self) -> None:
         """Stop answering, withdraw the token, and answer what is in flight with an error."""
@@ -268,7 +268,7 @@ class BusServer:
         try:
             entity.undeclare()
         except zenoh.ZError as exc:  # the session may already be closed
-            log.debug("undeclare failed", error=str(exc))
+            log.debug("undeclare_failed", error=str(exc))
 
     async def __aenter__(self) -> BusServer:
         await self.start()
@@ -301,7 +301,7 @@ class BusServer:
                     return
                 self._enqueue(name, caller, reply_key, job, query)
             except Exception as exc:  # nothing a client sends may kill zenoh's thread  # noqa: BLE001
-                log.error("bus callback failed", request=name, error=repr(exc))
+                log.error("bus_callback_failed", request=name, error=repr(exc))
 
         return on_query
 
@@ -379,7 +379,7 @@ class BusServer:
             raise
         timer.cancel()
         if not reply_once(reply) and reply.get("ok") is not True:
-            log.error("bus handler failed after its reply", request=name, error=reply.get("error"))
+            log.error("bus_handler_failed_after_reply", request=name, error=reply.get("error"))
 
     async def _handle(self, request: _Request) -> Mapping[str, Any]:
         name = request.name
@@ -397,7 +397,7 @@ class BusServer:
             raise
         except Exception:  # a handler's own bug gets an internal-error reply, the bus stays up
             self._count("internal_errors")
-            log.exception("bus handler failed", request=name)
+            log.exception("bus_handler_failed", request=name)
             return error_reply("", f"internal error while handling {name}")
 
     def _reply_now(self, key: str, query: zenoh.Query, reply: Mapping[str, Any]) -> None:
@@ -407,7 +407,7 @@ class BusServer:
             payload = encode(reply)
         except (TypeError, ValueError) as exc:
             self._count("internal_errors")
-            log.error("bus reply not encodable", error=str(exc))
+            log.error("bus_reply_not_encodable", error=str(exc))
             payload = encode(error_reply("", "internal error: the reply was not valid JSON"))
         try:
             # The queryable's own key (a query may have come in on a wildcard),
@@ -415,7 +415,7 @@ class BusServer:
             query.reply(key, payload, encoding=_JSON)
         except zenoh.ZError as exc:
             self._count("reply_failures")
-            log.debug("bus reply failed", error=str(exc))
+            log.debug("bus_reply_failed", error=str(exc))
         finally:
             query.drop()  # sends the final message: the client stops waiting
 
@@ -475,7 +475,7 @@ class BusServer:
         except (TypeError, ValueError, zenoh.ZError) as exc:
             if stream not in self._warned:  # once per stream: samples come at the state rate
                 self._warned.add(stream)
-                log.warning("state not published", stream=stream, error=str(exc))
+                log.warning("state_not_published", stream=stream, error=str(exc))
             return False
         self._count("published")
         return True
@@ -486,7 +486,7 @@ class BusServer:
         try:
             self.session.put(key, encode(message), encoding=_JSON, congestion_control=zenoh.CongestionControl.DROP)
         except (TypeError, ValueError, zenoh.ZError) as exc:
-            log.warning("event not published", key=key, error=str(exc))
+            log.warning("event_not_published", key=key, error=str(exc))
             return False
         self._count("published")
         return True

@@ -336,7 +336,7 @@ def open_server(bus: BusConfig, keys: CellKeys) -> ServerSession:
         zenoh refused the config or could not listen (address in use, ...).
     """
     for warning in config_warnings(bus):
-        log.warning("bus config unsafe", warning=warning)
+        log.warning("bus_config_unsafe", warning=warning)
     private = _private_dir() if bus.users else None
     try:
         dictionary = str(_write_dictionary(private, bus)) if private else None
@@ -350,7 +350,7 @@ def open_server(bus: BusConfig, keys: CellKeys) -> ServerSession:
         if private is not None:
             shutil.rmtree(private, ignore_errors=True)
     log.info(
-        "bus session open",
+        "bus_session_open",
         mode=bus.mode,
         listen=list(bus.listen),
         connect=list(bus.connect),

@@ -640,16 +640,16 @@ class SessionWriter:
         if self.compact and P.ndim == 3 and P.shape[2] == 3:
             found = self._window(P, T, detection, verification)
             if found is None:
-                log.info("calibration cloud written whole: no flange found nor predicted", cloud=stem)
+                log.info("calibration_cloud_whole_no_flange", cloud=stem)
             else:
                 grid_px, stride = coarse_grid(P, self._detect_params or DetectParams())
                 try:
                     name, c = write_compact_cloud(self.root, stem, P, found[0], found[1], grid_px, stride, self.depth_unit)
                 except InputError as exc:
-                    log.warning("calibration cloud written whole: no compact form", cloud=stem, reason=str(exc))
+                    log.warning("calibration_cloud_whole_no_compact_form", cloud=stem, reason=str(exc))
                 else:
                     log.debug(
-                        "calibration cloud written compact",
+                        "calibration_cloud_written_compact",
                         cloud=stem,
                         window_px=c.window_px,
                         source=found[1],

@@ -128,7 +128,7 @@ class PairCollector:
         index = self._count
         self._count += 1
         if isinstance(found, DetectionError):
-            log.info("calib.detection_failed", pair=pair_id, stage=found.stage, reason=found.reason)
+            log.info("calib_detection_failed", pair=pair_id, stage=found.stage, reason=found.reason)
             return self.reject(pair_id, f"detection failed at {found.stage}: {found.reason}", index)
         return self._keep(pair_id, index, p_base, found.center, found)
 

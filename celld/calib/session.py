@@ -322,7 +322,7 @@ def calibrate_session(
         calibration.verify(session.flange_pose(v), session.cloud(v))
     result = calibration.finish()
     log.info(
-        "calib.solved",
+        "calib_solved",
         method=result.method,
         pairs=len(result.pair_ids),
         rejected=len(result.rejected),
@@ -331,5 +331,5 @@ def calibrate_session(
         stored=result.stored,
     )
     for warning in result.quality.warnings:
-        log.warning("calib.quality", warning=warning)
+        log.warning("calib_quality", warning=warning)
     return result

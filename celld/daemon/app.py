@@ -108,7 +108,7 @@ class Daemon:
                 and any((record.started or "") <= n["at"] <= (record.ended or "") for n in notes)
             ):
                 journal.explain_interruption(record.id, why)
-                log.warning("job interrupted: the previous daemon's children say why", job=record.id, why=why)
+                log.warning("job_interrupted_by_children_note", job=record.id, why=why)
 
     async def _finalise_recordings(self, journal: Journal, parts: list[Path]) -> None:
         """Merge the recordings a dead daemon left open (``parts``, listed before any job ran) into readable ``.rrd``
@@ -122,7 +122,7 @@ class Daemon:
                 if journal.get(done.job) is not None:
                     journal.note(done.job, note)
             except JournalError as exc:  # a damaged journal is said elsewhere; the file is finalised anyway
-                log.error("a finalised recording not noted in its job", job=done.job, error=str(exc))
+                log.error("recording_finalised_not_noted", job=done.job, error=str(exc))
 
     async def start(self) -> None:
         cfg = self.config
@@ -135,11 +135,11 @@ class Daemon:
         problems = self._journal.check()
         if problems:
             self._journal.mark_damaged("; ".join(problems[:3]) + (f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""))
-            log.error("job journal damaged: jobs are refused", why=self._journal.damage_report())
+            log.error("job_journal_damaged", why=self._journal.damage_report())
         fsutil.remove_stale_temporaries(self.state_dir)
         leftovers = leftover_parts(self.state_dir)  # before any job opens a recording of its own
         for record in self._journal.recovered:
-            log.warning("job interrupted by the previous stop", job=record.id, kind=record.kind)
+            log.warning("job_interrupted_by_previous_stop", job=record.id, kind=record.kind)
         self.notifier.status("opening devices")
         await self.devices.open(lambda: self.loop_watch.last_tick)
         self._explain_interruptions(self._journal)
@@ -176,7 +176,7 @@ class Daemon:
         )
         # READY once the bus is served; the devices that are not there yet are waited for, and said.
         self.notifier.ready()
-        log.info("celld serving", cell=cfg.cell.name, state_dir=str(self.state_dir))
+        log.info("celld_serving", cell=cfg.cell.name, state_dir=str(self.state_dir))
         self._tasks.append(loop.create_task(self._report_waiting(), name="celld-waiting"))
         self._tasks.append(loop.create_task(self._supervise_scanner(), name="celld-scanner"))
         if leftovers:
@@ -202,11 +202,11 @@ class Daemon:
     async def shutdown(self) -> None:
         """Robot first, then jobs, bus, devices; safe to call more than once."""
         self.notifier.stopping()
-        log.info("celld stopping")
+        log.info("celld_stopping")
         try:
             await self.devices.stop_robot()
         except Exception as exc:  # the shutdown goes on whatever stopped the robot  # noqa: BLE001
-            log.error("robot stop at shutdown failed", error=str(exc))
+            log.error("robot_stop_at_shutdown_failed", error=str(exc))
         if self.manager is not None:
             await self.manager.close()
         for task in self._tasks:
@@ -223,7 +223,7 @@ class Daemon:
         if self._journal is not None:
             self._journal.close()
             self._journal = None
-        log.info("celld stopped")
+        log.info("celld_stopped")
 
     # -- helpers -----------------------------------------------------------------------
 
@@ -257,9 +257,9 @@ class Daemon:
             devices = [w.partition(":")[0] for w in waiting]  # the log says it again when what is waited for changes
             if devices != said:
                 if waiting:
-                    log.warning("the cell waits", waiting=waiting)
+                    log.warning("cell_waits", waiting=waiting)
                 else:
-                    log.info("celld ready", cell=name)
+                    log.info("celld_ready", cell=name)
                 said = devices
             await asyncio.sleep(WAIT_REPORT_PERIOD)
 

@@ -126,7 +126,7 @@ class Arm:
                 offset = primary.check_model(k.dh, model)
             except RobotError as exc:
                 if str(exc) != self.kinematics_error:
-                    log.warning("the controller's kinematics are not read", robot=self.robot, error=str(exc), retry_s=KINEMATICS_RETRY)
+                    log.warning("controller_kinematics_not_read", robot=self.robot, error=str(exc), retry_s=KINEMATICS_RETRY)
                 self.kinematics_error = str(exc)
                 await asyncio.sleep(KINEMATICS_RETRY)
                 continue
@@ -134,7 +134,7 @@ class Arm:
         self.kinematics = k
         self.planner = MotionPlanner(self.config, k.dh)
         log.info(
-            "the controller's kinematics read",
+            "controller_kinematics_read",
             robot=self.robot,
             id=k.id,
             calibration_status=k.calibration_status,
@@ -176,7 +176,7 @@ class Arm:
         try:
             await self.stop_robot()
         except CelldError as exc:
-            log.error("stop before close failed", robot=self.config.robot.host, error=str(exc))
+            log.error("stop_before_close_failed", robot=self.config.robot.host, error=str(exc))
         await self.motion.close()
         self.motion = None
 
@@ -196,7 +196,7 @@ class Arm:
             plan = await asyncio.to_thread(self.planner.plan_move, q, T_base_tcp, speed_scale, tool)
             if plan.speed_scale < speed_scale:
                 log.info(
-                    "Cartesian move slowed for the joints' limits",
+                    "cartesian_move_slowed_by_joint_limits",
                     asked=speed_scale,
                     scale=round(plan.speed_scale, 4),
                     joint_speed=round(plan.joint_speed, 4),
@@ -221,7 +221,7 @@ class Arm:
             plan = await asyncio.to_thread(self.planner.plan_joint_move, q, q_goal, speed_scale, tool)
             if plan.speed_scale < speed_scale:
                 log.info(
-                    "joint move slowed for the TCP's limits",
+                    "joint_move_slowed_by_tcp_limits",
                     asked=speed_scale,
                     scale=round(plan.speed_scale, 4),
                     tcp_speed=round(plan.tcp_speed, 4),
@@ -243,7 +243,7 @@ class Arm:
                     raise
                 retries += 1
                 log.warning(
-                    "a move stopped on a stale robot state; checking it again from where the arm rests",
+                    "move_stale_state_rechecked",
                     move=what,
                     reason=str(exc),
                     retry=f"{retries} of {STALE_RETRIES}",
@@ -285,7 +285,7 @@ class Arm:
         try:
             await self.motion.wait_idle(STOP_TIMEOUT)
         except CelldError as exc:
-            log.warning("robot not confirmed at rest after a stop", error=str(exc))
+            log.warning("robot_rest_not_confirmed_after_stop", error=str(exc))
 
     def link_state(self) -> str:
         if self.motion is None:

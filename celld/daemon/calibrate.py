@@ -127,7 +127,7 @@ async def prune_calibrations(ctx: JobContext, config: Config) -> None:
     try:
         current = CalibrationStore(ctx.state_dir).current() or {}
     except DamagedStateError as exc:  # its job is unknown: its dataset may be one to keep
-        log.warning("calibration datasets not pruned", reason=str(exc))
+        log.warning("calibration_datasets_not_pruned", reason=str(exc))
         return
     await asyncio.to_thread(prune_sessions, ctx.state_dir / "jobs", cal.keep_sessions, cal.keep_days, (ctx.job_id, current.get("job")))
 
@@ -390,7 +390,7 @@ async def calibrate_arm(
             ctx, config, arm, capture, planned.T_v, result.T_base_cam, n_arm, job.seed or 0, dataset
         )
     log.info(
-        "calibration solved",
+        "calibration_solved",
         job=ctx.job_id,
         robot=robot,
         pairs=len(result.pair_ids),
@@ -465,7 +465,7 @@ async def _calibrate_kinematics(
     await asyncio.to_thread(fsutil.write_json, ctx.result_dir() / "arm.json", session)
     entry = arm_entry(fit, config.robot.model, len(pairs.q))
     log.info(
-        "arm calibrated",
+        "arm_calibrated",
         job=ctx.job_id,
         pairs=len(pairs.q),
         rank=fit.rank,

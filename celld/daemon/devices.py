@@ -184,7 +184,7 @@ class Tactile:
             # the supervision brings the camera back (supervise).
             self.error = str(exc)
             self._restart_at = time.monotonic()
-            log.error("the tactile process did not start; retrying in the background", error=str(exc))
+            log.error("tactile_start_retrying", error=str(exc))
 
     async def close(self) -> None:
         if self.process is not None:
@@ -212,16 +212,16 @@ class Tactile:
         if now - self._restart_at < delay:
             return
         self._restart_at = now
-        log.error("the tactile process is not running; restarting it", exitcode=process.exitcode, restarts=process.restarts)
+        log.error("tactile_process_restarting", exitcode=process.exitcode, restarts=process.restarts)
         try:
             await asyncio.to_thread(process.restart)
             self._failures = 0
             self.error = ""
-            log.info("tactile process restarted", restarts=process.restarts)
+            log.info("tactile_process_restarted", restarts=process.restarts)
         except CelldError as exc:
             self._failures += 1
             self.error = str(exc)
-            log.error("tactile process restart failed", error=str(exc), next_try_s=TACTILE_BACKOFF.delay(self._failures + 1))
+            log.error("tactile_process_restart_failed", error=str(exc), next_try_s=TACTILE_BACKOFF.delay(self._failures + 1))
 
     def wait_reason(self) -> str:
         """Why the cell waits for its finger camera ("" when it reads): its process ended, failed to start, or is
@@ -269,13 +269,13 @@ class CellScanner:
             self.error = str(exc)
             self._retry_at = time.monotonic() + SCANNER_BACKOFF.delay(self._failures)
             log.error(
-                "the scanner did not open; trying again in the background",
+                "scanner_open_retrying",
                 error=self.error,
                 next_try_s=SCANNER_BACKOFF.delay(self._failures),
             )
             return
         if self._failures:
-            log.info("scanner open", after_attempts=self._failures + 1)
+            log.info("scanner_open", after_attempts=self._failures + 1)
         self.error, self._failures = "", 0
 
     async def supervise(self) -> None:
@@ -318,7 +318,7 @@ class Lifecycle:
         self.leftovers = await asyncio.to_thread(self.records.reap)
         self.exit_notes = await asyncio.to_thread(exit_notes, self.records.dir)
         for note in self.exit_notes:
-            log.warning("a child of the previous daemon took it for gone", role=note["role"], reason=note["reason"])
+            log.warning("previous_daemon_child_orphaned", role=note["role"], reason=note["reason"])
         self.heartbeat = Heartbeat(f"celld-{uuid.uuid4().hex[:8]}-heartbeat")
         self._beater = BeatThread(self.heartbeat, lambda: time.monotonic() - loop_ticked() < LOOP_HANG, HEARTBEAT_PERIOD)
         self._beater.start()
@@ -440,7 +440,7 @@ class CellDevices:
         await asyncio.gather(self.tactile.open(), self._open_robots(heartbeat.name), self.scanner.open())
         self.life.read_dashboard(self._on_dashboard)
         log.info(
-            "devices open",
+            "devices_open",
             robot=cfg.robot.host,
             scanner=f"{cfg.scanner.kind}/{cfg.scanner.model}",
             tactile=cfg.tactile.kind if self.tactile.process is not None else "none",
@@ -453,13 +453,13 @@ class CellDevices:
         if not running:
             return True
         if not (self.take_over or ours):
-            log.error("another program runs on the robot: celld does not take it over", robot=robot, program=running, remedy=HELD_REMEDY)
+            log.error("robot_program_foreign_kept", robot=robot, program=running, remedy=HELD_REMEDY)
             return False
-        log.warning("taking the robot over from the program it runs", robot=robot, program=running, take_over=self.take_over)
+        log.warning("robot_program_taken_over", robot=robot, program=running, take_over=self.take_over)
         try:
             await dashboard.stop_program()
         except CelldError as exc:  # the motion process's connect says the rest
-            log.error("the running program could not be stopped", robot=robot, program=running, error=str(exc))
+            log.error("robot_program_not_stopped", robot=robot, program=running, error=str(exc))
         return True
 
     async def _open_robots(self, heartbeat: str) -> None:
@@ -551,7 +551,7 @@ class CellDevices:
         self._dashboard_reachable = reachable
         if self.held and self.life.dashboard.last is not None and self.life.dashboard.last.reachable:
             if not foreign_program(self.life.dashboard.last):
-                log.info("the other program on the robot stopped: celld takes the robot", program=self.held)
+                log.info("robot_program_foreign_stopped", program=self.held)
                 self.held = ""
                 self._opening = asyncio.get_running_loop().create_task(self._open_robot(), name="celld-open-robot")
         if self.held2 and (self._reading2 is None or self._reading2.done()):
@@ -568,7 +568,7 @@ class CellDevices:
         reading = await self._dashboard2.read()
         if not self.held2 or not reading.reachable or foreign_program(reading):
             return
-        log.info("the other program on the robot stopped: celld takes the robot", robot=2, program=self.held2)
+        log.info("robot_program_foreign_stopped", robot=2, program=self.held2)
         self.held2 = ""
         await self.robot2.open_motion(self._heartbeat, self.life.records)
 

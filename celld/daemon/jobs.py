@@ -272,7 +272,7 @@ class JobManager:
         if self.storage.owed:
             self.storage.retry()  # a last try; what is still owed is lost with this process
             if self.storage.owed:
-                log.error("writes still owed at shutdown", owed=[w.label for w in self.storage.owed])
+                log.error("writes_still_owed_at_shutdown", owed=[w.label for w in self.storage.owed])
 
     def set_fault(self, message: str) -> None:
         """Mark the cell faulty (e.g. the robot link is down); "" clears it."""
@@ -328,7 +328,7 @@ class JobManager:
                         f"request id {request_id!r} was used for job {prior.id} with a different body; a new job needs a new request id",
                     )
                 prior = self._with_ending(prior)
-                log.info("submit replayed", job=prior.id, request_id=request_id, user=caller.user)
+                log.info("submit_replayed", job=prior.id, request_id=request_id, user=caller.user)
                 return {"job": prior.id, "state": prior.state, "position": self._position(prior.id), "replayed": True}
         problem = self.storage.problem()
         if problem:
@@ -349,7 +349,7 @@ class JobManager:
         position = self._waiting()
         self.publish(record.id, job.kind, "queued", "queued", fraction=0.0, message=f"position {position}")
         self._wake.set()
-        log.info("job accepted", job=record.id, kind=job.kind, position=position, user=caller.user)
+        log.info("job_accepted", job=record.id, kind=job.kind, position=position, user=caller.user)
         return {"job": record.id, "state": "running" if position == 0 else "queued", "position": position}
 
     def _waiting(self) -> int:
@@ -419,14 +419,14 @@ class JobManager:
             if job_id == req.job:
                 del self._queue[i]
                 self._end(job_id, job, "cancelled", reason)
-                log.info("job cancelled", job=job_id, user=caller.user, reason=reason)
+                log.info("job_cancelled", job=job_id, user=caller.user, reason=reason)
                 return {"job": job_id, "state": "cancelled"}
         if self._running is not None and self._running[0] == req.job:
             task = self._running[2]
             self._cancel_reasons[req.job] = reason
             task.cancel(reason)
             await asyncio.gather(task, return_exceptions=True)
-            log.info("job cancelled", job=req.job, user=caller.user, reason=reason)
+            log.info("job_cancelled", job=req.job, user=caller.user, reason=reason)
             after = self._record(req.job)
             return {"job": req.job, "state": after.state if after else "cancelled"}
         raise JobError("$.job", f"job {req.job} has already ended ({record.state})")
@@ -452,7 +452,7 @@ class JobManager:
         except OSError as exc:
             fault = self.storage.failed(exc, "calibration")
             raise JobError("$", f"refused: {fault}") from exc
-        log.info("calibration accepted", job=req.job, kind=record.kind, user=caller.user, forced=bool(calibration.get("forced")))
+        log.info("calibration_accepted", job=req.job, kind=record.kind, user=caller.user, forced=bool(calibration.get("forced")))
         return {"job": req.job, "kind": record.kind, ACCEPTED_KINDS[record.kind]: calibration}
 
     async def on_calibration(self, req: CalibrationRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
@@ -463,7 +463,7 @@ class JobManager:
             raise JobError("$", "this cell has no robot dashboard to send commands to")
         if self._running is not None:
             raise JobError("$.action", f"refused: job {self._running[0]} is running; {req.action} is for a robot at rest, between jobs")
-        log.warning("operator robot command", action=req.action, user=caller.user)
+        log.warning("operator_robot_command", action=req.action, user=caller.user)
         return await self.robot_action(req.action)
 
     async def on_result(self, req: ResultRequest, caller: Caller = OPEN) -> Mapping[str, Any]:
@@ -529,7 +529,7 @@ class JobManager:
                 if self.storage.retry():
                     self._wake.set()
             except Exception:  # the watcher must outlive anything a retry raises
-                log.exception("storage retry failed")
+                log.exception("storage_retry_failed")
 
     async def _work(self) -> None:
         while True:
@@ -545,7 +545,7 @@ class JobManager:
                 except asyncio.CancelledError:
                     raise
                 except Exception:  # a bug around one job must not end the worker
-                    log.exception("job handling failed", job=job_id)
+                    log.exception("job_handling_failed", job=job_id)
 
     async def _run_one(self, job_id: str, job: Job) -> None:
         try:
@@ -569,7 +569,7 @@ class JobManager:
             self._recording = None
         error = task.exception() if task.done() and not task.cancelled() else None
         if error is not None:
-            log.error("job task failed", job=job_id, error=repr(error))
+            log.error("job_task_failed", job=job_id, error=repr(error))
         record = self._record(job_id)
         if record is not None and not record.terminal:
             # Cancelled before its first step, or ended by a bug before its end was recorded.
@@ -589,7 +589,7 @@ class JobManager:
                 self._end(job_id, job, "failed", f"{fault}; the job did not start")
                 return
             except CelldError as exc:
-                log.error("job recording not opened; the job runs without one", job=job_id, error=str(exc))
+                log.error("job_recording_not_opened", job=job_id, error=str(exc))
         self._recording = recording
         ctx = JobContext(job_id, job, self.state_dir, self.publish, recording)
         self.publish(job_id, job.kind, "running", "start", fraction=0.0)
@@ -608,18 +608,18 @@ class JobManager:
         except StorageError as exc:
             state, reason = "failed", str(self.storage.failed(exc))
             await self._stop_robot_safely(job_id)
-            log.warning("job failed", job=job_id, error=reason)
+            log.warning("job_failed", job=job_id, error=reason)
         except CelldError as exc:
             state, reason = "failed", "; ".join([str(exc), *getattr(exc, "__notes__", ())])  # notes: what followed it
             await self._stop_robot_safely(job_id)
-            log.warning("job failed", job=job_id, error=reason)
+            log.warning("job_failed", job=job_id, error=reason)
         except Exception as exc:  # a bug: the job fails, the daemon stays up
             if fsutil.is_storage_error(exc, self.state_dir):
                 state, reason = "failed", str(self.storage.failed(exc, "job files"))
-                log.warning("job failed", job=job_id, error=reason)
+                log.warning("job_failed", job=job_id, error=reason)
             else:
                 state, reason = "failed", f"internal error: {type(exc).__name__}: {exc}"
-                log.exception("job failed with an internal error", job=job_id)
+                log.exception("job_internal_error", job=job_id)
             await self._stop_robot_safely(job_id)
         finally:
             if recording is not None:
@@ -634,9 +634,9 @@ class JobManager:
                     else:
                         reason = f"{reason}; and {fault}" if reason else str(fault)
                 except CelldError as exc:
-                    log.error("job recording not closed cleanly", job=job_id, error=str(exc))
+                    log.error("job_recording_not_closed_cleanly", job=job_id, error=str(exc))
                 except Exception as exc:  # a bug in the recording's close must not leave the job without an end
-                    log.exception("job recording not closed: internal error", job=job_id)
+                    log.exception("job_recording_close_error", job=job_id)
                     note = f"its recording was not closed: internal error: {type(exc).__name__}: {exc}"
                     reason = f"{reason}; {note}" if reason else note
         self._end(job_id, job, state, reason, result_path)
@@ -670,7 +670,7 @@ class JobManager:
                 if self.auto_accept:
                     store.accept(job_id)
             except JobError as exc:  # a failed quality verdict waits for an operator
-                log.warning("calibration not accepted automatically", job=job_id, reason=str(exc))
+                log.warning("calibration_not_accepted_automatically", job=job_id, reason=str(exc))
             except OSError as exc:
                 return written, str(self.storage.failed(exc, "calibration"))
         return written, ""
@@ -679,7 +679,7 @@ class JobManager:
         try:
             await asyncio.shield(self.stop_robot())
         except Exception as exc:  # the job's end must still be recorded  # noqa: BLE001
-            log.error("stop after the job failed", job=job_id, error=str(exc))
+            log.error("stop_after_job_failed", job=job_id, error=str(exc))
 
     def _end(self, job_id: str, job: Job, state: str, reason: str, result: str | None = None) -> None:
         """Record, then publish, a job's end; an end the journal cannot take is kept and owed."""
@@ -695,12 +695,12 @@ class JobManager:
                     state, reason = "failed", f"{fault} (recording the end of the job, which {was})"
                 self._owe_end(job_id, state, reason, result)
             except JournalError as exc:  # not a storage fault: an impossible transition
-                log.error("job end not recorded", job=job_id, state=state, error=str(exc))
+                log.error("job_end_not_recorded", job=job_id, state=state, error=str(exc))
         self.publish(job_id, job.kind, state, "end", fraction=1.0 if state == "succeeded" else None, message=reason)
         event = self.finished.get(job_id)
         if event is not None:
             event.set()
-        log.info("job ended", job=job_id, kind=job.kind, state=state, reason=reason)
+        log.info("job_ended", job=job_id, kind=job.kind, state=state, reason=reason)
 
     def _owe_end(self, job_id: str, state: str, reason: str, result: str | None) -> None:
         self._endings[job_id] = _Ending(state, reason, result, utc_now())
@@ -714,7 +714,7 @@ class JobManager:
             except StorageError:
                 raise
             except JournalError as exc:
-                log.error("owed job end dropped", job=job_id, error=str(exc))
+                log.error("owed_job_end_dropped", job=job_id, error=str(exc))
             self._endings.pop(job_id, None)
 
         self.storage.owe(f"journal: end of job {job_id}", write_end, job=job_id)

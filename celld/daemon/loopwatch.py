@@ -253,10 +253,7 @@ class LoopWatch:
         worst = self.worst[kind]
         if worst is None or late > worst.late:
             self.worst[kind] = stall
-        if kind == "busy":
-            log.warning("event loop stall: a callback ran long", **stall.as_dict())
-        else:
-            log.warning("event loop stall: the loop was not scheduled", **stall.as_dict())
+        log.warning("event_loop_stall", **stall.as_dict())  # kind: busy (a callback ran long) or unscheduled
 
     def report(self) -> dict[str, Any]:
         """The counts and the worst stall of each kind since the start, for the status reply."""

@@ -342,7 +342,7 @@ class MotionPlanner:
 def report_plan(ctx: Any, plan: CalibrationPlan, what: str) -> None:
     """Log each refused pose of a generated plan and publish the plan's progress event (``ctx`` a JobContext)."""
     for r in plan.refused:
-        log.warning(f"{what} pose replaced", job=ctx.job_id, reason=r.message)
+        log.warning("pose_replaced", job=ctx.job_id, plan=what, reason=r.message)
     ctx.progress(
         "plan",
         0.0,

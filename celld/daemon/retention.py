@@ -101,7 +101,7 @@ def prune_sessions(
             if job_dir.is_dir() and d.is_dir() and not d.is_symlink():
                 datasets.append((_last_write(d), job_dir.name, d))
         except OSError as exc:  # gone or unreadable since the listing: not a candidate
-            log.error("calibration dataset not considered for pruning", path=str(d), error=str(exc))
+            log.error("calibration_dataset_not_prunable", path=str(d), error=str(exc))
     datasets.sort(key=lambda x: (x[0], x[1]), reverse=True)  # newest first
     pruned = []
     for rank, (written, job, d) in enumerate(datasets):
@@ -118,8 +118,8 @@ def prune_sessions(
             size = _size(d)
             shutil.rmtree(d)
         except OSError as exc:
-            log.error("calibration dataset not pruned", job=job, path=str(d), error=str(exc))
+            log.error("calibration_dataset_not_pruned", job=job, path=str(d), error=str(exc))
             continue
-        log.info("calibration dataset pruned", job=job, path=str(d), reason=reason, mb=round(size / 1e6, 1))
+        log.info("calibration_dataset_pruned", job=job, path=str(d), reason=reason, mb=round(size / 1e6, 1))
         pruned.append(Pruned(job, d, reason, size))
     return pruned

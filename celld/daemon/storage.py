@@ -167,7 +167,7 @@ class StorageGuard:
         self.fault = self.last_error = fault
         self.failures += 1
         self._free = None
-        log.error("storage write failed", what=fault.what, path=fault.path, reason=fault.reason)
+        log.error("storage_write_failed", what=fault.what, path=fault.path, reason=fault.reason)
         return fault
 
     def owe(self, label: str, write: Callable[[], Any], job: str = "") -> None:
@@ -195,9 +195,9 @@ class StorageGuard:
                 self.failed(exc, owed.label)
                 return False
             except CelldError as exc:
-                log.error("owed write dropped", write=owed.label, job=owed.job, error=str(exc))
+                log.error("owed_write_dropped", write=owed.label, job=owed.job, error=str(exc))
             self.owed.popleft()
-            log.info("owed write made", write=owed.label, job=owed.job)
+            log.info("owed_write_made", write=owed.label, job=owed.job)
         if self.fault is not None:
             try:
                 fsutil.write_text(self.state_dir / PROBE_NAME, utc_now() + "\n")
@@ -206,6 +206,6 @@ class StorageGuard:
                 return False
             if self.below_floor(fresh=True):
                 return False
-            log.info("storage writable again", free_mb=round((self.free() or 0) / MIB, 1))
+            log.info("storage_writable_again", free_mb=round((self.free() or 0) / MIB, 1))
             self.fault = None
         return self.ok

@@ -190,7 +190,7 @@ async def run_tool_calibrate(ctx: JobContext, config: Config, devices: CellDevic
         await asyncio.to_thread(rec.log_residuals, ids, P_robot, P_found, outlier)
     measured = done.tool
     log.info(
-        "tool calibration solved",
+        "tool_calibration_solved",
         job=ctx.job_id,
         poses=measured["poses"],
         verdict=measured["quality"]["verdict"],

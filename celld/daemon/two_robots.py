@@ -106,7 +106,7 @@ async def run_calibrate_two(ctx: JobContext, config: Config, devices: CellDevice
     out["calibration"] = {**out["calibration"], "robot2": entry}
     out["robot2"] = {key: two.output[key] for key in _ROBOT2_KEYS}
     log.info(
-        "robots calibrated",
+        "robots_calibrated",
         job=ctx.job_id,
         from_drawing_mm=round(entry["from_drawing_mm"], 3),
         translation_std_mm=[round(v, 3) for v in entry["translation_std_mm"]],

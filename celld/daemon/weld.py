@@ -275,7 +275,7 @@ async def _retract(
             if q_scan is not None:
                 await devices.robot.move_joints(q_scan, speed_scale=speed)
     except CelldError as exc:
-        log.error("retract after the weld failed", job=ctx.job_id, error=str(exc))
+        log.error("retract_after_weld_failed", job=ctx.job_id, error=str(exc))
         return str(exc)
     return ""
 
@@ -300,7 +300,7 @@ async def _after_fault(
         moved = f"the tool {wc.retract_height * 1e3:g} mm straight up" + (", then to the scan pose" if full else "")
         note = f"after the fault, {moved} (weld.retract_after_fault = {mode})" + (f", which failed: {error}" if error else "")
     fault.add_note(note)
-    log.warning("weld stopped by a fault", job=ctx.job_id, fault=str(fault), after=note)
+    log.warning("weld_stopped_by_a_fault", job=ctx.job_id, fault=str(fault), after=note)
     if ctx.recording is not None:
         ctx.recording.event_later(f"weld stopped: {fault}; {note}", "WARN")
 
@@ -328,7 +328,7 @@ async def _probe_height(
     targets, why = probe_targets(plan, tool_cfg) if wc.probe_height else ([], "weld.probe_height is off")
     if not targets:
         finger, reading = _kept_finger(ctx.state_dir, tool_job, servo.delta_d, f"not probed: {why}")
-        log.info("finger gain", job=ctx.job_id, **reading)
+        log.info("finger_gain", job=ctx.job_id, **reading)
         return {"probed": False, "why": why, "finger": reading}, plan, finger
     motion = devices.robot.require_motion()
     tool = ToolGeometry.from_config(tool_cfg)
@@ -348,15 +348,16 @@ async def _probe_height(
         finger_found = await asyncio.to_thread(_keep_finger, ctx, tool_job, servo.delta_d, finger_found)
     else:
         finger, finger_found = _kept_finger(ctx.state_dir, tool_job, servo.delta_d, finger_found["why"])
-    log.info("finger gain", job=ctx.job_id, **finger_found)
+    log.info("finger_gain", job=ctx.job_id, **finger_found)
     touches = {name: contact_across(records, tool, origin, across, tool.side, servo.delta_d, finger) for name, records in touched.items()}
     found, moved = probed_height(plan, touches, finger_found, tool, tool.T_tcp_tool, wc.max_height_correction)
     check = found["touch_check"] = judged(found["touch_check"], bound)
-    log.info("tip height probed", job=ctx.job_id, **{k: v for k, v in found.items() if k not in ("touch_check", "finger")})
-    log.info("touch check", job=ctx.job_id, **{k: check[k] for k in ("across_mm", "height_mm", "error_mm", "bound_mm", "verdict")})
+    log.info("tip_height_probed", job=ctx.job_id, **{k: v for k, v in found.items() if k not in ("touch_check", "finger")})
+    log.info("touch_check", job=ctx.job_id, **{k: check[k] for k in ("across_mm", "height_mm", "error_mm", "bound_mm", "verdict")})
     if check["verdict"] == "beyond_bound":
         log.warning(
-            "the calibration is off at the weld by more than its bound: calibrate again",
+            "calibration_off_at_weld",
+            advice="calibrate again",
             job=ctx.job_id,
             error_mm=check["error_mm"],
             bound_mm=check["bound_mm"],
@@ -383,7 +384,8 @@ def _keep_finger(ctx: JobContext, tool_job: str, delta_d: float, reading: dict[s
         reading = compared_finger(reading, before.finger.gain, before.gain_sigma, before.job)
         if reading["previous"]["changed"]:
             log.warning(
-                "the finger's gain has changed since the last probed weld: check the finger and its tag for wear",
+                "finger_gain_changed",
+                advice="check the finger and its tag for wear",
                 job=ctx.job_id,
                 gain=reading["gain"],
                 before=before.finger.gain,
@@ -780,7 +782,7 @@ async def run_weld(ctx: JobContext, config: Config, devices: CellDevices, cache:
         arc = await asyncio.to_thread(_arc_report, records, setup, plan, setup.procedure)
         if arc["flagged"]:
             data = arc["weld_data"]
-            log.warning("weld outside its procedure's window", job=ctx.job_id, procedure=setup.procedure.ident, outside_s=data["outside_s"])
+            log.warning("weld_outside_procedure_window", job=ctx.job_id, procedure=setup.procedure.ident, outside_s=data["outside_s"])
             ctx.progress("track", 1.0, f"flagged: {data['outside_s']:.2f} s outside {setup.procedure.ident}'s current or voltage window")
     path_file = await asyncio.to_thread(fsutil.write_json, ctx.result_dir() / "paths.json", paths)
     if rec is not None:
@@ -842,7 +844,7 @@ def _log_preview(devices: CellDevices, rec: JobRecording | None, last_stamp: int
         if here is not None:
             record_arm(rec, devices.robot.planner.with_tool, here.q, stamp_ns=here.stamp_ns)
     except CelldError as exc:
-        log.warning("SRM frame not recorded", error=str(exc))
+        log.warning("srm_frame_not_recorded", error=str(exc))
     return stamp
 
 

@@ -44,7 +44,7 @@ from numpy.typing import ArrayLike
 from celld.config import Config
 from celld.config.power_source import PowerSourceConfig
 from celld.errors import CelldError, InputError, LinkLost, MotionError, SafetyStop, StaleState
-from celld.log import get_logger
+from celld.log import get_logger, settings
 from celld.motion import commands as cmd
 from celld.motion.channels import (
     SETPOINT_DTYPE,
@@ -148,7 +148,6 @@ def spec_from_config(
     move: MoveParams = MoveParams(),
     link_timeout: float = 0.1,
     watchdog_hz: float = 10.0,
-    log_level: str = "info",
     heartbeat: str = "",
 ) -> MotionSpec:
     """Build the motion process's spec from a validated config.
@@ -190,7 +189,8 @@ def spec_from_config(
         watchdog_hz=watchdog_hz,
         realtime=realtime,
         servo_laws=servo_laws_from(servo_laws or {}),
-        log_level=log_level,
+        log_level=settings().level,  # the process logs as its daemon does
+        log_json=settings().json,
         parent_pid=os.getpid(),
         heartbeat=heartbeat,
         parent_timeout_ns=int(motion.parent_timeout * 1e9),
@@ -599,7 +599,7 @@ class MotionHandle:
             cid = int(e["command_id"])
             if cid == 0:
                 # About no command: the loop's own trouble (e.g. the arc output could not be switched).
-                log.error("motion loop event", status=ControlStatus(int(e["status"])).name, reason=decode_reason(e["reason"]))
+                log.error("motion_loop_event", status=ControlStatus(int(e["status"])).name, reason=decode_reason(e["reason"]))
                 self.loop_events.append(decode_reason(e["reason"]))
                 self.loop_event_count += 1
                 continue

@@ -150,7 +150,7 @@ def run(spec: MotionSpec, hold: list[object]) -> LoopExit:
             if source is not None:
                 source.attach(link.receive, link.io)
         except LinkLost as exc:
-            log.warning("robot link not established", reason=str(exc))
+            log.warning("robot_link_not_established", reason=str(exc))
             end = LoopExit(ControlStatus.LINK_LOST, str(exc))
             return end
         factories = load_factories(spec.servo_laws)
@@ -165,7 +165,7 @@ def run(spec: MotionSpec, hold: list[object]) -> LoopExit:
                 rt = rt._replace(refused="; ".join(filter(None, (rt.refused, refused))))
         if rt.refused:
             log.warning(
-                "motion loop runs without full real-time privileges",
+                "motion_loop_not_fully_real_time",
                 refused=rt.refused,
                 fifo=rt.fifo,
                 cpu=rt.cpu,
@@ -173,7 +173,7 @@ def run(spec: MotionSpec, hold: list[object]) -> LoopExit:
             )
         else:
             log.info(
-                "motion loop real time",
+                "motion_loop_real_time",
                 fifo_priority=spec.realtime.priority,
                 cpu=rt.cpu,
                 link_threads=len(link.threads),
@@ -192,7 +192,7 @@ def run(spec: MotionSpec, hold: list[object]) -> LoopExit:
             if link_priority > 0:
                 settled = schedule_threads(link.threads, 0, spec.link_nice)
                 if settled:
-                    log.warning("ur-rtde's receive threads not settled to best effort as asked", nice=spec.link_nice, refused=settled)
+                    log.warning("rtde_receive_threads_not_best_effort", nice=spec.link_nice, refused=settled)
             end = loop.run()
         except LinkLost as exc:
             end = LoopExit(ControlStatus.LINK_LOST, str(exc))
@@ -203,7 +203,7 @@ def run(spec: MotionSpec, hold: list[object]) -> LoopExit:
         if loop.orphaned and spec.exit_note:
             write_exit_note(spec.exit_note, spec.role, loop.orphaned)
         log.info(
-            "motion loop ended",
+            "motion_loop_ended",
             status=end.status.name,
             reason=end.reason,
             cycles=loop.cycles,
@@ -215,7 +215,8 @@ def run(spec: MotionSpec, hold: list[object]) -> LoopExit:
         if loop is not None and not loop.release_output():
             # After the exit report: on a dead link ur-rtde tries to reconnect first.
             log.error(
-                "the process output could not be switched off; the robot's I/O set-up must do it",
+                "process_output_not_switched_off",
+                advice="the robot's I/O set-up must switch it off at a program stop",
                 output=spec.loop.process_output,
                 power_source=str(spec.source.signal("arc_start")) if spec.source is not None else "",
             )
@@ -239,7 +240,7 @@ def main(spec: MotionSpec) -> None:
         end = run(spec, hold)
     except Exception as exc:  # report any crash to the supervisor before dying  # noqa: BLE001
         end = LoopExit(ControlStatus.FAULT, f"motion process failed: {exc!r}")
-        get_logger(__name__).exception("motion process failed")
+        get_logger(__name__).exception("motion_process_failed")
     _report(ch, Phase.EXITED, None, end.status, end.reason)
     ch.close()
     sys.stdout.flush()

@@ -206,7 +206,7 @@ class MotionSupervisor:
         if self.records is not None and process.pid is not None:
             n = self.spec.channels
             self.records.add(self.spec.role, process.pid, [n.state, n.events, n.commands, n.setpoint, n.control, n.status])
-        log.info("motion process started", pid=process.pid, host=self.spec.host)
+        log.info("motion_process_started", pid=process.pid, host=self.spec.host)
         return _Proc(process, time.monotonic())
 
     def _kill(self, proc: _Proc) -> None:
@@ -241,7 +241,7 @@ class MotionSupervisor:
                     f"the motion loop stood still for {(now - proc.last_progress) * 1e3:.0f} ms "
                     "(most likely blocked in a ur-rtde call that waits for the controller)"
                 )
-                log.error("killing the motion process", pid=proc.process.pid, reason=proc.killed_for)
+                log.error("killing_the_motion_process", pid=proc.process.pid, reason=proc.killed_for)
                 self._kill(proc)
         elif phase == Phase.EXITED:
             if proc.exiting_since is None:
@@ -252,7 +252,7 @@ class MotionSupervisor:
         elif phase in (Phase.STARTING, Phase.CONNECTING, Phase.NONE):
             if now - proc.started > self.connect_timeout and not proc.killed_for:
                 proc.killed_for = f"connecting to the robot took longer than {self.connect_timeout} s"
-                log.error("killing the motion process", pid=proc.process.pid, reason=proc.killed_for)
+                log.error("killing_the_motion_process", pid=proc.process.pid, reason=proc.killed_for)
                 self._kill(proc)
 
     def _exit_of(self, proc: _Proc) -> ProcessExit:

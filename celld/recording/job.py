@@ -855,7 +855,7 @@ class JobRecording:
         try:
             call()
         except CelldError as exc:
-            self._log.warning("recording feed: not recorded", error=str(exc))
+            self._log.warning("recording_feed_not_recorded", error=str(exc))
 
     def log_e_icp(self, iteration: int, e_icp: float, stamp_ns: int | None = None) -> None:
         """Log the ICP error metric of Eq. 13 (metres) for one Algorithm 1 iteration.

@@ -253,7 +253,7 @@ class Dashboard:
         if method is None:
             raise InputError(f"robot action: expected one of {', '.join(ACTIONS)}, got {action!r}")
         loop = asyncio.get_running_loop()
-        log.info("dashboard command", robot=self.host, action=action)
+        log.info("dashboard_command", robot=self.host, action=action)
         return await loop.run_in_executor(self._pool, self._act_blocking, method)
 
     async def stop_program(self) -> str:
@@ -266,7 +266,7 @@ class Dashboard:
             The dashboard refused it or could not be reached.
         """
         loop = asyncio.get_running_loop()
-        log.warning("dashboard command", robot=self.host, action="stop the running program")
+        log.warning("dashboard_command", robot=self.host, action="stop the running program")
         return await loop.run_in_executor(self._pool, self._act_blocking, "stop")
 
     async def close(self) -> None:

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from celld.errors import CelldError, DeviceError, InputError
-from celld.log import get_logger
+from celld.log import get_logger, run_child, settings
 from celld.scanner.base import OrganizedCloud, Scanner
 from celld.shm import SharedArray
 
@@ -105,7 +105,7 @@ class ScannerProcess:
         self._conn, child = ctx.Pipe()
         self._lock = threading.Lock()
         self._shared: SharedArray | None = None
-        self._proc = ctx.Process(target=_serve, args=(build, child, nice), name=f"celld-{name}", daemon=True)
+        self._proc = ctx.Process(target=run_child, args=(settings(), _serve, build, child, nice), name=f"celld-{name}", daemon=True)
         self._proc.start()
         child.close()
         try:
@@ -163,7 +163,7 @@ class ScannerProcess:
     def _end(self) -> None:
         self._proc.join(CLOSE_TIMEOUT)
         if self._proc.is_alive():
-            log.warning("scanner process did not end; killing it", pid=self._proc.pid)
+            log.warning("scanner_process_killed", pid=self._proc.pid)
             self._proc.kill()
             self._proc.join(CLOSE_TIMEOUT)
         self._conn.close()

@@ -424,7 +424,7 @@ def find_seam(
         duration=time.perf_counter() - t0,
         **gq,
     )
-    log.debug("seam found", workpiece=wp.name, source=source, fitness=round(quality.fitness, 4), duration=round(quality.duration, 3))
+    log.debug("seam_found", workpiece=wp.name, source=source, fitness=round(quality.fitness, 4), duration=round(quality.duration, 3))
     return SeamPath(points_base, tangents, normals, plane_normal, spacing, model_base, T_base_obj, quality, wall_across, far_across)
 
 

@@ -228,6 +228,7 @@ def start_daemon(
             sys.executable,
             "-m",
             "celld.cli",
+            "--log-json",  # its log is read by its fields (celld.log.read_events)
             "sim",
             "run",
             "--config",

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import re
 import threading
 from collections.abc import Sequence
 from typing import Any, NamedTuple
@@ -40,6 +39,7 @@ from celld import polyline, se3
 from celld.calib.kinematic import ArmModel
 from celld.config import ToolConfig
 from celld.errors import InputError
+from celld.log import read_events
 from celld.robot import kinematics as kin
 from celld.seam.figures import TORCH_STEP, height_over_root, lateral_error
 from celld.sim.robot.truth import TRUTH_DTYPE, TruthReader, flange_of
@@ -444,15 +444,15 @@ def after_fault(history: np.ndarray, t_fault_ns: int, arc_output: int) -> AfterF
 
 
 def orphaned_after(log_text: str, t_fault_ns: int, host: str = "") -> tuple[float, str]:
-    """When (s after ``t_fault_ns``) and why a motion process took its daemon for gone, from its exit line in
-    the daemon's log (``orphaned_ns``, monotonic); ``host`` picks a robot's. (nan, "no exit line") without one."""
-    for line in log_text.splitlines():
-        if "motion loop ended" not in line or (host and f"host={host} " not in line):
+    """When (s after ``t_fault_ns``) and why a motion process took its daemon for gone, from its exit event in
+    the daemon's JSON log (``motion_loop_ended``: ``orphaned_ns``, monotonic, and ``reason``, its first clause);
+    ``host`` picks a robot's. (nan, "no exit line") without one."""
+    for end in read_events(log_text, "motion_loop_ended"):
+        if host and end.get("host") != host:
             continue
-        at = re.search(r"orphaned_ns=(\d+)", line)
-        why = re.search(r"""reason=(?:'([^':]*)|"([^":]*))""", line)
-        if at and int(at.group(1)):
-            return (int(at.group(1)) - t_fault_ns) * 1e-9, (why.group(1) or why.group(2)) if why else "?"
+        at = end.get("orphaned_ns")
+        if isinstance(at, int) and at:
+            return (at - t_fault_ns) * 1e-9, str(end.get("reason", "?")).split(":")[0]
     return math.nan, "no exit line"
 
 

@@ -330,7 +330,7 @@ def run_camera(
             try:
                 rest = run_tare(source, est, publish, known_free)
                 log.info(
-                    "SRM tared",
+                    "srm_tared",
                     p_cam_rest_mm=np.round(rest.p_cam_rest * 1e3, 4).tolist(),
                     spread_um=round(rest.spread * 1e6, 2),
                     offset_mm=round(float(est.counters[0]["tare_offset"]) * 1e3, 4),
@@ -346,7 +346,7 @@ def run_camera(
                 # Logged once per kind of failure: a pressed finger retries every few frames.
                 kind = type(exc).__name__
                 if kind != last_failure:
-                    log.warning("SRM not tared, trying again", reason=str(exc))
+                    log.warning("srm_tare_retrying", reason=str(exc))
                     last_failure = kind
                 need_tare = True
             continue

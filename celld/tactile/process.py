@@ -24,7 +24,7 @@ import numpy as np
 from celld import sealed
 from celld.config import TactileConfig, ToolConfig
 from celld.errors import DamagedStateError, DeviceError
-from celld.log import get_logger
+from celld.log import get_logger, run_child, settings
 from celld.realtime import RealtimeOptions, make_realtime
 from celld.shm import SeqlockSlot
 from celld.supervision import ChildRecords, ParentWatch
@@ -78,7 +78,7 @@ def tactile_main(
     cv2.setNumThreads(1)
     rt = make_realtime(realtime)
     if rt.refused:
-        log.warning("tactile process runs without full real-time privileges", refused=rt.refused, fifo=rt.fifo)
+        log.warning("tactile_process_not_fully_real_time", refused=rt.refused, fifo=rt.fifo)
     samples = SeqlockSlot.attach(slot_name, TACTILE_DTYPE)
     counters = SeqlockSlot.attach(counters_name, COUNTERS_DTYPE)
     preview_shm = SeqlockSlot.attach(preview_slot, preview_dtype(cfg)) if preview_slot else None
@@ -102,7 +102,7 @@ def tactile_main(
                 return True
             why = parent.check() if parent is not None else ""
             if why:
-                log.warning("tactile process ends", reason=why)
+                log.warning("tactile_process_ends", reason=why)
             return bool(why)
 
         def keep(rest: Tare) -> None:
@@ -134,7 +134,7 @@ def load_reference(path: str | Path) -> np.ndarray | None:
         if ref.shape != (3,) or not np.all(np.isfinite(ref)) or float(np.linalg.norm(ref)) > 1.0:
             raise ValueError(f"p_cam_rest_m: expected 3 finite numbers within 1 m, got {data['p_cam_rest_m']!r}")
     except (DamagedStateError, ValueError, KeyError, TypeError) as exc:
-        log.error("the SRM's reference rest is not usable; the next tare replaces it", path=str(path), error=str(exc))
+        log.error("srm_reference_rest_unusable", path=str(path), error=str(exc))
         return None
     return ref
 
@@ -152,7 +152,7 @@ def save_reference(path: str | Path, rest: Tare) -> None:
     try:
         sealed.write_sealed(p, body, REST_KIND)
     except OSError as exc:
-        log.error("could not keep the SRM's reference rest", path=str(p), error=str(exc))
+        log.error("srm_reference_rest_not_kept", path=str(p), error=str(exc))
 
 
 class TactileProcess:
@@ -232,7 +232,7 @@ class TactileProcess:
         self.restarts = 0
 
     def _new_process(self) -> Any:
-        return self._ctx.Process(target=tactile_main, args=self._args, name="celld-tactile", daemon=True)
+        return self._ctx.Process(target=run_child, args=(settings(), tactile_main, *self._args), name="celld-tactile", daemon=True)
 
     def restart(self, timeout: float = _START_TIMEOUT) -> int | None:
         """Start a new process on the same slots after this one died; returns the dead one's exit code.

@@ -7,6 +7,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from celld.log import read_events
 from celld.sim.score import after_fault, orphaned_after
 
 
@@ -38,11 +39,10 @@ def after_kill(robot, t_kill_ns: int, arc_output: int, window: float = 1.5) -> A
     return AfterKill(seen.speed_at_fault, seen.stopped_s, seen.arc_off_s)
 
 
-def motion_exits(log_path) -> list[str]:  # type: ignore[no-untyped-def]
-    """The daemon log's "motion loop ended" lines (why and when each motion process saw its daemon go)."""
+def motion_exits(log_path) -> list[dict]:  # type: ignore[no-untyped-def]
+    """The daemon log's ``motion_loop_ended`` events (why and when each motion process saw its daemon go)."""
     with open(log_path, "rb") as f:
-        text = f.read().decode(errors="replace")
-    return [line for line in text.splitlines() if "motion loop ended" in line]
+        return list(read_events(f.read().decode(errors="replace"), "motion_loop_ended"))
 
 
 def seen_after(log_path, host: str, t_kill_ns: int) -> float:  # type: ignore[no-untyped-def]

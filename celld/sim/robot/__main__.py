@@ -15,8 +15,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m celld.sim.robot", description="Simulated UR10e controller.")
     add_arguments(parser)
     parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+    parser.add_argument("--log-json", action="store_true", help="one JSON object per log line")
     args = parser.parse_args(argv)
-    configure(args.log_level)
+    configure(args.log_level, json=args.log_json)
     try:
         options = from_args(args)
     except CelldError as exc:

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from celld.errors import InputError, RobotError
+from celld.log import settings
 from celld.sim.robot.options import CONTROL_PORT, SimOptions
 from celld.sim.robot.truth import TruthReader, TruthSample
 
@@ -158,7 +159,7 @@ def launch(host: str, timeout: float = 15.0, extra_args: Sequence[str] = (), **o
     The simulator exits by itself when this process dies.
     """
     opts = SimOptions(host=host, parent_pid=os.getpid()).with_(**options)
-    cmd = [sys.executable, "-m", "celld.sim.robot", *opts.to_argv(), *extra_args]
+    cmd = [sys.executable, "-m", "celld.sim.robot", *opts.to_argv(), *settings().argv(), *extra_args]
     process = subprocess.Popen(cmd, stdin=subprocess.DEVNULL)
     handle = SimRobotHandle(opts, process)
     deadline = time.monotonic() + timeout
