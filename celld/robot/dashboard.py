@@ -42,7 +42,18 @@ ACTIONS: dict[str, str] = {
     "close-popup": "closeSafetyPopup",
 }
 # What robot_condition may say of the robot (RobotCondition.state): ready, or why not.
-CONDITIONS = ("ready", "protective_stop", "emergency_stop", "safety_fault", "power_off", "brakes", "booting", "link_lost", "unknown")
+CONDITIONS = (
+    "ready",
+    "protective_stop",
+    "emergency_stop",
+    "safety_fault",
+    "local_control",
+    "power_off",
+    "brakes",
+    "booting",
+    "link_lost",
+    "unknown",
+)
 # Robot modes (dashboard ``robotmode``) in which the arm can move.
 _MOVING_MODE = "RUNNING"
 
@@ -56,6 +67,7 @@ class DashboardReading(NamedTuple):
     program: str  # e.g. "PLAYING rtde_control"
     error: str  # why it was not reachable
     t: float  # time.monotonic() of the reading
+    remote: bool = True  # the teach pendant in Remote Control (dashboard ``is in remote control``)
 
 
 class RobotCondition(NamedTuple):
@@ -141,6 +153,15 @@ def robot_condition(link: str, reading: DashboardReading | None, last_exit: str 
             f"safety {safety}{seen}",
             "see the teach pendant; a fault or violation needs a safety restart there",
         )
+    if not reading.remote:
+        # An e-Series in Local Control takes no URScript from the network (ports 30001-30003): no control script,
+        # no link, and the dashboard refuses power and brake commands.
+        return RobotCondition(
+            False,
+            "local_control",
+            f"the teach pendant is in Local Control: the controller takes no program from celld{seen}",
+            "switch the teach pendant to Remote Control (its icon at the top right; enabled in Settings > System > Remote Control)",
+        )
     if mode == "POWER_OFF":
         return RobotCondition(
             False, "power_off", f"the arm is powered off{seen}", "`celld robot power-on`, then `celld robot brake-release`"
@@ -216,10 +237,11 @@ class Dashboard:
             mode = reply_value(c.robotmode(), "Robotmode")
             safety = reply_value(c.safetystatus(), "Safetystatus")
             program = c.programState().strip()
+            remote = bool(c.isInRemoteControl())
         except Exception as exc:  # noqa: BLE001 - ur-rtde raises RuntimeError and its own types
             self._drop()
             return DashboardReading(False, "", "", "", f"{type(exc).__name__}: {exc}", time.monotonic())
-        return DashboardReading(True, mode, safety, program, "", time.monotonic())
+        return DashboardReading(True, mode, safety, program, "", time.monotonic(), remote)
 
     def _act_blocking(self, method: str) -> str:
         try:

@@ -30,6 +30,7 @@ def test_the_conditions_are_every_state_a_condition_can_have() -> None:
             _reading("IDLE", "NORMAL"),
             _reading("BOOTING", "NORMAL"),
             _reading("WEIRD", "NORMAL"),
+            _reading("RUNNING", "NORMAL")._replace(remote=False),
         )
     }
     assert seen == set(CONDITIONS)
@@ -63,6 +64,44 @@ def test_the_condition_says_why_and_what_clears_it(link: str, mode: str, safety:
         assert "celld saw: the robot program stopped" in c.reason
 
 
+def test_a_pendant_in_local_control_is_named_with_the_switch_that_clears_it() -> None:
+    local = _reading("RUNNING", "NORMAL")._replace(remote=False)
+    c = robot_condition("down", local)
+    assert c.state == "local_control" and not c.ready
+    assert "Local Control" in c.reason and "Remote Control" in c.remedy
+    # A safety stop comes first: it is what the pendant shows and what must be cleared there.
+    assert robot_condition("down", _reading("RUNNING", "PROTECTIVE_STOP")._replace(remote=False)).state == "protective_stop"
+
+
+@pytest.mark.process
+def test_a_simulated_controller_in_local_control_says_so_and_takes_no_script(loopback_host: str) -> None:
+    import socket
+
+    from celld.sim.robot import launch
+    from celld.sim.robot.options import SCRIPT_PORTS
+
+    async def read(host: str) -> DashboardReading:
+        dash = Dashboard(host)
+        try:
+            return await dash.read()
+        finally:
+            await dash.close()
+
+    with launch(loopback_host, remote_control=False):
+        r = asyncio.run(read(loopback_host))
+        assert r.reachable and not r.remote, r
+        assert robot_condition("down", r).state == "local_control"
+        for port in SCRIPT_PORTS:
+            with socket.create_connection((loopback_host, port), timeout=2.0) as s:
+                s.settimeout(2.0)
+                try:
+                    s.sendall(b"def p():\n  textmsg(1)\nend\n")
+                    closed = s.recv(1) == b""
+                except ConnectionResetError:
+                    closed = True  # closed with the program unread
+                assert closed, f"port {port} must close the connection in Local Control"
+
+
 def test_an_unreachable_robot_is_a_lost_link_unless_rtde_is_up() -> None:
     down = DashboardReading(False, "", "", "", "RuntimeError: connection refused", 0.0)
     c = robot_condition("down", down, "no fresh robot state for 120 ms")
@@ -79,7 +118,7 @@ def test_the_dashboard_reads_the_simulated_controller_and_passes_on_its_refusals
         dash = Dashboard(sim.host)
         try:
             r = await dash.read()
-            assert r.reachable and r.robot_mode == "RUNNING" and r.safety == "NORMAL", r
+            assert r.reachable and r.robot_mode == "RUNNING" and r.safety == "NORMAL" and r.remote, r
             sim.inject("protective_stop")
             r = await dash.read()
             assert r.safety == "PROTECTIVE_STOP"

@@ -39,7 +39,7 @@ def handle(ctrl: c.Controller, line: str) -> Reply:
     if cmd == "get robot model":
         return Reply("UR10")
     if cmd == "is in remote control":
-        return Reply("true")
+        return Reply("true" if ctrl.options.remote_control else "false")
     if cmd == "robotmode":
         return Reply(f"Robotmode: {c.ROBOT_MODE_NAMES.get(ctrl.robot_mode, 'NO_CONTROLLER')}")
     if cmd == "safetymode":

@@ -75,6 +75,10 @@ class SimOptions:
     # The I/O set-up "standard outputs go low when the program stops" (on in a
     # correctly set-up cell: it is the arc's interlock); False keeps them.
     outputs_low_at_stop: bool = True
+    # The teach pendant in Remote Control (as celld needs it); False: in Local Control, where an e-Series
+    # controller takes no URScript from the network: it closes every connection to 30001-30003, and its
+    # dashboard says "false" to "is in remote control".
+    remote_control: bool = True
     # A welding power source on the controller's I/O: its wiring, the CTWD's geometry and
     # its behaviour (celld.sim.robot.source; celld.sim.cell fills it); None: nothing is wired.
     power_source: SourceOptions | None = None
@@ -148,6 +152,8 @@ class SimOptions:
             argv.append("--no-text-messages")
         if not self.outputs_low_at_stop:
             argv.append("--keep-outputs-at-stop")
+        if not self.remote_control:
+            argv.append("--local-control")
         return argv
 
 
@@ -211,6 +217,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="model a cell whose standard outputs stay as they are when the program stops (no arc interlock)",
     )
+    parser.add_argument("--local-control", action="store_true", help="the teach pendant in Local Control: no URScript from the network")
     parser.add_argument("--parent-pid", type=int, default=0, help=argparse.SUPPRESS)
 
 
@@ -249,5 +256,6 @@ def from_args(args: argparse.Namespace) -> SimOptions:
         parent_pid=args.parent_pid,
         text_messages=not args.no_text_messages,
         outputs_low_at_stop=not args.keep_outputs_at_stop,
+        remote_control=not args.local_control,
         power_source=source,
     )

@@ -114,6 +114,11 @@ class SimServer:
             sock, _ = self.listeners[port].accept()
         except (BlockingIOError, KeyError):
             return
+        if port in SCRIPT_PORTS and not self.ctrl.options.remote_control:
+            # Local Control: the controller takes no script from the network and drops the connection.
+            log.info("script_link_refused", port=port, reason="the teach pendant is in local control")
+            sock.close()
+            return
         link: L.Link
         if port == RTDE_PORT:
             link = L.RtdeLink(sock, self.ctrl, self.owners, self.faults)
