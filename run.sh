@@ -3,8 +3,9 @@
 #   ./run.sh demo   the main job on the simulated cell
 #   ./run.sh test   the test suite (what CI runs)
 # Set-up: libusb-1.0 (open3d needs it on Debian), a virtual environment in
-# .venv/ and the package with its dependencies. Re-running is cheap: the
-# install is redone only when pyproject.toml changes.
+# .venv/ and the package with its dependencies at the versions of
+# constraints.txt. Re-running is cheap: the install is redone only when
+# pyproject.toml or constraints.txt changes.
 set -eu
 cd "$(dirname "$0")"
 
@@ -46,7 +47,7 @@ ensure_libusb() {
 
 ensure_venv() {
     stamp=.venv/.celld-installed
-    if [ -x .venv/bin/python ] && [ -f "$stamp" ] && [ "$stamp" -nt pyproject.toml ]; then
+    if [ -x .venv/bin/python ] && [ -f "$stamp" ] && [ "$stamp" -nt pyproject.toml ] && [ "$stamp" -nt constraints.txt ]; then
         return 0
     fi
     py=$(pick_python)
@@ -59,7 +60,8 @@ ensure_venv() {
     fi
     echo "celld set-up: installing celld and its dependencies into .venv/ (first run takes a few minutes)" >&2
     .venv/bin/python -m pip install -q --upgrade pip >&2
-    .venv/bin/python -m pip install -q -e '.[test]' >&2
+    # Against the versions the suite passed with (constraints.txt), not whatever the index has today.
+    .venv/bin/python -m pip install -q -c constraints.txt -e '.[test]' >&2
     touch "$stamp"
 }
 
