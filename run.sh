@@ -58,10 +58,16 @@ ensure_venv() {
             "$py" -m venv .venv
         fi
     fi
-    echo "celld set-up: installing celld and its dependencies into .venv/ (first run takes a few minutes)" >&2
-    .venv/bin/python -m pip install -q --upgrade pip >&2
-    # Against the versions the suite passed with (constraints.txt), not whatever the index has today.
-    .venv/bin/python -m pip install -q -c constraints.txt -e '.[test]' >&2
+    # Against the versions the suite passed with (constraints.txt), not whatever the index has today;
+    # with CELLD_WHEELHOUSE (made by ./run.sh wheelhouse DIR) from that directory alone, no index.
+    if [ -n "${CELLD_WHEELHOUSE:-}" ]; then
+        echo "celld set-up: installing celld and its dependencies into .venv/ from $CELLD_WHEELHOUSE (no index)" >&2
+        .venv/bin/python -m pip install -q --no-index --find-links "$CELLD_WHEELHOUSE" -c constraints.txt -e '.[test]' >&2
+    else
+        echo "celld set-up: installing celld and its dependencies into .venv/ (first run takes a few minutes)" >&2
+        .venv/bin/python -m pip install -q --upgrade pip >&2
+        .venv/bin/python -m pip install -q -c constraints.txt -e '.[test]' >&2
+    fi
     touch "$stamp"
 }
 
@@ -85,7 +91,16 @@ case "$cmd" in
         exit "$status" ;;
     setup)
         ensure_libusb; ensure_venv ;;
+    wheelhouse)
+        # Every wheel a cell PC without internet needs, at constraints.txt's versions: celld's own, its
+        # dependencies, the test tools and the build back-end of the editable install. Copy DIR there
+        # with the checkout and run CELLD_WHEELHOUSE=DIR ./run.sh setup (or pip install --no-index
+        # --find-links DIR celld, for the package alone).
+        [ $# -eq 1 ] || { echo "usage: ./run.sh wheelhouse DIR" >&2; exit 2; }
+        ensure_libusb; ensure_venv
+        .venv/bin/python -m pip wheel -q -c constraints.txt -w "$1" '.[test]' setuptools wheel >&2
+        echo "celld wheelhouse: $(ls "$1" | wc -l) wheels in $1" >&2 ;;
     *)
-        echo "usage: ./run.sh demo|test|setup [args...]" >&2
+        echo "usage: ./run.sh demo|test|setup|wheelhouse [args...]" >&2
         exit 2 ;;
 esac
