@@ -25,6 +25,7 @@ caller never has to know which library failed::
     │   └── PathRefused        a move would hit the cell or cannot be reached (checked before it starts)
     ├── BusError               the zenoh bus failed or refused a request
     ├── JournalError           the job journal refused a change or is damaged
+    ├── StateFormatError       the state directory is of a format this release does not read
     ├── RecordingError         a job recording cannot be written
     └── StorageError           a write to the state directory failed (disk full, I/O error, read-only)
         ├── JournalWriteError  ... the journal's (also a JournalError)
@@ -167,6 +168,10 @@ class JournalDamagedError(JournalError):
     Not a write that can be made again later: the journal stays refused until
     an operator sets it aside (``celld journal set-aside``).
     """
+
+
+class StateFormatError(CelldError):
+    """The state directory is of a newer format than this release reads, has no migration to it, or is not one."""
 
 
 class DamagedStateError(CelldError):

@@ -44,6 +44,7 @@ from celld.daemon.devices import CellDevices, DeviceFactories
 from celld.daemon.jobs import JobManager, Runner
 from celld.daemon.loopwatch import LoopWatch
 from celld.daemon.runners import build_runners
+from celld.daemon.statedir import open_state
 from celld.errors import JournalError
 from celld.journal import INTERRUPTED_RUNNING, Journal
 from celld.log import get_logger
@@ -129,9 +130,12 @@ class Daemon:
         self.loop_watch.install()
         self._tasks.append(asyncio.get_running_loop().create_task(self.loop_watch.run(), name="celld-loop-watch"))
         self.state_dir.mkdir(parents=True, exist_ok=True)
+        fresh = not (self.state_dir / "journal.db").exists()
         # The journal's lock first: a second daemon on this state directory is refused before it touches
         # anything in it (the temporaries below may be a running daemon's writes in flight).
         self._journal = Journal(self.state_dir / "journal.db", keep_damaged=True)
+        # Then the directory's format: refused when newer than this release, migrated when older.
+        open_state(self.state_dir, fresh)
         problems = self._journal.check()
         if problems:
             self._journal.mark_damaged("; ".join(problems[:3]) + (f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""))

@@ -1,5 +1,6 @@
 """``celld run``: the daemon, as systemd starts it; ``celld bus schema``: the bundle of the bus it serves;
-``celld journal check|set-aside``: its job journal, checked, and set aside when damaged.
+``celld journal check|set-aside``: its job journal, checked, and set aside when damaged; ``celld backup``:
+its state in one file (:mod:`celld.daemon.statedir`).
 
 ``bus schema`` is the daemon's command, not the bus's: the bundle holds each
 job kind's result schema, which lives with the runners above the bus
@@ -26,6 +27,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     e = bsub.add_parser("schema", help="export the JSON Schema of every bus message and job result, and the AsyncAPI document")
     e.add_argument("--out", required=True, help="directory to write <name>.schema.json files and asyncapi.json into")
     e.set_defaults(func=_schema)
+
+    k = sub.add_parser("backup", help="export the cell's state (calibrations, tool, finger, results, job journal) to one .tar.gz")
+    k.add_argument("--config", default=default_config(), help=CONFIG_HELP)
+    k.add_argument("--out", help="the file to write (default: celld-backup-<cell>-<UTC time>.tar.gz in this directory)")
+    k.add_argument("--with-datasets", action="store_true", help="the saved calibration sessions too (large: their clouds)")
+    k.add_argument("--json", action="store_true", help="print what was written as JSON")
+    k.set_defaults(func=_backup)
 
     j = sub.add_parser("journal", help="the daemon's job journal: check it, set a damaged one aside (with celld stopped)")
     jsub = j.add_subparsers(dest="journal_command", metavar="ACTION", required=True)
@@ -59,6 +67,23 @@ def _journal(args: argparse.Namespace) -> int:
             return 1
         aside = journal.set_aside()
     print(f"{path}: set aside as {aside}; a new, empty journal is in its place")
+    return 0
+
+
+def _backup(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from celld import config as config_mod
+    from celld.daemon.statedir import default_backup_path, write_backup
+
+    cfg = config_mod.load(args.config)
+    out = Path(args.out) if args.out else default_backup_path(cfg.cell.name)
+    done = write_backup(Path(cfg.cell.state_dir), out, datasets=args.with_datasets)
+    if args.json:
+        print(json.dumps(done.as_dict()))
+    else:
+        print(f"{done.path}: {done.files} files, {done.bytes / 1e6:.1f} MB" + ("" if done.journal else " (no job journal)"))
     return 0
 
 
