@@ -373,8 +373,20 @@ STORAGE = obj(
             },
         },
         "pending_writes": {"type": "integer", "minimum": 0, "description": "Writes owed, made once there is room."},
+        "budget_mb": {
+            "type": "number",
+            "minimum": 0,
+            "description": "cell.storage_budget_mb: the most the state directory may hold (0: no budget).",
+        },
+        "used_mb": {
+            "type": ["number", "null"],
+            "description": "What the state directory held after the last job, MiB (null: not measured yet).",
+        },
+        "over_budget": {"type": "boolean", "description": "Still over the budget after pruning everything that may go."},
+        "pruned": {"type": "integer", "minimum": 0, "description": "Artefacts the budget deleted since the daemon started."},
+        "pruned_mb": {"type": "number", "minimum": 0, "description": "What they held, MiB."},
     },
-    ("ok", "free_mb", "floor_mb", "fault", "last_error", "pending_writes"),
+    ("ok", "free_mb", "floor_mb", "fault", "last_error", "pending_writes", "budget_mb", "used_mb", "over_budget", "pruned", "pruned_mb"),
 )
 
 _FILE = obj(

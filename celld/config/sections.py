@@ -62,6 +62,11 @@ class CellConfig:
     min_free_mb: float = 256.0
     # During a storage fault, how often the writes it owes are tried again, s.
     storage_retry_s: float = 5.0
+    # The most the state directory may hold, MiB (0: no budget): after each job the oldest recordings,
+    # datasets, job files and results go until it fits (celld.daemon.budget).
+    storage_budget_mb: float = 0.0
+    # Results are kept at least this long whatever the budget, days.
+    result_retention_days: float = 30.0
 
     @classmethod
     def read(cls, r: TableReader) -> CellConfig:
@@ -79,6 +84,8 @@ class CellConfig:
             state_dir=state_dir,
             min_free_mb=r.float("min_free_mb", cls.min_free_mb, lo=0.0, hi=1e7),
             storage_retry_s=r.float("storage_retry_s", cls.storage_retry_s, lo=0.1, hi=600.0),
+            storage_budget_mb=r.float("storage_budget_mb", cls.storage_budget_mb, lo=0.0, hi=1e9),
+            result_retention_days=r.float("result_retention_days", cls.result_retention_days, lo=0.0, hi=36500.0),
         )
 
 

@@ -164,6 +164,8 @@ class Daemon:
             loop_report=self.loop_watch.report,
             min_free_mb=cfg.cell.min_free_mb,
             storage_retry_s=cfg.cell.storage_retry_s,
+            storage_budget_mb=cfg.cell.storage_budget_mb,
+            result_retention_days=cfg.cell.result_retention_days,
             unready=self.devices.unready,
         )
         self._update_fault()  # said from the first status on

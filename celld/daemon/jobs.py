@@ -71,6 +71,7 @@ from celld.bus.requests import (
     job_to_message,
 )
 from celld.bus.security import OPEN, Caller
+from celld.daemon import budget
 from celld.daemon.storage import StorageGuard
 from celld.daemon.store import CalibrationStore, failed_verification, last_verification, tool_store
 from celld.errors import CelldError, DamagedStateError, JobError, JournalError, StorageError
@@ -183,6 +184,10 @@ class JobManager:
         The disk-space floor of the state directory, MiB (``cell.min_free_mb``); 0: none.
     storage_retry_s : float
         How often owed writes are retried during a storage fault, s.
+    storage_budget_mb, result_retention_days : float
+        The state directory's budget (0: none) and how long results are kept whatever it says
+        (``cell.storage_budget_mb``, ``cell.result_retention_days``; :mod:`celld.daemon.budget`), enforced
+        after every job.
     free_bytes : callable, optional
         Replaces the free-space reading (tests).
     unready : callable(kind, dry_run) -> str, optional
@@ -211,6 +216,8 @@ class JobManager:
         storage_retry_s: float = STORAGE_RETRY_S,
         free_bytes: Callable[[], int | None] | None = None,
         unready: Callable[[str, bool], str] | None = None,
+        storage_budget_mb: float = 0.0,
+        result_retention_days: float = 30.0,
     ) -> None:
         if storage_retry_s <= 0:
             raise ValueError(f"storage_retry_s: expected > 0, got {storage_retry_s}")
@@ -228,7 +235,10 @@ class JobManager:
         self.robot_action = robot_action
         self.loop_report = loop_report
         self.unready = unready
-        self.storage = StorageGuard(self.state_dir, min_free_mb, free_bytes=free_bytes, damage=journal.damage_report)
+        self.storage = StorageGuard(
+            self.state_dir, min_free_mb, free_bytes=free_bytes, damage=journal.damage_report, budget_mb=storage_budget_mb
+        )
+        self.result_retention_days = result_retention_days
         self.storage_retry_s = storage_retry_s
         self.calibrations = CalibrationStore(self.state_dir)
         self.tools = tool_store(self.state_dir)
@@ -640,6 +650,24 @@ class JobManager:
                     note = f"its recording was not closed: internal error: {type(exc).__name__}: {exc}"
                     reason = f"{reason}; {note}" if reason else note
         self._end(job_id, job, state, reason, result_path)
+        await self._enforce_budget()
+
+    async def _enforce_budget(self) -> None:
+        """Prune the state directory to its budget (:mod:`celld.daemon.budget`), off the event loop; never fails."""
+        if self.storage.budget_mb <= 0:
+            return
+        try:
+            protect: list[str | None] = [r.id for r in self.journal.active()]
+            protect += [(self.calibrations.current() or {}).get("job"), (self.tools.current() or {}).get("job")]
+        except (DamagedStateError, JournalError) as exc:  # which jobs to keep is unknown: keep everything
+            log.warning("storage_not_pruned", reason=str(exc))
+            return
+        try:
+            report = await asyncio.to_thread(budget.enforce, self.state_dir, self.storage.budget_mb, protect, self.result_retention_days)
+        except Exception:  # pruning never fails a job nor the daemon
+            log.exception("storage_not_pruned")
+            return
+        self.storage.budget_enforced(report)
 
     async def _save_result(self, job_id: str, job: Job, result: dict[str, Any]) -> tuple[str | None, str]:
         """Write the result (and a calibration candidate); returns (path, "") or (None, the storage reason).

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from celld import fsutil
+from celld.daemon.budget import BudgetReport
 from celld.errors import CelldError, StorageError
 from celld.journal import utc_now
 from celld.log import get_logger
@@ -93,6 +94,7 @@ class StorageGuard:
         free_bytes: Callable[[], int | None] | None = None,
         clock: Callable[[], float] = time.monotonic,
         damage: Callable[[], str] | None = None,
+        budget_mb: float = 0.0,
     ) -> None:
         if min_free_mb < 0:
             raise ValueError(f"min_free_mb: expected >= 0, got {min_free_mb}")
@@ -106,6 +108,17 @@ class StorageGuard:
         self.last_error: StorageFault | None = None  # the most recent, kept after recovery
         self.owed: deque[OwedWrite] = deque()
         self.failures = 0
+        # The storage budget (celld.daemon.budget; 0: none), its last enforcement and what it pruned since the start.
+        self.budget_mb = float(budget_mb)
+        self.budget: BudgetReport | None = None
+        self.pruned = 0
+        self.pruned_bytes = 0
+
+    def budget_enforced(self, report: BudgetReport) -> None:
+        """Keep an enforcement's report for the status."""
+        self.budget = report
+        self.pruned += len(report.pruned)
+        self.pruned_bytes += sum(a.bytes for a in report.pruned)
 
     def _statvfs(self) -> int | None:
         try:
@@ -156,6 +169,11 @@ class StorageGuard:
             "fault": f"storage: {self._damage()}" if self._damage() else str(self.fault) if self.fault else "",
             "last_error": self.last_error.to_message() if self.last_error else None,
             "pending_writes": len(self.owed),
+            "budget_mb": self.budget_mb,
+            "used_mb": None if self.budget is None else round(self.budget.used_after / MIB, 3),
+            "over_budget": bool(self.budget is not None and self.budget.over),
+            "pruned": self.pruned,
+            "pruned_mb": round(self.pruned_bytes / MIB, 3),
         }
 
     # -- faults ---------------------------------------------------------------------------

@@ -175,7 +175,19 @@ WELD_DRY = {
     "min_clearance_mm": 12.5,
     "seam_length_mm": 150.0,
 }
-STORAGE = {"ok": True, "free_mb": 1000.0, "floor_mb": 0.0, "fault": "", "last_error": None, "pending_writes": 0}
+STORAGE = {
+    "ok": True,
+    "free_mb": 1000.0,
+    "floor_mb": 0.0,
+    "fault": "",
+    "last_error": None,
+    "pending_writes": 0,
+    "budget_mb": 0.0,
+    "used_mb": None,
+    "over_budget": False,
+    "pruned": 0,
+    "pruned_mb": 0.0,
+}
 HEALTH_ROBOT = {
     "link": "running",
     "pid": 4242,
