@@ -28,15 +28,14 @@ import os
 import shutil
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from celld.log import get_logger
 
 log = get_logger(__name__)
 
-MIB = 1024 * 1024
+MIB = 2**20  # the state directory's figures are in MiB (celld.daemon.storage too)
 _DAY = 86_400.0  # s
 # Artefact kinds, in the words of the log and the status.
 RECORDING, DATASET, JOB_FILES, RESULT = "recording", "dataset", "job files", "result"
@@ -61,20 +60,10 @@ class BudgetReport:
     used_before: int
     used_after: int
     pruned: tuple[Artefact, ...] = ()
-    failed: tuple[str, ...] = field(default=())
 
     @property
     def over(self) -> bool:
         return self.budget_bytes > 0 and self.used_after > self.budget_bytes
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "budget_mb": round(self.budget_bytes / MIB, 3),
-            "used_mb": round(self.used_after / MIB, 3),
-            "over": self.over,
-            "pruned": len(self.pruned),
-            "pruned_mb": round(sum(a.bytes for a in self.pruned) / MIB, 3),
-        }
 
 
 def plan_pruning(
@@ -101,8 +90,9 @@ def plan_pruning(
     return out
 
 
-def _tree_bytes(path: Path) -> int:
-    total = 0
+def _tree(path: Path) -> tuple[int, float]:
+    """The bytes of every file under ``path`` and the newest write among them (one walk)."""
+    total, newest = 0, path.lstat().st_mtime
     for root, _dirs, files in os.walk(path):
         for name in files:
             try:
@@ -110,18 +100,8 @@ def _tree_bytes(path: Path) -> int:
             except OSError:
                 continue  # gone since the listing
             total += st.st_size
-    return total
-
-
-def _newest_write(path: Path) -> float:
-    newest = path.lstat().st_mtime
-    for root, _dirs, files in os.walk(path):
-        for name in files:
-            try:
-                newest = max(newest, os.lstat(os.path.join(root, name)).st_mtime)
-            except OSError:
-                continue
-    return newest
+            newest = max(newest, st.st_mtime)
+    return total, newest
 
 
 def artefacts(state_dir: Path) -> list[Artefact]:
@@ -130,7 +110,11 @@ def artefacts(state_dir: Path) -> list[Artefact]:
 
     def add(kind: str, job: str, path: Path, tree: bool) -> None:
         try:
-            size, written = (_tree_bytes(path), _newest_write(path)) if tree else (path.lstat().st_size, path.lstat().st_mtime)
+            if tree:
+                size, written = _tree(path)
+            else:
+                st = path.lstat()
+                size, written = st.st_size, st.st_mtime
         except OSError:
             return
         out.append(Artefact(kind, job, path, size, written))
@@ -168,12 +152,11 @@ def enforce(
 ) -> BudgetReport:
     """Measure ``state_dir``, delete what :func:`plan_pruning` says, and report (blocking: run it off the loop)."""
     budget = int(budget_mb * MIB)
-    used = _tree_bytes(state_dir)
+    used = _tree(state_dir)[0]
     if budget <= 0 or used <= budget:
         return BudgetReport(budget, used, used)
     plan = plan_pruning(artefacts(state_dir), used, budget, protect, keep_results_days, now)
     pruned: list[Artefact] = []
-    failed: list[str] = []
     for a in plan:
         try:
             if a.path.is_dir():
@@ -182,13 +165,12 @@ def enforce(
                 a.path.unlink()
         except OSError as exc:
             log.error("storage_artefact_not_pruned", kind=a.kind, job=a.job, path=str(a.path), error=str(exc))
-            failed.append(str(a.path))
             continue
         log.info("storage_artefact_pruned", kind=a.kind, job=a.job, path=str(a.path), mb=round(a.bytes / MIB, 3))
         pruned.append(a)
         _drop_empty_job_dir(a.path, state_dir)
-    after = _tree_bytes(state_dir)
-    report = BudgetReport(budget, used, after, tuple(pruned), tuple(failed))
+    after = _tree(state_dir)[0]
+    report = BudgetReport(budget, used, after, tuple(pruned))
     if report.over:
         log.warning("storage_over_budget", used_mb=round(after / MIB, 1), budget_mb=budget_mb, why="nothing more may be pruned")
     return report

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from celld import fsutil
-from celld.daemon.budget import BudgetReport
+from celld.daemon.budget import MIB, BudgetReport
 from celld.errors import CelldError, StorageError
 from celld.journal import utc_now
 from celld.log import get_logger
@@ -40,7 +40,6 @@ log = get_logger(__name__)
 # How long a free-space reading is reused, s.
 FREE_CACHE_S = 0.5
 # Bytes in a MiB: the floor and the figures are in MiB.
-MIB = 2**20
 # The file written to find out whether the state directory takes writes again.
 PROBE_NAME = ".storage-probe"
 
