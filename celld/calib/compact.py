@@ -15,7 +15,9 @@ splits a cloud accordingly:
   (:func:`fit_pinhole`); where that rebuild misses the stated precision (a
   scanner whose points are not a pinhole projection of its depth, after its
   own distortion model, say), x and y are stored as 16-bit images too, each
-  with its unit and offset;
+  with its unit and offset: of what the pinhole misses (the residual, smooth
+  and a few counts wide, which a PNG holds in a fraction of the bytes) when
+  a pinhole could be fitted, of x and y themselves when not;
 - the pixels the detector reads, kept as they came, float32, bit for bit: a
   window of the image (around the flange) and a grid
   ``[row0:row1:s, col0:col1:s]``.
@@ -126,6 +128,9 @@ class CompactCloud:
     xy : tuple of two Image16, or None
         x and y, when the pinhole rebuild misses the precision; None when x
         and y are rebuilt from the depth through ``pinhole``.
+    xy_residual : bool
+        ``xy`` holds what the pinhole rebuild from the stored depth misses
+        (x = the pinhole's x + the image's value), not x and y themselves.
     pinhole_error : float or None
         Largest distance in x or y of the pinhole rebuild from the original
         with the depth unrounded, m (None without a pinhole).
@@ -153,6 +158,7 @@ class CompactCloud:
     grid_stride: int
     grid: np.ndarray
     max_error: np.ndarray
+    xy_residual: bool = False
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -300,7 +306,15 @@ def encode(P_cam: ArrayLike, window_px: ArrayLike, grid_px: ArrayLike, grid_stri
         use_pinhole = max(_max_abs(x_rec, x, outside), _max_abs(y_rec, y, outside)) <= depth_q.precision
     if not use_pinhole:
         images = []
-        for values in (x, y):
+        if pinhole is not None:
+            # What the pinhole misses of the rebuild from the stored depth: rounded to a count, the rebuild is
+            # within half a count of x and y as with whole images, in a few counts' range.
+            x_rec, y_rec = _pinhole_xy(z_q, pinhole)
+            with np.errstate(invalid="ignore"):
+                planes = (x - x_rec, y - y_rec)
+        else:
+            planes = (x, y)
+        for values in planes:
             lo, hi = (float(values[valid].min()), float(values[valid].max())) if valid.any() else (0.0, 0.0)
             unit = _unit_for(hi - lo, depth_q.unit)
             q = Quantizer(unit, (math.floor(lo / unit) - 1) * unit)
@@ -317,6 +331,7 @@ def encode(P_cam: ArrayLike, window_px: ArrayLike, grid_px: ArrayLike, grid_stri
         grid_stride=s,
         grid=P[g0:g1:s, h0:h1:s].copy(),
         max_error=np.zeros(3),
+        xy_residual=xy is not None and pinhole is not None,
     )
     rebuilt = decode(compact)
     max_error = np.array([_max_abs(rebuilt[..., i], original, outside) for i, original in enumerate((x, y, z))])
@@ -330,7 +345,13 @@ def decode(compact: CompactCloud) -> np.ndarray:
     elsewhere it is within ``compact.precision`` of it.
     """
     z = compact.depth.values()
-    if compact.xy is not None:
+    if compact.xy is not None and compact.xy_residual:
+        if compact.pinhole is None:
+            raise InputError("compact cloud: x, y residual images without the pinhole they complete")
+        x, y = _pinhole_xy(z, compact.pinhole)
+        x += compact.xy[0].values()
+        y += compact.xy[1].values()
+    elif compact.xy is not None:
         x, y = compact.xy[0].values(), compact.xy[1].values()
     elif compact.pinhole is not None:
         x, y = _pinhole_xy(z, compact.pinhole)

@@ -39,12 +39,14 @@ Compact clouds (the default for organized clouds, :mod:`celld.calib.compact`):
 the sidecar ``pNNN.cloud.json`` (format ``celld.calib.cloud``) names the
 files and states the units, the precision and the projection::
 
-    {"format": "celld.calib.cloud", "version": 1, "units": "m", "frame": "camera",
+    {"format": "celld.calib.cloud", "version": 2, "units": "m", "frame": "camera",
      "shape_px": [H, W], "valid_points": n, "precision_m": 5e-05,
      "max_error_m": [ex, ey, ez],            measured off the window and the grid
      "depth": {"file": "p000.depth.png", "unit_m": 0.0001, "offset_m": 0.0},
      "xy": {"model": "pinhole", "fx_px": ..., "fy_px": ..., "cx_px": ..., "cy_px": ...,
             "pinhole_error_m": ...},
+         or {"model": "pinhole+residual", "fx_px": ..., ..., "x": {"file": ..., "unit_m": ..., "offset_m": ...},
+             "y": {...}, ...}       x = z (col - cx) / fx + the x image's value, y likewise
          or {"model": "images", "x": {"file": ..., "unit_m": ..., "offset_m": ...}, "y": {...}, ...},
      "window": {"file": "p000.roi.ply", "window_px": [row0, row1, col0, col1],
                 "source": "detection" | "expected"},
@@ -132,7 +134,9 @@ POSES_FILE = "poses.json"
 REFERENCE_FILE = "calib_data.json"
 # Name and version of a compact cloud's sidecar, and the end of its file name.
 CLOUD_FORMAT = "celld.calib.cloud"
-CLOUD_VERSION = 1
+# Version 2 adds the x and y images of what the pinhole misses ("pinhole+residual"); version 1 is read too.
+CLOUD_VERSION = 2
+_CLOUD_VERSIONS_READ = (1, 2)
 CLOUD_SUFFIX = ".cloud.json"
 # The verification window holds the flange model's extent plus this margin
 # around the centre, m: at least sqrt(2) x the 5 mm margin of the e_icp crop
@@ -351,13 +355,14 @@ def write_compact_cloud(
     depth_file = f"{stem}.depth.png"
     write_bytes(root / depth_file, _png_bytes(c.depth.counts, root / depth_file))
     xy: dict[str, Any] = {"model": "images"}
+    if c.pinhole is not None:  # encode leaves x, y out only when the pinhole rebuilds them
+        model = "pinhole+residual" if c.xy_residual else "pinhole"
+        xy = {"model": model, "fx_px": c.pinhole.fx, "fy_px": c.pinhole.fy, "cx_px": c.pinhole.cx, "cy_px": c.pinhole.cy}
     if c.xy is not None:
         for axis, image in zip("xy", c.xy):
             name = f"{stem}.{axis}.png"
             write_bytes(root / name, _png_bytes(image.counts, root / name))
             xy[axis] = _image_doc(image, name)
-    elif c.pinhole is not None:  # encode leaves x, y out only when the pinhole rebuilds them
-        xy = {"model": "pinhole", "fx_px": c.pinhole.fx, "fy_px": c.pinhole.fy, "cx_px": c.pinhole.cx, "cy_px": c.pinhole.cy}
     xy["pinhole_error_m"] = c.pinhole_error
     window_file = f"{stem}.roi.ply"
     comment = f"celld window rows {r0}:{r1} cols {c0}:{c1} of a {H} x {W} image, float32 as captured"
@@ -431,9 +436,10 @@ def read_compact_cloud(path: str | Path) -> Array:
     path = Path(path)
     root, where = path.parent, path.name
     doc = read_json(path)
-    if _get(doc, "format", str, where) != CLOUD_FORMAT or doc.get("version") != CLOUD_VERSION:
+    if _get(doc, "format", str, where) != CLOUD_FORMAT or doc.get("version") not in _CLOUD_VERSIONS_READ:
         raise InputError(
-            f"{path}: expected a {CLOUD_FORMAT!r} version {CLOUD_VERSION} document, got {doc.get('format')!r} {doc.get('version')!r}"
+            f"{path}: expected a {CLOUD_FORMAT!r} document of version {' or '.join(map(str, _CLOUD_VERSIONS_READ))}, "
+            f"got {doc.get('format')!r} {doc.get('version')!r}"
         )
     if doc.get("units") != "m":
         raise InputError(f"{path}: units: expected 'm', got {doc.get('units')!r}")
@@ -445,14 +451,15 @@ def read_compact_cloud(path: str | Path) -> Array:
     xy_doc = _get(doc, "xy", dict, where)
     model = xy_doc.get("model")
     pinhole, xy = None, None
-    if model == "pinhole":
+    models = ("pinhole", "images") if doc["version"] == 1 else ("pinhole", "pinhole+residual", "images")
+    if model not in models:
+        raise InputError(f"{where}.xy.model: expected {' or '.join(map(repr, models))}, got {model!r}")
+    if model != "images":
         fx, fy, cx, cy = (_number(xy_doc, k, f"{where}.xy", positive=k[0] == "f") for k in ("fx_px", "fy_px", "cx_px", "cy_px"))
         pinhole = Pinhole(fx, fy, cx, cy)
-    elif model == "images":
+    if model != "pinhole":
         x, y = (_read_png(root, _get(xy_doc, a, dict, f"{where}.xy"), shape, f"{where}.xy.{a}") for a in "xy")
         xy = (x, y)
-    else:
-        raise InputError(f"{where}.xy.model: expected 'pinhole' or 'images', got {model!r}")
     window_doc = _get(doc, "window", dict, where)
     window_px = check_window(_get(window_doc, "window_px", list, f"{where}.window"), shape)
     r0, r1, c0, c1 = window_px
@@ -463,7 +470,7 @@ def read_compact_cloud(path: str | Path) -> Array:
     if stride < 1:
         raise InputError(f"{where}.grid.stride_px: expected a positive integer, got {stride}")
     grid = _read_piece(root, grid_doc, (len(range(g0, g1, stride)), len(range(h0, h1, stride))), f"{where}.grid")
-    compact = CompactCloud(depth, pinhole, xy, None, window_px, window, grid_px, stride, grid, np.zeros(3))
+    compact = CompactCloud(depth, pinhole, xy, None, window_px, window, grid_px, stride, grid, np.zeros(3), model == "pinhole+residual")
     return decode(compact)
 
 
@@ -653,7 +660,7 @@ class SessionWriter:
                         cloud=stem,
                         window_px=c.window_px,
                         source=found[1],
-                        xy="pinhole" if c.xy is None else "images",
+                        xy="pinhole" if c.xy is None else "pinhole+residual" if c.xy_residual else "images",
                         max_error_mm=np.round(c.max_error * 1e3, 4).tolist(),
                     )
                     return name

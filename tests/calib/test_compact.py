@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -58,11 +60,17 @@ def test_points_that_are_not_a_pinhole_of_their_depth_get_x_and_y_images(rng: np
     P = scene(rng, k1=0.05)  # a lens distortion the scanner corrected: x/z is no longer linear in the column
     c = encode(P, (0, 10, 0, 10), (0, 120, 0, 160), grid_stride=16)
     assert c.pinhole_error is not None and c.pinhole_error > c.depth.q.precision
-    assert c.xy is not None
+    assert c.xy is not None and c.xy_residual  # what the fitted pinhole misses, not x and y themselves
     Q = decode(c)
     valid = np.isfinite(P).all(axis=2)
     assert np.abs(Q - P)[valid].max() <= c.precision * (1 + 1e-9)
     np.testing.assert_array_equal(np.isnan(Q).any(axis=2), ~valid)
+    # The residual spans a few hundred counts where x itself spans thousands.
+    span = [int(np.ptp(image.counts[image.counts > 0])) for image in c.xy]
+    assert max(span) < 0.2 * np.nanmax(np.abs(P[..., :2])) / c.depth.q.unit, span
+    # A residual without the pinhole it completes is refused.
+    with pytest.raises(InputError, match="residual"):
+        decode(replace(c, pinhole=None))
 
 
 def test_the_unit_grows_to_what_16_bits_can_span(rng: np.random.Generator) -> None:
