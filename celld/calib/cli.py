@@ -181,7 +181,7 @@ def _arm_fit(session: Any, flange: Any, T_base_cam: np.ndarray, cfg: Any, where:
             pairs.skipped.append(f"{rec.id}: no joints or no cloud")
             continue
         pairs.add(rec.id, session.cloud(rec), rec.p_base, rec.q)
-    fit = pairs.fit(cfg.robot.model, dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange), table)
+    fit = pairs.fit(cfg.robot.model, dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange), table, cfg.calibration.arm_error_prior)
     out = {**fit.report(), "T_base_cam": fit.T_base_cam.tolist(), "pairs": len(pairs.q), "skipped": pairs.skipped}
     return out | ({"kinematics": stored.name} if table is not None else {})
 

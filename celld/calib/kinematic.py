@@ -53,7 +53,7 @@ from celld.calib.quality import norm_bound
 from celld.errors import CelldError, InputError
 from celld.robot import dynamics, primary
 from celld.robot import kinematics as kin
-from celld.schemadoc import integer, matrix4, number, obj, string, texts, vector
+from celld.schemadoc import enum, integer, matrix4, number, obj, string, texts, vector
 
 Array = NDArray[np.float64]
 
@@ -84,6 +84,16 @@ SIGMA_POINT = 0.1e-3
 REMAINING_PRIOR = 0.4e-3
 # The bounds' confidence on the norm of the 3-D error.
 BOUND_CONFIDENCE = 0.95
+# Model selection: the arm's corrections are kept only where they predict poses the fit did not see better
+# than the scanner's pose alone does with the controller's kinematics as they are. A dozen wide poses can fit
+# two dozen corrections to a correct arm's noise and put the flange a millimetre off at the weld (the e2e
+# cell's arm, whose table is right: 0.37-1.2 mm over the table against 0.07 mm with the hand-eye alone).
+# Cross-validation over CV_FOLDS folds of the poses; of the models, simplest first ("pose": the scanner's pose
+# on the controller's kinematics as they are; "sag": with the joints' compliance; "arm": with every correction
+# the data tell apart), the simplest whose mean squared held-out miss is within one standard error of the
+# best one's (the one-standard-error rule).
+CV_FOLDS = 5
+MODELS = ("pose", "sag", "arm")
 # What a stored correction may be (the units of ArmModel.as_dict): far above what a factory-calibrated arm
 # is off by (0.2-1 mm, a few mrad); beyond it the file is not an arm's calibration. The compliance bound is
 # ten times PRIOR's.
@@ -272,6 +282,9 @@ class ArmFit:
     # uncertainty there and what the pairs err from pose to pose), and anywhere else (that plus REMAINING_PRIOR).
     bound_poses: float = math.inf
     bound_away: float = math.inf
+    # The model kept (:data:`MODELS`) and each candidate's RMS miss at the poses its fit did not see, m.
+    chosen: str = "arm"
+    held_out_rms: dict[str, float] | None = None
 
     @property
     def rms(self) -> float:
@@ -288,6 +301,8 @@ class ArmFit:
             "residual_rms_mm": self.rms * 1e3,
             "residual_max_mm": float(self.residuals.max()) * 1e3,
             "residual_rms_before_mm": float(np.sqrt(np.mean(self.residuals_before**2))) * 1e3,
+            "model": self.chosen,
+            "held_out_rms_mm": {name: v * 1e3 for name, v in (self.held_out_rms or {}).items()},
             "bound": {
                 "confidence": BOUND_CONFIDENCE,
                 "poses_mm": self.bound_poses * 1e3,
@@ -326,6 +341,16 @@ class _Problem:
         self.q, self.p_cam, self.n_cam, self.T0 = q, p_cam, n_cam, T_base_cam0
         self.nominal, self.links, self.payload = nominal, links, payload
         self.bends = links is not None or payload.mass > 0.0
+
+    def subset(self, rows: NDArray[np.intp]) -> _Problem:
+        """The same problem on the poses ``rows``."""
+        n_cam = None if self.n_cam is None else self.n_cam[rows]
+        return _Problem(self.q[rows], self.p_cam[rows], n_cam, self.T0, self.nominal, self.links, self.payload)
+
+    def misses(self, x: Array) -> Array:
+        """(n,) distance of each seen flange centre, placed by the scanner's pose, from the model's, m."""
+        T_cam = self.camera(x[:6])
+        return np.linalg.norm(self.p_cam @ T_cam[:3, :3].T + T_cam[:3, 3] - self.flange(x)[:, :3, 3], axis=1)
 
     def model(self, x: Array) -> tuple[Array, ArmModel]:
         return _unpack(x, self.nominal, self.links, self.payload)
@@ -379,6 +404,7 @@ def fit_arm(
     payload: dynamics.Payload = dynamics.Payload(),
     n_cam: ArrayLike | None = None,
     compliance: bool = True,
+    arm_error_prior: float = 1.0e-3,
 ) -> ArmFit:
     """Fit the arm's corrections and the scanner's pose from one session.
 
@@ -387,7 +413,10 @@ def fit_arm(
     face normals it saw (optional), ``T_base_cam0`` the hand-eye calibration
     to start from, ``nominal`` the DH table the controller moves by; ``links``
     and ``payload`` give the torques of the sag (``compliance`` False, or no
-    masses at all: no sag in the model).
+    masses at all: no sag in the model). ``arm_error_prior`` is what an arm of
+    its class errs by away from where it was seen (m,
+    ``calibration.arm_error_prior_mm``): the bound away from the poses where
+    the data did not earn the geometric corrections.
     """
     Q = np.asarray(q, dtype=np.float64)
     P = np.asarray(p_cam, dtype=np.float64)
@@ -419,37 +448,80 @@ def fit_arm(
     comp = 6 + 4 * 6
     keep[comp : comp + 6] = keep[comp : comp + 6] & np.isin(np.arange(6), COMPLIANT) & prob.bends
     keep[:6] = True  # the scanner's pose is always fitted
+    # The candidates (MODELS); "sag" only where the compliance is fitted at all.
+    masks = {"pose": np.arange(n_params) < 6, "arm": keep}
+    sag = masks["pose"].copy()
+    sag[comp : comp + 6] = keep[comp : comp + 6]
+    if not np.array_equal(sag, masks["pose"]) and not np.array_equal(sag, keep):
+        masks["sag"] = sag
+    held_out = {name: _held_out_misses(prob, np.flatnonzero(mask), sigmas) for name, mask in masks.items()}
+    chosen = _choose(held_out)
+    keep = masks[chosen]
     idx = np.flatnonzero(keep)
     sv = np.linalg.svd(J[:, idx] * sigmas[idx], compute_uv=False)  # the condition of what is fitted
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    sol = _solve(prob, idx, sigmas)
+    x = np.zeros(n_params)
+    x[idx] = sol.x
+    pose, model = prob.model(x)
+    T_cam = prob.camera(pose)
+    res = prob.misses(x)
+    res0 = prob.misses(np.zeros(n_params))
+    # The bound where the poses went: at each, the fit's own error (its Gauss-Newton covariance, scaled by
+    # the residuals' spread, carried to the flange centre) and the pose-to-pose error (the residuals' RMS
+    # per axis), and never below what the chosen model missed at the poses it did not see (at the same
+    # confidence); away from them that plus what the arm keeps there: after the corrections, REMAINING_PRIOR;
+    # with its geometry as the controller has it, what an arm of its class errs by (``arm_error_prior``).
+    bound_poses = bound_away = math.inf
+    try:
+        cov = np.linalg.inv(sol.jac.T @ sol.jac) * float(np.sum(sol.fun**2) / max(sol.fun.size - idx.size, 1))
+        G = sol.jac[: 3 * len(Q)].reshape(len(Q), 3, idx.size)
+        bound_poses = norm_bound(G @ cov @ G.transpose(0, 2, 1), float(np.sqrt(np.mean(res**2) / 3.0)), BOUND_CONFIDENCE)
+        bound_poses = max(bound_poses, float(np.quantile(held_out[chosen], BOUND_CONFIDENCE)))
+        bound_away = bound_poses + (REMAINING_PRIOR if chosen == "arm" else arm_error_prior)
+    except np.linalg.LinAlgError:
+        pass
+    held = tuple(NAMES[i] for i in range(n_params) if not keep[i])
+    held_out_rms = {name: float(np.sqrt(np.mean(e**2))) for name, e in held_out.items()}
+    return ArmFit(T_cam, model, res, res0, tuple(NAMES[i] for i in idx), held, rank, cond, bound_poses, bound_away, chosen, held_out_rms)
+
+
+def _solve(prob: _Problem, idx: NDArray[np.intp], sigmas: Array) -> Any:
+    """The maximum a posteriori fit of the parameters ``idx`` (the others at zero): scipy's least-squares result."""
     prior_w = SIGMA_POINT / sigmas[idx]
-    prior_w[:6] = 0.0  # no prior on the scanner's pose
+    prior_w[idx < 6] = 0.0  # no prior on the scanner's pose
+    n_params = sigmas.size
 
     def fun(xk: Array) -> Array:
         x = np.zeros(n_params)
         x[idx] = xk
         return np.concatenate([prob.residuals(x), prior_w * xk])
 
-    sol = least_squares(fun, np.zeros(idx.size), x_scale=sigmas[idx], method="trf")
-    x = np.zeros(n_params)
-    x[idx] = sol.x
-    pose, model = prob.model(x)
-    T_cam = prob.camera(pose)
-    res = np.linalg.norm(P @ T_cam[:3, :3].T + T_cam[:3, 3] - prob.flange(x)[:, :3, 3], axis=1)
-    res0 = np.linalg.norm(P @ T0[:3, :3].T + T0[:3, 3] - prob.flange(np.zeros(n_params))[:, :3, 3], axis=1)
-    # The bound where the poses went: at each, the fit's own error (its Gauss-Newton covariance, scaled by
-    # the residuals' spread, carried to the flange centre) and the pose-to-pose error (the residuals' RMS
-    # per axis); away from them that plus what the arm keeps there.
-    bound_poses = bound_away = math.inf
-    try:
-        cov = np.linalg.inv(sol.jac.T @ sol.jac) * float(np.sum(sol.fun**2) / max(sol.fun.size - idx.size, 1))
-        G = sol.jac[: 3 * len(Q)].reshape(len(Q), 3, idx.size)
-        bound_poses = norm_bound(G @ cov @ G.transpose(0, 2, 1), float(np.sqrt(np.mean(res**2) / 3.0)), BOUND_CONFIDENCE)
-        bound_away = bound_poses + REMAINING_PRIOR
-    except np.linalg.LinAlgError:
-        pass
-    held = tuple(NAMES[i] for i in range(n_params) if not keep[i])
-    return ArmFit(T_cam, model, res, res0, tuple(NAMES[i] for i in idx), held, rank, cond, bound_poses, bound_away)
+    return least_squares(fun, np.zeros(idx.size), x_scale=sigmas[idx], method="trf")
+
+
+def _held_out_misses(prob: _Problem, idx: NDArray[np.intp], sigmas: Array) -> Array:
+    """(n,) each pose's miss (:meth:`_Problem.misses`) under the fit of ``idx`` on the other folds' poses."""
+    n = len(prob.q)
+    folds = min(CV_FOLDS, n)
+    out = np.empty(n)
+    for f in range(folds):
+        test = np.arange(f, n, folds)
+        sol = _solve(prob.subset(np.setdiff1d(np.arange(n), test)), idx, sigmas)
+        x = np.zeros(sigmas.size)
+        x[idx] = sol.x
+        out[test] = prob.subset(test).misses(x)
+    return out
+
+
+def _choose(held_out: dict[str, Array]) -> str:
+    """The simplest model (in :data:`MODELS`' order) whose mean squared held-out miss is within one standard
+    error of the best one's."""
+    score = {name: float(np.mean(e**2)) for name, e in held_out.items()}
+    best = min(score, key=score.__getitem__)
+    e2 = held_out[best] ** 2
+    margin = float(np.std(e2, ddof=1) / math.sqrt(e2.size)) if e2.size > 1 else 0.0
+    return next(name for name in MODELS if name in score and score[name] <= score[best] + margin)
 
 
 class ArmPairs:
@@ -479,15 +551,25 @@ class ArmPairs:
         self.n_cam.append(det.normal)
         return True
 
-    def fit(self, robot_model: str, payload: dynamics.Payload, table: kin.DH | None = None) -> ArmFit:
-        """The fit on the controller's kinematics ``table`` (``robot_model``'s published one when None)."""
+    def fit(self, robot_model: str, payload: dynamics.Payload, table: kin.DH | None = None, arm_error_prior: float = 1.0e-3) -> ArmFit:
+        """The fit on the controller's kinematics ``table`` (``robot_model``'s published one when None);
+        ``arm_error_prior`` as :func:`fit_arm`'s."""
         if len(self.q) < 4:
             why = "; ".join(self.skipped[:3])
             raise InputError(
                 f"arm calibration: {len(self.q)} pairs with the flange found; it needs many more" + (f" ({why})" if why else "")
             )
         nominal, links = table or kin.model(robot_model).dh, dynamics.links(robot_model)
-        return fit_arm(np.asarray(self.q), np.asarray(self.p_cam), self.T_base_cam, nominal, links, payload, n_cam=np.asarray(self.n_cam))
+        return fit_arm(
+            np.asarray(self.q),
+            np.asarray(self.p_cam),
+            self.T_base_cam,
+            nominal,
+            links,
+            payload,
+            n_cam=np.asarray(self.n_cam),
+            arm_error_prior=arm_error_prior,
+        )
 
 
 # -- the calibration's arm entry ---------------------------------------------------------
@@ -528,6 +610,17 @@ ARM_ENTRY_SCHEMA = obj(
         "residual_rms_mm": number("RMS distance of the flange centres from the fitted model's, mm."),
         "residual_max_mm": number("The largest, mm."),
         "residual_rms_before_mm": number("The same with the controller's kinematics and the hand-eye T_base_cam, mm."),
+        "model": enum(
+            MODELS,
+            "The model kept, whichever predicts the poses its fit did not see best by cross-validation (the simplest "
+            "within one standard error): 'pose' (the scanner's pose alone, the controller's kinematics as they are), "
+            "'sag' (with the joints' compliance) or 'arm' (every correction the data tell apart); absent: 'arm'.",
+        ),
+        "held_out_rms_mm": obj(
+            "Each candidate's RMS miss of a flange centre at the poses its fit did not see (cross-validation), mm.",
+            {name: number(f"Model {name!r}.") for name in MODELS},
+            ("pose", "arm"),
+        ),
         "bound": obj(
             "Bounds on the norm of the flange's error (the poses' own region, and away from it).",
             {

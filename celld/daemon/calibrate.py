@@ -457,7 +457,7 @@ async def _calibrate_kinematics(
     ctx.progress("arm", None, f"fitting the arm from {len(pairs.q)} flanges")
     payload = dynamics.Payload(config.tool.mass, config.tool.com_flange)
     try:
-        fit = await asyncio.to_thread(pairs.fit, config.robot.model, payload, table)
+        fit = await asyncio.to_thread(pairs.fit, config.robot.model, payload, table, cal.arm_error_prior)
     except InputError as exc:
         raise CalibrationError(f"the arm's kinematic calibration: {exc}") from exc
     session = {"frame": "camera", "units": "m", "q": np.asarray(pairs.q).tolist(), "p_cam": np.asarray(pairs.p_cam).tolist()}

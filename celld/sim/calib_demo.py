@@ -182,7 +182,9 @@ def calibrate_arm_in_world(
         if not pairs.add(f"wide pose {i}", cloud, T[:3, 3], q) and say is not None:
             say(f"  {pairs.skipped[-1]}")
     # On the controller's own table, as its primary interface serves it to celld.
-    fit = pairs.fit(cfg.robot.model, dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange), world.nominal_dh)
+    fit = pairs.fit(
+        cfg.robot.model, dynamics.Payload(cfg.tool.mass, cfg.tool.com_flange), world.nominal_dh, cfg.calibration.arm_error_prior
+    )
     return OfflineArmCalibration(
         hand_eye, fit, len(poses), time.perf_counter() - t0, np.asarray(pairs.q), np.asarray(pairs.p_cam), np.asarray(pairs.n_cam)
     )

@@ -82,6 +82,9 @@ def test_the_fit_recovers_the_arm_where_it_is_identifiable_and_lands_the_weld(se
     Q, P, N = _session(arm, 40, seed, noise=0.03e-3)
     T0 = T_BASE_CAM @ se3.from_ur_pose([1e-3, -2e-3, 1e-3, 2e-3, 1e-3, -1e-3])  # a hand-eye start, mm off
     fit = km.fit_arm(Q, P, T0, NOMINAL, LINKS, PAYLOAD, n_cam=N)
+    # The corrections predict poses their fit did not see far better than the scanner's pose alone: kept.
+    assert fit.chosen == "arm" and fit.held_out_rms is not None, fit.held_out_rms
+    assert fit.held_out_rms["arm"] < 0.5 * fit.held_out_rms["pose"], fit.held_out_rms
     # What cannot be told apart from centres and normals is held, and said.
     # (the base's turn is the camera's; the flange's turn about its axis moves neither centre nor normal; the
     # base carries no gravity torque; the wrists' compliance is held by design, km.COMPLIANT).
@@ -118,6 +121,28 @@ def test_without_a_sag_model_the_compliance_is_not_fitted() -> None:
     # Noise-free: the residuals vanish to micrometres; the weak priors leave the weld within 0.05 mm.
     assert fit.model.compliance == (0.0,) * 6 and fit.rms < 5e-6
     assert _weld_errors(arm, fit.model, fit.T_base_cam).max() < 50e-6
+
+
+@pytest.mark.parametrize("seed", [0, 2, 4])
+def test_a_dozen_poses_of_an_arm_as_its_table_says_keep_the_scanners_pose_alone_and_say_how_sure(seed: int) -> None:
+    # The controller's table is right and nothing sags: two dozen corrections fitted to 12 poses' noise (0.1 mm
+    # a centre) put the flange 0.35-1.2 mm off at the weld. Cross-validation sees that they predict the poses
+    # they did not see worse than the scanner's pose alone, and keeps that.
+    arm = replace(_arm(seed), dh=NOMINAL, joint_offsets=(0.0,) * 6, compliance=(0.0,) * 6)
+    Q, P, N = _session(arm, 12, seed + 10, noise=0.1e-3)
+    T0 = T_BASE_CAM @ se3.from_ur_pose([1e-3, -2e-3, 1e-3, 2e-3, 1e-3, -1e-3])
+    fit = km.fit_arm(Q, P, T0, NOMINAL, LINKS, PAYLOAD, n_cam=N, arm_error_prior=1.0e-3)
+    assert fit.chosen == "pose" and fit.held_out_rms is not None and fit.held_out_rms["pose"] < fit.held_out_rms["arm"]
+    assert fit.estimated == km.POSE_NAMES and set(fit.held) == set(km.NAMES[6:])
+    assert fit.model.as_dict()["d_mm"] == [0.0] * 6 and fit.model.compliance == (0.0,) * 6
+    e = _weld_errors(arm, fit.model, fit.T_base_cam)
+    assert e.mean() < 0.15e-3, e * 1e3
+    # The geometry was not earned by the data: the bound away from the poses carries the arm's class.
+    assert fit.bound_away == pytest.approx(fit.bound_poses + 1.0e-3) and e.max() <= fit.bound_away
+    report = km.arm_entry(fit, "ur10e", len(Q))
+    assert report["model"] == "pose" and set(report["held_out_rms_mm"]) >= {"pose", "arm"}
+    _, model = km.arm_of(report)
+    np.testing.assert_allclose(model.forward(Q[0]), kin.forward(Q[0], NOMINAL), atol=1e-12)
 
 
 def test_precorrection_puts_the_modelled_flange_on_the_target_and_is_the_identity_without_corrections() -> None:

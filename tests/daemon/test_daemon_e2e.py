@@ -109,10 +109,9 @@ def test_calibrate_over_the_bus_then_accept(recorded_daemon) -> None:
     p_v = np.asarray(cfg.calibration.verification_pose[:3])[None]
     miss = np.linalg.norm(se3.apply(T @ se3.invert(np.array(T_BASE_CAM_TRUE)), p_v) - p_v)
     assert miss < 0.2e-3 and math.degrees(dr) < 0.1, (miss, math.degrees(dr))
-    # The arm's calibration: its own T_base_cam with corrections to an arm that is as drawn in this world. A dozen
-    # wide poses barely tell the scanner's pose from the arm's (the scanner's pose moves a millimetre, the
-    # corrections make up for it); what counts is where the flange lands when sent through both to points the
-    # scanner saw, against the world's truth: about as well as with the hand-eye calibration.
+    # The arm's calibration: its own T_base_cam, and corrections to the arm where the wide poses earn them; what
+    # counts is where the flange lands when sent through both to points the scanner saw, against the world's truth.
+    from celld.calib import kinematic as km
     from celld.calib.kinematic import arm_of
     from celld.sim.score import targeting
 
@@ -126,10 +125,13 @@ def test_calibrate_over_the_bus_then_accept(recorded_daemon) -> None:
     assert table != kin.UR10E and model.nominal == table and arm["kinematics"]["id"] == primary.table_id(table)
     assert arm["pairs"] >= 6 and 6 < arm["rank"] <= arm["parameters"] and arm["held"], arm
     aim, aim_hand_eye = targeting(recorded_daemon.world, T_arm, cfg, arm=model), targeting(recorded_daemon.world, T, cfg)
-    assert aim["calibration"]["mean_mm"] < 0.3 and aim["calibration"]["mean_mm"] < aim_hand_eye["calibration"]["mean_mm"] + 0.15, (
-        aim,
-        aim_hand_eye,
-    )
+    # This arm's table is right: a dozen poses do not earn corrections over what their noise fits (at the weld that
+    # cost 0.4-1.2 mm before the fit chose its model by cross-validation, arm["model"]), and the weld, flange down
+    # over the table, is about as well placed as by the hand-eye calibration. The bound reported there covers it.
+    assert arm["model"] in km.MODELS and set(arm["held_out_rms_mm"]) >= {"pose", "arm"}, arm
+    for where in ("calibration", "table"):
+        assert aim[where]["mean_mm"] < 0.3 and aim[where]["mean_mm"] < aim_hand_eye[where]["mean_mm"] + 0.15, (aim, aim_hand_eye)
+    assert aim["table"]["max_mm"] <= arm["bound"]["away_mm"], (aim, arm["bound"])
     saved = json.loads(Path(record["result"]).parent.parent.joinpath("jobs", reply["job"], "arm.json").read_text())
     assert len(saved["q"]) == len(saved["p_cam"]) == arm["pairs"]
     assert Path(result["dataset"], "poses.json").exists()
